@@ -1,0 +1,118 @@
+"""Run one agent node: ``python -m firmware_py --config agent_2.toml`` (or ``bess-ded agent``).
+
+Kept free of numpy/matplotlib imports so a node starts fast on a small SBC.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+
+from .config import load_agent_config
+from .errors import BessDedError
+from .faultinject import FaultyBus, RxFaults
+from .node import (
+    BusConfigError,
+    StopFlag,
+    bus_kwargs,
+    open_bus,
+    run_node,
+    with_acceptance_filter,
+)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", required=True, help="agent TOML file (firmware_py/config.py)")
+    add_bus_arguments(p)
+    add_filter_argument(p)
+    p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    add_rt_argument(p)
+    t = p.add_argument_group("fault injection on received MC frames (tests and HIL rigs)")
+    t.add_argument("--inject-rx-loss", type=float, default=0.0, metavar="P",
+                   help="drop each neighbour MC frame with probability P")
+    t.add_argument("--inject-rx-delay", type=float, default=0.0, metavar="S",
+                   help="delay neighbour MC frames by S seconds")
+    t.add_argument("--inject-rx-jitter", type=float, default=0.0, metavar="S",
+                   help="extra uniform random delay in [0, S] seconds")
+    t.add_argument("--inject-seed", type=int, default=0, help="seed of the injected faults")
+
+
+def add_bus_arguments(p: argparse.ArgumentParser) -> None:
+    """The bus flags every node shares; unset flags fall back to CAN_* variables."""
+    p.add_argument("--interface", help="python-can interface (default: $CAN_INTERFACE or "
+                   "udp_multicast)")
+    p.add_argument("--channel", help="channel, e.g. vcan0 (default: $CAN_CHANNEL)")
+    p.add_argument("--bus-config", help='extra python-can arguments as JSON, e.g. '
+                   '\'{"port": 43200}\' (default: $CAN_CONFIG)')
+
+
+def add_rt_argument(p: argparse.ArgumentParser) -> None:
+    """--rt-priority for the nodes (agent, plant, router)."""
+    p.add_argument("--rt-priority", type=int, default=0, metavar="N",
+                   help="run under SCHED_FIFO priority N (1..99) so ticks keep their deadlines "
+                   "on a loaded host; needs root or CAP_SYS_NICE (default: 0 = off)")
+
+
+def add_filter_argument(p: argparse.ArgumentParser) -> None:
+    """--[no-]acceptance-filter for the nodes (agent, plant, router)."""
+    p.add_argument("--acceptance-filter", action=argparse.BooleanOptionalAction, default=None,
+                   help="pass only the frames this node uses or sends, in the kernel "
+                   "(default: on for socketcan, as an MCU's CAN controller would; off "
+                   "elsewhere). --no-acceptance-filter lets every frame through, so the "
+                   "node counts foreign IDs too, at more CPU on a busy bus")
+
+
+def set_realtime(priority: int) -> None:
+    """SCHED_FIFO for this process: the tick preempts ordinary work (logging, other
+    programs). The loop sleeps in select between ticks, so it cannot starve the host."""
+    if not 1 <= priority <= 99:
+        raise BusConfigError(f"--rt-priority: expected 1..99, but got {priority}")
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (PermissionError, AttributeError, OSError) as e:
+        logging.getLogger(__name__).warning("--rt-priority %d not applied (%s): running with "
+                                            "normal priority", priority, e)
+
+
+def run_agent(args: argparse.Namespace) -> int:
+    from .runtime import AgentRuntime
+
+    cfg = load_agent_config(args.config)
+    agent = AgentRuntime(cfg)
+    if args.rt_priority:
+        set_realtime(args.rt_priority)
+    stop = StopFlag()
+    stop.install_signal_handlers()
+    bus = open_bus(**with_acceptance_filter(
+        bus_kwargs(args.interface, args.channel, args.bus_config), agent.io.accepted_ids(),
+        args.acceptance_filter))
+    faults = RxFaults(args.inject_rx_loss, args.inject_rx_delay, args.inject_rx_jitter,
+                      args.inject_seed)
+    node_bus = FaultyBus(bus, faults) if faults.active else bus
+    try:
+        run_node(agent, node_bus, duration=args.duration, stop=stop)
+    finally:
+        bus.shutdown()
+        print(agent.summary(), file=sys.stderr, flush=True)
+        if isinstance(node_bus, FaultyBus):
+            print(f"agent {cfg.id}: injected {node_bus.dropped} losses, {node_bus.delayed} "
+                  "delays", file=sys.stderr, flush=True)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
+    p = argparse.ArgumentParser(prog="python -m firmware_py", description=__doc__)
+    add_arguments(p)
+    args = p.parse_args(argv)
+    try:
+        return run_agent(args)
+    except BessDedError as e:
+        print(f"bess-ded agent: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,219 @@
+"""One agent's configuration: a TOML file per node, checked before the node starts.
+
+Example (``bess-ded up`` writes one per agent into DIR/agents/)::
+
+    [agent]
+    id = 2                  # 1..32, selects the AGENT_<id>_* frames
+    lambda0 = 0.6           # λ(0), cu/kWh
+    pinned = false          # hears the price in ξ (b_ii = 1)
+
+    [controller]            # firmware_py.controllers.ControllerConfig
+    kind = "reset"
+    k = 1.0
+    h = 2.0
+    ts = 0.01
+
+    [[neighbour]]
+    id = 1
+    weight = 1.0
+
+    [battery]               # λ → power setpoint
+    alpha = 0.005
+    beta = 0.18
+    m = 0.08
+    p_min = -100.0
+    p_max = 100.0
+
+    [timeouts]
+    neighbour_periods = 3   # a neighbour silent this many of its periods drops out of ξ
+    price_s = 0.25          # no valid price for this long → SAFE
+
+    [limits]
+    lambda_min = -10.0      # plausibility range for any λ or ρ received
+    lambda_max = 10.0
+
+Any bad key stops the start with ConfigError naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .controllers import ControllerConfig
+from .errors import ConfigError, ParameterError
+
+N_AGENTS_MAX = 32
+PRICE_TIMEOUT_TICKS = 25  # 0.25 s at Ts = 10 ms: five ER_Price periods
+
+
+@dataclass(frozen=True)
+class Neighbour:
+    id: int
+    weight: float = 1.0
+
+
+@dataclass(frozen=True)
+class DispatchParams:
+    """What the firmware needs to turn λ into a power setpoint."""
+
+    alpha: float
+    beta: float
+    m: float
+    p_min: float
+    p_max: float
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    id: int
+    lambda0: float
+    pinned: bool
+    controller: ControllerConfig
+    neighbours: tuple[Neighbour, ...]
+    battery: DispatchParams
+    neighbour_timeout_periods: int = 3
+    price_timeout_s: float = 0.25
+    lambda_min: float = -10.0
+    lambda_max: float = 10.0
+    source: str = "<config>"
+
+    def to_toml(self) -> str:
+        c, b = self.controller, self.battery
+        lines = ["# bess-ded agent configuration (see firmware_py/config.py)", "[agent]",
+                 f"id = {self.id}", f"lambda0 = {self.lambda0!r}",
+                 f"pinned = {'true' if self.pinned else 'false'}", "", "[controller]",
+                 f'kind = "{c.kind}"', f"k = {c.k!r}", f"h = {c.h!r}", f"ts = {c.ts!r}",
+                 f"dwell = {c.dwell!r}", f"band = {c.band!r}",
+                 f"ft_exponent = {c.ft_exponent!r}", ""]
+        for nb in self.neighbours:
+            lines += ["[[neighbour]]", f"id = {nb.id}", f"weight = {nb.weight!r}", ""]
+        lines += ["[battery]", f"alpha = {b.alpha!r}", f"beta = {b.beta!r}", f"m = {b.m!r}",
+                  f"p_min = {b.p_min!r}", f"p_max = {b.p_max!r}", "", "[timeouts]",
+                  f"neighbour_periods = {self.neighbour_timeout_periods}",
+                  f"price_s = {self.price_timeout_s!r}", "", "[limits]",
+                  f"lambda_min = {self.lambda_min!r}", f"lambda_max = {self.lambda_max!r}", ""]
+        return "\n".join(lines)
+
+
+def load_agent_config(path: str | Path) -> AgentConfig:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(str(path), "file", "expected an existing TOML file, but it does not "
+                          "exist") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(str(path), "file", f"expected valid TOML, but got: {e}") from None
+    return parse_agent_config(data, str(path))
+
+
+def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
+    def fail(key: str, problem: str) -> ConfigError:
+        return ConfigError(src, key, problem)
+
+    def table(key: str, allowed: set[str], required: bool = True) -> Mapping[str, Any]:
+        t = data.get(key)
+        if t is None and not required:
+            return {}
+        if not isinstance(t, Mapping):
+            raise fail(key, f"expected a table, but got {t!r}")
+        for k in t:
+            if k not in allowed:
+                raise fail(f"{key}.{k}",
+                           f"unknown key; expected one of {', '.join(sorted(allowed))}")
+        return t
+
+    def num(t: Mapping[str, Any], key: str, name: str, lo: float = -math.inf,
+            hi: float = math.inf, default: float | None = None) -> float:
+        if name not in t:
+            if default is None:
+                raise fail(f"{key}.{name}", "is required")
+            return default
+        x = t[name]
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+            raise fail(f"{key}.{name}", f"expected a number, but got {x!r}")
+        if not lo <= x <= hi:
+            raise fail(f"{key}.{name}", f"expected a value in [{lo:g}, {hi:g}], but got {x!r}")
+        return float(x)
+
+    def agent_id(x: Any, key: str) -> int:
+        if isinstance(x, bool) or not isinstance(x, int) or not 1 <= x <= N_AGENTS_MAX:
+            raise fail(key, f"expected an agent id in 1..{N_AGENTS_MAX}, but got {x!r}")
+        return x
+
+    for k in data:
+        if k not in {"agent", "controller", "neighbour", "battery", "timeouts", "limits"}:
+            raise fail(k, "unknown table; expected agent, controller, neighbour, battery, "
+                       "timeouts or limits")
+    a = table("agent", {"id", "lambda0", "pinned"})
+    ident = agent_id(a.get("id"), "agent.id")
+    pinned = a.get("pinned", False)
+    if not isinstance(pinned, bool):
+        raise fail("agent.pinned", f"expected true or false, but got {pinned!r}")
+
+    c = table("controller", {"kind", "k", "h", "ts", "dwell", "band", "ft_exponent"})
+    try:
+        controller = ControllerConfig(**c)
+    except ParameterError as e:
+        raise fail(f"controller.{e.name}", f"expected {e.expected}, but got {e.got!r}") from None
+    except TypeError as e:
+        raise fail("controller", str(e)) from None
+
+    raw_nbrs = data.get("neighbour", [])
+    if not isinstance(raw_nbrs, list):
+        raise fail("neighbour", f"expected [[neighbour]] tables, but got {raw_nbrs!r}")
+    neighbours = []
+    for i, nb in enumerate(raw_nbrs):
+        key = f"neighbour[{i}]"
+        if not isinstance(nb, Mapping) or set(nb) - {"id", "weight"}:
+            raise fail(key, f"expected a table with id and weight, but got {nb!r}")
+        nid = agent_id(nb.get("id"), f"{key}.id")
+        if nid == ident:
+            raise fail(f"{key}.id", f"expected another agent than this one ({ident})")
+        neighbours.append(Neighbour(nid, num(nb, key, "weight", 1e-3, 100, default=1.0)))
+    if len({n.id for n in neighbours}) != len(neighbours):
+        raise fail("neighbour", "expected each neighbour once, but got duplicates")
+
+    b = table("battery", {"alpha", "beta", "m", "p_min", "p_max"})
+    battery = DispatchParams(alpha=num(b, "battery", "alpha", 1e-9), beta=num(b, "battery", "beta"),
+                             m=num(b, "battery", "m", 0), p_min=num(b, "battery", "p_min"),
+                             p_max=num(b, "battery", "p_max"))
+    if not battery.p_min < battery.p_max:
+        raise fail("battery.p_max", f"expected p_min < p_max, but got {battery.p_min} ≥ "
+                   f"{battery.p_max}")
+    if not (-327.67 <= battery.p_min and battery.p_max <= 327.67):
+        raise fail("battery.p_max", "expected limits within ±327.67 kW (the setpoint frame)")
+
+    t = table("timeouts", {"neighbour_periods", "price_s"}, required=False)
+    lim = table("limits", {"lambda_min", "lambda_max"}, required=False)
+    cfg = AgentConfig(
+        id=ident, lambda0=num(a, "agent", "lambda0", -100, 100), pinned=pinned,
+        controller=controller, neighbours=tuple(neighbours), battery=battery,
+        neighbour_timeout_periods=int(num(t, "timeouts", "neighbour_periods", 1, 100, 3)),
+        price_timeout_s=num(t, "timeouts", "price_s", 0.01, 60, 0.25),
+        lambda_min=num(lim, "limits", "lambda_min", -127, 127, -10.0),
+        lambda_max=num(lim, "limits", "lambda_max", -127, 127, 10.0), source=src)
+    if not cfg.lambda_min < cfg.lambda0 < cfg.lambda_max:
+        raise fail("agent.lambda0", f"expected a value inside limits [{cfg.lambda_min}, "
+                   f"{cfg.lambda_max}], but got {cfg.lambda0}")
+    return cfg
+
+
+def agent_configs_from_scenario(sc: Any) -> list[AgentConfig]:
+    """One AgentConfig per agent of a sim.scenario.Scenario (used by `bess-ded up`)."""
+    out = []
+    for i in range(1, sc.n + 1):
+        b = sc.batteries[i - 1]
+        out.append(AgentConfig(
+            id=i, lambda0=sc.lambda0[i - 1], pinned=i in sc.pinned, controller=sc.controller,
+            neighbours=tuple(Neighbour(j, w) for j, w in sc.neighbours(i)),
+            battery=DispatchParams(b.alpha, b.beta, b.m, b.p_min, b.p_max),
+            # the router sends ρ every 5 Ts: 5 missed price frames mean the price is lost
+            price_timeout_s=PRICE_TIMEOUT_TICKS * sc.ts,
+            source=f"{sc.source}#agent{i}"))
+    return out

@@ -1,0 +1,299 @@
+"""The pure control core: five consensus controllers behind one interface.
+
+Each controller advances one agent by one sample Ts (forward Euler, what an MCU
+runs): ``step(state, xi) -> (state, StepOutput)``. The clock is never read and
+nothing is printed; the runtime feeds ξ and applies the output.
+
+The algorithm is written once against an ``Arithmetic`` and instantiated twice:
+``FixedArithmetic`` (int32 Q24, saturating, what the firmware runs) and
+``FloatArithmetic`` (the float twin, used to bound the quantisation error).
+
+Controllers (u is the MC rate dλ/dt; ν is the integral of ξ):
+
+* ``pc``     proportional consensus         u = −k ξ
+* ``pi``     PI without reset                u = −k ξ − h ν,  ν̇ = ξ
+* ``reset``  reset-PI (Clegg)                as pi, ν := 0 when ξ crosses zero
+* ``dwell``  reset-PI with dwell Δ           reset only if ≥ Δ since the last one
+* ``ft``     finite-time baseline            u = −k sign(ξ) |ξ|^a
+
+Discrete zero crossing: ξ went from > 0 to ≤ 0 or from < 0 to ≥ 0 between two
+samples. With quantised λ, ξ flips sign around zero almost every sample near
+equilibrium, so a plain discrete Clegg reset chatters. The *reset band* fixes
+that: after a reset, the next reset is armed only once |ξ| has exceeded the
+band. The controller start counts as a reset (ν(0) = 0), so the first dwell
+interval runs from t = 0.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from fractions import Fraction
+from typing import Protocol
+
+from . import fixedpoint as fx
+from .errors import ParameterError
+
+KINDS = ("pc", "pi", "reset", "dwell", "ft")
+
+# Default re-arm band on |ξ| (cu/kWh), ≈ 1700 LSB of Q24. Measured on cases 1, 4, 5, 7
+# (docs/performance.md): it cuts resets by 1.4–1.7× against the plain Clegg reset with
+# the same settling time. A wider band (2e-3) stalls the slow modes of case 7.
+DEFAULT_BAND = 1e-4
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Physical controller parameters, validated on construction."""
+
+    kind: str = "reset"
+    k: float = 1.0
+    h: float = 2.0
+    ts: float = 0.01
+    dwell: float = 0.0
+    band: float = DEFAULT_BAND
+    ft_exponent: float = 0.5
+    q: int = fx.Q
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ParameterError("kind", f"one of {', '.join(KINDS)}", self.kind)
+        fx.check_q(self.q)
+        _positive("ts", self.ts, upper=10.0)
+        _positive("k", self.k, upper=1e4)
+        if self.kind in ("pi", "reset", "dwell"):
+            _positive("h", self.h, upper=1e4)
+        elif not (_finite(self.h) and self.h >= 0):
+            raise ParameterError("h", "a finite number ≥ 0", self.h)
+        if not (_finite(self.dwell) and self.dwell >= 0):
+            raise ParameterError("dwell", "a finite number of seconds ≥ 0", self.dwell)
+        if self.kind == "dwell" and self.dwell < self.ts:
+            raise ParameterError("dwell", f"Δ ≥ Ts = {self.ts} s for the dwell controller",
+                                 self.dwell)
+        if not (_finite(self.band) and 0 <= self.band < 1):
+            raise ParameterError("band", "a reset band in [0, 1) cu/kWh", self.band)
+        if not (_finite(self.ft_exponent) and 0 < self.ft_exponent < 1
+                and (self.ft_exponent * 16).is_integer()):
+            raise ParameterError("ft_exponent", "a in (0, 1) that is a multiple of 1/16",
+                                 self.ft_exponent)
+        for name, product in (("k·ts", self.k * self.ts), ("h·ts", self.h * self.ts)):
+            if product >= 1 << (31 - self.q):
+                raise ParameterError(name, f"< {1 << (31 - self.q)} to fit int32 Q{self.q}",
+                                     product)
+            if 0 < product * (1 << self.q) < 1:
+                raise ParameterError(name, f"≥ one LSB (2**-{self.q}) of Q{self.q}", product)
+
+    @property
+    def dwell_samples(self) -> int:
+        """Δ as a whole number of samples (rounded up: never shorter than asked)."""
+        return math.ceil(self.dwell / self.ts - 1e-9) if self.kind == "dwell" else 0
+
+
+def _finite(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _positive(name: str, x: object, upper: float) -> None:
+    if not (_finite(x) and 0 < x <= upper):  # type: ignore[operator]
+        raise ParameterError(name, f"a finite number in (0, {upper:g}]", x)
+
+
+# --------------------------------------------------------------------------- arithmetic
+
+
+class Arithmetic(Protocol):
+    def quantise(self, x: float, name: str) -> float | int: ...
+    def real(self, v: float | int) -> float: ...
+    def mul(self, a: float | int, b: float | int) -> float | int: ...
+    def sat(self, v: float | int) -> tuple[float | int, bool]: ...
+    def frac_pow(self, v: float | int) -> float | int: ...
+
+
+class FixedArithmetic:
+    """int32 Q-format arithmetic with counted saturation."""
+
+    def __init__(self, q: int = fx.Q, exponent: float = 0.5) -> None:
+        self.q = fx.check_q(q)
+        f = Fraction(exponent).limit_denominator(16)
+        self._pow_num = f.numerator
+        self._pow_sqrts = f.denominator.bit_length() - 1  # denominator is 2**n
+
+    def quantise(self, x: float, name: str) -> int:
+        return fx.to_fixed(x, name, self.q)
+
+    def real(self, v: float | int) -> float:
+        return fx.to_float(int(v), self.q)
+
+    def mul(self, a: float | int, b: float | int) -> int:
+        return fx.mul(int(a), int(b), self.q)
+
+    def sat(self, v: float | int) -> tuple[int, bool]:
+        return fx.saturate(int(v))
+
+    def frac_pow(self, v: float | int) -> int:
+        """|v|**(p/2**n): n integer square roots, then p − 1 products."""
+        root = abs(int(v))
+        for _ in range(self._pow_sqrts):
+            root = fx.sqrt_q(root, self.q)
+        out = root
+        for _ in range(self._pow_num - 1):
+            out = fx.mul(out, root, self.q)
+        return out
+
+
+class FloatArithmetic:
+    """The float twin: same algorithm, IEEE doubles, no saturation."""
+
+    def __init__(self, exponent: float = 0.5) -> None:
+        self.exponent = exponent
+
+    def quantise(self, x: float, name: str) -> float:
+        return float(x)
+
+    def real(self, v: float | int) -> float:
+        return float(v)
+
+    def mul(self, a: float | int, b: float | int) -> float:
+        return a * b
+
+    def sat(self, v: float | int) -> tuple[float, bool]:
+        return float(v), False
+
+    def frac_pow(self, v: float | int) -> float:
+        return abs(v) ** self.exponent
+
+
+# --------------------------------------------------------------------------- state
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerState:
+    """Everything one agent's controller remembers between samples."""
+
+    lam: float | int            # λ, the marginal cost
+    nu: float | int = 0         # ν, integral of ξ since the last reset
+    xi_prev: float | int = 0    # ξ at the previous sample (zero-crossing detection)
+    armed: bool = True          # reset band: may the next crossing reset?
+    since_reset: int = 0        # samples since the last reset (the start counts as one)
+    resets: int = 0
+    saturations: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class StepOutput:
+    dlam: float | int   # λ increment applied this sample (= Ts·u), controller's format
+    reset: bool         # ν was reset at this sample
+
+
+def consensus_error(ar: Arithmetic, lam: float | int,
+                    neighbours: Sequence[tuple[float | int, float | int]],
+                    pin: float | int, price: float | int) -> tuple[float | int, bool]:
+    """ξ_i = Σ_j a_ij (λ_i − λ_j) + b_ii (λ_i − ρ). Returns (ξ, saturated?).
+
+    ``neighbours`` holds (a_ij, λ_j) for the neighbours currently alive; ``pin`` is
+    b_ii (0 when the agent does not hear the price, or the price is lost).
+    """
+    acc = ar.mul(pin, lam - price) if pin else 0
+    for weight, lam_j in neighbours:
+        acc += ar.mul(weight, lam - lam_j)
+    return ar.sat(acc)
+
+
+# --------------------------------------------------------------------------- controllers
+
+
+class Controller:
+    """Base: holds the validated config, its quantised constants, and the step."""
+
+    def __init__(self, config: ControllerConfig, fixed: bool = True) -> None:
+        self.config = config
+        self.fixed = fixed
+        self.ar: Arithmetic = (FixedArithmetic(config.q, config.ft_exponent) if fixed
+                               else FloatArithmetic(config.ft_exponent))
+        self.kts = self.ar.quantise(config.k * config.ts, "k·ts")
+        self.hts = self.ar.quantise(config.h * config.ts, "h·ts")
+        self.ts_q = self.ar.quantise(config.ts, "ts")
+        self.band = self.ar.quantise(config.band, "band")
+        self.dwell_samples = config.dwell_samples
+
+    def initial_state(self, lam0: float) -> ControllerState:
+        return ControllerState(lam=self.ar.quantise(lam0, "lambda0"))
+
+    def quantise(self, x: float, name: str = "value") -> float | int:
+        return self.ar.quantise(x, name)
+
+    def real(self, v: float | int) -> float:
+        return self.ar.real(v)
+
+    def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
+        raise NotImplementedError
+
+    def _advance(self, s: ControllerState, xi: float | int, dlam: float | int, sats: int,
+                 nu: float | int, reset: bool, armed: bool) -> tuple[ControllerState,
+                                                                     StepOutput]:
+        lam, s1 = self.ar.sat(s.lam + dlam)
+        return (ControllerState(lam=lam, nu=nu, xi_prev=xi, armed=armed,
+                                since_reset=1 if reset else s.since_reset + 1,
+                                resets=s.resets + reset, saturations=s.saturations + sats + s1),
+                StepOutput(dlam=dlam, reset=reset))
+
+
+class ProportionalController(Controller):
+    def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
+        dlam, sat = self.ar.sat(-self.ar.mul(self.kts, xi))
+        return self._advance(s, xi, dlam, sat, 0, False, s.armed)
+
+
+class FiniteTimeController(Controller):
+    def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
+        mag = self.ar.mul(self.kts, self.ar.frac_pow(xi))
+        dlam, sat = self.ar.sat(-mag if xi > 0 else mag if xi < 0 else 0)
+        return self._advance(s, xi, dlam, sat, 0, False, s.armed)
+
+
+class PIController(Controller):
+    """PI without reset; the reset variants only decide when ν is zeroed."""
+
+    def _reset_now(self, s: ControllerState, xi: float | int) -> bool:
+        return False
+
+    def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
+        reset = self._reset_now(s, xi)
+        nu = 0 if reset else s.nu
+        # re-arm once |ξ| has left the band *after* the last reset (not at the reset
+        # sample itself: in continuous time ξ = 0 there, and counting it would let a
+        # crossing detected a sample late re-arm at once and fire an echo reset)
+        armed = not reset and (s.armed or abs(xi) > self.band)
+        dlam, sat1 = self.ar.sat(-(self.ar.mul(self.kts, xi) + self.ar.mul(self.hts, nu)))
+        nu_next, sat2 = self.ar.sat(nu + self.ar.mul(self.ts_q, xi))
+        return self._advance(s, xi, dlam, sat1 + sat2, nu_next, reset, armed)
+
+
+class ResetPIController(PIController):
+    """Clegg reset: ν := 0 at a zero crossing of ξ, if re-armed by the band."""
+
+    def _reset_now(self, s: ControllerState, xi: float | int) -> bool:
+        crossed = (s.xi_prev > 0 and xi <= 0) or (s.xi_prev < 0 and xi >= 0)
+        return crossed and s.armed
+
+
+class DwellResetPIController(ResetPIController):
+    """Zeno-free variant: a crossing resets only if ≥ Δ has passed since the last reset."""
+
+    def _reset_now(self, s: ControllerState, xi: float | int) -> bool:
+        return super()._reset_now(s, xi) and s.since_reset >= self.dwell_samples
+
+
+_CLASSES: dict[str, type[Controller]] = {
+    "pc": ProportionalController,
+    "pi": PIController,
+    "reset": ResetPIController,
+    "dwell": DwellResetPIController,
+    "ft": FiniteTimeController,
+}
+
+
+def make_controller(config: ControllerConfig, fixed: bool = True) -> Controller:
+    """The controller for ``config.kind``; ``fixed=False`` gives its float twin."""
+    return _CLASSES[config.kind](config, fixed)

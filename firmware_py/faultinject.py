@@ -1,0 +1,93 @@
+"""Receive-side fault injection for tests and HIL rigs: lose, delay and jitter frames.
+
+A real bus loses and delays frames between a sender and *one* receiver; a
+broadcast medium cannot be made to do that from outside. So the fault sits
+where a flaky transceiver or a congested gateway would: between the bus and the
+node's receive path. Only frames whose ID matches are affected; every injected
+loss is counted here, and the firmware must notice it by itself (E2E counter).
+
+Delay and jitter never reorder frames of one ID: CAN delivers one sender's frames
+in order, so a frame is held until at least the release of the previous frame with
+its ID (its hold stays within [delay, delay + jitter] all the same). Out-of-order
+delivery would show up in the firmware as 15 lost frames (4-bit counter) plus stale
+data, a fault a CAN link does not produce.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import can
+
+
+@dataclass
+class RxFaults:
+    loss: float = 0.0          # probability a matching frame is dropped
+    delay: float = 0.0         # s, fixed delay added to matching frames
+    jitter: float = 0.0        # s, extra uniform random delay in [0, jitter]
+    seed: int = 0
+    match: Callable[[can.Message], bool] = field(
+        default=lambda m: 0x100 < m.arbitration_id <= 0x120)  # AGENT_i_MC frames
+
+    @property
+    def active(self) -> bool:
+        return self.loss > 0 or self.delay > 0 or self.jitter > 0
+
+
+class FaultyBus:
+    """Wraps a python-can bus; ``recv`` applies RxFaults, ``send`` passes through."""
+
+    def __init__(self, bus: can.BusABC, faults: RxFaults,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if not 0 <= faults.loss < 1:
+            raise ValueError(f"loss: expected a probability in [0, 1), but got {faults.loss}")
+        if faults.delay < 0 or faults.jitter < 0:
+            raise ValueError("delay and jitter: expected ≥ 0 s")
+        self.bus, self.faults, self.clock = bus, faults, clock
+        self.rng = random.Random(faults.seed)
+        self.pending: list[tuple[float, int, can.Message]] = []
+        self.seq = itertools.count()
+        self.last_release: dict[int, float] = {}  # per ID: keeps one sender's frames in order
+        self.dropped = 0
+        self.delayed = 0
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.bus.send(msg, timeout=timeout)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        end = None if timeout is None else self.clock() + timeout
+        while True:
+            now = self.clock()
+            if self.pending and self.pending[0][0] <= now:
+                return heapq.heappop(self.pending)[2]
+            wait = None if end is None else max(0.0, end - now)
+            if self.pending:
+                due = self.pending[0][0] - now
+                wait = due if wait is None else min(wait, due)
+            msg = self.bus.recv(timeout=wait)
+            if msg is not None:
+                f = self.faults
+                if f.match(msg):
+                    if self.rng.random() < f.loss:
+                        self.dropped += 1
+                        continue
+                    hold = f.delay + self.rng.uniform(0, f.jitter)
+                    if hold > 0:
+                        self.delayed += 1
+                        fid = msg.arbitration_id
+                        release = max(now + hold, self.last_release.get(fid, now))
+                        self.last_release[fid] = release
+                        heapq.heappush(self.pending, (release, next(self.seq), msg))
+                        continue
+                return msg
+            if end is not None and self.clock() >= end and not (
+                    self.pending and self.pending[0][0] <= self.clock()):
+                return None
+
+    def shutdown(self) -> None:
+        self.bus.shutdown()

@@ -1,0 +1,307 @@
+"""The agent runtime: neighbour table, E2E checks, timeouts and the state machine
+around the pure control core. Implements the Node seam of firmware_py.node.
+
+State machine::
+
+    INIT ──price heard──▶ RUNNING ──price lost / plant fault──▶ SAFE
+                            ▲  │                                 │
+                            │  └──ISOLATE──▶ ISOLATED            │
+                            └──RECONNECT──┘     price back, fault cleared
+
+* INIT: waiting for the first valid price; λ = λ(0) is broadcast but nobody uses it.
+* RUNNING: the consensus runs every Ts; the power setpoint follows λ.
+* ISOLATED (plug-and-play): off the network. λ := the BESS's idle MC (P = 0),
+  ν := 0, setpoint disabled. Neighbours drop it from ξ (they only use RUNNING
+  neighbours). RECONNECT re-enters the consensus from there.
+* SAFE: no valid price for ``price_timeout_s``, or the plant reports an over-current or
+  voltage fault (a SoC limit is enforced by the plant and only flagged).
+  λ is held, ν := 0, setpoint disabled (P = 0). Leaves SAFE as soon as both clear.
+
+Every frame that is rejected lands in ``counters`` under its cause; the first few
+of each cause are logged with the full reason, so nothing is dropped silently.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from enum import IntEnum
+
+import can
+
+from . import fixedpoint as fx
+from .config import AgentConfig, DispatchParams
+from .controllers import ControllerConfig, consensus_error, make_controller
+from .errors import FrameError, ParameterError, RangeError
+from .frames import DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name, status_name
+from .nodeio import NodeIO
+
+log = logging.getLogger(__name__)
+
+SETPOINT_EVERY = 5   # ticks: 50 ms at Ts = 10 ms (GenMsgCycleTime of AGENT_i_Setpoint)
+DIAG_EVERY = 10      # ticks: 100 ms (GenMsgCycleTime of AGENT_i_Diag)
+U16 = 0xFFFF
+
+
+class State(IntEnum):
+    INIT = 0
+    RUNNING = 1
+    ISOLATED = 2
+    SAFE = 3
+
+
+class Command(IntEnum):
+    ISOLATE = 1
+    RECONNECT = 2
+    SET_GAINS = 3
+
+
+@dataclass
+class NeighbourSlot:
+    id: int
+    weight: int              # a_ij in Q24
+    lam: int | None = None   # last λ_j received (Q24)
+    state: State = State.INIT
+    last_rx: float | None = None
+    alive: bool = False
+
+
+class SetpointMap:
+    """λ (Q24) → power setpoint in the frame's raw unit (0.01 kW), integer only.
+
+    P = (λ/(1+m) − β)/(2α) is affine in λ, so the firmware stores a gain G in
+    Q16 and an offset O, both computed once from the configuration:
+    P_raw = round(λ·G / 2**(24+16)) − O, then clipped to the battery limits.
+    """
+
+    GAIN_Q = 16
+
+    def __init__(self, b: DispatchParams) -> None:
+        self.gain = round(100 * (1 << self.GAIN_Q) / ((1 + b.m) * 2 * b.alpha))
+        self.offset = round(100 * b.beta / (2 * b.alpha))
+        self.lo, self.hi = round(100 * b.p_min), round(100 * b.p_max)
+        self.shift = fx.Q + self.GAIN_Q
+
+    def __call__(self, lam: int) -> tuple[int, bool]:
+        """(setpoint raw, limited?)."""
+        p = ((lam * self.gain + (1 << (self.shift - 1))) >> self.shift) - self.offset
+        if p > self.hi:
+            return self.hi, True
+        if p < self.lo:
+            return self.lo, True
+        return p, False
+
+
+class AgentRuntime:
+    """One BESS agent's firmware, minus the loop that drives it (firmware_py.node)."""
+
+    def __init__(self, cfg: AgentConfig, codec: FrameCodec | None = None) -> None:
+        self.cfg = cfg
+        self.codec = codec or FrameCodec()
+        self.period = cfg.controller.ts
+        self.ctrl = make_controller(cfg.controller, fixed=True)
+        self.cstate = self.ctrl.initial_state(cfg.lambda0)
+        self.state = State.INIT
+        self.setpoint = SetpointMap(cfg.battery)
+        self.idle_lambda = cfg.battery.beta * (1 + cfg.battery.m)
+        self.lam_min = fx.to_fixed(cfg.lambda_min, "lambda_min")
+        self.lam_max = fx.to_fixed(cfg.lambda_max, "lambda_max")
+        self.pin = fx.ONE if cfg.pinned else 0
+
+        c = self.codec
+        self.neighbours = {c.frame_id(mc_name(n.id)): NeighbourSlot(
+            n.id, fx.to_fixed(n.weight, "weight")) for n in cfg.neighbours}
+        self.price_id = c.frame_id("ER_Price")
+        self.command_id = c.frame_id("ER_Command")
+        self.status_id = c.frame_id(status_name(cfg.id))
+        self.io = NodeIO(c, f"agent {cfg.id}",
+                         own=(mc_name(cfg.id), setpoint_name(cfg.id), diag_name(cfg.id)),
+                         wanted=(self.price_id, self.command_id, self.status_id,
+                                 *self.neighbours))
+        self.counters = self.io.counters
+        self.last_error = self.io.last_error
+
+        self.price: int | None = None      # ρ, Q24
+        self.price_segment = 0
+        self.price_rx: float | None = None
+        self.plant_fault = False
+        self.power_limited = False
+        self.ticks = 0
+        self._now = 0.0
+
+    # ------------------------------------------------------------------ receive
+
+    def on_frame(self, msg: can.Message, t: float) -> None:
+        frame = self.io.receive(msg)
+        if frame is None:
+            return
+        fid = frame.frame_id
+        try:
+            if fid == self.price_id:
+                self._on_price(frame, t)
+            elif fid == self.command_id:
+                self._on_command(frame)
+            elif fid == self.status_id:
+                self._on_status(frame)
+            else:
+                self._on_mc(self.neighbours[fid], frame, t)
+        except FrameError as e:
+            self.io.reject(e.cause, str(e))
+
+    def _check_lambda(self, name: str, raw: int) -> int:
+        if not self.lam_min <= raw <= self.lam_max:
+            raise RangeError(f"{name}: expected a value in [{self.cfg.lambda_min}, "
+                             f"{self.cfg.lambda_max}] cu/kWh, but got {fx.to_float(raw):.6g}")
+        return raw
+
+    def _on_price(self, f: DecodedFrame, t: float) -> None:
+        if not f.raw["PriceValid"]:
+            return  # the router says it has no price: treated as no price frame
+        self.price = self._check_lambda("ER_Price.Rho", f.raw["Rho"])
+        self.price_segment = f.raw["Segment"]
+        self.price_rx = t
+
+    def _on_mc(self, slot: NeighbourSlot, f: DecodedFrame, t: float) -> None:
+        state = f.raw["State"]
+        if state not in State._value2member_map_:
+            raise RangeError(f"{f.name}.State: expected 0..3, but got {state}")
+        slot.lam = self._check_lambda(f"{f.name}.Lambda", f.raw["Lambda"])
+        slot.state = State(state)
+        slot.last_rx = t
+
+    def _on_command(self, f: DecodedFrame) -> None:
+        if f.raw["Target"] != self.cfg.id:
+            return
+        cmd = f.raw["Command"]
+        self.counters["commands"] += 1
+        if cmd == Command.ISOLATE and self.state != State.ISOLATED:
+            self.state = State.ISOLATED
+            self.cstate = self.ctrl.initial_state(self.idle_lambda)
+        elif cmd == Command.RECONNECT and self.state == State.ISOLATED:
+            self.state = State.INIT  # tick() moves on to RUNNING when the price is fresh
+        elif cmd == Command.SET_GAINS:
+            k, h = f.phys("GainK"), f.phys("GainH")
+            try:
+                cfg = replace(self.ctrl.config, k=k, h=h)
+            except ParameterError as e:
+                    raise RangeError(f"ER_Command SET_GAINS: {e}") from None
+            self._set_controller(cfg)
+        elif cmd not in Command._value2member_map_:
+            raise RangeError(f"ER_Command.Command: expected 1..3, but got {cmd}")
+
+    def _set_controller(self, cfg: ControllerConfig) -> None:
+        self.ctrl = make_controller(cfg, fixed=True)
+        self.cstate = replace(self.cstate, nu=0)
+
+    def _on_status(self, f: DecodedFrame) -> None:
+        r = f.raw
+        # over-current and voltage faults stop the dispatch (SAFE); a SoC limit does not:
+        # the plant already blocks further charge/discharge in that direction, and
+        # idling the BESS would keep the SoC where it is and the fault with it
+        self.plant_fault = bool(r["FaultOverCurrent"] or r["FaultVoltage"])
+        self.power_limited = bool(r["PowerLimited"] or r["FaultSoc"])
+
+    # ------------------------------------------------------------------ periodic
+
+    def note(self, event: str, count: int = 1) -> None:
+        self.counters[event] += count
+
+    @property
+    def price_ok(self) -> bool:
+        return self.price_rx is not None and self._now - self.price_rx <= self.cfg.price_timeout_s
+
+    def tick(self, t: float) -> list[can.Message]:
+        self._now = t
+        self._update_neighbours(t)
+        self._update_state()
+        if self.state == State.RUNNING:
+            nbrs = [(s.weight, s.lam) for s in self.neighbours.values()
+                    if s.alive and s.state == State.RUNNING and s.lam is not None]
+            xi, sat = consensus_error(self.ctrl.ar, self.cstate.lam, nbrs,
+                                      self.pin if self.price is not None else 0,
+                                      self.price or 0)
+            self.cstate, _ = self.ctrl.step(self.cstate, xi)
+            self.counters["saturations"] += sat
+        frames = [self._mc_frame()]
+        if self.ticks % SETPOINT_EVERY == 0:
+            frames.append(self._setpoint_frame())
+        if self.ticks % DIAG_EVERY == 0:
+            frames.append(self._diag_frame(self.ticks // DIAG_EVERY % 4))
+        self.ticks += 1
+        return frames
+
+    def _update_neighbours(self, t: float) -> None:
+        timeout = self.cfg.neighbour_timeout_periods * self.period
+        for fid, slot in self.neighbours.items():
+            alive = slot.last_rx is not None and t - slot.last_rx <= timeout
+            if slot.alive and not alive:
+                self.counters["neighbour_timeouts"] += 1
+                self.io.trackers[fid].reset()  # the counter gap of an outage aliases
+                log.info("agent %d: neighbour %d timed out", self.cfg.id, slot.id)
+            slot.alive = alive
+
+    def _update_state(self) -> None:
+        if self.state == State.ISOLATED:
+            return
+        healthy = self.price_ok and not self.plant_fault
+        if self.state == State.RUNNING and not healthy:
+            self.counters["price_timeouts" if not self.price_ok else "plant_faults"] += 1
+            log.warning("agent %d: entering SAFE (%s)", self.cfg.id,
+                        "price lost" if not self.price_ok else "plant fault")
+            self.state = State.SAFE
+            self.cstate = replace(self.cstate, nu=0, xi_prev=0)
+            if not self.price_ok:
+                self.io.trackers[self.price_id].reset()  # an outage's counter gap aliases
+        elif self.state in (State.INIT, State.SAFE) and healthy:
+            self.state = State.RUNNING
+            self.cstate = replace(self.cstate, nu=0, xi_prev=0)
+
+    # ------------------------------------------------------------------ transmit
+
+    @property
+    def neighbours_alive(self) -> int:
+        return sum(s.alive and s.state == State.RUNNING for s in self.neighbours.values())
+
+    def _mc_frame(self) -> can.Message:
+        return self.io.send(mc_name(self.cfg.id), {
+            "State": int(self.state), "Lambda": int(self.cstate.lam),
+            "Resets": self.cstate.resets % 256, "NeighboursAlive": min(self.neighbours_alive, 63),
+            "PriceOk": int(self.price_ok)})
+
+    def _setpoint_frame(self) -> can.Message:
+        enable = self.state == State.RUNNING
+        p, limited = self.setpoint(int(self.cstate.lam)) if enable else (0, False)
+        self.counters["setpoint_limited"] += limited
+        return self.io.send(setpoint_name(self.cfg.id), {"Enable": int(enable), "PowerSetpoint": p})
+
+    def diag_values(self) -> dict[str, int]:
+        c = self.counters
+        return {"Resets": self.cstate.resets, "DeadlineMisses": c["deadline_miss"],
+                "NeighboursAlive": self.neighbours_alive, "State": int(self.state),
+                "RejectedCrc": c["crc"], "RejectedDlc": c["dlc"], "RejectedRange": c["range"],
+                "RejectedUnknownId": c["unknown_id"], "RejectedImpersonation": c["impersonation"],
+                "RepeatedCounter": c["repeated_counter"], "LostFrames": c["lost_frames"],
+                "Saturations": c["saturations"] + self.cstate.saturations,
+                "NeighbourTimeouts": c["neighbour_timeouts"]}
+
+    DIAG_PAGES = (("Resets", "DeadlineMisses", "NeighboursAlive", "State"),
+                  ("RejectedCrc", "RejectedDlc", "RejectedRange"),
+                  ("RejectedUnknownId", "RejectedImpersonation", "RepeatedCounter"),
+                  ("LostFrames", "Saturations", "NeighbourTimeouts"))
+
+    def _diag_frame(self, page: int) -> can.Message:
+        values = self.diag_values()
+        raw = {name: min(values[name], U16 if name != "NeighboursAlive" else 255)
+               for name in self.DIAG_PAGES[page]}
+        return self.io.send(diag_name(self.cfg.id), {"Page": page, **raw})
+
+    # ------------------------------------------------------------------ reporting
+
+    @property
+    def lam(self) -> float:
+        return fx.to_float(int(self.cstate.lam))
+
+    def summary(self) -> str:
+        c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items()) if v) or "none"
+        return (f"agent {self.cfg.id}: state={self.state.name} λ={self.lam:.6f} "
+                f"resets={self.cstate.resets} ticks={self.ticks} counters: {c}")

@@ -1,0 +1,1 @@
+"""bess-ded simulation side: plant, energy router, scenarios, runners, reference, CLI."""

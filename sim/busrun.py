@@ -1,0 +1,383 @@
+"""`bess-ded up`: the router, the plant and every agent as separate OS processes on one bus.
+
+This process only watches: it records every frame to DIR/run.log (candump
+format), shows live progress, stops the nodes with SIGTERM at the end and
+computes the metrics from the recording alone.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+from firmware_py.config import agent_configs_from_scenario
+from firmware_py.errors import BessDedError, FrameError
+from firmware_py.frames import FrameCodec
+from firmware_py.node import bus_kwargs, open_bus
+
+from . import buslog, metrics
+from .scenario import Scenario, to_toml
+from .trajectory import Trajectory
+
+STOP_GRACE_S = 5.0     # SIGTERM → SIGKILL
+# nodes must be up (router speaking) by then. In tools/vcan-run's emulated guest a node
+# needs ~8 s of CPU to import python-can/cantools and parse the DBC (host: ~0.5 s), and
+# case 7 starts 14 of them on 2 vCPUs.
+IN_GUEST = os.environ.get("VCAN_RUN_GUEST") == "1"
+START_TIMEOUT_S = 240.0 if IN_GUEST else 60.0
+# SCHED_FIFO priority of every node process: with 14 Python nodes on 2 cores, ordinary
+# scheduling lets ticks slip past Ts/2 (≈ 2–10 % misses in case 7); real-time priority
+# keeps them < 1 % (docs/performance.md). Needs root/CAP_SYS_NICE, else ignored.
+RT_PRIORITY = 10
+
+
+class BusRunError(BessDedError):
+    pass
+
+
+@dataclass
+class BusOptions:
+    interface: str | None = None
+    channel: str | None = None
+    config: str | None = None   # JSON of extra python-can arguments
+
+    def resolved(self) -> dict[str, Any]:
+        return bus_kwargs(self.interface, self.channel, self.config)
+
+    def argv(self) -> list[str]:
+        """The same bus, as flags for a child node (resolved here so all nodes agree)."""
+        kw = self.resolved()
+        out = ["--interface", kw.pop("interface")]
+        if "channel" in kw:
+            out += ["--channel", str(kw.pop("channel"))]
+        if kw:
+            out += ["--bus-config", json.dumps(kw)]
+        return out
+
+
+@dataclass
+class NodeSpec:
+    name: str
+    argv: list[str]
+    delay: float = 0.0            # start this long after `up` starts it (fault tests)
+    proc: subprocess.Popen[bytes] | None = None
+
+
+def _die_with_parent() -> None:
+    """In the child: get SIGTERM if `up` dies, so no node outlives it (Linux only)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+class Progress(can.Listener):
+    """Live view from the frames: max|λ−ρ| and frames per second."""
+
+    def __init__(self, codec: FrameCodec, n: int) -> None:
+        self.codec, self.n = codec, n
+        self.rho: float | None = None
+        self.lam: dict[int, float] = {}
+        self.active: dict[int, bool] = {}
+        self.frames = 0
+        self.t_last_frame = 0.0  # its timestamp (wall-clock)
+        self.t_first_price: float | None = None
+        self.lock = threading.Lock()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        fid = msg.arbitration_id
+        with self.lock:
+            self.frames += 1
+            self.t_last_frame = msg.timestamp
+            if fid != 0x010 and not 0x100 < fid <= 0x100 + self.n:
+                return
+            try:
+                f = self.codec.decode(msg)
+            except FrameError:
+                return
+            if f.name == "ER_Price":
+                self.rho = f.phys("Rho")
+                if self.t_first_price is None:
+                    self.t_first_price = time.monotonic()
+            elif f.agent is not None:
+                self.lam[f.agent] = f.phys("Lambda")
+                self.active[f.agent] = f.raw["State"] in (0, 1)
+
+    def error(self) -> float | None:
+        with self.lock:
+            if self.rho is None or not self.lam:
+                return None
+            return max(abs(v - self.rho) for a, v in self.lam.items() if self.active.get(a))
+
+
+def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
+               extra: dict[str, list[str]] | None = None,
+               rt_priority: int = RT_PRIORITY) -> list[NodeSpec]:
+    """Argv for every node. Agents and plant first; the router last, since its first
+    price frame is t = 0 of the schedule. Every node runs under SCHED_FIFO
+    ``rt_priority`` where the OS allows it (0: not), as firmware on an embedded Linux
+    would; plant and router too, or the agents starve them on an overloaded host."""
+    extra = extra or {}
+    rt = ["--rt-priority", str(rt_priority)] if rt_priority else []
+    cfg_dir = out / "agents"
+    cfg_dir.mkdir(parents=True, exist_ok=True)
+    py = [sys.executable, "-m"]
+    specs = []
+    for cfg in agent_configs_from_scenario(sc):
+        path = cfg_dir / f"agent_{cfg.id}.toml"
+        path.write_text(cfg.to_toml())
+        name = f"agent_{cfg.id}"
+        specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + bus.argv()
+                              + rt + extra.get(name, [])))
+    for role in ("plant", "router"):
+        specs.append(NodeSpec(role, py + ["sim.cli", role, "--scenario", str(scenario_path),
+                                          "--period", repr(sc.ts)]
+                              + bus.argv() + rt + extra.get(role, [])))
+    return specs
+
+
+def start(spec: NodeSpec, logdir: Path) -> None:
+    # append: a node restarted mid-run (fault tests) keeps its first life's log
+    logfile = (logdir / f"{spec.name}.log").open("ab")
+    spec.proc = subprocess.Popen(spec.argv, stdout=logfile, stderr=subprocess.STDOUT,
+                                 stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+    logfile.close()
+
+
+def stop_all(specs: list[NodeSpec]) -> dict[str, int | None]:
+    """SIGTERM every node, wait for a clean exit, SIGKILL what is left. Returns exit codes."""
+    for s in specs:
+        if s.proc is not None and s.proc.poll() is None:
+            s.proc.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + STOP_GRACE_S
+    codes: dict[str, int | None] = {}
+    for s in specs:
+        if s.proc is None:
+            codes[s.name] = None
+            continue
+        try:
+            codes[s.name] = s.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            s.proc.kill()
+            codes[s.name] = s.proc.wait()
+    return codes
+
+
+@dataclass
+class Recording:
+    """What a bus run leaves: its metrics and the decoded log they came from."""
+
+    metrics: dict[str, Any]
+    log: buslog.LogContents
+    trajectory: Trajectory
+
+
+def run(sc: Scenario, out: Path, bus: BusOptions, **kw: Any) -> dict[str, Any]:
+    """``record`` and return the metrics only."""
+    return record(sc, out, bus, **kw).metrics
+
+
+def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = None,
+           extra: dict[str, list[str]] | None = None, delays: dict[str, float] | None = None,
+           quiet: bool = False, rt_priority: int = RT_PRIORITY,
+           actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]] = (),
+           plot: bool = True) -> Recording:
+    """Run the scenario on the bus for ``duration`` s of price time (default: the
+    scenario's). ``extra`` adds argv per node (fault flags),
+    ``delays`` starts a node late (s after t = 0), ``actions`` calls
+    ``action(specs, logdir)`` once at t s after t = 0 (fault tests: kill or restart a
+    node through ``spec.proc`` / ``start``; whatever is in ``spec.proc`` at the end is
+    stopped as usual). ``plot=False`` skips bus_run.png (matplotlib's import and render
+    cost ~20 s in the QEMU guest)."""
+    out.mkdir(parents=True, exist_ok=True)
+    duration = sc.duration if duration is None else duration
+    # the nodes read exactly what ran: variants resolved, time scale applied
+    scenario_path = out / "scenario.toml"
+    scenario_path.write_text(to_toml(sc))
+    logdir = out / "logs"
+    logdir.mkdir(exist_ok=True)
+    codec = FrameCodec()
+    specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority)
+    for s in specs:
+        s.delay = (delays or {}).get(s.name, 0.0)
+    watch = open_bus(**{**bus.resolved(), "receive_own_messages": False})
+    _enlarge_receive_buffer(watch)
+    writer = can.Logger(str(out / "run.log"))
+    progress = Progress(codec, sc.n)
+    notifier = can.Notifier(watch, [writer, progress])
+    try:
+        # All at once (the router last): started one after the other, each would start
+        # while the others already run, which in the QEMU guest took ~40 s per node.
+        for s in specs:
+            if s.delay == 0:
+                start(s, logdir)
+        t_start = time.monotonic()
+        while progress.t_first_price is None:
+            if time.monotonic() - t_start > START_TIMEOUT_S:
+                raise BusRunError(f"no price frame within {START_TIMEOUT_S:.0f} s: see "
+                                  f"{logdir}/router.log")
+            _check_alive(specs, logdir)
+            time.sleep(0.05)
+        t0 = progress.t_first_price
+        last_print, frames_then, t_then = 0.0, progress.frames, time.monotonic()
+        tty = sys.stderr.isatty()
+        pending = sorted(actions, key=lambda a: a[0])
+        while (now := time.monotonic()) - t0 < duration:
+            while pending and now - t0 >= pending[0][0]:
+                pending.pop(0)[1](specs, logdir)
+            for s in specs:
+                if s.proc is None and now - t0 >= s.delay > 0:
+                    start(s, logdir)
+            if not quiet and now - last_print >= (0.5 if tty else 5.0):
+                last_print = now
+                err = progress.error()
+                rate = (progress.frames - frames_then) / max(now - t_then, 1e-9)
+                frames_then, t_then = progress.frames, now
+                print(("\r" if tty else "") + f"  t = {now - t0:6.1f} / {duration:.0f} s   "
+                      f"max|λ−ρ| = {'   n/a  ' if err is None else f'{err:.2e}'}   "
+                      f"frames/s = {rate:6.0f}", end="" if tty else "\n", file=sys.stderr,
+                      flush=True)
+            time.sleep(0.05)
+        if not quiet and tty:
+            print(file=sys.stderr)
+    finally:
+        codes = stop_all(specs)
+        _drain(progress)
+        notifier.stop()
+        writer.stop()
+        watch.shutdown()
+    return summarise(sc, out, codec, codes, plot)
+
+
+RECORDER_QUIET_S = 0.5  # the recorder is done when no frame came for this long
+
+
+def _drain(progress: Progress) -> None:
+    """After the nodes have stopped, let the recorder read what its socket still queues:
+    in the loaded QEMU guest it ran up to ~40 s behind the bus (case 7), and stopping
+    it at once cut that off the log. Done when it has read a frame stamped after the
+    stop (the queue is FIFO; other senders may go on) or nothing came for a while."""
+    t_stop = time.time()  # frame timestamps are wall-clock
+    deadline = time.monotonic() + START_TIMEOUT_S
+    last, t_last = -1, time.monotonic()
+    while time.monotonic() < deadline and progress.t_last_frame < t_stop:
+        n = progress.frames
+        if n != last:
+            last, t_last = n, time.monotonic()
+        elif time.monotonic() - t_last >= RECORDER_QUIET_S:
+            return
+        time.sleep(0.05)
+
+
+RECORDER_RCVBUF = 16 << 20  # bytes: ~20k CAN frames (an skb per frame) of slack
+
+
+def _enlarge_receive_buffer(bus: can.BusABC) -> None:
+    """The recorder runs at normal priority beside real-time nodes: when they take the
+    CPU, the kernel queues the frames for it here instead of dropping them (a socketcan
+    socket holds only ~200 frames by default). Other interfaces are left as they are."""
+    sock = getattr(bus, "socket", None)
+    if not isinstance(sock, socket.socket):
+        return
+    for opt in (getattr(socket, "SO_RCVBUFFORCE", 33), socket.SO_RCVBUF):  # FORCE: root
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, opt, RECORDER_RCVBUF)
+            return
+        except OSError:
+            continue
+
+
+def _check_alive(specs: list[NodeSpec], logdir: Path) -> None:
+    for s in specs:
+        if s.proc is not None and s.proc.poll() is not None:
+            tail = (logdir / f"{s.name}.log").read_text(errors="replace")[-800:]
+            raise BusRunError(f"node {s.name} exited with code {s.proc.returncode} before the "
+                              f"run started:\n{tail}")
+
+
+def summarise(sc: Scenario, out: Path, codec: FrameCodec,
+              codes: dict[str, int | None], plot: bool = True) -> Recording:
+    log = buslog.read_log(out / "run.log", codec)
+    tr = buslog.trajectory_from_log(sc, log)
+    m = metrics.compute(sc, tr)
+    m.update({
+        "source": "bus",
+        "frames_recorded": log.frames,
+        "frames_undecodable": dict(log.undecodable),
+        "frames_missed_by_recorder": sum(log.counter_gaps.values()),
+        "node_diagnostics": buslog.node_diagnostics(log),
+        "deadline_misses": {k: v.get("DeadlineMisses", 0)
+                            for k, v in buslog.node_diagnostics(log).items()},
+        "exit_codes": codes,
+    })
+    (out / "metrics.json").write_text(json.dumps(m, indent=2, default=float))
+    tr.write_csv(out / "trajectory.csv")
+    if plot:
+        from . import plots
+
+        plots.figure([("over the CAN bus", tr)], ("lam", "p", "grid"), out / "bus_run.png",
+                     title=sc.title or sc.name, load_kw=sc.load_kw, t_max=None)
+    return Recording(m, log, tr)
+
+
+def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bess-ded",
+                   plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = ()
+                   ) -> dict[str, Any]:
+    """The same nodes as `up`, as threads on python-can's in-process ``virtual`` bus.
+
+    Each node gets its own bus instance (as it would its own process), so frames
+    really cross the bus; only the OS processes are missing. Used by the tests
+    and for quick experiments; records DIR/run.log and returns the metrics.
+    """
+    from firmware_py.node import StopFlag, run_node
+    from firmware_py.runtime import AgentRuntime
+
+    from .plant import PlantNode
+    from .router import RouterNode
+
+    out.mkdir(parents=True, exist_ok=True)
+    codec = FrameCodec()
+    nodes: list[Any] = [AgentRuntime(c, codec) for c in agent_configs_from_scenario(sc)]
+    nodes.append(PlantNode(sc, faults=plant_faults))
+    router = RouterNode(sc, silent=router_silent)
+    kw: dict[str, Any] = {"interface": "virtual", "channel": channel,
+                          "receive_own_messages": False}
+    watch = can.Bus(**kw)
+    writer = can.Logger(str(out / "run.log"))
+    notifier = can.Notifier(watch, [writer])
+    stop = StopFlag()
+    buses = [can.Bus(**kw) for _ in range(len(nodes) + 1)]
+    threads = [threading.Thread(target=run_node, args=(node, bus), kwargs={"stop": stop},
+                                daemon=True) for node, bus in zip(nodes, buses, strict=False)]
+    # the router starts last and runs for the duration: its first price frame is t = 0
+    threads.append(threading.Thread(target=run_node, args=(router, buses[-1]),
+                                    kwargs={"stop": stop, "duration": duration}, daemon=True))
+    try:
+        for th in threads:
+            th.start()
+        threads[-1].join()
+    finally:
+        stop.set()
+        for th in threads:
+            th.join(timeout=5)
+        notifier.stop()
+        writer.stop()
+        for bus in [*buses, watch]:
+            bus.shutdown()
+    m = summarise(sc, out, codec, {}).metrics
+    m["node_summaries"] = [n.summary() for n in [*nodes, router]]
+    return m

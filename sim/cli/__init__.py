@@ -1,0 +1,116 @@
+"""The ``bess-ded`` command line. Each subcommand lives in its own module here.
+
+Adding a subcommand ``NAME``:
+
+1. create ``sim/cli/NAME.py`` with::
+
+       def register(sub: argparse._SubParsersAction) -> None:
+           p = sub.add_parser("NAME", help="one line for `bess-ded -h`", description=__doc__)
+           p.add_argument(...)
+           p.set_defaults(func=run)
+
+       def run(args: argparse.Namespace) -> int:   # the exit code
+           ...
+
+2. add ``"NAME"`` to ``COMMANDS`` below (the order is the order of ``bess-ded -h``).
+
+Keep ``register`` cheap (import heavy modules inside ``run``): every invocation
+registers every subcommand. Raise a ``BessDedError`` for anything the user can fix;
+``main`` prints it as ``bess-ded: error: <message>`` and exits with 2, no traceback.
+A name listed here whose module does not exist yet is skipped, so a command can be
+listed before it lands; a module that fails to import is listed as unavailable and
+fails when used, without breaking the other commands.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+from collections.abc import Sequence
+
+from firmware_py.errors import BessDedError
+
+PROG = "bess-ded"
+EXIT_ERROR = 2
+
+COMMANDS: tuple[str, ...] = (
+    "case",      # one scenario in the lockstep simulator: metrics, trajectory, figures
+    "compare",   # every controller on one scenario
+    "bench",     # micro-benchmarks of the control core and the simulator
+    "up",        # a whole case as processes on a CAN bus
+    "agent",     # one agent firmware node
+    "plant",     # the plant simulator node
+    "router",    # the energy-router (price) node
+    "inject",    # crafted bad frames for fault-injection tests
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=PROG, description="Distributed economic dispatch for batteries: reset-PI "
+        "marginal-cost consensus, simulated or as CAN nodes.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMANDS:
+        try:
+            module = importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as e:
+            if e.name == f"{__name__}.{name}":
+                continue  # listed, not written yet
+            _register_broken(sub, name, e)
+            continue
+        except Exception as e:  # a module mid-edit must not take the other commands down
+            _register_broken(sub, name, e)
+            continue
+        module.register(sub)
+    return parser
+
+
+def _register_broken(sub: argparse._SubParsersAction, name: str, exc: Exception) -> None:
+    """A command whose module fails to import: listed, and fails loudly when used."""
+    reason = f"{type(exc).__name__}: {exc}"
+
+    def run(args: argparse.Namespace) -> int:
+        raise BessDedError(f"command {name!r} is unavailable: its module failed to import "
+                           f"({reason})")
+
+    p = sub.add_parser(name, help=f"(unavailable: {reason})", add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=run)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the console script; returns the exit code (also when called
+    in-process, e.g. from tests: argparse's own exits are turned into return codes)."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help (0) or a usage error (2), already printed
+        return e.code if isinstance(e.code, int) else EXIT_ERROR
+    try:
+        return int(args.func(args) or 0)
+    except BessDedError as e:
+        _error(str(e))
+    except BrokenPipeError:  # `bess-ded ... | head`: the reader left, nothing to report
+        _silence_stdout()
+        return 1
+    except OSError as e:  # an unwritable --out, a missing file: the user's to fix
+        _error(f"{e.strerror or e}: {e.filename}" if e.filename else str(e))
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+    return EXIT_ERROR
+
+
+def _error(message: str) -> None:
+    one_line = " ".join(message.split())
+    print(f"{PROG}: error: {one_line}", file=sys.stderr)
+
+
+def _silence_stdout() -> None:
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass

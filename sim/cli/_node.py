@@ -1,0 +1,66 @@
+"""Helpers shared by the node subcommands ``plant`` and ``router`` (not a subcommand)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import sys
+from typing import Any
+
+from firmware_py.__main__ import add_bus_arguments, add_filter_argument, add_rt_argument
+from firmware_py.errors import ParameterError
+
+
+def add_node_arguments(p: argparse.ArgumentParser) -> None:
+    """--case N | --scenario FILE, the bus flags, --duration, --period."""
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--case", metavar="N", help="a paper case, 1..7 (sim/scenarios/caseN.toml)")
+    src.add_argument("--scenario", metavar="FILE", help="a scenario .toml (docs/scenarios.md)")
+    add_bus_arguments(p)
+    add_filter_argument(p)
+    add_rt_argument(p)
+    p.add_argument("--duration", type=float, metavar="S",
+                   help="stop after S seconds (default: run until SIGINT/SIGTERM)")
+    p.add_argument("--period", type=float, default=0.01, metavar="S",
+                   help="tick period of the node (default: 0.01 s)")
+
+
+def load_node_scenario(args: argparse.Namespace) -> Any:
+    from ..scenario import load_case, load_scenario
+
+    for name in ("duration", "period"):
+        v = getattr(args, name)
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise ParameterError(f"--{name}", "a positive number of seconds", v)
+    if args.case is not None:
+        if not args.case.isdigit():
+            raise ParameterError("--case", "a case number (use --scenario for a file)", args.case)
+        return load_case(int(args.case))
+    return load_scenario(args.scenario)
+
+
+def serve(node: Any, args: argparse.Namespace) -> int:
+    """Run ``node`` on the bus the flags name until --duration or SIGINT/SIGTERM; always
+    shut the bus down and print the node's summary to stderr."""
+    from firmware_py.__main__ import set_realtime
+    from firmware_py.node import StopFlag, bus_kwargs, open_bus, run_node, with_acceptance_filter
+
+    if args.rt_priority:
+        set_realtime(args.rt_priority)
+    stop = StopFlag()
+    bus = open_bus(**with_acceptance_filter(
+        bus_kwargs(args.interface, args.channel, args.bus_config), node.io.accepted_ids(),
+        args.acceptance_filter))
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        stop.install_signal_handlers()
+        run_node(node, bus, duration=args.duration, stop=stop)
+    finally:
+        try:
+            for s, h in previous.items():  # in-process callers (tests) get theirs back
+                signal.signal(s, h)
+        finally:
+            bus.shutdown()
+            print(node.summary(), file=sys.stderr, flush=True)
+    return 0

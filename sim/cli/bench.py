@@ -1,0 +1,279 @@
+"""`bess-ded bench [--quick]`: how fast the control core and the simulator run.
+
+Not a test (nothing passes or fails): numbers for docs/performance.md, with the
+machine they were measured on. Each section is one function in BENCHES; the
+timings are medians over repetitions, with the garbage collector off while timing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from firmware_py.controllers import Controller, ControllerState, consensus_error
+
+from ._common import table, write_json
+
+
+@dataclass
+class Table:
+    """One section of the bench output."""
+
+    title: str
+    headers: list[str]
+    rows: list[list[str]]
+    note: str = ""
+    data: dict[str, Any] = field(default_factory=dict)  # machine-readable, for --json
+
+
+# A bench section: quick flag → Table. Keep `--quick` sections to a few seconds each.
+Bench = Callable[[bool], Table]
+
+
+# --------------------------------------------------------------------------- sections
+
+
+def controller_step(quick: bool) -> Table:
+    """µs per agent step: consensus_error + controller.step, every kind, fixed and float.
+
+    The input is realistic: the hub of case 1 (agent 1 of the star: three neighbours
+    plus the price, the most work any agent there does), fed the λ its neighbours
+    held in a lockstep run, sample by sample: the transient, the resets and the
+    settled tail, so branches are taken as in a real run.
+    """
+    from firmware_py.controllers import KINDS, ControllerConfig, make_controller
+
+    from ..lockstep import run_lockstep
+    from ..scenario import load_case
+
+    sc = load_case(1)
+    tr = run_lockstep(sc, fixed=False)
+    samples = tr.t.size
+    reps = 7 if quick else 41
+    hub = 0
+    others = [j for j in range(sc.n) if j != hub]
+    rho = float(tr.rho[0])
+
+    cells = []  # (kind, arithmetic, timing arguments)
+    for kind in KINDS:
+        cfg = ControllerConfig(kind=kind, k=sc.controller.k, h=sc.controller.h, ts=sc.ts,
+                               dwell=1.0 if kind == "dwell" else 0.0)
+        for fixed in (True, False):
+            ctrl = make_controller(cfg, fixed)
+            q = ctrl.quantise
+            w = q(1.0, "weight")
+            inputs = [(q(float(tr.lam[k, hub])),
+                       [(w, q(float(tr.lam[k, j]))) for j in others]) for k in range(samples)]
+            args = (ctrl, inputs, q(1.0, "pin"), q(rho, "rho"),
+                    ctrl.initial_state(sc.lambda0[hub]))
+            _time_steps(*args)  # warm up
+            cells.append((kind, "fixed" if fixed else "float", args))
+
+    # Repetitions round-robin over the cells, so a burst of load from another process
+    # hits every cell alike instead of skewing one; the median drops the outliers.
+    times: dict[tuple[str, str], list[float]] = {(k, a): [] for k, a, _ in cells}
+    for _ in range(reps):
+        for kind, arith, args in cells:
+            times[kind, arith].append(_time_steps(*args) / samples / 1e3)
+    results: dict[str, dict[str, float]] = {}
+    for (kind, arith), us in times.items():
+        results.setdefault(kind, {})[arith] = statistics.median(us)
+
+    rows = [[kind, f"{r['fixed']:.2f}", f"{r['float']:.2f}", f"{r['fixed'] / r['float']:.2f}"]
+            for kind, r in results.items()]
+    return Table("Agent step (consensus_error + step), µs, median",
+                 ["controller", "fixed Q24", "float", "fixed/float"], rows,
+                 note=f"hub of case 1 (3 neighbours + price), {samples} samples × {reps} "
+                 "repetitions per cell",
+                 data={"us_per_step": results, "samples": samples, "repetitions": reps})
+
+
+def _time_steps(ctrl: Controller, inputs: list[tuple[Any, list[tuple[Any, Any]]]], pin: Any,
+                price: Any, state0: ControllerState) -> int:
+    """ns for one agent to run ξ + step over every input sample, as the runtime does."""
+    ar, step = ctrl.ar, ctrl.step
+    s = state0
+    t0 = time.perf_counter_ns()
+    for lam_i, nbrs in inputs:
+        x, _ = consensus_error(ar, lam_i, nbrs, pin, price)
+        s, _ = step(s, x)
+    return time.perf_counter_ns() - t0
+
+
+def lockstep_speed(quick: bool) -> Table:
+    """Simulated seconds per wall-clock second of the lockstep runner (fixed point)."""
+    from ..lockstep import run_lockstep
+    from ..scenario import load_case
+
+    reps = 1 if quick else 5
+    rows, data = [], {}
+    for case in (1, 7):
+        sc = load_case(case)
+        walls = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            run_lockstep(sc, fixed=True)
+            walls.append(time.perf_counter() - t0)
+        wall = statistics.median(walls)
+        agent_steps = sc.n * (sc.steps + 1)
+        rows.append([sc.name, str(sc.n), f"{sc.duration:g}", f"{wall:.3f}",
+                     f"{sc.duration / wall:.0f}", f"{wall / agent_steps * 1e6:.1f}"])
+        data[sc.name] = {"agents": sc.n, "simulated_s": sc.duration, "wall_s": wall,
+                         "sim_s_per_wall_s": sc.duration / wall,
+                         "us_per_agent_step": wall / agent_steps * 1e6}
+    return Table("Lockstep simulator, fixed point, Ts = 10 ms",
+                 ["case", "agents", "simulated [s]", "wall [s]", "sim s / wall s",
+                  "µs / agent step"], rows,
+                 note=f"median of {reps} run(s); includes recording the trajectory",
+                 data=data)
+
+
+def codec_speed(quick: bool) -> Table:
+    """µs to encode and to decode (E2E checks included) one frame of each kind."""
+    from firmware_py.frames import FrameCodec
+
+    codec = FrameCodec()
+    samples = {
+        "AGENT_1_MC": {"State": 1, "Lambda": 13421773, "Resets": 3, "NeighboursAlive": 3,
+                       "PriceOk": 1},
+        "ER_Price": {"PriceValid": 1, "Rho": 13421773, "Segment": 0},
+        "AGENT_1_Setpoint": {"Enable": 1, "PowerSetpoint": 6592},
+    }
+    n = 2000 if quick else 20000
+    rows, data = [], {}
+    for name, raw in samples.items():
+        msg = codec.encode(name, raw, 5)
+        t_enc = _median_us(partial(codec.encode, name, raw, 5), n)
+        t_dec = _median_us(partial(codec.decode, msg), n)
+        rows.append([name, f"{t_enc:.2f}", f"{t_dec:.2f}"])
+        data[name] = {"encode_us": t_enc, "decode_us": t_dec}
+    return Table("Frame codec (firmware_py.frames), µs per frame, median",
+                 ["message", "encode", "decode (E2E + range checks)"], rows, data=data)
+
+
+def _median_us(fn: Callable[[], object], n: int, reps: int = 5) -> float:
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        for _ in range(n):
+            fn()
+        times.append((time.perf_counter() - t0) / n * 1e6)
+    return statistics.median(times)
+
+
+# worst-case length of a classic CAN data frame with an 11-bit ID and 8 data bytes,
+# bit stuffing included: 47 + 64 + floor((34 + 64 − 1)/4) = 135 bits
+FRAME_BITS = 135
+BITRATE = 500_000
+
+
+def bus_load(quick: bool) -> Table:
+    """Frames/s and worst-case bus load at 500 kbit/s from the DBC's cycle times.
+
+    The MC frame goes out every Ts; the other cycles are the DBC's (fixed).
+    """
+    from firmware_py.frames import FrameCodec
+
+    db = FrameCodec().database
+    cycle = {m.name: m.cycle_time for m in db.messages if m.cycle_time}
+    per_agent_fixed = sum(1000 / cycle[name] for name in
+                          ("AGENT_1_Setpoint", "PLANT_1_Status", "AGENT_1_Diag"))
+    shared = 1000 / cycle["ER_Price"] + 1000 / cycle["ER_Balance"]
+    rows, data = [], {}
+    for label, n, ts_ms in (("cases 1-6", 4, 10), ("case 7", 12, 10),
+                            ("32 agents", 32, 10), ("32 agents", 32, 40)):
+        fps = shared + n * (1000 / ts_ms + per_agent_fixed)
+        load = fps * FRAME_BITS / BITRATE
+        rows.append([label, str(n), str(ts_ms), f"{fps:.0f}", f"{100 * load:.1f} %"])
+        data[f"{label} Ts={ts_ms}ms"] = {"agents": n, "ts_ms": ts_ms, "frames_per_s": fps,
+                                         "load": load}
+    return Table("CAN bus load (DBC cycle times, 135-bit worst-case frames, 500 kbit/s)",
+                 ["scenario", "agents", "Ts [ms]", "frames/s", "bus load"], rows,
+                 note="32 agents do not fit at Ts = 10 ms; Ts = 40 ms keeps the load < 70 %",
+                 data=data)
+
+
+# Sections in print order. To add one (bus load, frame codec, ...): write a
+# `def name(quick: bool) -> Table` above and append it here.
+BENCHES: list[Bench] = [
+    controller_step,
+    lockstep_speed,
+    codec_speed,
+    bus_load,
+]
+
+
+# --------------------------------------------------------------------------- command
+
+
+def machine_info() -> dict[str, Any]:
+    import numpy
+
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        cpu = platform.processor() or "unknown"
+    try:
+        load = round(os.getloadavg()[0], 2)
+    except OSError:
+        load = None
+    return {"python": f"{platform.python_version()} ({platform.python_implementation()})",
+            "platform": platform.platform(), "cpu": cpu, "logical_cpus": os.cpu_count(),
+            "numpy": numpy.__version__, "load_average_1min": load}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="micro-benchmarks: µs per agent step, simulator speed",
+                       description=__doc__)
+    p.add_argument("--quick", action="store_true",
+                   help="fewer samples and repetitions: the whole bench in a few seconds")
+    p.add_argument("--json", type=Path, metavar="FILE", help="also write the results as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    info = machine_info()
+    print(f"bess-ded bench{' --quick' if args.quick else ''}")
+    print(f"  python {info['python']}, {info['platform']}")
+    print(f"  CPU {info['cpu']} ({info['logical_cpus']} logical), numpy {info['numpy']}, "
+          f"load average {info['load_average_1min']} at start")
+    tables = []
+    for bench in BENCHES:
+        was_enabled = gc.isenabled()
+        gc.collect()
+        gc.disable()
+        try:
+            tab = bench(args.quick)
+        finally:
+            if was_enabled:
+                gc.enable()
+        tables.append(tab)
+        print()
+        print(tab.title)
+        print(table(tab.headers, tab.rows))
+        if tab.note:
+            print(f"  ({tab.note})")
+        sys.stdout.flush()
+    print()
+    print(f"bench took {time.perf_counter() - t0:.1f} s")
+    if args.json:
+        write_json(args.json, {"machine": info, "quick": args.quick, "tables": [
+            {"title": t.title, "headers": t.headers, "rows": t.rows, "data": t.data}
+            for t in tables]})
+        print(f"wrote {args.json}")
+    return 0

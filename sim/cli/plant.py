@@ -1,0 +1,30 @@
+"""`bess-ded plant`: the plant simulator node, one battery + DC-DC chopper per BESS.
+
+Follows AGENT_<i>_Setpoint frames and publishes PLANT_<i>_Status every 20 ms
+(model and constants: sim/plant.py). Prints its counters to stderr at exit.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from ._node import add_node_arguments
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("plant", help="run the plant simulator node (battery + chopper per BESS)",
+                       description=__doc__)
+    add_node_arguments(p)
+    p.add_argument("--fault", action="append", default=[], metavar="AGENT:KIND:T0:T1",
+                   help="force a fault flag on BESS AGENT from T0 to T1 s after start; KIND is "
+                   "overcurrent, voltage, soc or power_limit (repeatable)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..plant import PlantFault, PlantNode
+    from ._node import load_node_scenario, serve
+
+    sc = load_node_scenario(args)
+    faults = [PlantFault.parse(f).check(sc.n) for f in args.fault]
+    return serve(PlantNode(sc, period=args.period, faults=faults), args)

@@ -1,0 +1,30 @@
+"""`bess-ded router`: the energy-router node: price ρ(t), commands, grid and cost ledger.
+
+Broadcasts ER_Price every 50 ms (t = 0 of the schedule is its first tick), sends
+the scenario's ISOLATE/RECONNECT commands at their times, and ER_Balance every
+100 ms (sim/router.py). Prints the cost ledger and counters to stderr at exit.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from ._node import add_node_arguments
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("router", help="run the energy-router node (price, commands, balance)",
+                       description=__doc__)
+    add_node_arguments(p)
+    p.add_argument("--silent", action="append", default=[], metavar="T0:T1",
+                   help="send nothing from T0 to T1 s after start (fault test; repeatable)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..router import RouterNode, SilentWindow
+    from ._node import load_node_scenario, serve
+
+    sc = load_node_scenario(args)
+    silent = [SilentWindow.parse(w) for w in args.silent]
+    return serve(RouterNode(sc, period=args.period, silent=silent), args)

@@ -1,0 +1,410 @@
+"""The plant simulator node (``PLANT``): every BESS's battery and DC-DC chopper.
+
+One node simulates the whole fleet, because on the bus the plant is one DBC node
+(``PLANT_<i>_Status`` for every i). It takes ``AGENT_<i>_Setpoint`` frames and
+publishes ``PLANT_<i>_Status`` every 50 ms; nothing else couples it to the agents,
+so real choppers speaking the same frames can replace it (docs/deployment.md).
+
+Physical model, per BESS (units: kW, V, A, s; P > 0 = discharge into the grid)
+----------------------------------------------------------------------------------
+
+* Chopper current loop: first order, time constant ``TAU_S`` = 50 ms (a closed
+  inner current loop of a 100 kW-class DC-DC converter with its outer power loop:
+  slow enough that 50 ms setpoint steps are smoothed, far faster than the
+  consensus, which settles in seconds). Discretised exactly for the actual elapsed time dt
+  between ticks, with the reference latched at the previous tick (zero-order hold):
+  ``I += (1 − exp(−dt/τ))·(I_ref − I)``.
+* Reference: ``I_ref = P_ref / V`` with V the terminal voltage at the tick, so
+  in steady state the delivered power V·I equals P_ref.
+* Current limit: ``I_max = 1.1 · max(|p_min|, p_max) / (0.9 · v_nom)``: the rated
+  power at the lowest open-circuit voltage (SoC = 0), plus a 10 % margin, so
+  rated power is reachable at every SoC and the limit only engages on abnormal
+  references (for the bundled cases |p_min| = p_max, so this is p_max/(0.9·v_nom)·1.1).
+* Power limits: P_ref is clipped to [p_min, p_max].
+* Open-circuit voltage: ``V_oc(SoC) = v_nom · (0.9 + 0.2·SoC)`` (linear, ±10 %
+  around v_nom at 50 % SoC, the usual flat-ish middle of a Li-ion pack's curve).
+  Terminal voltage ``V = V_oc − R·I`` (R = r_internal).
+* State of charge: ``dSoC/dt = −P_cell / (3600 · capacity_kwh)`` with the cell
+  power ``P_cell = P + π·|P|`` and the paper's inner loss ratio taken literally as a
+  per-unit loss ``π = α|P| + β`` (α in 1/kW, β dimensionless, their numeric values
+  from the scenario). Assumption: the paper gives π only as a cost-model term; we
+  read it as the fraction of the terminal power lost inside the pack, in both
+  directions (discharging draws P + loss from the cells, charging stores |P| − loss).
+  The R·I² drop is considered part of that loss, not counted twice. With the
+  bundled coefficients the loss is large (β = 0.2 means 20 %), but over a 50 s
+  scenario the SoC moves by well under 1 %: the SoC is for the status frame and
+  the SoC protection, the consensus does not use it. Integrated with the trapezoid
+  rule over each tick; clamped to [0, 1].
+* Protections (flags of ``PLANT_<i>_Status``):
+  - ``PowerLimited``: the setpoint had to be clipped (p_min/p_max, the SoC
+    protection below, or an injected power limit) or the current limit engaged;
+  - ``FaultSoc``: SoC outside [``SOC_MIN``, ``SOC_MAX``] = [0.05, 0.95]; while low,
+    further discharge is blocked (P_ref ≤ 0); while high, further charge (P_ref ≥ 0);
+  - ``FaultVoltage``: V outside [0.8, 1.2]·v_nom;
+  - ``FaultOverCurrent``: only by fault injection (the reference is limited to
+    I_max and a first-order loop cannot overshoot, so the model never trips by itself).
+
+Setpoint reception (E2E, like the agent runtime): a frame failing decode (CRC,
+DLC, range, ...) is rejected and counted under its cause; a repeated counter is
+no new data (``repeated_counter``); counter gaps count ``lost_frames``. A BESS whose
+last accepted setpoint is older than ``SETPOINT_TIMEOUT_CYCLES`` = 5 setpoint cycles
+(250 ms; the cycle is the DBC's 50 ms, or 5·Ts when a time-scaled scenario
+stretches the agents' Ts) gets P_ref = 0: the current loop ramps it down with τ.
+Each fresh→stale transition counts one ``setpoint_timeouts``. ``Enable = 0`` also
+means P_ref = 0. Before the first setpoint a BESS holds 0 kW (not a timeout).
+
+Fault injection (tests): ``faults`` = (agent, kind, t_start, t_end) windows in
+seconds from the node's first tick; while one is active the flag is forced:
+``overcurrent`` → FaultOverCurrent, ``voltage`` → FaultVoltage, ``soc`` → FaultSoc
+(flags only, the physics is untouched), ``power_limit`` → the BESS's power is
+clamped to ±50 % of p_max and PowerLimited is set.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import can
+
+from firmware_py.errors import ParameterError
+from firmware_py.frames import FrameCodec, setpoint_name, status_name
+from firmware_py.nodeio import NodeIO
+
+from .model import Battery
+from .nodeclock import SimNodeClock
+from .scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+TAU_S = 0.05                  # chopper current-loop time constant, s
+I_MAX_MARGIN = 1.1            # current limit = 1.1 × rated power / lowest V_oc
+OCV_LOW, OCV_SPAN = 0.9, 0.2  # V_oc = v_nom·(0.9 + 0.2·SoC)
+SOC_MIN, SOC_MAX = 0.05, 0.95
+V_MIN, V_MAX = 0.8, 1.2       # × v_nom, FaultVoltage outside
+FAULT_POWER_FRACTION = 0.5    # injected power_limit: |P| ≤ 50 % of p_max
+SETPOINT_TIMEOUT_CYCLES = 5
+AGENT_SETPOINT_EVERY = 5      # agents send a setpoint every 5 Ts (firmware_py.runtime)
+STATUS_CYCLE_S = 0.050        # fallback if the DBC has no GenMsgCycleTime
+
+FAULT_KINDS = ("overcurrent", "voltage", "soc", "power_limit")
+
+# status signal → (scale, raw lo, raw hi) is taken from the codec; values are saturated
+_STATUS_SIGNALS = ("Power", "Current", "Voltage", "Soc")
+
+
+# --------------------------------------------------------------------------- physics
+
+
+def open_circuit_voltage(b: Battery, soc: float) -> float:
+    """V_oc(SoC) = v_nom·(0.9 + 0.2·SoC), V."""
+    return b.v_nom * (OCV_LOW + OCV_SPAN * soc)
+
+
+def current_limit(b: Battery) -> float:
+    """I_max = 1.1·max(|p_min|, p_max)/(0.9·v_nom), A."""
+    return I_MAX_MARGIN * 1000.0 * max(abs(b.p_min), abs(b.p_max)) / (OCV_LOW * b.v_nom)
+
+
+def cell_power(b: Battery, p_kw: float) -> float:
+    """Power drawn from the cells, kW: P + π|P| with π = α|P| + β (see the module doc)."""
+    a = abs(p_kw)
+    return p_kw + (b.alpha * a + b.beta) * a
+
+
+def loop_gain(dt: float) -> float:
+    """Exact first-order step over dt: the fraction of (I_ref − I) covered."""
+    return -math.expm1(-dt / TAU_S) if dt > 0 else 0.0
+
+
+# --------------------------------------------------------------------------- fault spec
+
+
+@dataclass(frozen=True)
+class PlantFault:
+    """An injected fault window on one BESS, times in s from the plant's first tick."""
+
+    agent: int
+    kind: str
+    t_start: float
+    t_end: float
+
+    @classmethod
+    def parse(cls, spec: str) -> PlantFault:
+        """``AGENT:KIND:T0:T1`` (the CLI's --fault), e.g. ``2:overcurrent:5:7``."""
+        parts = spec.split(":")
+        if len(parts) != 4:
+            raise ParameterError("--fault", "AGENT:KIND:T0:T1, e.g. 2:overcurrent:5:7", spec)
+        agent, kind, t0, t1 = parts
+        try:
+            return cls(int(agent), kind, float(t0), float(t1))
+        except ValueError:
+            raise ParameterError("--fault", "AGENT:KIND:T0:T1 with an integer agent and times "
+                                 "in seconds", spec) from None
+
+    def check(self, n: int) -> PlantFault:
+        if isinstance(self.agent, bool) or not isinstance(self.agent, int) \
+                or not 1 <= self.agent <= n:
+            raise ParameterError("fault.agent", f"a BESS in 1..{n}", self.agent)
+        if self.kind not in FAULT_KINDS:
+            raise ParameterError("fault.kind", f"one of {', '.join(FAULT_KINDS)}", self.kind)
+        if not (math.isfinite(self.t_start) and self.t_start >= 0
+                and self.t_end > self.t_start) or math.isnan(self.t_end):
+            raise ParameterError("fault window", "0 ≤ T0 < T1 (seconds from the plant's start)",
+                                 f"{self.t_start}:{self.t_end}")
+        return self
+
+    def active(self, t_rel: float) -> bool:
+        return self.t_start <= t_rel < self.t_end
+
+
+def as_fault(f: PlantFault | Sequence[Any] | str) -> PlantFault:
+    """A PlantFault from itself, an ``AGENT:KIND:T0:T1`` string or an (agent, kind, t0, t1)."""
+    if isinstance(f, PlantFault):
+        return f
+    if isinstance(f, str):
+        return PlantFault.parse(f)
+    try:
+        agent, kind, t0, t1 = tuple(f)
+        return PlantFault(agent, kind, float(t0), float(t1))
+    except (TypeError, ValueError):
+        raise ParameterError("fault", "(agent, kind, t_start, t_end)", f) from None
+
+
+# --------------------------------------------------------------------------- one BESS
+
+
+@dataclass
+class BessUnit:
+    """State of one battery + chopper, and what its status frame reports."""
+
+    agent: int
+    battery: Battery
+    i_max: float
+    soc: float
+    voltage: float
+    current: float = 0.0          # A, > 0 discharging
+    power: float = 0.0            # kW at the terminals, V·I
+    i_ref: float = 0.0            # A, latched at the last tick
+    p_ref: float = 0.0            # kW, after limits
+    p_set: float = 0.0            # kW, last accepted setpoint
+    enable: bool = False
+    setpoint_rx: float | None = None
+    stale: bool = True
+    power_limited: bool = False
+    fault_overcurrent: bool = False
+    fault_voltage: bool = False
+    fault_soc: bool = False
+    setpoint_timeouts: int = 0
+
+    @classmethod
+    def create(cls, agent: int, b: Battery) -> BessUnit:
+        return cls(agent=agent, battery=b, i_max=current_limit(b), soc=b.soc0,
+                   voltage=open_circuit_voltage(b, b.soc0))
+
+    def advance(self, dt: float) -> None:
+        """Integrate the current loop and the SoC over dt with the latched I_ref."""
+        if dt <= 0:
+            return
+        b = self.battery
+        p_old = self.power
+        self.current += loop_gain(dt) * (self.i_ref - self.current)
+        v_mid = open_circuit_voltage(b, self.soc) - b.r_internal * self.current
+        p_new = v_mid * self.current / 1000.0
+        cell = 0.5 * (cell_power(b, p_old) + cell_power(b, p_new))
+        self.soc = min(1.0, max(0.0, self.soc - cell * dt / (3600.0 * b.capacity_kwh)))
+        self.voltage = open_circuit_voltage(b, self.soc) - b.r_internal * self.current
+        self.power = self.voltage * self.current / 1000.0
+
+    def control(self, forced: set[str]) -> None:
+        """Latch a new reference from the setpoint, the limits and the protections."""
+        b = self.battery
+        p_set = self.p_set if (self.enable and not self.stale) else 0.0
+        p = min(b.p_max, max(b.p_min, p_set))
+        limited = p != p_set
+        if "power_limit" in forced:
+            cap = FAULT_POWER_FRACTION * b.p_max
+            p = min(cap, max(-cap, p))
+            limited = True
+        self.fault_soc = not SOC_MIN <= self.soc <= SOC_MAX
+        if self.soc < SOC_MIN and p > 0:
+            p, limited = 0.0, True     # empty: no further discharge
+        elif self.soc > SOC_MAX and p < 0:
+            p, limited = 0.0, True     # full: no further charge
+        self.p_ref = p
+        v = max(self.voltage, 1e-3 * b.v_nom)
+        i_ref = 1000.0 * p / v
+        if abs(i_ref) > self.i_max:
+            i_ref = math.copysign(self.i_max, i_ref)
+            limited = True
+        self.i_ref = i_ref
+        self.power_limited = limited
+        self.fault_voltage = not V_MIN * b.v_nom <= self.voltage <= V_MAX * b.v_nom
+        self.fault_overcurrent = abs(self.current) > self.i_max
+        self.fault_overcurrent |= "overcurrent" in forced
+        self.fault_voltage |= "voltage" in forced
+        self.fault_soc |= "soc" in forced
+
+    def flags(self) -> str:
+        names = [n for n, on in (("OC", self.fault_overcurrent), ("V", self.fault_voltage),
+                                 ("SOC", self.fault_soc), ("LIM", self.power_limited)) if on]
+        return "|".join(names) or "ok"
+
+
+# --------------------------------------------------------------------------- the node
+
+
+class Cyclic:
+    """A cyclic transmission due every ``cycle`` s from the first tick, tolerant to tick
+    jitter (``tol``); after a stall it re-aligns instead of bursting."""
+
+    def __init__(self, cycle: float, tol: float) -> None:
+        self.cycle = cycle
+        self.tol = tol
+        self.next: float | None = None
+
+    def due(self, t: float) -> bool:
+        if self.next is not None and t < self.next - self.tol:
+            return False
+        self.next = (t if self.next is None else self.next) + self.cycle
+        if self.next <= t + self.tol:
+            self.next = t + self.cycle
+        return True
+
+
+class PlantNode(SimNodeClock):
+    """Node (firmware_py.node) simulating every BESS of a scenario.
+
+    ``counters`` (a Counter): rejected setpoint frames by cause (``crc``, ``dlc``,
+    ``range``, ``unknown_id``, ``malformed``, ``impersonation``), ``repeated_counter``,
+    ``lost_frames``, ``setpoints`` (accepted), ``setpoint_timeouts``, ``status_frames``,
+    ``soc_faults`` / ``voltage_faults`` / ``overcurrent_faults`` (rising edges of the
+    flags), ``injected_faults`` (fault windows entered), ``encode_saturations``
+    (a measurement outside its signal's range, sent saturated), and the loop's
+    ``deadline_miss`` / ``send_failure``.
+    """
+
+    def __init__(self, scenario: Scenario, period: float = 0.01,
+                 faults: Iterable[PlantFault | Sequence[Any] | str] = (),
+                 codec: FrameCodec | None = None) -> None:
+        if not (math.isfinite(period) and period > 0):
+            raise ParameterError("period", "a positive number of seconds", period)
+        self.scenario = scenario
+        self.period = period
+        self.codec = codec or FrameCodec()
+        self.units = [BessUnit.create(i, b) for i, b in enumerate(scenario.batteries, start=1)]
+        self.faults = tuple(as_fault(f).check(scenario.n) for f in faults)
+        c = self.codec
+        db = c.database
+        sp_cycle = (db.get_message_by_name(setpoint_name(1)).cycle_time or 20) / 1000.0
+        self.setpoint_cycle = max(sp_cycle, AGENT_SETPOINT_EVERY * scenario.ts)
+        self.setpoint_timeout = SETPOINT_TIMEOUT_CYCLES * self.setpoint_cycle
+        st_cycle = db.get_message_by_name(status_name(1)).cycle_time
+        self.status_cycle = st_cycle / 1000.0 if st_cycle else STATUS_CYCLE_S
+        self._status = Cyclic(self.status_cycle, period / 2)
+        self._setpoint_ids = {c.frame_id(setpoint_name(u.agent)): u for u in self.units}
+        self._status_names = [status_name(u.agent) for u in self.units]
+        self._setpoint_fid = {u.agent: fid for fid, u in self._setpoint_ids.items()}
+        self.io = NodeIO(c, "the plant", own=self._status_names, wanted=self._setpoint_ids)
+        self.counters = self.io.counters
+        self.last_error = self.io.last_error
+        self._ranges = {s: c.raw_range(self._status_names[0], s) for s in _STATUS_SIGNALS}
+        self._active_faults: set[int] = set()
+        self._init_clock()
+
+    # ------------------------------------------------------------------ receive
+
+    def on_frame(self, msg: can.Message, t: float) -> None:
+        f = self.io.receive(msg)
+        if f is None:
+            return
+        unit = self._setpoint_ids[f.frame_id]
+        self.counters["setpoints"] += 1
+        unit.enable = bool(f.raw["Enable"])
+        unit.p_set = f.phys("PowerSetpoint")
+        unit.setpoint_rx = t
+        unit.stale = False
+
+    # ------------------------------------------------------------------ periodic
+
+    def tick(self, t: float) -> list[can.Message]:
+        dt, t_rel = self._advance(t)
+        forced = self._forced(t_rel)
+        for u in self.units:
+            u.advance(dt)
+            self._check_setpoint_age(u, t)
+            before = (u.fault_soc, u.fault_voltage, u.fault_overcurrent)
+            u.control(forced.get(u.agent, set()))
+            for name, was, now in zip(("soc_faults", "voltage_faults", "overcurrent_faults"),
+                                      before, (u.fault_soc, u.fault_voltage,
+                                               u.fault_overcurrent), strict=True):
+                self.counters[name] += now and not was
+        if not self._status.due(t):
+            return []
+        return [self._status_frame(u, name) for u, name in zip(self.units, self._status_names,
+                                                               strict=True)]
+
+    def _forced(self, t_rel: float) -> dict[int, set[str]]:
+        out: dict[int, set[str]] = {}
+        for k, f in enumerate(self.faults):
+            if f.active(t_rel):
+                out.setdefault(f.agent, set()).add(f.kind)
+                if k not in self._active_faults:
+                    self._active_faults.add(k)
+                    self.counters["injected_faults"] += 1
+                    log.info("plant: injected %s on BESS %d from t = %.3f s", f.kind, f.agent,
+                             t_rel)
+            else:
+                self._active_faults.discard(k)
+        return out
+
+    def _check_setpoint_age(self, u: BessUnit, t: float) -> None:
+        if u.stale or u.setpoint_rx is None:
+            return
+        if t - u.setpoint_rx > self.setpoint_timeout + 1e-9:
+            u.stale = True
+            u.setpoint_timeouts += 1
+            self.counters["setpoint_timeouts"] += 1
+            self.io.trackers[self._setpoint_fid[u.agent]].reset()  # the gap aliases mod 16
+            log.info("plant: BESS %d setpoint timed out (%.0f ms old): ramping to 0", u.agent,
+                     1e3 * (t - u.setpoint_rx))
+
+    def _raw(self, signal: str, value: float, scale: float) -> int:
+        lo, hi = self._ranges[signal]
+        r = round(value / scale)
+        if r < lo or r > hi:
+            self.counters["encode_saturations"] += 1
+            r = min(hi, max(lo, r))
+        return r
+
+    def _status_frame(self, u: BessUnit, name: str) -> can.Message:
+        msg = self.io.send(name, {
+            "FaultOverCurrent": int(u.fault_overcurrent), "FaultVoltage": int(u.fault_voltage),
+            "FaultSoc": int(u.fault_soc), "PowerLimited": int(u.power_limited),
+            "Power": self._raw("Power", u.power, 0.01),
+            "Current": self._raw("Current", u.current, 0.5),
+            "Voltage": self._raw("Voltage", u.voltage, 0.25),
+            "Soc": self._raw("Soc", 100.0 * u.soc, 0.5),
+        })
+        self.counters["status_frames"] += 1
+        return msg
+
+    # ------------------------------------------------------------------ reporting
+
+    def unit(self, agent: int) -> BessUnit:
+        """The state of BESS ``agent`` (1-based)."""
+        if not 1 <= agent <= len(self.units):
+            raise ParameterError("agent", f"a BESS in 1..{len(self.units)}", agent)
+        return self.units[agent - 1]
+
+    def summary(self) -> str:
+        t = self.elapsed
+        c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items()) if v) or "none"
+        lines = [f"plant: {len(self.units)} BESS, t={t:.2f} s, ticks={self.ticks}, counters: {c}"]
+        lines += [f"  BESS {u.agent}: P={u.power:7.2f} kW (ref {u.p_ref:7.2f}) "
+                  f"I={u.current:7.1f} A V={u.voltage:6.1f} V SoC={100 * u.soc:5.2f} % {u.flags()}"
+                  f"{' setpoint stale' if u.stale else ''}" for u in self.units]
+        return "\n".join(lines)

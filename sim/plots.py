@@ -1,0 +1,297 @@
+"""Figures of runs in the paper's layout: one column per run, one row per quantity.
+
+Plain functions taking ``Trajectory`` objects, so every producer (lockstep runner,
+continuous reference, a bus log) is drawn the same way. Each function writes one
+PNG and returns its path. Rows whose quantity no run carries (a bus log has no
+ξ, ν) are left out; a column whose run lacks a row another run has says so.
+
+Figures are built on ``matplotlib.figure.Figure`` with the Agg canvas directly, not
+through pyplot: no global backend state, no screen needed, safe from threads.
+
+    consensus_figure(runs, path, title)          λ_i (ρ dashed, resets ticked), u_i, ξ_i
+    gain_figure(runs, path, title)               ν_i and the dynamic gain r_i = ν_i/ξ_i
+    power_figure(runs, path, title, load_kw=D)   P_i and the grid exchange P_e = D − ΣP_i
+    compare_figure(runs, path, title)            λ_i over u_i, one column per controller
+    figure(runs, rows, path, title, ...)         any rows from QUANTITIES
+
+``runs`` is a sequence of (column label, Trajectory), or a single Trajectory.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import to_hex
+from matplotlib.figure import Figure
+from matplotlib.layout_engine import ConstrainedLayoutEngine
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+from matplotlib.ticker import MaxNLocator
+
+from .trajectory import Trajectory
+
+DPI = 120
+COL_WIDTH = 4.2      # inches per run column
+MAX_WIDTH = 19.0     # inches; many columns share this
+ROW_HEIGHT = 2.15    # inches per quantity row
+R_MASK = 0.02        # r_i is drawn where |ξ_i| > 2 % of the run's largest |ξ|
+Runs = Sequence[tuple[str, Trajectory]] | Trajectory
+
+
+@dataclass(frozen=True)
+class Quantity:
+    """One row of a figure: what to draw and how to label it."""
+
+    ylabel: str
+    get: Callable[[Trajectory, float | None], np.ndarray | None]
+    robust: bool = False  # clip the y-range to the bulk of the data (r_i spikes as ξ → 0)
+
+
+def _grid(tr: Trajectory, load_kw: float | None) -> np.ndarray | None:
+    if load_kw is None:
+        return None
+    return (load_kw - tr.p.sum(axis=1))[:, None]
+
+
+QUANTITIES: dict[str, Quantity] = {
+    "lam": Quantity("λ$_i$ [cu/kWh]", lambda tr, _: tr.lam),
+    "u": Quantity("u$_i$ [cu/kWh/s]", lambda tr, _: tr.u),
+    "xi": Quantity("ξ$_i$ [cu/kWh]", lambda tr, _: tr.xi),
+    "nu": Quantity("ν$_i$ [cu·s/kWh]", lambda tr, _: tr.nu),
+    "r": Quantity("r$_i$ = ν$_i$/ξ$_i$ [s]", lambda tr, _: dynamic_gain(tr), robust=True),
+    "p": Quantity("P$_i$ [kW]", lambda tr, _: tr.p),
+    "grid": Quantity("grid P$_e$ [kW]", _grid),
+}
+
+
+def dynamic_gain(tr: Trajectory, rel: float = R_MASK) -> np.ndarray | None:
+    """r_i = ν_i/ξ_i where |ξ_i| exceeds ``rel`` × the run's largest |ξ|, NaN elsewhere.
+
+    Near equilibrium ξ is a few LSB and the ratio is quantisation noise that
+    swamps the transient the paper plots; ``Trajectory.r`` keeps the raw ratio.
+    """
+    if tr.nu is None or tr.xi is None:
+        return None
+    floor = rel * float(np.abs(tr.xi).max() or 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.abs(tr.xi) > floor, tr.nu / tr.xi, np.nan)
+
+
+def view_end(tr: Trajectory, band: float = 0.02) -> float:
+    """A time after which the picture no longer changes: the last reset, event, price
+    change, or exit of max|λ_i − ρ| from its 2 % settling band, whichever is latest."""
+    last = 0.0
+    if any(tr.resets):
+        last = max(max(r) for r in tr.resets if r)
+    changes = np.flatnonzero(np.diff(tr.segment) != 0) + 1
+    changes = np.union1d(changes, np.flatnonzero(np.any(np.diff(tr.active, axis=0), axis=1)) + 1)
+    if changes.size:
+        last = max(last, float(tr.t[changes[-1]]))
+    err = np.where(tr.active, np.abs(tr.lam - tr.rho[:, None]), 0.0).max(axis=1)
+    for seg in np.unique(tr.segment):
+        idx = np.flatnonzero(tr.segment == seg)
+        out = idx[err[idx] > band * err[idx[0]]]
+        if out.size:
+            last = max(last, float(tr.t[out[-1]]))
+    return last
+
+
+def auto_t_max(runs: Runs, margin: float = 1.3) -> float:
+    """The end of the time axis: every run's ``view_end`` with a margin, rounded up to a
+    readable value, never past the end of the runs."""
+    runs_ = _as_runs(runs)
+    end = max(float(tr.t[-1]) for _, tr in runs_)
+    want = max(view_end(tr) for _, tr in runs_) * margin + 1.0
+    nice = next((x * 10.0**e for e in range(-1, 7) for x in (1, 1.5, 2, 2.5, 3, 4, 5, 6, 8)
+                 if x * 10.0**e >= want), end)
+    return min(end, nice)
+
+
+def agent_colours(n: int) -> list[str]:
+    """Distinct colours for n agents: tab10, then the light half of tab20."""
+    from matplotlib import colormaps
+
+    tab20 = colormaps["tab20"]
+    order = [tab20(2 * i) for i in range(10)] + [tab20(2 * i + 1) for i in range(10)]
+    if n > len(order):
+        order = [colormaps["turbo"](x) for x in np.linspace(0.05, 0.95, n)]
+    return [to_hex(c) for c in order[:n]]
+
+
+def _as_runs(runs: Runs) -> list[tuple[str, Trajectory]]:
+    if isinstance(runs, Trajectory):
+        return [(runs.label, runs)]
+    out = list(runs)
+    if not out:
+        raise ValueError("expected at least one run to plot, but got none")
+    return out
+
+
+def _intervals(mask: np.ndarray, t: np.ndarray) -> list[tuple[float, float]]:
+    """[t_start, t_end) of each run of True in mask."""
+    if not mask.any():
+        return []
+    edges = np.diff(np.concatenate([[0], mask.astype(int), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    dt = t[1] - t[0] if t.size > 1 else 0.0
+    return [(float(t[s]), float(t[e - 1] + dt)) for s, e in zip(starts, ends, strict=True)]
+
+
+def _robust_limits(y: np.ndarray) -> tuple[float, float] | None:
+    finite = y[np.isfinite(y)]
+    if finite.size < 10:
+        return None
+    lo, hi = np.percentile(finite, [1.0, 99.0])
+    lo, hi = min(lo, 0.0), max(hi, 0.0)
+    pad = 0.08 * (hi - lo or 1.0)
+    return float(lo - pad), float(hi + pad)
+
+
+def _comparable(ys: Sequence[np.ndarray | None], ratio: float = 4.0) -> bool:
+    """Do these columns' ranges fit one y-scale (largest spans within ``ratio`` of each
+    other)? A gain sweep's u differs tenfold between columns: then each keeps its own."""
+    spans = [float(np.nanmax(y) - np.nanmin(y)) for y in ys
+             if y is not None and np.isfinite(y).any()]
+    return len(spans) > 1 and min(spans) > 0 and max(spans) / min(spans) <= ratio
+
+
+def _draw_cell(ax: Axes, key: str, tr: Trajectory, y: np.ndarray, colours: list[str],
+               show_resets: bool) -> None:
+    t = tr.t
+    if key == "grid":
+        ax.plot(t, y[:, 0], color="k", lw=1.4)
+    else:
+        for i in range(y.shape[1]):
+            ax.plot(t, y[:, i], color=colours[i], lw=1.1)
+    if key == "lam":
+        ax.plot(t, tr.rho, color="k", ls="--", lw=1.3, zorder=5)
+        if show_resets:
+            for i, times in enumerate(tr.resets[: y.shape[1]]):
+                if times:
+                    idx = np.clip(np.searchsorted(t, np.asarray(times) - 1e-9), 0, t.size - 1)
+                    ax.plot(t[idx], y[idx, i], ls="none", marker="|", ms=7, mew=1.3,
+                            color=colours[i], zorder=6)
+    if key in ("u", "xi", "nu", "r"):
+        ax.axhline(0.0, color="0.4", lw=0.6, zorder=1)
+
+
+def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *,
+           load_kw: float | None = None, sharey: bool = True, show_resets: bool = True,
+           t_max: float | str | None = "auto") -> Path:
+    """The general figure: ``rows`` (keys of QUANTITIES) × one column per run.
+
+    Rows no run can provide are dropped. With ``sharey`` every row has one y-scale
+    across its columns, so the runs compare at a glance. Isolated intervals (agent
+    off the network) are shaded in the agent's colour; price changes are dotted
+    vertical lines; reset instants are ticks on λ_i. ``t_max="auto"`` ends the time
+    axis once nothing changes any more (``auto_t_max``); ``None`` shows the whole run.
+    """
+    runs_ = _as_runs(runs)
+    if t_max == "auto":
+        t_max = auto_t_max(runs_)
+    path = Path(path)
+    data = {key: [QUANTITIES[key].get(tr, load_kw) for _, tr in runs_] for key in rows}
+    keys = [k for k in rows if any(y is not None for y in data[k])]
+    if not keys:
+        raise ValueError(f"none of the rows {list(rows)} is recorded in these runs")
+    n_agents = max(tr.n for _, tr in runs_)
+    colours = agent_colours(n_agents)
+    ncols, nrows = len(runs_), len(keys)
+
+    width = min(MAX_WIDTH, max(9.0, 1.2 + COL_WIDTH * ncols))
+    row_height = ROW_HEIGHT if ncols == 1 else min(3.0, max(ROW_HEIGHT, 0.7 * width / ncols))
+    fig = Figure(figsize=(width, 1.3 + row_height * nrows), dpi=DPI,
+                 layout=ConstrainedLayoutEngine(w_pad=0.06, wspace=0.05))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, ncols, sharex=True, squeeze=False)
+    if sharey:
+        for r, key in enumerate(keys):
+            if _comparable(data[key]):
+                for c in range(1, ncols):
+                    axes[r, c].sharey(axes[r, 0])
+                    axes[r, c].tick_params(labelleft=False)
+    any_resets = any_isolated = False
+    for c, (label, tr) in enumerate(runs_):
+        off = [_intervals(~tr.active[:, i], tr.t) for i in range(tr.n)]
+        changes = tr.t[np.flatnonzero(np.diff(tr.segment)) + 1]
+        for r, key in enumerate(keys):
+            ax = axes[r, c]
+            y = data[key][c]
+            if y is None:
+                ax.text(0.5, 0.5, "not recorded", ha="center", va="center",
+                        transform=ax.transAxes, color="0.5")
+                ax.tick_params(labelleft=False, left=False)
+            else:
+                _draw_cell(ax, key, tr, y, colours, show_resets)
+                if QUANTITIES[key].robust and (lim := _robust_limits(y)) is not None:
+                    ax.set_ylim(*lim)
+            for i, spans in enumerate(off):
+                for a, b in spans:
+                    ax.axvspan(a, b, color=colours[i], alpha=0.13, lw=0, zorder=0)
+                    if r == 0:
+                        ax.text((a + b) / 2, 0.97, f"BESS {i + 1} isolated", ha="center",
+                                va="top", fontsize=7.5, color="0.25",
+                                transform=ax.get_xaxis_transform())
+            for tc in changes:
+                ax.axvline(tc, color="0.55", ls=":", lw=0.9, zorder=1)
+            ax.grid(alpha=0.3, lw=0.6)
+            ax.tick_params(labelsize=8)
+            if c == 0:
+                ax.set_ylabel(QUANTITIES[key].ylabel, fontsize=9)
+            if r == nrows - 1:
+                ax.set_xlabel("t [s]", fontsize=9)
+        axes[0, c].set_title(label, fontsize=10, fontweight="bold")
+        axes[0, c].xaxis.set_major_locator(MaxNLocator(nbins=7, steps=[1, 2, 5, 10]))
+        axes[0, c].set_xlim(tr.t[0], float(t_max) if t_max is not None else tr.t[-1])
+        any_resets |= show_resets and "lam" in keys and any(tr.resets)
+        any_isolated |= any(off)
+
+    handles: list[Line2D | Patch] = [Line2D([], [], color=colours[i], lw=1.6,
+                                           label=f"BESS {i + 1}") for i in range(n_agents)]
+    if "lam" in keys:
+        handles.append(Line2D([], [], color="k", ls="--", lw=1.3, label="ρ (price)"))
+    if "grid" in keys:
+        handles.append(Line2D([], [], color="k", lw=1.4, label="grid P$_e$ = D − ΣP$_i$"))
+    if any_resets:
+        handles.append(Line2D([], [], color="0.3", ls="none", marker="|", ms=7, mew=1.3,
+                              label="reset of ν$_i$"))
+    if any_isolated:
+        handles.append(Patch(color="0.6", alpha=0.3, label="isolated"))
+    ncol = min(len(handles), max(4, int(width / 1.25)))
+    fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=8,
+               frameon=False, handlelength=1.8, columnspacing=1.2)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=DPI)
+    return path
+
+
+def consensus_figure(runs: Runs, path: str | Path, title: str = "", *, sharey: bool = True,
+                     t_max: float | str | None = "auto") -> Path:
+    """λ_i with ρ(t) dashed and reset ticks, u_i, ξ_i (the paper's main figure)."""
+    return figure(runs, ("lam", "u", "xi"), path, title, sharey=sharey, t_max=t_max)
+
+
+def gain_figure(runs: Runs, path: str | Path, title: str = "", *, sharey: bool = True,
+                t_max: float | str | None = "auto") -> Path:
+    """ν_i and the dynamic gain r_i = ν_i/ξ_i (paper eq. 18)."""
+    return figure(runs, ("nu", "r"), path, title, sharey=sharey, t_max=t_max)
+
+
+def power_figure(runs: Runs, path: str | Path, title: str = "", *, load_kw: float,
+                 sharey: bool = True, t_max: float | str | None = "auto") -> Path:
+    """BESS powers P_i and the grid exchange P_e = D − ΣP_i (> 0: drawn from the grid)."""
+    return figure(runs, ("p", "grid"), path, title, load_kw=load_kw, sharey=sharey,
+                  t_max=t_max)
+
+
+def compare_figure(runs: Runs, path: str | Path, title: str = "", *, sharey: bool = True,
+                   t_max: float | str | None = "auto") -> Path:
+    """λ_i on top, u_i below, one column per controller."""
+    return figure(runs, ("lam", "u"), path, title, sharey=sharey, t_max=t_max)

@@ -1,0 +1,315 @@
+"""The energy-router node (``ER``): price broadcast, commands, and the cost ledger.
+
+* ``ER_Price`` every 50 ms (the DBC's GenMsgCycleTime): ρ(t) of the scenario's
+  schedule, ``Rho`` as raw int32 Q24 = round(ρ·2**24), ``Segment`` = the index of
+  the schedule step in force, ``PriceValid`` = 1. t = 0 of the schedule is the
+  router's first tick; a bus run's time axis starts at the first price frame.
+* ``ER_Command`` at each scenario event time (ISOLATE / RECONNECT to the event's
+  agent), sent ``COMMAND_REPEATS`` = 3 times, ``COMMAND_SPACING_S`` = 10 ms apart
+  (each with a fresh E2E counter, so none is "repeated data"; the agent treats the
+  second and third as idempotent). An event fires at the first tick at or after
+  its time. ``send_command`` queues the same for tools and tests.
+* ``ER_Balance`` every 100 ms, from the ``PLANT_<i>_Status`` frames it receives:
+  P_e = D − ΣP_i (measured powers, each held from its last accepted frame, 0 before
+  the first), F_c = Σ(1+m_i)(α_i P_i² + β_i P_i) + ρ P_e (``sim.model.expenditure``)
+  and the KKT optimum's F_c* (``sim.model.kkt_optimum`` for the current ρ and D).
+  Both rates (cu/h) are integrated over the router's own tick intervals into
+  ``cost`` and ``optimal_cost`` (cu), rectangle rule with the values at each tick.
+* Silent windows (fault tests): between t_start and t_end (s from the first tick)
+  the router sends nothing: no price, no balance, no command. What falls due
+  meanwhile is not sent later (a silent router is a dead router); the periodic
+  cadence and the ledger go on. Counted in ``silenced_frames``.
+
+Status reception uses the E2E checks of the agent runtime: rejections by cause,
+``repeated_counter``, ``lost_frames``; a BESS whose status is older than 5 status
+cycles (250 ms) counts one ``status_timeouts`` (its last power is still used).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import can
+
+from firmware_py.errors import ParameterError
+from firmware_py.frames import LAMBDA_Q, FrameCodec, status_name
+from firmware_py.nodeio import NodeIO
+
+from .model import expenditure, kkt_optimum
+from .nodeclock import SimNodeClock
+from .plant import Cyclic
+from .scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+COMMAND_REPEATS = 3
+COMMAND_SPACING_S = 0.010
+STATUS_TIMEOUT_CYCLES = 5
+SCHEDULE_EPS_S = 1e-6   # float slack when comparing a tick time with a schedule time
+
+COMMANDS = {"isolate": 1, "reconnect": 2, "set_gains": 3}
+EVENT_COMMANDS = {"isolate": "isolate", "reconnect": "reconnect"}
+_STATUS_FLAGS = ("FaultOverCurrent", "FaultVoltage", "FaultSoc", "PowerLimited")
+_CYCLE_FALLBACK_MS = {"ER_Price": 50, "ER_Balance": 100, "PLANT_1_Status": 20}
+
+
+@dataclass(frozen=True)
+class SilentWindow:
+    """The router sends nothing for t_start ≤ t < t_end (s from its first tick)."""
+
+    t_start: float
+    t_end: float
+
+    @classmethod
+    def parse(cls, spec: str) -> SilentWindow:
+        """``T0:T1`` (the CLI's --silent), e.g. ``5:8``."""
+        parts = spec.split(":")
+        try:
+            if len(parts) != 2:
+                raise ValueError
+            window = cls(float(parts[0]), float(parts[1]))
+        except ValueError:
+            raise ParameterError("--silent", "T0:T1 in seconds from the router's start, e.g. 5:8",
+                                 spec) from None
+        return window.check()
+
+    def check(self) -> SilentWindow:
+        if not (math.isfinite(self.t_start) and self.t_start >= 0 and self.t_end > self.t_start):
+            raise ParameterError("silent window", "0 ≤ T0 < T1 (seconds from the router's start)",
+                                 f"{self.t_start}:{self.t_end}")
+        return self
+
+    def active(self, t_rel: float) -> bool:
+        return self.t_start <= t_rel < self.t_end
+
+
+def as_window(w: SilentWindow | Sequence[float] | str) -> SilentWindow:
+    if isinstance(w, SilentWindow):
+        return w.check()
+    if isinstance(w, str):
+        return SilentWindow.parse(w)
+    try:
+        t0, t1 = w
+        return SilentWindow(float(t0), float(t1)).check()
+    except (TypeError, ValueError):
+        raise ParameterError("silent window", "(t_start, t_end) in seconds", w) from None
+
+
+@dataclass
+class _PendingCommand:
+    raw: dict[str, int]
+    left: int = COMMAND_REPEATS
+    next_due: float | None = None   # None: the next tick
+
+
+@dataclass
+class _StatusSlot:
+    power: float = 0.0
+    rx: float | None = None
+    fresh: bool = False
+    flags: dict[str, int] = field(default_factory=dict)
+
+
+class RouterNode(SimNodeClock):
+    """Node (firmware_py.node) of the energy router for one scenario.
+
+    ``counters``: rejected status frames by cause (``crc``, ``dlc``, ``range``,
+    ``unknown_id``, ``malformed``, ``impersonation``), ``repeated_counter``,
+    ``lost_frames``, ``status_frames`` (accepted), ``status_timeouts``,
+    ``price_frames``, ``command_frames``, ``balance_frames``, ``silenced_frames``,
+    ``events`` (scenario events fired), ``encode_saturations``, and the loop's
+    ``deadline_miss`` / ``send_failure``. Ledger: ``cost`` and ``optimal_cost`` (cu),
+    ``grid_power`` (last P_e, kW), ``cost_rate`` / ``optimal_cost_rate`` (cu/h).
+    """
+
+    def __init__(self, scenario: Scenario, period: float = 0.01,
+                 silent: Iterable[SilentWindow | Sequence[float] | str] = (),
+                 codec: FrameCodec | None = None) -> None:
+        if not (math.isfinite(period) and period > 0):
+            raise ParameterError("period", "a positive number of seconds", period)
+        self.scenario = scenario
+        self.period = period
+        self.codec = codec or FrameCodec()
+        self.silent = tuple(as_window(w) for w in silent)
+
+        c = self.codec
+        tol = period / 2
+        # the DBC's cycles are for Ts = 10 ms; a time-scaled scenario stretches them
+        self.price_cycle = max(self._cycle_s("ER_Price"), 5 * scenario.ts)
+        self.balance_cycle = max(self._cycle_s("ER_Balance"), 10 * scenario.ts)
+        self.status_timeout = STATUS_TIMEOUT_CYCLES * max(self._cycle_s("PLANT_1_Status"),
+                                                          2 * scenario.ts)
+        self._price = Cyclic(self.price_cycle, tol)
+        self._balance = Cyclic(self.balance_cycle, tol)
+        self._events = sorted(scenario.events, key=lambda e: e.t)
+        self._next_event = 0
+        self._pending: list[_PendingCommand] = []
+        self._lock = threading.Lock()
+        self._status = {c.frame_id(status_name(i)): _StatusSlot()
+                        for i in range(1, scenario.n + 1)}
+        self._slots = list(self._status.values())
+        self.io = NodeIO(c, "the router", own=("ER_Price", "ER_Command", "ER_Balance"),
+                         wanted=self._status)
+        self.counters = self.io.counters
+        self.last_error = self.io.last_error
+        self._rho_lo, self._rho_hi = c.raw_range("ER_Price", "Rho")
+        self._kkt_cache: dict[float, float] = {}
+
+        self._init_clock()
+        self.rho = scenario.prices[0].rho
+        self.segment = 0
+        self.grid_power = scenario.load_kw
+        self.cost_rate = 0.0
+        self.optimal_cost_rate = 0.0
+        self.cost = 0.0
+        self.optimal_cost = 0.0
+
+    def _cycle_s(self, name: str) -> float:
+        ms = self.codec.database.get_message_by_name(name).cycle_time
+        return (ms or _CYCLE_FALLBACK_MS[name]) / 1000.0
+
+    # ------------------------------------------------------------------ commands
+
+    def send_command(self, kind: str, target: int, k: float | None = None,
+                     h: float | None = None) -> None:
+        """Queue an ER_Command (sent at the next tick, then repeated: 3 frames 10 ms apart).
+
+        ``kind``: "isolate", "reconnect" or "set_gains" (the last needs ``k`` and ``h``,
+        0..65.535 in steps of 0.001). Thread-safe: a tool may call it while run_node runs.
+        """
+        key = str(kind).lower()
+        if key not in COMMANDS:
+            raise ParameterError("command", f"one of {', '.join(COMMANDS)}", kind)
+        n = self.scenario.n
+        if isinstance(target, bool) or not isinstance(target, int) or not 1 <= target <= n:
+            raise ParameterError("command target", f"an agent in 1..{n}", target)
+        gains = {"GainK": 0, "GainH": 0}
+        if key == "set_gains":
+            for sig, v in (("GainK", k), ("GainH", h)):
+                lo, hi = self.codec.raw_range("ER_Command", sig)
+                raw = round(v * 1000) if isinstance(v, (int, float)) and math.isfinite(v) else None
+                if raw is None or not lo <= raw <= hi:
+                    raise ParameterError(f"set_gains {sig[-1].lower()}",
+                                         f"a gain in {lo / 1000:g}..{hi / 1000:g}", v)
+                gains[sig] = raw
+        elif k is not None or h is not None:
+            raise ParameterError("command gains", "k and h only with set_gains", (k, h))
+        with self._lock:
+            self._pending.append(_PendingCommand({"Command": COMMANDS[key], "Target": target,
+                                                  **gains}))
+
+    # ------------------------------------------------------------------ receive
+
+    def on_frame(self, msg: can.Message, t: float) -> None:
+        f = self.io.receive(msg)
+        if f is None:
+            return
+        slot = self._status[f.frame_id]
+        self.counters["status_frames"] += 1
+        slot.power = f.phys("Power")
+        slot.flags = {k: f.raw[k] for k in _STATUS_FLAGS}
+        slot.rx = t
+        slot.fresh = True
+
+    # ------------------------------------------------------------------ periodic
+
+    def tick(self, t: float) -> list[can.Message]:
+        dt, t_rel = self._advance(t)
+        self.rho, self.segment = self.scenario.price_at(t_rel + SCHEDULE_EPS_S)
+        self._update_ledger(t, dt)
+        silent = any(w.active(t_rel) for w in self.silent)
+
+        frames: list[tuple[str, dict[str, int]]] = []
+        if self._price.due(t_rel):
+            frames.append(("ER_Price", self._price_raw()))
+        while (self._next_event < len(self._events)
+               and self._events[self._next_event].t <= t_rel + SCHEDULE_EPS_S):
+            e = self._events[self._next_event]
+            self._next_event += 1
+            self.counters["events"] += 1
+            log.info("router: t = %.3f s: %s agent %d", t_rel, e.action, e.agent)
+            self.send_command(EVENT_COMMANDS[e.action], e.agent)
+        frames += self._due_commands(t_rel)
+        if self._balance.due(t_rel):
+            frames.append(("ER_Balance", self._balance_raw()))
+
+        if silent:
+            self.counters["silenced_frames"] += len(frames)
+            return []
+        return [self._send(name, raw) for name, raw in frames]
+
+    def _due_commands(self, t_rel: float) -> list[tuple[str, dict[str, int]]]:
+        out = []
+        with self._lock:
+            for p in self._pending:
+                if p.next_due is None or t_rel >= p.next_due - SCHEDULE_EPS_S:
+                    out.append(("ER_Command", dict(p.raw)))
+                    p.left -= 1
+                    p.next_due = t_rel + COMMAND_SPACING_S
+            self._pending = [p for p in self._pending if p.left > 0]
+        return out
+
+    def _update_ledger(self, t: float, dt: float) -> None:
+        sc = self.scenario
+        for i, (fid, slot) in enumerate(self._status.items(), start=1):
+            if slot.fresh and slot.rx is not None and t - slot.rx > self.status_timeout + 1e-9:
+                slot.fresh = False
+                self.io.trackers[fid].reset()  # an outage's counter gap aliases mod 16
+                self.counters["status_timeouts"] += 1
+                log.info("router: PLANT_%d_Status timed out; holding P = %.2f kW", i, slot.power)
+        powers = [s.power for s in self._slots]
+        self.grid_power = sc.load_kw - sum(powers)
+        self.cost_rate = expenditure(sc.batteries, powers, self.rho, sc.load_kw)
+        opt = self._kkt_cache.get(self.rho)
+        if opt is None:
+            opt = self._kkt_cache[self.rho] = kkt_optimum(sc.batteries, self.rho, sc.load_kw)[1]
+        self.optimal_cost_rate = opt
+        self.cost += self.cost_rate * dt / 3600.0
+        self.optimal_cost += opt * dt / 3600.0
+
+    # ------------------------------------------------------------------ transmit
+
+    def _price_raw(self) -> dict[str, int]:
+        raw = round(self.rho * (1 << LAMBDA_Q))
+        if not self._rho_lo <= raw <= self._rho_hi:
+            self.counters["encode_saturations"] += 1
+            raw = min(self._rho_hi, max(self._rho_lo, raw))
+        return {"PriceValid": 1, "Rho": raw, "Segment": min(self.segment, 255)}
+
+    def _balance_raw(self) -> dict[str, int]:
+        out = {}
+        for sig, v in (("GridPower", self.grid_power), ("CostRate", self.cost_rate),
+                       ("OptimalCostRate", self.optimal_cost_rate)):
+            lo, hi = self.codec.raw_range("ER_Balance", sig)
+            r = round(v * 10)
+            if not lo <= r <= hi:
+                self.counters["encode_saturations"] += 1
+                r = min(hi, max(lo, r))
+            out[sig] = r
+        return out
+
+    def _send(self, name: str, raw: dict[str, int]) -> can.Message:
+        msg = self.io.send(name, raw)
+        self.counters[{"ER_Price": "price_frames", "ER_Command": "command_frames",
+                       "ER_Balance": "balance_frames"}[name]] += 1
+        return msg
+
+    # ------------------------------------------------------------------ reporting
+
+    @property
+    def measured_powers(self) -> list[float]:
+        """Last accepted P_i per BESS (kW), 0 before its first status frame."""
+        return [s.power for s in self._slots]
+
+    def summary(self) -> str:
+        t = self.elapsed
+        c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items()) if v) or "none"
+        extra = (f" ({100 * (self.cost / self.optimal_cost - 1):+.2f} % vs optimal)"
+                 if self.optimal_cost > 0 else "")
+        return (f"router: t={t:.2f} s, ρ={self.rho:g} (segment {self.segment}), "
+                f"P_e={self.grid_power:.2f} kW, cost={self.cost:.4f} cu, optimal="
+                f"{self.optimal_cost:.4f} cu{extra}, counters: {c}")

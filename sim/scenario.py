@@ -1,0 +1,351 @@
+"""Scenarios as TOML files: graph, batteries, λ(0), price schedule, events, variants.
+
+A user writes a new scenario without touching code (see sim/scenarios/case1.toml
+for a commented example). Every key is checked; a bad file raises ConfigError
+naming the file, the key and what is wrong. Unknown keys are errors too, so a
+typo never silently falls back to a default.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from firmware_py.controllers import ControllerConfig
+from firmware_py.errors import ConfigError, ParameterError
+
+from . import graph
+from .model import Battery
+
+SCENARIO_DIR = Path(__file__).with_name("scenarios")
+MAX_AGENTS = 32  # the DBC defines AGENT_1..AGENT_32
+CONTROLLER_KEYS = {"kind", "k", "h", "dwell", "band", "ft_exponent"}
+BATTERY_KEYS = {"alpha", "beta", "m", "p_min", "p_max", "capacity_kwh", "soc0", "v_nom",
+                "r_internal", "lambda0"}
+
+
+@dataclass(frozen=True)
+class PriceStep:
+    t: float
+    rho: float
+
+
+@dataclass(frozen=True)
+class Event:
+    t: float
+    agent: int
+    action: str  # "isolate" | "reconnect"
+
+
+@dataclass(frozen=True)
+class Variant:
+    label: str
+    controller: Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    title: str
+    source: str
+    ts: float
+    duration: float
+    load_kw: float
+    controller: ControllerConfig
+    n: int
+    edges: tuple[tuple[float, ...], ...]
+    pinned: tuple[int, ...]
+    batteries: tuple[Battery, ...]
+    lambda0: tuple[float, ...]
+    prices: tuple[PriceStep, ...]
+    events: tuple[Event, ...] = ()
+    variants: tuple[Variant, ...] = field(default=())
+
+    # ---- derived views
+
+    @property
+    def adjacency(self) -> np.ndarray:
+        return graph.adjacency(self.n, self.edges)
+
+    @property
+    def h(self) -> np.ndarray:
+        return graph.h_matrix(self.adjacency, graph.pinning(self.n, self.pinned))
+
+    def neighbours(self, agent: int) -> list[tuple[int, float]]:
+        """(neighbour, weight) pairs of a 1-based agent."""
+        a = self.adjacency
+        return [(j + 1, float(a[agent - 1, j])) for j in range(self.n) if a[agent - 1, j]]
+
+    def analysis(self) -> graph.GraphReport:
+        c = self.controller
+        return graph.analyse(self.h, c.k, c.h, c.ts, c.kind)
+
+    def price_at(self, t: float) -> tuple[float, int]:
+        """(ρ, segment index) in force at time t."""
+        seg = 0
+        for i, step in enumerate(self.prices):
+            if step.t <= t + 1e-12:
+                seg = i
+        return self.prices[seg].rho, seg
+
+    @property
+    def steps(self) -> int:
+        return round(self.duration / self.ts)
+
+    # ---- variants
+
+    def with_controller(self, **overrides: Any) -> Scenario:
+        try:
+            return replace(self, controller=replace(self.controller, **overrides))
+        except ParameterError as e:
+            raise ConfigError(self.source, f"controller.{e.name}", str(e)) from None
+
+    def variant(self, label: str) -> Scenario:
+        for v in self.variants:
+            if v.label == label:
+                return replace(self.with_controller(**v.controller), variants=())
+        known = ", ".join(v.label for v in self.variants) or "none"
+        raise ConfigError(self.source, "variant", f"expected one of {known}, but got {label!r}")
+
+    def runs(self) -> list[tuple[str, Scenario]]:
+        """(label, scenario) for every variant, or the scenario itself if it has none."""
+        if not self.variants:
+            return [(self.controller.kind, self)]
+        return [(v.label, self.variant(v.label)) for v in self.variants]
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def case_path(case: int | str) -> Path:
+    path = SCENARIO_DIR / f"case{case}.toml"
+    if not path.exists():
+        known = sorted(p.stem.removeprefix("case") for p in SCENARIO_DIR.glob("case*.toml"))
+        raise ConfigError(str(path), "case", f"expected one of {', '.join(known)}, "
+                          f"but got {case!r}")
+    return path
+
+
+def load_case(case: int | str) -> Scenario:
+    return load_scenario(case_path(case))
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    path = Path(path)
+    src = str(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(src, "file", "expected an existing TOML file, but it does not exist")\
+            from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(src, "file", f"expected valid TOML, but got: {e}") from None
+    return parse_scenario(data, src)
+
+
+def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
+    r = _Reader(src)
+    r.only(data, "", {"name", "title", "ts", "duration", "load_kw", "controller", "graph",
+                      "price", "battery", "event", "variant"})
+    ts = r.number(data, "ts", lo=1e-4, hi=10.0)
+    duration = r.number(data, "duration", lo=ts, hi=1e5)
+
+    g = r.table(data, "graph")
+    r.only(g, "graph", {"agents", "edges", "pinned"})
+    n = int(r.number(g, "agents", lo=1, hi=MAX_AGENTS, key="graph.agents", integer=True))
+    edges = tuple(r.edge(e, n, f"graph.edges[{i}]") for i, e in
+                  enumerate(r.list(g, "edges", "graph.edges")))
+    pinned = tuple(r.agent(p, n, f"graph.pinned[{i}]") for i, p in
+                   enumerate(r.list(g, "pinned", "graph.pinned")))
+    if not pinned:
+        raise ConfigError(src, "graph.pinned", "expected at least one agent that hears the price")
+
+    ctrl = r.table(data, "controller")
+    r.only(ctrl, "controller", CONTROLLER_KEYS)
+    controller = r.controller(dict(ctrl), ts, "controller")
+
+    bats = r.list(data, "battery", "battery")
+    if len(bats) != n:
+        raise ConfigError(src, "battery", f"expected {n} [[battery]] tables (graph.agents), "
+                          f"but got {len(bats)}")
+    batteries, lambda0 = [], []
+    for i, b in enumerate(bats):
+        key = f"battery[{i}]"
+        r.only(b, key, BATTERY_KEYS)
+        kw = {k: r.number(b, k, key=f"{key}.{k}") for k in BATTERY_KEYS - {"lambda0"} if k in b}
+        for need in ("alpha", "beta", "m", "p_min", "p_max"):
+            if need not in kw:
+                raise ConfigError(src, f"{key}.{need}", "is required")
+        if kw["alpha"] <= 0:
+            raise ConfigError(src, f"{key}.alpha", f"expected > 0, but got {kw['alpha']}")
+        if not kw["p_min"] < kw["p_max"]:
+            raise ConfigError(src, f"{key}.p_max", f"expected p_min < p_max, but got "
+                              f"{kw['p_min']} ≥ {kw['p_max']}")
+        if not 0 <= kw.get("soc0", 0.5) <= 1:
+            raise ConfigError(src, f"{key}.soc0", f"expected a fraction in [0, 1], but got "
+                              f"{kw['soc0']}")
+        batteries.append(Battery(**kw))
+        lambda0.append(r.number(b, "lambda0", lo=-100, hi=100, key=f"{key}.lambda0"))
+
+    prices = []
+    for i, p in enumerate(r.list(data, "price", "price")):
+        r.only(p, f"price[{i}]", {"t", "rho"})
+        prices.append(PriceStep(r.number(p, "t", lo=0, key=f"price[{i}].t"),
+                                r.number(p, "rho", lo=-100, hi=100, key=f"price[{i}].rho")))
+    if not prices or prices[0].t != 0:
+        raise ConfigError(src, "price", "expected a schedule whose first step is at t = 0")
+    if any(b.t <= a.t for a, b in zip(prices, prices[1:], strict=False)):
+        raise ConfigError(src, "price", "expected strictly increasing times")
+
+    events = []
+    for i, e in enumerate(data.get("event", [])):
+        key = f"event[{i}]"
+        r.only(e, key, {"t", "agent", "action"})
+        action = e.get("action")
+        if action not in ("isolate", "reconnect"):
+            raise ConfigError(src, f"{key}.action", f"expected 'isolate' or 'reconnect', but "
+                              f"got {action!r}")
+        events.append(Event(r.number(e, "t", lo=0, hi=duration, key=f"{key}.t"),
+                            r.agent(e.get("agent"), n, f"{key}.agent"), action))
+
+    variants = []
+    for i, v in enumerate(data.get("variant", [])):
+        key = f"variant[{i}]"
+        r.only(v, key, CONTROLLER_KEYS | {"label"})
+        label = v.get("label")
+        if not isinstance(label, str) or not label:
+            raise ConfigError(src, f"{key}.label", f"expected a non-empty string, but got "
+                              f"{label!r}")
+        overrides = {k: x for k, x in v.items() if k != "label"}
+        r.controller({**ctrl, **overrides}, ts, key)  # validate now, not at run time
+        variants.append(Variant(label, overrides))
+
+    return Scenario(
+        name=str(data.get("name", Path(src).stem)), title=str(data.get("title", "")), source=src,
+        ts=ts, duration=duration, load_kw=r.number(data, "load_kw", lo=-1e6, hi=1e6),
+        controller=controller, n=n, edges=edges, pinned=pinned, batteries=tuple(batteries),
+        lambda0=tuple(lambda0), prices=tuple(prices), events=tuple(events),
+        variants=tuple(variants))
+
+
+class _Reader:
+    """Typed, range-checked access to parsed TOML that names the file and key on error."""
+
+    def __init__(self, src: str) -> None:
+        self.src = src
+
+    def fail(self, key: str, problem: str) -> ConfigError:
+        return ConfigError(self.src, key, problem)
+
+    def only(self, table: Any, where: str, allowed: set[str]) -> None:
+        if not isinstance(table, Mapping):
+            raise self.fail(where or "file", f"expected a table, but got {table!r}")
+        for key in table:
+            if key not in allowed:
+                raise self.fail(f"{where}.{key}" if where else key,
+                                f"unknown key; expected one of {', '.join(sorted(allowed))}")
+
+    def table(self, data: Mapping[str, Any], key: str) -> Mapping[str, Any]:
+        if key not in data:
+            raise self.fail(key, "is required")
+        value = data[key]
+        if not isinstance(value, Mapping):
+            raise self.fail(key, f"expected a table, but got {value!r}")
+        return value
+
+    def list(self, data: Mapping[str, Any], name: str, key: str) -> list[Any]:
+        value = data.get(name)
+        if not isinstance(value, list):
+            raise self.fail(key, f"expected a list, but got {value!r}")
+        return value
+
+    def number(self, data: Mapping[str, Any], name: str, lo: float = -math.inf,
+               hi: float = math.inf, key: str | None = None, integer: bool = False) -> float:
+        key = key or name
+        if name not in data:
+            raise self.fail(key, "is required")
+        x = data[name]
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+            raise self.fail(key, f"expected a number, but got {x!r}")
+        if integer and not float(x).is_integer():
+            raise self.fail(key, f"expected an integer, but got {x!r}")
+        if not lo <= x <= hi:
+            raise self.fail(key, f"expected a value in [{lo:g}, {hi:g}], but got {x!r}")
+        return float(x)
+
+    def agent(self, x: Any, n: int, key: str) -> int:
+        if isinstance(x, bool) or not isinstance(x, int) or not 1 <= x <= n:
+            raise self.fail(key, f"expected an agent number in 1..{n}, but got {x!r}")
+        return x
+
+    def edge(self, e: Any, n: int, key: str) -> tuple[float, ...]:
+        if not isinstance(e, list) or len(e) not in (2, 3):
+            raise self.fail(key, f"expected [i, j] or [i, j, weight], but got {e!r}")
+        i, j = self.agent(e[0], n, key), self.agent(e[1], n, key)
+        if i == j:
+            raise self.fail(key, f"expected two different agents, but got a self-loop {e!r}")
+        w = self.number({"w": e[2]}, "w", lo=1e-3, hi=100, key=key) if len(e) == 3 else 1.0
+        return (i, j, w)
+
+    def controller(self, table: Mapping[str, Any], ts: float, key: str) -> ControllerConfig:
+        for name, value in table.items():
+            if name != "kind" and (isinstance(value, bool) or not isinstance(value, (int, float))):
+                raise self.fail(f"{key}.{name}", f"expected a number, but got {value!r}")
+        try:
+            return ControllerConfig(ts=ts, **table)
+        except ParameterError as e:
+            raise self.fail(f"{key}.{e.name}", f"expected {e.expected}, but got {e.got!r}")\
+                from None
+
+
+# --------------------------------------------------------------------------- time scaling
+
+
+def scaled(sc: Scenario, factor: float) -> Scenario:
+    """The same discrete system on a time axis stretched by ``factor``.
+
+    Ts, durations and event/price times are multiplied by f; k by 1/f and h by
+    1/f², so that k·Ts and h·Ts² (what the discrete step uses) are unchanged and
+    the scaled run is the same per sample. Used to run a case in a slow emulated
+    guest (QEMU without KVM) at a sample rate it can keep up with.
+    """
+    if not (math.isfinite(factor) and factor >= 1):
+        raise ConfigError(sc.source, "time_scale", f"expected a factor ≥ 1, but got {factor!r}")
+    if factor == 1:
+        return sc
+    c = sc.controller
+    ctrl = replace(c, ts=c.ts * factor, k=c.k / factor, h=c.h / factor**2,
+                   dwell=c.dwell * factor)
+    return replace(sc, ts=sc.ts * factor, duration=sc.duration * factor, controller=ctrl,
+                   prices=tuple(PriceStep(p.t * factor, p.rho) for p in sc.prices),
+                   events=tuple(Event(e.t * factor, e.agent, e.action) for e in sc.events),
+                   name=f"{sc.name}-x{factor:g}", variants=())
+
+
+def to_toml(sc: Scenario) -> str:
+    """Serialise a (variant-free) scenario back to the TOML schema load_scenario reads."""
+    c = sc.controller
+    out = [f"# written by bess-ded from {sc.source}", f'name = "{sc.name}"',
+           f'title = "{sc.title}"', f"ts = {sc.ts!r}", f"duration = {sc.duration!r}",
+           f"load_kw = {sc.load_kw!r}", "", "[controller]", f'kind = "{c.kind}"',
+           f"k = {c.k!r}", f"h = {c.h!r}", f"dwell = {c.dwell!r}", f"band = {c.band!r}",
+           f"ft_exponent = {c.ft_exponent!r}", "", "[graph]", f"agents = {sc.n}",
+           "edges = [" + ", ".join(f"[{int(e[0])}, {int(e[1])}, {e[2]!r}]" for e in sc.edges)
+           + "]", f"pinned = {list(sc.pinned)}", ""]
+    for p in sc.prices:
+        out += ["[[price]]", f"t = {p.t!r}", f"rho = {p.rho!r}", ""]
+    for e in sc.events:
+        out += ["[[event]]", f"t = {e.t!r}", f"agent = {e.agent}", f'action = "{e.action}"', ""]
+    for b, l0 in zip(sc.batteries, sc.lambda0, strict=True):
+        out += ["[[battery]]", f"lambda0 = {l0!r}"]
+        out += [f"{k} = {getattr(b, k)!r}" for k in ("alpha", "beta", "m", "p_min", "p_max",
+                                                       "capacity_kwh", "soc0", "v_nom",
+                                                       "r_internal")]
+        out.append("")
+    return "\n".join(out)

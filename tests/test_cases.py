@@ -1,0 +1,218 @@
+"""The paper's seven cases, run on the discrete Q24 firmware (run_lockstep) and judged
+with sim.metrics.compute: every case behaves as the paper says, and the fixed-point
+core agrees with its float twin."""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+
+from firmware_py.controllers import DEFAULT_BAND
+from sim.lockstep import run_lockstep
+from sim.metrics import compute
+from sim.scenario import Scenario, load_case
+from sim.trajectory import Trajectory
+
+
+@cache
+def scenario(case: int, label: str | None = None, **overrides: object) -> Scenario:
+    sc = load_case(case)
+    sc = sc.variant(label) if label else sc
+    return sc.with_controller(**overrides) if overrides else sc
+
+
+@cache
+def run(case: int, label: str | None = None, fixed: bool = True,
+        **overrides: object) -> tuple[Trajectory, dict]:
+    sc = scenario(case, label, **overrides)
+    tr = run_lockstep(sc, fixed=fixed)
+    return tr, compute(sc, tr)
+
+
+def metrics(case: int, label: str | None = None, **overrides: object) -> dict:
+    return run(case, label, **overrides)[1]
+
+
+# --------------------------------------------------------------------------- case 1
+
+
+def test_case1_validation() -> None:
+    m = metrics(1)
+    assert m["final_error"] < 1e-3
+    assert m["regular"] and m["discrete_stable"]
+    assert sum(m["resets"]) > 0
+    assert max(m["resets"]) <= 20            # default band: measured 9, 6, 6, 6
+    assert m["saturations"] == 0
+    assert m["cost"] == pytest.approx(m["optimal_cost"], rel=1e-4)
+
+
+def test_case1_band_costs_no_settling_time() -> None:
+    """The reset band cuts the chattering resets of a plain discrete Clegg reset
+    (band 0: 23, 13, 15, 14 resets) without settling more than 10 % slower."""
+    band, clegg = metrics(1), metrics(1, band=0.0)
+    assert DEFAULT_BAND > 0
+    assert band["settling_time_s"] <= 1.1 * clegg["settling_time_s"]
+    assert sum(band["resets"]) < sum(clegg["resets"])
+
+
+# --------------------------------------------------------------------------- case 2
+
+
+def test_case2_reset_pi_against_pc_and_finite_time() -> None:
+    rpi, pc, ft = metrics(2, "reset-PI"), metrics(2, "PC"), metrics(2, "finite-time")
+    # measured: settling 2.54 s (reset-PI), 3.44 s (PC), 1.37 s (FT);
+    #           control TV 5.2 (reset-PI), 4.6 (PC), 266 (FT)
+    assert rpi["settling_time_s"] <= 0.8 * pc["settling_time_s"]
+    assert rpi["control_total_variation"] <= 2 * pc["control_total_variation"]
+    assert ft["control_total_variation"] >= 10 * rpi["control_total_variation"]
+    for m in (rpi, pc, ft):
+        assert m["final_error"] < 1e-3
+
+
+def test_reset_pi_beats_pi_without_reset() -> None:
+    assert metrics(1)["settling_time_s"] < 0.5 * metrics(1, kind="pi")["settling_time_s"]
+
+
+# --------------------------------------------------------------------------- case 3
+
+
+@pytest.mark.parametrize(("label", "regular"), [
+    ("k=1,h=2", True), ("k=5,h=2", False), ("k=10,h=2", False),
+    ("k=1,h=6", True), ("k=1,h=10", True),
+])
+def test_case3_gain_sweep_regularity(label: str, regular: bool) -> None:
+    m = metrics(3, label)
+    assert m["regular"] is regular
+    assert m["eta_max"] == pytest.approx(4.7913, abs=1e-4)
+    # at Ts = 10 ms every gain pair is still Euler-stable and converges
+    assert m["discrete_stable"]
+    assert m["final_error"] < 1e-3
+
+
+# --------------------------------------------------------------------------- case 4
+
+
+def test_case4_plug_and_play() -> None:
+    tr, m = run(4)
+    sc = scenario(4)
+    off = (tr.t >= 10 - 1e-9) & (tr.t < 20 - 1e-9)
+    assert not tr.active[off, 1].any()
+    assert tr.active[~off, 1].all() and tr.active[:, [0, 2, 3]].all()
+    idle = sc.batteries[1].idle_lambda
+    assert np.abs(tr.lam[off, 1] - idle).max() < 1e-7          # held at its idle MC
+    assert (tr.p[off, 1] == 0).all()
+    # the three left re-converge while agent 2 is away, then all four at the end
+    before = np.flatnonzero(tr.t < 20 - 1e-9)[-1]
+    assert np.abs(tr.lam[before, [0, 2, 3]] - 0.8).max() < 1e-3
+    assert np.abs(tr.lam[-1] - 0.8).max() < 1e-3
+    assert m["final_error"] < 1e-3
+
+
+# --------------------------------------------------------------------------- case 5
+
+
+def test_case5_time_phased_price() -> None:
+    tr, m = run(5)
+    st = m["settling_times_s"]
+    assert len(st) == 3 and all(s is not None for s in st)   # measured 2.54, 2.36, 2.36 s
+    for seg, rho in enumerate((0.8, 1.0, 0.6)):
+        last = np.flatnonzero(tr.segment == seg)[-1]
+        assert tr.rho[last] == rho
+        assert np.abs(tr.lam[last] - rho).max() < 1e-3
+    assert m["final_error"] < 1e-4
+
+
+# --------------------------------------------------------------------------- case 6
+
+
+@pytest.mark.parametrize("label", ["dwell=1", "dwell=1.5"])
+def test_case6_dwell_converges_and_spaces_resets(label: str) -> None:
+    tr, m = run(6, label)
+    dwell = scenario(6, label).controller.dwell
+    assert m["final_error"] < 1e-3
+    for r in tr.resets:
+        times = np.array([0.0, *r])          # the start counts as a reset
+        assert (np.diff(times) >= dwell - 1e-9).all(), (label, r)
+
+
+def test_case6_dwell_trades_speed_for_fewer_resets() -> None:
+    """Measured: Δ = 1 → 5.93 s, 18 resets; Δ = 1.5 → 3.21 s, 13 resets; both between
+    reset-PI without dwell (2.54 s) and PI without reset (7.11 s)."""
+    d1, d15 = metrics(6, "dwell=1"), metrics(6, "dwell=1.5")
+    fastest, slowest = metrics(1)["settling_time_s"], metrics(1, kind="pi")["settling_time_s"]
+    for m in (d1, d15):
+        assert fastest <= m["settling_time_s"] <= slowest
+    assert sum(d15["resets"]) <= sum(d1["resets"]) <= sum(metrics(1)["resets"])
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "not true for these parameters: Δ = 1.5 s settles in 3.21 s, Δ = 1 s in 5.93 s "
+    "(the continuous reference agrees: 3.22 s vs 5.90 s, so it is the hybrid dynamics, "
+    "not the discretisation). Settling is not monotone in Δ: 0.5 → 4.44 s, 1.0 → 5.93 s, "
+    "1.2 → 3.21 s, 2.0 → 3.17 s."))
+def test_case6_larger_dwell_settles_no_faster() -> None:
+    assert metrics(6, "dwell=1.5")["settling_time_s"] >= metrics(6, "dwell=1")["settling_time_s"]
+
+
+# --------------------------------------------------------------------------- case 7
+
+
+def test_case7_scale() -> None:
+    rpi, pc = metrics(7), metrics(7, kind="pc")
+    assert rpi["regular"] and rpi["discrete_stable"]
+    # measured: 5.78 s (reset-PI) vs 11.76 s (PC)
+    assert rpi["settling_time_s"] <= 0.5 * pc["settling_time_s"]
+    assert rpi["final_error"] < 1e-3
+
+
+# --------------------------------------------------------------------------- fixed vs float
+
+RUNS = [(case, label if load_case(case).variants else None)
+        for case in range(1, 8) for label, _ in load_case(case).runs()]
+
+# Runs whose twins differ by more than 1e-4 somewhere, with the measured maximum:
+WHOLE_RUN_EXCEPTIONS = {
+    # FT settles into a discrete limit cycle of amplitude ~1.4e-4 in both twins; √ξ has
+    # infinite slope at 0, so LSB differences shift the cycle's phase
+    (2, "finite-time"): (1.94e-4, 3e-4),
+}
+
+
+def _first_divergent_reset(a: Trajectory, b: Trajectory) -> float:
+    first = np.inf
+    for ra, rb in zip(a.resets, b.resets, strict=True):
+        for x, y in zip([*ra, np.inf], [*rb, np.inf], strict=False):
+            if abs(x - y) > 1e-9:
+                first = min(first, x, y)
+                break
+    return first
+
+
+@pytest.mark.parametrize(("case", "label"), RUNS, ids=[f"case{c}-{lab}" for c, lab in RUNS])
+def test_fixed_and_float_twins_agree(case: int, label: str | None) -> None:
+    """Q24 firmware vs its float twin, closed loop, max |Δλ| over the whole run.
+
+    Bound while both make the same reset decisions: 2e-5. The per-step rounding (≤ 1 LSB
+    on the increment, ½ LSB on ν, gains quantised to ½ LSB) is attenuated by the stable
+    loop; what is left is Q24's dead band at equilibrium: k·Ts·ξ rounds to zero for
+    |ξ| < ½ LSB/(k·Ts) ≈ 3e-6, so λ may rest up to ≈ 3e-6/η_min = 1.4e-5 (star) away from
+    the float twin (measured ≤ 1.34e-5). A reset is a sign test on ξ, discontinuous in
+    the state: when ξ is a few LSB at a sample the twins can reset one sample apart, and
+    then differ by a fraction of the transient (the runs in WHOLE_RUN_EXCEPTIONS).
+    Everywhere else the whole run agrees within 1e-4 (measured ≤ 2.1e-5 since the band
+    re-arms only after a reset, not at it), and every run ends within 3e-5 (measured
+    ≤ 2.05e-5: the dead band plus the slow tail not yet settled at the end of the run).
+    """
+    sc = scenario(case, label)
+    fx_tr, _ = run(case, label, True)
+    fl_tr, _ = run(case, label, False)
+    diff = np.abs(fx_tr.lam - fl_tr.lam).max(axis=1)
+    assert fx_tr.saturations == 0
+    assert diff[-1] <= 3e-5
+    if sc.controller.kind != "ft":
+        k = int(round(min(_first_divergent_reset(fx_tr, fl_tr), sc.duration) / sc.ts))
+        assert diff[:k].max() <= 2e-5
+    _, bound = WHOLE_RUN_EXCEPTIONS.get((case, label), (None, 1e-4))
+    assert diff.max() <= bound

@@ -1,0 +1,66 @@
+"""Agent configuration files: round trip, and a bad file stops the start naming the key."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from firmware_py.config import agent_configs_from_scenario, load_agent_config
+from firmware_py.errors import ConfigError
+from sim.scenario import load_case
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "agent.toml"
+    p.write_text(text)
+    return p
+
+
+def good_text() -> str:
+    return agent_configs_from_scenario(load_case(1))[1].to_toml()
+
+
+def test_round_trip(tmp_path: Path) -> None:
+    cfg = agent_configs_from_scenario(load_case(1))[1]
+    back = load_agent_config(write(tmp_path, cfg.to_toml()))
+    assert back.id == 2 and back.neighbours == cfg.neighbours
+    assert back.controller == cfg.controller and back.battery == cfg.battery
+    assert back.price_timeout_s == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize(("old", "new", "key"), [
+    ("id = 2", "id = 40", "agent.id"),
+    ("id = 2", 'id = "two"', "agent.id"),
+    ("k = 1.0", "k = -1.0", "controller.k"),
+    ("ts = 0.01", "ts = 0.0", "controller.ts"),
+    ('kind = "reset"', 'kind = "fuzzy"', "controller.kind"),
+    ("alpha = 0.005", "alpha = 0.0", "battery.alpha"),
+    ("p_max = 100.0", "p_max = 1000.0", "battery.p_max"),
+    ("[timeouts]", "[timeouts]\nbogus = 1", "timeouts.bogus"),
+    ("lambda0 = 0.6", "lambda0 = 50.0", "agent.lambda0"),
+    ("[[neighbour]]\nid = 1", "[[neighbour]]\nid = 2", "neighbour[0].id"),
+])
+def test_bad_config_names_the_key(tmp_path: Path, old: str, new: str, key: str) -> None:
+    text = good_text()
+    assert old in text
+    with pytest.raises(ConfigError) as e:
+        load_agent_config(write(tmp_path, text.replace(old, new, 1)))
+    assert f"[{key}]" in str(e.value) and "agent.toml" in str(e.value)
+
+
+def test_not_toml_and_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"\[file\] expected valid TOML"):
+        load_agent_config(write(tmp_path, "[agent\nid = 1"))
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_agent_config(tmp_path / "nope.toml")
+
+
+def test_agent_node_refuses_a_bad_config(tmp_path: Path) -> None:
+    path = write(tmp_path, good_text().replace("h = 2.0", "h = 0.0"))
+    r = subprocess.run([sys.executable, "-m", "firmware_py", "--config", str(path)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert "[controller.h]" in r.stderr and "Traceback" not in r.stderr

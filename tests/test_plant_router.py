@@ -1,0 +1,484 @@
+"""The plant and router nodes, pure: frames built with the codec in through on_frame,
+frames out of tick, fixed timestamps (no sleeping); plus one run on a virtual bus."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import threading
+import time
+from dataclasses import replace
+
+import can
+import pytest
+
+from firmware_py.errors import ParameterError
+from firmware_py.frames import FrameCodec, setpoint_name, status_name
+from firmware_py.node import StopFlag, run_node
+from sim.cli import main
+from sim.model import Battery, expenditure, kkt_optimum
+from sim.plant import TAU_S, PlantNode, cell_power, current_limit, open_circuit_voltage
+from sim.router import RouterNode
+from sim.scenario import Scenario, load_case
+
+CODEC = FrameCodec()
+DT = 0.01
+_channels = itertools.count()
+
+
+def T(k: int) -> float:
+    """Tick k's time: exact multiples, as an MCU timer would give."""
+    return k * DT
+
+
+def with_batteries(sc: Scenario, **changes: float) -> Scenario:
+    return replace(sc, batteries=tuple(replace(b, **changes) for b in sc.batteries))
+
+
+def setpoint(agent: int, p_kw: float, counter: int, enable: int = 1) -> can.Message:
+    return CODEC.encode(setpoint_name(agent), {"Enable": enable,
+                                               "PowerSetpoint": round(p_kw * 100)}, counter)
+
+
+def status(agent: int, p_kw: float, counter: int, **flags: int) -> can.Message:
+    raw = {"FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+           "Power": round(p_kw * 100), "Current": 0, "Voltage": 2800, "Soc": 120, **flags}
+    return CODEC.encode(status_name(agent), raw, counter)
+
+
+class PlantDriver:
+    """Ticks a plant every 10 ms and feeds it a setpoint per BESS every 20 ms (like agents)."""
+
+    def __init__(self, plant: PlantNode) -> None:
+        self.plant = plant
+        self.k = 0
+        self.ctr = [0] * (plant.scenario.n + 1)
+        self.status: list[tuple[float, dict[str, float]]] = []  # (t, decoded) per frame
+
+    def send(self, agent: int, p_kw: float, enable: int = 1) -> None:
+        self.plant.on_frame(setpoint(agent, p_kw, self.ctr[agent] % 16, enable), T(self.k))
+        self.ctr[agent] += 1
+
+    def run(self, seconds: float, setpoints: dict[int, float] | None = None) -> None:
+        for _ in range(round(seconds / DT)):
+            if setpoints and self.k % 2 == 0:
+                for agent, p in setpoints.items():
+                    self.send(agent, p)
+            for msg in self.plant.tick(T(self.k)):
+                f = CODEC.decode(msg)
+                d = {s: f.phys(s) for s in ("Power", "Current", "Voltage", "Soc")}
+                d.update({s: f.raw[s] for s in ("FaultOverCurrent", "FaultVoltage", "FaultSoc",
+                                                "PowerLimited")})
+                d["agent"] = f.agent
+                self.status.append((T(self.k), d))
+            self.k += 1
+
+    def last(self, agent: int) -> dict[str, float]:
+        return [d for _, d in self.status if d["agent"] == agent][-1]
+
+
+# --------------------------------------------------------------------------- plant physics
+
+
+def test_chopper_step_response_is_first_order_with_tau() -> None:
+    """R = 0 keeps V = V_oc (SoC moves by ~1e-5 in 50 ms), so I_ref is constant and the
+    exact discretisation must give 1 − exp(−t/τ) at every tick: 63.2 % at τ."""
+    sc = with_batteries(load_case(1), r_internal=0.0)
+    plant = PlantNode(sc)
+    drv = PlantDriver(plant)
+    drv.send(1, 50.0)
+    u = plant.unit(1)
+    i_final = 50e3 / open_circuit_voltage(u.battery, u.soc)
+    drv.run(DT)  # t = 0: latches the reference, nothing has moved yet
+    assert u.current == 0.0 and u.i_ref == pytest.approx(i_final)
+    for k in range(1, 11):
+        drv.run(DT, {1: 50.0})
+        assert u.current / i_final == pytest.approx(1 - math.exp(-T(k) / TAU_S), rel=2e-5)
+    # after exactly τ: 63 %
+    assert TAU_S == 0.05
+    p_at_tau = [d["Power"] for t, d in drv.status if d["agent"] == 1 and abs(t - 0.05) < 1e-9]
+    assert p_at_tau  # the status at 50 ms reports the state after 50 ms = τ
+    assert p_at_tau[0] == pytest.approx((1 - math.exp(-1)) * 50.0, abs=0.02)
+    plant2 = PlantNode(sc)
+    plant2.on_frame(setpoint(1, 50.0, 0), 0.0)
+    plant2.tick(0.0)
+    plant2.tick(TAU_S)  # one uneven step of exactly τ: dt is the real elapsed time
+    assert plant2.unit(1).current / i_final == pytest.approx(1 - math.exp(-1), rel=1e-6)
+    assert plant2.unit(1).power == pytest.approx(0.632 * 50.0, rel=1e-3)
+
+
+def test_steady_state_power_equals_setpoint_with_internal_resistance() -> None:
+    plant = PlantNode(load_case(1))
+    drv = PlantDriver(plant)
+    drv.run(1.0, {1: 66.0, 2: -40.0})
+    assert drv.last(1)["Power"] == pytest.approx(66.0, abs=0.02)
+    assert drv.last(2)["Power"] == pytest.approx(-40.0, abs=0.02)
+    u = plant.unit(1)
+    assert u.voltage == pytest.approx(open_circuit_voltage(u.battery, u.soc)
+                                      - u.battery.r_internal * u.current)
+    assert drv.last(1)["Voltage"] == pytest.approx(u.voltage, abs=0.125)
+    assert drv.last(1)["Current"] == pytest.approx(u.current, abs=0.25)
+    assert drv.last(1)["PowerLimited"] == 0 and drv.last(3)["Power"] == 0.0  # no setpoint: 0 kW
+
+
+def test_power_clipped_at_limits_sets_power_limited() -> None:
+    sc = load_case(1)  # BESS 1: [-120, 120] kW, BESS 2: [-100, 100] kW
+    plant = PlantNode(sc)
+    drv = PlantDriver(plant)
+    drv.run(1.0, {1: 200.0, 2: -150.0, 3: 30.0})
+    assert drv.last(1)["Power"] == pytest.approx(120.0, abs=0.02)
+    assert drv.last(2)["Power"] == pytest.approx(-100.0, abs=0.02)
+    assert drv.last(1)["PowerLimited"] == 1 and drv.last(2)["PowerLimited"] == 1
+    assert drv.last(3)["PowerLimited"] == 0
+    drv.run(0.1, {1: 100.0, 2: -50.0, 3: 30.0})  # back inside: the flag clears at once
+    assert drv.last(1)["PowerLimited"] == 0 and drv.last(2)["PowerLimited"] == 0
+
+
+def test_current_limit_engages_and_sets_power_limited() -> None:
+    """A sagging pack (R = 0.5 Ω, near-empty) needs > I_max for p_max: the current is
+    held at I_max = 1.1·p_max/(0.9·v_nom) and PowerLimited is set."""
+    sc = with_batteries(load_case(1), r_internal=0.5, soc0=0.06)
+    plant = PlantNode(sc)
+    u = plant.unit(1)
+    assert u.i_max == pytest.approx(1.1 * 120e3 / (0.9 * 700.0))
+    assert current_limit(u.battery) == u.i_max
+    drv = PlantDriver(plant)
+    drv.run(1.0, {1: 120.0})
+    assert u.current == pytest.approx(u.i_max, rel=1e-4) and u.current <= u.i_max
+    assert drv.last(1)["PowerLimited"] == 1 and drv.last(1)["FaultOverCurrent"] == 0
+    assert drv.last(1)["Power"] < 119.0
+
+
+@pytest.mark.parametrize("p_kw", [36.0, -36.0])
+def test_soc_integrates_cell_power_with_inner_loss(p_kw: float) -> None:
+    """dSoC/dt = −(P + (α|P|+β)|P|)/(3600·C): a 1 kWh pack at ±36 kW for 1 s in steady state."""
+    sc = with_batteries(load_case(1), capacity_kwh=1.0, soc0=0.5)
+    plant = PlantNode(sc)
+    drv = PlantDriver(plant)
+    drv.run(0.5, {1: p_kw})  # 10 τ: steady state
+    u = plant.unit(1)
+    soc1 = u.soc
+    drv.run(1.0, {1: p_kw})
+    b = u.battery
+    expected = cell_power(b, p_kw) / 3600.0 / b.capacity_kwh
+    assert cell_power(b, p_kw) == pytest.approx(p_kw + (b.alpha * 36 + b.beta) * 36)
+    assert soc1 - u.soc == pytest.approx(expected, rel=2e-3)
+    assert drv.last(1)["Soc"] == pytest.approx(100 * u.soc, abs=0.25)
+
+
+def test_soc_fault_blocks_further_discharge() -> None:
+    sc = with_batteries(load_case(1), capacity_kwh=0.05, soc0=0.08)
+    plant = PlantNode(sc)
+    drv = PlantDriver(plant)
+    drv.run(2.0, {1: 50.0})
+    u = plant.unit(1)
+    assert u.soc < 0.05 and drv.last(1)["FaultSoc"] == 1
+    assert u.p_ref == 0.0 and abs(u.power) < 0.5 and drv.last(1)["PowerLimited"] == 1
+    assert plant.counters["soc_faults"] == 1
+    drv.run(0.5, {1: -20.0})  # charging is still allowed and clears the fault
+    assert u.soc > 0.05 and drv.last(1)["FaultSoc"] == 0
+
+
+# --------------------------------------------------------------------------- plant I/O
+
+
+def test_setpoint_timeout_ramps_to_zero_and_is_counted() -> None:
+    plant = PlantNode(load_case(1))
+    drv = PlantDriver(plant)
+    drv.run(0.5, {1: 50.0})  # last setpoint at t = 0.48
+    assert drv.last(1)["Power"] == pytest.approx(50.0, abs=0.05)
+    drv.run(0.24)            # up to t = 0.73: 250 ms old, not older
+    assert plant.counters["setpoint_timeouts"] == 0 and plant.unit(1).p_ref == 50.0
+    drv.run(0.01)            # t = 0.74: 260 ms > 250 ms
+    assert plant.counters["setpoint_timeouts"] == 1 and plant.unit(1).setpoint_timeouts == 1
+    assert plant.unit(1).p_ref == 0.0 and plant.unit(1).stale
+    t_out = 0.74  # the tick that latched P_ref = 0
+    p0 = plant.unit(1).power
+    drv.run(0.25)
+    for t, d in drv.status:
+        if d["agent"] == 1 and t > t_out + 0.05:
+            assert d["Power"] < 50.0 * math.exp(-(t - t_out - 0.05) / TAU_S) + 0.05
+    assert abs(plant.unit(1).power) < 0.05 * p0  # 5 τ later: ramped down
+    assert plant.counters["setpoint_timeouts"] == 1  # counted once per outage
+    drv.run(0.5, {1: 20.0})  # setpoints back: followed again, no lost frames counted
+    assert drv.last(1)["Power"] == pytest.approx(20.0, abs=0.05)
+    assert plant.counters["lost_frames"] == 0
+
+
+def test_enable_zero_holds_zero_power() -> None:
+    plant = PlantNode(load_case(1))
+    drv = PlantDriver(plant)
+    drv.run(0.5, {1: 50.0})
+    for _ in range(25):
+        drv.send(1, 50.0, enable=0)
+        drv.run(0.02)
+    assert abs(drv.last(1)["Power"]) < 0.05 and drv.last(1)["PowerLimited"] == 0
+    assert plant.counters["setpoint_timeouts"] == 0
+
+
+def test_bad_setpoints_are_rejected_by_cause_and_counters_checked() -> None:
+    plant = PlantNode(load_case(1))
+    plant.tick(0.0)
+    good = setpoint(1, 40.0, 0)
+    bad_crc = can.Message(arbitration_id=good.arbitration_id, is_extended_id=False,
+                          data=bytes([good.data[0] ^ 0xFF]) + bytes(good.data[1:]))
+    short = can.Message(arbitration_id=good.arbitration_id, is_extended_id=False,
+                        data=bytes(good.data[:6]))
+    plant.on_frame(bad_crc, 0.001)
+    plant.on_frame(short, 0.002)
+    plant.on_frame(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=bytes(8)), 0.003)
+    assert plant.counters["crc"] == 1 and plant.counters["dlc"] == 1
+    assert plant.counters["unknown_id"] == 1
+    assert plant.unit(1).setpoint_rx is None and plant.unit(1).p_set == 0.0
+    plant.on_frame(good, 0.004)
+    plant.on_frame(setpoint(1, 80.0, 0), 0.005)  # repeated counter: no new data
+    assert plant.counters["repeated_counter"] == 1 and plant.unit(1).p_set == 40.0
+    plant.on_frame(setpoint(1, 60.0, 3), 0.006)  # counters 1, 2 lost
+    assert plant.counters["lost_frames"] == 2 and plant.unit(1).p_set == 60.0
+    assert plant.counters["setpoints"] == 2
+    # frames not for the plant are ignored without counting; its own echoes too
+    plant.on_frame(CODEC.encode("ER_Price", {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0}, 0),
+                   0.007)
+    other = PlantNode(with_batteries(load_case(1), soc0=0.3))
+    for msg in other.tick(0.0)[:1]:
+        plant.on_frame(msg, 0.008)  # someone else's PLANT_1_Status: impersonation
+    for msg in plant.tick(0.01)[:1]:
+        plant.on_frame(msg, 0.011)  # our own echo: fine
+    assert plant.counters["impersonation"] == 1
+    assert sum(plant.counters[c] for c in ("crc", "dlc", "unknown_id", "range")) == 3
+
+
+def test_injected_faults_set_the_status_flags() -> None:
+    faults = [(1, "overcurrent", 0.2, 0.4), (2, "voltage", 0.2, 0.4), (3, "soc", 0.2, 0.4),
+              (4, "power_limit", 0.2, 0.8)]
+    plant = PlantNode(load_case(1), faults=faults)
+    drv = PlantDriver(plant)
+    drv.run(1.2, {4: 100.0})
+    flag = {1: "FaultOverCurrent", 2: "FaultVoltage", 3: "FaultSoc", 4: "PowerLimited"}
+    for t, d in drv.status:
+        a = int(d["agent"])
+        window = (0.2, 0.8) if a == 4 else (0.2, 0.4)
+        inside = window[0] - 1e-9 <= t < window[1] - 1e-9
+        assert d[flag[a]] == int(inside), (t, a)
+        others = [v for k, v in flag.items() if k != a]
+        assert all(d[o] == 0 for o in others), (t, a)
+    p4 = {round(t, 2): d["Power"] for t, d in drv.status if d["agent"] == 4}
+    assert p4[0.15] == pytest.approx(100.0 * (1 - math.exp(-0.15 / TAU_S)), rel=0.01)
+    assert p4[0.75] == pytest.approx(55.0, abs=0.05)  # clamped to 50 % of p_max = 110 kW
+    assert p4[1.15] == pytest.approx(100.0, abs=0.05)
+    assert plant.counters["injected_faults"] == 4
+
+
+def test_fault_specs_are_checked() -> None:
+    with pytest.raises(ParameterError, match="fault.kind"):
+        PlantNode(load_case(1), faults=[(1, "fire", 0, 1)])
+    with pytest.raises(ParameterError, match="1..4"):
+        PlantNode(load_case(1), faults=["5:soc:0:1"])
+    with pytest.raises(ParameterError, match="T0 < T1"):
+        PlantNode(load_case(1), faults=[(1, "soc", 2, 1)])
+
+
+# --------------------------------------------------------------------------- router
+
+
+def run_router(router: RouterNode, seconds: float, start: int = 0,
+               feed: dict[int, float] | None = None) -> list[tuple[float, can.Message]]:
+    out = []
+    ctr = itertools.count()
+    for k in range(start, start + round(seconds / DT)):
+        if feed and k % 2 == 0:
+            c = next(ctr) % 16
+            for agent, p in feed.items():
+                router.on_frame(status(agent, p, c), T(k))
+        out += [(T(k), m) for m in router.tick(T(k))]
+    return out
+
+
+def test_router_price_frames_carry_the_schedule() -> None:
+    sc = load_case(5)
+    router = RouterNode(sc)
+    frames = [(t, CODEC.decode(m)) for t, m in run_router(router, 50.0)
+              if m.arbitration_id == 0x010]
+    assert len(frames) == 1000  # every 50 ms for 50 s
+    assert [t for t, _ in frames[:3]] == pytest.approx([0.0, 0.05, 0.10])
+    for t, f in frames:
+        rho, seg = sc.price_at(t)
+        assert f.raw["PriceValid"] == 1
+        assert f.raw["Rho"] == round(rho * 2**24) and f.raw["Segment"] == seg
+    by_t = {round(t, 2): (f.phys("Rho"), f.raw["Segment"]) for t, f in frames}
+    assert by_t[14.95] == (pytest.approx(0.8), 0) and by_t[15.0] == (pytest.approx(1.0), 1)
+    assert by_t[34.95] == (pytest.approx(1.0), 1) and by_t[35.0] == (pytest.approx(0.6), 2)
+    counters = [f.counter for _, f in frames[:20]]
+    assert counters == [k % 16 for k in range(20)]
+
+
+def test_router_sends_case4_commands_three_times_at_event_times() -> None:
+    router = RouterNode(load_case(4))
+    cmds = [(round(t, 3), CODEC.decode(m)) for t, m in run_router(router, 25.0)
+            if m.arbitration_id == 0x020]
+    got = [(t, f.raw["Command"], f.raw["Target"]) for t, f in cmds]
+    assert got == [(10.0, 1, 2), (10.01, 1, 2), (10.02, 1, 2),
+                   (20.0, 2, 2), (20.01, 2, 2), (20.02, 2, 2)]
+    assert [f.counter for _, f in cmds] == list(range(6))  # fresh counter per transmission
+    assert all(f.raw["GainK"] == f.raw["GainH"] == 0 for _, f in cmds)
+    assert router.counters["events"] == 2 and router.counters["command_frames"] == 6
+
+
+def test_send_command_queues_three_frames_and_checks_arguments() -> None:
+    router = RouterNode(load_case(1))
+    router.tick(0.0)
+    router.send_command("set_gains", 3, k=1.5, h=2.25)
+    frames = [CODEC.decode(m) for k in range(1, 6) for m in router.tick(T(k))
+              if m.arbitration_id == 0x020]
+    assert [(f.raw["Command"], f.raw["Target"], f.raw["GainK"], f.raw["GainH"])
+            for f in frames] == [(3, 3, 1500, 2250)] * 3
+    with pytest.raises(ParameterError, match="one of isolate"):
+        router.send_command("reboot", 1)
+    with pytest.raises(ParameterError, match="1..4"):
+        router.send_command("isolate", 5)
+    with pytest.raises(ParameterError, match="gain"):
+        router.send_command("set_gains", 1, k=70.0, h=1.0)
+    with pytest.raises(ParameterError, match="only with set_gains"):
+        router.send_command("isolate", 1, k=1.0)
+
+
+def test_router_balance_matches_the_cost_model() -> None:
+    sc = load_case(1)
+    router = RouterNode(sc)
+    powers = {1: 60.0, 2: 50.0, 3: 40.0, 4: 55.0}
+    frames = [(t, CODEC.decode(m)) for t, m in run_router(router, 1.0, feed=powers)
+              if m.arbitration_id == 0x400]
+    assert [round(t, 2) for t, _ in frames] == [round(0.1 * k, 2) for k in range(10)]
+    p = list(powers.values())
+    fc = expenditure(sc.batteries, p, 0.8, sc.load_kw)
+    _, fc_opt = kkt_optimum(sc.batteries, 0.8, sc.load_kw)
+    f = frames[-1][1]
+    assert f.phys("GridPower") == pytest.approx(sc.load_kw - sum(p), abs=0.05)
+    assert f.phys("CostRate") == pytest.approx(fc, abs=0.05)
+    assert f.phys("OptimalCostRate") == pytest.approx(fc_opt, abs=0.05)
+    assert fc > fc_opt
+    assert router.grid_power == pytest.approx(95.0)
+    assert router.cost_rate == pytest.approx(fc)
+    assert router.cost == pytest.approx(fc * 0.99 / 3600)  # 99 intervals of 10 ms
+    assert router.optimal_cost == pytest.approx(fc_opt * 0.99 / 3600)
+    assert router.counters["status_frames"] == 200 and router.counters["lost_frames"] == 0
+    assert "cost=" in router.summary() and "P_e=95.00 kW" in router.summary()
+
+
+def test_router_rejects_bad_status_frames_and_times_statuses_out() -> None:
+    router = RouterNode(load_case(1))
+    router.tick(0.0)
+    good = status(1, 10.0, 0)
+    router.on_frame(can.Message(arbitration_id=good.arbitration_id, is_extended_id=False,
+                                data=bytes([good.data[0] ^ 1]) + bytes(good.data[1:])), 0.0)
+    assert router.counters["crc"] == 1 and router.measured_powers[0] == 0.0
+    router.on_frame(good, 0.0)
+    router.on_frame(status(1, 20.0, 0), 0.0)
+    assert router.counters["repeated_counter"] == 1 and router.measured_powers[0] == 10.0
+    for k in range(1, 27):     # 5 status cycles of 50 ms: timed out after 250 ms
+        router.tick(T(k))
+    assert router.counters["status_timeouts"] == 1
+    assert router.measured_powers[0] == 10.0  # held
+
+
+def test_router_silent_window_sends_nothing() -> None:
+    router = RouterNode(load_case(4), silent=[(1.0, 2.0)])
+    out = run_router(router, 3.0)
+    assert out and not [t for t, _ in out if 1.0 - 1e-9 <= t < 2.0 - 1e-9]
+    prices = [round(t, 2) for t, m in out if m.arbitration_id == 0x010]
+    assert prices[:20] == [round(0.05 * k, 2) for k in range(20)]
+    assert prices[20] == 2.0  # the cadence goes on through the silence
+    assert router.counters["silenced_frames"] == 20 + 10  # 20 prices, 10 balances
+
+
+def test_router_silent_window_drops_commands_due_in_it() -> None:
+    router = RouterNode(load_case(4), silent=["9.5:10.015"])
+    cmds = [round(t, 3) for t, m in run_router(router, 11.0) if m.arbitration_id == 0x020]
+    assert cmds == [10.02]  # the first two transmissions fell in the silence
+
+
+# --------------------------------------------------------------------------- on a bus
+
+
+def test_plant_and_router_on_a_virtual_bus() -> None:
+    """~1 s of wall time: both nodes under run_node, a setpoint source and an observer."""
+    channel = f"plant-router-{next(_channels)}-{time.monotonic_ns()}"
+    kw = {"interface": "virtual", "channel": channel, "receive_own_messages": False}
+    sc = load_case(1)
+    plant, router = PlantNode(sc), RouterNode(sc)
+    buses = [can.Bus(**kw) for _ in range(4)]
+    plant_bus, router_bus, agent_bus, watch = buses
+    stop = StopFlag()
+    threads = [threading.Thread(target=run_node, args=(plant, plant_bus),
+                                kwargs={"stop": stop}, daemon=True),
+               threading.Thread(target=run_node, args=(router, router_bus),
+                                kwargs={"stop": stop, "duration": 1.0}, daemon=True)]
+    seen: dict[str, list] = {}
+    try:
+        for th in threads:
+            th.start()
+        t_end = time.monotonic() + 1.0
+        ctr = 0
+        while time.monotonic() < t_end:
+            agent_bus.send(setpoint(1, 30.0, ctr % 16))
+            ctr += 1
+            deadline = time.monotonic() + 0.02
+            while (msg := watch.recv(timeout=max(0.0, deadline - time.monotonic()))) is not None:
+                f = CODEC.decode(msg)
+                seen.setdefault(f.name, []).append(f)
+        threads[1].join(timeout=5)
+    finally:
+        stop.set()
+        for th in threads:
+            th.join(timeout=5)
+        for bus in buses:
+            bus.shutdown()
+    assert not any(th.is_alive() for th in threads)
+    for i in range(1, 5):
+        assert len(seen.get(f"PLANT_{i}_Status", [])) >= 20, seen.keys()
+    prices = seen.get("ER_Price", [])
+    assert len(prices) >= 10 and all(f.raw["Rho"] == round(0.8 * 2**24) for f in prices)
+    assert len(seen.get("ER_Balance", [])) >= 5
+    assert seen["PLANT_1_Status"][-1].phys("Power") == pytest.approx(30.0, abs=0.5)
+    assert plant.counters["setpoints"] > 20 and router.counters["status_frames"] > 50
+    bad = ("crc", "dlc", "range", "unknown_id", "impersonation", "malformed")
+    assert not any(plant.counters[c] or router.counters[c] for c in bad)
+    assert router.measured_powers[0] == pytest.approx(30.0, abs=0.5)
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def test_cli_router_and_plant_run_and_print_their_summary(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    channel = f"cli-{next(_channels)}-{time.monotonic_ns()}"
+    bus = ["--interface", "virtual", "--channel", channel, "--duration", "0.2"]
+    assert main(["router", "--case", "4", *bus, "--silent", "0.05:0.1"]) == 0
+    assert main(["plant", "--case", "1", *bus, "--fault", "2:soc:0:1"]) == 0
+    err = capsys.readouterr().err
+    assert "router: t=" in err and "silenced_frames=" in err
+    assert "plant: 4 BESS" in err and "BESS 2:" in err and "injected_faults=1" in err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["plant", "--case", "9"], "expected one of"),
+    (["plant", "--case", "1", "--fault", "1:melt:0:1"], "fault.kind"),
+    (["plant", "--case", "1", "--fault", "1:soc"], "AGENT:KIND:T0:T1"),
+    (["router", "--case", "1", "--silent", "4:2"], "T0 < T1"),
+    (["router", "--scenario", "/nonexistent.toml"], "does not exist"),
+    (["router", "--case", "1", "--duration", "0"], "--duration"),
+    (["router", "--case", "1", "--interface", "nosuchbus"], "cannot open CAN bus"),
+])
+def test_cli_bad_arguments_exit_2_with_one_line(argv: list[str], message: str,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("bess-ded: error:") and message in err[0]
+
+
+def test_battery_model_constants() -> None:
+    b = Battery(alpha=0.004, beta=0.2, m=0.1, p_min=-120, p_max=120, v_nom=700)
+    assert open_circuit_voltage(b, 0.0) == pytest.approx(630.0)
+    assert open_circuit_voltage(b, 0.5) == pytest.approx(700.0)
+    assert open_circuit_voltage(b, 1.0) == pytest.approx(770.0)
+    assert current_limit(b) == pytest.approx(120e3 / 630.0 * 1.1)

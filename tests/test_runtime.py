@@ -1,0 +1,331 @@
+"""The agent runtime, pure: frames in through on_frame, frames out of tick, fixed timestamps."""
+
+from __future__ import annotations
+
+import time
+
+import can
+import numpy as np
+import pytest
+
+from firmware_py import fixedpoint as fx
+from firmware_py.config import agent_configs_from_scenario
+from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name
+from firmware_py.node import bus_kwargs, run_node, with_acceptance_filter
+from firmware_py.runtime import AgentRuntime, SetpointMap, State
+from sim.lockstep import run_lockstep
+from sim.scenario import load_case
+
+CODEC = FrameCodec()
+TS = 0.01
+
+
+class Net:
+    """Agents wired by direct delivery: every frame a tick produces reaches every agent
+    before the next tick (a lossless, zero-latency bus), plus a price source."""
+
+    def __init__(self, case: int = 1) -> None:
+        self.sc = load_case(case)
+        self.agents = [AgentRuntime(c, CODEC) for c in agent_configs_from_scenario(self.sc)]
+        self.k = 0
+        self.price_ctr = 0
+        self.price_on = True
+        self.sent: list[can.Message] = []
+
+    @property
+    def t(self) -> float:
+        return self.k * TS
+
+    def deliver(self, msg: can.Message) -> None:
+        for a in self.agents:
+            a.on_frame(msg, self.t)
+
+    def price(self, rho: float) -> None:
+        msg = CODEC.encode("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(rho), "Segment": 0},
+                           self.price_ctr % 16)
+        self.price_ctr += 1
+        self.deliver(msg)
+
+    def run(self, seconds: float, skip: set[int] = frozenset()) -> None:
+        for _ in range(round(seconds / TS)):
+            if self.price_on and self.k % 5 == 0:
+                self.price(self.sc.price_at(self.t)[0])
+            out = [m for a in self.agents if a.cfg.id not in skip for m in a.tick(self.t)]
+            self.sent += out
+            for m in out:
+                self.deliver(m)
+            self.k += 1
+
+    def error(self) -> float:
+        return max(abs(a.lam - 0.8) for a in self.agents)
+
+
+def one_agent(pinned: bool = True) -> AgentRuntime:
+    return AgentRuntime(agent_configs_from_scenario(load_case(1))[0 if pinned else 1], CODEC)
+
+
+def price_frame(counter: int, rho: float = 0.8, valid: int = 1) -> can.Message:
+    return CODEC.encode("ER_Price", {"PriceValid": valid, "Rho": fx.to_fixed(rho),
+                                     "Segment": 0}, counter)
+
+
+def mc_frame(agent: int, counter: int, lam: float = 0.8, state: int = 1) -> can.Message:
+    return CODEC.encode(mc_name(agent), {"State": state, "Lambda": fx.to_fixed(lam),
+                                         "Resets": 0, "NeighboursAlive": 1, "PriceOk": 1},
+                        counter)
+
+
+# --------------------------------------------------------------------------- behaviour
+
+
+def test_runtime_exchange_matches_lockstep_runner() -> None:
+    """With lossless zero-latency delivery the runtimes are the lockstep runner shifted by
+    one sample (neighbours are unknown at the very first tick)."""
+    net = Net(1)
+    lam = []
+    for _ in range(net.sc.steps):
+        lam.append([a.lam for a in net.agents])
+        net.run(TS)
+    ref = run_lockstep(net.sc)
+    diff = np.abs(np.array(lam) - ref.lam[:-1])
+    assert diff.max() < 0.03           # the one-sample shift during the fast transient
+    assert diff[-500:].max() < 1e-4    # the same equilibrium
+    assert net.error() < 1e-3
+    assert all(a.state == State.RUNNING for a in net.agents)
+    assert all(not +a.counters for a in net.agents), [a.summary() for a in net.agents]
+
+
+def test_init_until_price_then_running() -> None:
+    a = one_agent()
+    a.tick(0.0)
+    assert a.state == State.INIT
+    a.on_frame(price_frame(0), 0.005)
+    a.tick(0.01)
+    assert a.state == State.RUNNING
+
+
+def test_price_lost_enters_safe_and_recovers() -> None:
+    net = Net(1)
+    net.run(2.0)
+    net.price_on = False
+    net.run(0.2)   # the last price frame was at t = 1.95 s: 0.24 s ago, within price_s
+    assert all(a.state == State.RUNNING for a in net.agents)
+    net.run(0.02)
+    assert all(a.state == State.SAFE for a in net.agents)
+    held = [a.lam for a in net.agents]
+    net.run(0.5)
+    assert [a.lam for a in net.agents] == held     # λ frozen in SAFE
+    setpoints = [m for m in net.sent[-40:] if 0x200 < m.arbitration_id <= 0x220]
+    assert all(CODEC.decode(m).raw["Enable"] == 0 for m in setpoints)
+    net.price_on = True
+    net.run(6.0)
+    assert all(a.state == State.RUNNING for a in net.agents)
+    assert all(a.counters["price_timeouts"] == 1 for a in net.agents)
+    assert net.error() < 1e-3
+
+
+def test_silent_neighbour_drops_out_within_three_periods_and_rejoins() -> None:
+    net = Net(1)
+    net.run(3.0)
+    hub = net.agents[0]
+    assert hub.neighbours_alive == 3
+    net.run(0.03, skip={2})      # agent 2 silent for 3 periods: still counted alive
+    assert hub.neighbours_alive == 3
+    net.run(0.01, skip={2})      # the 4th silent period: dropped
+    assert hub.neighbours_alive == 2
+    assert hub.counters["neighbour_timeouts"] == 1
+    net.run(5.0, skip={2})
+    assert max(abs(a.lam - 0.8) for a in net.agents if a.cfg.id != 2) < 1e-3
+    net.run(0.02)
+    assert hub.neighbours_alive == 3
+    # after a timeout the 4-bit counter gap is meaningless (it aliases): not counted as loss
+    assert hub.counters["lost_frames"] == 0
+
+
+def test_isolate_and_reconnect_commands() -> None:
+    net = Net(4)
+    net.run(5.0)
+
+    def command(cmd: int, target: int) -> None:
+        net.deliver(CODEC.encode("ER_Command", {"Command": cmd, "Target": target, "GainK": 0,
+                                                "GainH": 0}, net.k % 16))
+
+    command(1, 2)
+    command(1, 2)  # repeats are idempotent
+    a2 = net.agents[1]
+    assert a2.state == State.ISOLATED
+    assert a2.lam == pytest.approx(0.18 * 1.08, abs=1e-6)  # idle MC (1+m)β
+    net.run(1.0)
+    assert net.agents[0].neighbours_alive == 2  # an ISOLATED neighbour is not used
+    command(2, 2)
+    net.run(8.0)
+    assert a2.state == State.RUNNING
+    assert net.error() < 1e-3
+
+
+def test_set_gains_command_and_bad_gains_counted() -> None:
+    a = one_agent()
+    a.on_frame(CODEC.encode("ER_Command", {"Command": 3, "Target": 1, "GainK": 2000,
+                                           "GainH": 3000}, 0), 0.0)
+    assert (a.ctrl.config.k, a.ctrl.config.h) == (2.0, 3.0)
+    a.on_frame(CODEC.encode("ER_Command", {"Command": 3, "Target": 1, "GainK": 0,
+                                           "GainH": 3000}, 1), 0.0)
+    assert a.counters["range"] == 1 and a.ctrl.config.k == 2.0
+    assert "k" in a.last_error["range"]
+
+
+def test_plant_fault_enters_safe() -> None:
+    net = Net(1)
+    net.run(1.0)
+    status = CODEC.encode_phys(status_name(3), {
+        "FaultOverCurrent": 1, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+        "Power": 10.0, "Current": 10.0, "Voltage": 700.0, "Soc": 50.0}, 0)
+    net.deliver(status)
+    net.run(0.02)
+    assert net.agents[2].state == State.SAFE
+    assert net.agents[2].counters["plant_faults"] == 1
+    assert all(a.state == State.RUNNING for a in net.agents if a.cfg.id != 3)
+
+
+# --------------------------------------------------------------------------- rejections
+
+
+def test_each_bad_frame_is_rejected_and_counted_by_cause() -> None:
+    a = one_agent()
+    a.on_frame(price_frame(0), 0.0)
+    good = price_frame(1)
+    bad_crc = can.Message(arbitration_id=0x010, is_extended_id=False,
+                          data=bytes([good.data[0] ^ 1]) + bytes(good.data[1:]))
+    short = can.Message(arbitration_id=0x010, is_extended_id=False, data=bytes(good.data[:5]))
+    for msg in (bad_crc, short,
+                can.Message(arbitration_id=0x7FF, is_extended_id=False, data=bytes(8)),
+                can.Message(arbitration_id=0x010, is_extended_id=True, data=bytes(8)),
+                price_frame(2, rho=50.0),          # E2E ok (1 lost), ρ out of [-10, 10]
+                mc_frame(2, 0, lam=99.0),          # neighbour λ out of range
+                price_frame(3),                    # accepted
+                price_frame(3),                    # repeated counter: no new data
+                price_frame(7),                    # 3 frames lost
+                mc_frame(1, 5)):                   # our own identity, not sent by us
+        a.on_frame(msg, 0.0)
+    assert dict(a.counters) == {"crc": 1, "dlc": 1, "unknown_id": 2, "range": 2,
+                                "repeated_counter": 1, "lost_frames": 4, "impersonation": 1}
+    assert "expected CRC" in a.last_error["crc"]
+    assert a.price == fx.to_fixed(0.8)
+
+
+def test_own_frames_echoed_back_are_not_impersonation() -> None:
+    a = one_agent()
+    a.on_frame(price_frame(0), 0.0)
+    for k in range(20):
+        for m in a.tick(k * TS):
+            a.on_frame(m, k * TS)
+    assert a.counters["impersonation"] == 0
+
+
+def test_diag_frames_carry_the_counters() -> None:
+    a = one_agent()
+    a.on_frame(CODEC.encode("ER_Price", {"PriceValid": 1, "Rho": 0, "Segment": 0}, 0), 0.0)
+    a.on_frame(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=bytes(8)), 0.0)
+    a.note("deadline_miss", 2)
+    pages = {}
+    for k in range(40):
+        for m in a.tick(k * TS):
+            if m.arbitration_id == 0x301:
+                f = CODEC.decode(m)
+                pages[f.raw["Page"]] = f.raw
+    assert pages[0]["DeadlineMisses"] == 2
+    assert pages[2]["RejectedUnknownId"] == 1
+    assert set(pages) == {0, 1, 2, 3}
+
+
+def test_setpoint_map_matches_the_cost_model() -> None:
+    sc = load_case(1)
+    for cfg, bat in zip(agent_configs_from_scenario(sc), sc.batteries, strict=True):
+        sp = SetpointMap(cfg.battery)
+        for lam in np.linspace(0.1, 1.6, 31):
+            raw, limited = sp(fx.to_fixed(float(lam)))
+            assert raw / 100 == pytest.approx(bat.power(lam), abs=0.011)
+            assert limited == (not bat.p_min < (lam / (1 + bat.m) - bat.beta) / (2 * bat.alpha)
+                               < bat.p_max)
+
+
+def test_setpoint_frames_follow_lambda() -> None:
+    net = Net(1)
+    net.run(10.0)
+    last = {}
+    for m in net.sent:
+        if 0x200 < m.arbitration_id <= 0x204:
+            last[m.arbitration_id - 0x200] = CODEC.decode(m).phys("PowerSetpoint")
+    for i, b in enumerate(net.sc.batteries, start=1):
+        assert last[i] == pytest.approx(b.power(0.8), abs=0.05)
+    assert setpoint_name(1) == "AGENT_1_Setpoint"
+
+
+# --------------------------------------------------------------------------- bus seam
+
+def test_acceptance_filter_passes_exactly_what_the_agent_uses_or_sends() -> None:
+    """Agent 2 of case 1 (a leaf of the star: one neighbour, agent 1)."""
+    agent = AgentRuntime(agent_configs_from_scenario(load_case(1))[1], CODEC)
+    fid = CODEC.frame_id
+    assert agent.io.accepted_ids() == sorted({
+        fid("ER_Price"), fid("ER_Command"), fid(status_name(2)), fid(mc_name(1)),
+        fid(mc_name(2)), fid(setpoint_name(2)), fid("AGENT_2_Diag")})
+    kw = bus_kwargs("socketcan", "vcan0")
+    filters = with_acceptance_filter(kw, agent.io.accepted_ids())["can_filters"]
+    assert [f["can_id"] for f in filters] == agent.io.accepted_ids()
+    assert all(f["can_mask"] == 0x7FF and f["extended"] is False for f in filters)
+    # python-can would filter udp_multicast / virtual in user space, uncounted: no filter
+    for interface in ("udp_multicast", "virtual"):
+        kw = bus_kwargs(interface)
+        assert with_acceptance_filter(kw, agent.io.accepted_ids()) == kw
+    assert "can_filters" not in with_acceptance_filter(bus_kwargs("socketcan"), [1], False)
+
+
+def test_run_node_counts_error_frames_and_keeps_running() -> None:
+    agent = one_agent()
+    node_bus = can.Bus(interface="virtual", channel="error-frames", receive_own_messages=False)
+    peer = can.Bus(interface="virtual", channel="error-frames", receive_own_messages=False)
+    try:
+        peer.send(can.Message(is_error_frame=True, arbitration_id=0x20000004, data=bytes(8)))
+        peer.send(price_frame(0))
+        run_node(agent, node_bus, duration=0.1)
+    finally:
+        node_bus.shutdown()
+        peer.shutdown()
+    assert agent.counters["error_frame"] == 1
+    assert agent.price is not None and agent.ticks >= 5
+
+
+class _Overrunning:
+    """A node whose every tick takes 1.5 periods (an overloaded host): it is always late."""
+
+    period = 0.01
+
+    def __init__(self) -> None:
+        self.frames = 0
+        self.counters: dict[str, int] = {}
+
+    def on_frame(self, msg: can.Message, t: float) -> None:
+        self.frames += 1
+
+    def tick(self, t: float) -> list[can.Message]:
+        time.sleep(1.5 * self.period)
+        return []
+
+    def note(self, event: str, count: int = 1) -> None:
+        self.counters[event] = self.counters.get(event, 0) + count
+
+
+def test_run_node_still_reads_its_inputs_when_every_tick_overruns() -> None:
+    node = _Overrunning()
+    node_bus = can.Bus(interface="virtual", channel="overrun", receive_own_messages=False)
+    peer = can.Bus(interface="virtual", channel="overrun", receive_own_messages=False)
+    try:
+        for k in range(40):
+            peer.send(price_frame(k % 16))
+        run_node(node, node_bus, duration=0.3)
+    finally:
+        node_bus.shutdown()
+        peer.shutdown()
+    assert node.frames == 40
+    assert node.counters.get("deadline_miss", 0) > 0

@@ -1,0 +1,195 @@
+"""Interop with Debian's can-utils on vcan0, during one case-1 run (every node a process).
+
+One run serves all three checks (a scenario run costs ~1.5 min in the QEMU guest):
+
+(a) the price comes from can-utils, not from the router: the router runs muted for the
+    whole run (``--silent``). Once all four agents are heard (``candump -n 1`` each, on
+    11-bit data frames only), ``cansend``
+    injects the first ER_Price frame (ρ = 0.9, not case 1's 0.8; CRC and rolling counter
+    built with FrameCodec), which takes the agents out of INIT, and ``canplayer`` then
+    keeps ER_Price coming at its cycle from a 16-frame loop file. (A ``cansend`` per
+    frame would do too on a host, but in the emulated guest each one costs ~0.3-0.6 s of
+    CPU: a stream of them starved the nodes and let the price lapse past the agents'
+    1.25 s timeout.) The agents must converge to ρ = 0.9. The loop file also holds one
+    ER_Price frame with a wrong CRC and one with DLC 5: every agent counts them under
+    RejectedCrc / RejectedDlc, at most as many as ``candump`` saw.
+(b) ``candump -L`` records the run (kernel filters: standard IDs only, joined with an
+    inverse filter that drops the 0x7F0 noise) and every line decodes with
+    ``python3 -m cantools decode`` against the DBC.
+(c) two ``cangen`` generators add random traffic on IDs the DBC does not define
+    (0x7F0 with random DLC and payload; random 29-bit IDs), ~50 frames/s in all. It
+    must not disturb convergence. Agents 1 and 2 run with ``--no-acceptance-filter``
+    and count it (AGENT_i_Diag RejectedUnknownId > 0); agents 3 and 4 keep the default
+    kernel acceptance filter, which stops it before the firmware (RejectedUnknownId = 0).
+
+Case 1 is shortened to 8 s (dataclasses.replace; lockstep is at 1.4e-4 at 8 s) and
+stretched by vcanrun.TIME_SCALE in the guest.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from vcanrun import (
+    FINAL_TOL,
+    TIME_SCALE,
+    Run,
+    assert_clean_exit,
+    assert_decodes_with_cantools,
+    run_on_vcan,
+)
+
+from firmware_py import fixedpoint as fx
+from firmware_py.frames import FrameCodec
+from sim.scenario import load_case
+
+pytestmark = pytest.mark.vcan
+
+RHO = 0.9
+UNFILTERED = (1, 2)  # agents that see every frame; 3 and 4 keep the kernel filter
+PRICE_CYCLE_S = 0.05  # ER_Price's GenMsgCycleTime at Ts = 10 ms
+
+
+def price_frames_hex() -> list[str]:
+    """ER_Price payloads for ρ = 0.9 with counters 0..15 (cansend's ID#DATA form)."""
+    codec = FrameCodec()
+    out = []
+    for ctr in range(16):
+        m = codec.encode("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(RHO), "Segment": 0},
+                         ctr)
+        assert m.arbitration_id == 0x010
+        out.append(f"010#{bytes(m.data).hex().upper()}")
+    return out
+
+
+def bad_crc(frame: str) -> str:
+    head, data = frame.split("#")
+    return f"{head}#{int(data[:2], 16) ^ 0x5A:02X}{data[2:]}"
+
+
+def loop_file(path: Path, channel: str, frames: list[str]) -> None:
+    """A candump -L file for ``canplayer -t`` (which ignores the timestamps)."""
+    path.write_text("".join(f"(0.000000) {channel} {f}\n" for f in frames))
+
+
+def _spawn(argv: list[str], out: Path) -> subprocess.Popen[bytes]:
+    with out.open("wb") as f:
+        return subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, start_new_session=True)
+
+
+def _stop(p: subprocess.Popen[bytes]) -> None:
+    if p.poll() is None:
+        os.killpg(p.pid, signal.SIGTERM)
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+@pytest.fixture(scope="module")
+def interop(vcan_channel: str, can_utils: None,
+            tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Run, Path]]:
+    for tool in ("cangen", "canplayer"):
+        if subprocess.run(["sh", "-c", f"command -v {tool}"], capture_output=True).returncode:
+            pytest.fail(f"{tool} missing (tools/install-vcan-deps)")
+    out = tmp_path_factory.mktemp("interop")
+    ch = vcan_channel
+    good = price_frames_hex()
+    # counters 0..15 after cansend's 15; each bad frame takes one slot, so the good ones
+    # around it are 2 cycles apart (< the agents' 25 Ts price timeout)
+    looped = good[:8] + [bad_crc(good[8])] + good[8:] + [good[0][:4 + 10]]  # + DLC 5
+    loop_file(out / "price-loop.log", ch, looped)
+    gap_ms = round(PRICE_CYCLE_S * TIME_SCALE * 1000)
+    # wait for an AGENT_i_MC frame from every agent: mask C00007FF matches 11-bit data
+    # frames only (7FF alone would also pass cangen's 29-bit IDs that end in 0x10i)
+    wait_agents = " && ".join(f"candump -n 1 {ch},{0x100 + i:03X}:C00007FF >/dev/null"
+                              for i in range(1, 5))
+    feeder = (f"{wait_agents} && cansend {ch} {good[15]} && "
+              f"exec canplayer -t -g {gap_ms} -l i -I {out / 'price-loop.log'}")
+    capture = out / "candump.log"
+    procs = [
+        # j: both filters must match (CAN_RAW_JOIN_FILTERS): 11-bit IDs, and not 0x7F0..7FF
+        _spawn(["candump", "-L", f"{ch},0:80000000,7F0~7F0,j"], capture),
+        _spawn(["cangen", ch, "-g", "40", "-I", "7F0", "-L", "r", "-D", "r"],
+               out / "cangen-std.txt"),
+        _spawn(["cangen", ch, "-g", "40", "-e", "-I", "r", "-L", "r", "-D", "r"],
+               out / "cangen-ext.txt"),
+        _spawn(["sh", "-c", feeder], out / "feeder.txt"),
+    ]
+    try:
+        sc = replace(load_case(1), duration=8.0)
+        # the router's price is muted for the whole run: ER_Price comes from can-utils only
+        run = run_on_vcan(sc, out / "run", ch, extra={
+            "router": ["--silent", "0:1000000"],
+            **{f"agent_{i}": ["--no-acceptance-filter"] for i in UNFILTERED}})
+    finally:
+        for p in reversed(procs):
+            _stop(p)
+    yield run, capture
+
+
+def test_agents_follow_the_price_sent_with_cansend(interop: tuple[Run, Path]) -> None:
+    run, capture = interop
+    # the run's t = 0 is the frame cansend injected (counter 15), before canplayer's 0
+    first = next(ln.split()[2] for ln in capture.read_text().splitlines()
+                 if ln.split()[2].startswith("010#"))
+    assert first == price_frames_hex()[15], first
+    prices = {round(v, 6) for _, v in run.log.series[("price", "Rho")]}
+    assert prices == {round(fx.to_float(fx.to_fixed(RHO)), 6)}, prices
+    assert run.m["final_error"] < FINAL_TOL, {k: run.m[k] for k in (
+        "final_error", "settling_times_s", "deadline_misses")}
+    for i in range(1, run.sc.n + 1):
+        lam = run.log.series[(f"AGENT_{i}_MC", "Lambda")][-1][1]
+        assert abs(lam - RHO) < FINAL_TOL, (i, lam)
+    assert_clean_exit(run)
+
+
+def test_candump_capture_decodes_with_cantools(interop: tuple[Run, Path]) -> None:
+    run, capture = interop
+    lines = capture.read_text().splitlines()
+    # the capture saw the run: every node's frames, far more than the start-up tail
+    assert len(lines) > run.m["frames_recorded"] // 2, (len(lines), run.m["frames_recorded"])
+    ids = {ln.split()[2].split("#")[0] for ln in lines}
+    assert {"010", "101", "104", "281", "301"} <= ids, sorted(ids)
+    assert_decodes_with_cantools(capture, len(lines))
+
+
+def test_random_traffic_on_other_ids_is_counted_not_followed(
+        interop: tuple[Run, Path]) -> None:
+    run, _ = interop
+    # the recorder saw the noise (it records everything) ...
+    assert run.m["frames_undecodable"].get("unknown_id", 0) > 100, run.m["frames_undecodable"]
+    # (and the bad price frames of test_bad_price_frames_..., under their causes)
+    assert set(run.m["frames_undecodable"]) == {"unknown_id", "crc", "dlc"}, \
+        run.m["frames_undecodable"]
+    # ... the unfiltered agents rejected it under unknown_id, the filtered ones never
+    # saw it, and none rejected anything else
+    for i in range(1, run.sc.n + 1):
+        d = run.m["node_diagnostics"][f"agent_{i}"]
+        if i in UNFILTERED:
+            assert d["RejectedUnknownId"] > 0, (i, d)
+        else:
+            assert d["RejectedUnknownId"] == 0, (i, d)
+        assert d["RejectedRange"] == d["RejectedImpersonation"] == 0, (i, d)
+
+
+def test_bad_price_frames_from_canplayer_are_counted_by_cause(
+        interop: tuple[Run, Path]) -> None:
+    run, capture = interop
+    price = [ln.split()[2] for ln in capture.read_text().splitlines()
+             if ln.split()[2].startswith("010#")]
+    crc, dlc = bad_crc(price_frames_hex()[8]), price_frames_hex()[0][:4 + 10]
+    sent = {"RejectedCrc": price.count(crc), "RejectedDlc": price.count(dlc)}
+    assert all(v >= 2 for v in sent.values()), sent  # canplayer looped at least twice
+    for i in range(1, run.sc.n + 1):
+        d = run.m["node_diagnostics"][f"agent_{i}"]
+        for cause, n in sent.items():
+            assert 1 <= d[cause] <= n, (i, cause, d[cause], n)
