@@ -1,8 +1,28 @@
-"""The tick bookkeeping the simulated nodes (plant, router) share."""
+"""What the simulated nodes (plant, router) share: tick bookkeeping, fault windows."""
 
 from __future__ import annotations
 
+import math
 from collections import Counter
+
+from firmware_py.errors import ParameterError
+
+
+class TimeWindow:
+    """Mixin of an injected fault window: active for t_start ≤ t < t_end, in s from the
+    node's first tick (the plant's --fault, the router's --silent)."""
+
+    t_start: float
+    t_end: float
+
+    def check_window(self, what: str, node: str) -> None:
+        if not (math.isfinite(self.t_start) and self.t_start >= 0
+                and self.t_end > self.t_start):  # also refuses a NaN end
+            raise ParameterError(what, f"0 ≤ T0 < T1 (seconds from the {node}'s start)",
+                                 f"{self.t_start}:{self.t_end}")
+
+    def active(self, t_rel: float) -> bool:
+        return self.t_start <= t_rel < self.t_end
 
 
 class SimNodeClock:

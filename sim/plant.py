@@ -75,7 +75,7 @@ from firmware_py.frames import FrameCodec, setpoint_name, status_name
 from firmware_py.nodeio import NodeIO
 
 from .model import Battery
-from .nodeclock import SimNodeClock
+from .nodeclock import SimNodeClock, TimeWindow
 from .scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -124,7 +124,7 @@ def loop_gain(dt: float) -> float:
 
 
 @dataclass(frozen=True)
-class PlantFault:
+class PlantFault(TimeWindow):
     """An injected fault window on one BESS, times in s from the plant's first tick."""
 
     agent: int
@@ -151,14 +151,8 @@ class PlantFault:
             raise ParameterError("fault.agent", f"a BESS in 1..{n}", self.agent)
         if self.kind not in FAULT_KINDS:
             raise ParameterError("fault.kind", f"one of {', '.join(FAULT_KINDS)}", self.kind)
-        if not (math.isfinite(self.t_start) and self.t_start >= 0
-                and self.t_end > self.t_start) or math.isnan(self.t_end):
-            raise ParameterError("fault window", "0 ≤ T0 < T1 (seconds from the plant's start)",
-                                 f"{self.t_start}:{self.t_end}")
+        self.check_window("fault window", "plant")
         return self
-
-    def active(self, t_rel: float) -> bool:
-        return self.t_start <= t_rel < self.t_end
 
 
 def as_fault(f: PlantFault | Sequence[Any] | str) -> PlantFault:

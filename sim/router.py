@@ -40,7 +40,7 @@ from firmware_py.frames import LAMBDA_Q, FrameCodec, status_name
 from firmware_py.nodeio import NodeIO
 
 from .model import expenditure, kkt_optimum
-from .nodeclock import SimNodeClock
+from .nodeclock import SimNodeClock, TimeWindow
 from .plant import Cyclic
 from .scenario import Scenario
 
@@ -58,7 +58,7 @@ _CYCLE_FALLBACK_MS = {"ER_Price": 50, "ER_Balance": 100, "PLANT_1_Status": 20}
 
 
 @dataclass(frozen=True)
-class SilentWindow:
+class SilentWindow(TimeWindow):
     """The router sends nothing for t_start ≤ t < t_end (s from its first tick)."""
 
     t_start: float
@@ -78,13 +78,8 @@ class SilentWindow:
         return window.check()
 
     def check(self) -> SilentWindow:
-        if not (math.isfinite(self.t_start) and self.t_start >= 0 and self.t_end > self.t_start):
-            raise ParameterError("silent window", "0 ≤ T0 < T1 (seconds from the router's start)",
-                                 f"{self.t_start}:{self.t_end}")
+        self.check_window("silent window", "router")
         return self
-
-    def active(self, t_rel: float) -> bool:
-        return self.t_start <= t_rel < self.t_end
 
 
 def as_window(w: SilentWindow | Sequence[float] | str) -> SilentWindow:
