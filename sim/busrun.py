@@ -289,8 +289,12 @@ RECORDER_RCVBUF = 16 << 20  # bytes: ~20k CAN frames (an skb per frame) of slack
 def _enlarge_receive_buffer(bus: can.BusABC) -> None:
     """The recorder runs at normal priority beside real-time nodes: when they take the
     CPU, the kernel queues the frames for it here instead of dropping them (a socketcan
-    socket holds only ~200 frames by default). Other interfaces are left as they are."""
+    socket holds only ~200 frames by default, a udp_multicast one ~300). Other interfaces
+    are left as they are. python-can exposes the socketcan socket as ``bus.socket``;
+    udp_multicast keeps its own in ``bus._multicast._socket`` (no public accessor)."""
     sock = getattr(bus, "socket", None)
+    if sock is None:
+        sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
     if not isinstance(sock, socket.socket):
         return
     for opt in (getattr(socket, "SO_RCVBUFFORCE", 33), socket.SO_RCVBUF):  # FORCE: root
@@ -337,13 +341,18 @@ def summarise(sc: Scenario, out: Path, codec: FrameCodec,
 def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bess-ded",
                    plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = ()
                    ) -> dict[str, Any]:
-    """The same nodes as `up`, as threads on python-can's in-process ``virtual`` bus.
+    """The same nodes as `up` on python-can's in-process ``virtual`` bus, stepped on a
+    simulated clock.
 
-    Each node gets its own bus instance (as it would its own process), so frames
-    really cross the bus; only the OS processes are missing. Used by the tests
-    and for quick experiments; records DIR/run.log and returns the metrics.
+    Every node has its own bus instance, so each frame really crosses the bus (encode,
+    CRC, bus, decode, E2E and range checks), but no thread races the wall clock: one
+    loop advances t by Ts, hands every node what its bus holds, then ticks every node.
+    A frame sent at sample k is read at sample k + 1 (one sample of transport delay, as
+    on a bus cycled at Ts), so the run is deterministic and faster than real time; the
+    multi-process runs (``run``) cover real-time scheduling. Frames are stamped with the
+    simulated time (t = 0: the router's first price frame). Records DIR/run.log and
+    returns the metrics.
     """
-    from firmware_py.node import StopFlag, run_node
     from firmware_py.runtime import AgentRuntime
 
     from .plant import PlantNode
@@ -352,32 +361,31 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     out.mkdir(parents=True, exist_ok=True)
     codec = FrameCodec()
     nodes: list[Any] = [AgentRuntime(c, codec) for c in agent_configs_from_scenario(sc)]
-    nodes.append(PlantNode(sc, faults=plant_faults))
-    router = RouterNode(sc, silent=router_silent)
+    nodes.append(PlantNode(sc, period=sc.ts, faults=plant_faults))
+    nodes.append(RouterNode(sc, period=sc.ts, silent=router_silent))
+    if any(abs(n.period - sc.ts) > 1e-12 for n in nodes):
+        raise BusRunError(f"every node must tick at Ts = {sc.ts} s to be stepped together")
     kw: dict[str, Any] = {"interface": "virtual", "channel": channel,
-                          "receive_own_messages": False}
+                          "receive_own_messages": False, "preserve_timestamps": True}
+    buses = [can.Bus(**kw) for _ in nodes]
     watch = can.Bus(**kw)
     writer = can.Logger(str(out / "run.log"))
-    notifier = can.Notifier(watch, [writer])
-    stop = StopFlag()
-    buses = [can.Bus(**kw) for _ in range(len(nodes) + 1)]
-    threads = [threading.Thread(target=run_node, args=(node, bus), kwargs={"stop": stop},
-                                daemon=True) for node, bus in zip(nodes, buses, strict=False)]
-    # the router starts last and runs for the duration: its first price frame is t = 0
-    threads.append(threading.Thread(target=run_node, args=(router, buses[-1]),
-                                    kwargs={"stop": stop, "duration": duration}, daemon=True))
     try:
-        for th in threads:
-            th.start()
-        threads[-1].join()
+        for k in range(round(duration / sc.ts)):
+            t = k * sc.ts
+            for node, bus in zip(nodes, buses, strict=True):
+                while (msg := bus.recv(timeout=0)) is not None:
+                    node.on_frame(msg, t)
+            for node, bus in zip(nodes, buses, strict=True):
+                for frame in node.tick(t):
+                    frame.timestamp = t
+                    bus.send(frame)
+            while (msg := watch.recv(timeout=0)) is not None:
+                writer.on_message_received(msg)
     finally:
-        stop.set()
-        for th in threads:
-            th.join(timeout=5)
-        notifier.stop()
         writer.stop()
         for bus in [*buses, watch]:
             bus.shutdown()
     m = summarise(sc, out, codec, {}).metrics
-    m["node_summaries"] = [n.summary() for n in [*nodes, router]]
+    m["node_summaries"] = [n.summary() for n in nodes]
     return m

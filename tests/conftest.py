@@ -5,12 +5,19 @@ from __future__ import annotations
 
 import itertools
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import can.interfaces.virtual as virtual
 import pytest
 
-_ports = itertools.count(43200 + (os.getpid() % 200) * 10)
+# udp_multicast runs of one test session take ports from a block of 100 of its own (by
+# pid), so two sessions running at once (a developer's and CI's) never hear each other.
+_ports = itertools.count(43200 + (os.getpid() % 200) * 100)
+
+
+def next_udp_port() -> int:
+    return next(_ports)
 
 
 def _children() -> set[int]:
@@ -40,4 +47,10 @@ def no_leaks():
 @pytest.fixture
 def udp_port() -> int:
     """A multicast port of its own, so concurrent runs never hear each other."""
-    return next(_ports)
+    return next_udp_port()
+
+
+@pytest.fixture(scope="session")
+def udp_ports() -> Callable[[], int]:
+    """The port allocator itself, for fixtures wider than one test."""
+    return next_udp_port

@@ -11,12 +11,12 @@ Times in run.log are the recorder's receive times; t = 0 is the first ER_Price f
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -112,22 +112,16 @@ def injected_losses(out: Path, agent: int) -> int:
 
 NEIGHBOURS = {1: [2, 3, 4], 2: [1], 3: [1], 4: [1]}   # case 1's star
 
-_module_ports = iter(range(46000 + (os.getpid() % 400) * 5, 10**6))
-
-
-def module_port() -> int:
-    """A port for module-scoped runs, apart from conftest's per-test range (43200…45200)."""
-    return next(_module_ports)
-
 
 # --------------------------------------------------------------------------- 1. loss
 
 
 @pytest.fixture(scope="module")
-def lossless(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+def lossless(tmp_path_factory: pytest.TempPathFactory,
+             udp_ports: Callable[[], int]) -> dict[str, Any]:
     """The fault-free reference run (0 % injected loss), 10 s."""
     out = tmp_path_factory.mktemp("lossless")
-    return run_case(out, module_port(), 10.0)
+    return run_case(out, udp_ports(), 10.0)
 
 
 def test_lossless_reference_converges(lossless: dict[str, Any]) -> None:
@@ -386,11 +380,12 @@ def test_flood_of_random_frames(tmp_path: Path, udp_port: int) -> None:
 
 
 @pytest.fixture(scope="module")
-def plant_faults(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], list[Rec]]:
+def plant_faults(tmp_path_factory: pytest.TempPathFactory,
+                 udp_ports: Callable[[], int]) -> tuple[dict[str, Any], list[Rec]]:
     """One 13 s run with both plant faults: over-current on BESS 3 (5–7 s) and a power
     limit on BESS 2 (4–10 s), times from the plant's first tick."""
     out = tmp_path_factory.mktemp("plant")
-    m = run_case(out, module_port(), 13.0, extra={
+    m = run_case(out, udp_ports(), 13.0, extra={
         "plant": ["--fault", "3:overcurrent:5:7", "--fault", "2:power_limit:4:10"]})
     return m, decode_log(out)
 
