@@ -21,7 +21,7 @@ from firmware_py.frames import FrameCodec
 from .scenario import Scenario
 from .trajectory import Trajectory
 
-ISOLATED, SAFE = 2, 3  # AGENT_i_MC.State values that take an agent off the network
+INIT, ISOLATED, SAFE = 0, 2, 3  # AGENT_i_MC.State: before the first price; off the network
 
 
 @dataclass
@@ -36,6 +36,13 @@ class LogContents:
     # frames the recorder missed, per message, from the jumps of its rolling counter (mod
     # 16: an outage of 16+ frames aliases; a restarted node's counter restarts at 0)
     counter_gaps: Counter[str] = field(default_factory=Counter)
+    # State of each agent's first recorded MC frame: an agent is INIT until the first
+    # price, so anything else means the recorder missed the start and t = 0 is late
+    first_mc_state: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def start_recorded(self) -> bool:
+        return all(s == INIT for s in self.first_mc_state.values())
 
 
 def read_log(path: Path, codec: FrameCodec | None = None) -> LogContents:
@@ -61,6 +68,7 @@ def read_log(path: Path, codec: FrameCodec | None = None) -> LogContents:
             out.series[("price", "Rho")].append((msg.timestamp, f.phys("Rho")))
             out.series[("price", "Segment")].append((msg.timestamp, f.raw["Segment"]))
         elif f.name.endswith("_MC"):
+            out.first_mc_state.setdefault(f.name, f.raw["State"])
             for sig in ("Lambda", "State", "Resets"):
                 out.series[(f.name, sig)].append((msg.timestamp, f.phys(sig)))
         elif f.name.endswith("_Status"):

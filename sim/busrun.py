@@ -323,6 +323,7 @@ def summarise(sc: Scenario, out: Path, codec: FrameCodec,
         "frames_recorded": log.frames,
         "frames_undecodable": dict(log.undecodable),
         "frames_missed_by_recorder": sum(log.counter_gaps.values()),
+        "start_recorded": log.start_recorded,
         "node_diagnostics": buslog.node_diagnostics(log),
         "deadline_misses": {k: v.get("DeadlineMisses", 0)
                             for k, v in buslog.node_diagnostics(log).items()},

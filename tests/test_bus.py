@@ -43,7 +43,7 @@ def test_virtual_bus_case1_matches_lockstep(tmp_path: Path) -> None:
     assert m["final_error"] < FINAL_TOL
     worst, end = compare_with_lockstep(sc, tmp_path)
     assert worst < TRANSIENT_TOL and end < FINAL_TOL
-    assert m["frames_undecodable"] == {}
+    assert m["frames_undecodable"] == {} and m["start_recorded"]
     assert all(a["RejectedCrc"] == 0 for a in m["node_diagnostics"].values())
 
 

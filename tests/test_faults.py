@@ -99,6 +99,9 @@ def lam_error_at(recs: list[Rec], t: float, agents: range | list[int]) -> float:
 def run_case(tmp: Path, port: int, duration: float, **kw: Any) -> dict[str, Any]:
     m = busrun.run(CASE, tmp, bus_opts(port), duration=duration, quiet=True, **kw)
     assert all(code == 0 for code in m["exit_codes"].values()), m["exit_codes"]
+    # settling is measured from the first recorded price: a recording that missed the
+    # start would make every timing below meaningless
+    assert m["start_recorded"], "the recorder missed the start of the run"
     return m
 
 

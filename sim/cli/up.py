@@ -57,5 +57,8 @@ def run(args: argparse.Namespace) -> int:
           f"{sum(m['frames_undecodable'].values())}, missed by the recorder "
           f"{m['frames_missed_by_recorder']}, deadline misses "
           f"{json.dumps(m['deadline_misses'])}")
+    if not m["start_recorded"]:
+        print("  warning: the recorder missed the start of the run (an agent's first recorded "
+              "MC frame is not INIT), so t = 0 is late and the settling time too short")
     print(f"  wrote {out}/run.log, {out}/metrics.json, {out}/bus_run.png")
     return 0
