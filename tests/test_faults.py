@@ -11,6 +11,7 @@ Times in run.log are the recorder's receive times; t = 0 is the first ER_Price f
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -131,6 +132,7 @@ def test_lossless_reference_converges(lossless: dict[str, Any]) -> None:
     """Expected: the reference run settles (2 % band) within 2× the lockstep 2.54 s and
     ends below 1e-3; no agent counts a lost frame beyond udp's own few."""
     assert lossless["final_error"] < FINAL_TOL
+    assert lossless["frames_missed_by_recorder"] == 0
     st = lossless["settling_time_s"]
     assert st is not None and st < 2 * LOCKSTEP_SETTLING_S
     print(f"lossless settling {st:.2f} s, final {lossless['final_error']:.1e}")
@@ -152,6 +154,7 @@ def test_random_mc_loss(tmp_path: Path, udp_port: int, loss: float,
           f"final {m['final_error']:.1e}, diag {m['node_diagnostics']}")
     assert m["final_error"] < FINAL_TOL
     assert st is not None and st <= 2 * st0
+    assert m["frames_missed_by_recorder"] == 0  # the loss is at the agents, not the bus
     mc_count = Counter(r.name for r in recs if r.name.endswith("_MC"))
     for i in range(1, N + 1):
         lost = m["node_diagnostics"][f"agent_{i}"]["LostFrames"]
@@ -180,6 +183,7 @@ def test_delay_and_jitter_up_to_three_samples(tmp_path: Path, udp_port: int,
           f"diag {m['node_diagnostics']}")
     assert m["final_error"] < FINAL_TOL
     assert st is not None and st <= 2 * lossless["settling_time_s"]
+    assert m["frames_missed_by_recorder"] == 0
     recs = decode_log(tmp_path)
     mc_count = Counter(r.name for r in recs if r.name.endswith("_MC"))
     for i in range(1, N + 1):
@@ -322,7 +326,12 @@ def test_crafted_frames_counted_by_cause(tmp_path: Path, udp_port: int) -> None:
     assert m["final_error"] < FINAL_TOL
 
 
-FLOOD_SEEN_MIN = 0.80
+# As root the recorder's socket buffer is forced to 16 MiB (busrun), which holds the whole
+# flood (~10 MB of socket buffers) even if the recorder did not run at all: every flood
+# frame must then be in run.log (measured: 10,000 of 10,000). Without root the buffer
+# stays at the ~208 KiB default and udp_multicast drops what it cannot hold (measured
+# 90-96 % before the buffer was enlarged).
+FLOOD_SEEN_MIN = 1.0 if os.geteuid() == 0 else 0.80
 
 
 def normal_rate() -> float:
@@ -337,10 +346,9 @@ def normal_rate() -> float:
 def test_flood_of_random_frames(tmp_path: Path, udp_port: int) -> None:
     """Expected: 10,000 random frames (random 11-bit IDs, DLCs, payloads) at 5000/s from
     t = 2 s: no node crashes (all exit 0), nothing hangs (the run ends on time), the
-    system still converges (< 1e-3 at 12 s), and the recorder logged ≥ 80 % of the flood
-    frames (matched by ID and payload: the recorder is one more Python process on a loaded
-    2-core host, and udp_multicast drops what its socket buffer cannot hold; measured
-    90–96 %) on top of ≥ 90 % of the nominal normal traffic for the 12 s."""
+    system still converges (< 1e-3 at 12 s), and the recorder logged every flood frame
+    (matched by ID and payload; ≥ 80 % without root, see FLOOD_SEEN_MIN) on top of ≥ 90 %
+    of the nominal normal traffic for the 12 s."""
     procs: list[subprocess.Popen[bytes]] = []
 
     def start_flood(_specs: list[busrun.NodeSpec], _logdir: Path) -> None:
