@@ -51,7 +51,10 @@ def run(args: argparse.Namespace) -> int:
           f"{bus.resolved()} for {duration:g} s")
     m = busrun.run(sc, out, bus, duration=duration)
     st = m["settling_time_s"]
-    print(f"  settled (2 %) after {'never' if st is None else f'{st:.2f} s'}, final max|λ−ρ| = "
+    settled = "never" if st is None else f"{st:.2f} s"
+    if st is not None and scale not in (None, 1.0):
+        settled += f" ({st / scale:.2f} s on the unscaled time axis)"
+    print(f"  settled (2 %) after {settled}, final max|λ−ρ| = "
           f"{m['final_error']:.2e}, resets per agent {m['resets']}")
     print(f"  frames recorded {m['frames_recorded']}, undecodable "
           f"{sum(m['frames_undecodable'].values())}, missed by the recorder "
