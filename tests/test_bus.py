@@ -54,6 +54,10 @@ def test_udp_multicast_processes_case1_converges(tmp_path: Path, udp_port: int) 
     assert m["final_error"] < FINAL_TOL, m
     assert m["settling_time_s"] is not None and m["settling_time_s"] < 2 * 2.54
     assert all(code == 0 for code in m["exit_codes"].values()), m["exit_codes"]
+    # the plant and router report their counters at exit (they have no diag frame)
+    assert set(m["node_counters"]) == {"plant", "router"}
+    assert m["node_counters"]["router"]["counters"]["price_frames"] >= 10.0 / 0.05
+    assert m["node_counters"]["plant"]["ticks"] >= 0.9 * 10.0 / sc.ts
     assert (tmp_path / "bus_run.png").stat().st_size > 10_000
     # every frame in the log decodes with cantools against the DBC
     out = subprocess.run([sys.executable, "-m", "cantools", "decode", "dbc/bess_ded.dbc"],
@@ -116,12 +120,13 @@ def test_udp_multicast_case7_twelve_agents_keep_their_deadlines(tmp_path: Path,
     """Case 7: 12 agent processes + plant + router at Ts = 10 ms on udp_multicast.
 
     Expected: it converges (max|λ−ρ| < 1e-3 after 12 s; lockstep: 2.7e-4) and every
-    agent misses < 1 % of its deadlines (a tick released > Ts/2 late)."""
+    node (12 agents, plant, router) misses < 1 % of its deadlines (a tick released > Ts/2
+    late; measured 2–5 per agent, 5 / 3 for plant / router in a 30 s run)."""
     sc = load_case(7)
     bus = busrun.BusOptions("udp_multicast", None, f'{{"port": {udp_port}}}')
     m = busrun.run(sc, tmp_path, bus, duration=12.0, quiet=True)
     assert m["final_error"] < FINAL_TOL, m["final_error"]
     ticks = 12.0 / sc.ts
     misses = m["deadline_misses"]
-    assert len(misses) == 12
+    assert set(misses) == {f"agent_{i}" for i in range(1, 13)} | {"plant", "router"}
     assert all(n < 0.01 * ticks for n in misses.values()), misses

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import signal
 import sys
+from pathlib import Path
 from typing import Any
 
 from firmware_py.__main__ import add_bus_arguments, add_filter_argument, add_rt_argument
@@ -24,6 +26,10 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
                    help="stop after S seconds (default: run until SIGINT/SIGTERM)")
     p.add_argument("--period", type=float, default=0.01, metavar="S",
                    help="tick period of the node (default: 0.01 s)")
+    p.add_argument("--counters-json", metavar="FILE",
+                   help="at exit, write the node's ticks and counters (deadline misses, "
+                        "rejected frames by cause) to FILE as JSON: unlike the agents, the "
+                        "plant and router have no diagnostics frame on the bus")
 
 
 def load_node_scenario(args: argparse.Namespace) -> Any:
@@ -63,4 +69,7 @@ def serve(node: Any, args: argparse.Namespace) -> int:
         finally:
             bus.shutdown()
             print(node.summary(), file=sys.stderr, flush=True)
+            if args.counters_json:
+                Path(args.counters_json).write_text(json.dumps(
+                    {"ticks": node.ticks, "counters": dict(sorted(node.counters.items()))}))
     return 0
