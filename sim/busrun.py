@@ -125,6 +125,9 @@ class Progress(can.Listener):
             return max(abs(v - self.rho) for a, v in self.lam.items() if self.active.get(a))
 
 
+SIM_NODES = ("plant", "router")  # the simulated nodes, started after the agents
+
+
 def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
                extra: dict[str, list[str]] | None = None,
                rt_priority: int = RT_PRIORITY) -> list[NodeSpec]:
@@ -144,15 +147,12 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
         name = f"agent_{cfg.id}"
         specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + bus.argv()
                               + rt + extra.get(name, [])))
-    for role in ("plant", "router"):
+    for role in SIM_NODES:
         specs.append(NodeSpec(role, py + ["sim.cli", role, "--scenario", str(scenario_path),
                                           "--period", repr(sc.ts), "--counters-json",
                                           str(counters_path(out, role))]
                               + bus.argv() + rt + extra.get(role, [])))
     return specs
-
-
-SIM_NODES = ("plant", "router")
 
 
 def counters_path(out: Path, role: str) -> Path:
@@ -176,28 +176,33 @@ def start(spec: NodeSpec, logdir: Path) -> None:
 
 
 @contextlib.contextmanager
-def _above_the_nodes() -> Iterator[None]:
-    """Run the block under SCHED_FIFO above the nodes' priority, where the OS allows it.
+def _above_the_nodes(rt_priority: int) -> Iterator[None]:
+    """Run the block under SCHED_FIFO above the nodes' ``rt_priority`` (0: they run at
+    normal priority, nothing to outrank), where the OS allows it.
 
     Stopping sends one SIGTERM per node. A real-time node that gets its signal preempts
     a normal-priority sender at once to tear down, and the nodes not yet signalled then
     starve and count deadline misses that are the harness's, not theirs (case 7: ~12
     per plant and router, all in the 0.1 s after the run)."""
     policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RT_PRIORITY + 1))
-    except (PermissionError, OSError):
-        yield  # not root: the nodes run at normal priority too (set_realtime)
-        return
+    raised = False
+    if rt_priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(min(rt_priority + 1, 99)))
+            raised = True
+        except OSError:  # not root: the nodes run at normal priority too (set_realtime)
+            pass
     try:
         yield
     finally:
-        os.sched_setscheduler(0, policy, param)
+        if raised:
+            os.sched_setscheduler(0, policy, param)
 
 
-def stop_all(specs: list[NodeSpec]) -> dict[str, int | None]:
-    """SIGTERM every node, wait for a clean exit, SIGKILL what is left. Returns exit codes."""
-    with _above_the_nodes():
+def stop_all(specs: list[NodeSpec], rt_priority: int = RT_PRIORITY) -> dict[str, int | None]:
+    """SIGTERM every node, wait for a clean exit, SIGKILL what is left. Returns exit codes.
+    ``rt_priority``: the SCHED_FIFO priority the nodes run at (node_specs)."""
+    with _above_the_nodes(rt_priority):
         for s in specs:
             if s.proc is not None and s.proc.poll() is None:
                 s.proc.send_signal(signal.SIGTERM)
@@ -295,7 +300,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
         if not quiet and tty:
             print(file=sys.stderr)
     finally:
-        codes = stop_all(specs)
+        codes = stop_all(specs, rt_priority)
         _drain(progress)
         notifier.stop()
         writer.stop()
