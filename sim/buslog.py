@@ -1,12 +1,19 @@
-"""Turn a recorded candump log back into a Trajectory, plus each node's diagnostics.
+"""Turn a recorded candump log back into a Trajectory, plus what the log says about the run.
 
 The bus run's metrics come only from what crossed the bus: λ_i from AGENT_i_MC,
-ρ from ER_Price, P_i from PLANT_i_Status, counters from AGENT_i_Diag. Values are
-sampled on the Ts grid by holding the last frame received (what a neighbour sees).
+ρ from ER_Price, P_i from PLANT_i_Status, counters from AGENT_i_Diag, the router's
+ledger from ER_Balance. Values are sampled on the Ts grid by holding the last frame
+received (what a neighbour sees). Every frame is decoded once, here, whatever reads
+the result: ``bess-ded up`` after a run, ``bess-ded analyze`` on any candump log.
+
+Besides the signals, ``read_log`` keeps what tells a clean recording from a bad one:
+undecodable frames by cause, frames on IDs outside the run, per-message counter
+sequences (recorder misses vs. interleaved senders), silences of the whole bus.
 """
 
 from __future__ import annotations
 
+import math
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +28,28 @@ from firmware_py.frames import FrameCodec
 from .scenario import Scenario
 from .trajectory import Trajectory
 
-INIT, ISOLATED, SAFE = 0, 2, 3  # AGENT_i_MC.State: before the first price; off the network
+INIT, RUNNING, ISOLATED, SAFE = 0, 1, 2, 3  # AGENT_i_MC.State
+COUNTER_MODULO = 16
+MC_CYCLE_S = 0.010          # the DBC's AGENT_i_MC cycle: the Ts every other cycle is set for
+SEQUENCE_TIMEOUT_CYCLES = 5  # a message silent this long restarts its counter sequence
+
+
+@dataclass
+class SequenceStats:
+    """One message's rolling-counter sequence as the recorder saw it.
+
+    A single sender advances its counter by 1 per frame; a recorder that misses k frames
+    sees a jump of k + 1. A repeat, or a jump of more than half the modulus, is not what
+    one sender does: it is a second sender on the same ID (interleaved sequences) or a
+    replay. After a silence of SEQUENCE_TIMEOUT_CYCLES cycles the sequence restarts (a
+    restarted node counts from 0 again), as the firmware's own receivers do."""
+
+    frames: int = 0
+    gaps: list[tuple[float, float]] = field(default_factory=list)  # > the timeout
+    missed: int = 0          # frames inferred lost by the recorder
+    out_of_sequence: int = 0  # repeats and backward jumps: another sender or a replay
+    last: int | None = None
+    t_last: float | None = None
 
 
 @dataclass
@@ -31,11 +59,18 @@ class LogContents:
     series: dict[tuple[str, str], list[tuple[float, float]]] = field(
         default_factory=lambda: defaultdict(list))
     diag: dict[int, dict[str, int]] = field(default_factory=lambda: defaultdict(dict))
+    t_first_frame: float | None = None
     t_first_price: float | None = None
     t_end: float = 0.0
-    # frames the recorder missed, per message, from the jumps of its rolling counter (mod
-    # 16: an outage of 16+ frames aliases; a restarted node's counter restarts at 0)
-    counter_gaps: Counter[str] = field(default_factory=Counter)
+    sequences: dict[str, SequenceStats] = field(default_factory=dict)
+    # frames of messages that exist in the DBC but not in this run (AGENT_9_MC in a
+    # 4-agent fleet), by message name
+    outside_run: Counter[str] = field(default_factory=Counter)
+    # gaps between consecutive frames longer than the silence threshold: (t_from, t_to)
+    silences: list[tuple[float, float]] = field(default_factory=list)
+    # per cyclic message, after the first price: gaps of more than SEQUENCE_TIMEOUT_CYCLES
+    # cycles, the end of the log included: (t_from, t_to)
+    message_silences: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
     # State of each agent's first recorded MC frame: an agent is INIT until the first
     # price, so anything else means the recorder missed the start and t = 0 is late
     first_mc_state: dict[str, int] = field(default_factory=dict)
@@ -44,42 +79,109 @@ class LogContents:
     def start_recorded(self) -> bool:
         return all(s == INIT for s in self.first_mc_state.values())
 
+    @property
+    def counter_gaps(self) -> Counter[str]:
+        """Frames the recorder missed, per message (from the counter jumps)."""
+        return Counter({k: s.missed for k, s in self.sequences.items() if s.missed})
 
-def read_log(path: Path, codec: FrameCodec | None = None) -> LogContents:
+    @property
+    def out_of_sequence(self) -> Counter[str]:
+        """Frames out of their message's counter sequence, per message."""
+        return Counter({k: s.out_of_sequence for k, s in self.sequences.items()
+                        if s.out_of_sequence})
+
+    def mc_frames(self, agent: int) -> int:
+        s = self.sequences.get(f"AGENT_{agent}_MC")
+        return 0 if s is None else s.frames
+
+
+def _cycle_s(codec: FrameCodec, name: str, time_scale: float) -> float:
+    """The message's cycle in a run stretched by ``time_scale``; inf for event frames."""
+    ms = codec.database.get_message_by_name(name).cycle_time
+    return ms / 1000.0 * time_scale if ms else math.inf
+
+
+def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
+             ts: float | None = None) -> LogContents:
+    """Decode every frame of a candump-format log (``can.LogReader``: any suffix it knows).
+
+    ``n``: the run's fleet size, so frames of agents beyond it count as outside the run;
+    ``ts``: the run's sample time, for the silence threshold (3·Ts) and for the message
+    cycles of a time-scaled run (the DBC's cycles are for Ts = 10 ms)."""
     codec = codec or FrameCodec()
     out = LogContents()
-    last_counter: dict[str, int] = {}
+    scale = (ts / MC_CYCLE_S) if ts else 1.0
+    silence = 3 * ts if ts else None
+    cycles: dict[str, float] = {}
+    t_prev: float | None = None
     for msg in can.LogReader(str(path)):
         out.frames += 1
-        out.t_end = msg.timestamp
+        t = msg.timestamp
+        if out.t_first_frame is None:
+            out.t_first_frame = t
+        out.t_end = max(out.t_end, t)
+        if (silence is not None and t_prev is not None and out.t_first_price is not None
+                and t - t_prev > silence):
+            out.silences.append((t_prev, t))
+        t_prev = t if t_prev is None else max(t_prev, t)
         try:
             f = codec.decode(msg)
         except FrameError as e:
             out.undecodable[e.cause] += 1
             continue
-        if "Counter" in f.raw:
-            ctr, prev = f.raw["Counter"], last_counter.get(f.name)
-            if prev is not None and (ctr - prev - 1) % 16 and ctr != prev:  # equal: a repeat
-                out.counter_gaps[f.name] += (ctr - prev - 1) % 16
-            last_counter[f.name] = ctr
+        if n is not None and f.agent is not None and f.agent > n:
+            out.outside_run[f.name] += 1
+            continue
+        if f.name not in cycles:
+            cycles[f.name] = _cycle_s(codec, f.name, scale)
+        _sequence(out.sequences.setdefault(f.name, SequenceStats()), f.counter, t,
+                  SEQUENCE_TIMEOUT_CYCLES * cycles[f.name])
         if f.name == "ER_Price":
             if out.t_first_price is None:
-                out.t_first_price = msg.timestamp
-            out.series[("price", "Rho")].append((msg.timestamp, f.phys("Rho")))
-            out.series[("price", "Segment")].append((msg.timestamp, f.raw["Segment"]))
+                out.t_first_price = t
+            out.series[("price", "Rho")].append((t, f.phys("Rho")))
+            out.series[("price", "Segment")].append((t, f.raw["Segment"]))
         elif f.name.endswith("_MC"):
             out.first_mc_state.setdefault(f.name, f.raw["State"])
             for sig in ("Lambda", "State", "Resets"):
-                out.series[(f.name, sig)].append((msg.timestamp, f.phys(sig)))
+                out.series[(f.name, sig)].append((t, f.phys(sig)))
         elif f.name.endswith("_Status"):
-            out.series[(f.name, "Power")].append((msg.timestamp, f.phys("Power")))
+            for sig in ("Power", "PowerLimited"):
+                out.series[(f.name, sig)].append((t, f.phys(sig)))
         elif f.name.endswith("_Diag"):
             out.diag[f.agent or 0].update({k: v for k, v in f.raw.items()
                                            if k not in ("CRC", "Counter", "Page")})
         elif f.name == "ER_Balance":
             for sig in ("GridPower", "CostRate", "OptimalCostRate"):
-                out.series[("balance", sig)].append((msg.timestamp, f.phys(sig)))
+                out.series[("balance", sig)].append((t, f.phys(sig)))
+    _message_silences(out, cycles)
     return out
+
+
+def _message_silences(out: LogContents, cycles: dict[str, float]) -> None:
+    t0 = out.t_first_price
+    if t0 is None:
+        return
+    for name, s in out.sequences.items():
+        limit = SEQUENCE_TIMEOUT_CYCLES * cycles[name]
+        gaps = [(a, b) for a, b in s.gaps if b > t0 and b - max(a, t0) > limit]
+        if s.t_last is not None and out.t_end - s.t_last > limit:
+            gaps.append((s.t_last, out.t_end))
+        if gaps:
+            out.message_silences[name] = gaps
+
+
+def _sequence(s: SequenceStats, counter: int, t: float, timeout: float) -> None:
+    s.frames += 1
+    if s.t_last is not None and t - s.t_last > timeout:
+        s.gaps.append((s.t_last, t))
+    elif s.last is not None and s.t_last is not None:
+        delta = (counter - s.last) % COUNTER_MODULO
+        if delta == 0 or delta > COUNTER_MODULO // 2:
+            s.out_of_sequence += 1
+        else:
+            s.missed += delta - 1
+    s.last, s.t_last = counter, t
 
 
 def _hold(series: list[tuple[float, float]], grid: np.ndarray, before: float) -> np.ndarray:
@@ -91,6 +193,17 @@ def _hold(series: list[tuple[float, float]], grid: np.ndarray, before: float) ->
     return np.where(idx >= 0, v[np.clip(idx, 0, None)], before)
 
 
+def planned_participation(sc: Scenario, t: np.ndarray) -> np.ndarray:
+    """(K, N): agent i is meant to take part in the dispatch at t_k: everyone, except
+    between an ``isolate`` event and the next ``reconnect`` (as the lockstep runner
+    applies them, at sample round(t_event/Ts))."""
+    planned = np.ones((t.size, sc.n), dtype=bool)
+    k = np.rint(t / sc.ts)
+    for e in sorted(sc.events, key=lambda e: e.t):
+        planned[k >= round(e.t / sc.ts), e.agent - 1] = e.action == "reconnect"
+    return planned
+
+
 def trajectory_from_log(sc: Scenario, log: LogContents, label: str = "bus") -> Trajectory:
     if log.t_first_price is None:
         raise ValueError("the log holds no ER_Price frame: the router never spoke")
@@ -98,7 +211,7 @@ def trajectory_from_log(sc: Scenario, log: LogContents, label: str = "bus") -> T
     grid = t0 + np.arange(0.0, log.t_end - t0, ts)
     lam = np.column_stack([_hold(log.series[(f"AGENT_{i}_MC", "Lambda")], grid, sc.lambda0[i - 1])
                            for i in range(1, sc.n + 1)])
-    state = np.column_stack([_hold(log.series[(f"AGENT_{i}_MC", "State")], grid, 0)
+    state = np.column_stack([_hold(log.series[(f"AGENT_{i}_MC", "State")], grid, INIT)
                              for i in range(1, sc.n + 1)])
     p = np.column_stack([_hold(log.series[(f"PLANT_{i}_Status", "Power")], grid, 0.0)
                          for i in range(1, sc.n + 1)])
@@ -109,10 +222,30 @@ def trajectory_from_log(sc: Scenario, log: LogContents, label: str = "bus") -> T
     u = np.vstack([np.diff(lam, axis=0) / ts, np.zeros((1, sc.n))])
     return Trajectory(t=grid - t0, lam=lam, rho=_hold(log.series[("price", "Rho")], grid, np.nan),
                       segment=_hold(log.series[("price", "Segment")], grid, 0).astype(int),
-                      active=(state != ISOLATED) & (state != SAFE), p=p, u=u, resets=resets,
-                      label=label)
+                      active=state == RUNNING, p=p, u=u, resets=resets, label=label,
+                      expected=planned_participation(sc, grid - t0), state=state.astype(int))
 
 
 def node_diagnostics(log: LogContents) -> dict[str, Any]:
     """Per agent: the last value of every diagnostics counter it broadcast."""
     return {f"agent_{a}": dict(sorted(d.items())) for a, d in sorted(log.diag.items())}
+
+
+def router_ledger(log: LogContents) -> dict[str, float] | None:
+    """The router's own cost ledger as broadcast in ER_Balance: its cost rates integrated
+    over the recorded frames (rectangle rule, each rate held until the next frame), from
+    the first price frame on, and the last grid power. None without ER_Balance frames."""
+    cost = log.series.get(("balance", "CostRate"), [])
+    opt = log.series.get(("balance", "OptimalCostRate"), [])
+    grid = log.series.get(("balance", "GridPower"), [])
+    t0 = log.t_first_price
+    if not cost or t0 is None:
+        return None
+
+    def integral(series: list[tuple[float, float]]) -> float:
+        pts = [(t, v) for t, v in series if t >= t0]
+        return sum(v * (t1 - t) for (t, v), (t1, _) in zip(pts, pts[1:], strict=False)) / 3600
+
+    return {"cost": integral(cost), "optimal_cost": integral(opt),
+            "cost_rate": cost[-1][1], "optimal_cost_rate": opt[-1][1] if opt else float("nan"),
+            "grid_power": grid[-1][1] if grid else float("nan")}

@@ -28,9 +28,11 @@ from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import FrameCodec
 from firmware_py.node import bus_kwargs, open_bus
 
-from . import buslog, metrics
+from .runreport import Recording, report
 from .scenario import Scenario, to_toml
-from .trajectory import Trajectory
+from .verdict import RunFacts
+
+__all__ = ["BusOptions", "NodeSpec", "Recording", "record", "run", "run_in_process"]
 
 STOP_GRACE_S = 5.0     # SIGTERM → SIGKILL
 # nodes must be up (router speaking) by then. In tools/vcan-run's emulated guest a node
@@ -93,7 +95,6 @@ class Progress(can.Listener):
         self.codec, self.n = codec, n
         self.rho: float | None = None
         self.lam: dict[int, float] = {}
-        self.active: dict[int, bool] = {}
         self.frames = 0
         self.t_last_frame = 0.0  # its timestamp (wall-clock)
         self.t_first_price: float | None = None
@@ -116,13 +117,13 @@ class Progress(can.Listener):
                     self.t_first_price = time.monotonic()
             elif f.agent is not None:
                 self.lam[f.agent] = f.phys("Lambda")
-                self.active[f.agent] = f.raw["State"] in (0, 1)
 
     def error(self) -> float | None:
+        """max|λ_i − ρ| over every agent heard, whatever its state (as the verdict judges)."""
         with self.lock:
             if self.rho is None or not self.lam:
                 return None
-            return max(abs(v - self.rho) for a, v in self.lam.items() if self.active.get(a))
+            return max(abs(v - self.rho) for v in self.lam.values())
 
 
 SIM_NODES = ("plant", "router")  # the simulated nodes, started after the agents
@@ -220,32 +221,49 @@ def stop_all(specs: list[NodeSpec], rt_priority: int = RT_PRIORITY) -> dict[str,
     return codes
 
 
-@dataclass
-class Recording:
-    """What a bus run leaves: its metrics and the decoded log they came from."""
-
-    metrics: dict[str, Any]
-    log: buslog.LogContents
-    trajectory: Trajectory
-
-
 def run(sc: Scenario, out: Path, bus: BusOptions, **kw: Any) -> dict[str, Any]:
     """``record`` and return the metrics only."""
     return record(sc, out, bus, **kw).metrics
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, handled like Ctrl-C: stop the nodes, then report what was recorded."""
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts() -> Iterator[None]:
+    def handler(signum: int, frame: Any) -> None:
+        raise _Terminated()
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread (a test driving record() from a thread)
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = None,
            extra: dict[str, list[str]] | None = None, delays: dict[str, float] | None = None,
            quiet: bool = False, rt_priority: int = RT_PRIORITY,
            actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]] = (),
-           plot: bool = True) -> Recording:
+           plot: bool = True, time_scale: float = 1.0) -> Recording:
     """Run the scenario on the bus for ``duration`` s of price time (default: the
     scenario's). ``extra`` adds argv per node (fault flags),
     ``delays`` starts a node late (s after t = 0), ``actions`` calls
     ``action(specs, logdir)`` once at t s after t = 0 (fault tests: kill or restart a
     node through ``spec.proc`` / ``start``; whatever is in ``spec.proc`` at the end is
     stopped as usual). ``plot=False`` skips bus_run.png (matplotlib's import and render
-    cost ~20 s in the QEMU guest)."""
+    cost ~20 s in the QEMU guest). ``time_scale``: the factor ``sc`` was stretched by,
+    for the plot's axis.
+
+    SIGINT or SIGTERM stops the run early: the nodes are stopped and the outputs are
+    written for what was recorded, with the verdict marked interrupted. Every node that
+    exits during the run is a ``node_died`` anomaly (fault tests kill nodes on purpose
+    and assert it)."""
     out.mkdir(parents=True, exist_ok=True)
     duration = sc.duration if duration is None else duration
     # the nodes read exactly what ran: variants resolved, time scale applied
@@ -264,48 +282,75 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     writer = can.Logger(str(out / "run.log"))
     progress = Progress(codec, sc.n)
     notifier = can.Notifier(watch, [writer, progress])
+    deaths: list[tuple[str, float, int]] = []
+    interrupted = False
     try:
-        # All at once (the router last): started one after the other, each would start
-        # while the others already run, which in the QEMU guest took ~40 s per node.
-        for s in specs:
-            if s.delay == 0:
-                start(s, logdir)
-        t_start = time.monotonic()
-        while progress.t_first_price is None:
-            if time.monotonic() - t_start > START_TIMEOUT_S:
-                raise BusRunError(f"no price frame within {START_TIMEOUT_S:.0f} s: see "
-                                  f"{logdir}/router.log")
-            _check_alive(specs, logdir)
-            time.sleep(0.05)
-        t0 = progress.t_first_price
-        last_print, frames_then, t_then = 0.0, progress.frames, time.monotonic()
-        tty = sys.stderr.isatty()
-        pending = sorted(actions, key=lambda a: a[0])
-        while (now := time.monotonic()) - t0 < duration:
-            while pending and now - t0 >= pending[0][0]:
-                pending.pop(0)[1](specs, logdir)
-            for s in specs:
-                if s.proc is None and now - t0 >= s.delay > 0:
-                    start(s, logdir)
-            if not quiet and now - last_print >= (0.5 if tty else 5.0):
-                last_print = now
-                err = progress.error()
-                rate = (progress.frames - frames_then) / max(now - t_then, 1e-9)
-                frames_then, t_then = progress.frames, now
-                print(("\r" if tty else "") + f"  t = {now - t0:6.1f} / {duration:.0f} s   "
-                      f"max|λ−ρ| = {'   n/a  ' if err is None else f'{err:.2e}'}   "
-                      f"frames/s = {rate:6.0f}", end="" if tty else "\n", file=sys.stderr,
-                      flush=True)
-            time.sleep(0.05)
-        if not quiet and tty:
-            print(file=sys.stderr)
+        with _sigterm_interrupts():
+            try:
+                _run_nodes(specs, logdir, progress, duration, quiet, actions, deaths)
+            except KeyboardInterrupt:
+                interrupted = True
+                if not quiet:
+                    print("\n  interrupted: stopping the nodes and reporting what was "
+                          "recorded", file=sys.stderr, flush=True)
     finally:
         codes = stop_all(specs, rt_priority)
         _drain(progress)
         notifier.stop()
         writer.stop()
         watch.shutdown()
-    return summarise(sc, out, codec, codes, plot)
+    facts = RunFacts(exit_codes=codes, deaths=deaths, node_counters=sim_node_counters(out),
+                     interrupted=interrupted)
+    return report(sc, out / "run.log", out, facts, plot=plot, time_scale=time_scale,
+                  codec=codec)
+
+
+def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration: float,
+               quiet: bool,
+               actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]],
+               deaths: list[tuple[str, float, int]]) -> None:
+    # All at once (the router last): started one after the other, each would start
+    # while the others already run, which in the QEMU guest took ~40 s per node.
+    for s in specs:
+        if s.delay == 0:
+            start(s, logdir)
+    t_start = time.monotonic()
+    while progress.t_first_price is None:
+        if time.monotonic() - t_start > START_TIMEOUT_S:
+            raise BusRunError(f"no price frame within {START_TIMEOUT_S:.0f} s: see "
+                              f"{logdir}/router.log")
+        _check_alive(specs, logdir)
+        time.sleep(0.05)
+    t0 = progress.t_first_price
+    last_print, frames_then, t_then = 0.0, progress.frames, time.monotonic()
+    tty = sys.stderr.isatty()
+    pending = sorted(actions, key=lambda a: a[0])
+    seen_dead: set[int] = set()
+    while (now := time.monotonic()) - t0 < duration:
+        while pending and now - t0 >= pending[0][0]:
+            pending.pop(0)[1](specs, logdir)
+        for s in specs:
+            if s.proc is None and now - t0 >= s.delay > 0:
+                start(s, logdir)
+            elif s.proc is not None and s.proc.pid not in seen_dead \
+                    and (code := s.proc.poll()) is not None:
+                seen_dead.add(s.proc.pid)
+                deaths.append((s.name, now - t0, code))
+                if not quiet:
+                    print(("\n" if tty else "") + f"  {s.name} exited with code {code} at "
+                          f"t = {now - t0:.1f} s", file=sys.stderr, flush=True)
+        if not quiet and now - last_print >= (0.5 if tty else 5.0):
+            last_print = now
+            err = progress.error()
+            rate = (progress.frames - frames_then) / max(now - t_then, 1e-9)
+            frames_then, t_then = progress.frames, now
+            print(("\r" if tty else "") + f"  t = {now - t0:6.1f} / {duration:.0f} s   "
+                  f"max|λ−ρ| = {'   n/a  ' if err is None else f'{err:.2e}'}   "
+                  f"frames/s = {rate:6.0f}", end="" if tty else "\n", file=sys.stderr,
+                  flush=True)
+        time.sleep(0.05)
+    if not quiet and tty:
+        print(file=sys.stderr)
 
 
 RECORDER_QUIET_S = 0.5  # the recorder is done when no frame came for this long
@@ -358,36 +403,6 @@ def _check_alive(specs: list[NodeSpec], logdir: Path) -> None:
                               f"run started:\n{tail}")
 
 
-def summarise(sc: Scenario, out: Path, codec: FrameCodec,
-              codes: dict[str, int | None], plot: bool = True) -> Recording:
-    log = buslog.read_log(out / "run.log", codec)
-    tr = buslog.trajectory_from_log(sc, log)
-    m = metrics.compute(sc, tr)
-    diag = buslog.node_diagnostics(log)
-    sim_nodes = sim_node_counters(out)
-    m.update({
-        "source": "bus",
-        "frames_recorded": log.frames,
-        "frames_undecodable": dict(log.undecodable),
-        "frames_missed_by_recorder": sum(log.counter_gaps.values()),
-        "start_recorded": log.start_recorded,
-        "node_diagnostics": diag,
-        "node_counters": sim_nodes,
-        "deadline_misses": {**{k: v.get("DeadlineMisses", 0) for k, v in diag.items()},
-                            **{k: v["counters"].get("deadline_miss", 0)
-                               for k, v in sim_nodes.items()}},
-        "exit_codes": codes,
-    })
-    (out / "metrics.json").write_text(json.dumps(m, indent=2, default=float))
-    tr.write_csv(out / "trajectory.csv")
-    if plot:
-        from . import plots
-
-        plots.figure([("over the CAN bus", tr)], ("lam", "p", "grid"), out / "bus_run.png",
-                     title=sc.title or sc.name, load_kw=sc.load_kw, t_max=None)
-    return Recording(m, log, tr)
-
-
 def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bess-ded",
                    plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = ()
                    ) -> dict[str, Any]:
@@ -436,6 +451,9 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
         writer.stop()
         for bus in [*buses, watch]:
             bus.shutdown()
-    m = summarise(sc, out, codec, {}).metrics
+    counters = {role: {"ticks": node.ticks, "counters": dict(node.counters)}
+                for role, node in zip(SIM_NODES, nodes[-2:], strict=True)}
+    m = report(sc, out / "run.log", out, RunFacts(node_counters=counters), plot=False,
+               codec=codec).metrics
     m["node_summaries"] = [n.summary() for n in nodes]
     return m

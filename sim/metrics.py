@@ -14,9 +14,10 @@ SETTLING_BAND = 0.02  # 2 % of the initial worst error
 
 
 def _error(tr: Trajectory) -> np.ndarray:
-    """max_i |λ_i − ρ| over the agents on the network, per sample."""
+    """max_i |λ_i − ρ| over the agents meant to be dispatching, per sample: on a bus, an
+    agent stuck in SAFE or INIT still counts (its λ is what it would dispatch by)."""
     e = np.abs(tr.lam - tr.rho[:, None])
-    return np.where(tr.active, e, 0.0).max(axis=1)
+    return np.where(tr.judged, e, 0.0).max(axis=1)
 
 
 def settling_times(tr: Trajectory) -> list[float | None]:
@@ -45,7 +46,7 @@ def overshoot(tr: Trajectory) -> float:
     scale = np.abs(e0).max()
     if scale == 0:
         return 0.0
-    past = np.where(tr.active[idx], -np.sign(e0)[None, :] * e, 0.0)
+    past = np.where(tr.judged[idx], -np.sign(e0)[None, :] * e, 0.0)
     return float(max(past.max(), 0.0) / scale)
 
 
@@ -72,7 +73,7 @@ def compute(sc: Scenario, tr: Trajectory) -> dict[str, Any]:
         "saturations": tr.saturations,
     }
     if tr.u is not None:
-        u = np.where(tr.active, tr.u, 0.0)
+        u = np.where(tr.judged, tr.u, 0.0)
         m["control_total_variation"] = float(np.abs(np.diff(u, axis=0)).sum())
         m["peak_control"] = float(np.abs(u).max())
     return m

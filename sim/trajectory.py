@@ -24,6 +24,15 @@ class Trajectory:
     resets: list[list[float]] = field(default_factory=list)  # reset instants per agent
     saturations: int = 0
     label: str = ""
+    # (K, N) agent meant to take part in the dispatch (the scenario's plan): the agents the
+    # error is judged over, whatever state they are in. None: the same as ``active``.
+    expected: np.ndarray | None = None
+    state: np.ndarray | None = None  # (K, N) AGENT_i_MC.State (bus runs only)
+
+    @property
+    def judged(self) -> np.ndarray:
+        """(K, N) the agents the error is taken over: those meant to be dispatching."""
+        return self.active if self.expected is None else self.expected
 
     @property
     def n(self) -> int:

@@ -1,0 +1,128 @@
+"""From a candump log of a fleet to metrics.json, trajectory.csv, the anomalies and the plot.
+
+The one path every bus result takes: ``bess-ded up`` after its run (or after Ctrl-C),
+``bess-ded analyze`` on a log from ``up``, ``candump -L``, ``bess-ded record``, nodes
+started by hand or a HIL rig. So a log gives the same numbers whoever recorded it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from firmware_py.frames import FrameCodec
+
+from . import buslog, metrics
+from .scenario import Scenario
+from .trajectory import Trajectory
+from .verdict import RunFacts, Verdict, anomalies_json, judge
+
+
+@dataclass
+class Recording:
+    """What a bus run leaves: its metrics, the verdict and the decoded log they came from."""
+
+    metrics: dict[str, Any]
+    log: buslog.LogContents
+    trajectory: Trajectory | None
+    verdict: Verdict
+
+
+def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = None,
+           plot: bool = True, time_scale: float = 1.0,
+           codec: FrameCodec | None = None) -> Recording:
+    """Decode ``log_path`` against the scenario ``sc`` (as it ran: variant chosen, time
+    scale applied), judge it and write DIR/metrics.json, DIR/trajectory.csv and, with
+    ``plot``, DIR/bus_run.png. ``time_scale`` only relabels the plot's time axis in
+    scenario seconds."""
+    facts = facts or RunFacts()
+    out.mkdir(parents=True, exist_ok=True)
+    log = buslog.read_log(log_path, codec, n=sc.n, ts=sc.ts)
+    tr = buslog.trajectory_from_log(sc, log) if log.t_first_price is not None else None
+    m: dict[str, Any] = {"scenario": sc.name, "time_scale": time_scale}
+    if tr is not None and tr.t.size:
+        m.update(metrics.compute(sc, tr))
+    else:
+        tr = None
+    diag = buslog.node_diagnostics(log)
+    sim_nodes = facts.node_counters or {}
+    verdict = judge(sc, log, tr, m, facts)
+    m.update({
+        "source": "bus",
+        "log": str(log_path),
+        "verdict": verdict.as_json(),
+        "anomalies": anomalies_json(verdict),
+        "frames_recorded": log.frames,
+        "frames_undecodable": dict(log.undecodable),
+        "frames_missed_by_recorder": sum(log.counter_gaps.values()),
+        "frames_out_of_sequence": dict(log.out_of_sequence),
+        "frames_outside_run": dict(log.outside_run),
+        "bus_silences": len(log.silences),
+        "start_recorded": log.start_recorded,
+        "node_diagnostics": diag,
+        "node_counters": sim_nodes,
+        "deadline_misses": {**{k: v.get("DeadlineMisses", 0) for k, v in diag.items()},
+                            **{k: v.get("counters", {}).get("deadline_miss", 0)
+                               for k, v in sim_nodes.items()}},
+        "exit_codes": facts.exit_codes or {},
+        "router_ledger": buslog.router_ledger(log),
+    })
+    (out / "metrics.json").write_text(json.dumps(m, indent=2, default=_json_default) + "\n")
+    if tr is not None:
+        tr.write_csv(out / "trajectory.csv")
+        if plot:
+            from . import plots
+
+            plots.figure([("over the CAN bus", tr)], ("lam", "p", "grid"), out / "bus_run.png",
+                         title=sc.title or sc.name, load_kw=sc.load_kw, t_max=None)
+    return Recording(m, log, tr, verdict)
+
+
+def _json_default(x: Any) -> Any:
+    if hasattr(x, "item"):
+        return x.item()
+    return float(x)
+
+
+def summary_lines(m: dict[str, Any], verdict: Verdict, time_scale: float = 1.0) -> list[str]:
+    """The human summary of a bus run, as ``up`` and ``analyze`` print it. Times are in
+    scenario seconds (a time-scaled run's divided by the scale)."""
+    def secs(x: float | None) -> str:
+        return "never" if x is None else f"{x / time_scale:.2f} s"
+
+    lines = []
+    st = m.get("settling_times_s")
+    if st is not None:
+        unit = " (scenario time)" if time_scale != 1 else ""
+        per_seg = ", ".join(f"segment {k}: {secs(x)}" for k, x in enumerate(st))
+        lines.append(f"  settling (2 % band){unit}: {per_seg}")
+        lines.append(f"  final max|λ−ρ| = {m['final_error']:.2e} cu/kWh over the agents meant "
+                     f"to be dispatching; resets per agent {m['resets']}")
+        cost = m.get("cost")
+        ledger = m.get("router_ledger")
+        if cost is not None:
+            line = (f"  cost rate {cost:.2f} cu/h (KKT optimum {m['optimal_cost']:.2f} cu/h)")
+            if ledger:
+                line += (f"; router's ledger: {ledger['cost']:.4f} cu spent, optimum "
+                         f"{ledger['optimal_cost']:.4f} cu")
+            lines.append(line)
+    lines.append(f"  frames recorded {m['frames_recorded']}, undecodable "
+                 f"{sum(m['frames_undecodable'].values())}, missed by the recorder "
+                 f"{m['frames_missed_by_recorder']}, deadline misses "
+                 f"{json.dumps(m['deadline_misses'])}")
+    if verdict.anomalies:
+        lines.append(f"  anomalies ({len(verdict.anomalies)}):")
+        lines += [f"    - {a.text(time_scale)}" for a in verdict.anomalies]
+    else:
+        lines.append("  anomalies: none")
+    if verdict.interrupted:
+        head = "INTERRUPTED"
+    elif verdict.converged:
+        head = "CONVERGED" + (" with anomalies" if verdict.anomalies else "")
+    else:
+        head = "NOT CONVERGED: " + "; ".join(verdict.reasons)
+    lines.append(f"  verdict: {head} (exit code {verdict.exit_code})")
+    return lines
+
