@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -129,6 +130,43 @@ class Progress(can.Listener):
 SIM_NODES = ("plant", "router")  # the simulated nodes, started after the agents
 
 
+PRIVATE_PORTS = (30000, 43000)  # below the test sessions' blocks (tests/conftest.py: 43200+)
+
+
+def private_port(bus: BusOptions) -> tuple[BusOptions, int | None]:
+    """On udp_multicast without a port named (flag or CAN_CONFIG), the same bus on a port
+    of its own: every run on python-can's default port hears every other one (seen: ~900
+    resets per agent and identical diagnostics in two concurrent runs). A different
+    multicast group is not enough: Linux delivers a port's datagrams for every group
+    joined on the host to every socket bound to that port. Returns (bus, chosen port)."""
+    kw = bus.resolved()
+    if kw["interface"] != "udp_multicast" or "port" in kw:
+        return bus, None
+    taken = _bound_udp_ports()
+    rng = random.SystemRandom()
+    for _ in range(1000):
+        port = rng.randrange(*PRIVATE_PORTS)
+        if port not in taken:
+            break
+    extra = {k: v for k, v in kw.items() if k not in ("interface", "channel")}
+    return BusOptions(kw["interface"], kw.get("channel"),
+                      json.dumps({**extra, "port": port})), port
+
+
+def _bound_udp_ports() -> set[int]:
+    """Local UDP ports with a socket bound on this host (/proc/net/udp{,6}; empty elsewhere)."""
+    ports = set()
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            local = line.split()[1]
+            ports.add(int(local.rsplit(":", 1)[1], 16))
+    return ports
+
+
 def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
                extra: dict[str, list[str]] | None = None,
                rt_priority: int = RT_PRIORITY) -> list[NodeSpec]:
@@ -171,8 +209,12 @@ def sim_node_counters(out: Path) -> dict[str, Any]:
 def start(spec: NodeSpec, logdir: Path) -> None:
     # append: a node restarted mid-run (fault tests) keeps its first life's log
     logfile = (logdir / f"{spec.name}.log").open("ab")
+    # a session of its own: a terminal's Ctrl-C reaches `up` alone, which then stops the
+    # nodes together and cuts the recording there (PR_SET_PDEATHSIG still ends a node
+    # whose `up` was killed)
     spec.proc = subprocess.Popen(spec.argv, stdout=logfile, stderr=subprocess.STDOUT,
-                                 stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+                                 stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent,
+                                 start_new_session=True)
     logfile.close()
 
 
@@ -278,8 +320,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     for s in specs:
         s.delay = (delays or {}).get(s.name, 0.0)
     watch = open_bus(**{**bus.resolved(), "receive_own_messages": False})
-    _enlarge_receive_buffer(watch)
-    writer = can.Logger(str(out / "run.log"))
+    enlarge_receive_buffer(watch)
+    writer = _Until(can.Logger(str(out / "run.log")))
     progress = Progress(codec, sc.n)
     notifier = can.Notifier(watch, [writer, progress])
     deaths: list[tuple[str, float, int]] = []
@@ -294,6 +336,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
                     print("\n  interrupted: stopping the nodes and reporting what was "
                           "recorded", file=sys.stderr, flush=True)
     finally:
+        # the run ends here: what the nodes send while they shut down is not the run's
+        writer.t_stop = time.time()  # frame timestamps are wall-clock
         codes = stop_all(specs, rt_priority)
         _drain(progress)
         notifier.stop()
@@ -303,6 +347,21 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
                      interrupted=interrupted)
     return report(sc, out / "run.log", out, facts, plot=plot, time_scale=time_scale,
                   codec=codec)
+
+
+class _Until(can.Listener):
+    """Pass frames to ``inner`` up to ``t_stop`` (frame time), once it is set."""
+
+    def __init__(self, inner: can.Listener) -> None:
+        self.inner = inner
+        self.t_stop: float | None = None
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if self.t_stop is None or msg.timestamp <= self.t_stop:
+            self.inner.on_message_received(msg)
+
+    def stop(self) -> None:
+        self.inner.stop()
 
 
 def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration: float,
@@ -376,7 +435,7 @@ def _drain(progress: Progress) -> None:
 RECORDER_RCVBUF = 16 << 20  # bytes: ~20k CAN frames (an skb per frame) of slack
 
 
-def _enlarge_receive_buffer(bus: can.BusABC) -> None:
+def enlarge_receive_buffer(bus: can.BusABC) -> None:
     """The recorder runs at normal priority beside real-time nodes: when they take the
     CPU, the kernel queues the frames for it here instead of dropping them (a socketcan
     socket holds only ~200 frames by default, a udp_multicast one ~300). Other interfaces

@@ -40,6 +40,8 @@ COMMANDS: tuple[str, ...] = (
     "compare",   # every controller on one scenario
     "bench",     # micro-benchmarks of the control core and the simulator
     "up",        # a whole case as processes on a CAN bus
+    "analyze",   # metrics, anomalies and plots from any recorded log
+    "record",    # capture a bus to a candump log
     "agent",     # one agent firmware node
     "plant",     # the plant simulator node
     "router",    # the energy-router (price) node

@@ -1,67 +1,126 @@
-"""`bess-ded up`: run a case with every node a separate process on a CAN bus."""
+"""`bess-ded up`: run a case with every node a separate process on a CAN bus.
+
+The router, the plant and one firmware process per agent start on one bus; this
+process records every frame to DIR/run.log, shows progress, stops the nodes at the
+end (or on Ctrl-C / SIGTERM) and judges the run from the recording alone
+(docs/runs.md). It writes DIR/metrics.json (with the verdict and the anomalies),
+DIR/trajectory.csv and DIR/bus_run.png, and exits with:
+
+  0    converged, no anomaly
+  1    not converged (an agent SAFE/INIT/ISOLATED at the end, a node died, the last
+       price segment never settled, ...): the reasons are printed
+  2    bad input (nothing was run)
+  3    converged, but with anomalies (listed)
+  130  interrupted: the outputs cover what was recorded until then
+
+On udp_multicast, a run without a port of its own (--bus-config '{"port": N}' or
+CAN_CONFIG) gets a private one, so concurrent runs never hear each other.
+"""
 
 from __future__ import annotations
 
 import argparse
-import json
+import math
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from firmware_py.__main__ import add_bus_arguments
+from firmware_py.errors import ConfigError, ParameterError
+
+if TYPE_CHECKING:
+    from ..scenario import Scenario
 
 # In tools/vcan-run's QEMU TCG guest (VCAN_RUN_GUEST=1) Python runs ~20x slower: at
 # Ts = 10 ms the agents miss most deadlines and starve the router, which then never
 # starts (docs/vcan.md, "The vcan tier"). Ts = 50 ms keeps every deadline there.
 GUEST_TIME_SCALE = 5.0
+# interfaces whose buses live inside one process: `up` runs every node in its own
+IN_PROCESS_INTERFACES = ("virtual",)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("up", help="run router, plant and every agent as processes on a bus",
-                       description=__doc__)
-    p.add_argument("--case", required=True, help="case number or path to a scenario .toml")
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--case", required=True, metavar="CASE",
+                   help="a case number (1-7, the paper's cases) or a path to a scenario .toml")
+    p.add_argument("--variant", metavar="LABEL",
+                   help="for a scenario with variants (cases 2, 3, 6): which one to run "
+                   "(default: the first)")
     add_bus_arguments(p)
-    p.add_argument("--duration", type=float, help="seconds of price time (default: the "
-                   "scenario's duration)")
-    p.add_argument("--out", type=Path, help="output directory (default: runs/up-caseN)")
+    p.add_argument("--duration", type=float, metavar="S",
+                   help="seconds of price time (default: the scenario's duration)")
+    p.add_argument("--out", type=Path, help="output directory (default: runs/up-<scenario>)")
     p.add_argument("--time-scale", type=float, metavar="F",
                    help="stretch the time axis by F (Ts·F, k/F, h/F²: the same discrete "
                    "system) for hosts too slow for Ts = 10 ms, e.g. an emulated guest "
                    f"(default: 1, or {GUEST_TIME_SCALE:g} under tools/vcan-run)")
+    p.add_argument("--no-plot", action="store_true", help="skip bus_run.png")
     p.set_defaults(func=run)
+
+
+def positive(name: str, value: float | None) -> None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ParameterError(name, "a finite number > 0", value)
 
 
 def run(args: argparse.Namespace) -> int:
     from .. import busrun
-    from ..scenario import case_path, load_scenario, scaled
+    from ..runreport import summary_lines
+    from ..scenario import scaled
+    from ._common import resolve_scenario
 
-    path = Path(args.case) if args.case.endswith(".toml") else case_path(args.case)
-    sc = load_scenario(path)
-    if sc.variants:
-        sc = sc.variant(sc.variants[0].label)
-    out = args.out or Path("runs") / f"up-{sc.name}"
+    positive("--duration", args.duration)
+    positive("--time-scale", args.time_scale)
+    base = resolve_scenario(args.case)
+    sc, chosen = pick_variant(base, args.variant)
+    bus = busrun.BusOptions(args.interface, args.channel, args.bus_config)
+    kw = bus.resolved()  # checks the JSON (and the keys) before anything starts
+    if kw["interface"] in IN_PROCESS_INTERFACES:
+        raise ParameterError("--interface", "a bus that connects processes (udp_multicast, "
+                             "socketcan, ...): `up` runs every node as its own process, and "
+                             f"python-can's {kw['interface']!r} bus exists inside one process "
+                             "only", kw["interface"])
     scale = args.time_scale
     if scale is None and os.environ.get("VCAN_RUN_GUEST") == "1":
         scale = GUEST_TIME_SCALE
         print(f"bess-ded up: --time-scale {scale:g} (VCAN_RUN_GUEST=1: the emulated guest is "
               f"too slow for Ts = {sc.ts * 1000:g} ms; give --time-scale 1 to insist)")
-    sc = scaled(sc, scale or 1.0)
-    duration = args.duration or sc.duration
-    bus = busrun.BusOptions(args.interface, args.channel, args.bus_config)
-    print(f"bess-ded up: {sc.title or sc.name}: {sc.n} agents + plant + router on "
-          f"{bus.resolved()} for {duration:g} s")
-    m = busrun.run(sc, out, bus, duration=duration)
-    st = m["settling_time_s"]
-    settled = "never" if st is None else f"{st:.2f} s"
-    if st is not None and scale not in (None, 1.0):
-        settled += f" ({st / scale:.2f} s on the unscaled time axis)"
-    print(f"  settled (2 %) after {settled}, final max|λ−ρ| = "
-          f"{m['final_error']:.2e}, resets per agent {m['resets']}")
-    print(f"  frames recorded {m['frames_recorded']}, undecodable "
-          f"{sum(m['frames_undecodable'].values())}, missed by the recorder "
-          f"{m['frames_missed_by_recorder']}, deadline misses "
-          f"{json.dumps(m['deadline_misses'])}")
-    if not m["start_recorded"]:
-        print("  warning: the recorder missed the start of the run (an agent's first recorded "
-              "MC frame is not INIT), so t = 0 is late and the settling time too short")
-    print(f"  wrote {out}/run.log, {out}/metrics.json, {out}/bus_run.png")
-    return 0
+    scale = scale or 1.0
+    sc = scaled(sc, scale)
+    duration = sc.duration if args.duration is None else args.duration * scale
+    out = args.out or Path("runs") / f"up-{sc.name}"
+    bus, port = busrun.private_port(bus)
+    print(f"bess-ded up: {sc.title or sc.name}{chosen}: {sc.n} agents + plant + router for "
+          f"{duration / scale:g} s" + (f" (run at ×{scale:g}: {duration:g} s)"
+                                       if scale != 1 else ""))
+    print(f"  bus: {bus.resolved()}" + (f" (port {port} private to this run; name one with "
+                                         "--bus-config '{\"port\": N}')" if port else ""))
+    rep = sc.analysis()
+    print(f"  regular (Theorem 1): {'yes' if rep.regular else 'NO'}; discrete-time stable at "
+          f"Ts = {sc.ts * 1e3:g} ms: {'yes' if rep.discrete_stable else 'NO'} "
+          f"(max|1 + Ts·μ| = {rep.spectral_radius:.4f})")
+    rec = busrun.record(sc, out, bus, duration=duration, plot=not args.no_plot,
+                        time_scale=scale)
+    for line in summary_lines(rec.metrics, rec.verdict, scale):
+        print(line)
+    written = ["run.log", "metrics.json"]
+    if rec.trajectory is not None:
+        written += ["trajectory.csv"] + ([] if args.no_plot else ["bus_run.png"])
+    print(f"  wrote {', '.join(f'{out}/{w}' for w in written)}")
+    return rec.verdict.exit_code
+
+
+def pick_variant(sc: Scenario, label: str | None) -> tuple[Scenario, str]:
+    """The scenario to run and how to name the choice in the banner."""
+    if not sc.variants:
+        if label is not None:
+            raise ConfigError(sc.source, "variant", f"expected no --variant: {sc.name} has "
+                              f"no variants, but got {label!r}")
+        return sc, ""
+    labels = [v.label for v in sc.variants]
+    if label is None:
+        print(f"bess-ded up: {sc.name} has variants {', '.join(labels)}; running the first, "
+              f"{labels[0]!r} (choose one with --variant)")
+        label = labels[0]
+    return sc.variant(label), f" [variant {label}]"
