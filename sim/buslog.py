@@ -32,6 +32,10 @@ INIT, RUNNING, ISOLATED, SAFE = 0, 1, 2, 3  # AGENT_i_MC.State
 COUNTER_MODULO = 16
 MC_CYCLE_S = 0.010          # the DBC's AGENT_i_MC cycle: the Ts every other cycle is set for
 SEQUENCE_TIMEOUT_CYCLES = 5  # a message silent this long restarts its counter sequence
+# a node is silent when a message of its own is missing for SEQUENCE_TIMEOUT_CYCLES of its
+# cycles and at least this many Ts (the agents' price timeout): shorter stalls of a
+# loaded host show up as bus silences and deadline misses, not as a node gone
+NODE_SILENCE_MIN_TS = 25
 
 
 @dataclass
@@ -154,16 +158,16 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
         elif f.name == "ER_Balance":
             for sig in ("GridPower", "CostRate", "OptimalCostRate"):
                 out.series[("balance", sig)].append((t, f.phys(sig)))
-    _message_silences(out, cycles)
+    _message_silences(out, cycles, NODE_SILENCE_MIN_TS * (ts or MC_CYCLE_S))
     return out
 
 
-def _message_silences(out: LogContents, cycles: dict[str, float]) -> None:
+def _message_silences(out: LogContents, cycles: dict[str, float], floor: float) -> None:
     t0 = out.t_first_price
     if t0 is None:
         return
     for name, s in out.sequences.items():
-        limit = SEQUENCE_TIMEOUT_CYCLES * cycles[name]
+        limit = max(SEQUENCE_TIMEOUT_CYCLES * cycles[name], floor)
         gaps = [(a, b) for a, b in s.gaps if b > t0 and b - max(a, t0) > limit]
         if s.t_last is not None and out.t_end - s.t_last > limit:
             gaps.append((s.t_last, out.t_end))

@@ -30,6 +30,7 @@ EXIT_INTERRUPTED = 130   # SIGINT/SIGTERM: outputs written for what was recorded
 # (2 is every command's exit code for bad input)
 
 SILENCE_TS = 3            # a bus silence longer than this many Ts is an anomaly
+SILENCE_CLUSTER_S = 1.0   # (scenario s) silences closer than this are reported as one
 STATE_GRACE_TS = 10       # INIT/ISOLATED/RUNNING may lag the plan by this many Ts
 DEADLINE_MISS_FRACTION = 0.01
 POWER_LIMIT_HOLD_S = 1.0  # (scenario s) a battery limited over the run's last second
@@ -198,9 +199,14 @@ def _agent_states(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anom
 
 def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
     t0 = log.t_first_price or 0.0
-    for a, b in log.silences:
-        out.append(Anomaly("bus_silence", "bus", f"no frame for {b - a:.3f} s "
-                           f"({(b - a) / sc.ts:.0f} Ts; more than {SILENCE_TS} Ts)", a - t0))
+    for cluster in _clusters(log.silences, SILENCE_CLUSTER_S * sc.ts / 0.01):
+        a, b = cluster[0][0], cluster[-1][1]
+        longest = max(y - x for x, y in cluster)
+        what = (f"no frame for {longest:.3f} s ({longest / sc.ts:.0f} Ts)" if len(cluster) == 1
+                else f"{len(cluster)} gaps without a frame between t = {a - t0:.2f} and "
+                f"{b - t0:.2f} s, the longest {longest:.3f} s ({longest / sc.ts:.0f} Ts)")
+        out.append(Anomaly("bus_silence", "bus", f"{what}; more than {SILENCE_TS} Ts",
+                           a - t0))
     by_sender: dict[str, list[tuple[float, float, str]]] = {}
     for name, gaps in log.message_silences.items():
         by_sender.setdefault(sender_of(name), []).extend((a, b, name) for a, b in gaps)
@@ -233,6 +239,18 @@ def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
     if log.undecodable:
         out.append(Anomaly("malformed_frames", "bus", f"{sum(log.undecodable.values())} frames "
                            f"that fail the DBC's checks ({_top(log.undecodable)})"))
+
+
+def _clusters(gaps: list[tuple[float, float]], within: float
+              ) -> list[list[tuple[float, float]]]:
+    """Gaps grouped when each starts less than ``within`` s after the previous one ends."""
+    out: list[list[tuple[float, float]]] = []
+    for g in sorted(gaps):
+        if out and g[0] - out[-1][-1][1] < within:
+            out[-1].append(g)
+        else:
+            out.append([g])
+    return out
 
 
 def sender_of(message: str) -> str:
