@@ -63,6 +63,10 @@ def run(args: argparse.Namespace) -> int:
                 last_print = now
                 print(("\r" if tty else "") + f"  {now - start:7.1f} s  {frames} frames",
                       end="" if tty else "\n", file=sys.stderr, flush=True)
+        # what the kernel already queued for us belongs to the recording too
+        while (msg := bus.recv(timeout=0)) is not None:
+            writer.on_message_received(msg)
+            frames += 1
     finally:
         writer.stop()
         bus.shutdown()

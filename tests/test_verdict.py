@@ -1,0 +1,292 @@
+"""The verdict of a bus run and the anomalies behind it (sim/verdict.py, docs/runs.md).
+
+Most cases are deterministic: a fleet on the in-process virtual bus stepped on a
+simulated clock (``busrun.run_in_process``), or a recorded log edited frame by frame
+and judged by ``bess-ded analyze``. The multi-process runs at the end assert only what
+holds at any load (no foreign traffic between concurrent runs, a dead router named).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import can
+import pytest
+
+from firmware_py.frames import FrameCodec
+from sim import busrun
+from sim.cli import main
+from sim.scenario import load_case
+from sim.verdict import EXIT_ANOMALIES, EXIT_NOT_CONVERGED, EXIT_OK
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def kinds(m: dict) -> set[tuple[str, str]]:
+    return {(a["kind"], a["node"]) for a in m["anomalies"]}
+
+
+@pytest.fixture(scope="module")
+def clean_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    """Case 1 for 10 s on the virtual bus: the reference every edited log starts from."""
+    out = tmp_path_factory.mktemp("clean")
+    m = busrun.run_in_process(replace(load_case(1), duration=10.0), out, duration=10.0,
+                              channel="verdict-clean")
+    return out / "run.log", m
+
+
+def test_a_clean_run_converges_without_anomalies(clean_run: tuple[Path, dict]) -> None:
+    _, m = clean_run
+    assert m["anomalies"] == []
+    assert m["verdict"] == {"converged": True, "reasons": [], "interrupted": False,
+                            "exit_code": EXIT_OK, "ok": True}
+    assert m["final_error"] < 1e-3
+    # the router's own ledger is reported next to the cost recomputed from the powers
+    ledger = m["router_ledger"]
+    assert ledger["cost"] > 0 and ledger["cost"] >= ledger["optimal_cost"] * 0.999
+    assert ledger["cost_rate"] == pytest.approx(m["cost"], abs=0.1)  # 0.1 cu/h resolution
+
+
+def test_router_gone_for_good_is_not_convergence(tmp_path: Path) -> None:
+    """The router falls silent at 4 s and never comes back: every agent ends in SAFE
+    with its λ held near ρ, which the old summary called converged (error ≈ 0)."""
+    m = busrun.run_in_process(replace(load_case(1), duration=8.0), tmp_path, duration=8.0,
+                              channel="verdict-router-gone", router_silent=((4.0, 100.0),))
+    assert not m["verdict"]["converged"]
+    assert m["verdict"]["exit_code"] == EXIT_NOT_CONVERGED
+    assert all(f"agent_{i} ended in SAFE" in m["verdict"]["reasons"] for i in range(1, 5))
+    found = kinds(m)
+    assert ("node_silent", "router") in found
+    assert {("agent_safe_at_end", f"agent_{i}") for i in range(1, 5)} <= found
+    silent = next(a for a in m["anomalies"] if a["kind"] == "node_silent")
+    assert "ER_Price" in silent["detail"] and 3.85 <= silent["t"] < 4.0  # its last frame
+
+
+def test_a_router_outage_that_ends_is_reported_but_converges(tmp_path: Path) -> None:
+    m = busrun.run_in_process(replace(load_case(1), duration=10.0), tmp_path, duration=10.0,
+                              channel="verdict-router-outage", router_silent=((4.0, 6.0),))
+    assert m["verdict"]["converged"] and m["verdict"]["exit_code"] == EXIT_ANOMALIES
+    safe = [a for a in m["anomalies"] if a["kind"] == "agent_safe"]
+    assert {a["node"] for a in safe} == {f"agent_{i}" for i in range(1, 5)}
+    # SAFE from the price timeout (0.25 s) after the last price frame to its return
+    assert all(4.2 <= a["t"] <= 4.4 for a in safe), safe
+
+
+def analyze(log: Path, out: Path, *extra: str) -> tuple[int, dict]:
+    rc = main(["analyze", str(log), "--case", "1", "--out", str(out), "--no-plot", *extra])
+    return rc, json.loads((out / "metrics.json").read_text())
+
+
+def test_analyze_reproduces_the_run(clean_run: tuple[Path, dict], tmp_path: Path) -> None:
+    log, m = clean_run
+    rc, again = analyze(log, tmp_path)
+    assert rc == EXIT_OK
+    for key in ("settling_times_s", "final_error", "resets", "anomalies", "router_ledger",
+                "frames_recorded", "cost"):
+        assert again[key] == m[key], key
+
+
+def rewrite(src: Path, dst: Path, edit) -> Path:
+    """Copy a candump log through ``edit(msg) -> [msgs]``."""
+    with can.Logger(str(dst)) as writer:
+        for msg in can.LogReader(str(src)):
+            for out in edit(msg):
+                writer.on_message_received(out)
+    return dst
+
+
+def test_foreign_traffic_in_a_log(clean_run: tuple[Path, dict], tmp_path: Path) -> None:
+    """A second sender on AGENT_2_MC (its own counter sequence), frames of an agent the
+    4-agent run does not have, and frames with a bad CRC: each reported by cause."""
+    codec = FrameCodec()
+    forged = {"n": 0}
+
+    def edit(msg: can.Message) -> list[can.Message]:
+        out = [msg]
+        if msg.arbitration_id == 0x102 and 3.0 < msg.timestamp < 4.0:
+            forged["n"] += 1
+            f = codec.encode("AGENT_2_MC", {"State": 1, "Lambda": 5 << 24, "Resets": 0,
+                                            "NeighboursAlive": 1, "PriceOk": 1},
+                             (forged["n"] * 7) % 16)
+            f.timestamp = msg.timestamp + 1e-4
+            out.append(f)
+        if msg.arbitration_id == 0x010 and msg.timestamp < 1.0:
+            g = codec.encode("AGENT_9_MC", {"State": 1, "Lambda": 0, "Resets": 0,
+                                            "NeighboursAlive": 0, "PriceOk": 1}, 0)
+            g.timestamp = msg.timestamp
+            bad = can.Message(arbitration_id=0x101, data=bytes(8), is_extended_id=False,
+                              timestamp=msg.timestamp)
+            out += [g, bad]
+        return out
+
+    log = rewrite(clean_run[0], tmp_path / "forged.log", edit)
+    rc, m = analyze(log, tmp_path / "a")
+    assert rc != EXIT_OK
+    details = [a["detail"] for a in m["anomalies"] if a["kind"] == "foreign_traffic"]
+    assert any(d.startswith("AGENT_2_MC:") for d in details), m["anomalies"]
+    assert any("AGENT_9_MC" in d for d in details), m["anomalies"]
+    assert ("malformed_frames", "bus") in kinds(m)
+    assert m["frames_outside_run"] == {"AGENT_9_MC": 20}
+    assert m["frames_undecodable"] == {"crc": 20}
+
+
+def test_recorder_misses_are_counted(clean_run: tuple[Path, dict], tmp_path: Path) -> None:
+    """Three AGENT_1_MC frames missing from the log: counted from the counter jumps."""
+    dropped = {"n": 0}
+
+    def edit(msg: can.Message) -> list[can.Message]:
+        if msg.arbitration_id == 0x101 and msg.timestamp >= 2.0 and dropped["n"] < 3:
+            dropped["n"] += 1
+            return []
+        return [msg]
+
+    rc, m = analyze(rewrite(clean_run[0], tmp_path / "gappy.log", edit), tmp_path / "a")
+    assert rc == EXIT_ANOMALIES
+    assert m["frames_missed_by_recorder"] == 3
+    assert kinds(m) == {("recorder_missed_frames", "recorder")}
+
+
+def test_a_bus_silence_is_one_anomaly(clean_run: tuple[Path, dict], tmp_path: Path) -> None:
+    """Nothing at all for 0.1 s (10 Ts): one bus silence, not a node gone."""
+    rc, m = analyze(rewrite(clean_run[0], tmp_path / "quiet.log",
+                            lambda msg: [] if 5.0 <= msg.timestamp < 5.1 else [msg]),
+                    tmp_path / "a")
+    assert rc == EXIT_ANOMALIES
+    silence = [a for a in m["anomalies"] if a["kind"] == "bus_silence"]
+    assert len(silence) == 1 and silence[0]["t"] == pytest.approx(4.99, abs=0.011)
+    assert not [a for a in m["anomalies"] if a["kind"] == "node_silent"]
+
+
+def test_analyze_rejects_what_it_cannot_read(tmp_path: Path, capsys) -> None:
+    assert main(["analyze", str(tmp_path / "nope.log"), "--case", "1"]) == 2
+    assert "expected a readable log file" in capsys.readouterr().err
+    (tmp_path / "x.log").write_text("")
+    assert main(["analyze", str(tmp_path / "x.log")]) == 2  # no scenario named
+
+
+def test_a_log_without_a_price_is_judged_too(clean_run: tuple[Path, dict],
+                                             tmp_path: Path) -> None:
+    log = rewrite(clean_run[0], tmp_path / "noprice.log",
+                  lambda m: [] if m.arbitration_id == 0x010 else [m])
+    rc, m = analyze(log, tmp_path / "a")
+    assert rc == EXIT_NOT_CONVERGED
+    assert ("no_price", "router") in kinds(m)
+    assert not (tmp_path / "a" / "trajectory.csv").exists()
+
+
+# ------------------------------------------------------------------- inputs of `up`
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--duration", "-1"], "--duration: expected a finite number > 0, but got -1"),
+    (["--duration", "0"], "--duration: expected a finite number > 0, but got 0"),
+    (["--duration", "nan"], "--duration: expected a finite number > 0, but got nan"),
+    (["--time-scale", "0"], "--time-scale: expected a finite number > 0, but got 0"),
+    (["--interface", "virtual"], "exists inside one process only"),
+    (["--variant", "PC"], "has no variants"),
+    (["--bus-config", "[1]"], "expected a JSON object"),
+])
+def test_up_refuses_bad_input_at_once(argv: list[str], says: str, capsys) -> None:
+    assert main(["up", "--case", "1", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bess-ded: error: ") and says in err and err.count("\n") == 1
+
+
+def test_up_names_unknown_cases_and_variants(capsys) -> None:
+    assert main(["up", "--case", "9"]) == 2
+    assert "expected a case number" in capsys.readouterr().err
+    assert main(["up", "--case", "2", "--variant", "nope"]) == 2
+    assert "expected one of reset-PI" in capsys.readouterr().err
+
+
+def test_private_port_only_where_needed() -> None:
+    bus, port = busrun.private_port(busrun.BusOptions("udp_multicast", None, None))
+    assert port is not None and busrun.PRIVATE_PORTS[0] <= port < busrun.PRIVATE_PORTS[1]
+    assert bus.resolved()["port"] == port
+    assert port not in busrun._bound_udp_ports()
+    named = busrun.BusOptions("udp_multicast", None, '{"port": 43999}')
+    assert busrun.private_port(named) == (named, None)
+    vcan = busrun.BusOptions("socketcan", "vcan0", None)
+    assert busrun.private_port(vcan) == (vcan, None)
+
+
+# ------------------------------------------------------------- multi-process runs
+
+
+@pytest.mark.slow
+def test_concurrent_up_runs_do_not_hear_each_other(tmp_path: Path) -> None:
+    """Two `bess-ded up --case 1` with no bus flags at once: each on a private port, each
+    converges with its own handful of resets and no foreign traffic. (Deadline misses and
+    bus silences may be reported on a loaded host: they are not asserted.)"""
+    procs = [subprocess.Popen([sys.executable, "-m", "sim.cli", "up", "--case", "1",
+                               "--duration", "8", "--no-plot", "--out", str(tmp_path / f"r{i}")],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=ROOT)
+             for i in range(2)]
+    outs = [p.communicate(timeout=300)[0].decode() for p in procs]
+    ports = set()
+    for i, (p, out) in enumerate(zip(procs, outs, strict=True)):
+        m = json.loads((tmp_path / f"r{i}" / "metrics.json").read_text())
+        assert p.returncode in (EXIT_OK, EXIT_ANOMALIES), out
+        assert m["verdict"]["converged"], out
+        assert m["final_error"] < 1e-3 and max(m["resets"]) <= 20, out
+        assert not [a for a in m["anomalies"] if a["kind"] in ("foreign_traffic",
+                                                               "malformed_frames")], out
+        assert m["frames_out_of_sequence"] == {} and m["frames_outside_run"] == {}
+        ports.add(next(line for line in out.splitlines() if "private to this run" in line))
+    assert len(ports) == 2
+
+
+@pytest.mark.slow
+def test_router_killed_mid_run_is_named(tmp_path: Path, udp_port: int) -> None:
+    sc = replace(load_case(1), duration=6.0)
+
+    def kill_router(specs: list[busrun.NodeSpec], _logdir: Path) -> None:
+        proc = next(s for s in specs if s.name == "router").proc
+        assert proc is not None
+        proc.kill()
+
+    bus = busrun.BusOptions("udp_multicast", None, json.dumps({"port": udp_port}))
+    rec = busrun.record(sc, tmp_path, bus, quiet=True, plot=False,
+                        actions=[(3.0, kill_router)])
+    m = rec.metrics
+    assert rec.verdict.exit_code == EXIT_NOT_CONVERGED
+    assert any(r.startswith("router died (exit code -9)") for r in m["verdict"]["reasons"])
+    found = kinds(m)
+    assert ("node_died", "router") in found and ("node_silent", "router") in found
+    assert {("agent_safe_at_end", f"agent_{i}") for i in range(1, 5)} <= found
+
+
+def test_record_captures_a_bus_for_analyze(tmp_path: Path, udp_port: int) -> None:
+    """`bess-ded record` on a udp_multicast port until SIGINT: every frame sent lands in
+    a candump log that python-can and `cantools decode` read back."""
+    import signal
+
+    log = tmp_path / "bus.log"
+    config = json.dumps({"port": udp_port})
+    p = subprocess.Popen([sys.executable, "-m", "sim.cli", "record", "--interface",
+                          "udp_multicast", "--bus-config", config, "--out", str(log)],
+                         stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert p.stderr is not None
+        assert p.stderr.readline().startswith("bess-ded record:")  # the bus is open
+        codec = FrameCodec()
+        with can.Bus(interface="udp_multicast", port=udp_port, fd=False) as bus:
+            for k in range(50):
+                bus.send(codec.encode("ER_Price", {"PriceValid": 1, "Rho": k << 20,
+                                                   "Segment": 0}, k % 16))
+        # loopback delivery is synchronous: the frames wait in record's socket, which it
+        # drains before it closes
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 0, err
+    assert "50 frames" in err
+    frames = list(can.LogReader(str(log)))
+    assert [codec.decode(f).raw["Rho"] for f in frames] == [k << 20 for k in range(50)]
