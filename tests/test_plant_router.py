@@ -231,7 +231,11 @@ def test_bad_setpoints_are_rejected_by_cause_and_counters_checked() -> None:
     assert plant.counters["unknown_id"] == 1
     assert plant.unit(1).setpoint_rx is None and plant.unit(1).p_set == 0.0
     plant.on_frame(good, 0.004)
-    plant.on_frame(setpoint(1, 80.0, 0), 0.005)  # repeated counter: no new data
+    plant.on_frame(good, 0.005)  # repeated counter: no new data
+    assert plant.counters["repeated_counter"] == 1 and plant.unit(1).p_set == 40.0
+    # the same counter with another payload: a second sender on the ID (foreign), not used
+    plant.on_frame(setpoint(1, 80.0, 0), 0.005)
+    assert plant.counters["counter_clash"] == 1 and plant.counters["foreign"] == 1
     assert plant.counters["repeated_counter"] == 1 and plant.unit(1).p_set == 40.0
     plant.on_frame(setpoint(1, 60.0, 3), 0.006)  # counters 1, 2 lost
     assert plant.counters["lost_frames"] == 2 and plant.unit(1).p_set == 60.0
@@ -373,8 +377,11 @@ def test_router_rejects_bad_status_frames_and_times_statuses_out() -> None:
                                 data=bytes([good.data[0] ^ 1]) + bytes(good.data[1:])), 0.0)
     assert router.counters["crc"] == 1 and router.measured_powers[0] == 0.0
     router.on_frame(good, 0.0)
-    router.on_frame(status(1, 20.0, 0), 0.0)
+    router.on_frame(good, 0.0)
     assert router.counters["repeated_counter"] == 1 and router.measured_powers[0] == 10.0
+    router.on_frame(status(1, 20.0, 0), 0.0)   # same counter, new payload: foreign
+    assert router.counters["counter_clash"] == 1 and router.counters["foreign"] == 1
+    assert router.measured_powers[0] == 10.0
     for k in range(1, 27):     # 5 status cycles of 50 ms: timed out after 250 ms
         router.tick(T(k))
     assert router.counters["status_timeouts"] == 1

@@ -10,6 +10,7 @@ import pytest
 
 from firmware_py import fixedpoint as fx
 from firmware_py.config import agent_configs_from_scenario
+from firmware_py.contract import COUNTER_MODULO, every_ticks
 from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name
 from firmware_py.node import bus_kwargs, run_node, with_acceptance_filter
 from firmware_py.runtime import AgentRuntime, SetpointMap, State
@@ -20,9 +21,16 @@ CODEC = FrameCodec()
 TS = 0.01
 
 
+def status_frame(agent: int, counter: int, overcurrent: int = 0) -> can.Message:
+    return CODEC.encode_phys(status_name(agent), {
+        "FaultOverCurrent": overcurrent, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+        "Power": 10.0, "Current": 10.0, "Voltage": 700.0, "Soc": 50.0}, counter)
+
+
 class Net:
     """Agents wired by direct delivery: every frame a tick produces reaches every agent
-    before the next tick (a lossless, zero-latency bus), plus a price source."""
+    before the next tick (a lossless, zero-latency bus), plus a price source and a plant
+    stand-in sending every agent's PLANT_<i>_Status at the DBC's cycle."""
 
     def __init__(self, case: int = 1) -> None:
         self.sc = load_case(case)
@@ -30,6 +38,9 @@ class Net:
         self.k = 0
         self.price_ctr = 0
         self.price_on = True
+        self.status_ctr = 0
+        self.status_off: set[int] = set()   # agents whose plant status is not sent
+        self.overcurrent: set[int] = set()  # agents whose plant reports an over-current
         self.sent: list[can.Message] = []
 
     @property
@@ -48,8 +59,14 @@ class Net:
 
     def run(self, seconds: float, skip: set[int] = frozenset()) -> None:
         for _ in range(round(seconds / TS)):
-            if self.price_on and self.k % 5 == 0:
+            if self.price_on and self.k % every_ticks("ER_Price") == 0:
                 self.price(self.sc.price_at(self.t)[0])
+            if self.k % every_ticks(status_name(1)) == 0:
+                for a in self.agents:
+                    if a.cfg.id not in self.status_off:
+                        self.deliver(status_frame(a.cfg.id, self.status_ctr % COUNTER_MODULO,
+                                                  int(a.cfg.id in self.overcurrent)))
+                self.status_ctr += 1
             out = [m for a in self.agents if a.cfg.id not in skip for m in a.tick(self.t)]
             self.sent += out
             for m in out:
@@ -60,8 +77,13 @@ class Net:
         return max(abs(a.lam - 0.8) for a in self.agents)
 
 
-def one_agent(pinned: bool = True) -> AgentRuntime:
-    return AgentRuntime(agent_configs_from_scenario(load_case(1))[0 if pinned else 1], CODEC)
+def one_agent(pinned: bool = True, status: bool = True) -> AgentRuntime:
+    """Agent 1 (pinned) or 2 of case 1, with one fresh status frame at t = 0 unless not
+    ``status``."""
+    a = AgentRuntime(agent_configs_from_scenario(load_case(1))[0 if pinned else 1], CODEC)
+    if status:
+        a.on_frame(status_frame(a.cfg.id, 0), 0.0)
+    return a
 
 
 def price_frame(counter: int, rho: float = 0.8, valid: int = 1) -> can.Message:
@@ -174,17 +196,20 @@ def test_set_gains_command_and_bad_gains_counted() -> None:
     assert "k" in a.last_error["range"]
 
 
-def test_plant_fault_enters_safe() -> None:
+def test_plant_fault_enters_safe_and_recovers() -> None:
     net = Net(1)
     net.run(1.0)
-    status = CODEC.encode_phys(status_name(3), {
-        "FaultOverCurrent": 1, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
-        "Power": 10.0, "Current": 10.0, "Voltage": 700.0, "Soc": 50.0}, 0)
-    net.deliver(status)
-    net.run(0.02)
+    net.overcurrent = {3}
+    net.run(0.02)   # the fault is in the status frame at t = 1.0 s
     assert net.agents[2].state == State.SAFE
-    assert net.agents[2].counters["plant_faults"] == 1
+    net.run(0.5)
+    assert net.agents[2].state == State.SAFE
+    assert net.agents[2].counters["plant_faults"] == 1   # rising edges, not frames
     assert all(a.state == State.RUNNING for a in net.agents if a.cfg.id != 3)
+    net.overcurrent = set()
+    net.run(0.05)
+    assert net.agents[2].state == State.RUNNING
+    assert net.agents[2].counters["status_timeouts"] == 0
 
 
 # --------------------------------------------------------------------------- rejections
@@ -208,7 +233,8 @@ def test_each_bad_frame_is_rejected_and_counted_by_cause() -> None:
                 mc_frame(1, 5)):                   # our own identity, not sent by us
         a.on_frame(msg, 0.0)
     assert dict(a.counters) == {"crc": 1, "dlc": 1, "unknown_id": 2, "range": 2,
-                                "repeated_counter": 1, "lost_frames": 4, "impersonation": 1}
+                                "repeated_counter": 1, "lost_frames": 4, "impersonation": 1,
+                                "foreign": 1}
     assert "expected CRC" in a.last_error["crc"]
     assert a.price == fx.to_fixed(0.8)
 
