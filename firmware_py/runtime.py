@@ -197,7 +197,7 @@ class AgentRuntime:
             self.state = State.ISOLATED
             self.cstate = self.ctrl.initial_state(self.idle_lambda)
         elif cmd == Command.RECONNECT and self.state == State.ISOLATED:
-            self.state = State.INIT  # tick() moves on to RUNNING when the price is fresh
+            self.state = State.INIT  # tick() moves on to RUNNING when price and status are fresh
         elif cmd == Command.SET_GAINS:
             k, h = f.phys("GainK"), f.phys("GainH")
             try:
@@ -246,7 +246,7 @@ class AgentRuntime:
         self._now = t
         self._update_neighbours(t)
         self._update_state()
-        if self.state == State.RUNNING:
+        if is_active(self.state):
             nbrs = [(s.weight, s.lam) for s in self.neighbours.values()
                     if s.alive and is_active(s.state) and s.lam is not None]
             xi, sat = consensus_error(self.ctrl.ar, self.cstate.lam, nbrs,
