@@ -3,9 +3,11 @@
 Example (``bess-ded up`` writes one per agent into DIR/agents/)::
 
     [agent]
-    id = 2                  # 1..32, selects the AGENT_<id>_* frames
+    id = 2                  # 1..N_AGENTS_MAX (32 in the DBC), selects the AGENT_<id>_* frames
     lambda0 = 0.6           # λ(0), cu/kWh
     pinned = false          # hears the price in ξ (b_ii = 1)
+    fleet_size = 4          # optional: agents in the run; frames of agents beyond it are
+                            # counted as foreign (absent: unknown, not checked)
 
     [controller]            # firmware_py.controllers.ControllerConfig
     kind = "reset"
@@ -27,6 +29,12 @@ Example (``bess-ded up`` writes one per agent into DIR/agents/)::
     [timeouts]
     neighbour_periods = 3   # a neighbour silent this many of its periods drops out of ξ
     price_s = 0.25          # no valid price for this long → SAFE
+    status_s = 0.25         # no PLANT_<id>_Status for this long → SAFE
+
+Both timeouts default to 5 cycles of their frame (firmware_py.contract.timeout_s) at
+the controller's Ts: 5 × 50 ms = 0.25 s at Ts = 10 ms, stretched in a time-scaled run.
+Keep them (and neighbour_periods) under 8 cycles: longer, a sender's lost frames alias
+in the 4-bit E2E counter and read as foreign traffic (firmware_py.nodeio).
 
     [limits]
     lambda_min = -10.0      # plausibility range for any λ or ρ received
@@ -44,11 +52,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import tomli_w
+
+from .contract import MC_CYCLE_S, N_AGENTS_MAX, status_name, timeout_s
 from .controllers import ControllerConfig
 from .errors import ConfigError, ParameterError
 
-N_AGENTS_MAX = 32
-PRICE_TIMEOUT_TICKS = 25  # 0.25 s at Ts = 10 ms: five ER_Price periods
+__all__ = ["N_AGENTS_MAX", "AgentConfig", "DispatchParams", "Neighbour",
+           "agent_configs_from_scenario", "load_agent_config", "parse_agent_config"]
+
+# the contract's receive timeouts at the DBC's Ts (10 ms); a config derives its own
+# from its controller's Ts (time-scaled runs stretch them)
+PRICE_TIMEOUT_S = timeout_s("ER_Price", MC_CYCLE_S)
+STATUS_TIMEOUT_S = timeout_s(status_name(1), MC_CYCLE_S)
 
 
 @dataclass(frozen=True)
@@ -77,27 +93,34 @@ class AgentConfig:
     neighbours: tuple[Neighbour, ...]
     battery: DispatchParams
     neighbour_timeout_periods: int = 3
-    price_timeout_s: float = 0.25
+    price_timeout_s: float = PRICE_TIMEOUT_S
+    status_timeout_s: float = STATUS_TIMEOUT_S
     lambda_min: float = -10.0
     lambda_max: float = 10.0
+    fleet_size: int | None = None   # None: unknown, foreign agent IDs not checked
     source: str = "<config>"
 
     def to_toml(self) -> str:
+        """The TOML load_agent_config reads back to an equal config (but ``source``)."""
         c, b = self.controller, self.battery
-        lines = ["# bess-ded agent configuration (see firmware_py/config.py)", "[agent]",
-                 f"id = {self.id}", f"lambda0 = {self.lambda0!r}",
-                 f"pinned = {'true' if self.pinned else 'false'}", "", "[controller]",
-                 f'kind = "{c.kind}"', f"k = {c.k!r}", f"h = {c.h!r}", f"ts = {c.ts!r}",
-                 f"dwell = {c.dwell!r}", f"band = {c.band!r}",
-                 f"ft_exponent = {c.ft_exponent!r}", ""]
-        for nb in self.neighbours:
-            lines += ["[[neighbour]]", f"id = {nb.id}", f"weight = {nb.weight!r}", ""]
-        lines += ["[battery]", f"alpha = {b.alpha!r}", f"beta = {b.beta!r}", f"m = {b.m!r}",
-                  f"p_min = {b.p_min!r}", f"p_max = {b.p_max!r}", "", "[timeouts]",
-                  f"neighbour_periods = {self.neighbour_timeout_periods}",
-                  f"price_s = {self.price_timeout_s!r}", "", "[limits]",
-                  f"lambda_min = {self.lambda_min!r}", f"lambda_max = {self.lambda_max!r}", ""]
-        return "\n".join(lines)
+        agent: dict[str, Any] = {"id": self.id, "lambda0": self.lambda0, "pinned": self.pinned}
+        if self.fleet_size is not None:
+            agent["fleet_size"] = self.fleet_size
+        doc = {
+            "agent": agent,
+            "controller": {"kind": c.kind, "k": c.k, "h": c.h, "ts": c.ts, "dwell": c.dwell,
+                           "band": c.band, "ft_exponent": c.ft_exponent},
+            "battery": {"alpha": b.alpha, "beta": b.beta, "m": b.m, "p_min": b.p_min,
+                        "p_max": b.p_max},
+            "timeouts": {"neighbour_periods": self.neighbour_timeout_periods,
+                         "price_s": self.price_timeout_s, "status_s": self.status_timeout_s},
+            "limits": {"lambda_min": self.lambda_min, "lambda_max": self.lambda_max},
+        }
+        # tomli-w inlines short arrays of tables; [[neighbour]] blocks read better when edited
+        nbrs = "".join("\n[[neighbour]]\n" + tomli_w.dumps({"id": nb.id, "weight": nb.weight})
+                       for nb in self.neighbours)
+        return ("# bess-ded agent configuration (see firmware_py/config.py)\n"
+                + tomli_w.dumps(doc) + nbrs)
 
 
 def load_agent_config(path: str | Path) -> AgentConfig:
@@ -150,11 +173,16 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         if k not in {"agent", "controller", "neighbour", "battery", "timeouts", "limits"}:
             raise fail(k, "unknown table; expected agent, controller, neighbour, battery, "
                        "timeouts or limits")
-    a = table("agent", {"id", "lambda0", "pinned"})
+    a = table("agent", {"id", "lambda0", "pinned", "fleet_size"})
     ident = agent_id(a.get("id"), "agent.id")
     pinned = a.get("pinned", False)
     if not isinstance(pinned, bool):
         raise fail("agent.pinned", f"expected true or false, but got {pinned!r}")
+    fleet = a.get("fleet_size")
+    if fleet is not None and (isinstance(fleet, bool) or not isinstance(fleet, int)
+                              or not ident <= fleet <= N_AGENTS_MAX):
+        raise fail("agent.fleet_size", f"expected an agent count in {ident}..{N_AGENTS_MAX} "
+                   f"(at least this agent's id), but got {fleet!r}")
 
     c = table("controller", {"kind", "k", "h", "ts", "dwell", "band", "ft_exponent"})
     try:
@@ -189,15 +217,19 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
     if not (-327.67 <= battery.p_min and battery.p_max <= 327.67):
         raise fail("battery.p_max", "expected limits within ±327.67 kW (the setpoint frame)")
 
-    t = table("timeouts", {"neighbour_periods", "price_s"}, required=False)
+    t = table("timeouts", {"neighbour_periods", "price_s", "status_s"}, required=False)
     lim = table("limits", {"lambda_min", "lambda_max"}, required=False)
     cfg = AgentConfig(
         id=ident, lambda0=num(a, "agent", "lambda0", -100, 100), pinned=pinned,
         controller=controller, neighbours=tuple(neighbours), battery=battery,
         neighbour_timeout_periods=int(num(t, "timeouts", "neighbour_periods", 1, 100, 3)),
-        price_timeout_s=num(t, "timeouts", "price_s", 0.01, 60, 0.25),
+        price_timeout_s=num(t, "timeouts", "price_s", 0.01, 60,
+                            timeout_s("ER_Price", controller.ts)),
+        status_timeout_s=num(t, "timeouts", "status_s", 0.01, 60,
+                             timeout_s(status_name(ident), controller.ts)),
         lambda_min=num(lim, "limits", "lambda_min", -127, 127, -10.0),
-        lambda_max=num(lim, "limits", "lambda_max", -127, 127, 10.0), source=src)
+        lambda_max=num(lim, "limits", "lambda_max", -127, 127, 10.0), fleet_size=fleet,
+        source=src)
     if not cfg.lambda_min < cfg.lambda0 < cfg.lambda_max:
         raise fail("agent.lambda0", f"expected a value inside limits [{cfg.lambda_min}, "
                    f"{cfg.lambda_max}], but got {cfg.lambda0}")
@@ -213,7 +245,8 @@ def agent_configs_from_scenario(sc: Any) -> list[AgentConfig]:
             id=i, lambda0=sc.lambda0[i - 1], pinned=i in sc.pinned, controller=sc.controller,
             neighbours=tuple(Neighbour(j, w) for j, w in sc.neighbours(i)),
             battery=DispatchParams(b.alpha, b.beta, b.m, b.p_min, b.p_max),
-            # the router sends ρ every 5 Ts: 5 missed price frames mean the price is lost
-            price_timeout_s=PRICE_TIMEOUT_TICKS * sc.ts,
-            source=f"{sc.source}#agent{i}"))
+            # 5 missed frames mean the price (the plant) is lost, at the run's Ts
+            price_timeout_s=timeout_s("ER_Price", sc.ts),
+            status_timeout_s=timeout_s(status_name(i), sc.ts),
+            fleet_size=sc.n, source=f"{sc.source}#agent{i}"))
     return out

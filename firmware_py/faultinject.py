@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 
 import can
 
+from .contract import MC_BASE, N_AGENTS_MAX
+
 
 @dataclass
 class RxFaults:
@@ -32,7 +34,7 @@ class RxFaults:
     jitter: float = 0.0        # s, extra uniform random delay in [0, jitter]
     seed: int = 0
     match: Callable[[can.Message], bool] = field(
-        default=lambda m: 0x100 < m.arbitration_id <= 0x120)  # AGENT_i_MC frames
+        default=lambda m: MC_BASE < m.arbitration_id <= MC_BASE + N_AGENTS_MAX)  # AGENT_i_MC
 
     @property
     def active(self) -> bool:

@@ -31,6 +31,7 @@ import math
 import operator
 import os
 import pickle
+import re
 import sys
 import tempfile
 from collections.abc import Iterable, Mapping
@@ -64,6 +65,7 @@ __all__ = [
     "DLC",
     "LAMBDA_Q",
     "N_AGENTS_MAX",
+    "COUNTER_MODULO",
     "CounterStatus",
     "CounterTracker",
     "DecodedFrame",
@@ -76,21 +78,16 @@ __all__ = [
     "status_name",
 ]
 
-N_AGENTS_MAX = 32
-"""Agents the DBC defines frames for (AGENT_1..AGENT_32); checked on load."""
-
 LAMBDA_Q = 24
 """λ and ρ travel as int32 Q24: the DBC factor must be exactly 2**-LAMBDA_Q (checked on load)."""
 
 DLC = 8
-COUNTER_MODULO = 16
 
-MC_BASE = 0x100
-SETPOINT_BASE = 0x200
-STATUS_BASE = 0x280
-DIAG_BASE = 0x300
-_AGENT_BASES = (MC_BASE, SETPOINT_BASE, STATUS_BASE, DIAG_BASE)
-
+# The per-agent messages, in the order of the ID plan: name pattern -> its ID base is the
+# DBC's ID of agent 1's frame minus 1 (checked for every agent on load).
+_AGENT_MESSAGES = ("AGENT_{}_MC", "AGENT_{}_Setpoint", "PLANT_{}_Status", "AGENT_{}_Diag")
+_AGENT_NAME = re.compile(r"^(?:AGENT|PLANT)_([1-9][0-9]*)_(?:MC|Setpoint|Status|Diag)$")
+_ER_MESSAGES = ("ER_Price", "ER_Command", "ER_Balance")
 _E2E_SIGNALS = ("CRC", "Counter")
 _Q_SIGNALS = {"ER_Price": "Rho"}  # plus Lambda of every AGENT_i_MC
 
@@ -127,10 +124,10 @@ def diag_name(i: int) -> str:
 def agent_of(frame_id: int) -> int | None:
     """The agent index a per-agent frame ID belongs to, or None for ER frames and others.
 
-    Pure arithmetic on the ID plan (0x100/0x200/0x280/0x300 + i), so a receive
-    loop can route a frame before decoding it.
+    Pure arithmetic on the DBC's ID plan (MC/Setpoint/Status/Diag base + i, bases read
+    from the DBC), so a receive loop can route a frame before decoding it.
     """
-    for base in _AGENT_BASES:
+    for base in AGENT_BASES:
         if base < frame_id <= base + N_AGENTS_MAX:
             return frame_id - base
     return None
@@ -209,6 +206,9 @@ class _Compiled:
     db: Database
     by_id: Mapping[int, _Frame]
     by_name: Mapping[str, _Frame]
+    n_agents: int                  # AGENT_1_MC..AGENT_<n>_MC
+    bases: tuple[int, ...]         # ID base of each of _AGENT_MESSAGES (ID = base + i)
+    counter_modulo: int            # 2**length of the E2E Counter signal
 
 
 def _raw_range(sig: Signal) -> tuple[int, int]:
@@ -268,7 +268,8 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
             base.append(entry)
     # CRC and Counter first, then by start bit: the order raw dicts and errors list them in.
     base.sort(key=lambda e: (_E2E_SIGNALS.index(e[0]) if e[0] in _E2E_SIGNALS else 2, e[1]))
-    agent = agent_of(m.frame_id)
+    named = _AGENT_NAME.match(m.name)
+    agent = int(named.group(1)) if named else None
     return _Frame(
         name=m.name,
         frame_id=m.frame_id,
@@ -284,26 +285,38 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
     )
 
 
-def _check_plan(path: str, by_name: Mapping[str, _Frame]) -> None:
-    """The ID plan and the Q24 factor the firmware hard-codes must match the DBC."""
-    expected = {"ER_Price": 0x010, "ER_Command": 0x020, "ER_Balance": 0x400}
-    for i in range(1, N_AGENTS_MAX + 1):
-        expected[mc_name(i)] = MC_BASE + i
-        expected[setpoint_name(i)] = SETPOINT_BASE + i
-        expected[status_name(i)] = STATUS_BASE + i
-        expected[diag_name(i)] = DIAG_BASE + i
-    for name, fid in expected.items():
-        f = by_name.get(name)
-        if f is None or f.frame_id != fid:
-            got = "nothing" if f is None else f"0x{f.frame_id:03X}"
-            raise ConfigError(path, name, f"expected a frame with ID 0x{fid:03X}, but got {got}")
+def _check_plan(path: str, by_name: Mapping[str, _Frame]) -> tuple[int, tuple[int, ...]]:
+    """Read the ID plan from the DBC and check it is the regular one the firmware relies on:
+    AGENT_1..AGENT_<n> with every per-agent ID = its message's base + i, and the Q24 factor.
+    Returns (n, the bases of _AGENT_MESSAGES)."""
+    n = 0
+    while _AGENT_MESSAGES[0].format(n + 1) in by_name:
+        n += 1
+    extra = sorted(name for name, f in by_name.items()
+                   if f.agent is not None and not 1 <= f.agent <= n)
+    if n == 0 or extra:
+        raise ConfigError(path, "AGENT_<i>_MC", f"expected agents 1..n without gaps, but got "
+                          f"{n} contiguous and also {', '.join(extra) or 'none'}")
+    bases = tuple(by_name[p.format(1)].frame_id - 1 if p.format(1) in by_name else -1
+                  for p in _AGENT_MESSAGES)
+    for pattern, base in zip(_AGENT_MESSAGES, bases, strict=True):
+        for i in range(1, n + 1):
+            f = by_name.get(pattern.format(i))
+            if f is None or f.frame_id != base + i:
+                got = "nothing" if f is None else f"0x{f.frame_id:03X}"
+                raise ConfigError(path, pattern.format(i), f"expected a frame with ID "
+                                  f"0x{base + i:03X} (its base + {i}), but got {got}")
+    for name in _ER_MESSAGES:
+        if name not in by_name:
+            raise ConfigError(path, name, "expected this message in the DBC, but got nothing")
     q_signals = dict(_Q_SIGNALS)
-    q_signals.update({mc_name(i): "Lambda" for i in range(1, N_AGENTS_MAX + 1)})
+    q_signals.update({_AGENT_MESSAGES[0].format(i): "Lambda" for i in range(1, n + 1)})
     for name, sig in q_signals.items():
         scale, offset = by_name[name].scaling[sig]
         if scale != 2.0**-LAMBDA_Q or offset != 0:
             raise ConfigError(path, f"{name}.{sig}", f"expected factor 2**-{LAMBDA_Q} offset 0 "
                               f"(int32 Q{LAMBDA_Q}), but got factor {scale!r} offset {offset!r}")
+    return n, bases
 
 
 @lru_cache(maxsize=8)
@@ -349,8 +362,31 @@ def _compile_dbc(path: str) -> _Compiled:
         raise ConfigError(path, "format", f"expected a CAN database, but got {type(db).__name__}")
     frames = [_compile_message(path, m) for m in db.messages]
     by_name = {f.name: f for f in frames}
-    _check_plan(path, by_name)
-    return _Compiled(db=db, by_id={f.frame_id: f for f in frames}, by_name=by_name)
+    n, bases = _check_plan(path, by_name)
+    counter_bits = db.get_message_by_name("ER_Price").get_signal_by_name("Counter").length
+    return _Compiled(db=db, by_id={f.frame_id: f for f in frames}, by_name=by_name,
+                     n_agents=n, bases=bases, counter_modulo=1 << counter_bits)
+
+
+def _load(dbc_path: str | Path) -> _Compiled:
+    path = Path(dbc_path).resolve()
+    try:
+        mtime = path.stat().st_mtime_ns
+    except OSError as e:
+        raise ConfigError(str(path), "file", f"expected a readable DBC file, but got {e}") \
+            from None
+    return _compile(str(path), mtime)
+
+
+# The contract's numbers, read from the project's DBC once at import (firmware_py.contract
+# publishes them with the rest; these names stay here for the codec and its importers).
+_DEFAULT = _load(DBC_PATH)
+N_AGENTS_MAX = _DEFAULT.n_agents
+"""Agents the DBC defines frames for (AGENT_1..AGENT_<N_AGENTS_MAX>)."""
+COUNTER_MODULO = _DEFAULT.counter_modulo
+"""The E2E rolling counter counts modulo 2**(length of the Counter signal)."""
+AGENT_BASES = _DEFAULT.bases
+MC_BASE, SETPOINT_BASE, STATUS_BASE, DIAG_BASE = AGENT_BASES
 
 
 # ---------------------------------------------------------------------------- decoded frame
@@ -400,7 +436,7 @@ class CounterStatus:
 
     new_data: False when the counter repeats the last accepted one (a stale or
     replayed frame: use nothing from it). lost: frames skipped since the last
-    accepted one, (c - last - 1) mod 16; 0 on the first frame.
+    accepted one, (c - last - 1) mod COUNTER_MODULO; 0 on the first frame.
     """
 
     new_data: bool
@@ -486,14 +522,8 @@ class FrameCodec:
     """
 
     def __init__(self, dbc_path: str | Path = DBC_PATH) -> None:
-        path = Path(dbc_path).resolve()
-        try:
-            mtime = path.stat().st_mtime_ns
-        except OSError as e:
-            raise ConfigError(str(path), "file", f"expected a readable DBC file, but got {e}") \
-                from None
-        c = _compile(str(path), mtime)
-        self.path = path
+        c = _load(dbc_path)
+        self.path = Path(dbc_path).resolve()
         self._db = c.db
         self._by_id = c.by_id
         self._by_name = c.by_name
@@ -528,6 +558,15 @@ class FrameCodec:
             raise UnknownFrameError(f"0x{frame_id:03X}: expected an ID defined in the DBC, "
                                     "but got an unknown ID")
         return f.name
+
+    def scale(self, name: str, signal: str) -> float:
+        """The DBC factor of a signal (phys = raw·factor + offset; every offset is 0 here)."""
+        f = self._frame(name)
+        try:
+            return f.scaling[signal][0]
+        except KeyError:
+            raise EncodeError(f"{name}.{signal}", f"a signal of {name} "
+                              f"({', '.join(f.scaling)})", signal) from None
 
     def raw_range(self, name: str, signal: str) -> tuple[int, int]:
         """The raw [lo, hi] a signal must lie in (from the DBC's [min|max])."""
@@ -571,9 +610,10 @@ class FrameCodec:
         try:
             c = operator.index(counter)
         except TypeError:
-            raise EncodeError(f"{f.name}.Counter", "an int in 0..15", counter) from None
+            raise EncodeError(f"{f.name}.Counter", f"an int in 0..{COUNTER_MODULO - 1}",
+                              counter) from None
         if not 0 <= c < COUNTER_MODULO:
-            raise EncodeError(f"{f.name}.Counter", "an int in 0..15", counter)
+            raise EncodeError(f"{f.name}.Counter", f"an int in 0..{COUNTER_MODULO - 1}", counter)
         return c
 
     def _finish(self, f: _Frame, body: bytes) -> can.Message:

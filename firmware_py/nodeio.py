@@ -7,6 +7,26 @@ count IDs the DBC does not define, decode with the CRC/DLC/range checks, then ru
 E2E counter check — and they all transmit with a rolling counter per message.
 ``NodeIO`` does that once. Every rejection is counted in ``counters`` under its
 cause, its reason kept in ``last_error``, and the first few logged in full.
+
+Foreign traffic: frames that cannot come from the node's own fleet are counted under
+``foreign`` and under one of these causes (their data is never used):
+
+* ``impersonation``: a frame on one of the node's own IDs that it did not send;
+* ``foreign_id``: a per-agent DBC frame of an agent outside the run (AGENT_9_MC in a
+  4-agent run), when the node knows the fleet size (counted before any decode: no
+  node of the run sends on that ID, whatever its payload);
+* ``counter_jump``: on a cyclic ID the node receives, a counter that steps forward by
+  more than half the modulus (9..15 of 16), i.e. reads as a step backwards: two
+  interleaved sequences. A single sender needs more than 7 consecutive lost frames to
+  do that, and every receiver times a sender out (and resets its tracker) long before
+  (3 MC periods, 5 cycles of the other frames), so a restarted node is not foreign.
+  The tracker re-synchronises on the jumped frame, so a sender that really restarted
+  loses one frame;
+* ``counter_clash``: on a cyclic ID, the last accepted counter again with a different
+  payload (a single sender never repeats a counter with new data).
+
+ER_Command is an event frame with no timeout, so its counter may legitimately restart
+(a restarted router) at any value: the two counter rules apply to cyclic IDs only.
 """
 
 from __future__ import annotations
@@ -17,7 +37,8 @@ from collections.abc import Iterable, Mapping
 
 import can
 
-from .frames import CounterTracker, DecodedFrame, FrameCodec
+from . import contract
+from .frames import COUNTER_MODULO, CounterTracker, DecodedFrame, FrameCodec, agent_of
 
 log = logging.getLogger(__name__)
 
@@ -27,15 +48,21 @@ ECHO_DEPTH = 4  # own frames remembered to recognise their echo
 
 class NodeIO:
     def __init__(self, codec: FrameCodec, who: str, own: Iterable[str],
-                 wanted: Iterable[int]) -> None:
-        """``own``: the messages this node sends; ``wanted``: the frame IDs it uses."""
+                 wanted: Iterable[int], fleet_size: int | None = None) -> None:
+        """``own``: the messages this node sends; ``wanted``: the frame IDs it uses;
+        ``fleet_size``: the agents of the run (None: unknown, per-agent IDs of any agent
+        the DBC defines are then not counted as foreign)."""
         self.codec = codec
         self.who = who
+        self.fleet_size = fleet_size
         self.counters: Counter[str] = Counter()
         self.last_error: dict[str, str] = {}
         self._sent: dict[int, deque[bytes]] = {codec.frame_id(n): deque(maxlen=ECHO_DEPTH)
                                                for n in own}
         self.trackers = {fid: CounterTracker() for fid in wanted}
+        self._cyclic = frozenset(fid for fid in self.trackers
+                                 if contract.is_cyclic(codec.name_of(fid)))
+        self._last_data: dict[int, bytes] = {}  # payload of the last accepted frame per ID
         self._known = codec.frame_ids()
         self._tx: Counter[str] = Counter()
 
@@ -59,13 +86,16 @@ class NodeIO:
         sent = self._sent.get(fid)
         if sent is not None:
             if bytes(msg.data) not in sent:
-                self.reject("impersonation", f"0x{fid:03X} carries {self.who}'s identity but "
-                            "was not sent by it")
+                self.foreign("impersonation", f"0x{fid:03X} carries {self.who}'s identity but "
+                             "was not sent by it")
             return None
         tracker = self.trackers.get(fid)
         if tracker is None:
             if fid not in self._known:
                 self.reject("unknown_id", f"0x{fid:03X}: expected an ID defined in the DBC")
+            elif self.fleet_size is not None and (agent_of(fid) or 0) > self.fleet_size:
+                self.foreign("foreign_id", f"0x{fid:03X}: expected agents 1..{self.fleet_size} "
+                             f"of this run, but got a frame of agent {agent_of(fid)}")
             return None  # a DBC frame that is not for this node
         try:
             frame = self.codec.decode(msg)
@@ -75,12 +105,35 @@ class NodeIO:
                 raise
             self.reject(cause, str(e))
             return None
+        last = tracker.last
+        data = bytes(msg.data)
+        if last is not None and fid in self._cyclic:
+            step = (frame.counter - last) % COUNTER_MODULO
+            if step == 0 and data != self._last_data.get(fid):
+                self.foreign("counter_clash", f"{frame.name}: expected new data under a new "
+                             f"counter, but got counter {last} again with another payload")
+                return None
+            if step > COUNTER_MODULO // 2:
+                self.foreign("counter_jump", f"{frame.name}: expected counter "
+                             f"{(last + 1) % COUNTER_MODULO} (or a few lost), but got "
+                             f"{frame.counter} after {last}")
+                tracker.reset()  # re-synchronise: a real restart loses only this frame
+                tracker.update(frame.counter)
+                self._last_data[fid] = data
+                return None
         status = tracker.update(frame.counter)
         self.counters["lost_frames"] += status.lost
         if not status.new_data:
             self.counters["repeated_counter"] += 1
             return None
+        self._last_data[fid] = data
         return frame
+
+    def foreign(self, cause: str, reason: str) -> None:
+        """A frame that cannot come from this node's fleet: counted under ``cause`` and
+        ``foreign``."""
+        self.counters["foreign"] += 1
+        self.reject(cause, reason)
 
     def reject(self, cause: str, reason: str) -> None:
         self.counters[cause] += 1
@@ -91,7 +144,7 @@ class NodeIO:
 
     def send(self, name: str, raw: Mapping[str, int]) -> can.Message:
         """Encode with the next rolling counter of ``name`` and remember it for the echo."""
-        msg = self.codec.encode(name, raw, self._tx[name] % 16)
+        msg = self.codec.encode(name, raw, self._tx[name] % COUNTER_MODULO)
         self._tx[name] += 1
         self._sent[msg.arbitration_id].append(bytes(msg.data))
         return msg

@@ -3,57 +3,66 @@ around the pure control core. Implements the Node seam of firmware_py.node.
 
 State machine::
 
-    INIT ──price heard──▶ RUNNING ──price lost / plant fault──▶ SAFE
-                            ▲  │                                 │
-                            │  └──ISOLATE──▶ ISOLATED            │
-                            └──RECONNECT──┘     price back, fault cleared
+    INIT ──price and status fresh──▶ RUNNING ──price lost / status lost / plant fault──▶ SAFE
+                                      ▲  │                                               │
+                                      │  └──ISOLATE──▶ ISOLATED                          │
+                                      └──RECONNECT──┘      price and status fresh, no fault
 
-* INIT: waiting for the first valid price; λ = λ(0) is broadcast but nobody uses it.
-* RUNNING: the consensus runs every Ts; the power setpoint follows λ.
+* INIT: waiting for a fresh valid price AND a fresh PLANT_<id>_Status: an agent does
+  not dispatch a plant it has not heard from. λ = λ(0) is broadcast but nobody uses
+  it; the setpoint is disabled. INIT is left only for RUNNING (or ISOLATED); an agent
+  whose plant never reports stays in INIT, which counts no timeout (nothing was lost).
+* RUNNING (``contract.is_active``): the consensus runs every Ts; the power setpoint
+  follows λ.
 * ISOLATED (plug-and-play): off the network. λ := the BESS's idle MC (P = 0),
   ν := 0, setpoint disabled. Neighbours drop it from ξ (they only use RUNNING
-  neighbours). RECONNECT re-enters the consensus from there.
-* SAFE: no valid price for ``price_timeout_s``, or the plant reports an over-current or
-  voltage fault (a SoC limit is enforced by the plant and only flagged).
-  λ is held, ν := 0, setpoint disabled (P = 0). Leaves SAFE as soon as both clear.
+  neighbours). RECONNECT re-enters through INIT.
+* SAFE: no valid price for ``price_timeout_s``, no PLANT_<id>_Status for
+  ``status_timeout_s`` (a dead plant or a cut link: the agent cannot see what its
+  BESS does), or the plant reports an over-current or voltage fault (a SoC limit is
+  enforced by the plant and only flagged). λ is held, ν := 0, setpoint disabled
+  (Enable = 0, P = 0). Leaves SAFE as soon as price and status are fresh and no
+  fault is reported.
+
+Timeouts (firmware_py.config): both default to 5 cycles of their frame at the
+controller's Ts (contract.timeout_s), 0.25 s at Ts = 10 ms. A frame is fresh while
+``now − last accepted ≤ timeout``. Each fresh→stale transition counts one
+``price_timeouts`` / ``status_timeouts`` (whatever the state), logs it and resets that
+frame's E2E counter tracker (an outage's counter gap aliases); ``plant_faults`` counts
+rising edges of the over-current/voltage flags.
+
+Cadences come from the DBC: the MC frame every tick, the setpoint and diagnostics
+every ``contract.every_ticks`` ticks (5 and 10 at the DBC's cycles), so a node with a
+longer Ts stretches them all alike. The diagnostics rotate over ``DIAG_PAGES``, one
+page per diag frame.
 
 Every frame that is rejected lands in ``counters`` under its cause; the first few
 of each cause are logged with the full reason, so nothing is dropped silently.
+Foreign traffic (firmware_py.nodeio) is counted under ``foreign`` and its cause.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
-from enum import IntEnum
 
 import can
 
 from . import fixedpoint as fx
 from .config import AgentConfig, DispatchParams
+from .contract import Command, State, every_ticks, is_active
 from .controllers import ControllerConfig, consensus_error, make_controller
 from .errors import FrameError, ParameterError, RangeError
 from .frames import DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from .nodeio import NodeIO
 
+__all__ = ["DIAG_EVERY", "SETPOINT_EVERY", "AgentRuntime", "Command", "NeighbourSlot",
+           "SetpointMap", "State"]
+
 log = logging.getLogger(__name__)
 
-SETPOINT_EVERY = 5   # ticks: 50 ms at Ts = 10 ms (GenMsgCycleTime of AGENT_i_Setpoint)
-DIAG_EVERY = 10      # ticks: 100 ms (GenMsgCycleTime of AGENT_i_Diag)
-U16 = 0xFFFF
-
-
-class State(IntEnum):
-    INIT = 0
-    RUNNING = 1
-    ISOLATED = 2
-    SAFE = 3
-
-
-class Command(IntEnum):
-    ISOLATE = 1
-    RECONNECT = 2
-    SET_GAINS = 3
+SETPOINT_EVERY = every_ticks(setpoint_name(1))   # ticks between setpoints (5 in the DBC)
+DIAG_EVERY = every_ticks(diag_name(1))           # ticks between diag frames (10)
 
 
 @dataclass
@@ -117,13 +126,22 @@ class AgentRuntime:
         self.io = NodeIO(c, f"agent {cfg.id}",
                          own=(mc_name(cfg.id), setpoint_name(cfg.id), diag_name(cfg.id)),
                          wanted=(self.price_id, self.command_id, self.status_id,
-                                 *self.neighbours))
+                                 *self.neighbours), fleet_size=cfg.fleet_size)
         self.counters = self.io.counters
         self.last_error = self.io.last_error
+        # saturate each diag value at its signal's raw maximum (u16, or u8 NeighboursAlive)
+        diag = diag_name(cfg.id)
+        self._diag_max = {name: c.raw_range(diag, name)[1]
+                          for page in self.DIAG_PAGES for name in page}
+        self._mc_max = {name: c.raw_range(mc_name(cfg.id), name)[1]
+                        for name in ("Resets", "NeighboursAlive")}
 
         self.price: int | None = None      # ρ, Q24
         self.price_segment = 0
         self.price_rx: float | None = None
+        self.status_rx: float | None = None
+        self._price_fresh = False          # for the fresh→stale edges (timeouts)
+        self._status_fresh = False
         self.plant_fault = False
         self.power_limited = False
         self.ticks = 0
@@ -142,7 +160,7 @@ class AgentRuntime:
             elif fid == self.command_id:
                 self._on_command(frame)
             elif fid == self.status_id:
-                self._on_status(frame)
+                self._on_status(frame, t)
             else:
                 self._on_mc(self.neighbours[fid], frame, t)
         except FrameError as e:
@@ -164,7 +182,8 @@ class AgentRuntime:
     def _on_mc(self, slot: NeighbourSlot, f: DecodedFrame, t: float) -> None:
         state = f.raw["State"]
         if state not in State._value2member_map_:
-            raise RangeError(f"{f.name}.State: expected 0..3, but got {state}")
+            raise RangeError(f"{f.name}.State: expected one of {[int(s) for s in State]}, but "
+                             f"got {state}")
         slot.lam = self._check_lambda(f"{f.name}.Lambda", f.raw["Lambda"])
         slot.state = State(state)
         slot.last_rx = t
@@ -178,7 +197,7 @@ class AgentRuntime:
             self.state = State.ISOLATED
             self.cstate = self.ctrl.initial_state(self.idle_lambda)
         elif cmd == Command.RECONNECT and self.state == State.ISOLATED:
-            self.state = State.INIT  # tick() moves on to RUNNING when the price is fresh
+            self.state = State.INIT  # tick() moves on to RUNNING when price and status are fresh
         elif cmd == Command.SET_GAINS:
             k, h = f.phys("GainK"), f.phys("GainH")
             try:
@@ -187,19 +206,26 @@ class AgentRuntime:
                     raise RangeError(f"ER_Command SET_GAINS: {e}") from None
             self._set_controller(cfg)
         elif cmd not in Command._value2member_map_:
-            raise RangeError(f"ER_Command.Command: expected 1..3, but got {cmd}")
+            raise RangeError(f"ER_Command.Command: expected one of {[int(c) for c in Command]}, "
+                             f"but got {cmd}")
 
     def _set_controller(self, cfg: ControllerConfig) -> None:
         self.ctrl = make_controller(cfg, fixed=True)
         self.cstate = replace(self.cstate, nu=0)
 
-    def _on_status(self, f: DecodedFrame) -> None:
+    def _on_status(self, f: DecodedFrame, t: float) -> None:
         r = f.raw
         # over-current and voltage faults stop the dispatch (SAFE); a SoC limit does not:
         # the plant already blocks further charge/discharge in that direction, and
         # idling the BESS would keep the SoC where it is and the fault with it
-        self.plant_fault = bool(r["FaultOverCurrent"] or r["FaultVoltage"])
+        fault = bool(r["FaultOverCurrent"] or r["FaultVoltage"])
+        if fault and not self.plant_fault:
+            self.counters["plant_faults"] += 1
+            log.warning("agent %d: plant reports a fault (over-current %d, voltage %d)",
+                        self.cfg.id, r["FaultOverCurrent"], r["FaultVoltage"])
+        self.plant_fault = fault
         self.power_limited = bool(r["PowerLimited"] or r["FaultSoc"])
+        self.status_rx = t
 
     # ------------------------------------------------------------------ periodic
 
@@ -210,13 +236,19 @@ class AgentRuntime:
     def price_ok(self) -> bool:
         return self.price_rx is not None and self._now - self.price_rx <= self.cfg.price_timeout_s
 
+    @property
+    def status_ok(self) -> bool:
+        """A PLANT_<id>_Status accepted within ``status_timeout_s``."""
+        return (self.status_rx is not None
+                and self._now - self.status_rx <= self.cfg.status_timeout_s)
+
     def tick(self, t: float) -> list[can.Message]:
         self._now = t
         self._update_neighbours(t)
         self._update_state()
-        if self.state == State.RUNNING:
+        if is_active(self.state):
             nbrs = [(s.weight, s.lam) for s in self.neighbours.values()
-                    if s.alive and s.state == State.RUNNING and s.lam is not None]
+                    if s.alive and is_active(s.state) and s.lam is not None]
             xi, sat = consensus_error(self.ctrl.ar, self.cstate.lam, nbrs,
                                       self.pin if self.price is not None else 0,
                                       self.price or 0)
@@ -226,7 +258,7 @@ class AgentRuntime:
         if self.ticks % SETPOINT_EVERY == 0:
             frames.append(self._setpoint_frame())
         if self.ticks % DIAG_EVERY == 0:
-            frames.append(self._diag_frame(self.ticks // DIAG_EVERY % 4))
+            frames.append(self._diag_frame(self.ticks // DIAG_EVERY % len(self.DIAG_PAGES)))
         self.ticks += 1
         return frames
 
@@ -240,19 +272,36 @@ class AgentRuntime:
                 log.info("agent %d: neighbour %d timed out", self.cfg.id, slot.id)
             slot.alive = alive
 
+    def _update_inputs(self) -> None:
+        """Count each fresh→stale edge of the price and the plant status (in any state)."""
+        for name, ok, was, fid, timeout in (
+                ("price", self.price_ok, self._price_fresh, self.price_id,
+                 self.cfg.price_timeout_s),
+                ("status", self.status_ok, self._status_fresh, self.status_id,
+                 self.cfg.status_timeout_s)):
+            if was and not ok:
+                self.counters[f"{name}_timeouts"] += 1
+                self.io.trackers[fid].reset()  # an outage's counter gap aliases
+                log.warning("agent %d: %s timed out (none accepted for more than %.3f s)",
+                            self.cfg.id, "valid ER_Price" if name == "price"
+                            else status_name(self.cfg.id), timeout)
+        self._price_fresh, self._status_fresh = self.price_ok, self.status_ok
+
     def _update_state(self) -> None:
+        self._update_inputs()
         if self.state == State.ISOLATED:
             return
-        healthy = self.price_ok and not self.plant_fault
+        healthy = self._price_fresh and self._status_fresh and not self.plant_fault
         if self.state == State.RUNNING and not healthy:
-            self.counters["price_timeouts" if not self.price_ok else "plant_faults"] += 1
-            log.warning("agent %d: entering SAFE (%s)", self.cfg.id,
-                        "price lost" if not self.price_ok else "plant fault")
+            why = [w for w, bad in (("price lost", not self._price_fresh),
+                                    ("plant status lost", not self._status_fresh),
+                                    ("plant fault", self.plant_fault)) if bad]
+            log.warning("agent %d: entering SAFE (%s)", self.cfg.id, ", ".join(why))
             self.state = State.SAFE
             self.cstate = replace(self.cstate, nu=0, xi_prev=0)
-            if not self.price_ok:
-                self.io.trackers[self.price_id].reset()  # an outage's counter gap aliases
         elif self.state in (State.INIT, State.SAFE) and healthy:
+            if self.state == State.SAFE:
+                log.info("agent %d: leaving SAFE (price and plant status fresh)", self.cfg.id)
             self.state = State.RUNNING
             self.cstate = replace(self.cstate, nu=0, xi_prev=0)
 
@@ -260,16 +309,17 @@ class AgentRuntime:
 
     @property
     def neighbours_alive(self) -> int:
-        return sum(s.alive and s.state == State.RUNNING for s in self.neighbours.values())
+        return sum(s.alive and is_active(s.state) for s in self.neighbours.values())
 
     def _mc_frame(self) -> can.Message:
         return self.io.send(mc_name(self.cfg.id), {
             "State": int(self.state), "Lambda": int(self.cstate.lam),
-            "Resets": self.cstate.resets % 256, "NeighboursAlive": min(self.neighbours_alive, 63),
+            "Resets": self.cstate.resets % (self._mc_max["Resets"] + 1),
+            "NeighboursAlive": min(self.neighbours_alive, self._mc_max["NeighboursAlive"]),
             "PriceOk": int(self.price_ok)})
 
     def _setpoint_frame(self) -> can.Message:
-        enable = self.state == State.RUNNING
+        enable = is_active(self.state)
         p, limited = self.setpoint(int(self.cstate.lam)) if enable else (0, False)
         self.counters["setpoint_limited"] += limited
         return self.io.send(setpoint_name(self.cfg.id), {"Enable": int(enable), "PowerSetpoint": p})
@@ -282,17 +332,24 @@ class AgentRuntime:
                 "RejectedUnknownId": c["unknown_id"], "RejectedImpersonation": c["impersonation"],
                 "RepeatedCounter": c["repeated_counter"], "LostFrames": c["lost_frames"],
                 "Saturations": c["saturations"] + self.cstate.saturations,
-                "NeighbourTimeouts": c["neighbour_timeouts"]}
+                "NeighbourTimeouts": c["neighbour_timeouts"],
+                "PriceTimeouts": c["price_timeouts"], "StatusTimeouts": c["status_timeouts"],
+                "PlantFaults": c["plant_faults"], "ForeignFrames": c["foreign"],
+                "ForeignIds": c["foreign_id"],
+                "InterleavedCounters": c["counter_jump"] + c["counter_clash"]}
 
+    # AGENT_<i>_Diag pages (tools/gen_dbc.py): page k carries DIAG_PAGES[k]
     DIAG_PAGES = (("Resets", "DeadlineMisses", "NeighboursAlive", "State"),
                   ("RejectedCrc", "RejectedDlc", "RejectedRange"),
                   ("RejectedUnknownId", "RejectedImpersonation", "RepeatedCounter"),
-                  ("LostFrames", "Saturations", "NeighbourTimeouts"))
+                  ("LostFrames", "Saturations", "NeighbourTimeouts"),
+                  ("PriceTimeouts", "StatusTimeouts", "PlantFaults"),
+                  ("ForeignFrames", "ForeignIds", "InterleavedCounters"))
 
     def _diag_frame(self, page: int) -> can.Message:
         values = self.diag_values()
-        raw = {name: min(values[name], U16 if name != "NeighboursAlive" else 255)
-               for name in self.DIAG_PAGES[page]}
+        # counters saturate at their signal's maximum, they never wrap (DBC comment)
+        raw = {name: min(values[name], self._diag_max[name]) for name in self.DIAG_PAGES[page]}
         return self.io.send(diag_name(self.cfg.id), {"Page": page, **raw})
 
     # ------------------------------------------------------------------ reporting

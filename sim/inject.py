@@ -14,6 +14,7 @@ from collections.abc import Iterator
 import can
 
 from firmware_py import fixedpoint as fx
+from firmware_py.contract import COUNTER_MODULO, State
 from firmware_py.frames import FrameCodec, mc_name
 
 KINDS = {
@@ -33,7 +34,7 @@ def frames(kind: str, count: int, target: int = 1, seed: int = 0,
     rng = random.Random(seed)
     rho = fx.to_fixed(0.8)
     for n in range(count):
-        ctr = (n + 7) % 16
+        ctr = (n + 7) % COUNTER_MODULO
         if kind == "crc":
             m = codec.encode("ER_Price", {"PriceValid": 1, "Rho": rho, "Segment": 0}, ctr)
             m.data[0] ^= 0x5A
@@ -50,8 +51,9 @@ def frames(kind: str, count: int, target: int = 1, seed: int = 0,
             m = can.Message(arbitration_id=rng.choice([0x7FF, 0x555, 0x6A0, 0x001]),
                             is_extended_id=False, data=bytes(8))
         elif kind == "impersonate":
-            m = codec.encode(mc_name(target), {"State": 1, "Lambda": rho, "Resets": 0,
-                                               "NeighboursAlive": 1, "PriceOk": 1}, ctr)
+            m = codec.encode(mc_name(target), {"State": int(State.RUNNING), "Lambda": rho,
+                                               "Resets": 0, "NeighboursAlive": 1,
+                                               "PriceOk": 1}, ctr)
         elif kind == "flood":
             dlc = rng.randint(0, 8)
             m = can.Message(arbitration_id=rng.randint(0, 0x7FF), is_extended_id=False,

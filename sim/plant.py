@@ -2,7 +2,9 @@
 
 One node simulates the whole fleet, because on the bus the plant is one DBC node
 (``PLANT_<i>_Status`` for every i). It takes ``AGENT_<i>_Setpoint`` frames and
-publishes ``PLANT_<i>_Status`` every 50 ms; nothing else couples it to the agents,
+publishes every ``PLANT_<i>_Status`` once per status cycle: the DBC's 50 ms at Ts =
+10 ms, stretched like every cadence in a time-scaled run (``contract.cycle_s``: every
+5 ticks of the scenario's Ts); nothing else couples it to the agents,
 so real choppers speaking the same frames can replace it (docs/deployment.md).
 
 Physical model, per BESS (units: kW, V, A, s; P > 0 = discharge into the grid)
@@ -47,11 +49,14 @@ Physical model, per BESS (units: kW, V, A, s; P > 0 = discharge into the grid)
 Setpoint reception (E2E, like the agent runtime): a frame failing decode (CRC,
 DLC, range, ...) is rejected and counted under its cause; a repeated counter is
 no new data (``repeated_counter``); counter gaps count ``lost_frames``. A BESS whose
-last accepted setpoint is older than ``SETPOINT_TIMEOUT_CYCLES`` = 5 setpoint cycles
-(250 ms; the cycle is the DBC's 50 ms, or 5·Ts when a time-scaled scenario
-stretches the agents' Ts) gets P_ref = 0: the current loop ramps it down with τ.
+last accepted setpoint is older than ``contract.TIMEOUT_CYCLES`` = 5 setpoint cycles
+(250 ms; the cycle is the DBC's 50 ms at Ts = 10 ms, stretched with Ts in a
+time-scaled run) gets P_ref = 0: the current loop ramps it down with τ.
 Each fresh→stale transition counts one ``setpoint_timeouts``. ``Enable = 0`` also
 means P_ref = 0. Before the first setpoint a BESS holds 0 kW (not a timeout).
+Foreign traffic (frames of agents outside the scenario, impersonated status frames,
+interleaved counters on a setpoint ID) is counted under ``foreign`` and its cause
+(firmware_py.nodeio).
 
 Fault injection (tests): ``faults`` = (agent, kind, t_start, t_end) windows in
 seconds from the node's first tick; while one is active the flag is forced:
@@ -70,8 +75,9 @@ from typing import Any
 
 import can
 
+from firmware_py.contract import cycle_s, setpoint_name, status_name, timeout_s
 from firmware_py.errors import ParameterError
-from firmware_py.frames import FrameCodec, setpoint_name, status_name
+from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import NodeIO
 
 from .model import Battery
@@ -86,9 +92,6 @@ OCV_LOW, OCV_SPAN = 0.9, 0.2  # V_oc = v_nom·(0.9 + 0.2·SoC)
 SOC_MIN, SOC_MAX = 0.05, 0.95
 V_MIN, V_MAX = 0.8, 1.2       # × v_nom, FaultVoltage outside
 FAULT_POWER_FRACTION = 0.5    # injected power_limit: |P| ≤ 50 % of p_max
-SETPOINT_TIMEOUT_CYCLES = 5
-AGENT_SETPOINT_EVERY = 5      # agents send a setpoint every 5 Ts (firmware_py.runtime)
-STATUS_CYCLE_S = 0.050        # fallback if the DBC has no GenMsgCycleTime
 
 FAULT_KINDS = ("overcurrent", "voltage", "soc", "power_limit")
 
@@ -274,7 +277,8 @@ class PlantNode(SimNodeClock):
 
     ``counters`` (a Counter): rejected setpoint frames by cause (``crc``, ``dlc``,
     ``range``, ``unknown_id``, ``malformed``, ``impersonation``), ``repeated_counter``,
-    ``lost_frames``, ``setpoints`` (accepted), ``setpoint_timeouts``, ``status_frames``,
+    ``lost_frames``, ``foreign`` (with ``foreign_id``, ``counter_jump``,
+    ``counter_clash``), ``setpoints`` (accepted), ``setpoint_timeouts``, ``status_frames``,
     ``soc_faults`` / ``voltage_faults`` / ``overcurrent_faults`` (rising edges of the
     flags), ``injected_faults`` (fault windows entered), ``encode_saturations``
     (a measurement outside its signal's range, sent saturated), and the loop's
@@ -292,20 +296,21 @@ class PlantNode(SimNodeClock):
         self.units = [BessUnit.create(i, b) for i, b in enumerate(scenario.batteries, start=1)]
         self.faults = tuple(as_fault(f).check(scenario.n) for f in faults)
         c = self.codec
-        db = c.database
-        sp_cycle = (db.get_message_by_name(setpoint_name(1)).cycle_time or 20) / 1000.0
-        self.setpoint_cycle = max(sp_cycle, AGENT_SETPOINT_EVERY * scenario.ts)
-        self.setpoint_timeout = SETPOINT_TIMEOUT_CYCLES * self.setpoint_cycle
-        st_cycle = db.get_message_by_name(status_name(1)).cycle_time
-        self.status_cycle = st_cycle / 1000.0 if st_cycle else STATUS_CYCLE_S
+        # the DBC's cycles are for Ts = 10 ms; the scenario's Ts stretches them (time scale)
+        self.setpoint_cycle = cycle_s(setpoint_name(1), scenario.ts)
+        self.setpoint_timeout = timeout_s(setpoint_name(1), scenario.ts)
+        self.status_cycle = cycle_s(status_name(1), scenario.ts)
         self._status = Cyclic(self.status_cycle, period / 2)
         self._setpoint_ids = {c.frame_id(setpoint_name(u.agent)): u for u in self.units}
         self._status_names = [status_name(u.agent) for u in self.units]
         self._setpoint_fid = {u.agent: fid for fid, u in self._setpoint_ids.items()}
-        self.io = NodeIO(c, "the plant", own=self._status_names, wanted=self._setpoint_ids)
+        self.io = NodeIO(c, "the plant", own=self._status_names, wanted=self._setpoint_ids,
+                         fleet_size=scenario.n)
         self.counters = self.io.counters
         self.last_error = self.io.last_error
-        self._ranges = {s: c.raw_range(self._status_names[0], s) for s in _STATUS_SIGNALS}
+        first = self._status_names[0]
+        self._ranges = {s: c.raw_range(first, s) for s in _STATUS_SIGNALS}
+        self._scales = {s: c.scale(first, s) for s in _STATUS_SIGNALS}
         self._active_faults: set[int] = set()
         self._init_clock()
 
@@ -362,13 +367,13 @@ class PlantNode(SimNodeClock):
             u.stale = True
             u.setpoint_timeouts += 1
             self.counters["setpoint_timeouts"] += 1
-            self.io.trackers[self._setpoint_fid[u.agent]].reset()  # the gap aliases mod 16
+            self.io.trackers[self._setpoint_fid[u.agent]].reset()  # the counter gap aliases
             log.info("plant: BESS %d setpoint timed out (%.0f ms old): ramping to 0", u.agent,
                      1e3 * (t - u.setpoint_rx))
 
-    def _raw(self, signal: str, value: float, scale: float) -> int:
+    def _raw(self, signal: str, value: float) -> int:
         lo, hi = self._ranges[signal]
-        r = round(value / scale)
+        r = round(value / self._scales[signal])
         if r < lo or r > hi:
             self.counters["encode_saturations"] += 1
             r = min(hi, max(lo, r))
@@ -378,10 +383,10 @@ class PlantNode(SimNodeClock):
         msg = self.io.send(name, {
             "FaultOverCurrent": int(u.fault_overcurrent), "FaultVoltage": int(u.fault_voltage),
             "FaultSoc": int(u.fault_soc), "PowerLimited": int(u.power_limited),
-            "Power": self._raw("Power", u.power, 0.01),
-            "Current": self._raw("Current", u.current, 0.5),
-            "Voltage": self._raw("Voltage", u.voltage, 0.25),
-            "Soc": self._raw("Soc", 100.0 * u.soc, 0.5),
+            "Power": self._raw("Power", u.power),
+            "Current": self._raw("Current", u.current),
+            "Voltage": self._raw("Voltage", u.voltage),
+            "Soc": self._raw("Soc", 100.0 * u.soc),
         })
         self.counters["status_frames"] += 1
         return msg

@@ -1,6 +1,7 @@
 """The energy-router node (``ER``): price broadcast, commands, and the cost ledger.
 
-* ``ER_Price`` every 50 ms (the DBC's GenMsgCycleTime): ρ(t) of the scenario's
+* ``ER_Price`` every price cycle (the DBC's GenMsgCycleTime, 50 ms at Ts = 10 ms;
+  every cadence here stretches with the scenario's Ts, ``contract.cycle_s``): ρ(t) of the scenario's
   schedule, ``Rho`` as raw int32 Q24 = round(ρ·2**24), ``Segment`` = the index of
   the schedule step in force, ``PriceValid`` = 1. t = 0 of the schedule is the
   router's first tick; a bus run's time axis starts at the first price frame.
@@ -9,7 +10,7 @@
   (each with a fresh E2E counter, so none is "repeated data"; the agent treats the
   second and third as idempotent). An event fires at the first tick at or after
   its time. ``send_command`` queues the same for tools and tests.
-* ``ER_Balance`` every 100 ms, from the ``PLANT_<i>_Status`` frames it receives:
+* ``ER_Balance`` every balance cycle (100 ms), from the ``PLANT_<i>_Status`` frames it receives:
   P_e = D − ΣP_i (measured powers, each held from its last accepted frame, 0 before
   the first), F_c = Σ(1+m_i)(α_i P_i² + β_i P_i) + ρ P_e (``sim.model.expenditure``)
   and the KKT optimum's F_c* (``sim.model.kkt_optimum`` for the current ρ and D).
@@ -21,8 +22,9 @@
   cadence and the ledger go on. Counted in ``silenced_frames``.
 
 Status reception uses the E2E checks of the agent runtime: rejections by cause,
-``repeated_counter``, ``lost_frames``; a BESS whose status is older than 5 status
-cycles (250 ms) counts one ``status_timeouts`` (its last power is still used).
+``repeated_counter``, ``lost_frames``, foreign traffic (firmware_py.nodeio); a BESS
+whose status is older than 5 status cycles (``contract.timeout_s``: 250 ms at Ts =
+10 ms) counts one ``status_timeouts`` (its last power is still used).
 """
 
 from __future__ import annotations
@@ -35,8 +37,9 @@ from dataclasses import dataclass, field
 
 import can
 
+from firmware_py.contract import Command, cycle_s, status_name, timeout_s
 from firmware_py.errors import ParameterError
-from firmware_py.frames import LAMBDA_Q, FrameCodec, status_name
+from firmware_py.frames import LAMBDA_Q, FrameCodec
 from firmware_py.nodeio import NodeIO
 
 from .model import expenditure, kkt_optimum
@@ -48,13 +51,12 @@ log = logging.getLogger(__name__)
 
 COMMAND_REPEATS = 3
 COMMAND_SPACING_S = 0.010
-STATUS_TIMEOUT_CYCLES = 5
 SCHEDULE_EPS_S = 1e-6   # float slack when comparing a tick time with a schedule time
 
-COMMANDS = {"isolate": 1, "reconnect": 2, "set_gains": 3}
+COMMANDS = {"isolate": Command.ISOLATE, "reconnect": Command.RECONNECT,
+            "set_gains": Command.SET_GAINS}
 EVENT_COMMANDS = {"isolate": "isolate", "reconnect": "reconnect"}
 _STATUS_FLAGS = ("FaultOverCurrent", "FaultVoltage", "FaultSoc", "PowerLimited")
-_CYCLE_FALLBACK_MS = {"ER_Price": 50, "ER_Balance": 100, "PLANT_1_Status": 20}
 
 
 @dataclass(frozen=True)
@@ -114,7 +116,8 @@ class RouterNode(SimNodeClock):
 
     ``counters``: rejected status frames by cause (``crc``, ``dlc``, ``range``,
     ``unknown_id``, ``malformed``, ``impersonation``), ``repeated_counter``,
-    ``lost_frames``, ``status_frames`` (accepted), ``status_timeouts``,
+    ``lost_frames``, ``foreign`` (with ``impersonation``, ``foreign_id``, ``counter_jump``,
+    ``counter_clash``), ``status_frames`` (accepted), ``status_timeouts``,
     ``price_frames``, ``command_frames``, ``balance_frames``, ``silenced_frames``,
     ``events`` (scenario events fired), ``encode_saturations``, and the loop's
     ``deadline_miss`` / ``send_failure``. Ledger: ``cost`` and ``optimal_cost`` (cu),
@@ -134,10 +137,9 @@ class RouterNode(SimNodeClock):
         c = self.codec
         tol = period / 2
         # the DBC's cycles are for Ts = 10 ms; a time-scaled scenario stretches them
-        self.price_cycle = max(self._cycle_s("ER_Price"), 5 * scenario.ts)
-        self.balance_cycle = max(self._cycle_s("ER_Balance"), 10 * scenario.ts)
-        self.status_timeout = STATUS_TIMEOUT_CYCLES * max(self._cycle_s("PLANT_1_Status"),
-                                                          2 * scenario.ts)
+        self.price_cycle = cycle_s("ER_Price", scenario.ts)
+        self.balance_cycle = cycle_s("ER_Balance", scenario.ts)
+        self.status_timeout = timeout_s(status_name(1), scenario.ts)
         self._price = Cyclic(self.price_cycle, tol)
         self._balance = Cyclic(self.balance_cycle, tol)
         self._events = sorted(scenario.events, key=lambda e: e.t)
@@ -148,7 +150,7 @@ class RouterNode(SimNodeClock):
                         for i in range(1, scenario.n + 1)}
         self._slots = list(self._status.values())
         self.io = NodeIO(c, "the router", own=("ER_Price", "ER_Command", "ER_Balance"),
-                         wanted=self._status)
+                         wanted=self._status, fleet_size=scenario.n)
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         self._rho_lo, self._rho_hi = c.raw_range("ER_Price", "Rho")
@@ -162,10 +164,6 @@ class RouterNode(SimNodeClock):
         self.optimal_cost_rate = 0.0
         self.cost = 0.0
         self.optimal_cost = 0.0
-
-    def _cycle_s(self, name: str) -> float:
-        ms = self.codec.database.get_message_by_name(name).cycle_time
-        return (ms or _CYCLE_FALLBACK_MS[name]) / 1000.0
 
     # ------------------------------------------------------------------ commands
 
@@ -194,7 +192,8 @@ class RouterNode(SimNodeClock):
         elif k is not None or h is not None:
             raise ParameterError("command gains", "k and h only with set_gains", (k, h))
         with self._lock:
-            self._pending.append(_PendingCommand({"Command": COMMANDS[key], "Target": target,
+            self._pending.append(_PendingCommand({"Command": int(COMMANDS[key]),
+                                                  "Target": target,
                                                   **gains}))
 
     # ------------------------------------------------------------------ receive
@@ -253,7 +252,7 @@ class RouterNode(SimNodeClock):
         for i, (fid, slot) in enumerate(self._status.items(), start=1):
             if slot.fresh and slot.rx is not None and t - slot.rx > self.status_timeout + 1e-9:
                 slot.fresh = False
-                self.io.trackers[fid].reset()  # an outage's counter gap aliases mod 16
+                self.io.trackers[fid].reset()  # an outage's counter gap aliases
                 self.counters["status_timeouts"] += 1
                 log.info("router: PLANT_%d_Status timed out; holding P = %.2f kW", i, slot.power)
         powers = [s.power for s in self._slots]
@@ -280,7 +279,7 @@ class RouterNode(SimNodeClock):
         for sig, v in (("GridPower", self.grid_power), ("CostRate", self.cost_rate),
                        ("OptimalCostRate", self.optimal_cost_rate)):
             lo, hi = self.codec.raw_range("ER_Balance", sig)
-            r = round(v * 10)
+            r = round(v / self.codec.scale("ER_Balance", sig))
             if not lo <= r <= hi:
                 self.counters["encode_saturations"] += 1
                 r = min(hi, max(lo, r))

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from firmware_py.config import agent_configs_from_scenario, load_agent_config
 from firmware_py.errors import ConfigError
-from sim.scenario import load_case
+from sim.scenario import load_case, scaled
 
 
 def write(tmp_path: Path, text: str) -> Path:
@@ -29,6 +31,29 @@ def test_round_trip(tmp_path: Path) -> None:
     assert back.id == 2 and back.neighbours == cfg.neighbours
     assert back.controller == cfg.controller and back.battery == cfg.battery
     assert back.price_timeout_s == pytest.approx(0.25)
+    assert back.status_timeout_s == pytest.approx(0.25) and back.fleet_size == 4
+
+
+@pytest.mark.parametrize("index", [0, 1])
+def test_round_trip_is_exact_through_tomli_w(tmp_path: Path, index: int) -> None:
+    """Every field (floats by repr, neighbours, timeouts, fleet size) reads back equal."""
+    cfg = agent_configs_from_scenario(scaled(load_case(7), 3))[index]
+    text = cfg.to_toml()
+    back = load_agent_config(write(tmp_path, text))
+    assert replace(back, source=cfg.source) == cfg
+    assert tomllib.loads(text)["timeouts"]["status_s"] == cfg.status_timeout_s
+    lone = replace(cfg, neighbours=(), fleet_size=None)
+    assert replace(load_agent_config(write(tmp_path, lone.to_toml())), source=cfg.source) == lone
+
+
+def test_old_config_without_fleet_size_or_status_s_still_loads(tmp_path: Path) -> None:
+    """fleet_size is optional (unknown: foreign IDs not checked); status_s and price_s
+    default to 5 cycles of their frame at the file's Ts."""
+    text = good_text().replace("fleet_size = 4\n", "").replace("status_s = 0.25\n", "")
+    text = text.replace("price_s = 0.25\n", "").replace("ts = 0.01", "ts = 0.02")
+    cfg = load_agent_config(write(tmp_path, text))
+    assert cfg.fleet_size is None
+    assert cfg.status_timeout_s == pytest.approx(0.5) == cfg.price_timeout_s
 
 
 @pytest.mark.parametrize(("old", "new", "key"), [
@@ -42,6 +67,9 @@ def test_round_trip(tmp_path: Path) -> None:
     ("[timeouts]", "[timeouts]\nbogus = 1", "timeouts.bogus"),
     ("lambda0 = 0.6", "lambda0 = 50.0", "agent.lambda0"),
     ("[[neighbour]]\nid = 1", "[[neighbour]]\nid = 2", "neighbour[0].id"),
+    ("fleet_size = 4", "fleet_size = 1", "agent.fleet_size"),
+    ("fleet_size = 4", "fleet_size = 33", "agent.fleet_size"),
+    ("status_s = 0.25", "status_s = 0.0", "timeouts.status_s"),
 ])
 def test_bad_config_names_the_key(tmp_path: Path, old: str, new: str, key: str) -> None:
     text = good_text()

@@ -46,6 +46,7 @@ from firmware_py.frames import (
     setpoint_name,
     status_name,
 )
+from firmware_py.runtime import AgentRuntime
 
 ROOT = Path(__file__).resolve().parent.parent
 GEN_DBC = ROOT / "tools" / "gen_dbc.py"
@@ -136,6 +137,14 @@ GOLDEN = [
     ("AGENT_5_Diag", 4, {"Page": 3, "LostFrames": 7, "Saturations": 256,
                          "NeighbourTimeouts": 65534},
      "47 34 07 00 00 01 FE FF", {"Saturations": 256}),
+    # page 4: byte1 = 0x45; PriceTimeouts 1; StatusTimeouts 2; PlantFaults 0x0300
+    ("AGENT_5_Diag", 5, {"Page": 4, "PriceTimeouts": 1, "StatusTimeouts": 2,
+                         "PlantFaults": 0x0300},
+     "DD 45 01 00 02 00 00 03", {"StatusTimeouts": 2}),
+    # page 5: byte1 = 0x56; ForeignFrames saturated 0xFFFF; ForeignIds 0x10; Interleaved 0x0102
+    ("AGENT_5_Diag", 6, {"Page": 5, "ForeignFrames": 65535, "ForeignIds": 16,
+                         "InterleavedCounters": 0x0102},
+     "83 56 FF FF 10 00 02 01", {"ForeignFrames": 65535}),
     # byte1 = 0x06; GridPower -123.4 kW → 0xFB2E; CostRate 56.7 → 0x0237; Optimal -0.1 → 0xFFFF
     ("ER_Balance", 6, {"GridPower": -1234, "CostRate": 567, "OptimalCostRate": -1},
      "22 06 2E FB 37 02 FF FF",
@@ -150,7 +159,8 @@ def test_golden_covers_every_message_type(codec: FrameCodec) -> None:
     db_kinds = {m.name.split("_", 2)[-1] if m.name.startswith(("AGENT_", "PLANT_")) else m.name
                 for m in codec.database.messages}
     assert db_kinds == kinds
-    assert {raw["Page"] for name, _, raw, *_ in GOLDEN if name.endswith("_Diag")} == {0, 1, 2, 3}
+    assert {raw["Page"] for name, _, raw, *_ in GOLDEN if name.endswith("_Diag")} == set(
+        range(len(AgentRuntime.DIAG_PAGES)))
 
 
 @pytest.mark.parametrize(("name", "counter", "raw", "hexdata", "phys"), GOLDEN,
@@ -307,7 +317,7 @@ def test_malformed_kinds(codec: FrameCodec, kind: str) -> None:
     (0x281, "00 00 00 00 00 00 FF", "Soc", 255),
     (0x020, "00 01 00 00 00 00 00", "Command", 0),           # no command 0
     (0x020, "10 21 00 00 00 00 00", "Target", 33),           # no agent 33
-    (0x305, "40 00 00 00 00 00 00", "Page", 4),              # diag page 4 does not exist
+    (0x305, "60 00 00 00 00 00 00", "Page", 6),              # diag page 6 does not exist
     (0x305, "00 00 00 00 00 00 0C", "State", 12),            # diag page 0 State 12
 ])
 def test_out_of_range_raw_value(codec: FrameCodec, fid: int, payload: str, signal: str,
@@ -416,7 +426,7 @@ def test_encode_errors_name_message_signal_range_and_value(codec: FrameCodec) ->
                                         "PowerLimited": 0, "Power": 0, "Current": 0,
                                         "Voltage": 0, "Soc": 201}, 0)
     with pytest.raises(EncodeError, match=r"AGENT_1_Diag\.Page"):
-        codec.encode("AGENT_1_Diag", {"Page": 4}, 0)
+        codec.encode("AGENT_1_Diag", {"Page": 6}, 0)
     with pytest.raises(EncodeError, match="missing RejectedDlc, RejectedRange"):
         codec.encode("AGENT_1_Diag", {"Page": 1, "RejectedCrc": 0}, 0)
     with pytest.raises(EncodeError, match="not in this frame Resets"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import can
 import numpy as np
@@ -10,19 +11,27 @@ import pytest
 
 from firmware_py import fixedpoint as fx
 from firmware_py.config import agent_configs_from_scenario
+from firmware_py.contract import COUNTER_MODULO, every_ticks, timeout_s
 from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name
 from firmware_py.node import bus_kwargs, run_node, with_acceptance_filter
-from firmware_py.runtime import AgentRuntime, SetpointMap, State
+from firmware_py.runtime import DIAG_EVERY, AgentRuntime, SetpointMap, State
 from sim.lockstep import run_lockstep
-from sim.scenario import load_case
+from sim.scenario import load_case, scaled
 
 CODEC = FrameCodec()
 TS = 0.01
 
 
+def status_frame(agent: int, counter: int, overcurrent: int = 0) -> can.Message:
+    return CODEC.encode_phys(status_name(agent), {
+        "FaultOverCurrent": overcurrent, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+        "Power": 10.0, "Current": 10.0, "Voltage": 700.0, "Soc": 50.0}, counter)
+
+
 class Net:
     """Agents wired by direct delivery: every frame a tick produces reaches every agent
-    before the next tick (a lossless, zero-latency bus), plus a price source."""
+    before the next tick (a lossless, zero-latency bus), plus a price source and a plant
+    stand-in sending every agent's PLANT_<i>_Status at the DBC's cycle."""
 
     def __init__(self, case: int = 1) -> None:
         self.sc = load_case(case)
@@ -30,6 +39,9 @@ class Net:
         self.k = 0
         self.price_ctr = 0
         self.price_on = True
+        self.status_ctr = 0
+        self.status_off: set[int] = set()   # agents whose plant status is not sent
+        self.overcurrent: set[int] = set()  # agents whose plant reports an over-current
         self.sent: list[can.Message] = []
 
     @property
@@ -48,8 +60,14 @@ class Net:
 
     def run(self, seconds: float, skip: set[int] = frozenset()) -> None:
         for _ in range(round(seconds / TS)):
-            if self.price_on and self.k % 5 == 0:
+            if self.price_on and self.k % every_ticks("ER_Price") == 0:
                 self.price(self.sc.price_at(self.t)[0])
+            if self.k % every_ticks(status_name(1)) == 0:
+                for a in self.agents:
+                    if a.cfg.id not in self.status_off:
+                        self.deliver(status_frame(a.cfg.id, self.status_ctr % COUNTER_MODULO,
+                                                  int(a.cfg.id in self.overcurrent)))
+                self.status_ctr += 1
             out = [m for a in self.agents if a.cfg.id not in skip for m in a.tick(self.t)]
             self.sent += out
             for m in out:
@@ -60,8 +78,13 @@ class Net:
         return max(abs(a.lam - 0.8) for a in self.agents)
 
 
-def one_agent(pinned: bool = True) -> AgentRuntime:
-    return AgentRuntime(agent_configs_from_scenario(load_case(1))[0 if pinned else 1], CODEC)
+def one_agent(pinned: bool = True, status: bool = True) -> AgentRuntime:
+    """Agent 1 (pinned) or 2 of case 1, with one fresh status frame at t = 0 unless not
+    ``status``."""
+    a = AgentRuntime(agent_configs_from_scenario(load_case(1))[0 if pinned else 1], CODEC)
+    if status:
+        a.on_frame(status_frame(a.cfg.id, 0), 0.0)
+    return a
 
 
 def price_frame(counter: int, rho: float = 0.8, valid: int = 1) -> can.Message:
@@ -174,17 +197,20 @@ def test_set_gains_command_and_bad_gains_counted() -> None:
     assert "k" in a.last_error["range"]
 
 
-def test_plant_fault_enters_safe() -> None:
+def test_plant_fault_enters_safe_and_recovers() -> None:
     net = Net(1)
     net.run(1.0)
-    status = CODEC.encode_phys(status_name(3), {
-        "FaultOverCurrent": 1, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
-        "Power": 10.0, "Current": 10.0, "Voltage": 700.0, "Soc": 50.0}, 0)
-    net.deliver(status)
-    net.run(0.02)
+    net.overcurrent = {3}
+    net.run(0.02)   # the fault is in the status frame at t = 1.0 s
     assert net.agents[2].state == State.SAFE
-    assert net.agents[2].counters["plant_faults"] == 1
+    net.run(0.5)
+    assert net.agents[2].state == State.SAFE
+    assert net.agents[2].counters["plant_faults"] == 1   # rising edges, not frames
     assert all(a.state == State.RUNNING for a in net.agents if a.cfg.id != 3)
+    net.overcurrent = set()
+    net.run(0.05)
+    assert net.agents[2].state == State.RUNNING
+    assert net.agents[2].counters["status_timeouts"] == 0
 
 
 # --------------------------------------------------------------------------- rejections
@@ -208,7 +234,8 @@ def test_each_bad_frame_is_rejected_and_counted_by_cause() -> None:
                 mc_frame(1, 5)):                   # our own identity, not sent by us
         a.on_frame(msg, 0.0)
     assert dict(a.counters) == {"crc": 1, "dlc": 1, "unknown_id": 2, "range": 2,
-                                "repeated_counter": 1, "lost_frames": 4, "impersonation": 1}
+                                "repeated_counter": 1, "lost_frames": 4, "impersonation": 1,
+                                "foreign": 1}
     assert "expected CRC" in a.last_error["crc"]
     assert a.price == fx.to_fixed(0.8)
 
@@ -329,3 +356,167 @@ def test_run_node_still_reads_its_inputs_when_every_tick_overruns() -> None:
         peer.shutdown()
     assert node.frames == 40
     assert node.counters.get("deadline_miss", 0) > 0
+
+
+# --------------------------------------------------------------------------- plant status
+
+
+def setpoints_enable(frames: list[can.Message], agent: int = 1) -> list[int]:
+    fid = CODEC.frame_id(setpoint_name(agent))
+    return [CODEC.decode(m).raw["Enable"] for m in frames if m.arbitration_id == fid]
+
+
+def test_status_timeout_is_five_status_cycles_from_the_contract() -> None:
+    cfg = agent_configs_from_scenario(load_case(1))[0]
+    assert cfg.status_timeout_s == pytest.approx(timeout_s(status_name(1))) == \
+        pytest.approx(0.25)
+    slow = agent_configs_from_scenario(scaled(load_case(1), 4))[0]   # Ts = 40 ms
+    assert slow.status_timeout_s == pytest.approx(1.0)
+    assert slow.price_timeout_s == pytest.approx(1.0)
+
+
+def test_init_until_both_price_and_status_are_fresh() -> None:
+    """Before its first PLANT_<id>_Status the agent stays INIT (setpoint disabled), however
+    fresh the price; no timeout is counted for a status never heard."""
+    a = one_agent(status=False)
+    out = []
+    for k in range(30):
+        if k % 5 == 0:
+            a.on_frame(price_frame(k // 5), k * TS)
+        out += a.tick(k * TS)
+    assert a.state == State.INIT
+    assert set(setpoints_enable(out)) == {0}
+    assert a.counters["status_timeouts"] == 0
+    a.on_frame(status_frame(1, 0), 0.3)
+    a.tick(0.3)
+    assert a.state == State.RUNNING
+
+
+def test_status_lost_enters_safe_exactly_at_the_timeout_and_recovers() -> None:
+    """Injected clock, binary-exact times: status at 0.125 s, timeout 0.25 s. RUNNING at
+    0.375 s (age = timeout), SAFE at the first tick past it, Enable = 0 while SAFE; a
+    fresh status (with any counter: the tracker was reset) brings RUNNING back."""
+    a = one_agent(status=False)
+    a.on_frame(price_frame(0), 0.125)
+    a.on_frame(status_frame(1, 3), 0.125)
+    out = a.tick(0.125)
+    assert a.state == State.RUNNING and setpoints_enable(out) == [1]
+    a.on_frame(price_frame(1), 0.25)   # the price stays fresh throughout
+    a.tick(0.375)
+    assert a.state == State.RUNNING
+    a.tick(0.375 + 1e-6)
+    assert a.state == State.SAFE
+    assert a.counters["status_timeouts"] == 1 and a.counters["price_timeouts"] == 0
+    out = []
+    for k in range(10):
+        t = 0.38 + k * TS
+        if k % 5 == 0:
+            a.on_frame(price_frame(2 + k // 5), t)
+        out += a.tick(t)
+    assert a.state == State.SAFE
+    assert setpoints_enable(out) and set(setpoints_enable(out)) == {0}
+    assert a.counters["status_timeouts"] == 1      # one outage, one count
+    a.on_frame(status_frame(1, 11), 0.48)          # a restarted plant: counter anywhere
+    a.tick(0.48)
+    assert a.state == State.RUNNING
+    assert a.counters["foreign"] == 0 and a.counters["lost_frames"] == 0
+    out = [m for k in range(5) for m in a.tick(0.49 + k * TS)]
+    assert setpoints_enable(out) == [1]
+
+
+def test_dead_plant_in_a_network_sends_only_its_agent_safe() -> None:
+    net = Net(1)
+    net.run(2.0)
+    net.status_off = {2}
+    net.run(0.2)
+    assert net.agents[1].state == State.RUNNING
+    net.run(0.1)
+    assert net.agents[1].state == State.SAFE
+    assert all(a.state == State.RUNNING for a in net.agents if a.cfg.id != 2)
+    assert net.agents[0].neighbours_alive == 2     # a SAFE neighbour is not active
+    net.status_off = set()
+    net.run(6.0)
+    assert all(a.state == State.RUNNING for a in net.agents)
+    assert net.agents[1].counters["status_timeouts"] == 1
+    assert net.error() < 1e-3
+
+
+# --------------------------------------------------------------------------- diag pages
+
+
+def test_diag_pages_are_the_dbc_pages_and_all_are_sent() -> None:
+    """DIAG_PAGES names exactly the signals of each multiplexer page of the DBC, and the
+    rotation sends every page."""
+    msg = CODEC.database.get_message_by_name("AGENT_1_Diag")
+    tree = next(n for n in msg.signal_tree if isinstance(n, dict))["Page"]
+    assert {p: tuple(s) for p, s in tree.items()} == dict(enumerate(AgentRuntime.DIAG_PAGES))
+    a = one_agent()
+    a.on_frame(price_frame(0), 0.0)
+    pages = set()
+    for k in range(DIAG_EVERY * len(AgentRuntime.DIAG_PAGES)):
+        for m in a.tick(k * TS):
+            if m.arbitration_id == CODEC.frame_id("AGENT_1_Diag"):
+                pages.add(CODEC.decode(m).raw["Page"])
+    assert pages == set(tree)
+
+
+def test_diag_counters_page_reports_timeouts_faults_and_foreign_frames() -> None:
+    a = one_agent()
+    a.on_frame(price_frame(0), 0.0)
+    a.tick(0.0)
+    a.on_frame(status_frame(1, 1, overcurrent=1), 0.01)
+    a.on_frame(mc_frame(9, 0), 0.01)            # agent 9 in a 4-agent run
+    a.on_frame(mc_frame(1, 0), 0.01)            # our own identity
+    pages = {}
+    for k in range(1, 80):
+        for m in a.tick(k * TS):
+            if m.arbitration_id == CODEC.frame_id("AGENT_1_Diag"):
+                f = CODEC.decode(m)
+                pages[f.raw["Page"]] = f.raw
+    assert pages[4]["PlantFaults"] == 1
+    assert pages[4]["StatusTimeouts"] == 1 and pages[4]["PriceTimeouts"] == 1
+    assert pages[5]["ForeignFrames"] == 2 and pages[5]["ForeignIds"] == 1
+    assert pages[5]["InterleavedCounters"] == 0
+
+
+# --------------------------------------------------------------------------- foreign traffic
+
+
+def test_frames_of_agents_outside_the_run_are_foreign_when_the_fleet_is_known() -> None:
+    a = one_agent()
+    assert a.cfg.fleet_size == 4
+    a.on_frame(mc_frame(9, 0), 0.0)
+    a.on_frame(CODEC.encode(setpoint_name(5), {"Enable": 1, "PowerSetpoint": 0}, 0), 0.0)
+    a.on_frame(mc_frame(3, 0), 0.0)                  # a neighbour: in the fleet
+    assert a.counters["foreign_id"] == 2 and a.counters["foreign"] == 2
+    assert "agent 5" in a.last_error["foreign_id"]   # the last one
+    unknown = AgentRuntime(replace(a.cfg, fleet_size=None), CODEC)
+    unknown.on_frame(mc_frame(9, 0), 0.0)
+    assert not +unknown.counters
+
+
+def test_interleaved_counters_are_foreign_a_lossy_sender_is_not() -> None:
+    a = one_agent()
+    for c in (0, 1, 3, 7):                  # gaps of lost frames: 1 + 3 lost, not foreign
+        a.on_frame(price_frame(c), 0.0)
+    assert a.counters["lost_frames"] == 4 and a.counters["foreign"] == 0
+    a.on_frame(price_frame(2, rho=0.5), 0.0)         # 7 → 2: a step back (11 forward)
+    assert a.counters["counter_jump"] == 1 and a.counters["foreign"] == 1
+    assert a.price == fx.to_fixed(0.8)               # its data is not used
+    a.on_frame(price_frame(3, rho=0.5), 0.0)         # the tracker re-synchronised on 2
+    assert a.price == fx.to_fixed(0.5) and a.counters["lost_frames"] == 4
+    a.on_frame(price_frame(3, rho=0.5), 0.0)         # same counter, same payload: a repeat
+    assert a.counters["repeated_counter"] == 1 and a.counters["foreign"] == 1
+    a.on_frame(price_frame(3, rho=0.9), 0.0)         # same counter, new payload: a clash
+    assert a.counters["counter_clash"] == 1 and a.counters["foreign"] == 2
+    assert a.price == fx.to_fixed(0.5)
+
+
+def test_restarted_router_after_the_price_timeout_is_not_foreign() -> None:
+    a = one_agent()
+    a.on_frame(price_frame(9), 0.0)
+    a.tick(0.0)
+    a.tick(0.3)                                      # price timed out: tracker reset
+    assert a.counters["price_timeouts"] == 1
+    a.on_frame(price_frame(0), 0.31)                 # a restarted router starts at 0
+    assert a.counters["foreign"] == 0 and a.price_rx == 0.31

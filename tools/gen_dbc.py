@@ -84,6 +84,7 @@ E2E_COUNTER_COMMENT = (
     "E2E rolling counter 0..15, +1 mod 16 per transmission of this frame. A receiver treats "
     "a repeated value as no new data and counts (c - last - 1) mod 16 lost frames."
 )
+DIAG_PAGES = 6  # AGENT_<i>_Diag pages; firmware_py.runtime.AgentRuntime.DIAG_PAGES fills them
 DIAG_SATURATION = "uint16, saturating at 65535 (the sender saturates, it never wraps)."
 
 
@@ -268,9 +269,10 @@ def _agent_diag(i: int) -> Message:
 
     return _msg(DIAG_BASE + i, f"AGENT_{i}_Diag", f"AGENT_{i}", [
         *_e2e(rx),
-        _sig("Page", 12, 4, minimum=0, maximum=3, is_multiplexer=True, receivers=rx,
-             comment="Multiplexer: which diagnostics page this frame carries (0..3, sent in "
-                     "turn)."),
+        _sig("Page", 12, 4, minimum=0, maximum=DIAG_PAGES - 1, is_multiplexer=True,
+             receivers=rx,
+             comment="Multiplexer: which diagnostics page this frame carries "
+                     f"(0..{DIAG_PAGES - 1}, sent in turn)."),
         u16("Resets", 16, 0, "Clegg resets since start (not mod 256, unlike the MC frame)."),
         u16("DeadlineMisses", 32, 0, "Control periods whose step started late."),
         _sig("NeighboursAlive", 48, 8, page=0, receivers=rx,
@@ -287,7 +289,19 @@ def _agent_diag(i: int) -> Message:
         u16("LostFrames", 16, 3, "Frames inferred lost from E2E counter gaps."),
         u16("Saturations", 32, 3, "Fixed-point results clamped to the int32 range."),
         u16("NeighbourTimeouts", 48, 3, "Neighbours that went silent past their timeout."),
-    ], f"Agent {i} diagnostics, multiplexed over four pages (one page per frame, in turn).",
+        u16("PriceTimeouts", 16, 4, "Times the ER price went stale (no valid ER_Price for "
+            "the price timeout)."),
+        u16("StatusTimeouts", 32, 4, f"Times PLANT_{i}_Status went stale (none for the status "
+            "timeout)."),
+        u16("PlantFaults", 48, 4, f"Over-current or voltage faults reported by PLANT_{i}_Status "
+            "(rising edges)."),
+        u16("ForeignFrames", 16, 5, "Received frames that cannot come from this agent's fleet: "
+            "impersonation, IDs of agents outside the run, interleaved counter sequences."),
+        u16("ForeignIds", 32, 5, "Of ForeignFrames: frames on IDs of agents outside the run."),
+        u16("InterleavedCounters", 48, 5, "Of ForeignFrames: E2E counters that stepped back or "
+            "repeated with another payload (two senders on one ID)."),
+    ], f"Agent {i} diagnostics, multiplexed over {DIAG_PAGES} pages (one page per frame, "
+       "in turn).",
         DIAG_CYCLE_MS)
 
 

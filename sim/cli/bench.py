@@ -140,12 +140,13 @@ def lockstep_speed(quick: bool) -> Table:
 
 def codec_speed(quick: bool) -> Table:
     """µs to encode and to decode (E2E checks included) one frame of each kind."""
+    from firmware_py.contract import State
     from firmware_py.frames import FrameCodec
 
     codec = FrameCodec()
     samples = {
-        "AGENT_1_MC": {"State": 1, "Lambda": 13421773, "Resets": 3, "NeighboursAlive": 3,
-                       "PriceOk": 1},
+        "AGENT_1_MC": {"State": int(State.RUNNING), "Lambda": 13421773, "Resets": 3,
+                       "NeighboursAlive": 3, "PriceOk": 1},
         "ER_Price": {"PriceValid": 1, "Rho": 13421773, "Segment": 0},
         "AGENT_1_Setpoint": {"Enable": 1, "PowerSetpoint": 6592},
     }

@@ -1,7 +1,8 @@
 """`bess-ded plant`: the plant simulator node, one battery + DC-DC chopper per BESS.
 
-Follows AGENT_<i>_Setpoint frames and publishes PLANT_<i>_Status every 20 ms
-(model and constants: sim/plant.py). Prints its counters to stderr at exit.
+Follows AGENT_<i>_Setpoint frames and publishes PLANT_<i>_Status at the DBC's cycle
+(50 ms at Ts = 10 ms, stretched with the scenario's Ts; model and constants:
+sim/plant.py). Prints its counters to stderr at exit.
 """
 
 from __future__ import annotations

@@ -1,0 +1,192 @@
+"""The bus contract in one place: every number the code needs from ``dbc/bess_ded.dbc``.
+
+Nothing here is typed in by hand: frame IDs and the per-agent ID bases, the agent
+limit, cycle times, the E2E counter modulus, the State and Command values and the
+signals' raw ranges are read from the DBC (compiled once by ``firmware_py.frames``
+and shared with every codec). A DBC that lacks something this module names fails
+at import, with a ConfigError naming the DBC and the missing item, not later on the
+bus.
+
+Cadences. The DBC's GenMsgCycleTime values are written for the agents' sample time
+Ts = ``MC_CYCLE_S`` (10 ms, the AGENT_<i>_MC cycle). Every node counts cadences in
+ticks of that cycle: a message is sent every ``every_ticks(name)`` = round(cycle /
+MC cycle) ticks. A node running at another Ts (a time-scaled run: Ts = 10 ms·F)
+therefore stretches every cycle by the same F: ``cycle_s(name, ts)``. Receivers
+time a cyclic sender out after ``TIMEOUT_CYCLES`` of its cycles (``timeout_s``), the
+E2E convention of "a few missed periods".
+
+"Active". An agent takes part in the dispatch (its λ enters its neighbours' consensus
+error, its BESS follows its setpoint) iff its State is RUNNING: ``is_active``. Every
+module that needs the notion uses this function.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+from cantools.database.can import Message as DbcMessage
+
+from dbc import DBC_PATH
+
+from .errors import ConfigError
+from .frames import (
+    AGENT_BASES,
+    COUNTER_MODULO,
+    DIAG_BASE,
+    MC_BASE,
+    N_AGENTS_MAX,
+    SETPOINT_BASE,
+    STATUS_BASE,
+    FrameCodec,
+    diag_name,
+    mc_name,
+    setpoint_name,
+    status_name,
+)
+
+__all__ = [
+    "AGENT_BASES",
+    "COUNTER_MODULO",
+    "DIAG_BASE",
+    "ER_BALANCE_ID",
+    "ER_COMMAND_ID",
+    "ER_PRICE_ID",
+    "MC_BASE",
+    "MC_CYCLE_S",
+    "N_AGENTS_MAX",
+    "SETPOINT_BASE",
+    "STATUS_BASE",
+    "TIMEOUT_CYCLES",
+    "Command",
+    "State",
+    "agent_ids",
+    "cycle_ms",
+    "cycle_s",
+    "diag_name",
+    "every_ticks",
+    "is_active",
+    "is_cyclic",
+    "mc_name",
+    "raw_range",
+    "scale",
+    "setpoint_name",
+    "status_name",
+    "timeout_s",
+]
+
+_CODEC = FrameCodec()  # the compiled DBC, shared with every other codec of the process
+_DB = _CODEC.database
+_SRC = str(DBC_PATH)
+
+TIMEOUT_CYCLES = 5
+"""A receiver times a cyclic sender out after this many of its cycles without a frame."""
+
+ER_PRICE_ID = _CODEC.frame_id("ER_Price")
+ER_COMMAND_ID = _CODEC.frame_id("ER_Command")
+ER_BALANCE_ID = _CODEC.frame_id("ER_Balance")
+
+
+def _message(name: str) -> DbcMessage:
+    try:
+        return _DB.get_message_by_name(name)
+    except KeyError:
+        raise ConfigError(_SRC, name, "expected this message in the DBC, but got "
+                          "nothing") from None
+
+
+def cycle_ms(name: str) -> int:
+    """GenMsgCycleTime of a cyclic message, ms (for Ts = MC_CYCLE_S). An event message
+    (no cycle time, e.g. ER_Command) raises ConfigError: it has no cadence."""
+    ms = _message(name).cycle_time
+    if not ms:
+        raise ConfigError(_SRC, name, "expected a cyclic message (GenMsgCycleTime), but got "
+                          "an event message")
+    return int(ms)
+
+
+def is_cyclic(name: str) -> bool:
+    """True if the DBC gives ``name`` a cycle time (every message but ER_Command)."""
+    return bool(_message(name).cycle_time)
+
+
+_MC_CYCLE_MS = cycle_ms(mc_name(1))
+MC_CYCLE_S = _MC_CYCLE_MS / 1000.0
+"""The agents' sample time Ts the DBC's cycle times are written for (AGENT_<i>_MC), s."""
+
+
+def every_ticks(name: str) -> int:
+    """A cyclic message is sent every this many ticks of the MC cycle (≥ 1)."""
+    ms = cycle_ms(name)
+    ticks = round(ms / _MC_CYCLE_MS)
+    if ticks < 1 or ticks * _MC_CYCLE_MS != ms:
+        raise ConfigError(_SRC, name, f"expected a cycle time that is a multiple of the "
+                          f"{_MC_CYCLE_MS} ms MC cycle, but got {ms} ms")
+    return ticks
+
+
+def cycle_s(name: str, ts: float = MC_CYCLE_S) -> float:
+    """The cycle of ``name`` in s for nodes ticking at ``ts``: every_ticks(name)·ts, the
+    DBC's cycle at Ts = 10 ms, stretched by F in a time-scaled run (Ts = 10 ms·F)."""
+    return every_ticks(name) * ts
+
+
+def timeout_s(name: str, ts: float = MC_CYCLE_S) -> float:
+    """How long a receiver waits for ``name`` before timing its sender out:
+    TIMEOUT_CYCLES cycles (250 ms for a 50 ms frame at Ts = 10 ms)."""
+    return TIMEOUT_CYCLES * cycle_s(name, ts)
+
+
+def raw_range(name: str, signal: str) -> tuple[int, int]:
+    """The raw [lo, hi] of a signal, from the DBC's [min|max]."""
+    return _CODEC.raw_range(name, signal)
+
+
+def scale(name: str, signal: str) -> float:
+    """The DBC factor of a signal (phys = raw·factor; offset 0 is checked here)."""
+    sig = _message(name).get_signal_by_name(signal)
+    if sig.offset != 0:
+        raise ConfigError(_SRC, f"{name}.{signal}", f"expected offset 0, but got {sig.offset}")
+    return _CODEC.scale(name, signal)
+
+
+def agent_ids(n: int | None = None) -> range:
+    """Agent indices 1..n (default: every agent the DBC defines)."""
+    return range(1, (N_AGENTS_MAX if n is None else n) + 1)
+
+
+def _choice(message: str, signal: str, label: str) -> int:
+    """The value the DBC's VAL_ table of ``message.signal`` gives ``label``."""
+    try:
+        sig = _message(message).get_signal_by_name(signal)
+    except KeyError:
+        raise ConfigError(_SRC, f"{message}.{signal}", "expected this signal in the DBC, but "
+                          "got nothing") from None
+    for value, name in (sig.choices or {}).items():
+        if str(name) == label:
+            return int(value)
+    have = ", ".join(str(v) for v in (sig.choices or {}).values()) or "no choices"
+    raise ConfigError(_SRC, f"{message}.{signal}", f"expected a choice named {label}, but got "
+                      f"{have}")
+
+
+class State(IntEnum):
+    """AGENT_<i>_MC.State (and AGENT_<i>_Diag.State): the agent state machine."""
+
+    INIT = _choice(mc_name(1), "State", "INIT")
+    RUNNING = _choice(mc_name(1), "State", "RUNNING")
+    ISOLATED = _choice(mc_name(1), "State", "ISOLATED")
+    SAFE = _choice(mc_name(1), "State", "SAFE")
+
+
+class Command(IntEnum):
+    """ER_Command.Command."""
+
+    ISOLATE = _choice("ER_Command", "Command", "ISOLATE")
+    RECONNECT = _choice("ER_Command", "Command", "RECONNECT")
+    SET_GAINS = _choice("ER_Command", "Command", "SET_GAINS")
+
+
+def is_active(state: int) -> bool:
+    """An agent takes part in the dispatch iff its State is RUNNING (the one definition)."""
+    return state == State.RUNNING
+

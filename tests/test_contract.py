@@ -1,0 +1,63 @@
+"""firmware_py.contract: every bus constant comes from the DBC, and fails loudly if absent."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from firmware_py import contract, frames
+from firmware_py.errors import ConfigError
+from firmware_py.frames import FrameCodec
+
+DB = FrameCodec().database
+
+
+def test_agent_limit_ids_and_counter_modulus_are_read_from_the_dbc() -> None:
+    mc = [m for m in DB.messages if re.fullmatch(r"AGENT_\d+_MC", m.name)]
+    assert contract.N_AGENTS_MAX == len(mc) == frames.N_AGENTS_MAX
+    counter = DB.get_message_by_name("ER_Price").get_signal_by_name("Counter")
+    assert contract.COUNTER_MODULO == 2**counter.length
+    for base, pattern in zip(contract.AGENT_BASES, ("AGENT_{}_MC", "AGENT_{}_Setpoint",
+                                                   "PLANT_{}_Status", "AGENT_{}_Diag"),
+                             strict=True):
+        for i in contract.agent_ids():
+            assert DB.get_message_by_name(pattern.format(i)).frame_id == base + i
+            assert frames.agent_of(base + i) == i
+    assert contract.ER_PRICE_ID == DB.get_message_by_name("ER_Price").frame_id
+
+
+def test_cycles_ticks_and_time_scale() -> None:
+    assert contract.MC_CYCLE_S == DB.get_message_by_name("AGENT_1_MC").cycle_time / 1000
+    for name in ("AGENT_1_Setpoint", "PLANT_1_Status", "ER_Price", "AGENT_1_Diag",
+                 "ER_Balance"):
+        ms = DB.get_message_by_name(name).cycle_time
+        assert contract.every_ticks(name) * contract.MC_CYCLE_S == pytest.approx(ms / 1000)
+        assert contract.cycle_s(name) == pytest.approx(ms / 1000)
+        assert contract.cycle_s(name, 0.04) == pytest.approx(4 * ms / 1000)   # F = 4
+        assert contract.timeout_s(name) == pytest.approx(5 * ms / 1000)
+    assert not contract.is_cyclic("ER_Command")
+    with pytest.raises(ConfigError, match="expected a cyclic message"):
+        contract.cycle_ms("ER_Command")
+    with pytest.raises(ConfigError, match="expected this message in the DBC"):
+        contract.cycle_ms("AGENT_99_MC")
+
+
+def test_enums_are_the_dbc_choice_tables() -> None:
+    state = DB.get_message_by_name("AGENT_1_MC").get_signal_by_name("State").choices
+    assert {int(k): str(v) for k, v in state.items()} == {s.value: s.name for s in
+                                                          contract.State}
+    cmd = DB.get_message_by_name("ER_Command").get_signal_by_name("Command").choices
+    assert {int(k): str(v) for k, v in cmd.items()} == {c.value: c.name for c in
+                                                        contract.Command}
+    with pytest.raises(ConfigError, match="expected a choice named BOGUS, but got INIT"):
+        contract._choice("AGENT_1_MC", "State", "BOGUS")
+
+
+def test_is_active_is_running_only() -> None:
+    assert [s.name for s in contract.State if contract.is_active(s)] == ["RUNNING"]
+
+
+def test_scales_and_ranges() -> None:
+    assert contract.scale("PLANT_1_Status", "Power") == 0.01
+    assert contract.raw_range("PLANT_1_Status", "Soc") == (0, 200)
