@@ -22,16 +22,16 @@ from typing import Any
 import can
 import numpy as np
 
+from firmware_py import contract
+from firmware_py.contract import COUNTER_MODULO, MC_CYCLE_S, TIMEOUT_CYCLES, State
 from firmware_py.errors import FrameError
 from firmware_py.frames import FrameCodec
 
 from .scenario import Scenario
 from .trajectory import Trajectory
 
-INIT, RUNNING, ISOLATED, SAFE = 0, 1, 2, 3  # AGENT_i_MC.State
-COUNTER_MODULO = 16
-MC_CYCLE_S = 0.010          # the DBC's AGENT_i_MC cycle: the Ts every other cycle is set for
-SEQUENCE_TIMEOUT_CYCLES = 5  # a message silent this long restarts its counter sequence
+# a message silent this long restarts its counter sequence, as the nodes' trackers do
+SEQUENCE_TIMEOUT_CYCLES = TIMEOUT_CYCLES
 # a node is silent when a message of its own is missing for SEQUENCE_TIMEOUT_CYCLES of its
 # cycles and at least this many Ts (the agents' price timeout): shorter stalls of a
 # loaded host show up as bus silences and deadline misses, not as a node gone
@@ -81,7 +81,7 @@ class LogContents:
 
     @property
     def start_recorded(self) -> bool:
-        return all(s == INIT for s in self.first_mc_state.values())
+        return all(s == State.INIT for s in self.first_mc_state.values())
 
     @property
     def counter_gaps(self) -> Counter[str]:
@@ -99,10 +99,9 @@ class LogContents:
         return 0 if s is None else s.frames
 
 
-def _cycle_s(codec: FrameCodec, name: str, time_scale: float) -> float:
-    """The message's cycle in a run stretched by ``time_scale``; inf for event frames."""
-    ms = codec.database.get_message_by_name(name).cycle_time
-    return ms / 1000.0 * time_scale if ms else math.inf
+def _cycle_s(name: str, ts: float) -> float:
+    """The message's cycle in a run at sample time ``ts``; inf for event frames."""
+    return contract.cycle_s(name, ts) if contract.is_cyclic(name) else math.inf
 
 
 def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
@@ -114,7 +113,6 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     cycles of a time-scaled run (the DBC's cycles are for Ts = 10 ms)."""
     codec = codec or FrameCodec()
     out = LogContents()
-    scale = (ts / MC_CYCLE_S) if ts else 1.0
     silence = 3 * ts if ts else None
     cycles: dict[str, float] = {}
     t_prev: float | None = None
@@ -137,7 +135,7 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
             out.outside_run[f.name] += 1
             continue
         if f.name not in cycles:
-            cycles[f.name] = _cycle_s(codec, f.name, scale)
+            cycles[f.name] = _cycle_s(f.name, ts or MC_CYCLE_S)
         _sequence(out.sequences.setdefault(f.name, SequenceStats()), f.counter, t,
                   SEQUENCE_TIMEOUT_CYCLES * cycles[f.name])
         if f.name == "ER_Price":
@@ -215,7 +213,7 @@ def trajectory_from_log(sc: Scenario, log: LogContents, label: str = "bus") -> T
     grid = t0 + np.arange(0.0, log.t_end - t0, ts)
     lam = np.column_stack([_hold(log.series[(f"AGENT_{i}_MC", "Lambda")], grid, sc.lambda0[i - 1])
                            for i in range(1, sc.n + 1)])
-    state = np.column_stack([_hold(log.series[(f"AGENT_{i}_MC", "State")], grid, INIT)
+    state = np.column_stack([_hold(log.series[(f"AGENT_{i}_MC", "State")], grid, State.INIT)
                              for i in range(1, sc.n + 1)])
     p = np.column_stack([_hold(log.series[(f"PLANT_{i}_Status", "Power")], grid, 0.0)
                          for i in range(1, sc.n + 1)])
@@ -226,8 +224,8 @@ def trajectory_from_log(sc: Scenario, log: LogContents, label: str = "bus") -> T
     u = np.vstack([np.diff(lam, axis=0) / ts, np.zeros((1, sc.n))])
     return Trajectory(t=grid - t0, lam=lam, rho=_hold(log.series[("price", "Rho")], grid, np.nan),
                       segment=_hold(log.series[("price", "Segment")], grid, 0).astype(int),
-                      active=state == RUNNING, p=p, u=u, resets=resets, label=label,
-                      expected=planned_participation(sc, grid - t0), state=state.astype(int))
+                      active=np.vectorize(contract.is_active, otypes=[bool])(state), p=p, u=u,
+                      resets=resets, label=label, expected=planned_participation(sc, grid - t0), state=state.astype(int))
 
 
 def node_diagnostics(log: LogContents) -> dict[str, Any]:

@@ -24,6 +24,7 @@ from typing import Any
 
 import can
 
+from firmware_py import contract
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import FrameCodec
@@ -106,7 +107,7 @@ class Progress(can.Listener):
         with self.lock:
             self.frames += 1
             self.t_last_frame = msg.timestamp
-            if fid != 0x010 and not 0x100 < fid <= 0x100 + self.n:
+            if fid != contract.ER_PRICE_ID and not 0 < fid - contract.MC_BASE <= self.n:
                 return
             try:
                 f = self.codec.decode(msg)

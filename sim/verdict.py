@@ -19,7 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from .buslog import INIT, ISOLATED, RUNNING, SAFE, LogContents
+from firmware_py.contract import MC_CYCLE_S, State
+
+from .buslog import LogContents
 from .scenario import Scenario
 from .trajectory import Trajectory
 
@@ -34,15 +36,15 @@ SILENCE_CLUSTER_S = 1.0   # (scenario s) silences closer than this are reported 
 STATE_GRACE_TS = 10       # INIT/ISOLATED/RUNNING may lag the plan by this many Ts
 DEADLINE_MISS_FRACTION = 0.01
 POWER_LIMIT_HOLD_S = 1.0  # (scenario s) a battery limited over the run's last second
-STATE_NAMES = {INIT: "INIT", RUNNING: "RUNNING", ISOLATED: "ISOLATED", SAFE: "SAFE"}
+INIT, RUNNING, ISOLATED, SAFE = State.INIT, State.RUNNING, State.ISOLATED, State.SAFE
 
 # AGENT_i_Diag counters that a healthy run keeps at 0: (signal, anomaly kind, what)
 _AGENT_FAULT_COUNTERS = (
     ("PriceTimeouts", "price_timeout", "price timeouts (no valid ER_Price for the timeout)"),
     ("StatusTimeouts", "status_timeout", "plant-status timeouts"),
     ("PlantFaults", "plant_fault", "plant faults reported by PLANT_i_Status"),
-    ("RejectedImpersonation", "foreign_traffic", "frames on its own IDs it did not send"),
-    ("ForeignFrames", "foreign_traffic", "frames that cannot come from its own fleet"),
+    ("ForeignFrames", "foreign_traffic", "frames that cannot come from its own fleet (another "
+     "sender on its IDs, IDs outside the run, interleaved counter sequences)"),
     ("RejectedCrc", "rejected_frames", "frames with a bad CRC"),
     ("RejectedDlc", "rejected_frames", "frames with a bad length"),
     ("RejectedRange", "rejected_frames", "frames with a value out of range"),
@@ -53,8 +55,8 @@ _AGENT_FAULT_COUNTERS = (
 _SIM_FAULT_COUNTERS = (
     ("setpoint_timeouts", "setpoint_timeout", "setpoint timeouts"),
     ("status_timeouts", "status_timeout", "status timeouts"),
-    ("impersonation", "foreign_traffic", "frames on its own IDs it did not send"),
-    ("foreign", "foreign_traffic", "frames that cannot come from its own fleet"),
+    ("foreign", "foreign_traffic", "frames that cannot come from its own fleet (another "
+     "sender on its IDs, IDs outside the run, interleaved counter sequences)"),
     ("crc", "rejected_frames", "frames with a bad CRC"),
     ("dlc", "rejected_frames", "frames with a bad length"),
     ("range", "rejected_frames", "frames with a value out of range"),
@@ -178,7 +180,7 @@ def _agent_states(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anom
         state, expected = tr.state[:, i], tr.expected[:, i]
         end = int(state[-1])
         if expected[-1] and end != RUNNING:
-            what = STATE_NAMES.get(end, str(end))
+            what = State(end).name if end in State._value2member_map_ else str(end)
             out.append(Anomaly(f"agent_{what.lower()}_at_end", name,
                                f"in {what} at the end, where the scenario has it dispatching",
                                float(tr.t[-1])))
@@ -199,7 +201,7 @@ def _agent_states(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anom
 
 def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
     t0 = log.t_first_price or 0.0
-    for cluster in _clusters(log.silences, SILENCE_CLUSTER_S * sc.ts / 0.01):
+    for cluster in _clusters(log.silences, SILENCE_CLUSTER_S * sc.ts / MC_CYCLE_S):
         a, b = cluster[0][0], cluster[-1][1]
         longest = max(y - x for x, y in cluster)
         what = (f"no frame for {longest:.3f} s ({longest / sc.ts:.0f} Ts)" if len(cluster) == 1
@@ -298,7 +300,7 @@ def _deadlines(node: str, misses: int, ticks: int, out: list[Anomaly]) -> None:
 
 def _power_limits(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anomaly]) -> None:
     t_end = (log.t_first_price or 0.0) + float(tr.t[-1])
-    hold = POWER_LIMIT_HOLD_S * sc.ts / 0.01
+    hold = POWER_LIMIT_HOLD_S * sc.ts / MC_CYCLE_S
     for i in range(1, sc.n + 1):
         flags = [(t, v) for t, v in log.series.get((f"PLANT_{i}_Status", "PowerLimited"), [])
                  if t >= t_end - hold]
