@@ -225,7 +225,8 @@ def trajectory_from_log(sc: Scenario, log: LogContents, label: str = "bus") -> T
     return Trajectory(t=grid - t0, lam=lam, rho=_hold(log.series[("price", "Rho")], grid, np.nan),
                       segment=_hold(log.series[("price", "Segment")], grid, 0).astype(int),
                       active=np.vectorize(contract.is_active, otypes=[bool])(state), p=p, u=u,
-                      resets=resets, label=label, expected=planned_participation(sc, grid - t0), state=state.astype(int))
+                      resets=resets, label=label, expected=planned_participation(sc, grid - t0),
+                      state=state.astype(int))
 
 
 def node_diagnostics(log: LogContents) -> dict[str, Any]:
