@@ -134,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
         trs = [(label, tr) for label, _, tr, _ in results]
         written.append(plots.consensus_figure(trs, out / "lambda_u_xi.png", title))
         written.append(plots.gain_figure(trs, out / "nu_r.png", title))
-        written.append(plots.power_figure(trs, out / "power.png", title, load_kw=sc.load_kw))
+        written.append(plots.power_figure(trs, out / "power.png", title, load_kw=sc.load_kw,
+                                          batteries=sc.batteries))
 
     print(f"bess-ded case: {sc.title or sc.name}")
     print(f"  {describe(runs[0][1], args.fixed)}")
