@@ -141,6 +141,22 @@ def fmt_times(xs: Sequence[float | None]) -> str:
     return "/".join(fmt_time(x) for x in xs)
 
 
+def fmt_settling(sc: Scenario, times: Sequence[float | None]) -> str:
+    """Every price segment's settling time with the price it settles to:
+    '2.54 s to ρ = 0.8 (from t = 0 s), never to ρ = 1 (from t = 15 s)'."""
+    parts = []
+    for step, x in zip(sc.prices, times, strict=False):
+        when = "never" if x is None else f"{x:.2f} s"
+        parts.append(f"{when} to ρ = {step.rho:g} (from t = {step.t:g} s)")
+    return ", ".join(parts)
+
+
+def analysis_lines(sc: Scenario) -> list[str]:
+    """Regularity and discrete stability of ``sc``'s controller on its graph, each with
+    the numbers that decide it (sim.graph.GraphReport.describe)."""
+    return sc.analysis().describe()
+
+
 def fmt_sci(x: float) -> str:
     return f"{x:.1e}" if math.isfinite(x) else str(x)
 
