@@ -111,9 +111,10 @@ class GraphReport:
         """'discrete-time stable at Ts = 10 ms: yes, max|1 + Ts·μ| = 0.9952' or why not."""
         what = "max|1 + Ts·μ|" if self.uses_theorem_1 else "max|1 − Ts·k·η|"
         head = f"discrete-time stable at Ts = {self.ts * 1e3:g} ms:"
+        r = _radius(self.spectral_radius)
         if self.discrete_stable:
-            return f"{head} yes, {what} = {self.spectral_radius:.4f}"
-        return (f"{head} no: {what} = {self.spectral_radius:.4g} ≥ 1: lower Ts or the gains")
+            return f"{head} yes, {what} = {r}"
+        return f"{head} no: {what} = {r} ≥ 1: lower Ts or the gains"
 
     def describe(self) -> list[str]:
         """Human lines for the CLI: η_max(H), regularity and discrete stability, each
@@ -125,6 +126,17 @@ class GraphReport:
         """A short cell for tables: 'yes', 'no', 'yes, unstable at Ts'."""
         reg = "n/a" if not self.uses_theorem_1 else ("yes" if self.regular else "no")
         return reg if self.discrete_stable else f"{reg}; unstable at Ts"
+
+
+def _radius(r: float) -> str:
+    """4 decimals, more when that would print a radius ≠ 1 as 1.0000 (the verdict hinges
+    on < 1); exactly 1 (marginal) prints as 1."""
+    if r == 1:
+        return "1"
+    digits = 4
+    while round(r, digits) == 1 and digits < 12:
+        digits += 1
+    return f"{r:.{digits}f}"
 
 
 def _g(x: float) -> str:

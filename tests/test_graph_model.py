@@ -87,6 +87,10 @@ def test_describe_says_why() -> None:
                                                 "max|1 + Ts·μ| = ")
     assert unstable.stability_line().endswith("≥ 1: lower Ts or the gains")
     assert unstable.verdict() == "yes; unstable at Ts"
+    assert graph.analyse(star_h(), 1, 2, 0.6).stability_line() == (
+        "discrete-time stable at Ts = 600 ms: no: max|1 + Ts·μ| = 1.2550 ≥ 1: lower Ts or the "
+        "gains")
+    assert graph._radius(0.99999) == "0.99999" and graph._radius(1.0000012) == "1.0000012"
     pc = graph.analyse(star_h(), 1, 0, 0.42, kind="pc")
     assert "n/a" in pc.regular_line() and "max|1 − Ts·k·η|" in pc.stability_line()
     assert graph.describe(star_h(), 1, 2, 0.01) == ok
