@@ -90,7 +90,7 @@ def test_describe_says_why() -> None:
     assert graph.analyse(star_h(), 1, 2, 0.6).stability_line() == (
         "discrete-time stable at Ts = 600 ms: no: max|1 + Ts·μ| = 1.2550 ≥ 1: lower Ts or the "
         "gains")
-    assert graph._radius(0.99999) == "0.99999" and graph._radius(1.0000012) == "1.0000012"
+    assert graph._radius(0.99999) == "0.99999" and graph._radius(1.0000012) == "1.000001"
     pc = graph.analyse(star_h(), 1, 0, 0.42, kind="pc")
     assert "n/a" in pc.regular_line() and "max|1 − Ts·k·η|" in pc.stability_line()
     assert graph.describe(star_h(), 1, 2, 0.01) == ok
