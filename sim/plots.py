@@ -261,12 +261,8 @@ def _draw_error(ax: Axes, t: np.ndarray, err: np.ndarray, segs: list[Segment],
                 show_settling: bool) -> None:
     """max_i|λ_i − ρ| on a log scale, the band level shaded under it, t_s labelled."""
     ax.set_yscale("log")
-    positive = err[err > 0]
-    bands = [sg.band for sg in segs if sg.band > 0]
-    if positive.size:
-        hi = float(positive.max()) * 2.5
-        lo = max(float(positive.min()) * 0.5, (min(bands) if bands else hi) * 1e-4, 1e-12)
-        ax.set_ylim(lo, hi)
+    if (lim := _error_limits([err], [sg.band for sg in segs])) is not None:
+        ax.set_ylim(*lim)
     ax.plot(t, np.where(err > 0, err, np.nan), color="k", lw=1.1, zorder=3)
     ax.yaxis.set_major_locator(LogLocator(numticks=6))
     if not show_settling:
@@ -285,6 +281,18 @@ def _draw_error(ax: Axes, t: np.ndarray, err: np.ndarray, segs: list[Segment],
             ax.text(sg.settled_at, 0.96, f" t$_s$ = {sg.settling:.2f} s", ha="left", va="top",
                     fontsize=7.5, color=SETTLE_COLOUR, transform=ax.get_xaxis_transform(),
                     clip_on=True, zorder=7)
+
+
+def _error_limits(errs: Sequence[np.ndarray], bands: Sequence[float]
+                  ) -> tuple[float, float] | None:
+    """A log y-range for max|λ − ρ|: the data, but no more than 6 decades under the
+    smallest band (below the Q24 resolution, 6e-8, nothing is left to see)."""
+    positive = np.concatenate([e[e > 0] for e in errs])
+    if not positive.size:
+        return None
+    hi = float(positive.max()) * 2.5
+    floor = min((b for b in bands if b > 0), default=hi) * 1e-6
+    return max(float(positive.min()) * 0.5, floor, 1e-12), hi
 
 
 def _draw_limits(ax: Axes, batteries: Sequence[Battery]) -> None:
@@ -400,6 +408,11 @@ def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *
         any_isolated |= any(off)
         any_settled |= any(sg.settled_at for sg in segs)
         any_limits |= bool(batteries) and "p" in keys
+    if sharey and ncols > 1 and "err" in keys:  # one range that fits every column
+        lim = _error_limits([worst_error(tr) for _, tr in runs_],
+                            [sg.band for _, tr in runs_ for sg in segments(tr)])
+        if lim is not None:
+            axes[keys.index("err"), 0].set_ylim(*lim)
 
     handles: list[Line2D | Patch] = [Line2D([], [], color=colours[i], lw=1.6,
                                            label=f"BESS {i + 1}") for i in range(n_agents)]
