@@ -10,12 +10,27 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, NoReturn, TextIO
 
 from firmware_py.controllers import ControllerConfig
 from firmware_py.errors import ConfigError
 
 from ..scenario import SCENARIO_DIR, Scenario, load_case, load_scenario
+
+
+def one_line_errors(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Make ``p``'s usage errors the CLI's one-line shape: ``bess-ded: error: --duration:
+    expected a finite number > 0, but got 0`` on stderr, exit code 2 (sim.cli.main
+    returns it), instead of argparse's usage block and ``bess-ded CMD: error: argument``."""
+    command = p.prog.split()[-1]
+
+    def error(message: str) -> NoReturn:
+        message = re.sub(r"^argument (\S+?)(/\S+)?: ", r"\1: ", message)
+        p.exit(2, f"bess-ded: error: {' '.join(message.split())} (usage: bess-ded {command} "
+                  "-h)\n")
+
+    p.error = error  # type: ignore[method-assign]
+    return p
 
 
 def add_scenario_argument(p: argparse.ArgumentParser) -> None:

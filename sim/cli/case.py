@@ -38,6 +38,7 @@ from ._common import (
     fmt_sci,
     fmt_settling,
     fmt_times,
+    one_line_errors,
     resolve_scenario,
     slug,
     table,
@@ -65,6 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output directory (default: runs/<scenario name>, e.g. runs/case1)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 

@@ -25,6 +25,7 @@ from ._common import (
     fmt_resets,
     fmt_sci,
     fmt_time,
+    one_line_errors,
     resolve_scenario,
     slug,
     table,
@@ -49,6 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_arithmetic_arguments(p)
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output directory (default: runs/compare-<scenario name>)")
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 

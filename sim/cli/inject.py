@@ -8,6 +8,7 @@ from firmware_py.__main__ import add_bus_arguments
 from firmware_py.cliargs import int_in, positive_float, positive_int
 
 from ..scenario import MAX_AGENTS
+from ._common import one_line_errors
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -26,6 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="frames per second (default: 1000)")
     p.add_argument("--seed", type=int_in(0), default=0, metavar="N")
     add_bus_arguments(p)
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 
+from ._common import one_line_errors
 from ._node import add_node_arguments
 
 
@@ -18,6 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fault", action="append", default=[], metavar="AGENT:KIND:T0:T1",
                    help="force a fault flag on BESS AGENT from T0 to T1 s after start; KIND is "
                    "overcurrent, voltage, soc or power_limit (repeatable)")
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 
