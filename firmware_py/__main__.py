@@ -10,6 +10,7 @@ import logging
 import os
 import sys
 
+from .cliargs import RT_PRIORITY, int_in, nonnegative_float, positive_float, probability
 from .config import load_agent_config
 from .errors import BessDedError
 from .faultinject import FaultyBus, RxFaults
@@ -27,16 +28,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, help="agent TOML file (firmware_py/config.py)")
     add_bus_arguments(p)
     add_filter_argument(p)
-    p.add_argument("--duration", type=float, default=None, help="stop after S seconds")
+    p.add_argument("--duration", type=positive_float(), default=None, metavar="S",
+                   help="stop after S seconds")
     add_rt_argument(p)
     t = p.add_argument_group("fault injection on received MC frames (tests and HIL rigs)")
-    t.add_argument("--inject-rx-loss", type=float, default=0.0, metavar="P",
+    t.add_argument("--inject-rx-loss", type=probability, default=0.0, metavar="P",
                    help="drop each neighbour MC frame with probability P")
-    t.add_argument("--inject-rx-delay", type=float, default=0.0, metavar="S",
+    t.add_argument("--inject-rx-delay", type=nonnegative_float(), default=0.0, metavar="S",
                    help="delay neighbour MC frames by S seconds")
-    t.add_argument("--inject-rx-jitter", type=float, default=0.0, metavar="S",
+    t.add_argument("--inject-rx-jitter", type=nonnegative_float(), default=0.0, metavar="S",
                    help="extra uniform random delay in [0, S] seconds")
-    t.add_argument("--inject-seed", type=int, default=0, help="seed of the injected faults")
+    t.add_argument("--inject-seed", type=int_in(0), default=0, metavar="N",
+                   help="seed of the injected faults")
 
 
 def add_bus_arguments(p: argparse.ArgumentParser) -> None:
@@ -50,7 +53,7 @@ def add_bus_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_rt_argument(p: argparse.ArgumentParser) -> None:
     """--rt-priority for the nodes (agent, plant, router)."""
-    p.add_argument("--rt-priority", type=int, default=0, metavar="N",
+    p.add_argument("--rt-priority", type=RT_PRIORITY, default=0, metavar="N",
                    help="run under SCHED_FIFO priority N (1..99) so ticks keep their deadlines "
                    "on a loaded host; needs root or CAP_SYS_NICE (default: 0 = off)")
 
@@ -106,7 +109,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     p = argparse.ArgumentParser(prog="python -m firmware_py", description=__doc__)
     add_arguments(p)
-    args = p.parse_args(argv)
+    try:
+        args = p.parse_args(argv)
+    except SystemExit as e:  # a usage error (2, already printed) or --help (0)
+        return e.code if isinstance(e.code, int) else 2
     try:
         return run_agent(args)
     except BessDedError as e:

@@ -58,7 +58,9 @@ def bus_kwargs(interface: str | None = None, channel: str | None = None,
     """Resolve flags, then CAN_INTERFACE / CAN_CHANNEL / CAN_CONFIG, then the default.
 
     ``config`` (or CAN_CONFIG) is a JSON object of extra python-can arguments,
-    e.g. ``{"port": 43200}`` for udp_multicast or ``{"bitrate": 500000}``.
+    e.g. ``{"port": 43200}`` for udp_multicast. Its keys are checked against what the
+    interface's bus class takes (``accepted_bus_keys``): python-can passes unknown
+    keys on to BusABC, which ignores them, so a typo would silently change nothing.
     """
     interface = interface or os.environ.get("CAN_INTERFACE") or DEFAULT_INTERFACE
     channel = channel or os.environ.get("CAN_CHANNEL")
@@ -73,6 +75,7 @@ def bus_kwargs(interface: str | None = None, channel: str | None = None,
         extra = dict(raw or {})
     if not isinstance(extra, dict):
         raise BusConfigError(f"CAN config: expected a JSON object, but got {extra!r}")
+    check_bus_keys(interface, extra)
     kw: dict[str, Any] = {"interface": interface, **extra}
     if channel is not None:
         kw["channel"] = channel
@@ -85,6 +88,64 @@ def bus_kwargs(interface: str | None = None, channel: str | None = None,
     if interface == "udp_multicast":
         kw.setdefault("fd", False)  # classic CAN only
     return kw
+
+
+# Taken by can.Bus itself, not passed to the bus class.
+FACTORY_KEYS = ("config_context", "ignore_config")
+# Interfaces whose bus class (python-can 4.6, read in its source) hands **kwargs straight
+# to BusABC, which ignores all but can_filters: their signatures are the whole truth.
+# Others (pcan, kvaser, ...) read more settings out of **kwargs, so they are not checked.
+CHECKED_INTERFACES = frozenset({"udp_multicast", "socketcan", "virtual"})
+
+
+def accepted_bus_keys(interface: str) -> tuple[str, ...] | None:
+    """The keyword arguments python-can's bus class for ``interface`` uses: its
+    ``__init__`` parameters, BusABC's when it passes ``**kwargs`` on (can_filters),
+    and can.Bus's own. None when the interface is not in CHECKED_INTERFACES or its
+    module does not import: can.Bus then reports that itself, better than a guess."""
+    import importlib
+    import inspect
+
+    from can.interfaces import BACKENDS
+
+    if interface not in CHECKED_INTERFACES:
+        return None
+    try:
+        module_name, class_name = BACKENDS[interface]
+        cls = getattr(importlib.import_module(module_name), class_name)
+    except Exception:  # any import failure: leave it to can.Bus, which says why
+        return None
+    names: list[str] = []
+    for klass in (cls, can.BusABC):
+        params = inspect.signature(klass.__init__).parameters.values()
+        names += [p.name for p in params if p.name != "self" and p.name not in names
+                  and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+        if not any(p.kind is p.VAR_KEYWORD for p in params):
+            break  # extra keys never reach BusABC
+    return (*names, *FACTORY_KEYS)
+
+
+def check_bus_keys(interface: str, extra: dict[str, Any]) -> None:
+    """Reject keys the interface would silently ignore (a typo, or a setting such as
+    socketcan's bitrate that lives elsewhere)."""
+    accepted = accepted_bus_keys(interface)
+    if accepted is None:
+        return
+    for key in extra:
+        if key in accepted:
+            continue
+        if key == "interface":
+            hint = " (give the interface with --interface or CAN_INTERFACE)"
+        elif key in ("bitrate", "data_bitrate") and interface == "socketcan":
+            hint = (" (socketcan's bitrate is the kernel's: ip link set CHANNEL type can "
+                    "bitrate N)")
+        else:
+            import difflib
+
+            close = difflib.get_close_matches(str(key), accepted, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise BusConfigError(f"CAN config: {interface} accepts {', '.join(accepted)}; but got "
+                             f"unknown key {key!r}{hint}")
 
 
 def open_bus(**kw: Any) -> can.BusABC:

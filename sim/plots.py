@@ -8,20 +8,30 @@ PNG and returns its path. Rows whose quantity no run carries (a bus log has no
 Figures are built on ``matplotlib.figure.Figure`` with the Agg canvas directly, not
 through pyplot: no global backend state, no screen needed, safe from threads.
 
-    consensus_figure(runs, path, title)          λ_i (ρ dashed, resets ticked), u_i, ξ_i
+    consensus_figure(runs, path, title)          λ_i (ρ dashed, resets ticked), |λ−ρ|, u_i, ξ_i
     gain_figure(runs, path, title)               ν_i and the dynamic gain r_i = ν_i/ξ_i
     power_figure(runs, path, title, load_kw=D)   P_i and the grid exchange P_e = D − ΣP_i
-    compare_figure(runs, path, title)            λ_i over u_i, one column per controller
+    compare_figure(runs, path, title)            λ_i, |λ−ρ| over u_i, a column per controller
     figure(runs, rows, path, title, ...)         any rows from QUANTITIES
 
 ``runs`` is a sequence of (column label, Trajectory), or a single Trajectory.
+
+Every λ_i row shows, per price segment, the settling band ρ ± SETTLING_BAND × (the
+segment's initial worst error) shaded and the settling instant (sim.metrics.settling_times)
+as a vertical line, labelled "never" when the run did not settle; it is followed by a
+log-scale row of the worst error max_i|λ_i − ρ| over the agents on the network with the
+band level drawn. ``batteries=`` draws each BESS's p_min/p_max on the P_i row, and
+``time_scale=F`` puts a time-scaled run (``bess-ded up --time-scale``) back on the
+scenario's time axis.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -31,8 +41,10 @@ from matplotlib.figure import Figure
 from matplotlib.layout_engine import ConstrainedLayoutEngine
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
-from matplotlib.ticker import MaxNLocator
+from matplotlib.ticker import LogLocator, MaxNLocator
 
+from .metrics import SETTLING_BAND, settling_times
+from .model import Battery
 from .trajectory import Trajectory
 
 DPI = 120
@@ -52,6 +64,38 @@ class Quantity:
     robust: bool = False  # clip the y-range to the bulk of the data (r_i spikes as ξ → 0)
 
 
+def worst_error(tr: Trajectory) -> np.ndarray:
+    """max_i |λ_i − ρ| over the agents on the network, per sample (as sim.metrics)."""
+    return np.where(tr.active, np.abs(tr.lam - tr.rho[:, None]), 0.0).max(axis=1)
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One price segment of a run, as the settling time sees it."""
+
+    start: float             # s, first sample of the segment
+    end: float               # s, first sample of the next segment (or the run's end)
+    rho: float
+    band: float              # SETTLING_BAND × the worst error at the segment's start
+    settling: float | None   # s after ``start``; None: never settled within the segment
+
+    @property
+    def settled_at(self) -> float | None:
+        return None if self.settling is None else self.start + self.settling
+
+
+def segments(tr: Trajectory) -> list[Segment]:
+    """The run's price segments with their settling band and settling time."""
+    err = worst_error(tr)
+    dt = float(tr.t[1] - tr.t[0]) if tr.t.size > 1 else 0.0
+    out = []
+    for seg, st in zip(np.unique(tr.segment), settling_times(tr), strict=True):
+        idx = np.flatnonzero(tr.segment == seg)
+        out.append(Segment(float(tr.t[idx[0]]), float(tr.t[idx[-1]]) + dt,
+                           float(tr.rho[idx[0]]), SETTLING_BAND * float(err[idx[0]]), st))
+    return out
+
+
 def _grid(tr: Trajectory, load_kw: float | None) -> np.ndarray | None:
     if load_kw is None:
         return None
@@ -60,6 +104,7 @@ def _grid(tr: Trajectory, load_kw: float | None) -> np.ndarray | None:
 
 QUANTITIES: dict[str, Quantity] = {
     "lam": Quantity("λ$_i$ [cu/kWh]", lambda tr, _: tr.lam),
+    "err": Quantity("max$_i$|λ$_i$ − ρ|", lambda tr, _: worst_error(tr)[:, None]),
     "u": Quantity("u$_i$ [cu/kWh/s]", lambda tr, _: tr.u),
     "xi": Quantity("ξ$_i$ [cu/kWh]", lambda tr, _: tr.xi),
     "nu": Quantity("ν$_i$ [cu·s/kWh]", lambda tr, _: tr.nu),
@@ -160,15 +205,41 @@ def _comparable(ys: Sequence[np.ndarray | None], ratio: float = 4.0) -> bool:
     return len(spans) > 1 and min(spans) > 0 and max(spans) / min(spans) <= ratio
 
 
+BAND_COLOUR = "0.55"      # the settling band: shaded around ρ, and under its level on |λ − ρ|
+SETTLE_COLOUR = "#1a7f37"  # settling instants
+NEVER_COLOUR = "#c0392b"
+
+
+def unscaled(tr: Trajectory, time_scale: float) -> Trajectory:
+    """A run made at ``time_scale`` F (Ts·F, k/F, h/F²) on the scenario's own time axis:
+    t and reset instants / F; u = dλ/dt × F; ν = ∫ξ dt / F (so r = ν/ξ / F too)."""
+    if not (math.isfinite(time_scale) and time_scale > 0):
+        raise ValueError(f"time_scale: expected a finite number > 0, but got {time_scale!r}")
+    if time_scale == 1:
+        return tr
+    f = time_scale
+    return replace(tr, t=tr.t / f, resets=[[x / f for x in r] for r in tr.resets],
+                   u=None if tr.u is None else tr.u * f,
+                   nu=None if tr.nu is None else tr.nu / f)
+
+
 def _draw_cell(ax: Axes, key: str, tr: Trajectory, y: np.ndarray, colours: list[str],
-               show_resets: bool) -> None:
+               show_resets: bool, segs: list[Segment], show_settling: bool,
+               batteries: Sequence[Battery] | None) -> None:
     t = tr.t
     if key == "grid":
         ax.plot(t, y[:, 0], color="k", lw=1.4)
+    elif key == "err":
+        _draw_error(ax, t, y[:, 0], segs, show_settling)
     else:
+        lw = 1.1 if y.shape[1] <= 6 else 0.9
         for i in range(y.shape[1]):
-            ax.plot(t, y[:, i], color=colours[i], lw=1.1)
+            ax.plot(t, y[:, i], color=colours[i], lw=lw)
     if key == "lam":
+        if show_settling:
+            for sg in segs:
+                ax.fill_between([sg.start, sg.end], sg.rho - sg.band, sg.rho + sg.band,
+                                color=BAND_COLOUR, alpha=0.35, lw=0, zorder=0.5)
         ax.plot(t, tr.rho, color="k", ls="--", lw=1.3, zorder=5)
         if show_resets:
             for i, times in enumerate(tr.resets[: y.shape[1]]):
@@ -176,13 +247,85 @@ def _draw_cell(ax: Axes, key: str, tr: Trajectory, y: np.ndarray, colours: list[
                     idx = np.clip(np.searchsorted(t, np.asarray(times) - 1e-9), 0, t.size - 1)
                     ax.plot(t[idx], y[idx, i], ls="none", marker="|", ms=7, mew=1.3,
                             color=colours[i], zorder=6)
+    if key in ("lam", "err") and show_settling:
+        for sg in segs:
+            if sg.settled_at is not None and sg.settling:
+                ax.axvline(sg.settled_at, color=SETTLE_COLOUR, ls="-.", lw=1.0, zorder=4)
+    if key == "p" and batteries:
+        _draw_limits(ax, batteries[: y.shape[1]])
     if key in ("u", "xi", "nu", "r"):
         ax.axhline(0.0, color="0.4", lw=0.6, zorder=1)
 
 
+def _draw_error(ax: Axes, t: np.ndarray, err: np.ndarray, segs: list[Segment],
+                show_settling: bool) -> None:
+    """max_i|λ_i − ρ| on a log scale, the band level shaded under it, t_s labelled."""
+    ax.set_yscale("log")
+    if (lim := _error_limits([err], [sg.band for sg in segs])) is not None:
+        ax.set_ylim(*lim)
+    ax.plot(t, np.where(err > 0, err, np.nan), color="k", lw=1.1, zorder=3)
+    ax.yaxis.set_major_locator(LogLocator(numticks=6))
+    if not show_settling:
+        return
+    for sg in segs:
+        if sg.band > 0:
+            ax.fill_between([sg.start, sg.end], 1e-300, sg.band, color=BAND_COLOUR, alpha=0.35,
+                            lw=0, zorder=0.5)
+            ax.hlines(sg.band, sg.start, sg.end, color=BAND_COLOUR, lw=0.9, zorder=1)
+        # the label sits at the top of this row: the λ row's top holds "isolated" labels
+        if sg.settled_at is None:
+            ax.text(sg.end, 0.96, "never settled ", ha="right", va="top", fontsize=7.5,
+                    color=NEVER_COLOUR, fontweight="bold", transform=ax.get_xaxis_transform(),
+                    zorder=7)
+        else:
+            ax.text(sg.settled_at, 0.96, f" t$_s$ = {sg.settling:.2f} s", ha="left", va="top",
+                    fontsize=7.5, color=SETTLE_COLOUR, transform=ax.get_xaxis_transform(),
+                    clip_on=True, zorder=7)
+
+
+def _error_limits(errs: Sequence[np.ndarray], bands: Sequence[float]
+                  ) -> tuple[float, float] | None:
+    """A log y-range for max|λ − ρ|: the data, but no more than 6 decades under the
+    smallest band (below the Q24 resolution, 6e-8, nothing is left to see)."""
+    positive = np.concatenate([e[e > 0] for e in errs])
+    if not positive.size:
+        return None
+    hi = float(positive.max()) * 2.5
+    floor = min((b for b in bands if b > 0), default=hi) * 1e-6
+    return max(float(positive.min()) * 0.5, floor, 1e-12), hi
+
+
+def _draw_limits(ax: Axes, batteries: Sequence[Battery]) -> None:
+    """p_min/p_max as grey dashed lines, one per distinct value. Each side is labelled
+    once, at its outermost line (per-line labels collide when limits are close)."""
+    n = len(batteries)
+    ax.set_ymargin(0.12)  # room for the labels outside the outermost lines
+    for which, values in (("max", [b.p_max for b in batteries]),
+                          ("min", [b.p_min for b in batteries])):
+        distinct = sorted(set(values))
+        for v in distinct:
+            ax.axhline(v, color="0.3", ls=(0, (5, 3)), lw=0.9, zorder=1)
+        if len(distinct) == 1:
+            label = f"P$_{{{which}}}$"
+        else:
+            label = f"P$_{{{which}}}$ of the {n} BESSs: {distinct[0]:g} … {distinct[-1]:g} kW"
+        outer = distinct[-1] if which == "max" else distinct[0]
+        ax.annotate(label, (1.0, outer), xycoords=("axes fraction", "data"),
+                    xytext=(-3, 2 if which == "max" else -2), textcoords="offset points",
+                    ha="right", va="bottom" if which == "max" else "top", fontsize=7.5,
+                    color="0.25", annotation_clip=False)
+
+
+def time_label(time_scale: float = 1.0) -> str:
+    """The time axis label: 't [s]', or 't (scenario s; run at ×F)' for a scaled run."""
+    return "t [s]" if time_scale == 1 else f"t (scenario s; run at ×{time_scale:g})"
+
+
 def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *,
            load_kw: float | None = None, sharey: bool = True, show_resets: bool = True,
-           t_max: float | str | None = "auto") -> Path:
+           t_max: float | str | None = "auto", time_scale: float = 1.0,
+           batteries: Sequence[Battery] | None = None, error_panel: bool = True,
+           show_settling: bool = True) -> Path:
     """The general figure: ``rows`` (keys of QUANTITIES) × one column per run.
 
     Rows no run can provide are dropped. With ``sharey`` every row has one y-scale
@@ -190,8 +333,17 @@ def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *
     off the network) are shaded in the agent's colour; price changes are dotted
     vertical lines; reset instants are ticks on λ_i. ``t_max="auto"`` ends the time
     axis once nothing changes any more (``auto_t_max``); ``None`` shows the whole run.
+
+    ``error_panel`` adds the log-scale row "err" (max_i|λ_i − ρ|) under "lam";
+    ``show_settling`` draws the settling band and instants on both. ``batteries``
+    (the scenario's, in agent order) draws p_min/p_max on "p". ``time_scale`` F > 0:
+    the runs were made on a time axis stretched by F; they are drawn on the scenario's
+    (t / F, see ``unscaled``) and ``t_max`` is in those seconds.
     """
-    runs_ = _as_runs(runs)
+    runs_ = [(label, unscaled(tr, time_scale)) for label, tr in _as_runs(runs)]
+    rows = list(rows)
+    if error_panel and "lam" in rows and "err" not in rows:
+        rows.insert(rows.index("lam") + 1, "err")
     if t_max == "auto":
         t_max = auto_t_max(runs_)
     path = Path(path)
@@ -205,20 +357,23 @@ def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *
 
     width = min(MAX_WIDTH, max(9.0, 1.2 + COL_WIDTH * ncols))
     row_height = ROW_HEIGHT if ncols == 1 else min(3.0, max(ROW_HEIGHT, 0.7 * width / ncols))
-    fig = Figure(figsize=(width, 1.3 + row_height * nrows), dpi=DPI,
+    heights = [0.75 if k == "err" else 1.0 for k in keys]  # the error row needs less
+    fig = Figure(figsize=(width, 1.5 + row_height * sum(heights)), dpi=DPI,
                  layout=ConstrainedLayoutEngine(w_pad=0.06, wspace=0.05))
     FigureCanvasAgg(fig)
-    axes = fig.subplots(nrows, ncols, sharex=True, squeeze=False)
+    axes = fig.subplots(nrows, ncols, sharex=True, squeeze=False,
+                        gridspec_kw={"height_ratios": heights})
     if sharey:
         for r, key in enumerate(keys):
-            if _comparable(data[key]):
+            if key == "err" or _comparable(data[key]):
                 for c in range(1, ncols):
                     axes[r, c].sharey(axes[r, 0])
                     axes[r, c].tick_params(labelleft=False)
-    any_resets = any_isolated = False
+    any_resets = any_isolated = any_settled = any_limits = False
     for c, (label, tr) in enumerate(runs_):
         off = [_intervals(~tr.active[:, i], tr.t) for i in range(tr.n)]
         changes = tr.t[np.flatnonzero(np.diff(tr.segment)) + 1]
+        segs = segments(tr) if show_settling and ("lam" in keys or "err" in keys) else []
         for r, key in enumerate(keys):
             ax = axes[r, c]
             y = data[key][c]
@@ -227,7 +382,8 @@ def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *
                         transform=ax.transAxes, color="0.5")
                 ax.tick_params(labelleft=False, left=False)
             else:
-                _draw_cell(ax, key, tr, y, colours, show_resets)
+                _draw_cell(ax, key, tr, y, colours, show_resets, segs, show_settling,
+                           batteries)
                 if QUANTITIES[key].robust and (lim := _robust_limits(y)) is not None:
                     ax.set_ylim(*lim)
             for i, spans in enumerate(off):
@@ -244,25 +400,43 @@ def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *
             if c == 0:
                 ax.set_ylabel(QUANTITIES[key].ylabel, fontsize=9)
             if r == nrows - 1:
-                ax.set_xlabel("t [s]", fontsize=9)
+                ax.set_xlabel(time_label(time_scale), fontsize=9)
         axes[0, c].set_title(label, fontsize=10, fontweight="bold")
         axes[0, c].xaxis.set_major_locator(MaxNLocator(nbins=7, steps=[1, 2, 5, 10]))
         axes[0, c].set_xlim(tr.t[0], float(t_max) if t_max is not None else tr.t[-1])
         any_resets |= show_resets and "lam" in keys and any(tr.resets)
         any_isolated |= any(off)
+        any_settled |= any(sg.settled_at for sg in segs)
+        any_limits |= bool(batteries) and "p" in keys
+    if sharey and ncols > 1 and "err" in keys:  # one range that fits every column
+        lim = _error_limits([worst_error(tr) for _, tr in runs_],
+                            [sg.band for _, tr in runs_ for sg in segments(tr)])
+        if lim is not None:
+            axes[keys.index("err"), 0].set_ylim(*lim)
 
     handles: list[Line2D | Patch] = [Line2D([], [], color=colours[i], lw=1.6,
                                            label=f"BESS {i + 1}") for i in range(n_agents)]
     if "lam" in keys:
         handles.append(Line2D([], [], color="k", ls="--", lw=1.3, label="ρ (price)"))
+    if "err" in keys:
+        handles.append(Line2D([], [], color="k", lw=1.1, label="max$_i$|λ$_i$ − ρ|"))
+    if segs_drawn := show_settling and ("lam" in keys or "err" in keys):
+        handles.append(Patch(color=BAND_COLOUR, alpha=0.5,
+                             label=f"{SETTLING_BAND:.0%} settling band"))
+    if segs_drawn and any_settled:
+        handles.append(Line2D([], [], color=SETTLE_COLOUR, ls="-.", lw=1.0,
+                              label="settled (t$_s$ after the price step)"))
     if "grid" in keys:
         handles.append(Line2D([], [], color="k", lw=1.4, label="grid P$_e$ = D − ΣP$_i$"))
+    if any_limits:
+        handles.append(Line2D([], [], color="0.3", ls=(0, (5, 3)), lw=0.9,
+                              label="P$_{min}$ / P$_{max}$"))
     if any_resets:
         handles.append(Line2D([], [], color="0.3", ls="none", marker="|", ms=7, mew=1.3,
                               label="reset of ν$_i$"))
     if any_isolated:
         handles.append(Patch(color="0.6", alpha=0.3, label="isolated"))
-    ncol = min(len(handles), max(4, int(width / 1.25)))
+    ncol = min(len(handles), max(4, int(width / 1.6)))
     fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=8,
                frameon=False, handlelength=1.8, columnspacing=1.2)
     if title:
@@ -272,26 +446,31 @@ def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *
     return path
 
 
+# The figures below take figure()'s other keywords too (time_scale, batteries, ...).
+
+
 def consensus_figure(runs: Runs, path: str | Path, title: str = "", *, sharey: bool = True,
-                     t_max: float | str | None = "auto") -> Path:
-    """λ_i with ρ(t) dashed and reset ticks, u_i, ξ_i (the paper's main figure)."""
-    return figure(runs, ("lam", "u", "xi"), path, title, sharey=sharey, t_max=t_max)
+                     t_max: float | str | None = "auto", **kw: Any) -> Path:
+    """λ_i with ρ(t) dashed, the settling band and reset ticks; max|λ_i − ρ|; u_i; ξ_i
+    (the paper's main figure)."""
+    return figure(runs, ("lam", "u", "xi"), path, title, sharey=sharey, t_max=t_max, **kw)
 
 
 def gain_figure(runs: Runs, path: str | Path, title: str = "", *, sharey: bool = True,
-                t_max: float | str | None = "auto") -> Path:
+                t_max: float | str | None = "auto", **kw: Any) -> Path:
     """ν_i and the dynamic gain r_i = ν_i/ξ_i (paper eq. 18)."""
-    return figure(runs, ("nu", "r"), path, title, sharey=sharey, t_max=t_max)
+    return figure(runs, ("nu", "r"), path, title, sharey=sharey, t_max=t_max, **kw)
 
 
 def power_figure(runs: Runs, path: str | Path, title: str = "", *, load_kw: float,
-                 sharey: bool = True, t_max: float | str | None = "auto") -> Path:
-    """BESS powers P_i and the grid exchange P_e = D − ΣP_i (> 0: drawn from the grid)."""
+                 sharey: bool = True, t_max: float | str | None = "auto", **kw: Any) -> Path:
+    """BESS powers P_i (with ``batteries=``: their limits) and the grid exchange
+    P_e = D − ΣP_i (> 0: drawn from the grid)."""
     return figure(runs, ("p", "grid"), path, title, load_kw=load_kw, sharey=sharey,
-                  t_max=t_max)
+                  t_max=t_max, **kw)
 
 
 def compare_figure(runs: Runs, path: str | Path, title: str = "", *, sharey: bool = True,
-                   t_max: float | str | None = "auto") -> Path:
-    """λ_i on top, u_i below, one column per controller."""
-    return figure(runs, ("lam", "u"), path, title, sharey=sharey, t_max=t_max)
+                   t_max: float | str | None = "auto", **kw: Any) -> Path:
+    """λ_i on top, max|λ_i − ρ|, u_i below, one column per controller."""
+    return figure(runs, ("lam", "u"), path, title, sharey=sharey, t_max=t_max, **kw)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomli_w
 
 from firmware_py.controllers import ControllerConfig
 from firmware_py.errors import ConfigError, ParameterError
@@ -25,6 +26,7 @@ from .model import Battery
 
 SCENARIO_DIR = Path(__file__).with_name("scenarios")
 MAX_AGENTS = 32  # the DBC defines AGENT_1..AGENT_32
+# TODO(contract): take MAX_AGENTS from firmware_py/contract.py (the DBC's limit) once it lands
 CONTROLLER_KEYS = {"kind", "k", "h", "dwell", "band", "ft_exponent"}
 BATTERY_KEYS = {"alpha", "beta", "m", "p_min", "p_max", "capacity_kwh", "soc0", "v_nom",
                 "r_internal", "lambda0"}
@@ -165,6 +167,12 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
                    enumerate(r.list(g, "pinned", "graph.pinned")))
     if not pinned:
         raise ConfigError(src, "graph.pinned", "expected at least one agent that hears the price")
+    if cut := [a for comp in graph.unpinned_components(n, edges, pinned) for a in comp]:
+        # such agents never hear ρ, even through neighbours: H = L + B is singular
+        names = ", ".join(str(a) for a in cut)
+        raise ConfigError(src, "graph", f"agent{'s' if len(cut) > 1 else ''} {names} cannot "
+                          f"reach a pinned agent (pinned: {', '.join(map(str, pinned))}); "
+                          "expected every agent connected to one")
 
     ctrl = r.table(data, "controller")
     r.only(ctrl, "controller", CONTROLLER_KEYS)
@@ -329,23 +337,27 @@ def scaled(sc: Scenario, factor: float) -> Scenario:
 
 
 def to_toml(sc: Scenario) -> str:
-    """Serialise a (variant-free) scenario back to the TOML schema load_scenario reads."""
+    """Serialise a (variant-free) scenario back to the TOML schema load_scenario reads.
+
+    Written by tomli_w, so any title or name (quotes, backslashes, newlines) round-trips.
+    """
     c = sc.controller
-    out = [f"# written by bess-ded from {sc.source}", f'name = "{sc.name}"',
-           f'title = "{sc.title}"', f"ts = {sc.ts!r}", f"duration = {sc.duration!r}",
-           f"load_kw = {sc.load_kw!r}", "", "[controller]", f'kind = "{c.kind}"',
-           f"k = {c.k!r}", f"h = {c.h!r}", f"dwell = {c.dwell!r}", f"band = {c.band!r}",
-           f"ft_exponent = {c.ft_exponent!r}", "", "[graph]", f"agents = {sc.n}",
-           "edges = [" + ", ".join(f"[{int(e[0])}, {int(e[1])}, {e[2]!r}]" for e in sc.edges)
-           + "]", f"pinned = {list(sc.pinned)}", ""]
-    for p in sc.prices:
-        out += ["[[price]]", f"t = {p.t!r}", f"rho = {p.rho!r}", ""]
-    for e in sc.events:
-        out += ["[[event]]", f"t = {e.t!r}", f"agent = {e.agent}", f'action = "{e.action}"', ""]
-    for b, l0 in zip(sc.batteries, sc.lambda0, strict=True):
-        out += ["[[battery]]", f"lambda0 = {l0!r}"]
-        out += [f"{k} = {getattr(b, k)!r}" for k in ("alpha", "beta", "m", "p_min", "p_max",
-                                                       "capacity_kwh", "soc0", "v_nom",
-                                                       "r_internal")]
-        out.append("")
-    return "\n".join(out)
+    doc: dict[str, Any] = {
+        "name": sc.name, "title": sc.title, "ts": sc.ts, "duration": sc.duration,
+        "load_kw": sc.load_kw,
+        "controller": {"kind": c.kind, "k": c.k, "h": c.h, "dwell": c.dwell, "band": c.band,
+                       "ft_exponent": c.ft_exponent},
+        "graph": {"agents": sc.n,
+                  "edges": [[int(e[0]), int(e[1]), float(e[2]) if len(e) > 2 else 1.0]
+                            for e in sc.edges],
+                  "pinned": list(sc.pinned)},
+        "price": [{"t": p.t, "rho": p.rho} for p in sc.prices],
+        "battery": [{"lambda0": l0, **{k: float(getattr(b, k)) for k in sorted(BATTERY_KEYS)
+                                       if k != "lambda0"}}
+                    for b, l0 in zip(sc.batteries, sc.lambda0, strict=True)],
+    }
+    if sc.events:
+        doc["event"] = [{"t": e.t, "agent": e.agent, "action": e.action} for e in sc.events]
+    # the source path may hold anything; keep it out of the comment line's way
+    origin = " ".join(sc.source.split())
+    return f"# written by bess-ded from {origin}\n" + tomli_w.dumps(doc)

@@ -75,6 +75,33 @@ def test_ring_of_case_7_is_regular() -> None:
     assert rep.regular and rep.discrete_stable
 
 
+def test_describe_says_why() -> None:
+    ok = graph.analyse(star_h(), 1, 2, 0.01).describe()
+    assert ok[1] == "regular (Theorem 1): yes, 4h = 8 > η_max·k² = 4.79"
+    assert ok[2] == "discrete-time stable at Ts = 10 ms: yes, max|1 + Ts·μ| = 0.9990"
+    bad = graph.analyse(star_h(), 5, 2, 0.01).describe()
+    assert bad[1] == ("regular (Theorem 1): no: 4h = 8 ≤ η_max·k² = 119.8 "
+                      "(Theorem 1 needs 4h > η_max·k²)")
+    unstable = graph.analyse(star_h(), 1, 2, 0.5)
+    assert unstable.stability_line().startswith("discrete-time stable at Ts = 500 ms: no: "
+                                                "max|1 + Ts·μ| = ")
+    assert unstable.stability_line().endswith("≥ 1: lower Ts or the gains")
+    assert unstable.verdict() == "yes; unstable at Ts"
+    assert graph.analyse(star_h(), 1, 2, 0.6).stability_line() == (
+        "discrete-time stable at Ts = 600 ms: no: max|1 + Ts·μ| = 1.2550 ≥ 1: lower Ts or the "
+        "gains")
+    assert graph._radius(0.99999) == "0.99999" and graph._radius(1.0000012) == "1.000001"
+    pc = graph.analyse(star_h(), 1, 0, 0.42, kind="pc")
+    assert "n/a" in pc.regular_line() and "max|1 − Ts·k·η|" in pc.stability_line()
+    assert graph.describe(star_h(), 1, 2, 0.01) == ok
+
+
+def test_unpinned_components() -> None:
+    assert graph.unpinned_components(4, STAR, [1]) == []
+    assert graph.unpinned_components(5, [(1, 2), (3, 4)], [1]) == [[3, 4], [5]]
+    assert graph.unpinned_components(4, [(1, 2), (3, 4)], [2, 4]) == []
+
+
 # --------------------------------------------------------------------------- cost model
 
 BATS = load_case(1).batteries

@@ -214,3 +214,40 @@ def test_to_toml_round_trip(tmp_path: Path) -> None:
     for field in ("ts", "duration", "load_kw", "controller", "n", "edges", "pinned",
                   "batteries", "lambda0", "prices", "events"):
         assert getattr(back, field) == getattr(sc, field), field
+
+
+@pytest.mark.parametrize(("edges", "pinned", "cut"), [
+    ("edges = [[1, 2], [3, 4]]", "pinned = [1]", "agents 3, 4 cannot reach a pinned agent "
+     "(pinned: 1)"),
+    ("edges = [[1, 2], [1, 3]]", "pinned = [1]", "agent 4 cannot reach a pinned agent"),
+    ("edges = [[1, 2]]", "pinned = [4]", "agents 1, 2, 3 cannot reach a pinned agent "
+     "(pinned: 4)"),
+])
+def test_graph_with_agents_cut_off_from_the_price_is_rejected(
+        tmp_path: Path, edges: str, pinned: str, cut: str) -> None:
+    path = tmp_path / "cut.toml"
+    path.write_text(CASE1.replace(EDGES, edges).replace("pinned = [1]", pinned))
+    with pytest.raises(ConfigError) as e:
+        load_scenario(path)
+    assert e.value.key == "graph"
+    assert cut in str(e.value) and "expected every agent connected to one" in str(e.value)
+
+
+def test_two_components_each_pinned_is_accepted(tmp_path: Path) -> None:
+    path = tmp_path / "two.toml"
+    path.write_text(CASE1.replace(EDGES, "edges = [[1, 2], [3, 4]]")
+                    .replace("pinned = [1]", "pinned = [1, 3]"))
+    assert load_scenario(path).pinned == (1, 3)
+
+
+@pytest.mark.parametrize("title", ['a "quoted" title', "back\\slash \\n not a newline",
+                                   "two\nlines", "tab\tand 'single' quotes", "ünïcode λ ρ"])
+def test_to_toml_round_trips_any_title(tmp_path: Path, title: str) -> None:
+    from dataclasses import replace
+
+    sc = replace(load_case(5), title=title, name='we"ird\\name', variants=())
+    path = tmp_path / "again.toml"
+    path.write_text(to_toml(sc))
+    back = load_scenario(path)
+    assert (back.title, back.name) == (title, sc.name)
+    assert back.prices == sc.prices and back.batteries == sc.batteries

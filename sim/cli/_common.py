@@ -10,12 +10,27 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, NoReturn, TextIO
 
 from firmware_py.controllers import ControllerConfig
 from firmware_py.errors import ConfigError
 
 from ..scenario import SCENARIO_DIR, Scenario, load_case, load_scenario
+
+
+def one_line_errors(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Make ``p``'s usage errors the CLI's one-line shape: ``bess-ded: error: --duration:
+    expected a finite number > 0, but got 0`` on stderr, exit code 2 (sim.cli.main
+    returns it), instead of argparse's usage block and ``bess-ded CMD: error: argument``."""
+    command = p.prog.split()[-1]
+
+    def error(message: str) -> NoReturn:
+        message = re.sub(r"^argument (\S+?)(/\S+)?: ", r"\1: ", message)
+        p.exit(2, f"bess-ded: error: {' '.join(message.split())} (usage: bess-ded {command} "
+                  "-h)\n")
+
+    p.error = error  # type: ignore[method-assign]
+    return p
 
 
 def add_scenario_argument(p: argparse.ArgumentParser) -> None:
@@ -139,6 +154,22 @@ def fmt_time(x: float | None) -> str:
 
 def fmt_times(xs: Sequence[float | None]) -> str:
     return "/".join(fmt_time(x) for x in xs)
+
+
+def fmt_settling(sc: Scenario, times: Sequence[float | None]) -> str:
+    """Every price segment's settling time with the price it settles to:
+    '2.54 s to ρ = 0.8 (from t = 0 s), never to ρ = 1 (from t = 15 s)'."""
+    parts = []
+    for step, x in zip(sc.prices, times, strict=False):
+        when = "never" if x is None else f"{x:.2f} s"
+        parts.append(f"{when} to ρ = {step.rho:g} (from t = {step.t:g} s)")
+    return ", ".join(parts)
+
+
+def analysis_lines(sc: Scenario) -> list[str]:
+    """Regularity and discrete stability of ``sc``'s controller on its graph, each with
+    the numbers that decide it (sim.graph.GraphReport.describe)."""
+    return sc.analysis().describe()
 
 
 def fmt_sci(x: float) -> str:

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from firmware_py.__main__ import add_bus_arguments, add_filter_argument, add_rt_argument
+from firmware_py.cliargs import positive_float
 from firmware_py.errors import ParameterError
 
 
@@ -22,9 +23,9 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
     add_bus_arguments(p)
     add_filter_argument(p)
     add_rt_argument(p)
-    p.add_argument("--duration", type=float, metavar="S",
+    p.add_argument("--duration", type=positive_float(), metavar="S",
                    help="stop after S seconds (default: run until SIGINT/SIGTERM)")
-    p.add_argument("--period", type=float, default=0.01, metavar="S",
+    p.add_argument("--period", type=positive_float(), default=0.01, metavar="S",
                    help="tick period of the node (default: 0.01 s)")
     p.add_argument("--counters-json", metavar="FILE",
                    help="at exit, write the node's ticks and counters (deadline misses, "

@@ -22,7 +22,7 @@ from typing import Any
 
 from firmware_py.controllers import Controller, ControllerState, consensus_error
 
-from ._common import table, write_json
+from ._common import one_line_errors, table, write_json
 
 
 @dataclass
@@ -243,6 +243,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true",
                    help="fewer samples and repetitions: the whole bench in a few seconds")
     p.add_argument("--json", type=Path, metavar="FILE", help="also write the results as JSON")
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 

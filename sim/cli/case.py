@@ -15,23 +15,30 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from firmware_py.cliargs import nonnegative_float, positive_float
 from firmware_py.controllers import KINDS
 
+from ..graph import GraphReport
+from ..metrics import SETTLING_BAND
 from ..scenario import Scenario
 from ..trajectory import Trajectory
 from ._common import (
     Progress,
     add_arithmetic_arguments,
     add_scenario_argument,
+    analysis_lines,
     controller_desc,
     describe,
     fmt_pct,
     fmt_resets,
     fmt_sci,
+    fmt_settling,
     fmt_times,
+    one_line_errors,
     resolve_scenario,
     slug,
     table,
@@ -49,16 +56,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--controller", choices=KINDS,
                    help="run only this controller kind, replacing the scenario's variants "
                    "(a single run)")
-    p.add_argument("--band", type=float, metavar="XI",
+    p.add_argument("--band", type=nonnegative_float(), metavar="XI",
                    help="reset re-arm band on |ξ| in cu/kWh, for every run (default: the "
                    "scenario's, else 1e-4)")
-    p.add_argument("--dwell", type=float, metavar="S",
+    p.add_argument("--dwell", type=positive_float(), metavar="S",
                    help=f"dwell Δ in s for the dwell controller (default: the scenario's, else "
                    f"{DEFAULT_DWELL_S:g})")
     add_arithmetic_arguments(p)
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output directory (default: runs/<scenario name>, e.g. runs/case1)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 
@@ -134,31 +142,55 @@ def run(args: argparse.Namespace) -> int:
         trs = [(label, tr) for label, _, tr, _ in results]
         written.append(plots.consensus_figure(trs, out / "lambda_u_xi.png", title))
         written.append(plots.gain_figure(trs, out / "nu_r.png", title))
-        written.append(plots.power_figure(trs, out / "power.png", title, load_kw=sc.load_kw))
+        written.append(plots.power_figure(trs, out / "power.png", title, load_kw=sc.load_kw,
+                                          batteries=sc.batteries))
 
     print(f"bess-ded case: {sc.title or sc.name}")
     print(f"  {describe(runs[0][1], args.fixed)}")
     if len(runs) == 1:
         print(f"  controller {controller_desc(runs[0][1].controller)}")
+        for line in analysis_lines(runs[0][1])[1:]:
+            print(f"  {line}")
     print()
-    print(summary_table([(label, m) for label, _, _, m in results]))
+    print(summary_table([(label, m) for label, _, _, m in results],
+                        [s.analysis() for _, s, _, _ in results]))
     print()
+    if len(runs) > 1:
+        width = max(len(label) for label, _ in runs)
+        print("graph and gains:")
+        for label, s in runs:
+            lines = analysis_lines(s)[1:]
+            print(f"  {label:<{width}}  {lines[0]}")
+            for line in lines[1:]:
+                print(f"  {'':<{width}}  {line}")
+        print()
+    if len(sc.prices) > 1:  # the table's a/b/c is terse; say which price each one is
+        width = max(len(label) for label, _ in runs)
+        print(f"settling time ({SETTLING_BAND:.0%} band), per price segment:")
+        for label, s, _, m in results:
+            print(f"  {label:<{width}}  {fmt_settling(s, m['settling_times_s'])}")
+        print()
     print(f"wrote ({time.perf_counter() - t0:.1f} s):")
     for path in written:
         print(f"  {path}")
     return 0
 
 
-def summary_table(rows: list[tuple[str, dict[str, Any]]]) -> str:
+def summary_table(rows: list[tuple[str, dict[str, Any]]],
+                  reports: Sequence[GraphReport] | None = None) -> str:
+    """The summary; with ``reports`` (one per row) the regular column says 'n/a' for the
+    controllers Theorem 1 is not about, and '; unstable at Ts' when the Euler step is."""
     headers = ["run", "settling [s]", "overshoot", "final error", "resets/agent", "TV(u)",
                "regular", "cost [cu/h]", "vs optimal"]
     body = []
-    for label, m in rows:
+    for r, (label, m) in enumerate(rows):
         tv = m.get("control_total_variation")
         body.append([
             label, fmt_times(m["settling_times_s"]), fmt_pct(m["overshoot"]),
             fmt_sci(m["final_error"]), fmt_resets(m["resets"]),
             "-" if tv is None else f"{tv:.2f}",
-            ("yes" if m["regular"] else "no") + ("" if m["discrete_stable"] else " (unstable Ts)"),
+            reports[r].verdict() if reports else (
+                ("yes" if m["regular"] else "no")
+                + ("" if m["discrete_stable"] else "; unstable at Ts")),
             f"{m['cost']:.4f}", f"{m['cost'] - m['optimal_cost']:+.1e}"])
     return table(headers, body, align="lrrrlrlrr")

@@ -19,11 +19,13 @@ from ..scenario import Scenario
 from ._common import (
     add_arithmetic_arguments,
     add_scenario_argument,
+    analysis_lines,
     describe,
     fmt_pct,
     fmt_resets,
     fmt_sci,
     fmt_time,
+    one_line_errors,
     resolve_scenario,
     slug,
     table,
@@ -48,6 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_arithmetic_arguments(p)
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output directory (default: runs/compare-<scenario name>)")
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 
@@ -77,6 +80,10 @@ def run(args: argparse.Namespace) -> int:
 
     print(f"bess-ded compare: {sc.title or sc.name}")
     print(f"  {describe(sc, args.fixed)}, k = {c.k:g}, h = {c.h:g}")
+    reset_pi, pc = (dict(runs)[name] for name in ("reset-PI", "PC"))
+    for line in analysis_lines(reset_pi)[1:]:
+        print(f"  reset-PI, PI: {line}")
+    print(f"  PC, finite-time: {analysis_lines(pc)[2]}")
     print()
     print(compare_table([(label, m) for label, _, _, m in results]))
     print()

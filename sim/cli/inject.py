@@ -5,6 +5,10 @@ from __future__ import annotations
 import argparse
 
 from firmware_py.__main__ import add_bus_arguments
+from firmware_py.cliargs import int_in, positive_float, positive_int
+
+from ..scenario import MAX_AGENTS
+from ._common import one_line_errors
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -15,11 +19,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                            f"  {k:12} {v}" for k, v in KINDS.items()),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("kind", choices=sorted(KINDS))
-    p.add_argument("--count", type=int, default=100)
-    p.add_argument("--target", type=int, default=1, help="agent impersonated")
-    p.add_argument("--rate", type=float, default=1000.0, help="frames per second")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--count", type=positive_int(), default=100, metavar="N",
+                   help="frames to send (default: 100)")
+    p.add_argument("--target", type=int_in(1, MAX_AGENTS, what="an agent number"), default=1,
+                   metavar="AGENT", help="agent impersonated (default: 1)")
+    p.add_argument("--rate", type=positive_float(), default=1000.0, metavar="HZ",
+                   help="frames per second (default: 1000)")
+    p.add_argument("--seed", type=int_in(0), default=0, metavar="N")
     add_bus_arguments(p)
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 

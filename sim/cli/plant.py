@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 
+from ._common import one_line_errors
 from ._node import add_node_arguments
 
 
@@ -19,6 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fault", action="append", default=[], metavar="AGENT:KIND:T0:T1",
                    help="force a fault flag on BESS AGENT from T0 to T1 s after start; KIND is "
                    "overcurrent, voltage, soc or power_limit (repeatable)")
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 
+from ._common import one_line_errors
 from ._node import add_node_arguments
 
 
@@ -18,6 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_node_arguments(p)
     p.add_argument("--silent", action="append", default=[], metavar="T0:T1",
                    help="send nothing from T0 to T1 s after start (fault test; repeatable)")
+    one_line_errors(p)
     p.set_defaults(func=run)
 
 
