@@ -65,8 +65,8 @@ class Quantity:
 
 
 def worst_error(tr: Trajectory) -> np.ndarray:
-    """max_i |λ_i − ρ| over the agents on the network, per sample (as sim.metrics)."""
-    return np.where(tr.active, np.abs(tr.lam - tr.rho[:, None]), 0.0).max(axis=1)
+    """max_i |λ_i − ρ| over the agents meant to be dispatching, per sample (as sim.metrics)."""
+    return np.where(tr.judged, np.abs(tr.lam - tr.rho[:, None]), 0.0).max(axis=1)
 
 
 @dataclass(frozen=True)
@@ -137,7 +137,7 @@ def view_end(tr: Trajectory, band: float = 0.02) -> float:
     changes = np.union1d(changes, np.flatnonzero(np.any(np.diff(tr.active, axis=0), axis=1)) + 1)
     if changes.size:
         last = max(last, float(tr.t[changes[-1]]))
-    err = np.where(tr.active, np.abs(tr.lam - tr.rho[:, None]), 0.0).max(axis=1)
+    err = worst_error(tr)
     for seg in np.unique(tr.segment):
         idx = np.flatnonzero(tr.segment == seg)
         out = idx[err[idx] > band * err[idx[0]]]

@@ -76,7 +76,8 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
             from . import plots
 
             plots.figure([("over the CAN bus", tr)], ("lam", "p", "grid"), out / "bus_run.png",
-                         title=sc.title or sc.name, load_kw=sc.load_kw, t_max=None)
+                         title=sc.title or sc.name, load_kw=sc.load_kw, t_max=None,
+                         time_scale=time_scale, batteries=sc.batteries)
     return Recording(m, log, tr, verdict)
 
 

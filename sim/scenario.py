@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import tomli_w
 
+from firmware_py.contract import N_AGENTS_MAX
 from firmware_py.controllers import ControllerConfig
 from firmware_py.errors import ConfigError, ParameterError
 
@@ -25,8 +26,7 @@ from . import graph
 from .model import Battery
 
 SCENARIO_DIR = Path(__file__).with_name("scenarios")
-MAX_AGENTS = 32  # the DBC defines AGENT_1..AGENT_32
-# TODO(contract): take MAX_AGENTS from firmware_py/contract.py (the DBC's limit) once it lands
+MAX_AGENTS = N_AGENTS_MAX  # the DBC's AGENT_1..AGENT_N frames
 CONTROLLER_KEYS = {"kind", "k", "h", "dwell", "band", "ft_exponent"}
 BATTERY_KEYS = {"alpha", "beta", "m", "p_min", "p_max", "capacity_kwh", "soc0", "v_nom",
                 "r_internal", "lambda0"}

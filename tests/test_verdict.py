@@ -290,3 +290,15 @@ def test_record_captures_a_bus_for_analyze(tmp_path: Path, udp_port: int) -> Non
     assert "50 frames" in err
     frames = list(can.LogReader(str(log)))
     assert [codec.decode(f).raw["Rho"] for f in frames] == [k << 20 for k in range(50)]
+
+
+def test_up_refuses_a_scenario_that_leaves_agents_unpinned(tmp_path: Path, capsys) -> None:
+    """Agents 3 and 4 share no edge with the pinned agent 1: they could never reach ρ."""
+    text = (ROOT / "sim/scenarios/case1.toml").read_text()
+    lines = [("edges = [[1, 2], [3, 4]]" if line.startswith("edges") else line)
+             for line in text.splitlines()]
+    path = tmp_path / "split.toml"
+    path.write_text("\n".join(lines) + "\n")
+    assert main(["up", "--case", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "agents 3, 4 cannot reach a pinned agent" in err

@@ -20,14 +20,19 @@ from firmware_py.errors import ConfigError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("analyze", help="metrics, anomalies and plots from a recorded CAN log",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from firmware_py.cliargs import positive_float
+
+    from ._common import one_line_errors
+
+    p = one_line_errors(sub.add_parser(
+        "analyze", help="metrics, anomalies and plots from a recorded CAN log",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter))
     p.add_argument("log", type=Path, metavar="LOG", help="candump-format log of the fleet")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--case", metavar="CASE", help="a case number (1-7) or a scenario .toml")
     src.add_argument("--scenario", metavar="FILE", help="a scenario .toml (docs/scenarios.md)")
     p.add_argument("--variant", metavar="LABEL", help="the variant that ran (cases 2, 3, 6)")
-    p.add_argument("--time-scale", type=float, default=1.0, metavar="F",
+    p.add_argument("--time-scale", type=positive_float(), default=1.0, metavar="F",
                    help="the --time-scale the run used (default: 1)")
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output directory (default: LOG's directory/<LOG stem>-analysis)")
@@ -44,9 +49,8 @@ def run(args: argparse.Namespace) -> int:
     from ..scenario import scaled
     from ..verdict import RunFacts
     from ._common import resolve_scenario
-    from .up import pick_variant, positive
+    from .up import pick_variant
 
-    positive("--time-scale", args.time_scale)
     if not args.log.is_file():
         raise ConfigError(str(args.log), "LOG", "expected a readable log file, but there is "
                           "no such file")

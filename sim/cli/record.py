@@ -16,13 +16,17 @@ from pathlib import Path
 
 def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.__main__ import add_bus_arguments
+    from firmware_py.cliargs import positive_float
 
-    p = sub.add_parser("record", help="capture a CAN bus to a candump log", description=__doc__,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    from ._common import one_line_errors
+
+    p = one_line_errors(sub.add_parser(
+        "record", help="capture a CAN bus to a candump log", description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter))
     add_bus_arguments(p)
     p.add_argument("--out", type=Path, required=True, metavar="FILE",
                    help="the log to write (.log for candump format)")
-    p.add_argument("--duration", type=float, metavar="S",
+    p.add_argument("--duration", type=positive_float(), metavar="S",
                    help="stop after S seconds (default: until SIGINT/SIGTERM)")
     p.set_defaults(func=run)
 
@@ -33,9 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from firmware_py.node import StopFlag, bus_kwargs, open_bus
 
     from ..busrun import enlarge_receive_buffer
-    from .up import positive
 
-    positive("--duration", args.duration)
     kw = {**bus_kwargs(args.interface, args.channel, args.bus_config),
           "receive_own_messages": False}
     args.out.parent.mkdir(parents=True, exist_ok=True)

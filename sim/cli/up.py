@@ -20,7 +20,6 @@ CAN_CONFIG) gets a private one, so concurrent runs never hear each other.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -40,28 +39,28 @@ IN_PROCESS_INTERFACES = ("virtual",)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("up", help="run router, plant and every agent as processes on a bus",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from firmware_py.cliargs import positive_float
+
+    from ._common import one_line_errors
+
+    p = one_line_errors(sub.add_parser(
+        "up", help="run router, plant and every agent as processes on a bus",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter))
     p.add_argument("--case", required=True, metavar="CASE",
                    help="a case number (1-7, the paper's cases) or a path to a scenario .toml")
     p.add_argument("--variant", metavar="LABEL",
                    help="for a scenario with variants (cases 2, 3, 6): which one to run "
                    "(default: the first)")
     add_bus_arguments(p)
-    p.add_argument("--duration", type=float, metavar="S",
+    p.add_argument("--duration", type=positive_float(), metavar="S",
                    help="seconds of price time (default: the scenario's duration)")
     p.add_argument("--out", type=Path, help="output directory (default: runs/up-<scenario>)")
-    p.add_argument("--time-scale", type=float, metavar="F",
+    p.add_argument("--time-scale", type=positive_float(), metavar="F",
                    help="stretch the time axis by F (Ts·F, k/F, h/F²: the same discrete "
                    "system) for hosts too slow for Ts = 10 ms, e.g. an emulated guest "
                    f"(default: 1, or {GUEST_TIME_SCALE:g} under tools/vcan-run)")
     p.add_argument("--no-plot", action="store_true", help="skip bus_run.png")
     p.set_defaults(func=run)
-
-
-def positive(name: str, value: float | None) -> None:
-    if value is not None and not (math.isfinite(value) and value > 0):
-        raise ParameterError(name, "a finite number > 0", value)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -70,8 +69,6 @@ def run(args: argparse.Namespace) -> int:
     from ..scenario import scaled
     from ._common import resolve_scenario
 
-    positive("--duration", args.duration)
-    positive("--time-scale", args.time_scale)
     base = resolve_scenario(args.case)
     sc, chosen = pick_variant(base, args.variant)
     bus = busrun.BusOptions(args.interface, args.channel, args.bus_config)
@@ -96,10 +93,8 @@ def run(args: argparse.Namespace) -> int:
                                        if scale != 1 else ""))
     print(f"  bus: {bus.resolved()}" + (f" (port {port} private to this run; name one with "
                                          "--bus-config '{\"port\": N}')" if port else ""))
-    rep = sc.analysis()
-    print(f"  regular (Theorem 1): {'yes' if rep.regular else 'NO'}; discrete-time stable at "
-          f"Ts = {sc.ts * 1e3:g} ms: {'yes' if rep.discrete_stable else 'NO'} "
-          f"(max|1 + Ts·μ| = {rep.spectral_radius:.4f})")
+    for line in sc.analysis().describe()[1:]:
+        print(f"  {line}")
     rec = busrun.record(sc, out, bus, duration=duration, plot=not args.no_plot,
                         time_scale=scale)
     for line in summary_lines(rec.metrics, rec.verdict, scale):
