@@ -177,6 +177,36 @@ def _as_runs(runs: Runs) -> list[tuple[str, Trajectory]]:
     return out
 
 
+OFF_MIN_SAMPLES = 5  # shorter spans off the dispatch (an agent's first sample in INIT) unshaded
+
+
+def _off_intervals(tr: Trajectory) -> tuple[list[list[tuple[float, float]]],
+                                            dict[tuple[float, float], str]]:
+    """Per agent, the spans it was off the dispatch (not active); and one label per span,
+    agents sharing a span named together, by the state a bus run recorded ("SAFE",
+    "INIT") or else "isolated"."""
+    from firmware_py.contract import State
+
+    ts = float(tr.t[1] - tr.t[0]) if tr.t.size > 1 else 0.0
+    off: list[list[tuple[float, float]]] = []
+    names: dict[tuple[float, float], tuple[list[int], str]] = {}
+    for i in range(tr.n):
+        spans = [(a, b) for a, b in _intervals(~tr.active[:, i], tr.t)
+                 if b - a >= OFF_MIN_SAMPLES * ts - 1e-9]
+        off.append(spans)
+        for a, b in spans:
+            what = "isolated"
+            if tr.state is not None:
+                k = int(np.searchsorted(tr.t, a))
+                state = int(tr.state[min(k, tr.t.size - 1), i])
+                what = "isolated" if state == State.ISOLATED else State(state).name
+            agents, _ = names.setdefault((a, b), ([], what))
+            agents.append(i + 1)
+    labels = {span: f"BESS {', '.join(map(str, agents))} {what}"
+              for span, (agents, what) in names.items()}
+    return off, labels
+
+
 def _intervals(mask: np.ndarray, t: np.ndarray) -> list[tuple[float, float]]:
     """[t_start, t_end) of each run of True in mask."""
     if not mask.any():
@@ -371,7 +401,7 @@ def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *
                     axes[r, c].tick_params(labelleft=False)
     any_resets = any_isolated = any_settled = any_limits = False
     for c, (label, tr) in enumerate(runs_):
-        off = [_intervals(~tr.active[:, i], tr.t) for i in range(tr.n)]
+        off, off_labels = _off_intervals(tr)
         changes = tr.t[np.flatnonzero(np.diff(tr.segment)) + 1]
         segs = segments(tr) if show_settling and ("lam" in keys or "err" in keys) else []
         for r, key in enumerate(keys):
@@ -389,10 +419,10 @@ def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *
             for i, spans in enumerate(off):
                 for a, b in spans:
                     ax.axvspan(a, b, color=colours[i], alpha=0.13, lw=0, zorder=0)
-                    if r == 0:
-                        ax.text((a + b) / 2, 0.97, f"BESS {i + 1} isolated", ha="center",
-                                va="top", fontsize=7.5, color="0.25",
-                                transform=ax.get_xaxis_transform())
+            if r == 0:
+                for (a, b), text in off_labels.items():
+                    ax.text((a + b) / 2, 0.97, text, ha="center", va="top", fontsize=7.5,
+                            color="0.25", transform=ax.get_xaxis_transform())
             for tc in changes:
                 ax.axvline(tc, color="0.55", ls=":", lw=0.9, zorder=1)
             ax.grid(alpha=0.3, lw=0.6)
@@ -435,7 +465,7 @@ def figure(runs: Runs, rows: Sequence[str], path: str | Path, title: str = "", *
         handles.append(Line2D([], [], color="0.3", ls="none", marker="|", ms=7, mew=1.3,
                               label="reset of ν$_i$"))
     if any_isolated:
-        handles.append(Patch(color="0.6", alpha=0.3, label="isolated"))
+        handles.append(Patch(color="0.6", alpha=0.3, label="off the dispatch"))
     ncol = min(len(handles), max(4, int(width / 1.6)))
     fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=8,
                frameon=False, handlelength=1.8, columnspacing=1.2)
