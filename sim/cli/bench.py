@@ -204,6 +204,30 @@ def bus_load(quick: bool) -> Table:
                  data=data)
 
 
+def realtime_bus(quick: bool) -> Table:
+    """Cases 1 and 7 as node processes on udp_multicast (``bess-ded up``'s path): what only
+    a wall clock can tell, and what the tests therefore never assert: frame and price
+    rates, the worst node's deadline misses, bus silences, recorder misses, settling."""
+    from ..benchrt import realtime_run
+
+    rows, data = [], {}
+    for case in (1, 7):
+        r = realtime_run(case, 8.0 if quick else 20.0)
+        data[f"case{case}"] = r
+        st = r["settling_time_s"]
+        rows.append([f"case {case}", str(r["agents"]), f"{r['seconds']:g}",
+                     f"{r['frames_per_s']:.0f}", f"{r['price_frames_per_s']:.1f}",
+                     f"{r['deadline_miss_pct_max']:.2f} %", str(r["bus_silences"]),
+                     str(r["frames_missed_by_recorder"]),
+                     "never" if st is None else f"{st:.2f}", f"{r['final_error']:.1e}",
+                     str(r["exit_code"])])
+    return Table("Real-time bus runs (node processes on udp_multicast, SCHED_FIFO where allowed)",
+                 ["run", "agents", "s", "frames/s", "ER_Price/s", "worst misses",
+                  "silences", "rec. missed", "settling [s]", "final error", "exit"], rows,
+                 note="deadline miss: a tick released > Ts/2 late; silences: gaps > 3 Ts; "
+                 "exit as `bess-ded up` (3: converged with anomalies)", data=data)
+
+
 # Sections in print order. To add one (bus load, frame codec, ...): write a
 # `def name(quick: bool) -> Table` above and append it here.
 BENCHES: list[Bench] = [
@@ -243,6 +267,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true",
                    help="fewer samples and repetitions: the whole bench in a few seconds")
     p.add_argument("--json", type=Path, metavar="FILE", help="also write the results as JSON")
+    p.add_argument("--realtime", action="store_true",
+                   help="also run cases 1 and 7 as node processes on the bus (~1 min; "
+                   "--quick: ~25 s): rates, deadline misses, silences, settling")
     one_line_errors(p)
     p.set_defaults(func=run)
 
@@ -250,12 +277,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     info = machine_info()
-    print(f"bess-ded bench{' --quick' if args.quick else ''}")
+    print(f"bess-ded bench{' --quick' if args.quick else ''}"
+          f"{' --realtime' if args.realtime else ''}")
     print(f"  python {info['python']}, {info['platform']}")
     print(f"  CPU {info['cpu']} ({info['logical_cpus']} logical), numpy {info['numpy']}, "
           f"load average {info['load_average_1min']} at start")
     tables = []
-    for bench in BENCHES:
+    for bench in BENCHES + ([realtime_bus] if args.realtime else []):
         was_enabled = gc.isenabled()
         gc.collect()
         gc.disable()
