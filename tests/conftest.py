@@ -155,3 +155,27 @@ def assert_every_tick_accounted(out: Path, m: dict[str, Any], ts: float) -> dict
     n_plant = len([k for k in by_name if k.startswith("PLANT_")])
     assert abs(status - status_sent) <= FRAME_SLACK * n_plant, (status, status_sent)
     return report
+
+
+def lockstep_settling_ticks(sc: Any) -> int:
+    """Lockstep's settling time of the first price segment, in ticks."""
+    from sim.lockstep import run_lockstep
+    from sim.metrics import settling_times
+
+    ref_st = settling_times(run_lockstep(sc))[0]
+    assert ref_st is not None
+    return round(ref_st / sc.ts)
+
+
+def settling_ticks(out: Path, m: dict[str, Any], agent: int = 1) -> int:
+    """A run's settling time counted in agent ``agent``'s own ticks (MC frames sent from
+    t = 0, the first price, to the settling instant): what the control law needed,
+    whatever the wall clock did meanwhile (a starved agent ticks less, not slower)."""
+    from sim.buslog import read_log
+
+    log = read_log(out / "run.log")
+    assert m["settling_time_s"] is not None, "never settled"
+    assert log.t_first_price is not None
+    t0 = log.t_first_price
+    t_settle = t0 + m["settling_time_s"]
+    return sum(1 for t, _ in log.series[(f"AGENT_{agent}_MC", "Lambda")] if t0 <= t <= t_settle)

@@ -14,7 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import assert_every_tick_accounted, log_frames
+from conftest import (
+    assert_every_tick_accounted,
+    lockstep_settling_ticks,
+    log_frames,
+    settling_ticks,
+)
 
 from sim import busrun
 from sim.buslog import read_log, trajectory_from_log
@@ -61,22 +66,6 @@ def test_virtual_bus_case1_matches_lockstep(tmp_path: Path) -> None:
         assert names[f"PLANT_{i}_Status"] == 10.0 / 0.05
     (st,), (ref_st,) = m["settling_times_s"], settling_times(run_lockstep(sc))
     assert st is not None and abs(st - ref_st) <= 0.2, (st, ref_st)
-
-
-def lockstep_settling_ticks(sc) -> int:
-    (ref_st,) = settling_times(run_lockstep(sc))[:1]
-    return round(ref_st / sc.ts)
-
-
-def settling_ticks(out: Path, m: dict, agent: int = 1) -> int:
-    """The run's settling time counted in agent ``agent``'s own ticks (MC frames sent
-    from t = 0 to the settling instant): what the control law needs, whatever the wall
-    clock did meanwhile."""
-    log = read_log(out / "run.log")
-    assert m["settling_time_s"] is not None, "never settled"
-    t_settle = log.t_first_price + m["settling_time_s"]
-    return sum(1 for t, _ in log.series[(f"AGENT_{agent}_MC", "Lambda")]
-               if log.t_first_price <= t <= t_settle)
 
 
 @pytest.mark.realtime
