@@ -282,8 +282,10 @@ def test_agent_killed_and_restarted(tmp_path: Path, udp_port: int) -> None:
     ticks (MC frames; the timeout is 3·Ts); agents 1–3 stay converged while it is away.
     Restarted at 7.5 s with the same argv (its start-up takes as long as the host lets
     it), it rejoins (NeighboursAlive back to 3) within 2 of agent 1's ticks of its first
-    new RUNNING frame, and the whole system reconverges within the 15 s run or within the
-    lossless settling budget (2 × lockstep) of agent 4's return, whichever is later."""
+    new RUNNING frame, and the whole system reconverges (< 1e-3) by the end of the 20 s
+    run if that leaves 2× the time the simulated-clock twin needs from agent 4's return
+    (≈ 4.5 s; the restart's start-up is the host's), else agent 4 is at least back in
+    the consensus."""
     def kill(specs: list[busrun.NodeSpec], _logdir: Path) -> None:
         spec = next(s for s in specs if s.name == "agent_4")
         assert spec.proc is not None
@@ -293,10 +295,11 @@ def test_agent_killed_and_restarted(tmp_path: Path, udp_port: int) -> None:
     def restart(specs: list[busrun.NodeSpec], logdir: Path) -> None:
         busrun.start(next(s for s in specs if s.name == "agent_4"), logdir)
 
-    # the run lasts until the restarted agent has had the settling budget: its start-up
-    # on a loaded host is not ours to bound
-    budget = 2 * LOCKSTEP_SETTLING_S
-    m = run_case(tmp_path, udp_port, 15.0, account=False,
+    _, sim = run_simulated(tmp_path / "simulated", 15.0, restarts=[("agent_4", 5.0, 7.5)])
+    _, _, sim_back, _ = _kill_restart_times(sim)
+    need = next(t for t in (sim_back + 0.1 * k for k in range(100))
+                if lam_error_at(sim, t, range(1, N + 1)) < FINAL_TOL) - sim_back
+    m = run_case(tmp_path, udp_port, 20.0, account=False,
                  actions=[(5.0, kill), (7.5, restart)])
     recs = decode_log(tmp_path)
     last_before, t_drop, first_after, t_back = _kill_restart_times(recs)
@@ -312,7 +315,8 @@ def test_agent_killed_and_restarted(tmp_path: Path, udp_port: int) -> None:
     assert ticks_to_back <= 2
     assert err_gap < FINAL_TOL
     t_end = max(r.t for r in recs)
-    if t_end - first_after >= budget:
+    print(f"reconvergence budget {2 * need:.1f} s, had {t_end - first_after:.1f} s")
+    if t_end - first_after >= 2 * need:
         assert m["final_error"] < FINAL_TOL
     else:  # the restart took the run's time: agent 4 must be back in the consensus
         assert series(recs, "AGENT_4_MC", "State")[-1][1] == RUNNING
