@@ -326,10 +326,12 @@ def test_agent_killed_and_restarted(tmp_path: Path, udp_port: int) -> None:
 # --------------------------------------------------------------------------- 5. router silent
 
 
-def _silent_times(recs: list[Rec]) -> tuple[float, float, list[tuple[float, float]]]:
+def _silent_times(recs: list[Rec], throughout: bool = True
+                  ) -> tuple[float, float, list[tuple[float, float]]]:
     """(last price before the gap, first after it, per agent (SAFE entry, RUNNING again))
-    with the ordering every run must show: RUNNING up to the last price, SAFE from the
-    entry until prices come back."""
+    with the ordering every run must show: RUNNING before the gap (``throughout``: from
+    1 s on; else within its last second, since a loaded host may delay a price past the
+    timeout before the gap), SAFE from the entry until prices come back."""
     price_t = [r.t for r in recs if r.name == "ER_Price"]
     last = max(t for t in price_t if t < 6.0)
     back = min(t for t in price_t if t > 6.0)
@@ -337,7 +339,8 @@ def _silent_times(recs: list[Rec]) -> tuple[float, float, list[tuple[float, floa
     for i in range(1, N + 1):
         st = series(recs, f"AGENT_{i}_MC", "State")
         t_safe = next(t for t, v in st if t > last and v == SAFE)
-        assert all(v == RUNNING for t, v in st if 1.0 < t <= last), i
+        before = [v for t, v in st if (1.0 if throughout else last - 1.0) < t <= last]
+        assert (all if throughout else any)(v == RUNNING for v in before), i
         t_run = next(t for t, v in st if t > t_safe and v == RUNNING)
         assert all(v == SAFE for t, v in st if t_safe <= t < back), i
         out.append((t_safe, t_run))
@@ -369,7 +372,7 @@ def test_router_silent_sends_agents_safe(tmp_path: Path, udp_port: int) -> None:
     reconverges (< 1e-3 at 10 s)."""
     m = run_case(tmp_path, udp_port, 10.0, extra={"router": ["--silent", "5:7"]})
     recs = decode_log(tmp_path)
-    last, back, times = _silent_times(recs)
+    last, back, times = _silent_times(recs, throughout=False)
     entry = [frames_between(recs, f"AGENT_{i}_MC", last, t_safe) + 1
              for i, (t_safe, _) in enumerate(times, start=1)]
     resume = [frames_between(recs, f"AGENT_{i}_MC", back, t_run) + 1
