@@ -8,6 +8,7 @@ computes the metrics from the recording alone.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import random
@@ -464,7 +465,8 @@ def _check_alive(specs: list[NodeSpec], logdir: Path) -> None:
 
 
 def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bess-ded",
-                   plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = ()
+                   plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = (),
+                   restarts: Sequence[tuple[str, float, float]] = ()
                    ) -> dict[str, Any]:
     """The same nodes as `up` on python-can's in-process ``virtual`` bus, stepped on a
     simulated clock.
@@ -477,6 +479,12 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     multi-process runs (``run``) cover real-time scheduling. Frames are stamped with the
     simulated time (t = 0: the router's first price frame). Records DIR/run.log and
     returns the metrics.
+
+    ``restarts``: (node name as in `up`, e.g. ``"agent_4"``; t_down; t_up), a node killed
+    and restarted: from the first sample at or after t_down it neither reads nor sends
+    (what reaches its bus meanwhile is lost, as with a dead process), and from the first
+    sample at or after t_up a fresh node (new state, the same configuration) runs in its
+    place, as a restarted process would. t_up = inf: never restarted.
     """
     from firmware_py.runtime import AgentRuntime
 
@@ -485,9 +493,17 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
 
     out.mkdir(parents=True, exist_ok=True)
     codec = FrameCodec()
-    nodes: list[Any] = [AgentRuntime(c, codec) for c in agent_configs_from_scenario(sc)]
-    nodes.append(PlantNode(sc, period=sc.ts, faults=plant_faults))
-    nodes.append(RouterNode(sc, period=sc.ts, silent=router_silent))
+    factories: dict[str, Callable[[], Any]] = {
+        f"agent_{c.id}": functools.partial(AgentRuntime, c, codec)
+        for c in agent_configs_from_scenario(sc)}
+    factories["plant"] = lambda: PlantNode(sc, period=sc.ts, faults=plant_faults)
+    factories["router"] = lambda: RouterNode(sc, period=sc.ts, silent=router_silent)
+    names = list(factories)
+    nodes: list[Any] = [make() for make in factories.values()]
+    down = {name: (t_down, t_up) for name, t_down, t_up in restarts}
+    if unknown := set(down) - set(names):
+        raise BusRunError(f"restarts: expected node names among {names}, but got "
+                          f"{sorted(unknown)}")
     if any(abs(n.period - sc.ts) > 1e-12 for n in nodes):
         raise BusRunError(f"every node must tick at Ts = {sc.ts} s to be stepped together")
     kw: dict[str, Any] = {"interface": "virtual", "channel": channel,
@@ -496,13 +512,23 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     watch = can.Bus(**kw)
     writer = can.Logger(str(out / "run.log"))
     try:
+        eps = 1e-9 * sc.ts
         for k in range(round(duration / sc.ts)):
             t = k * sc.ts
-            for node, bus in zip(nodes, buses, strict=True):
+            alive = [True] * len(nodes)
+            for i, name in enumerate(names):
+                if name in down:
+                    t_down, t_up = down[name]
+                    if t_down - eps <= t < t_up - eps:
+                        alive[i] = False
+                    elif t >= t_up - eps and t - sc.ts < t_up - eps:
+                        nodes[i] = factories[name]()  # restarted: a fresh process
+            for node, bus, up in zip(nodes, buses, alive, strict=True):
                 while (msg := bus.recv(timeout=0)) is not None:
-                    node.on_frame(msg, t)
-            for node, bus in zip(nodes, buses, strict=True):
-                for frame in node.tick(t):
+                    if up:
+                        node.on_frame(msg, t)
+            for node, bus, up in zip(nodes, buses, alive, strict=True):
+                for frame in node.tick(t) if up else ():
                     frame.timestamp = t
                     bus.send(frame)
             while (msg := watch.recv(timeout=0)) is not None:

@@ -12,7 +12,7 @@ from dataclasses import replace
 import can
 import pytest
 
-from firmware_py.contract import cycle_s, every_ticks, timeout_s
+from firmware_py.contract import COUNTER_MODULO, cycle_s, every_ticks, timeout_s
 from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec, setpoint_name, status_name
 from firmware_py.node import StopFlag, run_node
@@ -409,7 +409,12 @@ def test_router_silent_window_drops_commands_due_in_it() -> None:
 
 
 def test_plant_and_router_on_a_virtual_bus() -> None:
-    """~1 s of wall time: both nodes under run_node, a setpoint source and an observer."""
+    """Both nodes under run_node in threads (the real loop, on the wall clock), a
+    setpoint source and an observer, until each expected frame kind has been seen often
+    enough (a condition with a generous deadline, not a fixed second: on a loaded host the
+    threads get fewer ticks per second; the rates are `bess-ded bench`'s, the exact
+    counts the simulated-clock tests' above). The plant follows the setpoint, the router
+    hears the plant, nothing is rejected, and both threads stop when told."""
     channel = f"plant-router-{next(_channels)}-{time.monotonic_ns()}"
     kw = {"interface": "virtual", "channel": channel, "receive_own_messages": False}
     sc = load_case(1)
@@ -417,42 +422,50 @@ def test_plant_and_router_on_a_virtual_bus() -> None:
     buses = [can.Bus(**kw) for _ in range(4)]
     plant_bus, router_bus, agent_bus, watch = buses
     stop = StopFlag()
-    threads = [threading.Thread(target=run_node, args=(plant, plant_bus),
-                                kwargs={"stop": stop}, daemon=True),
-               threading.Thread(target=run_node, args=(router, router_bus),
-                                kwargs={"stop": stop, "duration": 1.0}, daemon=True)]
+    threads = [threading.Thread(target=run_node, args=(node, bus), kwargs={"stop": stop},
+                                daemon=True)
+               for node, bus in ((plant, plant_bus), (router, router_bus))]
+    want = {**{f"PLANT_{i}_Status": 20 for i in range(1, 5)}, "ER_Price": 10,
+            "ER_Balance": 5}
     seen: dict[str, list] = {}
+
+    def enough() -> bool:
+        return (all(len(seen.get(k, [])) >= n for k, n in want.items())
+                and plant.counters["setpoints"] > 20 and router.counters["status_frames"] > 50
+                and abs(router.measured_powers[0] - 30.0) <= 0.5)
+
     try:
         for th in threads:
             th.start()
-        t_end = time.monotonic() + 1.0
+        deadline = time.monotonic() + 120.0
         ctr = 0
-        while time.monotonic() < t_end:
+        while not enough() and time.monotonic() < deadline:
             agent_bus.send(setpoint(1, 30.0, ctr % 16))
             ctr += 1
-            deadline = time.monotonic() + 0.02
-            while (msg := watch.recv(timeout=max(0.0, deadline - time.monotonic()))) is not None:
+            until = time.monotonic() + 0.02
+            while (msg := watch.recv(timeout=max(0.0, until - time.monotonic()))) is not None:
                 f = CODEC.decode(msg)
                 seen.setdefault(f.name, []).append(f)
-        threads[1].join(timeout=5)
     finally:
         stop.set()
         for th in threads:
-            th.join(timeout=5)
+            th.join(timeout=30)
         for bus in buses:
             bus.shutdown()
     assert not any(th.is_alive() for th in threads)
-    for i in range(1, 5):
-        # ~1 s of wall time at the 50 ms status cycle: 20, less what a loaded host delays
-        assert len(seen.get(f"PLANT_{i}_Status", [])) >= 15, seen.keys()
-    prices = seen.get("ER_Price", [])
-    assert len(prices) >= 10 and all(f.raw["Rho"] == round(0.8 * 2**24) for f in prices)
-    assert len(seen.get("ER_Balance", [])) >= 5
+    assert enough(), ({k: len(v) for k, v in seen.items()}, plant.counters, router.counters)
+    prices = seen["ER_Price"]
+    assert all(f.raw["Rho"] == round(0.8 * 2**24) for f in prices)
+    assert [f.counter for f in prices] == [k % COUNTER_MODULO for k in range(len(prices))]
     assert seen["PLANT_1_Status"][-1].phys("Power") == pytest.approx(30.0, abs=0.5)
-    assert plant.counters["setpoints"] > 20 and router.counters["status_frames"] > 50
     bad = ("crc", "dlc", "range", "unknown_id", "impersonation", "malformed")
     assert not any(plant.counters[c] or router.counters[c] for c in bad)
-    assert router.measured_powers[0] == pytest.approx(30.0, abs=0.5)
+    # every tick accounted: the loop ticked or counted the miss (wall clock, any load)
+    for node in (plant, router):
+        expected = node.elapsed / node.period + 1
+        assert node.ticks <= expected + 1, (node.ticks, expected)
+        assert node.ticks + node.counters["deadline_miss"] >= expected - 1, (
+            node.ticks, node.counters["deadline_miss"], expected)
 
 
 # --------------------------------------------------------------------------- CLI
