@@ -76,6 +76,36 @@ def test_a_router_outage_that_ends_is_reported_but_converges(tmp_path: Path) -> 
     assert all(4.2 <= a["t"] <= 4.4 for a in safe), safe
 
 
+def test_a_dead_plant_puts_its_agents_in_safe(tmp_path: Path) -> None:
+    """The plant stops at 4 s for good: within the documented status timeout (5 status
+    cycles, 0.25 s) plus a sample of transport, every agent is SAFE with its setpoint
+    disabled; the verdict names the silent plant and the agents' status timeouts."""
+    from firmware_py.contract import State, timeout_s
+
+    sc = replace(load_case(1), duration=6.0)
+    m = busrun.run_in_process(sc, tmp_path, duration=6.0, channel="verdict-plant-dead",
+                              restarts=[("plant", 4.0, float("inf"))])
+    assert m["verdict"]["exit_code"] == EXIT_NOT_CONVERGED
+    limit = timeout_s("PLANT_1_Status", sc.ts)
+    codec = FrameCodec()
+    last_status = max(f.timestamp for f in can.LogReader(str(tmp_path / "run.log"))
+                      if f.arbitration_id == codec.frame_id("PLANT_1_Status"))
+    for i in range(1, 5):
+        frames = [(f.timestamp, codec.decode(f)) for f in can.LogReader(str(tmp_path / "run.log"))
+                  if f.arbitration_id in (codec.frame_id(f"AGENT_{i}_MC"),
+                                          codec.frame_id(f"AGENT_{i}_Setpoint"))]
+        safe = min(t for t, f in frames if f.name.endswith("_MC")
+                   and f.raw["State"] == State.SAFE)
+        assert limit < safe - last_status <= limit + 2 * sc.ts + 1e-9, (i, safe, last_status)
+        assert all(f.raw["Enable"] == 0 for t, f in frames
+                   if f.name.endswith("_Setpoint") and t > safe)
+        assert m["node_diagnostics"][f"agent_{i}"]["StatusTimeouts"] == 1
+    found = kinds(m)
+    assert ("node_silent", "plant") in found
+    assert {("status_timeout", f"agent_{i}") for i in range(1, 5)} <= found
+    assert {("agent_safe_at_end", f"agent_{i}") for i in range(1, 5)} <= found
+
+
 def analyze(log: Path, out: Path, *extra: str) -> tuple[int, dict]:
     rc = main(["analyze", str(log), "--case", "1", "--out", str(out), "--no-plot", *extra])
     return rc, json.loads((out / "metrics.json").read_text())
@@ -218,6 +248,7 @@ def test_private_port_only_where_needed() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_concurrent_up_runs_do_not_hear_each_other(tmp_path: Path) -> None:
     """Two `bess-ded up --case 1` with no bus flags at once: each on a private port, each
     converges with its own handful of resets and no foreign traffic. (Deadline misses and
@@ -241,6 +272,7 @@ def test_concurrent_up_runs_do_not_hear_each_other(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
 def test_router_killed_mid_run_is_named(tmp_path: Path, udp_port: int) -> None:
     sc = replace(load_case(1), duration=6.0)
 
@@ -260,6 +292,7 @@ def test_router_killed_mid_run_is_named(tmp_path: Path, udp_port: int) -> None:
     assert {("agent_safe_at_end", f"agent_{i}") for i in range(1, 5)} <= found
 
 
+@pytest.mark.realtime
 def test_record_captures_a_bus_for_analyze(tmp_path: Path, udp_port: int) -> None:
     """`bess-ded record` on a udp_multicast port until SIGINT: every frame sent lands in
     a candump log that python-can and `cantools decode` read back."""
