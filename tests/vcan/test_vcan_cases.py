@@ -32,12 +32,12 @@ from vcanrun import (
     run_on_vcan,
 )
 
-from sim.buslog import ISOLATED
+from firmware_py.contract import State
 from sim.scenario import Event, PriceStep, load_case
 
 pytestmark = pytest.mark.vcan
 
-RUNNING = 1
+ISOLATED, RUNNING = State.ISOLATED, State.RUNNING
 
 
 @pytest.fixture(scope="module")
