@@ -19,6 +19,7 @@ Times in run.log are the recorder's receive times; t = 0 is the first ER_Price f
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import subprocess
@@ -736,7 +737,8 @@ def test_up_interrupted_stops_every_node(tmp_path: Path, udp_port: int) -> None:
     """Expected: `bess-ded up` interrupted with SIGINT once the run is under way stops
     every node (no process with the run's port in its command line remains), exits by
     itself (a generous deadline; idle: < STOP_GRACE_S + 2 s, printed) with 130
-    ("interrupted"), and run.log holds the frames recorded until then."""
+    ("interrupted"), and run.log holds the frames recorded until then, with the metrics,
+    trajectory and plot of what was recorded, and a verdict that says it was interrupted."""
     port_text = f'"port": {udp_port}'   # in up's argv and in every node's --bus-config
     p = subprocess.Popen([sys.executable, "-m", "sim.cli", "up", "--case", "1",
                           "--duration", "60", "--out", str(tmp_path), "--interface",
@@ -761,6 +763,11 @@ def test_up_interrupted_stops_every_node(tmp_path: Path, udp_port: int) -> None:
     recs = decode_log(tmp_path)
     assert {r.name for r in recs} >= {f"AGENT_{i}_MC" for i in range(1, N + 1)}
     assert recs[-1].t > 0.5
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["verdict"]["interrupted"] and m["verdict"]["exit_code"] == 130
+    assert ("interrupted", "run") in {(a["kind"], a["node"]) for a in m["anomalies"]}
+    assert (tmp_path / "trajectory.csv").is_file() and (tmp_path / "bus_run.png").is_file()
+    assert "verdict: INTERRUPTED" in out.decode()
 
 
 # --------------------------------------------------------------------------- FaultyBus units
