@@ -46,6 +46,7 @@ COMMANDS: tuple[str, ...] = (
     "plant",     # the plant simulator node
     "router",    # the energy-router (price) node
     "inject",    # crafted bad frames for fault-injection tests
+    "keys",      # provision SecOC keys for a fleet (docs/security.md)
 )
 
 

@@ -1,0 +1,535 @@
+"""Frame authentication in the style of AUTOSAR SecOC profile 1 for classic CAN.
+
+The core only: pure functions and small classes, not yet wired into the nodes or
+the DBC (docs/security.md, "Status"). All cryptography comes from the maintained
+``cryptography`` package; nothing here is hand-written crypto.
+
+Keys
+    ``derive_node_key(master, node)``: NIST SP 800-108 key derivation in counter
+    mode with CMAC-AES-128 as the PRF (``KBKDFCMAC``), one 128-bit key per node::
+
+        K_node = PRF(K_master, [i]_32 ‖ LABEL ‖ 0x00 ‖ UTF-8(node) ‖ [128]_32),  i = 1
+
+    with LABEL = ``b"bess-ded/secoc/node-key/v1"``, the counter ``i`` and the output
+    length L = 128 as 32-bit big-endian integers, the counter before the fixed data.
+    A node holds only its own K_node; knowing it says nothing about another node's
+    key or about K_master (a PRF output). ``fleet_id(master)`` is a public 64-bit
+    tag of the key set (same KDF, label ``b"bess-ded/secoc/fleet-id/v1"``, empty
+    context, L = 64) so that nodes from different provisionings can tell.
+
+Freshness
+    Per sender, a 40-bit full freshness value FV = boot counter (16 bits) ‖ message
+    counter (24 bits) (``FreshnessLayout``). The boot counter is persisted by the
+    caller (the node's key file) and bumped *before* the first frame of every start,
+    and whenever the message counter would wrap, so FV strictly increases across
+    restarts. Only the low ``tx_bits`` (8, as in profile 1) of FV go on the wire; the
+    receiver rebuilds the full value from the last one it accepted
+    (``FreshnessVerifier``).
+
+Authenticator
+    ``authenticator(key, data_id, payload, freshness, bits)`` is the most significant
+    ``bits`` bits of CMAC-AES-128(K_sender, M) with::
+
+        M = data_id (2 bytes, big-endian) ‖ payload (as is) ‖ FV (8 bytes, big-endian)
+
+    This is the layout of ``cantools.autosar.secoc.compute_authenticator`` for a
+    message whose SecOC properties say ``freshness_bit_length = 64`` and
+    ``payload_length = len(payload)`` (cantools packs ``u16 ‖ payload ‖ u64`` with
+    bitstruct, most significant bit first); tests/test_secoc.py checks that they agree.
+    The truncation keeps the leading bits of the CMAC, as SecOC and cantools'
+    ``apply_authenticator`` do.
+"""
+
+from __future__ import annotations
+
+import enum
+import hmac
+import os
+import re
+import stat
+import tomllib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from cryptography.hazmat.primitives import cmac
+from cryptography.hazmat.primitives.ciphers import algorithms
+from cryptography.hazmat.primitives.kdf.kbkdf import KBKDFCMAC, CounterLocation, Mode
+
+from .errors import BessDedError
+
+KEY_BYTES = 16                      # AES-128
+MAC_BITS = 24                       # profile 1: a 24-bit truncated CMAC on the wire
+TX_FRESHNESS_BITS = 8               # profile 1: the low 8 bits of FV on the wire
+DATA_ID_BITS = 16                   # SecOCDataId is a uint16
+FV_WIRE_BYTES = 8                   # FV in the MAC input: always 8 bytes, big-endian
+NODE_KEY_LABEL = b"bess-ded/secoc/node-key/v1"
+FLEET_ID_LABEL = b"bess-ded/secoc/fleet-id/v1"
+KEY_FILE_FORMAT = "bess-ded-secoc-node-key/1"
+MASTER_FILE_FORMAT = "bess-ded-secoc-master-key/1"
+KDF_NAME = "NIST SP 800-108 counter mode, CMAC-AES-128"
+MAC_NAME = "CMAC-AES-128"
+_NODE_RE = re.compile(r"[a-z][a-z0-9_]{0,31}")
+
+
+class SecOCError(BessDedError, ValueError):
+    """A SecOC parameter or key is invalid (wrong length, out-of-range value)."""
+
+
+class KeyFileError(BessDedError):
+    """A key file is missing, unreadable, malformed, or readable by others."""
+
+
+# --------------------------------------------------------------------------- keys
+
+
+def _check_key(key: bytes, what: str = "key") -> bytes:
+    if not isinstance(key, bytes | bytearray) or len(key) != KEY_BYTES:
+        got = f"{len(key)} bytes" if isinstance(key, bytes | bytearray) else type(key).__name__
+        raise SecOCError(f"{what}: expected {KEY_BYTES} bytes (AES-128), but got {got}")
+    return bytes(key)
+
+
+def check_node_name(node: str) -> str:
+    """A node label: lower-case letters, digits and '_', starting with a letter, at
+    most 32 characters ('agent_3', 'plant', 'router')."""
+    if not isinstance(node, str) or not _NODE_RE.fullmatch(node):
+        raise SecOCError(f"node: expected a name like 'agent_3', 'plant' or 'router' "
+                         f"([a-z][a-z0-9_]*, at most 32 characters), but got {node!r}")
+    return node
+
+
+def _kbkdf(master_key: bytes, label: bytes, context: bytes, length: int) -> bytes:
+    return KBKDFCMAC(
+        algorithm=algorithms.AES, mode=Mode.CounterMode, length=length,
+        rlen=4, llen=4, location=CounterLocation.BeforeFixed,
+        label=label, context=context, fixed=None,
+    ).derive(_check_key(master_key, "master key"))
+
+
+def derive_node_key(master_key: bytes, node: str) -> bytes:
+    """The node's 16-byte CMAC key (see the module docstring for the exact encoding)."""
+    return _kbkdf(master_key, NODE_KEY_LABEL, check_node_name(node).encode(), KEY_BYTES)
+
+
+def fleet_id(master_key: bytes) -> str:
+    """A public 16-hex-digit tag of a key set: equal for every node of one provisioning."""
+    return _kbkdf(master_key, FLEET_ID_LABEL, b"", 8).hex()
+
+
+def fleet_nodes(n_agents: int) -> list[str]:
+    """Every node of a fleet of ``n_agents`` agents, in provisioning order."""
+    if n_agents < 1:
+        raise SecOCError(f"n_agents: expected ≥ 1, but got {n_agents}")
+    return [f"agent_{i}" for i in range(1, n_agents + 1)] + ["plant", "router"]
+
+
+# --------------------------------------------------------------------------- authenticator
+
+
+def cmac_aes128(key: bytes, message: bytes) -> bytes:
+    """The full 16-byte CMAC-AES-128 tag (NIST SP 800-38B) of ``message``."""
+    c = cmac.CMAC(algorithms.AES(_check_key(key)))
+    c.update(message)
+    return c.finalize()
+
+
+def auth_data(data_id: int, payload: bytes, freshness: int) -> bytes:
+    """The MAC input: data_id (2 bytes BE) ‖ payload ‖ freshness (8 bytes BE)."""
+    if not 0 <= data_id < 1 << DATA_ID_BITS:
+        raise SecOCError(f"data_id: expected 0..{(1 << DATA_ID_BITS) - 1}, but got {data_id}")
+    if not 0 <= freshness < 1 << (8 * FV_WIRE_BYTES):
+        raise SecOCError(f"freshness: expected 0..2^64-1, but got {freshness}")
+    return (data_id.to_bytes(2, "big") + bytes(payload)
+            + freshness.to_bytes(FV_WIRE_BYTES, "big"))
+
+
+def _check_bits(bits: int) -> int:
+    if not isinstance(bits, int) or not 1 <= bits <= 128:
+        raise SecOCError(f"bits: expected 1..128 (24 in profile 1), but got {bits!r}")
+    return bits
+
+
+def authenticator(key: bytes, data_id: int, payload: bytes, freshness: int,
+                  bits: int = MAC_BITS) -> int:
+    """The leading ``bits`` bits of CMAC-AES-128(key, auth_data(...)), as an integer."""
+    tag = cmac_aes128(key, auth_data(data_id, payload, freshness))
+    return int.from_bytes(tag, "big") >> (128 - _check_bits(bits))
+
+
+def verify(key: bytes, data_id: int, payload: bytes, freshness: int, mac: int,
+           bits: int = MAC_BITS) -> bool:
+    """Whether ``mac`` is the authenticator of (data_id, payload, freshness); the
+    comparison takes the same time wherever the values differ."""
+    expected = authenticator(key, data_id, payload, freshness, bits)
+    if not isinstance(mac, int) or not 0 <= mac < 1 << bits:
+        return False
+    n = (bits + 7) // 8
+    return hmac.compare_digest(expected.to_bytes(n, "big"), mac.to_bytes(n, "big"))
+
+
+# --------------------------------------------------------------------------- freshness
+
+
+@dataclass(frozen=True)
+class FreshnessLayout:
+    """FV = boot counter (``boot_bits``) ‖ message counter (``counter_bits``)."""
+
+    boot_bits: int = 16
+    counter_bits: int = 24
+
+    def __post_init__(self) -> None:
+        if self.boot_bits < 1 or self.counter_bits < 1 or self.bits > 8 * FV_WIRE_BYTES:
+            raise SecOCError(f"freshness layout: expected boot_bits, counter_bits ≥ 1 and "
+                             f"a total ≤ 64 bits, but got {self.boot_bits} + "
+                             f"{self.counter_bits}")
+
+    @property
+    def bits(self) -> int:
+        return self.boot_bits + self.counter_bits
+
+    @property
+    def max_boot(self) -> int:
+        return (1 << self.boot_bits) - 1
+
+    @property
+    def max_counter(self) -> int:
+        return (1 << self.counter_bits) - 1
+
+    @property
+    def max_value(self) -> int:
+        return (1 << self.bits) - 1
+
+    def join(self, boot: int, counter: int) -> int:
+        if not 0 <= boot <= self.max_boot or not 0 <= counter <= self.max_counter:
+            raise SecOCError(f"freshness: boot {boot} or counter {counter} out of range")
+        return boot << self.counter_bits | counter
+
+    def split(self, freshness: int) -> tuple[int, int]:
+        return freshness >> self.counter_bits, freshness & self.max_counter
+
+
+DEFAULT_LAYOUT = FreshnessLayout()
+
+
+def truncate(freshness: int, tx_bits: int = TX_FRESHNESS_BITS) -> int:
+    """The low ``tx_bits`` of FV: what a frame carries."""
+    return freshness & ((1 << tx_bits) - 1)
+
+
+class FreshnessCounter:
+    """Sender side: the next FV for every frame this node sends.
+
+    ``boot`` is the boot counter as persisted (0 in a freshly provisioned key file).
+    Creating the counter starts a new boot: ``boot + 1`` is handed to ``persist``
+    *before* any value is returned, so a crash at any point cannot reuse a value.
+    The caller's ``persist`` must write durably (``save_boot_counter``) and raise if it
+    cannot; the counter is then unusable. The message counter starts at 0 (use the
+    first value for the boot/sync frame); when it would wrap, the boot counter is
+    bumped and persisted again. When the boot counter is exhausted the fleet must be
+    re-keyed (``SecOCError``).
+    """
+
+    def __init__(self, boot: int, persist: Callable[[int], None],
+                 layout: FreshnessLayout = DEFAULT_LAYOUT) -> None:
+        if not isinstance(boot, int) or not 0 <= boot <= layout.max_boot:
+            raise SecOCError(f"boot counter: expected 0..{layout.max_boot}, but got {boot!r}")
+        self.layout = layout
+        self._persist = persist
+        self._boot = boot
+        self._counter = 0
+        self._new_boot()
+
+    def _new_boot(self) -> None:
+        if self._boot >= self.layout.max_boot:
+            raise SecOCError("boot counter exhausted: re-provision the fleet's keys "
+                             "(bess-ded keys --fleet ... --force)")
+        self._persist(self._boot + 1)  # write-ahead: durable before it is used
+        self._boot += 1
+        self._counter = 0
+
+    @property
+    def boot(self) -> int:
+        return self._boot
+
+    def peek(self) -> int:
+        """The value ``next()`` returns, without consuming it."""
+        return self.layout.join(self._boot, self._counter)
+
+    def next(self) -> int:
+        """A full FV strictly greater than every value returned before (also across
+        restarts, given a durable ``persist``)."""
+        if self._counter > self.layout.max_counter:
+            self._new_boot()
+        value = self.layout.join(self._boot, self._counter)
+        self._counter += 1
+        return value
+
+
+class FreshnessVerifier:
+    """Receiver side: per sender, the last accepted FV; accepts only larger ones.
+
+    ``candidate(sender, truncated)`` rebuilds the full FV from the ``tx_bits`` low
+    bits a frame carries, as SecOC does: the high bits of the last accepted value,
+    plus one step of 2^tx_bits when the received low bits are not above the last
+    ones. The candidate is therefore always in (last, last + 2^tx_bits]: the
+    acceptance window. Up to 2^tx_bits − 1 consecutive lost frames are tolerated;
+    after a longer gap, or a sender restart (its boot counter moved on), the MAC
+    check fails until a resynchronisation. The caller checks the MAC with the
+    candidate and calls ``accept`` only if it holds (``verify_secured`` does both).
+
+    ``resync(sender, full)`` is the hook for an authenticated frame that carries a
+    sender's full FV (docs/security.md: the sender's own SYNC frame at boot and
+    periodically, or the router relaying one). Call it only after that frame's MAC
+    was verified; it moves the state forward only (a replayed sync cannot rewind).
+    A sender with no state yet (``last(sender) is None``) needs a resync first.
+    """
+
+    def __init__(self, tx_bits: int = TX_FRESHNESS_BITS,
+                 layout: FreshnessLayout = DEFAULT_LAYOUT,
+                 initial: Mapping[str, int] | None = None) -> None:
+        if not 1 <= tx_bits <= layout.bits:
+            raise SecOCError(f"tx_bits: expected 1..{layout.bits}, but got {tx_bits}")
+        self.tx_bits = tx_bits
+        self.layout = layout
+        self._last: dict[str, int] = dict(initial or {})
+
+    def last(self, sender: str) -> int | None:
+        return self._last.get(sender)
+
+    def state(self) -> dict[str, int]:
+        """Every sender's last accepted FV (e.g. to persist a receiver's state)."""
+        return dict(self._last)
+
+    def candidate(self, sender: str, truncated: int) -> int | None:
+        """The full FV to verify a frame with, or None (no state for this sender, or
+        the candidate would exceed the layout: resync or re-key needed)."""
+        last = self._last.get(sender)
+        mask = (1 << self.tx_bits) - 1
+        if last is None or not 0 <= truncated <= mask:
+            return None
+        high = last >> self.tx_bits
+        if truncated <= last & mask:
+            high += 1
+        value = high << self.tx_bits | truncated
+        return value if value <= self.layout.max_value else None
+
+    def accept(self, sender: str, freshness: int) -> bool:
+        """Record an authenticated FV; False (and no change) unless it is strictly
+        greater than the last accepted one."""
+        last = self._last.get(sender)
+        if not 0 <= freshness <= self.layout.max_value or (last is not None
+                                                           and freshness <= last):
+            return False
+        self._last[sender] = freshness
+        return True
+
+    def resync(self, sender: str, full_freshness: int) -> bool:
+        """Set a sender's state from an authenticated sync frame's full FV (see the
+        class docstring). False if it is not newer than what is known."""
+        return self.accept(sender, full_freshness)
+
+
+class Verdict(enum.Enum):
+    """What ``verify_secured`` decided; every value but OK is a rejection cause."""
+
+    OK = "ok"
+    NO_FRESHNESS = "no_freshness"   # no state for the sender, or past the layout: resync
+    MAC = "mac"                     # wrong MAC: forged, replayed, stale, or desynchronised
+    STALE = "stale"                 # authentic but not newer (cannot happen via candidate)
+
+
+def verify_secured(key: bytes, data_id: int, payload: bytes, truncated_freshness: int,
+                   mac: int, sender: str, verifier: FreshnessVerifier,
+                   bits: int = MAC_BITS) -> Verdict:
+    """Check one received secured frame and, if it is authentic and fresh, advance
+    the sender's freshness. The state changes only on ``Verdict.OK``."""
+    fv = verifier.candidate(sender, truncated_freshness)
+    if fv is None:
+        return Verdict.NO_FRESHNESS
+    if not verify(key, data_id, payload, fv, mac, bits):
+        return Verdict.MAC
+    return Verdict.OK if verifier.accept(sender, fv) else Verdict.STALE
+
+
+def secure(key: bytes, data_id: int, payload: bytes, counter: FreshnessCounter,
+           bits: int = MAC_BITS, tx_bits: int = TX_FRESHNESS_BITS) -> tuple[int, int]:
+    """Sender side of one frame: (truncated FV, MAC) to append to ``payload``."""
+    fv = counter.next()
+    return truncate(fv, tx_bits), authenticator(key, data_id, payload, fv, bits)
+
+
+# --------------------------------------------------------------------------- key files
+
+
+@dataclass(frozen=True)
+class NodeKey:
+    """One node's key file, loaded."""
+
+    node: str
+    key: bytes
+    fleet_id: str
+    boot_counter: int
+    path: Path
+
+    def __repr__(self) -> str:  # never print the key
+        return (f"NodeKey(node={self.node!r}, fleet_id={self.fleet_id!r}, "
+                f"boot_counter={self.boot_counter}, path={str(self.path)!r})")
+
+    def persist(self) -> Callable[[int], None]:
+        """A ``FreshnessCounter`` persist callback writing to this key file."""
+        return lambda boot: save_boot_counter(self.path, boot)
+
+
+def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0) -> dict:
+    """The TOML document of a node key file."""
+    return {
+        "format": KEY_FILE_FORMAT,
+        "node": check_node_name(node),
+        "fleet_id": fleet,
+        "kdf": KDF_NAME,
+        "mac": MAC_NAME,
+        "key": _check_key(key).hex(),
+        "freshness": {"boot_counter": boot_counter},
+    }
+
+
+def write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` with mode 0600 from the first byte on: a temporary
+    file created 0600 (O_EXCL, no symlink following), fsynced, then renamed over."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
+                 0o600)
+    try:
+        os.fchmod(fd, 0o600)  # the umask can only have removed bits; make it exact
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    try:  # make the rename durable too
+        dfd = os.open(path.parent, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(dfd)
+    except OSError:
+        pass
+    finally:
+        os.close(dfd)
+
+
+def _check_private(path: Path, what: str) -> None:
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        raise KeyFileError(f"{path}: cannot read the {what}: {e.strerror or e}") from e
+    if not stat.S_ISREG(st.st_mode):
+        raise KeyFileError(f"{path}: expected a regular file for the {what}")
+    if st.st_mode & 0o077:
+        raise KeyFileError(
+            f"{path}: permissions {stat.S_IMODE(st.st_mode):04o} are too open: the {what} "
+            f"must not be accessible by group or others (chmod 600 {path})")
+    if hasattr(os, "getuid") and st.st_uid != os.getuid():
+        raise KeyFileError(f"{path}: the {what} is owned by uid {st.st_uid}, not by this "
+                           f"user ({os.getuid()})")
+
+
+def _read_private(path: Path, what: str) -> dict:
+    _check_private(path, what)
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise KeyFileError(f"{path}: not a readable TOML {what}: {e}") from e
+
+
+def _hex_key(doc: dict, name: str, path: Path) -> bytes:
+    value = doc.get(name)
+    try:
+        key = bytes.fromhex(value) if isinstance(value, str) else b""
+    except ValueError:
+        key = b""
+    if len(key) != KEY_BYTES:
+        raise KeyFileError(f"{path}: [{name}] expected {2 * KEY_BYTES} hex digits")
+    return key
+
+
+def load_node_key(path: Path | str) -> NodeKey:
+    """Load a node key file written by ``bess-ded keys``. Refuses, like ssh, a file
+    that group or others may access, one owned by another user, and malformed ones."""
+    path = Path(path)
+    doc = _read_private(path, "node key file")
+    if doc.get("format") != KEY_FILE_FORMAT:
+        raise KeyFileError(f"{path}: [format] expected {KEY_FILE_FORMAT!r}, but got "
+                           f"{doc.get('format')!r}")
+    node = doc.get("node")
+    try:
+        check_node_name(node)  # type: ignore[arg-type]
+    except SecOCError as e:
+        raise KeyFileError(f"{path}: [node] {e}") from e
+    fleet = doc.get("fleet_id")
+    if not isinstance(fleet, str) or not re.fullmatch(r"[0-9a-f]{16}", fleet):
+        raise KeyFileError(f"{path}: [fleet_id] expected 16 hex digits")
+    fresh = doc.get("freshness")
+    boot = fresh.get("boot_counter") if isinstance(fresh, dict) else None
+    if (not isinstance(boot, int) or isinstance(boot, bool)
+            or not 0 <= boot <= DEFAULT_LAYOUT.max_boot):
+        raise KeyFileError(f"{path}: [freshness.boot_counter] expected an integer "
+                           f"0..{DEFAULT_LAYOUT.max_boot}, but got {boot!r}")
+    return NodeKey(node=node, key=_hex_key(doc, "key", path),  # type: ignore[arg-type]
+                   fleet_id=fleet, boot_counter=boot, path=path)
+
+
+def save_boot_counter(path: Path | str, boot: int) -> None:
+    """Persist a new boot counter into a node key file (atomically, staying 0600)."""
+    import tomli_w
+
+    current = load_node_key(path)
+    if boot < current.boot_counter:
+        raise SecOCError(f"{path}: boot counter must not go back ({current.boot_counter} "
+                         f"→ {boot})")
+    doc = node_key_document(current.node, current.key, current.fleet_id, boot)
+    write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
+
+
+def master_key_document(master_key: bytes) -> dict:
+    return {"format": MASTER_FILE_FORMAT, "fleet_id": fleet_id(master_key),
+            "master_key": _check_key(master_key, "master key").hex()}
+
+
+def load_master_key(path: Path | str) -> bytes:
+    """A master key file: the TOML ``bess-ded keys`` writes, or one line of 32 hex
+    digits; same permission rules as a node key file."""
+    path = Path(path)
+    _check_private(path, "master key file")
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise KeyFileError(f"{path}: cannot read the master key file: {e}") from e
+    line = raw.strip()
+    if re.fullmatch(rb"[0-9a-fA-F]{%d}" % (2 * KEY_BYTES), line):
+        return bytes.fromhex(line.decode())
+    try:
+        doc = tomllib.loads(raw.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError):
+        raise KeyFileError(f"{path}: expected a master key file written by bess-ded keys, "
+                           f"or {2 * KEY_BYTES} hex digits") from None
+    if doc.get("format") != MASTER_FILE_FORMAT:
+        raise KeyFileError(f"{path}: [format] expected {MASTER_FILE_FORMAT!r}, but got "
+                           f"{doc.get('format')!r}")
+    return _hex_key(doc, "master_key", path)
+
+
+KEY_FILE_HEADER = ("# bess-ded SecOC node key (docs/security.md). Secret: keep it "
+                    "owner-only (0600).\n# freshness.boot_counter is rewritten at every "
+                    "start; losing it means re-provisioning.\n")
+MASTER_FILE_HEADER = ("# bess-ded SecOC fleet master key (docs/security.md). Every node key "
+                      "derives from it:\n# keep it offline, not on the nodes.\n")

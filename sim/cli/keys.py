@@ -1,0 +1,113 @@
+"""`bess-ded keys --fleet (--case N | --scenario FILE) --out DIR`: provision SecOC keys.
+
+Writes one key file per node of the scenario's fleet (agent_1..agent_N, plant,
+router), each holding only that node's key, derived from a fleet master key with
+NIST SP 800-108 (CMAC-AES-128), and its freshness state (boot counter 0). The master
+key is drawn from the OS's random source and written to DIR/master.key, unless
+--master-key FILE gives one (then it is not copied). Every file is created 0600 and
+DIR 0700. An existing key set is not overwritten without --force; re-provisioning
+from a new master key is how a compromised node is revoked (docs/security.md).
+Nothing uses the keys yet: the frames are not authenticated on the bus so far.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import secrets
+import stat
+from pathlib import Path
+
+from firmware_py.errors import BessDedError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from ._common import one_line_errors
+
+    p = one_line_errors(sub.add_parser(
+        "keys", help="provision SecOC keys for a fleet (one key file per node)",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter))
+    p.add_argument("--fleet", action="store_true", required=True,
+                   help="provision every node of a fleet (the only mode so far)")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--case", metavar="N", help="a case number (1-7, the paper's cases)")
+    g.add_argument("--scenario", metavar="FILE", help="a scenario .toml")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="the directory for the key files (created 0700)")
+    p.add_argument("--master-key", type=Path, metavar="FILE",
+                   help="derive from this master key (a master.key, or 32 hex digits in "
+                        "an owner-only file) instead of a new random one")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing key set in DIR")
+    p.set_defaults(func=run)
+
+
+def _key_files(out: Path) -> list[Path]:
+    return sorted(p for p in out.iterdir() if p.suffix == ".key" and p.is_file())
+
+
+def _prepare_dir(out: Path, force: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise BessDedError(f"--out: expected a directory, but {out} is a file")
+    if not out.exists():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        os.mkdir(out, 0o700)
+        os.chmod(out, 0o700)  # the umask may have removed bits; make it exact
+        return
+    mode = stat.S_IMODE(os.stat(out).st_mode)
+    if mode & 0o077:
+        raise BessDedError(f"--out: {out} is accessible by group or others (mode {mode:04o}): "
+                           "give a new directory, or chmod 700 it first")
+    existing = _key_files(out)
+    if existing and not force:
+        raise BessDedError(f"--out: {out} already holds a key set ({len(existing)} .key "
+                           "files, e.g. " + existing[0].name + "): not overwriting it "
+                           "without --force")
+
+
+def run(args: argparse.Namespace) -> int:
+    import tomli_w
+
+    from firmware_py import secoc
+
+    from ._common import resolve_scenario
+
+    spec = args.case if args.case is not None else args.scenario
+    if args.case is not None and not args.case.isdigit():
+        raise BessDedError(f"--case: expected a case number, but got {args.case!r}")
+    if args.scenario is not None and args.scenario.isdigit():
+        args.scenario = f"./{args.scenario}"  # a file name, never a case number
+        spec = args.scenario
+    sc = resolve_scenario(spec)
+    master = (secoc.load_master_key(args.master_key) if args.master_key is not None
+              else secrets.token_bytes(secoc.KEY_BYTES))
+    out: Path = args.out
+    _prepare_dir(out, args.force)
+
+    nodes = secoc.fleet_nodes(sc.n)
+    fleet = secoc.fleet_id(master)
+    keep = {f"{n}.key" for n in nodes} | {"master.key"}
+    if args.master_key is not None and args.master_key.resolve().parent == out.resolve():
+        keep.add(args.master_key.name)
+    stale = [p for p in _key_files(out) if p.name not in keep]
+    for p in stale:  # --force only: a smaller fleet's leftovers would be confusing
+        p.unlink()
+    if args.master_key is None:
+        secoc.write_private(out / "master.key", secoc.MASTER_FILE_HEADER
+                            + tomli_w.dumps(secoc.master_key_document(master)))
+    for node in nodes:
+        doc = secoc.node_key_document(node, secoc.derive_node_key(master, node), fleet, 0)
+        secoc.write_private(out / f"{node}.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
+
+    print(f"bess-ded keys: {len(nodes)} node keys for {sc.name} ({sc.n} agents, plant, "
+          f"router), fleet id {fleet}, in {out}/")
+    print(f"  {', '.join(f'{n}.key' for n in nodes)} (0600, directory 0700)")
+    if stale:
+        print(f"  removed {len(stale)} key file(s) of the previous set: "
+              + ", ".join(p.name for p in stale))
+    if args.master_key is None:
+        print(f"  master.key: the fleet master key; every node key derives from it. Move it "
+              f"off the nodes (keep it offline); re-derive with --master-key {out}/master.key")
+    else:
+        print(f"  master key from {args.master_key} (not copied)")
+    return 0

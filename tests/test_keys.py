@@ -1,0 +1,141 @@
+"""`bess-ded keys`: fleet key provisioning."""
+
+from __future__ import annotations
+
+import os
+import stat
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from firmware_py import secoc
+from sim.cli import main
+from sim.scenario import SCENARIO_DIR
+
+
+def _mode(p: Path) -> int:
+    return stat.S_IMODE(os.stat(p).st_mode)
+
+
+def test_fleet_for_a_case(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "keys"
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert "fleet id" in stdout
+    nodes = ["agent_1", "agent_2", "agent_3", "agent_4", "plant", "router"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"{n}.key" for n in nodes] + ["master.key"])
+    assert _mode(out) == 0o700
+    assert all(_mode(p) == 0o600 for p in out.iterdir())
+    master = secoc.load_master_key(out / "master.key")
+    keys = {}
+    for n in nodes:
+        nk = secoc.load_node_key(out / f"{n}.key")
+        assert nk.node == n and nk.boot_counter == 0
+        assert nk.key == secoc.derive_node_key(master, n)  # re-derives from the master
+        assert nk.fleet_id == secoc.fleet_id(master)
+        keys[n] = nk.key
+        assert nk.key.hex() not in stdout
+    assert len(set(keys.values())) == len(nodes)
+    assert master not in keys.values()
+    doc = tomllib.loads((out / "agent_1.key").read_text())
+    assert doc["format"] == secoc.KEY_FILE_FORMAT and doc["freshness"] == {"boot_counter": 0}
+
+
+def test_files_never_exist_world_readable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+                                          ) -> None:
+    """Every key file is opened with mode 0600 and O_EXCL from the start."""
+    opened: list[tuple[str, int, int]] = []
+    real_open = os.open
+
+    def spy(path: str | os.PathLike[str], flags: int, mode: int = 0o777, **kw: object) -> int:
+        opened.append((str(path), flags, mode))
+        return real_open(path, flags, mode)
+
+    monkeypatch.setattr(os, "open", spy)
+    out = tmp_path / "k"
+    assert main(["keys", "--fleet", "--case", "2", "--out", str(out)]) == 0
+    created = [(p, f, m) for p, f, m in opened if f & os.O_CREAT]
+    assert len(created) == len(list(out.iterdir()))
+    assert all(m == 0o600 and f & os.O_EXCL for _, f, m in created)
+
+
+def test_scenario_file_and_given_master_key(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    first = tmp_path / "a"
+    assert main(["keys", "--fleet", "--case", "3", "--out", str(first)]) == 0
+    second = tmp_path / "b"
+    assert main(["keys", "--fleet", "--scenario", str(SCENARIO_DIR / "case3.toml"),
+                 "--out", str(second), "--master-key", str(first / "master.key")]) == 0
+    assert not (second / "master.key").exists()  # a given master key is not copied
+    names = sorted(p.name for p in second.iterdir())
+    assert names == sorted(p.name for p in first.iterdir() if p.name != "master.key")
+    for name in names:
+        assert (secoc.load_node_key(first / name).key == secoc.load_node_key(second / name).key)
+
+
+def test_refuses_to_overwrite_without_force(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "keys"
+    assert main(["keys", "--fleet", "--case", "7", "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bess-ded: error: --out:") and "--force" in err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    # --force: a new master key, a new (smaller) fleet, no leftovers of the old one
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(out), "--force"]) == 0
+    after = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert sorted(after) == sorted(["agent_1.key", "agent_2.key", "agent_3.key",
+                                    "agent_4.key", "plant.key", "router.key", "master.key"])
+    assert after["master.key"] != before["master.key"]
+    assert after["agent_1.key"] != before["agent_1.key"]
+    assert all(_mode(out / n) == 0o600 for n in after)
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize("argv", [
+    ["keys", "--fleet", "--case", "99"],
+    ["keys", "--fleet", "--case", "x"],
+    ["keys", "--fleet", "--case", "1", "--scenario", "a.toml"],
+    ["keys", "--fleet"],
+    ["keys", "--case", "1"],
+    ["keys", "--fleet", "--scenario", "missing.toml"],
+    ["keys", "--fleet", "--case", "1", "--master-key", "MISSING"],
+    ["keys", "--fleet", "--case", "1", "--master-key", "BAD"],
+    ["keys", "--fleet", "--case", "1", "--master-key", "OPEN"],
+])
+def test_bad_input_is_a_one_line_error(argv: list[str], tmp_path: Path,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    secoc.write_private(tmp_path / "BAD", "not a key\n")
+    secoc.write_private(tmp_path / "OPEN", "00" * 16 + "\n")
+    os.chmod(tmp_path / "OPEN", 0o644)
+    argv = [str(tmp_path / a) if a in ("MISSING", "BAD", "OPEN") else a for a in argv]
+    if "--out" not in argv and argv[1:] != ["--fleet"] and argv[1:] != ["--case", "1"]:
+        argv += ["--out", str(tmp_path / "out")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bess-ded: error: ") and err.count("\n") == 1
+    assert "Traceback" not in err
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_out_is_a_file_or_an_open_directory(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    f = tmp_path / "file"
+    f.write_text("")
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(f)]) == 2
+    assert "a directory" in capsys.readouterr().err
+    d = tmp_path / "open"
+    d.mkdir()
+    os.chmod(d, 0o755)
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(d)]) == 2
+    assert "group or others" in capsys.readouterr().err
+    assert not any(d.iterdir())
+
+
+def test_keys_is_listed_in_help(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["-h"]) == 0
+    assert "keys" in capsys.readouterr().out

@@ -1,0 +1,433 @@
+"""firmware_py.secoc: CMAC, KDF, authenticator layout, freshness, key files."""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+import pytest
+from cryptography.hazmat.primitives.ciphers import Cipher, algorithms, modes
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from firmware_py import secoc
+from firmware_py.secoc import (
+    FreshnessCounter,
+    FreshnessLayout,
+    FreshnessVerifier,
+    KeyFileError,
+    SecOCError,
+    Verdict,
+    authenticator,
+    derive_node_key,
+    verify,
+    verify_secured,
+)
+
+# NIST SP 800-38B, Appendix D.1 (CMAC-AES-128; the same vectors are RFC 4493 §4).
+NIST_KEY = bytes.fromhex("2b7e151628aed2a6abf7158809cf4f3c")
+NIST_M = bytes.fromhex(
+    "6bc1bee22e409f96e93d7e117393172a" "ae2d8a571e03ac9c9eb76fac45af8e51"
+    "30c81c46a35ce411e5fbc1191a0a52ef" "f69f2445df4f9b17ad2b417be66c3710")
+NIST_CASES = [  # (message length in bytes, tag)
+    (0, "bb1d6929e95937287fa37d129b756746"),
+    (16, "070a16b46b4d4144f79bdd9dd04a287c"),
+    (40, "dfa66747de9ae63030ca32611497c827"),
+    (64, "51f0bebf7e3b9d92fc49741779363cfe"),
+]
+
+
+def _reference_cmac(key: bytes, msg: bytes) -> bytes:
+    """A second, independent code path for the test only: CMAC written out from
+    SP 800-38B §6.1-6.2 on top of raw AES-ECB (not used by the firmware)."""
+    def aes(block: bytes) -> bytes:
+        enc = Cipher(algorithms.AES(key), modes.ECB()).encryptor()
+        return enc.update(block) + enc.finalize()
+
+    def dbl(b: bytes) -> bytes:
+        v = int.from_bytes(b, "big") << 1
+        if v >> 128:
+            v = (v & ((1 << 128) - 1)) ^ 0x87
+        return v.to_bytes(16, "big")
+
+    k1 = dbl(aes(bytes(16)))
+    k2 = dbl(k1)
+    n = max(1, -(-len(msg) // 16))
+    last = msg[16 * (n - 1):]
+    if len(last) == 16:
+        last = bytes(a ^ b for a, b in zip(last, k1, strict=True))
+    else:
+        padded = last + b"\x80" + bytes(15 - len(last))
+        last = bytes(a ^ b for a, b in zip(padded, k2, strict=True))
+    c = bytes(16)
+    for i in range(n - 1):
+        c = aes(bytes(a ^ b for a, b in zip(c, msg[16 * i:16 * i + 16], strict=True)))
+    return aes(bytes(a ^ b for a, b in zip(c, last, strict=True)))
+
+
+@pytest.mark.parametrize(("length", "tag"), NIST_CASES)
+def test_cmac_nist_vectors_both_code_paths(length: int, tag: str) -> None:
+    msg = NIST_M[:length]
+    assert secoc.cmac_aes128(NIST_KEY, msg).hex() == tag
+    assert _reference_cmac(NIST_KEY, msg).hex() == tag
+
+
+@pytest.mark.parametrize(("length", "tag"), [c for c in NIST_CASES if c[0] in (16, 40)])
+def test_nist_vectors_through_the_authenticator(length: int, tag: str) -> None:
+    """The NIST message split into data ID (2 bytes) ‖ payload ‖ FV (8 bytes)."""
+    msg = NIST_M[:length]
+    data_id = int.from_bytes(msg[:2], "big")
+    payload = msg[2:-8]
+    fv = int.from_bytes(msg[-8:], "big")
+    assert secoc.auth_data(data_id, payload, fv) == msg
+    assert authenticator(NIST_KEY, data_id, payload, fv, bits=128) == int(tag, 16)
+    assert authenticator(NIST_KEY, data_id, payload, fv) == int(tag[:6], 16)  # 24 bits
+    assert authenticator(NIST_KEY, data_id, payload, fv, bits=32) == int(tag[:8], 16)
+    assert verify(NIST_KEY, data_id, payload, fv, int(tag[:6], 16))
+
+
+def test_truncation_keeps_the_leading_bits() -> None:
+    full = authenticator(NIST_KEY, 0x123, b"\x01\x02", 7, bits=128)
+    for bits in (1, 8, 24, 28, 64, 127):
+        assert authenticator(NIST_KEY, 0x123, b"\x01\x02", 7, bits=bits) == full >> (128 - bits)
+        assert authenticator(NIST_KEY, 0x123, b"\x01\x02", 7, bits=bits) < 1 << bits
+    for bad in (0, 129):
+        with pytest.raises(SecOCError):
+            authenticator(NIST_KEY, 0, b"", 0, bits=bad)
+
+
+def test_layout_errors() -> None:
+    with pytest.raises(SecOCError):
+        secoc.auth_data(1 << 16, b"", 0)
+    with pytest.raises(SecOCError):
+        secoc.auth_data(0, b"", 1 << 64)
+    with pytest.raises(SecOCError):
+        authenticator(b"short", 0, b"", 0)
+    assert not verify(NIST_KEY, 1, b"", 0, 1 << 24)  # a MAC wider than its bits
+    assert not verify(NIST_KEY, 1, b"", 0, -1)
+
+
+def test_equals_cantools_compute_authenticator() -> None:
+    """cantools.autosar.secoc packs u16 data ID ‖ payload ‖ u{freshness_bit_length}
+    and hands that to the MAC function: with a 64-bit freshness it is our layout."""
+    from cantools.autosar.secoc import apply_authenticator, compute_authenticator
+    from cantools.database.can.formats.arxml import (
+        AutosarMessageSpecifics,
+        AutosarSecOCProperties,
+    )
+    from cantools.database.can.message import Message
+
+    payload = bytes.fromhex("a1b2c3d4")
+    spec = AutosarMessageSpecifics()
+    spec._secoc = AutosarSecOCProperties(
+        auth_algorithm_name="CMAC-AES-128", freshness_algorithm_name="bess-ded",
+        payload_length=len(payload), data_id=0x0231, auth_tx_bit_length=24,
+        freshness_bit_length=64, freshness_tx_bit_length=8)
+    msg = Message(frame_id=0x231, name="X", length=8, signals=[], autosar_specifics=spec)
+    key = derive_node_key(NIST_KEY, "agent_2")
+
+    def mac_fn(dbmsg: object, data: bytes | bytearray, fv: int) -> bytes:
+        return secoc.cmac_aes128(key, bytes(data))
+
+    for fv in (0, 1, 0x0001_000000, 0x12_3456_789A, (1 << 40) - 1):
+        theirs = compute_authenticator(payload, msg, mac_fn, fv)
+        assert int.from_bytes(theirs, "big") == authenticator(key, 0x0231, payload, fv, 128)
+        frame = apply_authenticator(payload + bytes(4), msg, mac_fn, fv)
+        assert frame[4] == secoc.truncate(fv)
+        assert int.from_bytes(frame[5:8], "big") == authenticator(key, 0x0231, payload, fv)
+
+
+# --------------------------------------------------------------------------- KDF
+
+
+def _reference_kbkdf(master: bytes, label: bytes, context: bytes, length: int) -> bytes:
+    """SP 800-108 §5.1 written out, with the CMAC of the other code path."""
+    out = b""
+    i = 1
+    while len(out) < length:
+        out += _reference_cmac(master, i.to_bytes(4, "big") + label + b"\x00" + context
+                               + (8 * length).to_bytes(4, "big"))
+        i += 1
+    return out[:length]
+
+
+def test_kdf_deterministic_separated_and_as_documented() -> None:
+    master = bytes(range(16))
+    nodes = secoc.fleet_nodes(7)
+    keys = {n: derive_node_key(master, n) for n in nodes}
+    assert len(set(keys.values())) == len(nodes)  # different nodes → different keys
+    assert all(len(k) == 16 for k in keys.values())
+    assert keys == {n: derive_node_key(master, n) for n in nodes}  # deterministic
+    for n in nodes:
+        assert keys[n] == _reference_kbkdf(master, secoc.NODE_KEY_LABEL, n.encode(), 16)
+    other = derive_node_key(bytes(16), "agent_1")
+    assert other != keys["agent_1"]  # another master, another key
+    assert secoc.fleet_id(master) == _reference_kbkdf(master, secoc.FLEET_ID_LABEL, b"",
+                                                      8).hex()
+    assert secoc.fleet_id(master) != secoc.fleet_id(bytes(16))
+    assert nodes == ["agent_1", "agent_2", "agent_3", "agent_4", "agent_5", "agent_6",
+                     "agent_7", "plant", "router"]
+
+
+@pytest.mark.parametrize("bad", ["", "Agent_1", "agent 1", "1agent", "a" * 33, "agent-1"])
+def test_bad_node_names(bad: str) -> None:
+    with pytest.raises(SecOCError):
+        derive_node_key(bytes(16), bad)
+
+
+def test_bad_master_key() -> None:
+    with pytest.raises(SecOCError, match="16 bytes"):
+        derive_node_key(bytes(15), "plant")
+
+
+# --------------------------------------------------------------------------- freshness
+
+
+def test_freshness_monotonic_across_a_simulated_restart() -> None:
+    persisted: list[int] = []
+    layout = FreshnessLayout()
+    c = FreshnessCounter(0, persisted.append)
+    assert persisted == [1] and c.boot == 1
+    first = [c.next() for _ in range(300)]
+    assert first == sorted(set(first)) and first[0] == layout.join(1, 0)
+    # restart: a new counter from the persisted state
+    c2 = FreshnessCounter(persisted[-1], persisted.append)
+    assert persisted == [1, 2]
+    second = [c2.next() for _ in range(5)]
+    assert second[0] > first[-1] and second == sorted(second)
+
+
+def test_persist_happens_before_use_and_failure_stops_the_counter() -> None:
+    def fail(boot: int) -> None:
+        raise OSError("disk full")
+
+    with pytest.raises(OSError):
+        FreshnessCounter(3, fail)
+
+
+def test_message_counter_wrap_bumps_the_boot_counter() -> None:
+    persisted: list[int] = []
+    layout = FreshnessLayout(boot_bits=4, counter_bits=2)
+    c = FreshnessCounter(0, persisted.append, layout)
+    values = [c.next() for _ in range(9)]
+    assert values == sorted(set(values))
+    assert persisted == [1, 2, 3]
+    assert layout.split(values[4]) == (2, 0)
+    c = FreshnessCounter(layout.max_boot - 1, persisted.append, layout)
+    for _ in range(4):
+        c.next()
+    with pytest.raises(SecOCError, match="exhausted"):
+        c.next()
+
+
+def _sender(layout: FreshnessLayout = secoc.DEFAULT_LAYOUT,
+            boot: int = 0) -> tuple[bytes, FreshnessCounter, list[int]]:
+    persisted: list[int] = []
+    return derive_node_key(NIST_KEY, "agent_1"), FreshnessCounter(boot, persisted.append,
+                                                                   layout), persisted
+
+
+def _send(key: bytes, c: FreshnessCounter, payload: bytes, data_id: int = 0x101
+          ) -> tuple[bytes, int, int]:
+    tfv, mac = secoc.secure(key, data_id, payload, c)
+    return payload, tfv, mac
+
+
+def _synced(c: FreshnessCounter) -> FreshnessVerifier:
+    """A receiver resynchronised from the sender's boot/sync frame (its first FV)."""
+    v = FreshnessVerifier()
+    assert v.resync("agent_1", c.next())
+    return v
+
+
+def test_round_trip_and_replay_rejected() -> None:
+    key, c, _ = _sender()
+    v = _synced(c)
+    frames = [_send(key, c, bytes([i, 0, 0, 0])) for i in range(10)]
+    for p, tfv, mac in frames:
+        assert verify_secured(key, 0x101, p, tfv, mac, "agent_1", v) is Verdict.OK
+    last = v.last("agent_1")
+    for p, tfv, mac in frames:  # replay of every old (payload, MAC, truncated FV)
+        assert verify_secured(key, 0x101, p, tfv, mac, "agent_1", v) is Verdict.MAC
+    assert v.last("agent_1") == last  # rejected frames do not move the state
+    p, tfv, mac = _send(key, c, b"new!")
+    assert verify_secured(key, 0x101, p, tfv, mac, "agent_1", v) is Verdict.OK
+
+
+def test_replay_of_a_frame_older_than_the_window_rejected() -> None:
+    key, c, _ = _sender()
+    v = _synced(c)
+    old = _send(key, c, b"old")
+    assert verify_secured(key, 0x101, *old, "agent_1", v) is Verdict.OK
+    for _ in range(256):  # exactly one window later the low bits repeat
+        f = _send(key, c, b"x")
+        assert verify_secured(key, 0x101, *f, "agent_1", v) is Verdict.OK
+    assert f[1] == old[1]
+    assert verify_secured(key, 0x101, *old, "agent_1", v) is Verdict.MAC
+
+
+def test_truncated_freshness_wrap_and_lost_frames() -> None:
+    key, c, _ = _sender()
+    v = _synced(c)
+    seen = []
+    for i in range(600):
+        f = _send(key, c, i.to_bytes(2, "big"))
+        seen.append(f[1])
+        if i % 7 == 3:
+            continue  # lost on the bus
+        assert verify_secured(key, 0x101, *f, "agent_1", v) is Verdict.OK
+    assert 0 in seen and 255 in seen  # the 8-bit value wrapped, twice
+    for _ in range(255):  # 255 lost frames: still inside the window
+        c.next()
+    f = _send(key, c, b"after gap")
+    assert verify_secured(key, 0x101, *f, "agent_1", v) is Verdict.OK
+    for _ in range(256):  # 256 lost: outside the window → resync needed
+        c.next()
+    f = _send(key, c, b"too late")
+    assert verify_secured(key, 0x101, *f, "agent_1", v) is Verdict.MAC
+    assert v.resync("agent_1", c.next())
+    f = _send(key, c, b"resynced")
+    assert verify_secured(key, 0x101, *f, "agent_1", v) is Verdict.OK
+
+
+def test_restarted_sender_needs_a_resync_and_old_sync_cannot_rewind() -> None:
+    key, c, persisted = _sender()
+    v = FreshnessVerifier()
+    f = _send(key, c, b"before sync")
+    assert verify_secured(key, 0x101, *f, "agent_1", v) is Verdict.NO_FRESHNESS
+    first_sync = c.next()
+    assert v.resync("agent_1", first_sync)
+    for _ in range(20):
+        assert verify_secured(key, 0x101, *_send(key, c, b"a"), "agent_1", v) is Verdict.OK
+    c = FreshnessCounter(persisted[-1], persisted.append)  # the sender restarts
+    f = _send(key, c, b"rebooted")
+    assert verify_secured(key, 0x101, *f, "agent_1", v) is Verdict.MAC
+    assert not v.resync("agent_1", first_sync)  # a replayed old sync is refused
+    assert v.resync("agent_1", c.next())
+    assert verify_secured(key, 0x101, *_send(key, c, b"b"), "agent_1", v) is Verdict.OK
+    assert not v.accept("agent_1", v.last("agent_1") or 0)  # not strictly greater
+
+
+def test_wrong_key_and_other_sender_rejected() -> None:
+    key, c, _ = _sender()
+    v = _synced(c)
+    p, tfv, mac = _send(key, c, b"pay")
+    other = derive_node_key(NIST_KEY, "agent_2")
+    assert verify_secured(other, 0x101, p, tfv, mac, "agent_1", v) is Verdict.MAC
+    assert verify_secured(key, 0x101, p, tfv, mac, "agent_2", v) is Verdict.NO_FRESHNESS
+    assert verify_secured(key, 0x101, p, tfv, mac, "agent_1", v) is Verdict.OK
+
+
+def test_candidate_at_the_end_of_the_layout() -> None:
+    layout = FreshnessLayout(boot_bits=1, counter_bits=8)
+    v = FreshnessVerifier(layout=layout, initial={"s": layout.max_value - 1})
+    assert v.candidate("s", 0xFF) == layout.max_value
+    assert v.candidate("s", 0x00) is None  # would run past the layout
+    assert v.candidate("s", 0x100) is None  # not a truncated value
+    with pytest.raises(SecOCError):
+        FreshnessVerifier(tx_bits=0)
+
+
+@settings(max_examples=300, deadline=None)
+@given(data_id=st.integers(0, 0xFFFF), payload=st.binary(min_size=0, max_size=8),
+       which=st.sampled_from(["payload", "id", "freshness", "mac"]),
+       bit=st.integers(0, 63), start=st.integers(0, (1 << 40) - 2))
+def test_any_single_bit_flip_is_rejected(data_id: int, payload: bytes, which: str,
+                                         bit: int, start: int) -> None:
+    key = derive_node_key(NIST_KEY, "agent_1")
+    v = FreshnessVerifier(initial={"agent_1": start})
+    fv = v.candidate("agent_1", (start + 1) & 0xFF)
+    assert fv == start + 1
+    tfv, mac = secoc.truncate(fv), authenticator(key, data_id, payload, fv)
+    if which == "payload":
+        if not payload:
+            payload = b"\x00"  # flipping the length instead: one more byte
+        else:
+            b = bit % (8 * len(payload))
+            payload = (int.from_bytes(payload, "big") ^ (1 << b)).to_bytes(len(payload), "big")
+    elif which == "id":
+        data_id ^= 1 << (bit % 16)
+    elif which == "freshness":
+        tfv ^= 1 << (bit % 8)
+    else:
+        mac ^= 1 << (bit % 24)
+    assert verify_secured(key, data_id, payload, tfv, mac, "agent_1", v) is not Verdict.OK
+    assert v.last("agent_1") == start
+
+
+# --------------------------------------------------------------------------- key files
+
+
+def _write_key_file(path: Path, mode: int = 0o600, boot: int = 0) -> bytes:
+    import tomli_w
+
+    key = derive_node_key(NIST_KEY, "agent_3")
+    doc = secoc.node_key_document("agent_3", key, secoc.fleet_id(NIST_KEY), boot)
+    secoc.write_private(path, secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
+    os.chmod(path, mode)
+    return key
+
+
+def test_load_node_key_and_persist_boot_counter(tmp_path: Path) -> None:
+    path = tmp_path / "agent_3.key"
+    key = _write_key_file(path)
+    nk = secoc.load_node_key(path)
+    assert (nk.node, nk.key, nk.boot_counter) == ("agent_3", key, 0)
+    assert key.hex() not in repr(nk)
+    c = FreshnessCounter(nk.boot_counter, nk.persist())
+    assert secoc.load_node_key(path).boot_counter == 1 == c.boot
+    assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
+    c2 = FreshnessCounter(secoc.load_node_key(path).boot_counter, nk.persist())
+    assert c2.boot == 2 and secoc.load_node_key(path).boot_counter == 2
+    with pytest.raises(SecOCError, match="go back"):
+        secoc.save_boot_counter(path, 1)
+    assert not list(tmp_path.glob(".*tmp"))
+
+
+@pytest.mark.parametrize("mode", [0o640, 0o604, 0o644, 0o660, 0o700 | 0o004])
+def test_load_node_key_refuses_open_permissions(tmp_path: Path, mode: int) -> None:
+    path = tmp_path / "agent_3.key"
+    _write_key_file(path, mode)
+    with pytest.raises(KeyFileError, match="too open"):
+        secoc.load_node_key(path)
+
+
+@pytest.mark.parametrize(("text", "match"), [
+    ("format = 'other'\n", "format"),
+    ("not toml at all [", "TOML"),
+    (f"format = '{secoc.KEY_FILE_FORMAT}'\nnode = 'Bad'\n", "node"),
+    (f"format = '{secoc.KEY_FILE_FORMAT}'\nnode = 'plant'\nfleet_id = '00'\n", "fleet_id"),
+    (f"format = '{secoc.KEY_FILE_FORMAT}'\nnode = 'plant'\nfleet_id = '{'0' * 16}'\n"
+     "freshness = {boot_counter = -1}\n", "boot_counter"),
+    (f"format = '{secoc.KEY_FILE_FORMAT}'\nnode = 'plant'\nfleet_id = '{'0' * 16}'\n"
+     "key = 'zz'\nfreshness = {boot_counter = 0}\n", "hex"),
+])
+def test_load_node_key_malformed(tmp_path: Path, text: str, match: str) -> None:
+    path = tmp_path / "k.key"
+    secoc.write_private(path, text)
+    with pytest.raises(KeyFileError, match=match):
+        secoc.load_node_key(path)
+
+
+def test_load_node_key_missing(tmp_path: Path) -> None:
+    with pytest.raises(KeyFileError, match="cannot read"):
+        secoc.load_node_key(tmp_path / "none.key")
+    with pytest.raises(KeyFileError, match="regular file"):
+        secoc.load_node_key(tmp_path)
+
+
+def test_master_key_file_formats(tmp_path: Path) -> None:
+    import tomli_w
+
+    p = tmp_path / "m.key"
+    secoc.write_private(p, tomli_w.dumps(secoc.master_key_document(NIST_KEY)))
+    assert secoc.load_master_key(p) == NIST_KEY
+    secoc.write_private(p, NIST_KEY.hex() + "\n")
+    assert secoc.load_master_key(p) == NIST_KEY
+    secoc.write_private(p, "abc\n")
+    with pytest.raises(KeyFileError, match="hex digits"):
+        secoc.load_master_key(p)
+    os.chmod(p, 0o644)
+    with pytest.raises(KeyFileError, match="too open"):
+        secoc.load_master_key(p)
