@@ -39,6 +39,22 @@ in the 4-bit E2E counter and read as foreign traffic (firmware_py.nodeio).
     [limits]
     lambda_min = -10.0      # plausibility range for any λ or ρ received
     lambda_max = 10.0
+    rho_min = 0.0           # price plausibility (docs/safety-model.md): bounds, cu/kWh
+    rho_max = 5.0
+    price_step_max = 0.5    # largest accepted |Δρ| between accepted price frames ...
+    price_persist = 3       # ... unless the same new price comes in this many frames in a row
+    lambda_step_max = 0.1   # largest |Δλ| of a RUNNING neighbour per sample (default 10·k·Ts)
+    k_min = 0.5             # SET_GAINS bounds (default ×0.5..×2 of the configured gains)
+    k_max = 2.0
+    h_min = 1.0
+    h_max = 4.0
+    untrusted_after = 5     # consecutive E2E failures from one source ID ...
+    untrusted_s = 1.0       # ... make it untrusted this long (default 1 s × Ts/10 ms)
+
+The safety limits (firmware_py.runtime, firmware_py.nodeio; docs/safety-model.md)
+default to values no healthy run of the paper cases 1..7 comes near; the derived ones
+(lambda_step_max, the gain bounds, untrusted_s) follow the controller, so a
+time-scaled run keeps them per sample.
 
 Any bad key stops the start with ConfigError naming the file and the key.
 """
@@ -65,6 +81,21 @@ __all__ = ["N_AGENTS_MAX", "AgentConfig", "DispatchParams", "Neighbour",
 # from its controller's Ts (time-scaled runs stretch them)
 PRICE_TIMEOUT_S = timeout_s("ER_Price", MC_CYCLE_S)
 STATUS_TIMEOUT_S = timeout_s(status_name(1), MC_CYCLE_S)
+
+# safety-model defaults (docs/safety-model.md)
+RHO_MIN, RHO_MAX = 0.0, 5.0      # cu/kWh: the paper's prices are 0.6..1.0
+PRICE_STEP_MAX = 0.5             # cu/kWh per accepted price frame: the paper steps ≤ 0.4
+PRICE_PERSIST = 3                # frames of one new price level that make it accepted
+LAMBDA_STEP_GAIN = 10.0          # lambda_step_max = 10·k·Ts (0.1 cu/kWh at k = 1, Ts = 10 ms;
+                                 # the largest per-sample |Δλ| of cases 1..7 is 0.024)
+GAIN_LO, GAIN_HI = 0.5, 2.0      # SET_GAINS bounds: × the configured k and h
+UNTRUSTED_AFTER = 5              # consecutive E2E failures (as opendbc's safety layer)
+UNTRUSTED_S = 1.0                # s at Ts = 10 ms, stretched with Ts
+
+
+def untrusted_s(ts: float) -> float:
+    """The untrusted-source hold time at a controller period ``ts`` (1 s at 10 ms)."""
+    return UNTRUSTED_S * ts / MC_CYCLE_S
 
 
 @dataclass(frozen=True)
@@ -98,7 +129,29 @@ class AgentConfig:
     lambda_min: float = -10.0
     lambda_max: float = 10.0
     fleet_size: int | None = None   # None: unknown, foreign agent IDs not checked
+    rho_min: float = RHO_MIN
+    rho_max: float = RHO_MAX
+    price_step_max: float = PRICE_STEP_MAX
+    price_persist: int = PRICE_PERSIST
+    # None: derived from the controller in __post_init__ (so to_toml writes the value)
+    lambda_step_max: float | None = None
+    k_min: float | None = None
+    k_max: float | None = None
+    h_min: float | None = None
+    h_max: float | None = None
+    untrusted_after: int = UNTRUSTED_AFTER
+    untrusted_s: float | None = None
     source: str = "<config>"
+
+    def __post_init__(self) -> None:
+        c = self.controller
+        derived = {"lambda_step_max": LAMBDA_STEP_GAIN * c.k * c.ts,
+                   "k_min": GAIN_LO * c.k, "k_max": GAIN_HI * c.k,
+                   "h_min": GAIN_LO * c.h, "h_max": GAIN_HI * c.h,
+                   "untrusted_s": untrusted_s(c.ts)}
+        for name, value in derived.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
 
     def to_toml(self) -> str:
         """The TOML load_agent_config reads back to an equal config (but ``source``)."""
@@ -114,7 +167,15 @@ class AgentConfig:
                         "p_max": b.p_max},
             "timeouts": {"neighbour_periods": self.neighbour_timeout_periods,
                          "price_s": self.price_timeout_s, "status_s": self.status_timeout_s},
-            "limits": {"lambda_min": self.lambda_min, "lambda_max": self.lambda_max},
+            "limits": {"lambda_min": self.lambda_min, "lambda_max": self.lambda_max,
+                       "rho_min": self.rho_min, "rho_max": self.rho_max,
+                       "price_step_max": self.price_step_max,
+                       "price_persist": self.price_persist,
+                       "lambda_step_max": self.lambda_step_max,
+                       "k_min": self.k_min, "k_max": self.k_max,
+                       "h_min": self.h_min, "h_max": self.h_max,
+                       "untrusted_after": self.untrusted_after,
+                       "untrusted_s": self.untrusted_s},
         }
         # tomli-w inlines short arrays of tables; [[neighbour]] blocks read better when edited
         nbrs = "".join("\n[[neighbour]]\n" + tomli_w.dumps({"id": nb.id, "weight": nb.weight})
@@ -218,7 +279,19 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         raise fail("battery.p_max", "expected limits within ±327.67 kW (the setpoint frame)")
 
     t = table("timeouts", {"neighbour_periods", "price_s", "status_s"}, required=False)
-    lim = table("limits", {"lambda_min", "lambda_max"}, required=False)
+    lim = table("limits", {"lambda_min", "lambda_max", "rho_min", "rho_max", "price_step_max",
+                           "price_persist", "lambda_step_max", "k_min", "k_max", "h_min",
+                           "h_max", "untrusted_after", "untrusted_s"}, required=False)
+
+    def opt(name: str, lo: float, hi: float) -> float | None:
+        return num(lim, "limits", name, lo, hi) if name in lim else None
+
+    def count(name: str, lo: int, hi: int, default: int) -> int:
+        x = lim.get(name, default)
+        if isinstance(x, bool) or not isinstance(x, int) or not lo <= x <= hi:
+            raise fail(f"limits.{name}", f"expected an integer in {lo}..{hi}, but got {x!r}")
+        return x
+
     cfg = AgentConfig(
         id=ident, lambda0=num(a, "agent", "lambda0", -100, 100), pinned=pinned,
         controller=controller, neighbours=tuple(neighbours), battery=battery,
@@ -229,10 +302,25 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
                              timeout_s(status_name(ident), controller.ts)),
         lambda_min=num(lim, "limits", "lambda_min", -127, 127, -10.0),
         lambda_max=num(lim, "limits", "lambda_max", -127, 127, 10.0), fleet_size=fleet,
-        source=src)
+        rho_min=num(lim, "limits", "rho_min", -127, 127, RHO_MIN),
+        rho_max=num(lim, "limits", "rho_max", -127, 127, RHO_MAX),
+        price_step_max=num(lim, "limits", "price_step_max", 1e-6, 254, PRICE_STEP_MAX),
+        price_persist=count("price_persist", 1, 100, PRICE_PERSIST),
+        lambda_step_max=opt("lambda_step_max", 1e-6, 254),
+        k_min=opt("k_min", 0, 65.535), k_max=opt("k_max", 0, 65.535),
+        h_min=opt("h_min", 0, 65.535), h_max=opt("h_max", 0, 65.535),
+        untrusted_after=count("untrusted_after", 1, 1000, UNTRUSTED_AFTER),
+        untrusted_s=opt("untrusted_s", 0, 3600), source=src)
     if not cfg.lambda_min < cfg.lambda0 < cfg.lambda_max:
         raise fail("agent.lambda0", f"expected a value inside limits [{cfg.lambda_min}, "
                    f"{cfg.lambda_max}], but got {cfg.lambda0}")
+    if not cfg.rho_min < cfg.rho_max:
+        raise fail("limits.rho_max", f"expected rho_min < rho_max, but got {cfg.rho_min} ≥ "
+                   f"{cfg.rho_max}")
+    for lo, hi in (("k_min", "k_max"), ("h_min", "h_max")):
+        if not getattr(cfg, lo) <= getattr(cfg, hi):
+            raise fail(f"limits.{hi}", f"expected {lo} ≤ {hi}, but got {getattr(cfg, lo)} > "
+                       f"{getattr(cfg, hi)}")
     return cfg
 
 

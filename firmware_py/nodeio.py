@@ -25,6 +25,16 @@ Foreign traffic: frames that cannot come from the node's own fleet are counted u
 * ``counter_clash``: on a cyclic ID, the last accepted counter again with a different
   payload (a single sender never repeats a counter with new data).
 
+Untrusted sources (docs/safety-model.md): ``untrusted_after`` (5, as opendbc's safety
+layer) consecutive E2E failures — CRC, DLC, range, ``counter_jump``, ``counter_clash``, and
+the range checks a node runs after decoding (``fail``) — on one source ID make that ID
+untrusted for ``untrusted_s`` (1 s at Ts = 10 ms): every frame on it is then rejected
+under ``untrusted`` before decoding (``untrusted_sources`` counts the verdicts, logged at
+warning level). A frame accepted before the streak reaches the limit resets it; when the
+time is up the ID starts with a clean streak. The price, a neighbour or a setpoint that
+goes untrusted goes stale after its own timeout: a receiver then fails safe (SAFE,
+neighbour dropped, BESS ramped to 0) instead of acting on a stream it cannot trust.
+
 ER_Command is an event frame with no timeout, so its counter may legitimately restart
 (a restarted router) at any value: the two counter rules apply to cyclic IDs only.
 """
@@ -44,15 +54,27 @@ log = logging.getLogger(__name__)
 
 LOG_FIRST = 5   # rejections logged in full per cause, then every 1000th
 ECHO_DEPTH = 4  # own frames remembered to recognise their echo
+UNTRUSTED_AFTER = 5   # consecutive E2E failures from one source ID ...
+UNTRUSTED_S = 1.0     # ... make it untrusted this long (s; callers stretch it with Ts)
+# the causes that count towards the untrusted streak of the frame's ID
+STREAK_CAUSES = frozenset({"crc", "dlc", "range", "counter_jump", "counter_clash"})
 
 
 class NodeIO:
     def __init__(self, codec: FrameCodec, who: str, own: Iterable[str],
-                 wanted: Iterable[int], fleet_size: int | None = None) -> None:
+                 wanted: Iterable[int], fleet_size: int | None = None,
+                 untrusted_after: int = UNTRUSTED_AFTER,
+                 untrusted_s: float = UNTRUSTED_S) -> None:
         """``own``: the messages this node sends; ``wanted``: the frame IDs it uses;
         ``fleet_size``: the agents of the run (None: unknown, per-agent IDs of any agent
-        the DBC defines are then not counted as foreign)."""
+        the DBC defines are then not counted as foreign); ``untrusted_after`` consecutive
+        E2E failures on one ID make it untrusted for ``untrusted_s``."""
         self.codec = codec
+        self.untrusted_after = untrusted_after
+        self.untrusted_s = untrusted_s
+        self._streak: Counter[int] = Counter()
+        self._untrusted_until: dict[int, float] = {}
+        self.last_safety: tuple[str, int] | None = None  # (cause, claimed sender ID)
         self.who = who
         self.fleet_size = fleet_size
         self.counters: Counter[str] = Counter()
@@ -71,10 +93,13 @@ class NodeIO:
         check, what it sends."""
         return sorted(set(self._sent) | set(self.trackers))
 
-    def receive(self, msg: can.Message) -> DecodedFrame | None:
+    def receive(self, msg: can.Message, t: float | None = None) -> DecodedFrame | None:
         """The decoded frame if it is for this node and carries new data, else None
-        (and, if it was bad, counted)."""
+        (and, if it was bad, counted). ``t``: the receive time, for the untrusted-source
+        rule (None: ``msg.timestamp``)."""
         fid = msg.arbitration_id
+        if t is None:
+            t = msg.timestamp
         if msg.is_extended_id:
             self.reject("unknown_id", f"0x{fid:X}: expected an 11-bit ID, but got an "
                         "extended ID")
@@ -97,26 +122,37 @@ class NodeIO:
                 self.foreign("foreign_id", f"0x{fid:03X}: expected agents 1..{self.fleet_size} "
                              f"of this run, but got a frame of agent {agent_of(fid)}")
             return None  # a DBC frame that is not for this node
+        until = self._untrusted_until.get(fid)
+        if until is not None:
+            if t < until:
+                self.safety_reject("untrusted", fid, f"0x{fid:03X} is untrusted for "
+                                   f"{until - t:.3f} s more (after {self.untrusted_after} "
+                                   "consecutive E2E failures)")
+                return None
+            del self._untrusted_until[fid]
+            log.info("%s trusts 0x%03X again (its untrusted time is over)", self.who, fid)
         try:
             frame = self.codec.decode(msg)
         except Exception as e:  # FrameError: its cause names the counter
             cause = getattr(e, "cause", None)
             if cause is None:
                 raise
-            self.reject(cause, str(e))
+            self.fail(fid, cause, str(e), t)
             return None
         last = tracker.last
         data = bytes(msg.data)
         if last is not None and fid in self._cyclic:
             step = (frame.counter - last) % COUNTER_MODULO
             if step == 0 and data != self._last_data.get(fid):
-                self.foreign("counter_clash", f"{frame.name}: expected new data under a new "
-                             f"counter, but got counter {last} again with another payload")
+                self.counters["foreign"] += 1
+                self.fail(fid, "counter_clash", f"{frame.name}: expected new data under a new "
+                          f"counter, but got counter {last} again with another payload", t)
                 return None
             if step > COUNTER_MODULO // 2:
-                self.foreign("counter_jump", f"{frame.name}: expected counter "
-                             f"{(last + 1) % COUNTER_MODULO} (or a few lost), but got "
-                             f"{frame.counter} after {last}")
+                self.counters["foreign"] += 1
+                self.fail(fid, "counter_jump", f"{frame.name}: expected counter "
+                          f"{(last + 1) % COUNTER_MODULO} (or a few lost), but got "
+                          f"{frame.counter} after {last}", t)
                 tracker.reset()  # re-synchronise: a real restart loses only this frame
                 tracker.update(frame.counter)
                 self._last_data[fid] = data
@@ -127,7 +163,35 @@ class NodeIO:
             self.counters["repeated_counter"] += 1
             return None
         self._last_data[fid] = data
+        self._streak[fid] = 0
         return frame
+
+    def fail(self, fid: int, cause: str, reason: str, t: float) -> None:
+        """A frame on ``fid`` rejected under ``cause``; an E2E cause (STREAK_CAUSES) adds
+        to the ID's untrusted streak."""
+        self.reject(cause, reason)
+        if cause not in STREAK_CAUSES:
+            return
+        self._streak[fid] += 1
+        if self._streak[fid] >= self.untrusted_after:
+            self._streak[fid] = 0
+            self._untrusted_until[fid] = t + self.untrusted_s
+            self.counters["untrusted_sources"] += 1
+            self.last_safety = ("untrusted", fid)
+            log.warning("%s: 0x%03X untrusted for %.3f s after %d consecutive E2E failures "
+                        "(last: %s)", self.who, fid, self.untrusted_s, self.untrusted_after,
+                        reason)
+
+    def untrusted(self, fid: int, t: float) -> bool:
+        """Whether ``fid`` is untrusted at ``t``."""
+        until = self._untrusted_until.get(fid)
+        return until is not None and t < until
+
+    def safety_reject(self, cause: str, fid: int, reason: str) -> None:
+        """A frame rejected by the safety model (docs/safety-model.md): counted under
+        ``cause``, its claimed sender remembered for the diagnostics."""
+        self.last_safety = (cause, fid)
+        self.reject(cause, reason)
 
     def foreign(self, cause: str, reason: str) -> None:
         """A frame that cannot come from this node's fleet: counted under ``cause`` and

@@ -36,6 +36,17 @@ every ``contract.every_ticks`` ticks (5 and 10 at the DBC's cycles), so a node w
 longer Ts stretches them all alike. The diagnostics rotate over ``DIAG_PAGES``, one
 page per diag frame.
 
+Safety model (docs/safety-model.md): on top of the E2E checks (and NodeIO's untrusted
+sources), an accepted price outside ``[rho_min, rho_max]`` or more than
+``price_step_max`` from the last accepted fresh price is rejected (``implausible_price``)
+— a new level repeated in ``price_persist`` consecutive frames is accepted
+(``price_steps_accepted``); a RUNNING neighbour whose λ moved more than
+``lambda_step_max`` per elapsed sample since its last accepted frame is rejected
+(``implausible_lambda``, its last good λ kept); SET_GAINS outside ``[k_min, k_max]``,
+``[h_min, h_max]`` is rejected (``implausible_gains``, gains unchanged). ISOLATE and
+RECONNECT are logged at warning level with the claimed sender and counted
+(``commands_isolate``, ``commands_reconnect``).
+
 Every frame that is rejected lands in ``counters`` under its cause; the first few
 of each cause are logged with the full reason, so nothing is dropped silently.
 Foreign traffic (firmware_py.nodeio) is counted under ``foreign`` and its cause.
@@ -63,6 +74,9 @@ log = logging.getLogger(__name__)
 
 SETPOINT_EVERY = every_ticks(setpoint_name(1))   # ticks between setpoints (5 in the DBC)
 DIAG_EVERY = every_ticks(diag_name(1))           # ticks between diag frames (10)
+# AGENT_<i>_Diag SafetyCause values (tools/gen_dbc.py SAFETY_CAUSE_CHOICES)
+SAFETY_CAUSES = ("none", "untrusted", "implausible_price", "implausible_lambda",
+                 "implausible_gains")
 
 
 @dataclass
@@ -126,7 +140,17 @@ class AgentRuntime:
         self.io = NodeIO(c, f"agent {cfg.id}",
                          own=(mc_name(cfg.id), setpoint_name(cfg.id), diag_name(cfg.id)),
                          wanted=(self.price_id, self.command_id, self.status_id,
-                                 *self.neighbours), fleet_size=cfg.fleet_size)
+                                 *self.neighbours), fleet_size=cfg.fleet_size,
+                         untrusted_after=cfg.untrusted_after,
+                         untrusted_s=float(cfg.untrusted_s or 0.0))
+        # safety limits in Q24 (docs/safety-model.md)
+        self.rho_min = fx.to_fixed(cfg.rho_min, "rho_min")
+        self.rho_max = fx.to_fixed(cfg.rho_max, "rho_max")
+        self.price_step_max = fx.to_fixed(cfg.price_step_max, "price_step_max")
+        self.lambda_step_max = fx.to_fixed(float(cfg.lambda_step_max or 0.0),
+                                           "lambda_step_max")
+        self._price_candidate: int | None = None  # a new price level beyond the step limit
+        self._price_candidate_n = 0
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         # saturate each diag value at its signal's raw maximum (u16, or u8 NeighboursAlive)
@@ -158,13 +182,13 @@ class AgentRuntime:
             if fid == self.price_id:
                 self._on_price(frame, t)
             elif fid == self.command_id:
-                self._on_command(frame)
+                self._on_command(frame, fid)
             elif fid == self.status_id:
                 self._on_status(frame, t)
             else:
                 self._on_mc(self.neighbours[fid], frame, t)
         except FrameError as e:
-            self.io.reject(e.cause, str(e))
+            self.io.fail(fid, e.cause, str(e), t)
 
     def _check_lambda(self, name: str, raw: int) -> int:
         if not self.lam_min <= raw <= self.lam_max:
@@ -175,24 +199,72 @@ class AgentRuntime:
     def _on_price(self, f: DecodedFrame, t: float) -> None:
         if not f.raw["PriceValid"]:
             return  # the router says it has no price: treated as no price frame
-        self.price = self._check_lambda("ER_Price.Rho", f.raw["Rho"])
+        rho = self._check_lambda("ER_Price.Rho", f.raw["Rho"])
+        if not self.rho_min <= rho <= self.rho_max:
+            self._candidate(None)
+            self.io.safety_reject("implausible_price", f.frame_id, f"ER_Price.Rho: expected a "
+                                  f"price in [{self.cfg.rho_min}, {self.cfg.rho_max}] cu/kWh "
+                                  f"(limits.rho_min/rho_max), but got {fx.to_float(rho):.6g}")
+            return
+        if self.price is not None and self.price_ok \
+                and abs(rho - self.price) > self.price_step_max:
+            n = self._candidate(rho)
+            if n < self.cfg.price_persist:
+                self.io.safety_reject(
+                    "implausible_price", f.frame_id, f"ER_Price.Rho: expected a step of at most "
+                    f"{self.cfg.price_step_max} cu/kWh (limits.price_step_max) from "
+                    f"{fx.to_float(self.price):.6g}, but got {fx.to_float(rho):.6g} "
+                    f"({n} of {self.cfg.price_persist} frames to accept it as a new level)")
+                return
+            self.counters["price_steps_accepted"] += 1
+            log.warning("agent %d: accepted a price step %.6g → %.6g cu/kWh beyond "
+                        "price_step_max after %d consecutive frames", self.cfg.id,
+                        fx.to_float(self.price), fx.to_float(rho), n)
+        self._candidate(None)
+        self.price = rho
         self.price_segment = f.raw["Segment"]
         self.price_rx = t
+
+    def _candidate(self, rho: int | None) -> int:
+        """Track a price level beyond the step limit: how many consecutive frames carried
+        it (None: forget it)."""
+        if rho is None or rho != self._price_candidate:
+            self._price_candidate, self._price_candidate_n = rho, 0
+        if rho is not None:
+            self._price_candidate_n += 1
+        return self._price_candidate_n
 
     def _on_mc(self, slot: NeighbourSlot, f: DecodedFrame, t: float) -> None:
         state = f.raw["State"]
         if state not in State._value2member_map_:
             raise RangeError(f"{f.name}.State: expected one of {[int(s) for s in State]}, but "
                              f"got {state}")
-        slot.lam = self._check_lambda(f"{f.name}.Lambda", f.raw["Lambda"])
+        lam = self._check_lambda(f"{f.name}.Lambda", f.raw["Lambda"])
+        if (slot.alive and slot.lam is not None and slot.last_rx is not None
+                and is_active(slot.state) and is_active(State(state))):
+            # both frames RUNNING: an ISOLATE (idle MC) or a restart goes through another state
+            samples = max(1, round((t - slot.last_rx) / self.period))
+            if abs(lam - slot.lam) > samples * self.lambda_step_max:
+                self.io.safety_reject(
+                    "implausible_lambda", f.frame_id, f"{f.name}.Lambda: expected a change of "
+                    f"at most {self.cfg.lambda_step_max:.6g} cu/kWh per sample "
+                    f"(limits.lambda_step_max) × {samples}, but got "
+                    f"{fx.to_float(slot.lam):.6g} → {fx.to_float(lam):.6g}; kept the last")
+                return
+        slot.lam = lam
         slot.state = State(state)
         slot.last_rx = t
 
-    def _on_command(self, f: DecodedFrame) -> None:
+    def _on_command(self, f: DecodedFrame, fid: int) -> None:
         if f.raw["Target"] != self.cfg.id:
             return
         cmd = f.raw["Command"]
         self.counters["commands"] += 1
+        if cmd in (Command.ISOLATE, Command.RECONNECT):
+            name = Command(cmd).name
+            self.counters[f"commands_{name.lower()}"] += 1
+            log.warning("agent %d: %s from claimed sender 0x%03X (ER_Command, counter %d) in "
+                        "state %s", self.cfg.id, name, fid, f.counter, self.state.name)
         if cmd == Command.ISOLATE and self.state != State.ISOLATED:
             self.state = State.ISOLATED
             self.cstate = self.ctrl.initial_state(self.idle_lambda)
@@ -200,6 +272,15 @@ class AgentRuntime:
             self.state = State.INIT  # tick() moves on to RUNNING when price and status are fresh
         elif cmd == Command.SET_GAINS:
             k, h = f.phys("GainK"), f.phys("GainH")
+            c = self.cfg
+            assert c.k_min is not None and c.k_max is not None
+            assert c.h_min is not None and c.h_max is not None
+            if not (c.k_min <= k <= c.k_max and c.h_min <= h <= c.h_max):
+                self.io.safety_reject(
+                    "implausible_gains", fid, f"ER_Command SET_GAINS: expected k in "
+                    f"[{c.k_min:g}, {c.k_max:g}] and h in [{c.h_min:g}, {c.h_max:g}] "
+                    f"(limits.k_min..h_max), but got k = {k:g}, h = {h:g}; gains unchanged")
+                return
             try:
                 cfg = replace(self.ctrl.config, k=k, h=h)
             except ParameterError as e:
@@ -326,6 +407,7 @@ class AgentRuntime:
 
     def diag_values(self) -> dict[str, int]:
         c = self.counters
+        last = self.io.last_safety
         return {"Resets": self.cstate.resets, "DeadlineMisses": c["deadline_miss"],
                 "NeighboursAlive": self.neighbours_alive, "State": int(self.state),
                 "RejectedCrc": c["crc"], "RejectedDlc": c["dlc"], "RejectedRange": c["range"],
@@ -336,7 +418,12 @@ class AgentRuntime:
                 "PriceTimeouts": c["price_timeouts"], "StatusTimeouts": c["status_timeouts"],
                 "PlantFaults": c["plant_faults"], "ForeignFrames": c["foreign"],
                 "ForeignIds": c["foreign_id"],
-                "InterleavedCounters": c["counter_jump"] + c["counter_clash"]}
+                "InterleavedCounters": c["counter_jump"] + c["counter_clash"],
+                "Untrusted": c["untrusted"], "ImplausiblePrice": c["implausible_price"],
+                "ImplausibleLambda": c["implausible_lambda"],
+                "ImplausibleGains": c["implausible_gains"],
+                "SafetySender": last[1] if last else 0,
+                "SafetyCause": SAFETY_CAUSES.index(last[0]) if last else 0}
 
     # AGENT_<i>_Diag pages (tools/gen_dbc.py): page k carries DIAG_PAGES[k]
     DIAG_PAGES = (("Resets", "DeadlineMisses", "NeighboursAlive", "State"),
@@ -344,7 +431,9 @@ class AgentRuntime:
                   ("RejectedUnknownId", "RejectedImpersonation", "RepeatedCounter"),
                   ("LostFrames", "Saturations", "NeighbourTimeouts"),
                   ("PriceTimeouts", "StatusTimeouts", "PlantFaults"),
-                  ("ForeignFrames", "ForeignIds", "InterleavedCounters"))
+                  ("ForeignFrames", "ForeignIds", "InterleavedCounters"),
+                  ("Untrusted", "ImplausiblePrice", "ImplausibleLambda"),
+                  ("ImplausibleGains", "SafetySender", "SafetyCause"))
 
     def _diag_frame(self, page: int) -> can.Message:
         values = self.diag_values()

@@ -58,6 +58,16 @@ Foreign traffic (frames of agents outside the scenario, impersonated status fram
 interleaved counters on a setpoint ID) is counted under ``foreign`` and its cause
 (firmware_py.nodeio).
 
+Setpoint ramp limit (docs/safety-model.md): while a BESS is enabled with a fresh
+setpoint, its reference P_ref moves towards the setpoint by at most ``ramp_kw_s``·dt
+per tick, by default p_max per ``RAMP_FULL_S`` = 0.25 s (at Ts = 10 ms, stretched with Ts
+in a time-scaled run), so a forged or faulty setpoint cannot jump a battery to its limit
+in one frame. Going to 0 (disabled, stale setpoint) is not ramp-limited: that is the
+safe direction and the current loop smooths it with τ anyway. Each tick the ramp
+engages after a tick it did not counts one ``setpoint_ramp_limited`` (an episode, not
+every tick); it does not set PowerLimited. The healthy start transient of the paper
+cases engages it once per BESS (see docs/safety-model.md for what it changes).
+
 Fault injection (tests): ``faults`` = (agent, kind, t_start, t_end) windows in
 seconds from the node's first tick; while one is active the flag is forced:
 ``overcurrent`` → FaultOverCurrent, ``voltage`` → FaultVoltage, ``soc`` → FaultSoc
@@ -75,7 +85,8 @@ from typing import Any
 
 import can
 
-from firmware_py.contract import cycle_s, setpoint_name, status_name, timeout_s
+from firmware_py.config import untrusted_s
+from firmware_py.contract import MC_CYCLE_S, cycle_s, setpoint_name, status_name, timeout_s
 from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import NodeIO
@@ -92,6 +103,7 @@ OCV_LOW, OCV_SPAN = 0.9, 0.2  # V_oc = v_nom·(0.9 + 0.2·SoC)
 SOC_MIN, SOC_MAX = 0.05, 0.95
 V_MIN, V_MAX = 0.8, 1.2       # × v_nom, FaultVoltage outside
 FAULT_POWER_FRACTION = 0.5    # injected power_limit: |P| ≤ 50 % of p_max
+RAMP_FULL_S = 0.25            # default setpoint ramp: p_max per 0.25 s (at Ts = 10 ms)
 
 FAULT_KINDS = ("overcurrent", "voltage", "soc", "power_limit")
 
@@ -196,6 +208,8 @@ class BessUnit:
     fault_voltage: bool = False
     fault_soc: bool = False
     setpoint_timeouts: int = 0
+    ramp_kw_s: float = math.inf   # setpoint ramp limit, kW/s
+    ramp_limited: bool = False
 
     @classmethod
     def create(cls, agent: int, b: Battery) -> BessUnit:
@@ -216,12 +230,22 @@ class BessUnit:
         self.voltage = open_circuit_voltage(b, self.soc) - b.r_internal * self.current
         self.power = self.voltage * self.current / 1000.0
 
-    def control(self, forced: set[str]) -> None:
-        """Latch a new reference from the setpoint, the limits and the protections."""
+    def control(self, forced: set[str], dt: float = 0.0) -> bool:
+        """Latch a new reference from the setpoint, the ramp, the limits and the
+        protections. True when the ramp limit engaged at this tick after it did not."""
         b = self.battery
-        p_set = self.p_set if (self.enable and not self.stale) else 0.0
+        live = self.enable and not self.stale
+        p_set = self.p_set if live else 0.0
         p = min(b.p_max, max(b.p_min, p_set))
         limited = p != p_set
+        ramped = False
+        if live and math.isfinite(self.ramp_kw_s):
+            step = self.ramp_kw_s * max(dt, 0.0)
+            if abs(p - self.p_ref) > step:
+                p = self.p_ref + math.copysign(step, p - self.p_ref)
+                ramped = True
+        edge = ramped and not self.ramp_limited
+        self.ramp_limited = ramped
         if "power_limit" in forced:
             cap = FAULT_POWER_FRACTION * b.p_max
             p = min(cap, max(-cap, p))
@@ -244,6 +268,7 @@ class BessUnit:
         self.fault_overcurrent |= "overcurrent" in forced
         self.fault_voltage |= "voltage" in forced
         self.fault_soc |= "soc" in forced
+        return edge
 
     def flags(self) -> str:
         names = [n for n, on in (("OC", self.fault_overcurrent), ("V", self.fault_voltage),
@@ -278,7 +303,9 @@ class PlantNode(SimNodeClock):
     ``counters`` (a Counter): rejected setpoint frames by cause (``crc``, ``dlc``,
     ``range``, ``unknown_id``, ``malformed``, ``impersonation``), ``repeated_counter``,
     ``lost_frames``, ``foreign`` (with ``foreign_id``, ``counter_jump``,
-    ``counter_clash``), ``setpoints`` (accepted), ``setpoint_timeouts``, ``status_frames``,
+    ``counter_clash``), ``untrusted`` / ``untrusted_sources`` (firmware_py.nodeio),
+    ``setpoint_ramp_limited`` (ramp episodes), ``setpoints`` (accepted),
+    ``setpoint_timeouts``, ``status_frames``,
     ``soc_faults`` / ``voltage_faults`` / ``overcurrent_faults`` (rising edges of the
     flags), ``injected_faults`` (fault windows entered), ``encode_saturations``
     (a measurement outside its signal's range, sent saturated), and the loop's
@@ -287,13 +314,22 @@ class PlantNode(SimNodeClock):
 
     def __init__(self, scenario: Scenario, period: float = 0.01,
                  faults: Iterable[PlantFault | Sequence[Any] | str] = (),
-                 codec: FrameCodec | None = None) -> None:
+                 codec: FrameCodec | None = None, ramp_full_s: float | None = None) -> None:
+        """``ramp_full_s``: the setpoint ramp limit as the time to go from 0 to p_max
+        (None: RAMP_FULL_S stretched with the scenario's Ts; 0: no ramp limit)."""
         if not (math.isfinite(period) and period > 0):
             raise ParameterError("period", "a positive number of seconds", period)
+        if ramp_full_s is None:
+            ramp_full_s = RAMP_FULL_S * scenario.ts / MC_CYCLE_S
+        if not ramp_full_s >= 0:
+            raise ParameterError("ramp_full_s", "a time ≥ 0 s (0: no ramp limit)", ramp_full_s)
         self.scenario = scenario
         self.period = period
         self.codec = codec or FrameCodec()
         self.units = [BessUnit.create(i, b) for i, b in enumerate(scenario.batteries, start=1)]
+        for u in self.units:
+            u.ramp_kw_s = (max(abs(u.battery.p_min), u.battery.p_max) / ramp_full_s
+                           if ramp_full_s > 0 else math.inf)
         self.faults = tuple(as_fault(f).check(scenario.n) for f in faults)
         c = self.codec
         # the DBC's cycles are for Ts = 10 ms; the scenario's Ts stretches them (time scale)
@@ -305,7 +341,7 @@ class PlantNode(SimNodeClock):
         self._status_names = [status_name(u.agent) for u in self.units]
         self._setpoint_fid = {u.agent: fid for fid, u in self._setpoint_ids.items()}
         self.io = NodeIO(c, "the plant", own=self._status_names, wanted=self._setpoint_ids,
-                         fleet_size=scenario.n)
+                         fleet_size=scenario.n, untrusted_s=untrusted_s(scenario.ts))
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         first = self._status_names[0]
@@ -317,7 +353,7 @@ class PlantNode(SimNodeClock):
     # ------------------------------------------------------------------ receive
 
     def on_frame(self, msg: can.Message, t: float) -> None:
-        f = self.io.receive(msg)
+        f = self.io.receive(msg, t)
         if f is None:
             return
         unit = self._setpoint_ids[f.frame_id]
@@ -336,7 +372,8 @@ class PlantNode(SimNodeClock):
             u.advance(dt)
             self._check_setpoint_age(u, t)
             before = (u.fault_soc, u.fault_voltage, u.fault_overcurrent)
-            u.control(forced.get(u.agent, set()))
+            if u.control(forced.get(u.agent, set()), dt):
+                self.counters["setpoint_ramp_limited"] += 1
             for name, was, now in zip(("soc_faults", "voltage_faults", "overcurrent_faults"),
                                       before, (u.fault_soc, u.fault_voltage,
                                                u.fault_overcurrent), strict=True):

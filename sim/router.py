@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 
 import can
 
+from firmware_py.config import untrusted_s
 from firmware_py.contract import Command, cycle_s, status_name, timeout_s
 from firmware_py.errors import ParameterError
 from firmware_py.frames import LAMBDA_Q, FrameCodec
@@ -150,7 +151,8 @@ class RouterNode(SimNodeClock):
                         for i in range(1, scenario.n + 1)}
         self._slots = list(self._status.values())
         self.io = NodeIO(c, "the router", own=("ER_Price", "ER_Command", "ER_Balance"),
-                         wanted=self._status, fleet_size=scenario.n)
+                         wanted=self._status, fleet_size=scenario.n,
+                         untrusted_s=untrusted_s(scenario.ts))
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         self._rho_lo, self._rho_hi = c.raw_range("ER_Price", "Rho")
@@ -199,7 +201,7 @@ class RouterNode(SimNodeClock):
     # ------------------------------------------------------------------ receive
 
     def on_frame(self, msg: can.Message, t: float) -> None:
-        f = self.io.receive(msg)
+        f = self.io.receive(msg, t)
         if f is None:
             return
         slot = self._status[f.frame_id]

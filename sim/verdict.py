@@ -50,6 +50,12 @@ _AGENT_FAULT_COUNTERS = (
     ("RejectedRange", "rejected_frames", "frames with a value out of range"),
     ("RejectedUnknownId", "rejected_frames", "frames with an ID outside the DBC"),
     ("RepeatedCounter", "stale_frames", "frames repeating the last counter (stale data)"),
+    ("Untrusted", "untrusted_source", "frames rejected from a source ID made untrusted by "
+     "consecutive E2E failures"),
+    ("ImplausiblePrice", "implausible_frames", "prices rejected as implausible (bounds or step)"),
+    ("ImplausibleLambda", "implausible_frames", "neighbour λ rejected as implausible (step per "
+     "sample)"),
+    ("ImplausibleGains", "implausible_frames", "SET_GAINS rejected (gains outside bounds)"),
 )
 # the plant's and router's counters (logs/*.counters.json) that a healthy run keeps at 0
 _SIM_FAULT_COUNTERS = (
@@ -64,6 +70,8 @@ _SIM_FAULT_COUNTERS = (
     ("malformed", "rejected_frames", "remote, error or FD frames"),
     ("repeated_counter", "stale_frames", "frames repeating the last counter (stale data)"),
     ("send_failure", "send_failure", "frames it failed to send"),
+    ("untrusted", "untrusted_source", "frames rejected from a source ID made untrusted by "
+     "consecutive E2E failures"),
 )
 
 

@@ -145,6 +145,15 @@ GOLDEN = [
     ("AGENT_5_Diag", 6, {"Page": 5, "ForeignFrames": 65535, "ForeignIds": 16,
                          "InterleavedCounters": 0x0102},
      "83 56 FF FF 10 00 02 01", {"ForeignFrames": 65535}),
+    # page 6: byte1 = 0x67; Untrusted 95; ImplausiblePrice 2; ImplausibleLambda 0x0400
+    ("AGENT_5_Diag", 7, {"Page": 6, "Untrusted": 95, "ImplausiblePrice": 2,
+                         "ImplausibleLambda": 0x0400},
+     "9C 67 5F 00 02 00 00 04", {"Untrusted": 95}),
+    # page 7: byte1 = 0x78; ImplausibleGains 1; SafetySender 0x101 (11 bits at 32);
+    # SafetyCause IMPLAUSIBLE_LAMBDA (3) in bits 48..51
+    ("AGENT_5_Diag", 8, {"Page": 7, "ImplausibleGains": 1, "SafetySender": 0x101,
+                         "SafetyCause": 3},
+     "2B 78 01 00 01 01 03 00", {"SafetySender": 257, "SafetyCause": 3}),
     # byte1 = 0x06; GridPower -123.4 kW → 0xFB2E; CostRate 56.7 → 0x0237; Optimal -0.1 → 0xFFFF
     ("ER_Balance", 6, {"GridPower": -1234, "CostRate": 567, "OptimalCostRate": -1},
      "22 06 2E FB 37 02 FF FF",
@@ -317,7 +326,7 @@ def test_malformed_kinds(codec: FrameCodec, kind: str) -> None:
     (0x281, "00 00 00 00 00 00 FF", "Soc", 255),
     (0x020, "00 01 00 00 00 00 00", "Command", 0),           # no command 0
     (0x020, "10 21 00 00 00 00 00", "Target", 33),           # no agent 33
-    (0x305, "60 00 00 00 00 00 00", "Page", 6),              # diag page 6 does not exist
+    (0x305, "80 00 00 00 00 00 00", "Page", 8),              # diag page 8 does not exist
     (0x305, "00 00 00 00 00 00 0C", "State", 12),            # diag page 0 State 12
 ])
 def test_out_of_range_raw_value(codec: FrameCodec, fid: int, payload: str, signal: str,
@@ -426,7 +435,7 @@ def test_encode_errors_name_message_signal_range_and_value(codec: FrameCodec) ->
                                         "PowerLimited": 0, "Power": 0, "Current": 0,
                                         "Voltage": 0, "Soc": 201}, 0)
     with pytest.raises(EncodeError, match=r"AGENT_1_Diag\.Page"):
-        codec.encode("AGENT_1_Diag", {"Page": 6}, 0)
+        codec.encode("AGENT_1_Diag", {"Page": 8}, 0)
     with pytest.raises(EncodeError, match="missing RejectedDlc, RejectedRange"):
         codec.encode("AGENT_1_Diag", {"Page": 1, "RejectedCrc": 0}, 0)
     with pytest.raises(EncodeError, match="not in this frame Resets"):

@@ -85,7 +85,7 @@ def test_chopper_step_response_is_first_order_with_tau() -> None:
     """R = 0 keeps V = V_oc (SoC moves by ~1e-5 in 50 ms), so I_ref is constant and the
     exact discretisation must give 1 − exp(−t/τ) at every tick: 63.2 % at τ."""
     sc = with_batteries(load_case(1), r_internal=0.0)
-    plant = PlantNode(sc)
+    plant = PlantNode(sc, ramp_full_s=0)  # the current loop alone
     drv = PlantDriver(plant)
     drv.send(1, 50.0)
     u = plant.unit(1)
@@ -256,7 +256,7 @@ def test_bad_setpoints_are_rejected_by_cause_and_counters_checked() -> None:
 def test_injected_faults_set_the_status_flags() -> None:
     faults = [(1, "overcurrent", 0.2, 0.4), (2, "voltage", 0.2, 0.4), (3, "soc", 0.2, 0.4),
               (4, "power_limit", 0.2, 0.8)]
-    plant = PlantNode(load_case(1), faults=faults)
+    plant = PlantNode(load_case(1), faults=faults, ramp_full_s=0)  # the current loop alone
     drv = PlantDriver(plant)
     drv.run(1.2, {4: 100.0})
     flag = {1: "FaultOverCurrent", 2: "FaultVoltage", 3: "FaultSoc", 4: "PowerLimited"}

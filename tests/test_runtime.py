@@ -193,8 +193,17 @@ def test_set_gains_command_and_bad_gains_counted() -> None:
     assert (a.ctrl.config.k, a.ctrl.config.h) == (2.0, 3.0)
     a.on_frame(CODEC.encode("ER_Command", {"Command": 3, "Target": 1, "GainK": 0,
                                            "GainH": 3000}, 1), 0.0)
-    assert a.counters["range"] == 1 and a.ctrl.config.k == 2.0
-    assert "k" in a.last_error["range"]
+    # k = 0 is outside the configured bounds (×0.5..×2 of k = 1): the safety model
+    # rejects it before the controller's own parameter check would
+    assert a.counters["implausible_gains"] == 1 and a.ctrl.config.k == 2.0
+    assert "k" in a.last_error["implausible_gains"]
+    # inside the bounds but an invalid controller: still a range error
+    bad = replace(a.cfg, k_min=0.0)
+    b = AgentRuntime(bad, CODEC)
+    b.on_frame(CODEC.encode("ER_Command", {"Command": 3, "Target": 1, "GainK": 0,
+                                           "GainH": 3000}, 0), 0.0)
+    assert b.counters["range"] == 1 and b.ctrl.config.k == 1.0
+    assert "k" in b.last_error["range"]
 
 
 def test_plant_fault_enters_safe_and_recovers() -> None:

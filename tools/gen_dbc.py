@@ -65,6 +65,9 @@ DEFAULT_OUTPUT = Path(__file__).resolve().parent.parent / "dbc" / "bess_ded.dbc"
 
 STATE_CHOICES = {0: "INIT", 1: "RUNNING", 2: "ISOLATED", 3: "SAFE"}
 COMMAND_CHOICES = {1: "ISOLATE", 2: "RECONNECT", 3: "SET_GAINS"}
+# AGENT_<i>_Diag SafetyCause (firmware_py.runtime.SAFETY_CAUSES, docs/safety-model.md)
+SAFETY_CAUSE_CHOICES = {0: "NONE", 1: "UNTRUSTED", 2: "IMPLAUSIBLE_PRICE",
+                        3: "IMPLAUSIBLE_LAMBDA", 4: "IMPLAUSIBLE_GAINS"}
 
 BUS_COMMENT = (
     "bess-ded: distributed economic dispatch of battery energy storage systems. "
@@ -84,7 +87,7 @@ E2E_COUNTER_COMMENT = (
     "E2E rolling counter 0..15, +1 mod 16 per transmission of this frame. A receiver treats "
     "a repeated value as no new data and counts (c - last - 1) mod 16 lost frames."
 )
-DIAG_PAGES = 6  # AGENT_<i>_Diag pages; firmware_py.runtime.AgentRuntime.DIAG_PAGES fills them
+DIAG_PAGES = 8  # AGENT_<i>_Diag pages; firmware_py.runtime.AgentRuntime.DIAG_PAGES fills them
 DIAG_SATURATION = "uint16, saturating at 65535 (the sender saturates, it never wraps)."
 
 
@@ -300,6 +303,20 @@ def _agent_diag(i: int) -> Message:
         u16("ForeignIds", 32, 5, "Of ForeignFrames: frames on IDs of agents outside the run."),
         u16("InterleavedCounters", 48, 5, "Of ForeignFrames: E2E counters that stepped back or "
             "repeated with another payload (two senders on one ID)."),
+        u16("Untrusted", 16, 6, "Received frames rejected because their source ID is untrusted "
+            "(after 5 consecutive E2E failures, for 1 s; docs/safety-model.md)."),
+        u16("ImplausiblePrice", 32, 6, "ER_Price frames rejected as implausible (outside "
+            "rho_min..rho_max, or a step above price_step_max not yet persistent)."),
+        u16("ImplausibleLambda", 48, 6, "Neighbour MC frames rejected for a lambda step above "
+            "lambda_step_max per sample (last good lambda kept)."),
+        u16("ImplausibleGains", 16, 7, "SET_GAINS commands rejected for gains outside "
+            "k_min..k_max, h_min..h_max (gains unchanged)."),
+        _sig("SafetySender", 32, 11, page=7, minimum=0, maximum=0x7FF, receivers=rx,
+             comment="Claimed sender (CAN ID) of the last frame the safety model rejected "
+                     "(0: none yet)."),
+        _sig("SafetyCause", 48, 4, page=7, minimum=0, maximum=len(SAFETY_CAUSE_CHOICES) - 1,
+             choices=SAFETY_CAUSE_CHOICES, receivers=rx,
+             comment="Cause of the last frame the safety model rejected."),
     ], f"Agent {i} diagnostics, multiplexed over {DIAG_PAGES} pages (one page per frame, "
        "in turn).",
         DIAG_CYCLE_MS)
