@@ -100,7 +100,7 @@ def test_chopper_step_response_is_first_order_with_tau() -> None:
     p_at_tau = [d["Power"] for t, d in drv.status if d["agent"] == 1 and abs(t - 0.05) < 1e-9]
     assert p_at_tau  # the status at 50 ms reports the state after 50 ms = τ
     assert p_at_tau[0] == pytest.approx((1 - math.exp(-1)) * 50.0, abs=0.02)
-    plant2 = PlantNode(sc)
+    plant2 = PlantNode(sc, ramp_full_s=0)
     plant2.on_frame(setpoint(1, 50.0, 0), 0.0)
     plant2.tick(0.0)
     plant2.tick(TAU_S)  # one uneven step of exactly τ: dt is the real elapsed time
