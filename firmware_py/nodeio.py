@@ -75,6 +75,7 @@ class NodeIO:
         self._streak: Counter[int] = Counter()
         self._untrusted_until: dict[int, float] = {}
         self.last_safety: tuple[str, int] | None = None  # (cause, claimed sender ID)
+        self.safety_rejections = 0
         self.who = who
         self.fleet_size = fleet_size
         self.counters: Counter[str] = Counter()
@@ -93,10 +94,13 @@ class NodeIO:
         check, what it sends."""
         return sorted(set(self._sent) | set(self.trackers))
 
-    def receive(self, msg: can.Message, t: float | None = None) -> DecodedFrame | None:
+    def receive(self, msg: can.Message, t: float | None = None,
+                defer_trust: bool = False) -> DecodedFrame | None:
         """The decoded frame if it is for this node and carries new data, else None
         (and, if it was bad, counted). ``t``: the receive time, for the untrusted-source
-        rule (None: ``msg.timestamp``)."""
+        rule (None: ``msg.timestamp``). A returned frame resets its ID's untrusted streak,
+        unless ``defer_trust``: then the caller, which runs checks of its own, calls
+        ``trusted`` once the frame passed them (or ``fail``)."""
         fid = msg.arbitration_id
         if t is None:
             t = msg.timestamp
@@ -163,8 +167,13 @@ class NodeIO:
             self.counters["repeated_counter"] += 1
             return None
         self._last_data[fid] = data
-        self._streak[fid] = 0
+        if not defer_trust:
+            self._streak[fid] = 0
         return frame
+
+    def trusted(self, fid: int) -> None:
+        """A frame on ``fid`` passed every check: its untrusted streak starts again."""
+        self._streak[fid] = 0
 
     def fail(self, fid: int, cause: str, reason: str, t: float) -> None:
         """A frame on ``fid`` rejected under ``cause``; an E2E cause (STREAK_CAUSES) adds
@@ -191,6 +200,7 @@ class NodeIO:
         """A frame rejected by the safety model (docs/safety-model.md): counted under
         ``cause``, its claimed sender remembered for the diagnostics."""
         self.last_safety = (cause, fid)
+        self.safety_rejections += 1
         self.reject(cause, reason)
 
     def foreign(self, cause: str, reason: str) -> None:

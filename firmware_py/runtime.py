@@ -39,7 +39,7 @@ page per diag frame.
 Safety model (docs/safety-model.md): on top of the E2E checks (and NodeIO's untrusted
 sources), an accepted price outside ``[rho_min, rho_max]`` or more than
 ``price_step_max`` from the last accepted fresh price is rejected (``implausible_price``)
-— a new level repeated in ``price_persist`` consecutive frames is accepted
+(fresh or not) — a new level repeated in ``price_persist`` consecutive frames is accepted
 (``price_steps_accepted``); a RUNNING neighbour whose λ moved more than
 ``lambda_step_max`` per elapsed sample since its last accepted frame is rejected
 (``implausible_lambda``, its last good λ kept); SET_GAINS outside ``[k_min, k_max]``,
@@ -174,10 +174,11 @@ class AgentRuntime:
     # ------------------------------------------------------------------ receive
 
     def on_frame(self, msg: can.Message, t: float) -> None:
-        frame = self.io.receive(msg)
+        frame = self.io.receive(msg, t, defer_trust=True)
         if frame is None:
             return
         fid = frame.frame_id
+        rejected = self.io.safety_rejections
         try:
             if fid == self.price_id:
                 self._on_price(frame, t)
@@ -189,6 +190,11 @@ class AgentRuntime:
                 self._on_mc(self.neighbours[fid], frame, t)
         except FrameError as e:
             self.io.fail(fid, e.cause, str(e), t)
+            return
+        if self.io.safety_rejections == rejected:
+            # valid and plausible: the streak of E2E failures is over (a plausibility
+            # rejection neither adds to it nor ends it)
+            self.io.trusted(fid)
 
     def _check_lambda(self, name: str, raw: int) -> int:
         if not self.lam_min <= raw <= self.lam_max:
@@ -206,8 +212,9 @@ class AgentRuntime:
                                   f"price in [{self.cfg.rho_min}, {self.cfg.rho_max}] cu/kWh "
                                   f"(limits.rho_min/rho_max), but got {fx.to_float(rho):.6g}")
             return
-        if self.price is not None and self.price_ok \
-                and abs(rho - self.price) > self.price_step_max:
+        # against the last accepted price even when it went stale: after an outage a new
+        # level far from the old one needs price_persist frames too
+        if self.price is not None and abs(rho - self.price) > self.price_step_max:
             n = self._candidate(rho)
             if n < self.cfg.price_persist:
                 self.io.safety_reject(

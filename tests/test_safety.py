@@ -1,0 +1,369 @@
+"""The node safety model (docs/safety-model.md): every rule triggers on a crafted frame
+sequence built with the codec (valid CRC and counter unless the rule is about them), does
+not trigger on healthy sequences, and the paper cases' bus runs keep every new counter at 0.
+
+All clocks are injected (frame times and ticks are arguments): nothing sleeps."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from pathlib import Path
+
+import can
+import pytest
+
+from firmware_py import fixedpoint as fx
+from firmware_py.config import (
+    agent_configs_from_scenario,
+    load_agent_config,
+    parse_agent_config,
+)
+from firmware_py.errors import ConfigError
+from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
+from firmware_py.nodeio import NodeIO
+from firmware_py.runtime import DIAG_EVERY, SAFETY_CAUSES, AgentRuntime, State
+from sim.plant import PlantNode
+from sim.scenario import load_case, scaled
+
+CODEC = FrameCodec()
+TS = 0.01
+NEW_DIAG = ("Untrusted", "ImplausiblePrice", "ImplausibleLambda", "ImplausibleGains")
+NEW_CAUSES = ("untrusted", "untrusted_sources", "implausible_price", "implausible_lambda",
+              "implausible_gains")
+
+
+def status_frame(agent: int, counter: int) -> can.Message:
+    return CODEC.encode_phys(status_name(agent), {
+        "FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+        "Power": 10.0, "Current": 10.0, "Voltage": 700.0, "Soc": 50.0}, counter)
+
+
+def price_frame(counter: int, rho: float = 0.8) -> can.Message:
+    return CODEC.encode("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(rho), "Segment": 0},
+                        counter % 16)
+
+
+def mc_frame(agent: int, counter: int, lam: float, state: State = State.RUNNING) -> can.Message:
+    return CODEC.encode(mc_name(agent), {"State": int(state), "Lambda": fx.to_fixed(lam),
+                                         "Resets": 0, "NeighboursAlive": 1, "PriceOk": 1},
+                        counter % 16)
+
+
+def bad_crc(msg: can.Message) -> can.Message:
+    return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False,
+                       data=bytes([msg.data[0] ^ 0x5A]) + bytes(msg.data[1:]))
+
+
+def agent(index: int = 0, case: int = 1) -> AgentRuntime:
+    """Agent index+1 of a case, with a fresh plant status at t = 0."""
+    a = AgentRuntime(agent_configs_from_scenario(load_case(case))[index], CODEC)
+    a.on_frame(status_frame(a.cfg.id, 0), 0.0)
+    return a
+
+
+def running_agent() -> AgentRuntime:
+    """Agent 1 (pinned) RUNNING on ρ = 0.8 at t = 0.01."""
+    a = agent()
+    a.on_frame(price_frame(0), 0.0)
+    a.tick(0.0)
+    a.tick(TS)
+    assert a.state == State.RUNNING
+    return a
+
+
+# --------------------------------------------------------------------------- 1. untrusted
+
+
+def test_untrusted_after_n_consecutive_e2e_failures_then_expires() -> None:
+    a = running_agent()
+    assert a.cfg.untrusted_after == 5 and a.cfg.untrusted_s == pytest.approx(1.0)
+    # a mix of E2E failures: CRC, a counter jump (two interleaved senders) and a range error
+    a.on_frame(bad_crc(price_frame(1)), 0.02)
+    a.on_frame(bad_crc(price_frame(1)), 0.03)
+    a.on_frame(price_frame(10), 0.04)                 # 10 after 0: steps back by 6 → jump
+    a.on_frame(price_frame(11, rho=20.0), 0.05)       # outside [lambda_min, lambda_max]
+    assert a.counters["crc"] == 2 and a.counters["counter_jump"] == 1
+    assert a.counters["range"] == 1 and a.counters["untrusted_sources"] == 0
+    a.on_frame(bad_crc(price_frame(12)), 0.06)        # the 5th in a row
+    assert a.counters["untrusted_sources"] == 1
+    assert a.io.untrusted(CODEC.frame_id("ER_Price"), 0.07)
+    a.on_frame(price_frame(12, rho=0.8), 0.5)          # a valid frame: still rejected
+    assert a.counters["untrusted"] == 1 and a.price_rx == 0.0
+    assert "untrusted" in a.last_error["untrusted"]
+    assert a.diag_values()["SafetySender"] == CODEC.frame_id("ER_Price")
+    assert SAFETY_CAUSES[a.diag_values()["SafetyCause"]] == "untrusted"
+    # the stated time is over at 0.06 + 1 s: the next frame is trusted and accepted
+    a.on_frame(price_frame(13, rho=0.8), 1.07)
+    assert a.price_rx == 1.07 and a.counters["untrusted"] == 1
+    assert not a.io.untrusted(CODEC.frame_id("ER_Price"), 1.08)
+
+
+def test_a_valid_frame_resets_the_streak() -> None:
+    a = running_agent()
+    ctr = 1
+    for k in range(3):  # 4 failures, 1 good, 4 failures, 1 good, ...: never 5 in a row
+        for j in range(4):
+            a.on_frame(bad_crc(price_frame(ctr)), 0.02 + 0.1 * k + 0.01 * j)
+        a.on_frame(price_frame(ctr), 0.07 + 0.1 * k)
+        ctr += 1
+    assert a.counters["crc"] == 12 and a.counters["untrusted_sources"] == 0
+    assert a.counters["untrusted"] == 0 and a.price_rx == pytest.approx(0.27)
+
+
+def test_untrusted_time_stretches_with_the_time_scale_and_is_configurable() -> None:
+    cfg = agent_configs_from_scenario(scaled(load_case(1), 10.0))[0]
+    assert cfg.untrusted_s == pytest.approx(10.0)
+    io = NodeIO(CODEC, "test", own=(), wanted=(CODEC.frame_id("ER_Price"),),
+                untrusted_after=2, untrusted_s=0.3)
+    for t in (0.0, 0.01):
+        assert io.receive(bad_crc(price_frame(0)), t) is None
+    assert io.counters["untrusted_sources"] == 1
+    assert io.receive(price_frame(0), 0.2) is None and io.counters["untrusted"] == 1
+    assert io.receive(price_frame(1), 0.31) is not None
+
+
+def test_plant_unit_untrusted_on_forged_setpoints() -> None:
+    plant = PlantNode(load_case(1))
+    good = CODEC.encode(setpoint_name(3), {"Enable": 1, "PowerSetpoint": 5000}, 0)
+    for k in range(5):
+        plant.on_frame(bad_crc(good), 0.001 * k)
+    assert plant.counters["crc"] == 5 and plant.counters["untrusted_sources"] == 1
+    plant.on_frame(good, 0.01)
+    assert plant.counters["untrusted"] == 1 and plant.unit(3).setpoint_rx is None
+    plant.on_frame(CODEC.encode(setpoint_name(3), {"Enable": 1, "PowerSetpoint": 5000}, 1), 1.01)
+    assert plant.unit(3).p_set == 50.0
+
+
+# --------------------------------------------------------------------------- 2. price
+
+
+def test_price_outside_bounds_rejected() -> None:
+    a = running_agent()
+    a.on_frame(price_frame(1, rho=6.0), 0.02)     # inside the DBC and lambda range, > rho_max
+    a.on_frame(price_frame(2, rho=-0.5), 0.03)    # < rho_min
+    assert a.counters["implausible_price"] == 2 and a.price == fx.to_fixed(0.8)
+    assert "rho_min/rho_max" in a.last_error["implausible_price"]
+    assert a.counters["range"] == 0
+
+
+def test_price_step_rejected_until_it_persists_for_k_frames() -> None:
+    a = running_agent()
+    t = TS
+    for n in range(1, 3):  # 0.8 → 1.5 (Δ 0.7 > 0.5): frames 1 and 2 rejected
+        t += 0.05
+        a.tick(t)
+        a.on_frame(price_frame(n, rho=1.5), t)
+        assert a.price == fx.to_fixed(0.8), n
+    assert a.counters["implausible_price"] == 2
+    t += 0.05
+    a.tick(t)
+    a.on_frame(price_frame(3, rho=1.5), t)         # the 3rd in a row: a new level
+    assert a.price == fx.to_fixed(1.5) and a.counters["price_steps_accepted"] == 1
+    assert a.counters["implausible_price"] == 2
+
+
+def test_price_step_candidate_must_repeat_exactly() -> None:
+    """A forged stream alternating two far levels (or drifting in big steps) never persists."""
+    a = running_agent()
+    for n in range(1, 11):
+        a.tick(TS + 0.05 * n)
+        a.on_frame(price_frame(n, rho=2.0 if n % 2 else 2.5), TS + 0.05 * n)
+    assert a.price == fx.to_fixed(0.8) and a.counters["implausible_price"] == 10
+    assert a.counters["price_steps_accepted"] == 0
+
+
+def test_paper_price_steps_pass() -> None:
+    """Case 5's steps 0.8 → 1.0 → 0.6 (≤ 0.4) are accepted at once."""
+    a = running_agent()
+    for n, rho in enumerate((1.0, 1.0, 0.6, 0.6), start=1):
+        a.tick(TS + 0.05 * n)
+        a.on_frame(price_frame(n, rho=rho), TS + 0.05 * n)
+        assert a.price == fx.to_fixed(rho)
+    assert not any(a.counters[c] for c in NEW_CAUSES)
+
+
+# --------------------------------------------------------------------------- 3. neighbour λ
+
+
+def neighbour_setup() -> tuple[AgentRuntime, int, float]:
+    a = running_agent()
+    j = a.cfg.neighbours[0].id
+    return a, j, a.cfg.lambda_step_max or 0.0
+
+
+def test_neighbour_lambda_step_rejected_last_good_kept() -> None:
+    a, j, step = neighbour_setup()
+    assert step == pytest.approx(0.1)  # 10·k·Ts
+    t = 2 * TS
+    a.on_frame(mc_frame(j, 0, 0.80), t)
+    a.tick(t)
+    t += TS
+    a.on_frame(mc_frame(j, 1, 0.85), t)   # 0.05 per sample: fine
+    a.tick(t)
+    t += TS
+    a.on_frame(mc_frame(j, 2, 5.0), t)    # forged jump
+    slot = next(s for s in a.neighbours.values() if s.id == j)
+    assert a.counters["implausible_lambda"] == 1 and slot.lam == fx.to_fixed(0.85)
+    assert SAFETY_CAUSES[a.diag_values()["SafetyCause"]] == "implausible_lambda"
+    assert a.diag_values()["SafetySender"] == CODEC.frame_id(mc_name(j))
+    # two samples since the last accepted frame: up to 2 × step
+    a.tick(t)
+    t += TS
+    a.on_frame(mc_frame(j, 3, 0.85 + 1.9 * step), t)
+    assert a.counters["implausible_lambda"] == 1
+    assert slot.lam == fx.to_fixed(0.85 + 1.9 * step)
+
+
+def test_isolate_jump_and_reconnect_not_counted() -> None:
+    """An isolated neighbour jumps to its idle MC with State ISOLATED, comes back through
+    INIT: none of it is a RUNNING→RUNNING step."""
+    a, j, _ = neighbour_setup()
+    t = 2 * TS
+    for ctr, (lam, st) in enumerate([(1.2, State.RUNNING), (0.1944, State.ISOLATED),
+                                     (0.1944, State.ISOLATED), (0.1944, State.INIT),
+                                     (0.1944, State.RUNNING), (0.2, State.RUNNING),
+                                     (1.0, State.SAFE), (1.0, State.RUNNING)]):
+        a.on_frame(mc_frame(j, ctr, lam, st), t)
+        a.tick(t)
+        t += TS
+    assert a.counters["implausible_lambda"] == 0
+
+
+def test_timed_out_neighbour_is_accepted_afresh() -> None:
+    a, j, _ = neighbour_setup()
+    a.on_frame(mc_frame(j, 0, 0.8), 0.02)
+    a.tick(0.02)
+    a.tick(0.2)   # silent for 18 samples: timed out
+    a.on_frame(mc_frame(j, 1, 2.0), 0.2)
+    assert a.counters["implausible_lambda"] == 0
+
+
+# --------------------------------------------------------------------------- 4. commands
+
+
+def command(counter: int, cmd: int, target: int = 1, k: int = 0, h: int = 0) -> can.Message:
+    return CODEC.encode("ER_Command", {"Command": cmd, "Target": target, "GainK": k,
+                                       "GainH": h}, counter)
+
+
+def test_set_gains_outside_bounds_rejected_inside_accepted() -> None:
+    a = running_agent()
+    assert (a.cfg.k_min, a.cfg.k_max, a.cfg.h_min, a.cfg.h_max) == (0.5, 2.0, 1.0, 4.0)
+    a.on_frame(command(0, 3, k=65535, h=65535), 0.02)   # the DBC maximum (the issue's attack)
+    a.on_frame(command(1, 3, k=1000, h=4500), 0.03)     # h just above h_max
+    assert a.counters["implausible_gains"] == 2
+    assert (a.ctrl.config.k, a.ctrl.config.h) == (1.0, 2.0)
+    assert a.diag_values()["ImplausibleGains"] == 2
+    a.on_frame(command(2, 3, k=1500, h=3000), 0.04)
+    assert (a.ctrl.config.k, a.ctrl.config.h) == (1.5, 3.0)
+    assert a.counters["implausible_gains"] == 2
+
+
+def test_isolate_and_reconnect_logged_and_counted(caplog: pytest.LogCaptureFixture) -> None:
+    a = running_agent()
+    with caplog.at_level(logging.WARNING, logger="firmware_py.runtime"):
+        a.on_frame(command(0, 1), 0.02)
+        a.on_frame(command(1, 1), 0.03)   # the router repeats each command
+        a.on_frame(command(2, 2), 0.04)
+        a.on_frame(command(3, 1, target=2), 0.05)   # not for agent 1
+    assert a.counters["commands_isolate"] == 2 and a.counters["commands_reconnect"] == 1
+    sender = f"0x{CODEC.frame_id('ER_Command'):03X}"
+    msgs = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert sum("ISOLATE from claimed sender " + sender in m for m in msgs) == 2
+    assert sum("RECONNECT from claimed sender " + sender in m for m in msgs) == 1
+
+
+# --------------------------------------------------------------------------- 5. plant ramp
+
+
+def test_plant_ramp_limits_a_setpoint_jump() -> None:
+    plant = PlantNode(load_case(1))
+    u = plant.unit(3)
+    rate = max(abs(u.battery.p_min), u.battery.p_max) / 0.25
+    assert u.ramp_kw_s == pytest.approx(rate)
+    refs = []
+    for k in range(40):
+        if k % 5 == 0:
+            plant.on_frame(CODEC.encode(setpoint_name(3), {
+                "Enable": 1, "PowerSetpoint": round(100 * u.battery.p_max)}, k // 5), k * TS)
+        plant.tick(k * TS)
+        refs.append(u.p_ref)
+    steps = [b - a for a, b in zip(refs, refs[1:], strict=False)]
+    assert max(steps) <= rate * TS + 1e-9
+    assert refs[-1] == pytest.approx(u.battery.p_max)
+    assert refs[10] < 0.5 * u.battery.p_max
+    assert plant.counters["setpoint_ramp_limited"] == 1
+    # disabling goes to 0 at once (the safe direction)
+    plant.on_frame(CODEC.encode(setpoint_name(3), {"Enable": 0, "PowerSetpoint": 0}, 8), 0.4)
+    plant.tick(0.4)
+    assert u.p_ref == 0.0
+
+
+def test_plant_ramp_configurable_and_off() -> None:
+    plant = PlantNode(load_case(1), ramp_full_s=0)
+    plant.on_frame(CODEC.encode(setpoint_name(1), {"Enable": 1, "PowerSetpoint": 9000}, 0), 0.0)
+    plant.tick(0.0)
+    assert plant.unit(1).p_ref == 90.0 and plant.counters["setpoint_ramp_limited"] == 0
+
+
+# --------------------------------------------------------------------------- 6. diag pages
+
+
+def test_diag_pages_carry_the_safety_counters() -> None:
+    a = running_agent()
+    a.on_frame(price_frame(1, rho=9.0), 0.015)
+    a.on_frame(command(0, 3, k=9000, h=9000), 0.016)
+    pages = {}
+    for k in range(2, 2 + 8 * DIAG_EVERY):
+        for msg in a.tick(k * TS):
+            if msg.arbitration_id == CODEC.frame_id(diag_name(1)):
+                f = CODEC.decode(msg)
+                pages[f.raw["Page"]] = f.raw
+    assert pages[6]["ImplausiblePrice"] == 1 and pages[6]["Untrusted"] == 0
+    assert pages[7]["ImplausibleGains"] == 1
+    assert pages[7]["SafetySender"] == CODEC.frame_id("ER_Command")
+    assert SAFETY_CAUSES[pages[7]["SafetyCause"]] == "implausible_gains"
+    decoded = CODEC.database.decode_message(CODEC.frame_id(diag_name(1)), CODEC.encode(
+        diag_name(1), {"Page": 7, **{s: pages[7][s] for s in a.DIAG_PAGES[7]}}, 0).data)
+    assert decoded["SafetyCause"] == "IMPLAUSIBLE_GAINS"
+
+
+# --------------------------------------------------------------------------- config
+
+
+def test_limits_round_trip_and_bad_values(tmp_path: Path) -> None:
+    cfg = replace(agent_configs_from_scenario(load_case(1))[1], rho_max=3.0, price_persist=4,
+                  lambda_step_max=0.2, k_max=3.0, untrusted_after=7, untrusted_s=2.0)
+    path = tmp_path / "a.toml"
+    path.write_text(cfg.to_toml())
+    assert replace(load_agent_config(path), source=cfg.source) == cfg
+    data = {"agent": {"id": 1, "lambda0": 0.5}, "controller": {"kind": "reset"},
+            "battery": {"alpha": 0.005, "beta": 0.18, "m": 0.08, "p_min": -100, "p_max": 100}}
+    for limits, key in (({"rho_min": 2.0, "rho_max": 1.0}, "limits.rho_max"),
+                        ({"k_min": 3.0}, "limits.k_max"),
+                        ({"price_persist": 0}, "limits.price_persist"),
+                        ({"untrusted_after": 1.5}, "limits.untrusted_after"),
+                        ({"lambda_step_max": 0}, "limits.lambda_step_max")):
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            parse_agent_config({**data, "limits": limits}, "test")
+
+
+# --------------------------------------------------------------------------- healthy runs
+
+
+@pytest.mark.parametrize("case", [1, 4, 5, 7])
+def test_paper_case_bus_run_keeps_safety_counters_at_zero(tmp_path: Path, case: int) -> None:
+    from sim.busrun import run_in_process
+
+    sc = load_case(case)
+    m = run_in_process(sc, tmp_path, sc.duration)
+    assert m["anomalies"] == [], m["anomalies"]
+    assert m["verdict"]["converged"]
+    for name, d in m["node_diagnostics"].items():
+        for sig in NEW_DIAG:
+            assert d.get(sig, 0) == 0, (name, sig)
+        assert sig in d, (name, sig)  # the page was recorded
+    for node in ("plant", "router"):
+        c = m["node_counters"][node]["counters"]
+        assert c.get("untrusted", 0) == 0 and c.get("untrusted_sources", 0) == 0, node
