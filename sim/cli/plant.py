@@ -20,6 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fault", action="append", default=[], metavar="AGENT:KIND:T0:T1",
                    help="force a fault flag on BESS AGENT from T0 to T1 s after start; KIND is "
                    "overcurrent, voltage, soc or power_limit (repeatable)")
+    p.add_argument("--ramp-full-s", type=float, default=None, metavar="S",
+                   help="setpoint ramp limit: the time from 0 to p_max (default 0.25 s at "
+                   "Ts = 10 ms, stretched with Ts; 0: no limit; docs/safety-model.md)")
     one_line_errors(p)
     p.set_defaults(func=run)
 
@@ -30,4 +33,5 @@ def run(args: argparse.Namespace) -> int:
 
     sc = load_node_scenario(args)
     faults = [PlantFault.parse(f).check(sc.n) for f in args.fault]
-    return serve(PlantNode(sc, period=args.period, faults=faults), args)
+    return serve(PlantNode(sc, period=args.period, faults=faults,
+                           ramp_full_s=args.ramp_full_s), args)
