@@ -288,6 +288,8 @@ def _counters(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly
         name = f"agent_{a}"
         for sig, kind, what in _AGENT_FAULT_COUNTERS:
             if d.get(sig, 0):
+                if kind in ("untrusted_source", "implausible_frames"):
+                    what += _last_rejected(d)
                 out.append(Anomaly(kind, name, f"{d[sig]} {what}"))
         ticks = log.mc_frames(a) + d.get("DeadlineMisses", 0)
         _deadlines(name, d.get("DeadlineMisses", 0), ticks, out)
@@ -297,6 +299,22 @@ def _counters(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly
             if counters.get(key, 0):
                 out.append(Anomaly(kind, node, f"{counters[key]} {what}"))
         _deadlines(node, counters.get("deadline_miss", 0), c.get("ticks", 0), out)
+
+
+def _last_rejected(d: dict[str, int]) -> str:
+    """The claimed sender and cause of the agent's last safety rejection (Diag page 7)."""
+    from firmware_py.frames import FrameCodec
+    from firmware_py.runtime import SAFETY_CAUSES
+
+    sender, cause = d.get("SafetySender", 0), d.get("SafetyCause", 0)
+    if not sender:
+        return ""
+    try:
+        who = f"{FrameCodec().name_of(sender)}, 0x{sender:03X}"
+    except Exception:  # noqa: BLE001 - an ID outside the DBC is still worth naming
+        who = f"0x{sender:03X}"
+    why = SAFETY_CAUSES[cause] if 0 <= cause < len(SAFETY_CAUSES) else str(cause)
+    return f"; the last one claimed to come from {who} ({why})"
 
 
 def _deadlines(node: str, misses: int, ticks: int, out: list[Anomaly]) -> None:

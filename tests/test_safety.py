@@ -407,6 +407,9 @@ def test_implausible_prices_on_the_bus_are_alarms_and_the_dispatch_holds(
     assert len(lams) == 4 and max(abs(lam - 0.8) for lam in lams) < 1e-3, lams
     kinds = {(a["kind"], a["node"]) for a in m["anomalies"]}
     assert kinds == {("implausible_frames", f"agent_{i}") for i in range(1, 5)}, m["anomalies"]
+    # each alarm names the claimed sender and the cause of the last rejection
+    assert all("claimed to come from ER_Price, 0x010 (implausible_price)" in a["detail"]
+               for a in m["anomalies"]), m["anomalies"]
     for i in range(1, 5):
         d = m["node_diagnostics"][f"agent_{i}"]
         assert d["ImplausiblePrice"] >= 20 and d["Untrusted"] == 0, d
