@@ -63,7 +63,6 @@ class LogContents:
     series: dict[tuple[str, str], list[tuple[float, float]]] = field(
         default_factory=lambda: defaultdict(list))
     diag: dict[int, dict[str, int]] = field(default_factory=lambda: defaultdict(dict))
-    t_first_frame: float | None = None
     t_first_price: float | None = None
     t_end: float = 0.0
     sequences: dict[str, SequenceStats] = field(default_factory=dict)
@@ -119,8 +118,6 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     for msg in can.LogReader(str(path)):
         out.frames += 1
         t = msg.timestamp
-        if out.t_first_frame is None:
-            out.t_first_frame = t
         out.t_end = max(out.t_end, t)
         if (silence is not None and t_prev is not None and out.t_first_price is not None
                 and t - t_prev > silence):

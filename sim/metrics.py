@@ -13,7 +13,7 @@ from .trajectory import Trajectory
 SETTLING_BAND = 0.02  # 2 % of the initial worst error
 
 
-def _error(tr: Trajectory) -> np.ndarray:
+def worst_error(tr: Trajectory) -> np.ndarray:
     """max_i |λ_i − ρ| over the agents meant to be dispatching, per sample: on a bus, an
     agent stuck in SAFE or INIT still counts (its λ is what it would dispatch by)."""
     e = np.abs(tr.lam - tr.rho[:, None])
@@ -22,7 +22,7 @@ def _error(tr: Trajectory) -> np.ndarray:
 
 def settling_times(tr: Trajectory) -> list[float | None]:
     """Per price segment: time from the segment start after which the error stays in band."""
-    err = _error(tr)
+    err = worst_error(tr)
     out: list[float | None] = []
     for seg in np.unique(tr.segment):
         idx = np.flatnonzero(tr.segment == seg)
@@ -63,7 +63,7 @@ def compute(sc: Scenario, tr: Trajectory) -> dict[str, Any]:
         "settling_time_s": st[0],
         "settling_times_s": st,
         "overshoot": overshoot(tr),
-        "final_error": float(_error(tr)[-1]),
+        "final_error": float(worst_error(tr)[-1]),
         "resets": [len(r) for r in tr.resets],
         "eta_max": rep.eta_max,
         "regular": rep.regular,

@@ -43,7 +43,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import LogLocator, MaxNLocator
 
-from .metrics import SETTLING_BAND, settling_times
+from .metrics import SETTLING_BAND, settling_times, worst_error
 from .model import Battery
 from .trajectory import Trajectory
 
@@ -62,11 +62,6 @@ class Quantity:
     ylabel: str
     get: Callable[[Trajectory, float | None], np.ndarray | None]
     robust: bool = False  # clip the y-range to the bulk of the data (r_i spikes as ξ → 0)
-
-
-def worst_error(tr: Trajectory) -> np.ndarray:
-    """max_i |λ_i − ρ| over the agents meant to be dispatching, per sample (as sim.metrics)."""
-    return np.where(tr.judged, np.abs(tr.lam - tr.rho[:, None]), 0.0).max(axis=1)
 
 
 @dataclass(frozen=True)

@@ -166,12 +166,6 @@ def fmt_settling(sc: Scenario, times: Sequence[float | None]) -> str:
     return ", ".join(parts)
 
 
-def analysis_lines(sc: Scenario) -> list[str]:
-    """Regularity and discrete stability of ``sc``'s controller on its graph, each with
-    the numbers that decide it (sim.graph.GraphReport.describe)."""
-    return sc.analysis().describe()
-
-
 def fmt_sci(x: float) -> str:
     return f"{x:.1e}" if math.isfinite(x) else str(x)
 

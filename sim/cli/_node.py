@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import signal
 import sys
 from pathlib import Path
@@ -36,10 +35,6 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
 def load_node_scenario(args: argparse.Namespace) -> Any:
     from ..scenario import load_case, load_scenario
 
-    for name in ("duration", "period"):
-        v = getattr(args, name)
-        if v is not None and not (math.isfinite(v) and v > 0):
-            raise ParameterError(f"--{name}", "a positive number of seconds", v)
     if args.case is not None:
         if not args.case.isdigit():
             raise ParameterError("--case", "a case number (use --scenario for a file)", args.case)

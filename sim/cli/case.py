@@ -30,7 +30,6 @@ from ._common import (
     Progress,
     add_arithmetic_arguments,
     add_scenario_argument,
-    analysis_lines,
     controller_desc,
     describe,
     fmt_pct,
@@ -149,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"  {describe(runs[0][1], args.fixed)}")
     if len(runs) == 1:
         print(f"  controller {controller_desc(runs[0][1].controller)}")
-        for line in analysis_lines(runs[0][1])[1:]:
+        for line in runs[0][1].analysis().describe()[1:]:
             print(f"  {line}")
     print()
     print(summary_table([(label, m) for label, _, _, m in results],
@@ -159,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         width = max(len(label) for label, _ in runs)
         print("graph and gains:")
         for label, s in runs:
-            lines = analysis_lines(s)[1:]
+            lines = s.analysis().describe()[1:]
             print(f"  {label:<{width}}  {lines[0]}")
             for line in lines[1:]:
                 print(f"  {'':<{width}}  {line}")

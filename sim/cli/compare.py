@@ -19,7 +19,6 @@ from ..scenario import Scenario
 from ._common import (
     add_arithmetic_arguments,
     add_scenario_argument,
-    analysis_lines,
     describe,
     fmt_pct,
     fmt_resets,
@@ -81,9 +80,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"bess-ded compare: {sc.title or sc.name}")
     print(f"  {describe(sc, args.fixed)}, k = {c.k:g}, h = {c.h:g}")
     reset_pi, pc = (dict(runs)[name] for name in ("reset-PI", "PC"))
-    for line in analysis_lines(reset_pi)[1:]:
+    for line in reset_pi.analysis().describe()[1:]:
         print(f"  reset-PI, PI: {line}")
-    print(f"  PC, finite-time: {analysis_lines(pc)[2]}")
+    print(f"  PC, finite-time: {pc.analysis().describe()[2]}")
     print()
     print(compare_table([(label, m) for label, _, _, m in results]))
     print()
