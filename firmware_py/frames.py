@@ -385,6 +385,10 @@ N_AGENTS_MAX = _DEFAULT.n_agents
 """Agents the DBC defines frames for (AGENT_1..AGENT_<N_AGENTS_MAX>)."""
 COUNTER_MODULO = _DEFAULT.counter_modulo
 """The E2E rolling counter counts modulo 2**(length of the Counter signal)."""
+COUNTER_STEP_MAX = COUNTER_MODULO // 2
+"""The largest forward step (1 + lost frames) one sender's counter can take between two
+frames a receiver sees: more reads as a step backwards, i.e. a second sender on the ID or
+a replay (every receiver times a sender out long before it loses that many frames)."""
 AGENT_BASES = _DEFAULT.bases
 MC_BASE, SETPOINT_BASE, STATUS_BASE, DIAG_BASE = AGENT_BASES
 

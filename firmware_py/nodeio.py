@@ -48,7 +48,14 @@ from collections.abc import Iterable, Mapping
 import can
 
 from . import contract
-from .frames import COUNTER_MODULO, CounterTracker, DecodedFrame, FrameCodec, agent_of
+from .frames import (
+    COUNTER_MODULO,
+    COUNTER_STEP_MAX,
+    CounterTracker,
+    DecodedFrame,
+    FrameCodec,
+    agent_of,
+)
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +159,7 @@ class NodeIO:
                 self.fail(fid, "counter_clash", f"{frame.name}: expected new data under a new "
                           f"counter, but got counter {last} again with another payload", t)
                 return None
-            if step > COUNTER_MODULO // 2:
+            if step > COUNTER_STEP_MAX:
                 self.counters["foreign"] += 1
                 self.fail(fid, "counter_jump", f"{frame.name}: expected counter "
                           f"{(last + 1) % COUNTER_MODULO} (or a few lost), but got "

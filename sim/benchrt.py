@@ -30,10 +30,8 @@ def realtime_run(case: int, seconds: float, bus: busrun.BusOptions | None = None
     t0 = log.t_first_price or 0.0
     span = max(log.t_end - t0, 1e-9)
     price = log.sequences.get("ER_Price")
-    ticks = {f"agent_{i}": log.mc_frames(i) + m["deadline_misses"].get(f"agent_{i}", 0)
-             for i in range(1, sc.n + 1)}
-    ticks.update({k: v.get("ticks", 0) for k, v in m["node_counters"].items()})
-    miss_pct = {k: 100.0 * m["deadline_misses"].get(k, 0) / max(t, 1) for k, t in ticks.items()}
+    miss_pct = {k: 100.0 * m["deadline_misses"][k] / max(t, 1)
+                for k, t in m["node_ticks"].items()}
     return {
         "case": case, "agents": sc.n, "seconds": seconds,
         "frames_per_s": log.frames / span,

@@ -25,7 +25,7 @@ import numpy as np
 from firmware_py import contract
 from firmware_py.contract import COUNTER_MODULO, MC_CYCLE_S, TIMEOUT_CYCLES, State
 from firmware_py.errors import FrameError
-from firmware_py.frames import FrameCodec
+from firmware_py.frames import COUNTER_STEP_MAX, FrameCodec
 
 from .scenario import Scenario
 from .trajectory import Trajectory
@@ -176,7 +176,7 @@ def _sequence(s: SequenceStats, counter: int, t: float, timeout: float) -> None:
         s.gaps.append((s.t_last, t))
     elif s.last is not None and s.t_last is not None:
         delta = (counter - s.last) % COUNTER_MODULO
-        if delta == 0 or delta > COUNTER_MODULO // 2:
+        if delta == 0 or delta > COUNTER_STEP_MAX:
             s.out_of_sequence += 1
         else:
             s.missed += delta - 1

@@ -144,12 +144,12 @@ def private_port(bus: BusOptions) -> tuple[BusOptions, int | None]:
     kw = bus.resolved()
     if kw["interface"] != "udp_multicast" or "port" in kw:
         return bus, None
-    taken = _bound_udp_ports()
-    rng = random.SystemRandom()
-    for _ in range(1000):
-        port = rng.randrange(*PRIVATE_PORTS)
-        if port not in taken:
-            break
+    free = sorted(set(range(*PRIVATE_PORTS)) - _bound_udp_ports())
+    if not free:
+        raise BusRunError(f"no free UDP port in {PRIVATE_PORTS[0]}..{PRIVATE_PORTS[1] - 1} for "
+                          "a private udp_multicast bus: name one with --bus-config "
+                          "'{\"port\": N}'")
+    port = random.SystemRandom().choice(free)
     extra = {k: v for k, v in kw.items() if k not in ("interface", "channel")}
     return BusOptions(kw["interface"], kw.get("channel"),
                       json.dumps({**extra, "port": port})), port

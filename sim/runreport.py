@@ -17,7 +17,7 @@ from firmware_py.frames import FrameCodec
 from . import buslog, metrics
 from .scenario import Scenario
 from .trajectory import Trajectory
-from .verdict import RunFacts, Verdict, anomalies_json, judge
+from .verdict import RunFacts, Verdict, anomalies_json, judge, node_deadlines
 
 
 @dataclass
@@ -28,6 +28,7 @@ class Recording:
     log: buslog.LogContents
     trajectory: Trajectory | None
     verdict: Verdict
+    written: list[Path]  # the files ``report`` wrote, in order
 
 
 def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = None,
@@ -49,6 +50,7 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
     diag = buslog.node_diagnostics(log)
     sim_nodes = facts.node_counters or {}
     verdict = judge(sc, log, tr, m, facts)
+    deadlines = node_deadlines(log, sim_nodes)
     m.update({
         "source": "bus",
         "log": str(log_path),
@@ -63,22 +65,24 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
         "start_recorded": log.start_recorded,
         "node_diagnostics": diag,
         "node_counters": sim_nodes,
-        "deadline_misses": {**{k: v.get("DeadlineMisses", 0) for k, v in diag.items()},
-                            **{k: v.get("counters", {}).get("deadline_miss", 0)
-                               for k, v in sim_nodes.items()}},
+        "deadline_misses": {k: misses for k, (misses, _) in deadlines.items()},
+        "node_ticks": {k: ticks for k, (_, ticks) in deadlines.items()},
         "exit_codes": facts.exit_codes or {},
         "router_ledger": buslog.router_ledger(log),
     })
-    (out / "metrics.json").write_text(json.dumps(m, indent=2, default=_json_default) + "\n")
+    written = [out / "metrics.json"]
+    written[0].write_text(json.dumps(m, indent=2, default=_json_default) + "\n")
     if tr is not None:
-        tr.write_csv(out / "trajectory.csv")
+        written.append(out / "trajectory.csv")
+        tr.write_csv(written[-1])
         if plot:
             from . import plots
 
-            plots.figure([("over the CAN bus", tr)], ("lam", "p", "grid"), out / "bus_run.png",
+            written.append(out / "bus_run.png")
+            plots.figure([("over the CAN bus", tr)], ("lam", "p", "grid"), written[-1],
                          title=sc.title or sc.name, load_kw=sc.load_kw, t_max=None,
                          time_scale=time_scale, batteries=sc.batteries)
-    return Recording(m, log, tr, verdict)
+    return Recording(m, log, tr, verdict, written)
 
 
 def _json_default(x: Any) -> Any:

@@ -291,18 +291,35 @@ def _counters(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly
                 if kind in ("untrusted_source", "implausible_frames"):
                     what += _last_rejected(d)
                 out.append(Anomaly(kind, name, f"{d[sig]} {what}"))
-        ticks = log.mc_frames(a) + d.get("DeadlineMisses", 0)
-        _deadlines(name, d.get("DeadlineMisses", 0), ticks, out)
     for node, c in sorted((facts.node_counters or {}).items()):
         counters = c.get("counters", {})
         for key, kind, what in _SIM_FAULT_COUNTERS:
             if counters.get(key, 0):
                 out.append(Anomaly(kind, node, f"{counters[key]} {what}"))
-        _deadlines(node, counters.get("deadline_miss", 0), c.get("ticks", 0), out)
+    for node, (misses, ticks) in node_deadlines(log, facts.node_counters).items():
+        if misses and misses > DEADLINE_MISS_FRACTION * max(ticks, 1):
+            out.append(Anomaly("deadline_misses", node, f"{misses} deadline misses in {ticks} "
+                               f"ticks ({100 * misses / max(ticks, 1):.1f} %, more than "
+                               f"{100 * DEADLINE_MISS_FRACTION:g} %)"))
+
+
+def node_deadlines(log: LogContents, node_counters: dict[str, Any] | None
+                   ) -> dict[str, tuple[int, int]]:
+    """(deadline misses, ticks) per node: an agent's from its last AGENT_i_Diag and its
+    recorded MC frames (one per tick it ran) plus the misses; the plant's and router's
+    from the counters they wrote at exit."""
+    out = {}
+    for a, d in sorted(log.diag.items()):
+        misses = d.get("DeadlineMisses", 0)
+        out[f"agent_{a}"] = (misses, log.mc_frames(a) + misses)
+    for node, c in (node_counters or {}).items():
+        out[node] = (c.get("counters", {}).get("deadline_miss", 0), c.get("ticks", 0))
+    return out
 
 
 def _last_rejected(d: dict[str, int]) -> str:
     """The claimed sender and cause of the agent's last safety rejection (Diag page 7)."""
+    from firmware_py.errors import UnknownFrameError
     from firmware_py.frames import FrameCodec
     from firmware_py.runtime import SAFETY_CAUSES
 
@@ -311,17 +328,10 @@ def _last_rejected(d: dict[str, int]) -> str:
         return ""
     try:
         who = f"{FrameCodec().name_of(sender)}, 0x{sender:03X}"
-    except Exception:  # noqa: BLE001 - an ID outside the DBC is still worth naming
+    except UnknownFrameError:  # an ID outside the DBC is still worth naming
         who = f"0x{sender:03X}"
     why = SAFETY_CAUSES[cause] if 0 <= cause < len(SAFETY_CAUSES) else str(cause)
     return f"; the last one claimed to come from {who} ({why})"
-
-
-def _deadlines(node: str, misses: int, ticks: int, out: list[Anomaly]) -> None:
-    if misses and misses > DEADLINE_MISS_FRACTION * max(ticks, 1):
-        out.append(Anomaly("deadline_misses", node, f"{misses} deadline misses in {ticks} "
-                           f"ticks ({100 * misses / max(ticks, 1):.1f} %, more than "
-                           f"{100 * DEADLINE_MISS_FRACTION:g} %)"))
 
 
 def _power_limits(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anomaly]) -> None:

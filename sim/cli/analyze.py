@@ -76,7 +76,5 @@ def run(args: argparse.Namespace) -> int:
                           f"got: {e}") from None
     for line in summary_lines(rec.metrics, rec.verdict, args.time_scale):
         print(line)
-    written = ["metrics.json"] + (["trajectory.csv"] + ([] if args.no_plot else ["bus_run.png"])
-                                  if rec.trajectory is not None else [])
-    print(f"  wrote {', '.join(f'{out}/{w}' for w in written)}")
+    print(f"  wrote {', '.join(map(str, rec.written))}")
     return rec.verdict.exit_code

@@ -99,10 +99,7 @@ def run(args: argparse.Namespace) -> int:
                         time_scale=scale)
     for line in summary_lines(rec.metrics, rec.verdict, scale):
         print(line)
-    written = ["run.log", "metrics.json"]
-    if rec.trajectory is not None:
-        written += ["trajectory.csv"] + ([] if args.no_plot else ["bus_run.png"])
-    print(f"  wrote {', '.join(f'{out}/{w}' for w in written)}")
+    print(f"  wrote {', '.join(map(str, [out / 'run.log', *rec.written]))}")
     return rec.verdict.exit_code
 
 
