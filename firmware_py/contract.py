@@ -54,7 +54,14 @@ __all__ = [
     "MC_BASE",
     "MC_CYCLE_S",
     "N_AGENTS_MAX",
+    "FV_BOOT_BITS",
+    "FV_COUNT_BITS",
+    "FV_TX_BITS",
+    "MAC_BITS",
+    "SECURED_IDS",
     "SETPOINT_BASE",
+    "SYNCED_BY",
+    "SYNC_OF",
     "STATUS_BASE",
     "TIMEOUT_CYCLES",
     "Command",
@@ -69,6 +76,7 @@ __all__ = [
     "mc_name",
     "raw_range",
     "scale",
+    "sender_of",
     "setpoint_name",
     "status_name",
     "timeout_s",
@@ -190,3 +198,27 @@ def is_active(state: int) -> bool:
     """An agent takes part in the dispatch iff its State is RUNNING (the one definition)."""
     return state == State.RUNNING
 
+
+
+# ---------------------------------------------------------------------------- SecOC
+
+SECURED_IDS = frozenset(fid for fid in _CODEC.frame_ids() if _CODEC.kind(fid) == "secured")
+"""The frames that can change the dispatch: they carry a MAC (docs/security.md)."""
+SYNC_OF = {fid: _CODEC.frame_id(_CODEC.name_of(fid) + "_Sync") for fid in SECURED_IDS}
+"""Secured frame ID -> the ID of its ``<name>_Sync`` frame (read from the DBC)."""
+SYNCED_BY = {sync: fid for fid, sync in SYNC_OF.items()}
+"""``<name>_Sync`` ID -> the secured frame ID whose freshness it carries."""
+MAC_BITS = _CODEC.raw_range("ER_Price", "Mac")[1].bit_length()
+"""Bits of the truncated CMAC on the wire (the DBC's Mac signal)."""
+FV_TX_BITS = _CODEC.raw_range("ER_Price", "Counter")[1].bit_length()
+"""Bits of the truncated freshness value on the wire (a secured frame's Counter)."""
+FV_COUNT_BITS = _CODEC.raw_range("ER_Price_Sync", "Count")[1].bit_length()
+FV_BOOT_BITS = _CODEC.raw_range("ER_Price_Sync", "Boot")[1].bit_length()
+"""The full freshness value is Boot (FV_BOOT_BITS) ‖ Count (FV_COUNT_BITS)."""
+
+
+def sender_of(name: str) -> str:
+    """The key label of a message's transmitter in the DBC: ``router`` (ER), ``plant``
+    (PLANT) or ``agent_<i>`` (AGENT_<i>)."""
+    node = _message(name).senders[0]
+    return {"ER": "router", "PLANT": "plant"}.get(node, node.lower())

@@ -10,7 +10,12 @@ range), and the tests check the result byte for byte against cantools.
 Contract (see ``dbc/bess_ded.dbc`` and ``tools/gen_dbc.py``):
 
 * classic CAN, 11-bit IDs, DLC 8, Intel signals, raw integers in the firmware;
-* byte 0 = CRC-8 SAE J1850 (AUTOSAR E2E profile 1 polynomial, init 0xFF, xorout
+* **secured** frames (price, command, MC, setpoint, status: the frames that can change
+  the dispatch) carry ``Mac`` in bytes 0..2 and the truncated freshness value
+  ``Counter`` in the low nibble of byte 3; the codec only places and reads them, the
+  MAC itself is computed and checked by ``firmware_py.nodeio`` with the sender's key
+  (docs/security.md). ``<name>_Sync`` frames carry ``Mac``, ``Count`` and ``Boot``;
+* every other frame: byte 0 = CRC-8 SAE J1850 (AUTOSAR E2E profile 1 polynomial, init 0xFF, xorout
   0xFF) over the CAN ID as 2 little-endian bytes (the data ID) then payload
   bytes 1..7; the data ID makes a frame replayed under another ID fail the CRC;
 * low nibble of byte 1 = rolling counter 0..15 (checked with ``CounterTracker``);
@@ -85,10 +90,16 @@ DLC = 8
 
 # The per-agent messages, in the order of the ID plan: name pattern -> its ID base is the
 # DBC's ID of agent 1's frame minus 1 (checked for every agent on load).
-_AGENT_MESSAGES = ("AGENT_{}_MC", "AGENT_{}_Setpoint", "PLANT_{}_Status", "AGENT_{}_Diag")
-_AGENT_NAME = re.compile(r"^(?:AGENT|PLANT)_([1-9][0-9]*)_(?:MC|Setpoint|Status|Diag)$")
+_AGENT_MESSAGES = ("AGENT_{}_MC", "AGENT_{}_Setpoint", "PLANT_{}_Status", "AGENT_{}_Diag",
+                   "AGENT_{}_MC_Sync", "AGENT_{}_Setpoint_Sync", "PLANT_{}_Status_Sync")
+_AGENT_NAME = re.compile(r"^(?:AGENT|PLANT)_([1-9][0-9]*)_(?:MC|Setpoint|Status|Diag)(?:_Sync)?$")
 _ER_MESSAGES = ("ER_Price", "ER_Command", "ER_Balance")
-_E2E_SIGNALS = ("CRC", "Counter")
+_E2E_SIGNALS = ("Mac", "CRC", "Counter")  # filled in by the codec (Mac: by NodeIO)
+_LAYOUTS = {  # frame kind -> its protection signals' (start, length)
+    "e2e": {"CRC": (0, 8), "Counter": (8, 4)},
+    "secured": {"Mac": (0, 24), "Counter": (24, 4)},
+    "sync": {"Mac": (0, 24)},
+}
 _Q_SIGNALS = {"ER_Price": "Rho"}  # plus Lambda of every AGENT_i_MC
 
 
@@ -191,6 +202,8 @@ class _Frame:
     name: str
     frame_id: int
     agent: int | None
+    kind: str                           # "e2e", "secured" or "sync" (_LAYOUTS)
+    counter_shift: int                  # start bit of Counter (0 for sync frames: none)
     crc_seed: int                       # CRC register after the 2 data-ID bytes
     base: tuple[_Sig, ...]              # decode: every non-multiplexed signal incl. CRC, Counter
     tx_base: tuple[_Sig, ...]           # encode: base minus CRC and Counter
@@ -234,10 +247,12 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
         raise bad(f"expected a classic 11-bit frame of {DLC} bytes, but got ID 0x{m.frame_id:X} "
                   f"length {m.length} extended={m.is_extended_frame} fd={m.is_fd}")
     names = {s.name: s for s in m.signals}
-    if (names.get("CRC") is None or (names["CRC"].start, names["CRC"].length) != (0, 8)
-            or names.get("Counter") is None
-            or (names["Counter"].start, names["Counter"].length) != (8, 4)):
-        raise bad("expected E2E signals CRC 0|8 and Counter 8|4")
+    kind = "sync" if m.name.endswith("_Sync") else "secured" if "Mac" in names else "e2e"
+    for sname, (start, length) in _LAYOUTS[kind].items():
+        s = names.get(sname)
+        if s is None or (s.start, s.length) != (start, length):
+            raise bad(f"expected the {kind} frame signal {sname} {start}|{length}, but got "
+                      f"{'nothing' if s is None else f'{s.start}|{s.length}'}")
     base: list[_Sig] = []
     pages: dict[int, list[_Sig]] = {}
     scaling: dict[str, tuple[float, float]] = {}
@@ -267,13 +282,15 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
         else:
             base.append(entry)
     # CRC and Counter first, then by start bit: the order raw dicts and errors list them in.
-    base.sort(key=lambda e: (_E2E_SIGNALS.index(e[0]) if e[0] in _E2E_SIGNALS else 2, e[1]))
+    base.sort(key=lambda e: (_E2E_SIGNALS.index(e[0]) if e[0] in _E2E_SIGNALS else 3, e[1]))
     named = _AGENT_NAME.match(m.name)
     agent = int(named.group(1)) if named else None
     return _Frame(
         name=m.name,
         frame_id=m.frame_id,
         agent=agent,
+        kind=kind,
+        counter_shift=names["Counter"].start if "Counter" in names else 0,
         crc_seed=_crc_register(_data_id(m.frame_id)),
         base=tuple(base),
         tx_base=tuple(e for e in base if e[0] not in _E2E_SIGNALS),
@@ -390,7 +407,7 @@ COUNTER_STEP_MAX = COUNTER_MODULO // 2
 frames a receiver sees: more reads as a step backwards, i.e. a second sender on the ID or
 a replay (every receiver times a sender out long before it loses that many frames)."""
 AGENT_BASES = _DEFAULT.bases
-MC_BASE, SETPOINT_BASE, STATUS_BASE, DIAG_BASE = AGENT_BASES
+MC_BASE, SETPOINT_BASE, STATUS_BASE, DIAG_BASE = AGENT_BASES[:4]
 
 
 # ---------------------------------------------------------------------------- decoded frame
@@ -556,6 +573,15 @@ class FrameCodec:
         """Every CAN ID the DBC defines (what a receiver accepts at all)."""
         return self._ids
 
+    def kind(self, frame_id: int) -> str:
+        """"secured" (MAC and truncated freshness), "sync" (full freshness under a MAC)
+        or "e2e" (CRC-8 and rolling counter): how the frame is protected."""
+        f = self._by_id.get(frame_id)
+        if f is None:
+            raise UnknownFrameError(f"0x{frame_id:03X}: expected an ID defined in the DBC, "
+                                    "but got an unknown ID")
+        return f.kind
+
     def name_of(self, frame_id: int) -> str:
         f = self._by_id.get(frame_id)
         if f is None:
@@ -621,6 +647,9 @@ class FrameCodec:
         return c
 
     def _finish(self, f: _Frame, body: bytes) -> can.Message:
+        if f.kind != "e2e":  # the Mac is NodeIO's (it holds the keys)
+            return can.Message(arbitration_id=f.frame_id, is_extended_id=False, data=body,
+                               check=True)
         c = f.crc_seed
         t = _CRC_TABLE
         for b in body[1:DLC]:
@@ -645,7 +674,7 @@ class FrameCodec:
         sigs = f.tx_base if f.mux is None else self._signals_for(f, raw)
         if len(raw) != len(sigs):
             self._signal_set_error(f, sigs, raw)
-        x = counter << 8
+        x = counter << f.counter_shift if f.kind != "sync" else 0
         for sname, shift, mask, _sign, lo, hi in sigs:
             v = raw.get(sname, _MISSING)
             if type(v) is not int:
@@ -674,7 +703,10 @@ class FrameCodec:
         self._signal_set_error(f, sigs, values)
         msg = self._db.get_message_by_name(name)
         try:
-            body = msg.encode({**values, "CRC": 0, "Counter": counter}, scaling=True,
+            prot = {s: 0 for s in _LAYOUTS[f.kind]}
+            if "Counter" in prot:
+                prot["Counter"] = counter
+            body = msg.encode({**values, **prot}, scaling=True,
                               strict=True, padding=False)
         except (cantools.database.errors.EncodeError, KeyError, TypeError, ValueError) as e:
             raise EncodeError(name, "physical values inside the DBC ranges",
@@ -705,17 +737,18 @@ class FrameCodec:
         if msg.dlc != DLC or len(data) != DLC:
             got = msg.dlc if msg.dlc == len(data) else f"{msg.dlc} with {len(data)} data bytes"
             raise FrameLengthError(f"{f.name} (0x{fid:03X}): expected DLC {DLC}, but got {got}")
-        c = f.crc_seed
-        t = _CRC_TABLE
-        for b in data[1:DLC]:
-            c = t[c ^ b]
-        c ^= _CRC_XOROUT
-        if c != data[0]:
-            raise CrcError(f"{f.name} (0x{fid:03X}): expected CRC 0x{c:02X}, but got "
-                           f"0x{data[0]:02X}")
+        if f.kind == "e2e":  # secured frames: NodeIO checks the Mac
+            c = f.crc_seed
+            t = _CRC_TABLE
+            for b in data[1:DLC]:
+                c = t[c ^ b]
+            c ^= _CRC_XOROUT
+            if c != data[0]:
+                raise CrcError(f"{f.name} (0x{fid:03X}): expected CRC 0x{c:02X}, but got "
+                               f"0x{data[0]:02X}")
         x = int.from_bytes(data, "little")
         raw: dict[str, int] = {}
         _unpack(f.name, f.base, x, raw)
         if f.mux is not None:  # the page's signals, once the multiplexer is known
             _unpack(f.name, f.pages.get(raw[f.mux], ()), x, raw)
-        return DecodedFrame(f.name, fid, f.agent, raw["Counter"], raw, f)
+        return DecodedFrame(f.name, fid, f.agent, raw.get("Counter", 0), raw, f)

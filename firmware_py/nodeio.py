@@ -37,6 +37,21 @@ neighbour dropped, BESS ramped to 0) instead of acting on a stream it cannot tru
 
 ER_Command is an event frame with no timeout, so its counter may legitimately restart
 (a restarted router) at any value: the two counter rules apply to cyclic IDs only.
+
+Authentication (docs/security.md). Secured frames (``contract.SECURED_IDS``: price,
+command, MC, setpoint, status) are signed on ``send`` with the node's key and a
+freshness value Boot ‖ Count per frame ID (the Counter signal is its low 4 bits), and
+checked on ``receive`` with the claimed sender's verification key from the node's
+``Keyring``: the full freshness value is rebuilt from the last one accepted on that
+ID (window of 16) and the MAC must verify, else the frame is rejected under ``auth``
+(an E2E cause: it adds to the untrusted streak, and names the claimed sender in
+``last_safety``). Before the first ``<name>_Sync`` of a sender, its frames are
+rejected under ``unsynced``. Syncs move the state forward only; each node sends
+its own at start, every ``sync_s``, and again when it hears a peer (re)start, so a
+late or restarted node is heard within one round trip. After a sender timed out
+(``sender_lost``), its next frames may lie beyond the window: up to
+``LOST_WINDOWS`` windows are tried, and frames that still fail count as
+``unsynced`` until its next sync, not as forgeries.
 """
 
 from __future__ import annotations
@@ -48,6 +63,7 @@ from collections.abc import Iterable, Mapping
 import can
 
 from . import contract
+from .errors import ConfigError
 from .frames import (
     COUNTER_MODULO,
     COUNTER_STEP_MAX,
@@ -56,6 +72,7 @@ from .frames import (
     FrameCodec,
     agent_of,
 )
+from .secoc import FreshnessVerifier, Keyring, frame_verifies, sign_frame
 
 log = logging.getLogger(__name__)
 
@@ -64,18 +81,36 @@ ECHO_DEPTH = 4  # own frames remembered to recognise their echo
 UNTRUSTED_AFTER = 5   # consecutive E2E failures from one source ID ...
 UNTRUSTED_S = 1.0     # ... make it untrusted this long (s; callers stretch it with Ts)
 # the causes that count towards the untrusted streak of the frame's ID
-STREAK_CAUSES = frozenset({"crc", "dlc", "range", "counter_jump", "counter_clash"})
+STREAK_CAUSES = frozenset({"crc", "dlc", "range", "counter_jump", "counter_clash", "auth"})
+SYNC_S = contract.cycle_ms("ER_Price_Sync") / 1000.0  # a sender's sync cadence (1 s)
+HELLO_MIN_S = 0.1     # re-announce own syncs at most this often when a peer (re)starts
+LOST_WINDOWS = 8      # freshness windows tried after a sender timed out (8·16 frames)
+_FV_WINDOW = 1 << contract.FV_TX_BITS
+_COUNT_MAX = (1 << contract.FV_COUNT_BITS) - 1
 
 
 class NodeIO:
     def __init__(self, codec: FrameCodec, who: str, own: Iterable[str],
                  wanted: Iterable[int], fleet_size: int | None = None,
                  untrusted_after: int = UNTRUSTED_AFTER,
-                 untrusted_s: float = UNTRUSTED_S) -> None:
+                 untrusted_s: float = UNTRUSTED_S, keys: Keyring | None = None,
+                 sync_s: float = SYNC_S) -> None:
         """``own``: the messages this node sends; ``wanted``: the frame IDs it uses;
         ``fleet_size``: the agents of the run (None: unknown, per-agent IDs of any agent
         the DBC defines are then not counted as foreign); ``untrusted_after`` consecutive
-        E2E failures on one ID make it untrusted for ``untrusted_s``."""
+        E2E failures on one ID make it untrusted for ``untrusted_s``; ``keys``: this
+        node's keyring (None: the public ``--insecure`` keys, with a warning)."""
+        own = list(own)
+        label = contract.sender_of(own[0])
+        if keys is None:
+            keys = Keyring.insecure_for(label)
+        if keys.node != label:
+            raise ConfigError("keyring", "node", f"expected the key of {label}, but got "
+                              f"the key of {keys.node}")
+        if keys.insecure:
+            log.warning("%s runs INSECURE: its frames are signed with the public demo key, "
+                        "anyone on the bus can forge them (docs/security.md)", who)
+        self.keys = keys
         self.codec = codec
         self.untrusted_after = untrusted_after
         self.untrusted_s = untrusted_s
@@ -90,6 +125,29 @@ class NodeIO:
         self._sent: dict[int, deque[bytes]] = {codec.frame_id(n): deque(maxlen=ECHO_DEPTH)
                                                for n in own}
         self.trackers = {fid: CounterTracker() for fid in wanted}
+        # SecOC, transmit: one message counter per own secured ID under this boot
+        self._tx_count = {fid: 0 for fid in self._sent if fid in contract.SECURED_IDS}
+        for fid in self._tx_count:
+            self._sent[contract.SYNC_OF[fid]] = deque(maxlen=ECHO_DEPTH)
+        self.boot = keys.new_boot() if self._tx_count else keys.boot
+        self.sync_s = sync_s
+        self._sync_next: float | None = None      # None: at the first call of syncs()
+        self._hello_after = -1.0                   # earliest time of a re-announce
+        self._hello_due = False
+        # SecOC, receive: the verification key and freshness state of each secured ID
+        self._verify_key: dict[int, bytes] = {}
+        for fid in self.trackers:
+            if fid in contract.SECURED_IDS:
+                sender = contract.sender_of(codec.name_of(fid))
+                k = keys.key_of(sender)
+                if k is None:
+                    raise ConfigError("keyring", keys.node, f"expected the verification key "
+                                      f"of {sender} (it sends {codec.name_of(fid)}), but the "
+                                      "key file has none: re-provision with bess-ded keys")
+                self._verify_key[fid] = k
+        self._synced_by = {contract.SYNC_OF[fid]: fid for fid in self._verify_key}
+        self._fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
+        self._lost: set[int] = set()  # secured IDs whose sender timed out
         self._cyclic = frozenset(fid for fid in self.trackers
                                  if contract.is_cyclic(codec.name_of(fid)))
         self._last_data: dict[int, bytes] = {}  # payload of the last accepted frame per ID
@@ -127,6 +185,9 @@ class NodeIO:
             return None
         tracker = self.trackers.get(fid)
         if tracker is None:
+            if fid in self._synced_by:
+                self._on_sync(msg, fid, t)
+                return None
             if fid not in self._known:
                 self.reject("unknown_id", f"0x{fid:03X}: expected an ID defined in the DBC")
             elif self.fleet_size is not None and (agent_of(fid) or 0) > self.fleet_size:
@@ -150,6 +211,9 @@ class NodeIO:
                 raise
             self.fail(fid, cause, str(e), t)
             return None
+        key = self._verify_key.get(fid)
+        if key is not None:
+            return self._authentic(frame, msg, key, t, defer_trust)
         last = tracker.last
         data = bytes(msg.data)
         if last is not None and fid in self._cyclic:
@@ -177,6 +241,102 @@ class NodeIO:
         if not defer_trust:
             self._streak[fid] = 0
         return frame
+
+    # ------------------------------------------------------------ SecOC
+
+    def _authentic(self, frame: DecodedFrame, msg: can.Message, key: bytes, t: float,
+                   defer_trust: bool) -> DecodedFrame | None:
+        """A decoded secured frame if its MAC verifies with a fresh freshness value."""
+        fid = frame.frame_id
+        last = self._fv.last(fid)
+        if last is None:
+            self.reject("unsynced", f"{frame.name}: expected a {frame.name}_Sync first (no "
+                        "freshness value of its sender known yet)")
+            return None
+        tries = LOST_WINDOWS if fid in self._lost else 1
+        fv = self._fv.candidate(fid, frame.counter)
+        while fv is not None and tries > 0:
+            if frame_verifies(key, fid, msg.data, fv):
+                break
+            fv, tries = fv + _FV_WINDOW, tries - 1
+        else:
+            if fid in self._lost:
+                self.reject("unsynced", f"{frame.name}: its sender timed out and this frame "
+                            "is beyond the freshness window: waiting for its next sync")
+            else:
+                self.fail(fid, "auth", f"{frame.name}: expected a MAC that verifies with "
+                          f"{contract.sender_of(frame.name)}'s key and freshness "
+                          f"{(last + 1):#x}..{(last + _FV_WINDOW):#x}, but it does not "
+                          "(forged, replayed or corrupted)", t)
+            return None
+        self._fv.accept(fid, fv)
+        self._lost.discard(fid)
+        self.counters["lost_frames"] += fv - last - 1
+        tracker = self.trackers[fid]
+        tracker.reset()
+        tracker.update(frame.counter)
+        if not defer_trust:
+            self._streak[fid] = 0
+        return frame
+
+    def _on_sync(self, msg: can.Message, sync_id: int, t: float) -> None:
+        fid = self._synced_by[sync_id]
+        try:
+            frame = self.codec.decode(msg)
+        except Exception as e:
+            cause = getattr(e, "cause", None)
+            if cause is None:
+                raise
+            self.fail(sync_id, cause, str(e), t)
+            return
+        boot, count = frame.raw["Boot"], frame.raw["Count"]
+        fv = boot << contract.FV_COUNT_BITS | count
+        if not frame_verifies(self._verify_key[fid], sync_id, msg.data, fv):
+            self.fail(sync_id, "auth", f"{frame.name}: expected a MAC that verifies with "
+                      f"{contract.sender_of(frame.name)}'s key, but it does not (forged or "
+                      "corrupted)", t)
+            return
+        self._streak[sync_id] = 0
+        last = self._fv.last(fid)
+        if last is not None and fv - 1 <= last:
+            if not self.keys.insecure or (last >> contract.FV_COUNT_BITS) == boot:
+                return  # nothing new (a repeat, or a replayed older sync)
+            self._fv.forget(fid)  # insecure: a restarted sender has no persisted boot
+            last = None
+        self._fv.accept(fid, fv - 1)  # its next frame uses fv
+        self._lost.discard(fid)
+        self.counters["resyncs"] += 1
+        if last is None or last >> contract.FV_COUNT_BITS != boot:
+            self._hello_due = True  # a peer (re)started: tell it our freshness now
+
+    def sender_lost(self, fid: int) -> None:
+        """``fid``'s sender timed out: its counter gap aliases, and a secured ID may need
+        a wider freshness window or its next sync."""
+        self.trackers[fid].reset()
+        if fid in self._verify_key:
+            self._lost.add(fid)
+
+    def syncs(self, t: float) -> list[can.Message]:
+        """The ``<name>_Sync`` frames due at ``t``: all of them at the first call, every
+        ``sync_s``, and when a peer (re)started (at most every HELLO_MIN_S)."""
+        due = self._sync_next is None or t >= self._sync_next
+        if self._hello_due and t >= self._hello_after:
+            due = True
+        if not due:
+            return []
+        self._hello_due = False
+        self._hello_after = t + HELLO_MIN_S
+        self._sync_next = t + self.sync_s
+        out = []
+        for fid, count in self._tx_count.items():
+            sync_id = contract.SYNC_OF[fid]
+            msg = self.codec.encode(self.codec.name_of(sync_id),
+                                    {"Count": count, "Boot": self.boot}, 0)
+            sign_frame(self.keys.key, sync_id, msg.data,
+                       self.boot << contract.FV_COUNT_BITS | count)
+            self._sent[sync_id].append(bytes(msg.data))
+            out.append(msg)
+        return out
 
     def trusted(self, fid: int) -> None:
         """A frame on ``fid`` passed every check: its untrusted streak starts again."""
@@ -224,8 +384,21 @@ class NodeIO:
             log.warning("%s rejected a frame (%s #%d): %s", self.who, cause, n, reason)
 
     def send(self, name: str, raw: Mapping[str, int]) -> can.Message:
-        """Encode with the next rolling counter of ``name`` and remember it for the echo."""
-        msg = self.codec.encode(name, raw, self._tx[name] % COUNTER_MODULO)
-        self._tx[name] += 1
-        self._sent[msg.arbitration_id].append(bytes(msg.data))
+        """Encode with the next rolling counter of ``name`` (a secured frame: its next
+        freshness value, and sign it) and remember it for the echo."""
+        fid = self.codec.frame_id(name)
+        count = self._tx_count.get(fid)
+        if count is None:
+            msg = self.codec.encode(name, raw, self._tx[name] % COUNTER_MODULO)
+            self._tx[name] += 1
+        else:
+            if count > _COUNT_MAX:  # 2^24 frames on one ID: a new boot, synced at once
+                self.boot = self.keys.new_boot()
+                self._tx_count = dict.fromkeys(self._tx_count, 0)
+                self._sync_next, count = None, 0
+            msg = self.codec.encode(name, raw, count % _FV_WINDOW)
+            sign_frame(self.keys.key, fid, msg.data,
+                       self.boot << contract.FV_COUNT_BITS | count)
+            self._tx_count[fid] = count + 1
+        self._sent[fid].append(bytes(msg.data))
         return msg

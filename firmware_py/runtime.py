@@ -66,6 +66,7 @@ from .controllers import ControllerConfig, consensus_error, make_controller
 from .errors import FrameError, ParameterError, RangeError
 from .frames import DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from .nodeio import NodeIO
+from .secoc import Keyring
 
 __all__ = ["DIAG_EVERY", "SETPOINT_EVERY", "AgentRuntime", "Command", "NeighbourSlot",
            "SetpointMap", "State"]
@@ -76,7 +77,7 @@ SETPOINT_EVERY = every_ticks(setpoint_name(1))   # ticks between setpoints (5 in
 DIAG_EVERY = every_ticks(diag_name(1))           # ticks between diag frames (10)
 # AGENT_<i>_Diag SafetyCause values (tools/gen_dbc.py SAFETY_CAUSE_CHOICES)
 SAFETY_CAUSES = ("none", "untrusted", "implausible_price", "implausible_lambda",
-                 "implausible_gains")
+                 "implausible_gains", "auth")
 
 
 @dataclass
@@ -118,7 +119,8 @@ class SetpointMap:
 class AgentRuntime:
     """One BESS agent's firmware, minus the loop that drives it (firmware_py.node)."""
 
-    def __init__(self, cfg: AgentConfig, codec: FrameCodec | None = None) -> None:
+    def __init__(self, cfg: AgentConfig, codec: FrameCodec | None = None,
+                 keys: Keyring | None = None) -> None:
         self.cfg = cfg
         self.codec = codec or FrameCodec()
         self.period = cfg.controller.ts
@@ -142,7 +144,7 @@ class AgentRuntime:
                          wanted=(self.price_id, self.command_id, self.status_id,
                                  *self.neighbours), fleet_size=cfg.fleet_size,
                          untrusted_after=cfg.untrusted_after,
-                         untrusted_s=float(cfg.untrusted_s or 0.0))
+                         untrusted_s=float(cfg.untrusted_s or 0.0), keys=keys)
         # safety limits in Q24 (docs/safety-model.md)
         self.rho_min = fx.to_fixed(cfg.rho_min, "rho_min")
         self.rho_max = fx.to_fixed(cfg.rho_max, "rho_max")
@@ -158,7 +160,7 @@ class AgentRuntime:
         self._diag_max = {name: c.raw_range(diag, name)[1]
                           for page in self.DIAG_PAGES for name in page}
         self._mc_max = {name: c.raw_range(mc_name(cfg.id), name)[1]
-                        for name in ("Resets", "NeighboursAlive")}
+                        for name in ("Resets",)}
 
         self.price: int | None = None      # ρ, Q24
         self.price_segment = 0
@@ -342,7 +344,8 @@ class AgentRuntime:
                                       self.price or 0)
             self.cstate, _ = self.ctrl.step(self.cstate, xi)
             self.counters["saturations"] += sat
-        frames = [self._mc_frame()]
+        frames = self.io.syncs(t)
+        frames.append(self._mc_frame())
         if self.ticks % SETPOINT_EVERY == 0:
             frames.append(self._setpoint_frame())
         if self.ticks % DIAG_EVERY == 0:
@@ -356,7 +359,7 @@ class AgentRuntime:
             alive = slot.last_rx is not None and t - slot.last_rx <= timeout
             if slot.alive and not alive:
                 self.counters["neighbour_timeouts"] += 1
-                self.io.trackers[fid].reset()  # the counter gap of an outage aliases
+                self.io.sender_lost(fid)  # the counter gap of an outage aliases
                 log.info("agent %d: neighbour %d timed out", self.cfg.id, slot.id)
             slot.alive = alive
 
@@ -369,7 +372,7 @@ class AgentRuntime:
                  self.cfg.status_timeout_s)):
             if was and not ok:
                 self.counters[f"{name}_timeouts"] += 1
-                self.io.trackers[fid].reset()  # an outage's counter gap aliases
+                self.io.sender_lost(fid)  # an outage's counter gap aliases
                 log.warning("agent %d: %s timed out (none accepted for more than %.3f s)",
                             self.cfg.id, "valid ER_Price" if name == "price"
                             else status_name(self.cfg.id), timeout)
@@ -402,9 +405,7 @@ class AgentRuntime:
     def _mc_frame(self) -> can.Message:
         return self.io.send(mc_name(self.cfg.id), {
             "State": int(self.state), "Lambda": int(self.cstate.lam),
-            "Resets": self.cstate.resets % (self._mc_max["Resets"] + 1),
-            "NeighboursAlive": min(self.neighbours_alive, self._mc_max["NeighboursAlive"]),
-            "PriceOk": int(self.price_ok)})
+            "Resets": self.cstate.resets % (self._mc_max["Resets"] + 1)})
 
     def _setpoint_frame(self) -> can.Message:
         enable = is_active(self.state)
@@ -430,7 +431,8 @@ class AgentRuntime:
                 "ImplausibleLambda": c["implausible_lambda"],
                 "ImplausibleGains": c["implausible_gains"],
                 "SafetySender": last[1] if last else 0,
-                "SafetyCause": SAFETY_CAUSES.index(last[0]) if last else 0}
+                "SafetyCause": SAFETY_CAUSES.index(last[0]) if last else 0,
+                "RejectedAuth": c["auth"], "Unsynced": c["unsynced"], "Resyncs": c["resyncs"]}
 
     # AGENT_<i>_Diag pages (tools/gen_dbc.py): page k carries DIAG_PAGES[k]
     DIAG_PAGES = (("Resets", "DeadlineMisses", "NeighboursAlive", "State"),
@@ -440,7 +442,8 @@ class AgentRuntime:
                   ("PriceTimeouts", "StatusTimeouts", "PlantFaults"),
                   ("ForeignFrames", "ForeignIds", "InterleavedCounters"),
                   ("Untrusted", "ImplausiblePrice", "ImplausibleLambda"),
-                  ("ImplausibleGains", "SafetySender", "SafetyCause"))
+                  ("ImplausibleGains", "SafetySender", "SafetyCause"),
+                  ("RejectedAuth", "Unsynced", "Resyncs"))
 
     def _diag_frame(self, page: int) -> can.Message:
         values = self.diag_values()

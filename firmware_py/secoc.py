@@ -1,8 +1,8 @@
 """Frame authentication in the style of AUTOSAR SecOC profile 1 for classic CAN.
 
-The core only: pure functions and small classes, not yet wired into the nodes or
-the DBC (docs/security.md, "Status"). All cryptography comes from the maintained
-``cryptography`` package; nothing here is hand-written crypto.
+The core: pure functions and small classes; ``firmware_py.nodeio`` puts them on the
+wire (docs/security.md). All cryptography comes from the maintained ``cryptography``
+package; nothing here is hand-written crypto.
 
 Keys
     ``derive_node_key(master, node)``: NIST SP 800-108 key derivation in counter
@@ -48,8 +48,8 @@ import os
 import re
 import stat
 import tomllib
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Hashable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from cryptography.hazmat.primitives import cmac
@@ -287,21 +287,21 @@ class FreshnessVerifier:
 
     def __init__(self, tx_bits: int = TX_FRESHNESS_BITS,
                  layout: FreshnessLayout = DEFAULT_LAYOUT,
-                 initial: Mapping[str, int] | None = None) -> None:
+                 initial: Mapping[Hashable, int] | None = None) -> None:
         if not 1 <= tx_bits <= layout.bits:
             raise SecOCError(f"tx_bits: expected 1..{layout.bits}, but got {tx_bits}")
         self.tx_bits = tx_bits
         self.layout = layout
-        self._last: dict[str, int] = dict(initial or {})
+        self._last: dict[Hashable, int] = dict(initial or {})
 
-    def last(self, sender: str) -> int | None:
+    def last(self, sender: Hashable) -> int | None:
         return self._last.get(sender)
 
-    def state(self) -> dict[str, int]:
+    def state(self) -> dict[Hashable, int]:
         """Every sender's last accepted FV (e.g. to persist a receiver's state)."""
         return dict(self._last)
 
-    def candidate(self, sender: str, truncated: int) -> int | None:
+    def candidate(self, sender: Hashable, truncated: int) -> int | None:
         """The full FV to verify a frame with, or None (no state for this sender, or
         the candidate would exceed the layout: resync or re-key needed)."""
         last = self._last.get(sender)
@@ -314,7 +314,7 @@ class FreshnessVerifier:
         value = high << self.tx_bits | truncated
         return value if value <= self.layout.max_value else None
 
-    def accept(self, sender: str, freshness: int) -> bool:
+    def accept(self, sender: Hashable, freshness: int) -> bool:
         """Record an authenticated FV; False (and no change) unless it is strictly
         greater than the last accepted one."""
         last = self._last.get(sender)
@@ -324,7 +324,12 @@ class FreshnessVerifier:
         self._last[sender] = freshness
         return True
 
-    def resync(self, sender: str, full_freshness: int) -> bool:
+    def forget(self, sender: Hashable) -> None:
+        """Drop a sender's state (``--insecure`` only: a restarted sender there has no
+        persisted boot counter, so its values may go back)."""
+        self._last.pop(sender, None)
+
+    def resync(self, sender: Hashable, full_freshness: int) -> bool:
         """Set a sender's state from an authenticated sync frame's full FV (see the
         class docstring). False if it is not newer than what is known."""
         return self.accept(sender, full_freshness)
@@ -340,7 +345,7 @@ class Verdict(enum.Enum):
 
 
 def verify_secured(key: bytes, data_id: int, payload: bytes, truncated_freshness: int,
-                   mac: int, sender: str, verifier: FreshnessVerifier,
+                   mac: int, sender: Hashable, verifier: FreshnessVerifier,
                    bits: int = MAC_BITS) -> Verdict:
     """Check one received secured frame and, if it is authentic and fresh, advance
     the sender's freshness. The state changes only on ``Verdict.OK``."""
@@ -371,6 +376,7 @@ class NodeKey:
     fleet_id: str
     boot_counter: int
     path: Path
+    peers: Mapping[str, bytes] = field(default_factory=dict)  # label -> verification key
 
     def __repr__(self) -> str:  # never print the key
         return (f"NodeKey(node={self.node!r}, fleet_id={self.fleet_id!r}, "
@@ -381,8 +387,10 @@ class NodeKey:
         return lambda boot: save_boot_counter(self.path, boot)
 
 
-def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0) -> dict:
-    """The TOML document of a node key file."""
+def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
+                      peers: Mapping[str, bytes] | None = None) -> dict:
+    """The TOML document of a node key file. ``peers``: the verification keys of the
+    senders this node receives secured frames from (need to know: docs/security.md)."""
     return {
         "format": KEY_FILE_FORMAT,
         "node": check_node_name(node),
@@ -391,6 +399,7 @@ def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0) 
         "mac": MAC_NAME,
         "key": _check_key(key).hex(),
         "freshness": {"boot_counter": boot_counter},
+        "peers": {check_node_name(p): _check_key(k).hex() for p, k in (peers or {}).items()},
     }
 
 
@@ -484,8 +493,18 @@ def load_node_key(path: Path | str) -> NodeKey:
             or not 0 <= boot <= DEFAULT_LAYOUT.max_boot):
         raise KeyFileError(f"{path}: [freshness.boot_counter] expected an integer "
                            f"0..{DEFAULT_LAYOUT.max_boot}, but got {boot!r}")
+    table = doc.get("peers", {})
+    if not isinstance(table, dict):
+        raise KeyFileError(f"{path}: [peers] expected a table of node = key (hex)")
+    peers = {}
+    for peer in table:
+        try:
+            check_node_name(peer)
+        except SecOCError as e:
+            raise KeyFileError(f"{path}: [peers] {e}") from e
+        peers[peer] = _hex_key(table, peer, path)
     return NodeKey(node=node, key=_hex_key(doc, "key", path),  # type: ignore[arg-type]
-                   fleet_id=fleet, boot_counter=boot, path=path)
+                   fleet_id=fleet, boot_counter=boot, path=path, peers=peers)
 
 
 def save_boot_counter(path: Path | str, boot: int) -> None:
@@ -496,7 +515,7 @@ def save_boot_counter(path: Path | str, boot: int) -> None:
     if boot < current.boot_counter:
         raise SecOCError(f"{path}: boot counter must not go back ({current.boot_counter} "
                          f"→ {boot})")
-    doc = node_key_document(current.node, current.key, current.fleet_id, boot)
+    doc = node_key_document(current.node, current.key, current.fleet_id, boot, current.peers)
     write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
@@ -533,3 +552,95 @@ KEY_FILE_HEADER = ("# bess-ded SecOC node key (docs/security.md). Secret: keep i
                     "start; losing it means re-provisioning.\n")
 MASTER_FILE_HEADER = ("# bess-ded SecOC fleet master key (docs/security.md). Every node key "
                       "derives from it:\n# keep it offline, not on the nodes.\n")
+
+
+# --------------------------------------------------------------------------- keyrings
+
+INSECURE_MASTER = bytes(KEY_BYTES)
+"""The public master key of ``--insecure`` mode (all zero): frames still carry a MAC and
+freshness, so corruption and stale frames are caught, but anyone can forge them."""
+
+
+class Keyring:
+    """What one node needs on the bus: its own key and boot counter, and the
+    verification key of every sender it receives secured frames from.
+
+    Built from a key file (``from_file``: the peers it lists), from a fleet master
+    key held in memory (``fleet``: simulated and in-process runs; every key derived on
+    demand), or for ``--insecure`` demos (``insecure``: the public all-zero master
+    key, and a receiver accepts a sync that goes back, since a restarted insecure
+    sender has no persisted boot counter).
+    """
+
+    def __init__(self, node: str, key: bytes, boot: int, persist: Callable[[int], None],
+                 peers: Mapping[str, bytes] | None = None, master: bytes | None = None,
+                 insecure: bool = False, fleet: str = "") -> None:
+        self.node = check_node_name(node)
+        self.key = _check_key(key)
+        self.boot = boot
+        self._persist = persist
+        self._peers = dict(peers or {})
+        self._master = master
+        self.insecure = insecure
+        self.fleet_id = fleet
+
+    def __repr__(self) -> str:  # never print a key
+        return (f"Keyring(node={self.node!r}, boot={self.boot}, insecure={self.insecure}, "
+                f"peers={sorted(self._peers) if self._master is None else 'derived'})")
+
+    def key_of(self, node: str) -> bytes | None:
+        """The verification key of ``node``'s frames, None if this node does not hold it."""
+        if node == self.node:
+            return self.key
+        k = self._peers.get(node)
+        if k is None and self._master is not None:
+            k = self._peers[node] = derive_node_key(self._master, node)
+        return k
+
+    def new_boot(self) -> int:
+        """Start a boot: the next boot counter, persisted before it is returned."""
+        if self.boot >= DEFAULT_LAYOUT.max_boot:
+            raise SecOCError("boot counter exhausted: re-provision the fleet's keys "
+                             "(bess-ded keys --fleet ... --force)")
+        self._persist(self.boot + 1)  # write-ahead: durable before it is used
+        self.boot += 1
+        return self.boot
+
+    @classmethod
+    def from_file(cls, path: Path | str) -> Keyring:
+        k = load_node_key(path)
+        return cls(k.node, k.key, k.boot_counter, k.persist(), peers=k.peers,
+                   fleet=k.fleet_id)
+
+    @classmethod
+    def insecure_for(cls, node: str) -> Keyring:
+        return cls(node, derive_node_key(INSECURE_MASTER, node), 0, lambda _b: None,
+                   master=INSECURE_MASTER, insecure=True, fleet=fleet_id(INSECURE_MASTER))
+
+    @classmethod
+    def fleet(cls, master: bytes, nodes: list[str]) -> dict[str, Keyring]:
+        """In-memory keyrings for ``nodes`` (boot counters kept in memory: a node
+        restarted with the same keyring object starts a new boot, as from its file)."""
+        return {n: cls(n, derive_node_key(master, n), 0, lambda _b: None, master=master,
+                       fleet=fleet_id(master)) for n in nodes}
+
+
+def frame_payload(data: bytes | bytearray) -> bytes:
+    """The payload a secured or sync frame's MAC covers: bytes 3..7 with bits 24..27
+    (the truncated freshness value, or the low bits of a sync's Count) zeroed."""
+    return bytes((data[3] & 0xF0,)) + bytes(data[4:8])
+
+
+def frame_mac(data: bytes | bytearray) -> int:
+    """The truncated MAC a frame carries: bytes 0..2, most significant first."""
+    return int.from_bytes(data[0:MAC_BITS // 8], "big")
+
+
+def sign_frame(key: bytes, frame_id: int, data: bytearray, freshness: int) -> None:
+    """Write the MAC of a secured or sync frame over its payload and ``freshness``."""
+    mac = authenticator(key, frame_id, frame_payload(data), freshness, MAC_BITS)
+    data[0:MAC_BITS // 8] = mac.to_bytes(MAC_BITS // 8, "big")
+
+
+def frame_verifies(key: bytes, frame_id: int, data: bytes | bytearray, freshness: int) -> bool:
+    return verify(key, frame_id, frame_payload(data), freshness, frame_mac(data), MAC_BITS)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter, defaultdict
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,9 @@ import numpy as np
 from firmware_py import contract
 from firmware_py.contract import COUNTER_MODULO, MC_CYCLE_S, TIMEOUT_CYCLES, State
 from firmware_py.errors import FrameError
-from firmware_py.frames import COUNTER_STEP_MAX, FrameCodec
+from firmware_py.frames import COUNTER_STEP_MAX, DecodedFrame, FrameCodec
+from firmware_py.nodeio import LOST_WINDOWS
+from firmware_py.secoc import FreshnessVerifier, frame_verifies
 
 from .scenario import Scenario
 from .trajectory import Trajectory
@@ -77,6 +80,11 @@ class LogContents:
     # State of each agent's first recorded MC frame: an agent is INIT until the first
     # price, so anything else means the recorder missed the start and t = 0 is late
     first_mc_state: dict[str, int] = field(default_factory=dict)
+    # with the run's keys: secured frames whose MAC does not verify (forged or replayed),
+    # and those before their sender's first sync (not checkable), by message name
+    forged: Counter[str] = field(default_factory=Counter)
+    unverified: Counter[str] = field(default_factory=Counter)
+    syncs: int = 0
 
     @property
     def start_recorded(self) -> bool:
@@ -103,15 +111,65 @@ def _cycle_s(name: str, ts: float) -> float:
     return contract.cycle_s(name, ts) if contract.is_cyclic(name) else math.inf
 
 
+class _Monitor:
+    """Checks the MAC and freshness of every secured frame with the run's keys, as a
+    receiver would (syncs included), but with a wide window: a recorder misses frames."""
+
+    def __init__(self, keys: Mapping[str, bytes]) -> None:
+        self.keys = keys
+        self.fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
+
+    def _key(self, name: str) -> bytes | None:
+        return self.keys.get(contract.sender_of(name.removesuffix("_Sync")))
+
+    def sync(self, f: DecodedFrame, data: bytes | bytearray) -> None:
+        key = self._key(f.name)
+        fv = f.raw["Boot"] << contract.FV_COUNT_BITS | f.raw["Count"]
+        fid = contract.SYNCED_BY[f.frame_id]
+        if key is not None and frame_verifies(key, f.frame_id, data, fv):
+            last = self.fv.last(fid)
+            if last is None or fv - 1 > last:
+                self.fv.accept(fid, fv - 1)
+            return
+        raise _Forged
+
+    def check(self, f: DecodedFrame, data: bytes | bytearray) -> bool:
+        """True: authentic and fresh; False: not checkable yet (no sync seen)."""
+        key = self._key(f.name)
+        if key is None or self.fv.last(f.frame_id) is None:
+            return False
+        fv = self.fv.candidate(f.frame_id, f.counter)
+        for _ in range(LOST_WINDOWS):
+            if fv is None:
+                break
+            if frame_verifies(key, f.frame_id, data, fv):
+                self.fv.accept(f.frame_id, fv)
+                return True
+            fv += 1 << contract.FV_TX_BITS
+        raise _Forged
+
+
+class _Forged(Exception):
+    pass
+
+
 def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
-             ts: float | None = None) -> LogContents:
+             ts: float | None = None, keys: Mapping[str, bytes] | None = None
+             ) -> LogContents:
     """Decode every frame of a candump-format log (``can.LogReader``: any suffix it knows).
 
     ``n``: the run's fleet size, so frames of agents beyond it count as outside the run;
     ``ts``: the run's sample time, for the silence threshold (3·Ts) and for the message
-    cycles of a time-scaled run (the DBC's cycles are for Ts = 10 ms)."""
+    cycles of a time-scaled run (the DBC's cycles are for Ts = 10 ms); ``keys``: the
+    run's node keys (label → key), to leave out forged and replayed secured frames
+    (``forged``) as every receiver does. Without them, secured frames are taken as
+    they are: a forgery on the bus then reads as the run's own data."""
     codec = codec or FrameCodec()
     out = LogContents()
+    monitor = _Monitor(keys) if keys else None
+    segment_raw: int | None = None
+    segment = 0
+    segment_mod = codec.raw_range("ER_Price", "Segment")[1] + 1
     silence = 3 * ts if ts else None
     cycles: dict[str, float] = {}
     t_prev: float | None = None
@@ -131,6 +189,21 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
         if n is not None and f.agent is not None and f.agent > n:
             out.outside_run[f.name] += 1
             continue
+        kind = codec.kind(f.frame_id)
+        if kind == "sync":
+            out.syncs += 1
+        if monitor is not None and kind != "e2e":
+            try:
+                if kind == "sync":
+                    monitor.sync(f, msg.data)
+                elif not monitor.check(f, msg.data):
+                    out.unverified[f.name] += 1
+                    continue
+            except _Forged:
+                out.forged[f.name] += 1
+                continue
+        if kind == "sync":
+            continue
         if f.name not in cycles:
             cycles[f.name] = _cycle_s(f.name, ts or MC_CYCLE_S)
         _sequence(out.sequences.setdefault(f.name, SequenceStats()), f.counter, t,
@@ -139,7 +212,11 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
             if out.t_first_price is None:
                 out.t_first_price = t
             out.series[("price", "Rho")].append((t, f.phys("Rho")))
-            out.series[("price", "Segment")].append((t, f.raw["Segment"]))
+            # Segment counts mod 8 on the wire: unwrap it
+            segment = (f.raw["Segment"] if segment_raw is None
+                       else segment + (f.raw["Segment"] - segment_raw) % segment_mod)
+            segment_raw = f.raw["Segment"]
+            out.series[("price", "Segment")].append((t, segment))
         elif f.name.endswith("_MC"):
             out.first_mc_state.setdefault(f.name, f.raw["State"])
             for sig in ("Lambda", "State", "Resets"):

@@ -12,6 +12,7 @@ import functools
 import json
 import os
 import random
+import secrets
 import signal
 import socket
 import subprocess
@@ -25,7 +26,7 @@ from typing import Any
 
 import can
 
-from firmware_py import contract
+from firmware_py import contract, secoc
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import FrameCodec
@@ -466,7 +467,9 @@ def _check_alive(specs: list[NodeSpec], logdir: Path) -> None:
 
 def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bess-ded",
                    plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = (),
-                   restarts: Sequence[tuple[str, float, float]] = ()
+                   restarts: Sequence[tuple[str, float, float]] = (),
+                   master_key: bytes | None = None, insecure: bool = False,
+                   inject: Callable[[float], Sequence[can.Message]] | None = None
                    ) -> dict[str, Any]:
     """The same nodes as `up` on python-can's in-process ``virtual`` bus, stepped on a
     simulated clock.
@@ -484,7 +487,13 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     and restarted: from the first sample at or after t_down it neither reads nor sends
     (what reaches its bus meanwhile is lost, as with a dead process), and from the first
     sample at or after t_up a fresh node (new state, the same configuration) runs in its
-    place, as a restarted process would. t_up = inf: never restarted.
+    place, as a restarted process would (its keyring keeps its boot counter, as its
+    key file would). t_up = inf: never restarted.
+
+    Keys: a fresh fleet master key per run unless ``master_key`` is given (every node
+    holds its own keyring derived from it); ``insecure``: the public demo keys.
+    ``inject(t)``: frames an attacker sends at sample t (after the nodes' own), on a
+    bus instance of its own; the recording and the analysis see them as any frame.
     """
     from firmware_py.runtime import AgentRuntime
 
@@ -493,11 +502,17 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
 
     out.mkdir(parents=True, exist_ok=True)
     codec = FrameCodec()
+    master = secoc.INSECURE_MASTER if insecure else master_key or secrets.token_bytes(16)
+    rings = secoc.Keyring.fleet(master, secoc.fleet_nodes(sc.n))
+    if insecure:
+        rings = {n: secoc.Keyring.insecure_for(n) for n in rings}
     factories: dict[str, Callable[[], Any]] = {
-        f"agent_{c.id}": functools.partial(AgentRuntime, c, codec)
+        f"agent_{c.id}": functools.partial(AgentRuntime, c, codec, rings[f"agent_{c.id}"])
         for c in agent_configs_from_scenario(sc)}
-    factories["plant"] = lambda: PlantNode(sc, period=sc.ts, faults=plant_faults)
-    factories["router"] = lambda: RouterNode(sc, period=sc.ts, silent=router_silent)
+    factories["plant"] = lambda: PlantNode(sc, period=sc.ts, faults=plant_faults,
+                                           keys=rings["plant"])
+    factories["router"] = lambda: RouterNode(sc, period=sc.ts, silent=router_silent,
+                                             keys=rings["router"])
     names = list(factories)
     nodes: list[Any] = [make() for make in factories.values()]
     down = {name: (t_down, t_up) for name, t_down, t_up in restarts}
@@ -510,6 +525,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
                           "receive_own_messages": False, "preserve_timestamps": True}
     buses = [can.Bus(**kw) for _ in nodes]
     watch = can.Bus(**kw)
+    attacker = can.Bus(**kw) if inject is not None else None
     writer = can.Logger(str(out / "run.log"))
     try:
         eps = 1e-9 * sc.ts
@@ -531,15 +547,19 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
                 for frame in node.tick(t) if up else ():
                     frame.timestamp = t
                     bus.send(frame)
+            if attacker is not None and inject is not None:
+                for frame in inject(t):
+                    frame.timestamp = t
+                    attacker.send(frame)
             while (msg := watch.recv(timeout=0)) is not None:
                 writer.on_message_received(msg)
     finally:
         writer.stop()
-        for bus in [*buses, watch]:
+        for bus in [*buses, watch, *([attacker] if attacker else [])]:
             bus.shutdown()
     counters = {role: {"ticks": node.ticks, "counters": dict(node.counters)}
                 for role, node in zip(SIM_NODES, nodes[-2:], strict=True)}
     m = report(sc, out / "run.log", out, RunFacts(node_counters=counters), plot=False,
-               codec=codec).metrics
+               codec=codec, keys={n: r.key for n, r in rings.items()}).metrics
     m["node_summaries"] = [n.summary() for n in nodes]
     return m

@@ -90,6 +90,7 @@ from firmware_py.contract import MC_CYCLE_S, cycle_s, setpoint_name, status_name
 from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import NodeIO
+from firmware_py.secoc import Keyring
 
 from .model import Battery
 from .nodeclock import SimNodeClock, TimeWindow
@@ -108,7 +109,7 @@ RAMP_FULL_S = 0.25            # default setpoint ramp: p_max per 0.25 s (at Ts =
 FAULT_KINDS = ("overcurrent", "voltage", "soc", "power_limit")
 
 # status signal → (scale, raw lo, raw hi) is taken from the codec; values are saturated
-_STATUS_SIGNALS = ("Power", "Current", "Voltage", "Soc")
+_STATUS_SIGNALS = ("Power", "Soc")
 
 
 # --------------------------------------------------------------------------- physics
@@ -314,7 +315,8 @@ class PlantNode(SimNodeClock):
 
     def __init__(self, scenario: Scenario, period: float = 0.01,
                  faults: Iterable[PlantFault | Sequence[Any] | str] = (),
-                 codec: FrameCodec | None = None, ramp_full_s: float | None = None) -> None:
+                 codec: FrameCodec | None = None, ramp_full_s: float | None = None,
+                 keys: Keyring | None = None) -> None:
         """``ramp_full_s``: the setpoint ramp limit as the time to go from 0 to p_max
         (None: RAMP_FULL_S stretched with the scenario's Ts; 0: no ramp limit)."""
         if not (math.isfinite(period) and period > 0):
@@ -341,7 +343,8 @@ class PlantNode(SimNodeClock):
         self._status_names = [status_name(u.agent) for u in self.units]
         self._setpoint_fid = {u.agent: fid for fid, u in self._setpoint_ids.items()}
         self.io = NodeIO(c, "the plant", own=self._status_names, wanted=self._setpoint_ids,
-                         fleet_size=scenario.n, untrusted_s=untrusted_s(scenario.ts))
+                         fleet_size=scenario.n, untrusted_s=untrusted_s(scenario.ts),
+                         keys=keys)
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         first = self._status_names[0]
@@ -378,10 +381,11 @@ class PlantNode(SimNodeClock):
                                       before, (u.fault_soc, u.fault_voltage,
                                                u.fault_overcurrent), strict=True):
                 self.counters[name] += now and not was
-        if not self._status.due(t):
-            return []
-        return [self._status_frame(u, name) for u, name in zip(self.units, self._status_names,
-                                                               strict=True)]
+        out = self.io.syncs(t)
+        if self._status.due(t):
+            out += [self._status_frame(u, name)
+                    for u, name in zip(self.units, self._status_names, strict=True)]
+        return out
 
     def _forced(self, t_rel: float) -> dict[int, set[str]]:
         out: dict[int, set[str]] = {}
@@ -404,7 +408,7 @@ class PlantNode(SimNodeClock):
             u.stale = True
             u.setpoint_timeouts += 1
             self.counters["setpoint_timeouts"] += 1
-            self.io.trackers[self._setpoint_fid[u.agent]].reset()  # the counter gap aliases
+            self.io.sender_lost(self._setpoint_fid[u.agent])  # the counter gap aliases
             log.info("plant: BESS %d setpoint timed out (%.0f ms old): ramping to 0", u.agent,
                      1e3 * (t - u.setpoint_rx))
 
@@ -421,8 +425,6 @@ class PlantNode(SimNodeClock):
             "FaultOverCurrent": int(u.fault_overcurrent), "FaultVoltage": int(u.fault_voltage),
             "FaultSoc": int(u.fault_soc), "PowerLimited": int(u.power_limited),
             "Power": self._raw("Power", u.power),
-            "Current": self._raw("Current", u.current),
-            "Voltage": self._raw("Voltage", u.voltage),
             "Soc": self._raw("Soc", 100.0 * u.soc),
         })
         self.counters["status_frames"] += 1

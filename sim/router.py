@@ -42,6 +42,7 @@ from firmware_py.contract import Command, cycle_s, status_name, timeout_s
 from firmware_py.errors import ParameterError
 from firmware_py.frames import LAMBDA_Q, FrameCodec
 from firmware_py.nodeio import NodeIO
+from firmware_py.secoc import Keyring
 
 from .model import expenditure, kkt_optimum
 from .nodeclock import SimNodeClock, TimeWindow
@@ -127,7 +128,7 @@ class RouterNode(SimNodeClock):
 
     def __init__(self, scenario: Scenario, period: float = 0.01,
                  silent: Iterable[SilentWindow | Sequence[float] | str] = (),
-                 codec: FrameCodec | None = None) -> None:
+                 codec: FrameCodec | None = None, keys: Keyring | None = None) -> None:
         if not (math.isfinite(period) and period > 0):
             raise ParameterError("period", "a positive number of seconds", period)
         self.scenario = scenario
@@ -152,10 +153,11 @@ class RouterNode(SimNodeClock):
         self._slots = list(self._status.values())
         self.io = NodeIO(c, "the router", own=("ER_Price", "ER_Command", "ER_Balance"),
                          wanted=self._status, fleet_size=scenario.n,
-                         untrusted_s=untrusted_s(scenario.ts))
+                         untrusted_s=untrusted_s(scenario.ts), keys=keys)
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         self._rho_lo, self._rho_hi = c.raw_range("ER_Price", "Rho")
+        self._segment_hi = c.raw_range("ER_Price", "Segment")[1]  # Segment counts mod 8
         self._kkt_cache: dict[float, float] = {}
 
         self._init_clock()
@@ -236,7 +238,7 @@ class RouterNode(SimNodeClock):
         if silent:
             self.counters["silenced_frames"] += len(frames)
             return []
-        return [self._send(name, raw) for name, raw in frames]
+        return self.io.syncs(t) + [self._send(name, raw) for name, raw in frames]
 
     def _due_commands(self, t_rel: float) -> list[tuple[str, dict[str, int]]]:
         out = []
@@ -254,7 +256,7 @@ class RouterNode(SimNodeClock):
         for i, (fid, slot) in enumerate(self._status.items(), start=1):
             if slot.fresh and slot.rx is not None and t - slot.rx > self.status_timeout + 1e-9:
                 slot.fresh = False
-                self.io.trackers[fid].reset()  # an outage's counter gap aliases
+                self.io.sender_lost(fid)  # an outage's counter gap aliases
                 self.counters["status_timeouts"] += 1
                 log.info("router: PLANT_%d_Status timed out; holding P = %.2f kW", i, slot.power)
         powers = [s.power for s in self._slots]
@@ -274,7 +276,7 @@ class RouterNode(SimNodeClock):
         if not self._rho_lo <= raw <= self._rho_hi:
             self.counters["encode_saturations"] += 1
             raw = min(self._rho_hi, max(self._rho_lo, raw))
-        return {"PriceValid": 1, "Rho": raw, "Segment": min(self.segment, 255)}
+        return {"PriceValid": 1, "Rho": raw, "Segment": self.segment % (self._segment_hi + 1)}
 
     def _balance_raw(self) -> dict[str, int]:
         out = {}

@@ -7,6 +7,8 @@ started by hand or a HIL rig. So a log gives the same numbers whoever recorded i
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,14 +35,16 @@ class Recording:
 
 def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = None,
            plot: bool = True, time_scale: float = 1.0,
-           codec: FrameCodec | None = None) -> Recording:
+           codec: FrameCodec | None = None, keys: Mapping[str, bytes] | None = None
+           ) -> Recording:
     """Decode ``log_path`` against the scenario ``sc`` (as it ran: variant chosen, time
     scale applied), judge it and write DIR/metrics.json, DIR/trajectory.csv and, with
     ``plot``, DIR/bus_run.png. ``time_scale`` only relabels the plot's time axis in
-    scenario seconds."""
+    scenario seconds. ``keys``: the run's node keys (label → key): forged and replayed
+    secured frames are then left out of the analysis and reported."""
     facts = facts or RunFacts()
     out.mkdir(parents=True, exist_ok=True)
-    log = buslog.read_log(log_path, codec, n=sc.n, ts=sc.ts)
+    log = buslog.read_log(log_path, codec, n=sc.n, ts=sc.ts, keys=keys)
     tr = buslog.trajectory_from_log(sc, log) if log.t_first_price is not None else None
     m: dict[str, Any] = {"scenario": sc.name, "time_scale": time_scale}
     if tr is not None and tr.t.size:

@@ -56,6 +56,8 @@ _AGENT_FAULT_COUNTERS = (
     ("ImplausibleLambda", "implausible_frames", "neighbour λ rejected as implausible (step per "
      "sample)"),
     ("ImplausibleGains", "implausible_frames", "SET_GAINS rejected (gains outside bounds)"),
+    ("RejectedAuth", "auth_failed", "secured frames or syncs whose MAC does not verify "
+     "(forged, replayed or corrupted)"),
 )
 # the plant's and router's counters (logs/*.counters.json) that a healthy run keeps at 0
 _SIM_FAULT_COUNTERS = (
@@ -72,6 +74,8 @@ _SIM_FAULT_COUNTERS = (
     ("send_failure", "send_failure", "frames it failed to send"),
     ("untrusted", "untrusted_source", "frames rejected from a source ID made untrusted by "
      "consecutive E2E failures"),
+    ("auth", "auth_failed", "secured frames or syncs whose MAC does not verify (forged, "
+     "replayed or corrupted)"),
 )
 
 
@@ -246,6 +250,10 @@ def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
     if log.outside_run:
         out.append(Anomaly("foreign_traffic", "bus", f"{sum(log.outside_run.values())} frames "
                            f"of messages outside this {sc.n}-agent run ({_top(log.outside_run)})"))
+    for name, k in sorted(log.forged.items()):
+        out.append(Anomaly("auth_failed", "bus", f"{name}: {k} frames whose MAC does not "
+                           "verify with its sender's key (forged, or replayed from an earlier "
+                           "window or run); the analysis left them out"))
     if log.undecodable:
         out.append(Anomaly("malformed_frames", "bus", f"{sum(log.undecodable.values())} frames "
                            f"that fail the DBC's checks ({_top(log.undecodable)})"))
@@ -288,7 +296,7 @@ def _counters(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly
         name = f"agent_{a}"
         for sig, kind, what in _AGENT_FAULT_COUNTERS:
             if d.get(sig, 0):
-                if kind in ("untrusted_source", "implausible_frames"):
+                if kind in ("untrusted_source", "implausible_frames", "auth_failed"):
                     what += _last_rejected(d)
                 out.append(Anomaly(kind, name, f"{d[sig]} {what}"))
     for node, c in sorted((facts.node_counters or {}).items()):

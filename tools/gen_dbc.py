@@ -10,9 +10,18 @@ the committed file is what this script produces.
 Layout rules (every frame):
 
 * classic CAN, 11-bit IDs, DLC 8, 500 kbit/s, Intel (little-endian) signals;
-* E2E protection in the style of AUTOSAR profile 1: byte 0 is ``CRC``
-  (CRC-8 SAE J1850 over the 2-byte little-endian CAN ID followed by payload
-  bytes 1..7), the low nibble of byte 1 is the rolling ``Counter`` (0..15);
+* frames that can change the dispatch (price, command, MC, setpoint, status) are
+  **secured** in the style of AUTOSAR SecOC (docs/security.md): bytes 0..2 are ``Mac``
+  (the first 3 bytes of CMAC-AES-128 under the sender's key over data ID ‖ payload ‖
+  full freshness value), the low nibble of byte 3 is ``Counter``, the low 4 bits of
+  the freshness value (+1 per transmission, so it is also the E2E sequence counter),
+  and the payload is bits 28..63;
+* every secured frame has a ``<name>_Sync`` frame at its ID + 0x400 carrying the full
+  freshness value (``Boot`` ‖ ``Count``) under a MAC, at start, every second and when
+  a new peer appears;
+* the other frames (diagnostics, balance) keep E2E protection in the style of AUTOSAR
+  profile 1: byte 0 is ``CRC`` (CRC-8 SAE J1850 over the 2-byte little-endian CAN ID
+  followed by payload bytes 1..7), the low nibble of byte 1 is the rolling ``Counter``;
 * every signal has an explicit [min|max]; receivers range-check raw values
   against it (cantools' decode does not).
 
@@ -60,6 +69,8 @@ STATUS_CYCLE_MS = 50
 PRICE_CYCLE_MS = 50
 DIAG_CYCLE_MS = 100
 BALANCE_CYCLE_MS = 100
+SYNC_CYCLE_MS = 1000
+SYNC_OFFSET = 0x400  # <name>_Sync ID = the secured frame's ID + SYNC_OFFSET
 
 DEFAULT_OUTPUT = Path(__file__).resolve().parent.parent / "dbc" / "bess_ded.dbc"
 
@@ -67,12 +78,18 @@ STATE_CHOICES = {0: "INIT", 1: "RUNNING", 2: "ISOLATED", 3: "SAFE"}
 COMMAND_CHOICES = {1: "ISOLATE", 2: "RECONNECT", 3: "SET_GAINS"}
 # AGENT_<i>_Diag SafetyCause (firmware_py.runtime.SAFETY_CAUSES, docs/safety-model.md)
 SAFETY_CAUSE_CHOICES = {0: "NONE", 1: "UNTRUSTED", 2: "IMPLAUSIBLE_PRICE",
-                        3: "IMPLAUSIBLE_LAMBDA", 4: "IMPLAUSIBLE_GAINS"}
+                        3: "IMPLAUSIBLE_LAMBDA", 4: "IMPLAUSIBLE_GAINS", 5: "AUTH"}
 
 BUS_COMMENT = (
     "bess-ded: distributed economic dispatch of battery energy storage systems. "
     "Classic CAN, 500 kbit/s, 11-bit standard IDs, DLC 8, Intel byte order. "
-    "Every frame carries AUTOSAR profile-1 style E2E protection: byte 0 = CRC "
+    "Frames that can change the dispatch are secured (AUTOSAR SecOC style, "
+    "docs/security.md): bytes 0..2 = Mac, the first 3 bytes of CMAC-AES-128 under the "
+    "sender's key over data ID (CAN ID, 2 bytes big-endian) + payload (bytes 3..7 with "
+    "bits 24..27 zeroed) + the full 40-bit freshness value (8 bytes big-endian); low "
+    "nibble of byte 3 = Counter, the low 4 bits of the freshness value. <name>_Sync "
+    "(ID + 0x400) carries the full freshness value. The other frames carry AUTOSAR "
+    "profile-1 style E2E protection: byte 0 = CRC "
     "(CRC-8 SAE J1850, poly 0x1D, init 0xFF, xorout 0xFF, check 0x4B) computed over "
     "the CAN ID as 2 little-endian bytes (the data ID) followed by payload bytes 1..7; "
     "low nibble of byte 1 = rolling counter 0..15. Lambda and Rho are int32 Q24 "
@@ -87,7 +104,7 @@ E2E_COUNTER_COMMENT = (
     "E2E rolling counter 0..15, +1 mod 16 per transmission of this frame. A receiver treats "
     "a repeated value as no new data and counts (c - last - 1) mod 16 lost frames."
 )
-DIAG_PAGES = 8  # AGENT_<i>_Diag pages; firmware_py.runtime.AgentRuntime.DIAG_PAGES fills them
+DIAG_PAGES = 9  # AGENT_<i>_Diag pages; firmware_py.runtime.AgentRuntime.DIAG_PAGES fills them
 DIAG_SATURATION = "uint16, saturating at 65535 (the sender saturates, it never wraps)."
 
 
@@ -143,6 +160,43 @@ def _sig(
     )
 
 
+SECOC_MAC_COMMENT = (
+    "SecOC authenticator: the first 3 bytes of CMAC-AES-128 under the sender's key over "
+    "data ID (2 bytes BE) + bytes 3..7 with bits 24..27 zeroed + the full freshness value "
+    "(8 bytes BE), in bytes 0, 1, 2 in that order (the Intel value is their little-endian "
+    "reading). Receivers drop the frame on mismatch (docs/security.md)."
+)
+SECOC_COUNTER_COMMENT = (
+    "Truncated freshness value: its low 4 bits, +1 mod 16 per transmission of this frame. "
+    "The receiver rebuilds the full value as the smallest one above the last it accepted "
+    "with these low bits; (step - 1) frames were lost."
+)
+
+
+def _secoc(receivers: list[str]) -> list[Signal]:
+    return [
+        _sig("Mac", 0, 24, comment=SECOC_MAC_COMMENT, receivers=receivers),
+        _sig("Counter", 24, 4, comment=SECOC_COUNTER_COMMENT, receivers=receivers),
+    ]
+
+
+def _sync(secured: Message) -> Message:
+    rx = sorted({r for s in secured.signals for r in s.receivers})
+    return _msg(secured.frame_id + SYNC_OFFSET, f"{secured.name}_Sync", secured.senders[0], [
+        _sig("Mac", 0, 24, receivers=rx,
+             comment="SecOC authenticator over this frame's ID, bytes 3..7 with bits 24..27 "
+                     "zeroed and the carried freshness value Boot:Count (8 bytes BE)."),
+        _sig("Count", 24, 24, receivers=rx,
+             comment=f"Message counter of the next {secured.name} frame (low 24 bits of its "
+                     "freshness value)."),
+        _sig("Boot", 48, 16, minimum=1, receivers=rx,
+             comment="Boot counter of the sender (high 16 bits of the freshness value), "
+                     "persisted before the first frame of every start."),
+    ], f"Freshness synchronisation of {secured.name}: the full freshness value its next frame "
+       "uses. Sent at start, every second, and when a peer (re)appears; a receiver moves "
+       "its state forward only.", SYNC_CYCLE_MS)
+
+
 def _e2e(receivers: list[str]) -> list[Signal]:
     return [
         _sig("CRC", 0, 8, comment=E2E_CRC_COMMENT, receivers=receivers),
@@ -185,15 +239,15 @@ def _msg(
 def _er_price() -> Message:
     rx = _all_agents()
     return _msg(ER_PRICE_ID, "ER_Price", "ER", [
-        *_e2e(rx),
-        _sig("PriceValid", 12, 1, receivers=rx,
+        *_secoc(rx),
+        _sig("PriceValid", 28, 1, receivers=rx,
              comment="1 = Rho is a valid price; 0 = the router has no price (treat as no price "
                      "frame)."),
-        _sig("Rho", 16, 32, signed=True, scale=Q24, unit="cu/kWh", receivers=rx,
+        _sig("Segment", 29, 3, receivers=rx,
+             comment="Index of the active segment of the time-phased price schedule, mod 8."),
+        _sig("Rho", 32, 32, signed=True, scale=Q24, unit="cu/kWh", receivers=rx,
              comment="Grid price rho(t), the consensus leader. int32 Q24 fixed point: phys = raw "
                      "* 2^-24 exactly (5.9604644775390625e-08), the firmware's native format."),
-        _sig("Segment", 48, 8, receivers=rx,
-             comment="Index of the active segment of the time-phased price schedule."),
     ], "Energy router price broadcast: the time-phased price rho(t) every agent pins to.",
         PRICE_CYCLE_MS)
 
@@ -201,15 +255,15 @@ def _er_price() -> Message:
 def _er_command() -> Message:
     rx = _all_agents()
     return _msg(ER_COMMAND_ID, "ER_Command", "ER", [
-        *_e2e(rx),
-        _sig("Command", 12, 4, minimum=1, maximum=3, choices=COMMAND_CHOICES, receivers=rx,
+        *_secoc(rx),
+        _sig("Command", 28, 2, minimum=1, maximum=3, choices=COMMAND_CHOICES, receivers=rx,
              comment="ISOLATE: agent Target leaves the consensus (plug-and-play out); RECONNECT: "
                      "it re-enters; SET_GAINS: it adopts GainK and GainH."),
-        _sig("Target", 16, 8, minimum=1, maximum=N_AGENTS, receivers=rx,
+        _sig("Target", 30, 6, minimum=1, maximum=N_AGENTS, receivers=rx,
              comment="Agent index 1..32 the command is addressed to; other agents ignore it."),
-        _sig("GainK", 24, 16, scale=0.001, receivers=rx,
+        _sig("GainK", 36, 14, scale=0.001, receivers=rx,
              comment="Proportional consensus gain k (SET_GAINS only; 0 otherwise)."),
-        _sig("GainH", 40, 16, scale=0.001, receivers=rx,
+        _sig("GainH", 50, 14, scale=0.001, receivers=rx,
              comment="Integral consensus gain h (SET_GAINS only; 0 otherwise)."),
     ], "Energy router command to one agent (event frame, sent on demand; its counter still "
        "advances per transmission).", None)
@@ -218,28 +272,25 @@ def _er_command() -> Message:
 def _agent_mc(i: int) -> Message:
     rx = [a for a in _all_agents() if a != f"AGENT_{i}"] + ["ER"]
     return _msg(MC_BASE + i, f"AGENT_{i}_MC", f"AGENT_{i}", [
-        *_e2e(rx),
-        _sig("State", 12, 4, minimum=0, maximum=3, choices=STATE_CHOICES, receivers=rx,
+        *_secoc(rx),
+        _sig("State", 28, 2, minimum=0, maximum=3, choices=STATE_CHOICES, receivers=rx,
              comment="Agent state machine. Neighbours only use Lambda from RUNNING agents."),
-        _sig("Lambda", 16, 32, signed=True, scale=Q24, unit="cu/kWh", receivers=rx,
+        _sig("Resets", 30, 2, receivers=rx,
+             comment="Number of Clegg resets of the integrator so far, mod 4 (at most one per "
+                     "step; the full count is on AGENT_i_Diag page 0)."),
+        _sig("Lambda", 32, 32, signed=True, scale=Q24, unit="cu/kWh", receivers=rx,
              comment="Marginal cost lambda_i. int32 Q24 fixed point: phys = raw * 2^-24 exactly "
                      "(5.9604644775390625e-08), bit-identical to the firmware's state."),
-        _sig("Resets", 48, 8, receivers=rx,
-             comment="Number of Clegg resets of the integrator so far, mod 256."),
-        _sig("NeighboursAlive", 56, 6, receivers=rx,
-             comment="Neighbours currently heard and RUNNING (used in the consensus error)."),
-        _sig("PriceOk", 62, 1, receivers=rx,
-             comment="1 = this agent has a fresh valid price from the ER."),
     ], f"Agent {i} marginal cost broadcast, the consensus exchange.", MC_CYCLE_MS)
 
 
 def _agent_setpoint(i: int) -> Message:
     rx = ["PLANT"]
     return _msg(SETPOINT_BASE + i, f"AGENT_{i}_Setpoint", f"AGENT_{i}", [
-        *_e2e(rx),
-        _sig("Enable", 12, 1, receivers=rx,
+        *_secoc(rx),
+        _sig("Enable", 28, 1, receivers=rx,
              comment="1 = follow PowerSetpoint; 0 = hold zero power (INIT, ISOLATED, SAFE)."),
-        _sig("PowerSetpoint", 16, 16, signed=True, scale=0.01, unit="kW", receivers=rx,
+        _sig("PowerSetpoint", 32, 16, signed=True, scale=0.01, unit="kW", receivers=rx,
              comment="Power setpoint of BESS i, positive = discharge into the grid."),
     ], f"Agent {i} power setpoint to its DC-DC chopper (plant).", SETPOINT_CYCLE_MS)
 
@@ -247,20 +298,18 @@ def _agent_setpoint(i: int) -> Message:
 def _plant_status(i: int) -> Message:
     rx = [f"AGENT_{i}", "ER"]
     return _msg(STATUS_BASE + i, f"PLANT_{i}_Status", "PLANT", [
-        *_e2e(rx),
-        _sig("FaultOverCurrent", 12, 1, receivers=rx, comment="1 = over-current trip."),
-        _sig("FaultVoltage", 13, 1, receivers=rx, comment="1 = voltage out of range."),
-        _sig("FaultSoc", 14, 1, receivers=rx, comment="1 = state of charge at a hard limit."),
-        _sig("PowerLimited", 15, 1, receivers=rx,
+        *_secoc(rx),
+        _sig("FaultOverCurrent", 28, 1, receivers=rx, comment="1 = over-current trip."),
+        _sig("FaultVoltage", 29, 1, receivers=rx, comment="1 = voltage out of range."),
+        _sig("FaultSoc", 30, 1, receivers=rx, comment="1 = state of charge at a hard limit."),
+        _sig("PowerLimited", 31, 1, receivers=rx,
              comment="1 = the delivered power is clipped below the setpoint (P limits)."),
-        _sig("Power", 16, 16, signed=True, scale=0.01, unit="kW", receivers=rx,
+        _sig("Power", 32, 16, signed=True, scale=0.01, unit="kW", receivers=rx,
              comment="Measured power of BESS i, positive = discharge into the grid."),
-        _sig("Current", 32, 12, signed=True, scale=0.5, unit="A", receivers=rx,
-             comment="Battery current, positive = discharging."),
-        _sig("Voltage", 44, 12, scale=0.25, unit="V", receivers=rx, comment="Battery voltage."),
-        _sig("Soc", 56, 8, scale=0.5, maximum=100, unit="%", receivers=rx,
+        _sig("Soc", 48, 8, scale=0.5, maximum=100, unit="%", receivers=rx,
              comment="State of charge, 0..100 % (raw 0..200)."),
-    ], f"Plant (battery + chopper) {i} status and measurements.", STATUS_CYCLE_MS)
+    ], f"Plant (battery + chopper) {i} status: power, state of charge, fault flags.",
+        STATUS_CYCLE_MS)
 
 
 def _agent_diag(i: int) -> Message:
@@ -317,6 +366,11 @@ def _agent_diag(i: int) -> Message:
         _sig("SafetyCause", 48, 4, page=7, minimum=0, maximum=len(SAFETY_CAUSE_CHOICES) - 1,
              choices=SAFETY_CAUSE_CHOICES, receivers=rx,
              comment="Cause of the last frame the safety model rejected."),
+        u16("RejectedAuth", 16, 8, "Secured frames and syncs rejected for a MAC that does not "
+            "verify (forged, replayed, corrupted or out of the freshness window)."),
+        u16("Unsynced", 32, 8, "Secured frames dropped because no freshness value of their "
+            "sender was known yet (before its first sync)."),
+        u16("Resyncs", 48, 8, "Sync frames that moved a sender's freshness value forward."),
     ], f"Agent {i} diagnostics, multiplexed over {DIAG_PAGES} pages (one page per frame, "
        "in turn).",
         DIAG_CYCLE_MS)
@@ -353,6 +407,7 @@ def build_database() -> Database:
     messages += [_plant_status(i) for i in range(1, N_AGENTS + 1)]
     messages += [_agent_diag(i) for i in range(1, N_AGENTS + 1)]
     messages.append(_er_balance())
+    messages += [_sync(m) for m in list(messages) if m.get_signal_by_name("Counter").start == 24]
 
     bus_type_def = DbcAttributeDefinition("BusType", default_value="CAN", type_name="STRING")
     db_name_def = DbcAttributeDefinition("DBName", default_value="", type_name="STRING")
