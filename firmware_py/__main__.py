@@ -14,6 +14,7 @@ from .cliargs import RT_PRIORITY, int_in, nonnegative_float, positive_float, pro
 from .config import load_agent_config
 from .errors import BessDedError
 from .faultinject import FaultyBus, RxFaults
+from .secoc import Keyring, KeyFileError
 from .node import (
     BusConfigError,
     StopFlag,
@@ -26,6 +27,7 @@ from .node import (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, help="agent TOML file (firmware_py/config.py)")
+    add_key_arguments(p)
     add_bus_arguments(p)
     add_filter_argument(p)
     p.add_argument("--duration", type=positive_float(), default=None, metavar="S",
@@ -49,6 +51,32 @@ def add_bus_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--channel", help="channel, e.g. vcan0 (default: $CAN_CHANNEL)")
     p.add_argument("--bus-config", help='extra python-can arguments as JSON, e.g. '
                    '\'{"port": 43200}\' (default: $CAN_CONFIG)')
+
+
+def add_key_arguments(p: argparse.ArgumentParser) -> None:
+    """--key FILE | --insecure, one of them required (docs/security.md)."""
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--key", metavar="FILE",
+                   help="this node's key file from `bess-ded keys --fleet` (owner-only: "
+                        "0600); its boot counter is advanced at every start")
+    g.add_argument("--insecure", action="store_true",
+                   help="demo mode: sign with the public all-zero key (anyone on the bus can "
+                        "forge frames); prints a warning")
+
+
+def keyring_from_args(args: argparse.Namespace, node: str) -> Keyring:
+    """The keyring of ``node`` (e.g. "agent_3") from --key FILE, or the public insecure
+    one with a warning on stderr. A key file of another node is refused."""
+    if args.insecure:
+        print(f"bess-ded: warning: {node} runs --insecure: its frames are signed with the "
+              "public demo key and anyone on the bus can forge them (docs/security.md)",
+              file=sys.stderr, flush=True)
+        return Keyring.insecure_for(node)
+    ring = Keyring.from_file(args.key)
+    if ring.node != node:
+        raise KeyFileError(f"--key {args.key}: expected the key file of {node}, but got "
+                           f"the one of {ring.node}")
+    return ring
 
 
 def add_rt_argument(p: argparse.ArgumentParser) -> None:
@@ -83,7 +111,7 @@ def run_agent(args: argparse.Namespace) -> int:
     from .runtime import AgentRuntime
 
     cfg = load_agent_config(args.config)
-    agent = AgentRuntime(cfg)
+    agent = AgentRuntime(cfg, keys=keyring_from_args(args, f"agent_{cfg.id}"))
     if args.rt_priority:
         set_realtime(args.rt_priority)
     stop = StopFlag()

@@ -26,11 +26,14 @@ Foreign traffic: frames that cannot come from the node's own fleet are counted u
   payload (a single sender never repeats a counter with new data).
 
 Untrusted sources (docs/safety-model.md): ``untrusted_after`` (5, as opendbc's safety
-layer) consecutive E2E failures — CRC, DLC, range, ``counter_jump``, ``counter_clash``, and
-the range checks a node runs after decoding (``fail``) — on one source ID make that ID
-untrusted for ``untrusted_s`` (1 s at Ts = 10 ms): every frame on it is then rejected
-under ``untrusted`` before decoding (``untrusted_sources`` counts the verdicts, logged at
-warning level). A frame accepted before the streak reaches the limit resets it; when the
+layer) consecutive E2E failures — CRC, DLC, range, ``counter_jump``, ``counter_clash``,
+``auth``, and the range checks a node runs after decoding (``fail``) — on one source ID
+make that ID untrusted for ``untrusted_s`` (1 s at Ts = 10 ms): an alarm
+(``untrusted_sources`` counts the verdicts, logged at warning level, ``last_safety``
+names the ID). An E2E-only frame on an untrusted ID is then rejected under
+``untrusted`` before decoding. A secured frame is not: its MAC proves its sender frame
+by frame, so the genuine sender's frames keep being used while a forger's keep failing
+(else a forger could silence any sender with five bad frames). A frame accepted before the streak reaches the limit resets it; when the
 time is up the ID starts with a clean streak. The price, a neighbour or a setpoint that
 goes untrusted goes stale after its own timeout: a receiver then fails safe (SAFE,
 neighbour dropped, BESS ramped to 0) instead of acting on a stream it cannot trust.
@@ -155,9 +158,9 @@ class NodeIO:
         self._tx: Counter[str] = Counter()
 
     def accepted_ids(self) -> list[int]:
-        """The IDs an acceptance filter must pass: what it uses and, for the impersonation
-        check, what it sends."""
-        return sorted(set(self._sent) | set(self.trackers))
+        """The IDs an acceptance filter must pass: what it uses (and the syncs of it) and,
+        for the impersonation check, what it sends."""
+        return sorted(set(self._sent) | set(self.trackers) | set(self._synced_by))
 
     def receive(self, msg: can.Message, t: float | None = None,
                 defer_trust: bool = False) -> DecodedFrame | None:
@@ -197,11 +200,13 @@ class NodeIO:
         until = self._untrusted_until.get(fid)
         if until is not None:
             if t < until:
-                self.safety_reject("untrusted", fid, f"0x{fid:03X} is untrusted for "
-                                   f"{until - t:.3f} s more (after {self.untrusted_after} "
-                                   "consecutive E2E failures)")
-                return None
-            del self._untrusted_until[fid]
+                if fid not in self._verify_key:  # a secured frame proves itself: go on
+                    self.safety_reject("untrusted", fid, f"0x{fid:03X} is untrusted for "
+                                       f"{until - t:.3f} s more (after {self.untrusted_after} "
+                                       "consecutive E2E failures)")
+                    return None
+            else:
+                del self._untrusted_until[fid]
             log.info("%s trusts 0x%03X again (its untrusted time is over)", self.who, fid)
         try:
             frame = self.codec.decode(msg)

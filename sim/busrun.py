@@ -13,13 +13,14 @@ import json
 import os
 import random
 import secrets
+import shutil
 import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import FrameCodec
 from firmware_py.node import bus_kwargs, open_bus
 
+from .cli.keys import load_key_set, write_key_set
 from .runreport import Recording, report
 from .scenario import Scenario, to_toml
 from .verdict import RunFacts
@@ -172,12 +174,18 @@ def _bound_udp_ports() -> set[int]:
 
 def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
                extra: dict[str, list[str]] | None = None,
-               rt_priority: int = RT_PRIORITY) -> list[NodeSpec]:
+               rt_priority: int = RT_PRIORITY, keys: Path | None = None) -> list[NodeSpec]:
     """Argv for every node. Agents and plant first; the router last, since its first
     price frame is t = 0 of the schedule. Every node runs under SCHED_FIFO
     ``rt_priority`` where the OS allows it (0: not), as firmware on an embedded Linux
-    would; plant and router too, or the agents starve them on an overloaded host."""
+    would; plant and router too, or the agents starve them on an overloaded host.
+    ``keys``: the key set directory (each node gets ``--key DIR/<node>.key``); None:
+    every node runs ``--insecure``."""
     extra = extra or {}
+
+    def key(name: str) -> list[str]:
+        return ["--insecure"] if keys is None else ["--key", str(keys / f"{name}.key")]
+
     rt = ["--rt-priority", str(rt_priority)] if rt_priority else []
     cfg_dir = out / "agents"
     cfg_dir.mkdir(parents=True, exist_ok=True)
@@ -187,13 +195,13 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
         path = cfg_dir / f"agent_{cfg.id}.toml"
         path.write_text(cfg.to_toml())
         name = f"agent_{cfg.id}"
-        specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + bus.argv()
-                              + rt + extra.get(name, [])))
+        specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)
+                              + bus.argv() + rt + extra.get(name, [])))
     for role in SIM_NODES:
         specs.append(NodeSpec(role, py + ["sim.cli", role, "--scenario", str(scenario_path),
                                           "--period", repr(sc.ts), "--counters-json",
                                           str(counters_path(out, role))]
-                              + bus.argv() + rt + extra.get(role, [])))
+                              + key(role) + bus.argv() + rt + extra.get(role, [])))
     return specs
 
 
@@ -295,7 +303,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
            extra: dict[str, list[str]] | None = None, delays: dict[str, float] | None = None,
            quiet: bool = False, rt_priority: int = RT_PRIORITY,
            actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]] = (),
-           plot: bool = True, time_scale: float = 1.0) -> Recording:
+           plot: bool = True, time_scale: float = 1.0, keys: Path | None = None,
+           insecure: bool = False) -> Recording:
     """Run the scenario on the bus for ``duration`` s of price time (default: the
     scenario's). ``extra`` adds argv per node (fault flags),
     ``delays`` starts a node late (s after t = 0), ``actions`` calls
@@ -319,9 +328,12 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     for role in SIM_NODES:  # a previous run's, in a reused DIR
         counters_path(out, role).unlink(missing_ok=True)
     codec = FrameCodec()
-    specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority)
+    key_dir = None if insecure else keys or provision_keys(sc, out / "keys")
+    specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority, key_dir)
     for s in specs:
         s.delay = (delays or {}).get(s.name, 0.0)
+    monitor_keys = ({n: secoc.derive_node_key(secoc.INSECURE_MASTER, n)
+                     for n in secoc.fleet_nodes(sc.n)} if insecure else load_key_set(key_dir))
     watch = open_bus(**{**bus.resolved(), "receive_own_messages": False})
     enlarge_receive_buffer(watch)
     writer = _Until(can.Logger(str(out / "run.log")))
@@ -349,7 +361,17 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     facts = RunFacts(exit_codes=codes, deaths=deaths, node_counters=sim_node_counters(out),
                      interrupted=interrupted)
     return report(sc, out / "run.log", out, facts, plot=plot, time_scale=time_scale,
-                  codec=codec)
+                  codec=codec, keys=monitor_keys)
+
+
+def provision_keys(sc: Scenario, key_dir: Path) -> Path:
+    """A fresh key set for one run in ``key_dir`` (0700; a previous run's is replaced):
+    every run signs with keys no other run holds, so nothing recorded elsewhere replays."""
+    if key_dir.exists():
+        shutil.rmtree(key_dir)
+    key_dir.mkdir(mode=0o700, parents=True)
+    write_key_set(sc, key_dir, secrets.token_bytes(secoc.KEY_BYTES))
+    return key_dir
 
 
 class _Until(can.Listener):
@@ -468,7 +490,8 @@ def _check_alive(specs: list[NodeSpec], logdir: Path) -> None:
 def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bess-ded",
                    plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = (),
                    restarts: Sequence[tuple[str, float, float]] = (),
-                   master_key: bytes | None = None, insecure: bool = False,
+                   keyrings: Mapping[str, secoc.Keyring] | None = None,
+                   insecure: bool = False,
                    inject: Callable[[float], Sequence[can.Message]] | None = None
                    ) -> dict[str, Any]:
     """The same nodes as `up` on python-can's in-process ``virtual`` bus, stepped on a
@@ -490,8 +513,10 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     place, as a restarted process would (its keyring keeps its boot counter, as its
     key file would). t_up = inf: never restarted.
 
-    Keys: a fresh fleet master key per run unless ``master_key`` is given (every node
-    holds its own keyring derived from it); ``insecure``: the public demo keys.
+    Keys: each node's keyring from ``keyrings`` (node name → Keyring, e.g.
+    ``Keyring.fleet(master, ...)``: passing the same ones to two runs is a key set
+    reused, its boot counters moving on), else from a fresh master key per run;
+    ``insecure``: the public demo keys.
     ``inject(t)``: frames an attacker sends at sample t (after the nodes' own), on a
     bus instance of its own; the recording and the analysis see them as any frame.
     """
@@ -502,10 +527,12 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
 
     out.mkdir(parents=True, exist_ok=True)
     codec = FrameCodec()
-    master = secoc.INSECURE_MASTER if insecure else master_key or secrets.token_bytes(16)
-    rings = secoc.Keyring.fleet(master, secoc.fleet_nodes(sc.n))
+    nodes_ = secoc.fleet_nodes(sc.n)
     if insecure:
-        rings = {n: secoc.Keyring.insecure_for(n) for n in rings}
+        rings = {n: secoc.Keyring.insecure_for(n) for n in nodes_}
+    else:
+        rings = dict(keyrings or secoc.Keyring.fleet(secrets.token_bytes(secoc.KEY_BYTES),
+                                                     nodes_))
     factories: dict[str, Callable[[], Any]] = {
         f"agent_{c.id}": functools.partial(AgentRuntime, c, codec, rings[f"agent_{c.id}"])
         for c in agent_configs_from_scenario(sc)}

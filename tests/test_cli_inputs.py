@@ -14,8 +14,8 @@ from firmware_py.cliargs import RT_PRIORITY, float_in, int_in, nonnegative_float
 from firmware_py.node import BusConfigError, accepted_bus_keys, bus_kwargs
 from sim.cli import main
 
-NODE = ["--case", "1", "--interface", "virtual"]
-AGENT = ["--config", "agent_1.toml"]  # never read: the options fail first
+NODE = ["--case", "1", "--interface", "virtual", "--insecure"]
+AGENT = ["--config", "agent_1.toml", "--insecure"]  # never read: the options fail first
 
 BAD = [
     # (argv, option, the expectation the message states)

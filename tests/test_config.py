@@ -88,7 +88,8 @@ def test_not_toml_and_missing_file(tmp_path: Path) -> None:
 
 def test_agent_node_refuses_a_bad_config(tmp_path: Path) -> None:
     path = write(tmp_path, good_text().replace("h = 2.0", "h = 0.0"))
-    r = subprocess.run([sys.executable, "-m", "firmware_py", "--config", str(path)],
+    r = subprocess.run([sys.executable, "-m", "firmware_py", "--config", str(path),
+                        "--insecure"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert "[controller.h]" in r.stderr and "Traceback" not in r.stderr

@@ -712,8 +712,9 @@ def test_agent_and_router_stop_cleanly(tmp_path: Path, udp_port: int, sig: int) 
     (tmp_path / "agent_1.toml").write_text(cfg.to_toml())
     bus = ["--interface", "udp_multicast", "--bus-config", f'{{"port": {udp_port}}}']
     cmds = {"agent": [sys.executable, "-m", "sim.cli", "agent", "--config",
-                      str(tmp_path / "agent_1.toml"), *bus],
-            "router": [sys.executable, "-m", "sim.cli", "router", "--case", "1", *bus]}
+                      str(tmp_path / "agent_1.toml"), "--insecure", *bus],
+            "router": [sys.executable, "-m", "sim.cli", "router", "--case", "1", "--insecure",
+                       *bus]}
     procs = {k: subprocess.Popen(v, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
              for k, v in cmds.items()}
     try:

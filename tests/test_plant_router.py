@@ -474,7 +474,7 @@ def test_plant_and_router_on_a_virtual_bus() -> None:
 def test_cli_router_and_plant_run_and_print_their_summary(
         capsys: pytest.CaptureFixture[str]) -> None:
     channel = f"cli-{next(_channels)}-{time.monotonic_ns()}"
-    bus = ["--interface", "virtual", "--channel", channel, "--duration", "0.2"]
+    bus = ["--interface", "virtual", "--channel", channel, "--duration", "0.2", "--insecure"]
     assert main(["router", "--case", "4", *bus, "--silent", "0.05:0.1"]) == 0
     assert main(["plant", "--case", "1", *bus, "--fault", "2:soc:0:1"]) == 0
     err = capsys.readouterr().err
@@ -483,13 +483,16 @@ def test_cli_router_and_plant_run_and_print_their_summary(
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["plant", "--case", "9"], "expected one of"),
-    (["plant", "--case", "1", "--fault", "1:melt:0:1"], "fault.kind"),
-    (["plant", "--case", "1", "--fault", "1:soc"], "AGENT:KIND:T0:T1"),
-    (["router", "--case", "1", "--silent", "4:2"], "T0 < T1"),
-    (["router", "--scenario", "/nonexistent.toml"], "does not exist"),
-    (["router", "--case", "1", "--duration", "0"], "--duration"),
-    (["router", "--case", "1", "--interface", "nosuchbus"], "cannot open CAN bus"),
+    (["plant", "--case", "9", "--insecure"], "expected one of"),
+    (["plant", "--case", "1", "--insecure", "--fault", "1:melt:0:1"], "fault.kind"),
+    (["plant", "--case", "1", "--insecure", "--fault", "1:soc"], "AGENT:KIND:T0:T1"),
+    (["router", "--case", "1", "--insecure", "--silent", "4:2"], "T0 < T1"),
+    (["router", "--scenario", "/nonexistent.toml", "--insecure"], "does not exist"),
+    (["router", "--case", "1", "--insecure", "--duration", "0"], "--duration"),
+    (["router", "--case", "1", "--insecure", "--interface", "nosuchbus"],
+     "cannot open CAN bus"),
+    (["router", "--case", "1", "--key", "/nonexistent.key"], "cannot read the node key"),
+    (["plant", "--case", "1"], "one of the arguments --key --insecure is required"),
 ])
 def test_cli_bad_arguments_exit_2_with_one_line(argv: list[str], message: str,
                                                  capsys: pytest.CaptureFixture[str]) -> None:

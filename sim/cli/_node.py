@@ -9,7 +9,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from firmware_py.__main__ import add_bus_arguments, add_filter_argument, add_rt_argument
+from firmware_py.__main__ import (
+    add_bus_arguments,
+    add_filter_argument,
+    add_key_arguments,
+    add_rt_argument,
+)
 from firmware_py.cliargs import positive_float
 from firmware_py.errors import ParameterError
 
@@ -19,6 +24,7 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--case", metavar="N", help="a paper case, 1..7 (sim/scenarios/caseN.toml)")
     src.add_argument("--scenario", metavar="FILE", help="a scenario .toml (docs/scenarios.md)")
+    add_key_arguments(p)
     add_bus_arguments(p)
     add_filter_argument(p)
     add_rt_argument(p)

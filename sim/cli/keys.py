@@ -17,6 +17,7 @@ import os
 import secrets
 import stat
 from pathlib import Path
+from typing import Any
 
 from firmware_py.errors import BessDedError
 
@@ -65,9 +66,46 @@ def _prepare_dir(out: Path, force: bool) -> None:
                            "without --force")
 
 
-def run(args: argparse.Namespace) -> int:
+def peers_of(sc: Any) -> dict[str, list[str]]:
+    """Need to know: the senders whose secured frames each node receives, i.e. whose
+    verification keys its key file holds (agent i: the router, the plant and its
+    neighbours; the plant: every agent; the router: the plant)."""
+    from firmware_py import secoc
+    from firmware_py.config import agent_configs_from_scenario
+
+    out = {f"agent_{c.id}": ["router", "plant", *(f"agent_{n.id}" for n in c.neighbours)]
+           for c in agent_configs_from_scenario(sc)}
+    out["plant"] = [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
+    out["router"] = ["plant"]
+    return out
+
+
+def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -> None:
+    """Write DIR/<node>.key for every node of ``sc`` (and DIR/master.key), 0600."""
     import tomli_w
 
+    from firmware_py import secoc
+
+    if with_master:
+        secoc.write_private(out / "master.key", secoc.MASTER_FILE_HEADER
+                            + tomli_w.dumps(secoc.master_key_document(master)))
+    fleet = secoc.fleet_id(master)
+    for node, peers in peers_of(sc).items():
+        doc = secoc.node_key_document(node, secoc.derive_node_key(master, node), fleet, 0,
+                                      {p: secoc.derive_node_key(master, p) for p in peers})
+        secoc.write_private(out / f"{node}.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
+
+
+def load_key_set(keys_dir: Path) -> dict[str, bytes]:
+    """Every node's own key from a key set (label -> key): what a monitor of the run
+    (the recorder's analysis) needs to tell forged frames from the fleet's."""
+    from firmware_py import secoc
+
+    return {k.node: k.key for k in (secoc.load_node_key(p) for p in _key_files(keys_dir)
+                                    if p.name != "master.key")}
+
+
+def run(args: argparse.Namespace) -> int:
     from firmware_py import secoc
 
     from ._common import resolve_scenario
@@ -92,12 +130,7 @@ def run(args: argparse.Namespace) -> int:
     stale = [p for p in _key_files(out) if p.name not in keep]
     for p in stale:  # --force only: a smaller fleet's leftovers would be confusing
         p.unlink()
-    if args.master_key is None:
-        secoc.write_private(out / "master.key", secoc.MASTER_FILE_HEADER
-                            + tomli_w.dumps(secoc.master_key_document(master)))
-    for node in nodes:
-        doc = secoc.node_key_document(node, secoc.derive_node_key(master, node), fleet, 0)
-        secoc.write_private(out / f"{node}.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
+    write_key_set(sc, out, master, with_master=args.master_key is None)
 
     print(f"bess-ded keys: {len(nodes)} node keys for {sc.name} ({sc.n} agents, plant, "
           f"router), fleet id {fleet}, in {out}/")

@@ -29,9 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..plant import PlantFault, PlantNode
+    from firmware_py.__main__ import keyring_from_args
+
     from ._node import load_node_scenario, serve
 
     sc = load_node_scenario(args)
     faults = [PlantFault.parse(f).check(sc.n) for f in args.fault]
     return serve(PlantNode(sc, period=args.period, faults=faults,
-                           ramp_full_s=args.ramp_full_s), args)
+                           ramp_full_s=args.ramp_full_s,
+                           keys=keyring_from_args(args, "plant")), args)

@@ -25,8 +25,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..router import RouterNode, SilentWindow
+    from firmware_py.__main__ import keyring_from_args
+
     from ._node import load_node_scenario, serve
 
     sc = load_node_scenario(args)
     silent = [SilentWindow.parse(w) for w in args.silent]
-    return serve(RouterNode(sc, period=args.period, silent=silent), args)
+    return serve(RouterNode(sc, period=args.period, silent=silent,
+                            keys=keyring_from_args(args, "router")), args)

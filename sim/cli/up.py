@@ -60,6 +60,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "system) for hosts too slow for Ts = 10 ms, e.g. an emulated guest "
                    f"(default: 1, or {GUEST_TIME_SCALE:g} under tools/vcan-run)")
     p.add_argument("--no-plot", action="store_true", help="skip bus_run.png")
+    k = p.add_mutually_exclusive_group()
+    k.add_argument("--keys", type=Path, metavar="DIR",
+                   help="sign with this key set from `bess-ded keys --fleet` (its boot "
+                        "counters advance); default: a fresh key set for this run in "
+                        "OUT/keys")
+    k.add_argument("--insecure", action="store_true",
+                   help="demo mode: every node signs with the public all-zero key and warns "
+                        "(docs/security.md)")
     p.set_defaults(func=run)
 
 
@@ -95,12 +103,37 @@ def run(args: argparse.Namespace) -> int:
                                          "--bus-config '{\"port\": N}')" if port else ""))
     for line in sc.analysis().describe()[1:]:
         print(f"  {line}")
+    if args.keys is not None:
+        fleet = check_key_set(args.keys, sc.n)
+        print(f"  keys: {args.keys}/ (fleet id {fleet})")
+    elif args.insecure:
+        print("  keys: INSECURE (--insecure): the public demo key, anyone on the bus can "
+              "forge frames")
+    else:
+        print(f"  keys: a fresh key set for this run in {out / 'keys'}/")
     rec = busrun.record(sc, out, bus, duration=duration, plot=not args.no_plot,
-                        time_scale=scale)
+                        time_scale=scale, keys=args.keys, insecure=args.insecure)
     for line in summary_lines(rec.metrics, rec.verdict, scale):
         print(line)
     print(f"  wrote {', '.join(map(str, [out / 'run.log', *rec.written]))}")
     return rec.verdict.exit_code
+
+
+def check_key_set(keys: Path, n: int) -> str:
+    """Load every key file a fleet of ``n`` agents needs from ``keys`` (permissions,
+    format, one fleet) before anything starts; the fleet id."""
+    from firmware_py import secoc
+
+    fleets = set()
+    for node in secoc.fleet_nodes(n):
+        path = keys / f"{node}.key"
+        if not path.exists():
+            raise ParameterError("--keys", f"a key set with {node}.key (bess-ded keys --fleet "
+                                 f"... --out {keys})", str(keys))
+        fleets.add(secoc.load_node_key(path).fleet_id)
+    if len(fleets) != 1:
+        raise ParameterError("--keys", "key files of one fleet", f"fleet ids {sorted(fleets)}")
+    return fleets.pop()
 
 
 def pick_variant(sc: Scenario, label: str | None) -> tuple[Scenario, str]:
