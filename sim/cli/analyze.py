@@ -40,6 +40,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="a directory with the plant's and router's counters JSON "
                    "(plant.counters.json, router.counters.json; default: LOG's "
                    "directory/logs when they are there, as `up` leaves them)")
+    p.add_argument("--keys", type=Path, metavar="DIR",
+                   help="the run's key set (default: LOG's directory's keys/ if there, as "
+                        "`up` writes it): secured frames whose MAC does not verify are left "
+                        "out and reported (auth_failed)")
     p.add_argument("--no-plot", action="store_true", help="skip bus_run.png")
     p.set_defaults(func=run)
 
@@ -49,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
     from ..scenario import scaled
     from ..verdict import RunFacts
     from ._common import resolve_scenario
+    from .keys import load_key_set
     from .up import pick_variant
 
     if not args.log.is_file():
@@ -66,11 +71,18 @@ def run(args: argparse.Namespace) -> int:
     if args.counters is not None and not counters:
         raise ConfigError(str(args.counters), "--counters", "expected plant.counters.json "
                           "and/or router.counters.json in it, but found neither")
+    keys_dir = args.keys or args.log.parent / "keys"
+    if args.keys is not None and not keys_dir.is_dir():
+        raise ConfigError(str(keys_dir), "--keys", "expected a key set directory "
+                          "(bess-ded keys --fleet --out DIR)")
+    keys = load_key_set(keys_dir) if keys_dir.is_dir() else None
     print(f"bess-ded analyze: {args.log} as {sc.title or sc.name}{chosen} ({sc.n} agents)"
-          + (f"; node counters from {counters_dir}" if counters else ""))
+          + (f"; node counters from {counters_dir}" if counters else "")
+          + (f"; frames verified with the keys in {keys_dir}" if keys else
+             "; no keys: secured frames are taken as they are"))
     try:
         rec = report(sc, args.log, out, RunFacts(node_counters=counters or None),
-                     plot=not args.no_plot, time_scale=args.time_scale)
+                     plot=not args.no_plot, time_scale=args.time_scale, keys=keys)
     except (ValueError, EOFError) as e:  # python-can's readers on a file of another format
         raise ConfigError(str(args.log), "LOG", f"expected a CAN log python-can reads, but "
                           f"got: {e}") from None
