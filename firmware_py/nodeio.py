@@ -75,7 +75,15 @@ from .frames import (
     FrameCodec,
     agent_of,
 )
-from .secoc import FreshnessVerifier, Keyring, frame_verifies, sign_frame
+from .secoc import (
+    INSECURE_BOOT,
+    INSECURE_MASTER,
+    FreshnessVerifier,
+    Keyring,
+    derive_node_key,
+    frame_verifies,
+    sign_frame,
+)
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +159,10 @@ class NodeIO:
         self._synced_by = {contract.SYNC_OF[fid]: fid for fid in self._verify_key}
         self._fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
         self._lost: set[int] = set()  # secured IDs whose sender timed out
+        if keys.insecure:  # every insecure sender starts at boot 1, count 0: no sync needed
+            for fid in self._verify_key:
+                self._fv.accept(fid, (INSECURE_BOOT << contract.FV_COUNT_BITS) - 1)
+                self._lost.add(fid)  # a sender already running: its sync, not a forgery
         self._cyclic = frozenset(fid for fid in self.trackers
                                  if contract.is_cyclic(codec.name_of(fid)))
         self._last_data: dict[int, bytes] = {}  # payload of the last accepted frame per ID
@@ -304,7 +316,8 @@ class NodeIO:
         self._streak[sync_id] = 0
         last = self._fv.last(fid)
         if last is not None and fv - 1 <= last:
-            if not self.keys.insecure or (last >> contract.FV_COUNT_BITS) == boot:
+            known_boot = (last + 1) >> contract.FV_COUNT_BITS
+            if not self.keys.insecure or boot >= known_boot:
                 return  # nothing new (a repeat, or a replayed older sync)
             self._fv.forget(fid)  # insecure: a restarted sender has no persisted boot
             last = None
@@ -351,6 +364,8 @@ class NodeIO:
         """A frame on ``fid`` rejected under ``cause``; an E2E cause (STREAK_CAUSES) adds
         to the ID's untrusted streak."""
         self.reject(cause, reason)
+        if cause == "auth":
+            self.last_safety = ("auth", fid)
         if cause not in STREAK_CAUSES:
             return
         self._streak[fid] += 1
@@ -407,3 +422,61 @@ class NodeIO:
             self._tx_count[fid] = count + 1
         self._sent[fid].append(bytes(msg.data))
         return msg
+
+
+class FleetSender:
+    """Frames as any node of a fleet would send them, for tests, tools and HIL rigs:
+    the codec's layout, each secured ID's freshness (Boot ‖ Count) and MAC, its syncs,
+    and each E2E ID's rolling counter.
+
+    ``keys``: label → signing key (e.g. from ``bess-ded keys``' files); None: the public
+    ``--insecure`` keys, at boot 1 as every insecure sender (so an insecure receiver
+    takes the frames without a sync). ``counter``, when given, is the low 4 bits the
+    frame must carry: the full count is the next one with those bits (so a caller
+    that skips counters makes the receiver count lost frames, as on a bus)."""
+
+    def __init__(self, codec: FrameCodec | None = None,
+                 keys: Mapping[str, bytes] | None = None, boot: int = INSECURE_BOOT) -> None:
+        self.codec = codec or FrameCodec()
+        self.keys = dict(keys or {})
+        self.insecure = keys is None
+        self.boot = boot
+        self._count: dict[int, int] = {}
+
+    def _key(self, name: str) -> bytes:
+        label = contract.sender_of(name)
+        if label not in self.keys and self.insecure:
+            self.keys[label] = derive_node_key(INSECURE_MASTER, label)
+        return self.keys[label]
+
+    def frame(self, name: str, raw: Mapping[str, int], counter: int | None = None,
+              phys: bool = False) -> can.Message:
+        """``name`` with ``raw`` signal values (physical ones with ``phys``)."""
+        fid = self.codec.frame_id(name)
+        last = self._count.get(fid, -1)
+        count = last + 1
+        if counter is not None:
+            count += (counter - count) % _FV_WINDOW
+        self._count[fid] = count
+        enc = self.codec.encode_phys if phys else self.codec.encode
+        msg = enc(name, raw, count % _FV_WINDOW)
+        if fid in contract.SECURED_IDS:
+            sign_frame(self._key(name), fid, msg.data,
+                       self.boot << contract.FV_COUNT_BITS | count)
+        return msg
+
+    def sync(self, name: str) -> can.Message:
+        """``<name>_Sync``: the freshness value of the next ``name`` frame."""
+        fid = self.codec.frame_id(name)
+        count = self._count.get(fid, -1) + 1
+        sync_id = contract.SYNC_OF[fid]
+        msg = self.codec.encode(self.codec.name_of(sync_id), {"Count": count,
+                                                              "Boot": self.boot}, 0)
+        sign_frame(self._key(name), sync_id, msg.data, self.boot << contract.FV_COUNT_BITS
+                   | count)
+        return msg
+
+    def restart(self) -> None:
+        """A new boot: counts from 0 again (send the syncs before the frames)."""
+        self.boot += 1
+        self._count.clear()

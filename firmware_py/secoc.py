@@ -556,6 +556,8 @@ MASTER_FILE_HEADER = ("# bess-ded SecOC fleet master key (docs/security.md). Eve
 
 # --------------------------------------------------------------------------- keyrings
 
+INSECURE_BOOT = 1
+"""The boot counter of every ``--insecure`` sender (nothing is persisted in that mode)."""
 INSECURE_MASTER = bytes(KEY_BYTES)
 """The public master key of ``--insecure`` mode (all zero): frames still carry a MAC and
 freshness, so corruption and stale frames are caught, but anyone can forge them."""
@@ -614,7 +616,8 @@ class Keyring:
 
     @classmethod
     def insecure_for(cls, node: str) -> Keyring:
-        return cls(node, derive_node_key(INSECURE_MASTER, node), 0, lambda _b: None,
+        return cls(node, derive_node_key(INSECURE_MASTER, node), INSECURE_BOOT - 1,
+                   lambda _b: None,
                    master=INSECURE_MASTER, insecure=True, fleet=fleet_id(INSECURE_MASTER))
 
     @classmethod

@@ -14,6 +14,7 @@ from firmware_py.config import agent_configs_from_scenario
 from firmware_py.contract import COUNTER_MODULO, every_ticks, timeout_s
 from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name
 from firmware_py.node import bus_kwargs, run_node, with_acceptance_filter
+from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import DIAG_EVERY, AgentRuntime, SetpointMap, State
 from sim.lockstep import run_lockstep
 from sim.scenario import load_case, scaled
@@ -22,10 +23,20 @@ CODEC = FrameCodec()
 TS = 0.01
 
 
+SENDER = FleetSender(CODEC)  # the other nodes, --insecure: boot 1, no sync needed
+
+
+@pytest.fixture(autouse=True)
+def _fresh_senders() -> None:
+    """Every test starts with senders that just booted, as its fresh agents expect."""
+    SENDER._count.clear()
+    SENDER.boot = 1
+
+
 def status_frame(agent: int, counter: int, overcurrent: int = 0) -> can.Message:
-    return CODEC.encode_phys(status_name(agent), {
+    return SENDER.frame(status_name(agent), {
         "FaultOverCurrent": overcurrent, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
-        "Power": 10.0, "Current": 10.0, "Voltage": 700.0, "Soc": 50.0}, counter)
+        "Power": 10.0, "Soc": 50.0}, counter, phys=True)
 
 
 class Net:
@@ -53,8 +64,8 @@ class Net:
             a.on_frame(msg, self.t)
 
     def price(self, rho: float) -> None:
-        msg = CODEC.encode("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(rho), "Segment": 0},
-                           self.price_ctr % 16)
+        msg = SENDER.frame("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(rho),
+                                        "Segment": 0}, self.price_ctr % 16)
         self.price_ctr += 1
         self.deliver(msg)
 
@@ -88,14 +99,13 @@ def one_agent(pinned: bool = True, status: bool = True) -> AgentRuntime:
 
 
 def price_frame(counter: int, rho: float = 0.8, valid: int = 1) -> can.Message:
-    return CODEC.encode("ER_Price", {"PriceValid": valid, "Rho": fx.to_fixed(rho),
+    return SENDER.frame("ER_Price", {"PriceValid": valid, "Rho": fx.to_fixed(rho),
                                      "Segment": 0}, counter)
 
 
 def mc_frame(agent: int, counter: int, lam: float = 0.8, state: int = 1) -> can.Message:
-    return CODEC.encode(mc_name(agent), {"State": state, "Lambda": fx.to_fixed(lam),
-                                         "Resets": 0, "NeighboursAlive": 1, "PriceOk": 1},
-                        counter)
+    return SENDER.frame(mc_name(agent), {"State": state, "Lambda": fx.to_fixed(lam),
+                                         "Resets": 0}, counter)
 
 
 # --------------------------------------------------------------------------- behaviour
@@ -170,7 +180,7 @@ def test_isolate_and_reconnect_commands() -> None:
     net.run(5.0)
 
     def command(cmd: int, target: int) -> None:
-        net.deliver(CODEC.encode("ER_Command", {"Command": cmd, "Target": target, "GainK": 0,
+        net.deliver(SENDER.frame("ER_Command", {"Command": cmd, "Target": target, "GainK": 0,
                                                 "GainH": 0}, net.k % 16))
 
     command(1, 2)
@@ -188,10 +198,10 @@ def test_isolate_and_reconnect_commands() -> None:
 
 def test_set_gains_command_and_bad_gains_counted() -> None:
     a = one_agent()
-    a.on_frame(CODEC.encode("ER_Command", {"Command": 3, "Target": 1, "GainK": 2000,
+    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 1, "GainK": 2000,
                                            "GainH": 3000}, 0), 0.0)
     assert (a.ctrl.config.k, a.ctrl.config.h) == (2.0, 3.0)
-    a.on_frame(CODEC.encode("ER_Command", {"Command": 3, "Target": 1, "GainK": 0,
+    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 1, "GainK": 0,
                                            "GainH": 3000}, 1), 0.0)
     # k = 0 is outside the configured bounds (×0.5..×2 of k = 1): the safety model
     # rejects it before the controller's own parameter check would
@@ -200,7 +210,7 @@ def test_set_gains_command_and_bad_gains_counted() -> None:
     # inside the bounds but an invalid controller: still a range error
     bad = replace(a.cfg, k_min=0.0)
     b = AgentRuntime(bad, CODEC)
-    b.on_frame(CODEC.encode("ER_Command", {"Command": 3, "Target": 1, "GainK": 0,
+    b.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 1, "GainK": 0,
                                            "GainH": 3000}, 0), 0.0)
     assert b.counters["range"] == 1 and b.ctrl.config.k == 1.0
     assert "k" in b.last_error["range"]
@@ -228,24 +238,26 @@ def test_plant_fault_enters_safe_and_recovers() -> None:
 def test_each_bad_frame_is_rejected_and_counted_by_cause() -> None:
     a = one_agent()
     a.on_frame(price_frame(0), 0.0)
-    good = price_frame(1)
-    bad_crc = can.Message(arbitration_id=0x010, is_extended_id=False,
+    good = price_frame(1)                          # never delivered: 1 lost
+    bad_mac = can.Message(arbitration_id=0x010, is_extended_id=False,
                           data=bytes([good.data[0] ^ 1]) + bytes(good.data[1:]))
     short = can.Message(arbitration_id=0x010, is_extended_id=False, data=bytes(good.data[:5]))
-    for msg in (bad_crc, short,
+    p2 = price_frame(2, rho=50.0)
+    p3 = price_frame(3)
+    for msg in (bad_mac, short,
                 can.Message(arbitration_id=0x7FF, is_extended_id=False, data=bytes(8)),
                 can.Message(arbitration_id=0x010, is_extended_id=True, data=bytes(8)),
-                price_frame(2, rho=50.0),          # E2E ok (1 lost), ρ out of [-10, 10]
+                p2,                                # authentic (1 lost), ρ out of [-10, 10]
                 mc_frame(2, 0, lam=99.0),          # neighbour λ out of range
-                price_frame(3),                    # accepted
-                price_frame(3),                    # repeated counter: no new data
+                p3,                                # accepted
+                p3,                                # replayed: its freshness is spent
                 price_frame(7),                    # 3 frames lost
                 mc_frame(1, 5)):                   # our own identity, not sent by us
         a.on_frame(msg, 0.0)
-    assert dict(a.counters) == {"crc": 1, "dlc": 1, "unknown_id": 2, "range": 2,
-                                "repeated_counter": 1, "lost_frames": 4, "impersonation": 1,
-                                "foreign": 1}
-    assert "expected CRC" in a.last_error["crc"]
+    assert dict(a.counters) == {"auth": 2, "dlc": 1, "unknown_id": 2, "range": 2,
+                                "lost_frames": 4, "impersonation": 1, "foreign": 1}
+    assert "expected a MAC that verifies" in a.last_error["auth"]
+    assert a.io.last_safety == ("auth", 0x010)
     assert a.price == fx.to_fixed(0.8)
 
 
@@ -303,9 +315,10 @@ def test_acceptance_filter_passes_exactly_what_the_agent_uses_or_sends() -> None
     """Agent 2 of case 1 (a leaf of the star: one neighbour, agent 1)."""
     agent = AgentRuntime(agent_configs_from_scenario(load_case(1))[1], CODEC)
     fid = CODEC.frame_id
-    assert agent.io.accepted_ids() == sorted({
-        fid("ER_Price"), fid("ER_Command"), fid(status_name(2)), fid(mc_name(1)),
-        fid(mc_name(2)), fid(setpoint_name(2)), fid("AGENT_2_Diag")})
+    used = {fid("ER_Price"), fid("ER_Command"), fid(status_name(2)), fid(mc_name(1))}
+    sent = {fid(mc_name(2)), fid(setpoint_name(2)), fid("AGENT_2_Diag")}
+    syncs = {fid(f"{CODEC.name_of(i)}_Sync") for i in used | sent if i != fid("AGENT_2_Diag")}
+    assert agent.io.accepted_ids() == sorted(used | sent | syncs)
     kw = bus_kwargs("socketcan", "vcan0")
     filters = with_acceptance_filter(kw, agent.io.accepted_ids())["can_filters"]
     assert [f["can_id"] for f in filters] == agent.io.accepted_ids()
@@ -404,10 +417,10 @@ def test_init_until_both_price_and_status_are_fresh() -> None:
 def test_status_lost_enters_safe_exactly_at_the_timeout_and_recovers() -> None:
     """Injected clock, binary-exact times: status at 0.125 s, timeout 0.25 s. RUNNING at
     0.375 s (age = timeout), SAFE at the first tick past it, Enable = 0 while SAFE; a
-    fresh status (with any counter: the tracker was reset) brings RUNNING back."""
+    fresh status (from a restarted plant: its sync, then its frames) brings RUNNING back."""
     a = one_agent(status=False)
     a.on_frame(price_frame(0), 0.125)
-    a.on_frame(status_frame(1, 3), 0.125)
+    a.on_frame(status_frame(1, 0), 0.125)
     out = a.tick(0.125)
     assert a.state == State.RUNNING and setpoints_enable(out) == [1]
     a.on_frame(price_frame(1), 0.25)   # the price stays fresh throughout
@@ -425,7 +438,9 @@ def test_status_lost_enters_safe_exactly_at_the_timeout_and_recovers() -> None:
     assert a.state == State.SAFE
     assert setpoints_enable(out) and set(setpoints_enable(out)) == {0}
     assert a.counters["status_timeouts"] == 1      # one outage, one count
-    a.on_frame(status_frame(1, 11), 0.48)          # a restarted plant: counter anywhere
+    SENDER.restart()                               # a restarted plant: a new boot, ...
+    a.on_frame(SENDER.sync(status_name(1)), 0.48)  # ... announced by its sync first
+    a.on_frame(status_frame(1, 0), 0.48)
     a.tick(0.48)
     assert a.state == State.RUNNING
     assert a.counters["foreign"] == 0 and a.counters["lost_frames"] == 0
@@ -504,28 +519,32 @@ def test_frames_of_agents_outside_the_run_are_foreign_when_the_fleet_is_known() 
     assert not +unknown.counters
 
 
-def test_interleaved_counters_are_foreign_a_lossy_sender_is_not() -> None:
+def test_a_second_sender_or_a_replay_fails_auth_a_lossy_sender_does_not() -> None:
     a = one_agent()
-    for c in (0, 1, 3, 7):                  # gaps of lost frames: 1 + 3 lost, not foreign
+    for c in (0, 1, 3):                     # a gap of 1 lost frame
         a.on_frame(price_frame(c), 0.0)
-    assert a.counters["lost_frames"] == 4 and a.counters["foreign"] == 0
-    a.on_frame(price_frame(2, rho=0.5), 0.0)         # 7 → 2: a step back (11 forward)
-    assert a.counters["counter_jump"] == 1 and a.counters["foreign"] == 1
-    assert a.price == fx.to_fixed(0.8)               # its data is not used
-    a.on_frame(price_frame(3, rho=0.5), 0.0)         # the tracker re-synchronised on 2
-    assert a.price == fx.to_fixed(0.5) and a.counters["lost_frames"] == 4
-    a.on_frame(price_frame(3, rho=0.5), 0.0)         # same counter, same payload: a repeat
-    assert a.counters["repeated_counter"] == 1 and a.counters["foreign"] == 1
-    a.on_frame(price_frame(3, rho=0.9), 0.0)         # same counter, new payload: a clash
-    assert a.counters["counter_clash"] == 1 and a.counters["foreign"] == 2
-    assert a.price == fx.to_fixed(0.5)
+    replayed = price_frame(7)               # 3 lost
+    a.on_frame(replayed, 0.0)
+    assert a.counters["lost_frames"] == 4 and a.counters["auth"] == 0
+    forger = FleetSender(CODEC, keys={"router": bytes(16 * [9])})  # right layout, no key
+    a.on_frame(forger.frame("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(0.5),
+                                         "Segment": 0}, 8), 0.0)
+    a.on_frame(replayed, 0.0)               # a genuine frame again: its freshness is spent
+    assert a.counters["auth"] == 2 and a.price == fx.to_fixed(0.8)
+    a.on_frame(price_frame(7 + 15, rho=0.9), 0.0)    # the edge of the window: 14 lost
+    assert a.price == fx.to_fixed(0.9) and a.counters["lost_frames"] == 18
 
 
-def test_restarted_router_after_the_price_timeout_is_not_foreign() -> None:
+def test_restarted_router_after_the_price_timeout_is_heard_after_its_sync() -> None:
     a = one_agent()
     a.on_frame(price_frame(9), 0.0)
     a.tick(0.0)
-    a.tick(0.3)                                      # price timed out: tracker reset
+    a.tick(0.3)                                      # price timed out
     assert a.counters["price_timeouts"] == 1
-    a.on_frame(price_frame(0), 0.31)                 # a restarted router starts at 0
-    assert a.counters["foreign"] == 0 and a.price_rx == 0.31
+    SENDER.restart()                                 # a restarted router: boot 2 ...
+    a.on_frame(price_frame(0, rho=0.7), 0.31)        # ... whose sync this agent missed
+    assert a.counters["unsynced"] == 1 and a.counters["auth"] == 0 and a.price_rx == 0.0
+    a.on_frame(SENDER.sync("ER_Price"), 0.32)        # the next sync (1 s, or a hello)
+    a.on_frame(price_frame(1, rho=0.7), 0.33)
+    assert a.counters["foreign"] == 0 and a.counters["auth"] == 0 and a.price_rx == 0.33
+    assert a.price == fx.to_fixed(0.7) and a.counters["resyncs"] == 1
