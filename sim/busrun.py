@@ -515,8 +515,8 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
 
     Keys: each node's keyring from ``keyrings`` (node name → Keyring, e.g.
     ``Keyring.fleet(master, ...)``: passing the same ones to two runs is a key set
-    reused, its boot counters moving on), else from a fresh master key per run;
-    ``insecure``: the public demo keys.
+    reused, its boot counters moving on), else from a fresh master key per run whose
+    key files go to DIR/keys (as `up` writes them); ``insecure``: the public demo keys.
     ``inject(t)``: frames an attacker sends at sample t (after the nodes' own), on a
     bus instance of its own; the recording and the analysis see them as any frame.
     """
@@ -530,9 +530,16 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     nodes_ = secoc.fleet_nodes(sc.n)
     if insecure:
         rings = {n: secoc.Keyring.insecure_for(n) for n in nodes_}
-    else:
-        rings = dict(keyrings or secoc.Keyring.fleet(secrets.token_bytes(secoc.KEY_BYTES),
-                                                     nodes_))
+    elif keyrings is not None:
+        rings = dict(keyrings)
+    else:  # a fresh key set, written to DIR/keys as `up` does (for `analyze` later)
+        master = secrets.token_bytes(secoc.KEY_BYTES)
+        rings = secoc.Keyring.fleet(master, nodes_)
+        key_dir = out / "keys"
+        if key_dir.exists():
+            shutil.rmtree(key_dir)
+        key_dir.mkdir(mode=0o700)
+        write_key_set(sc, key_dir, master)
     factories: dict[str, Callable[[], Any]] = {
         f"agent_{c.id}": functools.partial(AgentRuntime, c, codec, rings[f"agent_{c.id}"])
         for c in agent_configs_from_scenario(sc)}

@@ -19,7 +19,9 @@ def test_agent_limit_ids_and_counter_modulus_are_read_from_the_dbc() -> None:
     counter = DB.get_message_by_name("ER_Price").get_signal_by_name("Counter")
     assert contract.COUNTER_MODULO == 2**counter.length
     for base, pattern in zip(contract.AGENT_BASES, ("AGENT_{}_MC", "AGENT_{}_Setpoint",
-                                                   "PLANT_{}_Status", "AGENT_{}_Diag"),
+                                                   "PLANT_{}_Status", "AGENT_{}_Diag",
+                                                   "AGENT_{}_MC_Sync", "AGENT_{}_Setpoint_Sync",
+                                                   "PLANT_{}_Status_Sync"),
                              strict=True):
         for i in contract.agent_ids():
             assert DB.get_message_by_name(pattern.format(i)).frame_id == base + i
@@ -61,3 +63,26 @@ def test_is_active_is_running_only() -> None:
 def test_scales_and_ranges() -> None:
     assert contract.scale("PLANT_1_Status", "Power") == 0.01
     assert contract.raw_range("PLANT_1_Status", "Soc") == (0, 200)
+
+
+def test_secoc_constants_are_read_from_the_dbc() -> None:
+    """The secured frames are those with a Mac; each has its <name>_Sync at ID + 0x400
+    from the same sender; the MAC and freshness widths are the signals' lengths."""
+    secured = {m.frame_id for m in DB.messages
+               if any(s.name == "Mac" for s in m.signals) and not m.name.endswith("_Sync")}
+    assert contract.SECURED_IDS == secured
+    assert len(secured) == 2 + 3 * contract.N_AGENTS_MAX
+    for fid in secured:
+        m, sync = DB.get_message_by_frame_id(fid), DB.get_message_by_frame_id(
+            contract.SYNC_OF[fid])
+        assert sync.name == f"{m.name}_Sync" and sync.senders == m.senders
+        assert contract.SYNCED_BY[sync.frame_id] == fid
+    price = DB.get_message_by_name("ER_Price")
+    assert contract.MAC_BITS == price.get_signal_by_name("Mac").length == 24
+    assert contract.FV_TX_BITS == price.get_signal_by_name("Counter").length == 4
+    sync = DB.get_message_by_name("ER_Price_Sync")
+    assert (contract.FV_BOOT_BITS, contract.FV_COUNT_BITS) == (
+        sync.get_signal_by_name("Boot").length, sync.get_signal_by_name("Count").length)
+    assert [contract.sender_of(n) for n in ("ER_Command", "PLANT_3_Status",
+                                            "AGENT_7_Setpoint")] == ["router", "plant",
+                                                                     "agent_7"]

@@ -131,7 +131,10 @@ def rewrite(src: Path, dst: Path, edit) -> Path:
 
 def test_foreign_traffic_in_a_log(clean_run: tuple[Path, dict], tmp_path: Path) -> None:
     """A second sender on AGENT_2_MC (its own counter sequence), frames of an agent the
-    4-agent run does not have, and frames with a bad CRC: each reported by cause."""
+    4-agent run does not have, and diagnostics frames with a bad CRC: each reported by
+    cause. Without the run's keys the forged MC frames show as a second counter
+    sequence; with them (`analyze --keys`) they fail their MAC, are left out of the
+    analysis and reported as auth_failed."""
     codec = FrameCodec()
     forged = {"n": 0}
 
@@ -139,16 +142,14 @@ def test_foreign_traffic_in_a_log(clean_run: tuple[Path, dict], tmp_path: Path) 
         out = [msg]
         if msg.arbitration_id == 0x102 and 3.0 < msg.timestamp < 4.0:
             forged["n"] += 1
-            f = codec.encode("AGENT_2_MC", {"State": 1, "Lambda": 5 << 24, "Resets": 0,
-                                            "NeighboursAlive": 1, "PriceOk": 1},
+            f = codec.encode("AGENT_2_MC", {"State": 1, "Lambda": 5 << 24, "Resets": 0},
                              (forged["n"] * 7) % 16)
             f.timestamp = msg.timestamp + 1e-4
             out.append(f)
         if msg.arbitration_id == 0x010 and msg.timestamp < 1.0:
-            g = codec.encode("AGENT_9_MC", {"State": 1, "Lambda": 0, "Resets": 0,
-                                            "NeighboursAlive": 0, "PriceOk": 1}, 0)
+            g = codec.encode("AGENT_9_MC", {"State": 1, "Lambda": 0, "Resets": 0}, 0)
             g.timestamp = msg.timestamp
-            bad = can.Message(arbitration_id=0x101, data=bytes(8), is_extended_id=False,
+            bad = can.Message(arbitration_id=0x301, data=bytes(8), is_extended_id=False,
                               timestamp=msg.timestamp)
             out += [g, bad]
         return out
@@ -162,6 +163,13 @@ def test_foreign_traffic_in_a_log(clean_run: tuple[Path, dict], tmp_path: Path) 
     assert ("malformed_frames", "bus") in kinds(m)
     assert m["frames_outside_run"] == {"AGENT_9_MC": 20}
     assert m["frames_undecodable"] == {"crc": 20}
+    rc, m = analyze(log, tmp_path / "b", "--keys", str(clean_run[0].parent / "keys"))
+    assert rc == EXIT_ANOMALIES
+    forged_mc = [a["detail"] for a in m["anomalies"] if a["kind"] == "auth_failed"]
+    assert forged_mc == [f"AGENT_2_MC: {forged['n']} frames whose MAC does not verify with "
+                         "its sender's key (forged, or replayed from an earlier window or "
+                         "run); the analysis left them out"], m["anomalies"]
+    assert m["final_error"] == clean_run[1]["final_error"]  # λ = 5 never entered it
 
 
 def test_recorder_misses_are_counted(clean_run: tuple[Path, dict], tmp_path: Path) -> None:
