@@ -62,6 +62,7 @@ from __future__ import annotations
 import logging
 from collections import Counter, deque
 from collections.abc import Iterable, Mapping
+from typing import Any
 
 import can
 
@@ -159,6 +160,7 @@ class NodeIO:
         self._synced_by = {contract.SYNC_OF[fid]: fid for fid in self._verify_key}
         self._fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
         self._lost: set[int] = set()  # secured IDs whose sender timed out
+        self._peer_boot: dict[int, int] = {}  # sync ID of a frame not used -> its boot
         if keys.insecure:  # every insecure sender starts at boot 1, count 0: no sync needed
             for fid in self._verify_key:
                 self._fv.accept(fid, (INSECURE_BOOT << contract.FV_COUNT_BITS) - 1)
@@ -203,6 +205,8 @@ class NodeIO:
             if fid in self._synced_by:
                 self._on_sync(msg, fid, t)
                 return None
+            if fid in contract.SYNCED_BY and self._peer_sync(msg, fid):
+                return None
             if fid not in self._known:
                 self.reject("unknown_id", f"0x{fid:03X}: expected an ID defined in the DBC")
             elif self.fleet_size is not None and (agent_of(fid) or 0) > self.fleet_size:
@@ -219,7 +223,7 @@ class NodeIO:
                     return None
             else:
                 del self._untrusted_until[fid]
-            log.info("%s trusts 0x%03X again (its untrusted time is over)", self.who, fid)
+                log.info("%s trusts 0x%03X again (its untrusted time is over)", self.who, fid)
         try:
             frame = self.codec.decode(msg)
         except Exception as e:  # FrameError: its cause names the counter
@@ -326,6 +330,31 @@ class NodeIO:
         self.counters["resyncs"] += 1
         if last is None or last >> contract.FV_COUNT_BITS != boot:
             self._hello_due = True  # a peer (re)started: tell it our freshness now
+
+    def _peer_sync(self, msg: can.Message, sync_id: int) -> bool:
+        """A sync of a frame this node does not use, from a fleet node whose key it holds
+        (the router and the plant hold every agent's): verified only to notice a peer's
+        (re)start and re-announce this node's own syncs, so that the restarted peer
+        hears it at once. True if the frame was such a sync (whatever its verdict)."""
+        agent = agent_of(sync_id)
+        if self.fleet_size is not None and (agent or 0) > self.fleet_size:
+            return False
+        name = self.codec.name_of(sync_id)
+        key = self.keys.key_of(contract.sender_of(name))
+        if key is None:
+            return False
+        try:
+            frame = self.codec.decode(msg)
+        except Exception as e:
+            if getattr(e, "cause", None) is None:
+                raise
+            return True  # not a usable sync; not this node's input either
+        boot = frame.raw["Boot"]
+        fv = boot << contract.FV_COUNT_BITS | frame.raw["Count"]
+        if self._peer_boot.get(sync_id) != boot and frame_verifies(key, sync_id, msg.data, fv):
+            self._peer_boot[sync_id] = boot
+            self._hello_due = True
+        return True
 
     def sender_lost(self, fid: int) -> None:
         """``fid``'s sender timed out: its counter gap aliases, and a secured ID may need
@@ -449,7 +478,7 @@ class FleetSender:
             self.keys[label] = derive_node_key(INSECURE_MASTER, label)
         return self.keys[label]
 
-    def frame(self, name: str, raw: Mapping[str, int], counter: int | None = None,
+    def frame(self, name: str, raw: Mapping[str, Any], counter: int | None = None,
               phys: bool = False) -> can.Message:
         """``name`` with ``raw`` signal values (physical ones with ``phys``)."""
         fid = self.codec.frame_id(name)

@@ -427,7 +427,7 @@ class AgentRuntime:
                 "PlantFaults": c["plant_faults"], "ForeignFrames": c["foreign"],
                 "ForeignIds": c["foreign_id"],
                 "InterleavedCounters": c["counter_jump"] + c["counter_clash"],
-                "Untrusted": c["untrusted"], "ImplausiblePrice": c["implausible_price"],
+                "Untrusted": c["untrusted_sources"], "ImplausiblePrice": c["implausible_price"],
                 "ImplausibleLambda": c["implausible_lambda"],
                 "ImplausibleGains": c["implausible_gains"],
                 "SafetySender": last[1] if last else 0,

@@ -492,7 +492,8 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
                    restarts: Sequence[tuple[str, float, float]] = (),
                    keyrings: Mapping[str, secoc.Keyring] | None = None,
                    insecure: bool = False,
-                   inject: Callable[[float], Sequence[can.Message]] | None = None
+                   inject: Callable[[float], Sequence[can.Message]] | None = None,
+                   observe: Callable[[float, dict[str, Any]], None] | None = None
                    ) -> dict[str, Any]:
     """The same nodes as `up` on python-can's in-process ``virtual`` bus, stepped on a
     simulated clock.
@@ -519,6 +520,8 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     key files go to DIR/keys (as `up` writes them); ``insecure``: the public demo keys.
     ``inject(t)``: frames an attacker sends at sample t (after the nodes' own), on a
     bus instance of its own; the recording and the analysis see them as any frame.
+    ``observe(t, nodes)``: called after every sample with the live nodes by name (a
+    test's window on state the bus does not carry, e.g. an agent's neighbours alive).
     """
     from firmware_py.runtime import AgentRuntime
 
@@ -581,6 +584,9 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
                 for frame in node.tick(t) if up else ():
                     frame.timestamp = t
                     bus.send(frame)
+            if observe is not None:
+                observe(t, {n: node for n, node, up in zip(names, nodes, alive, strict=True)
+                            if up})
             if attacker is not None and inject is not None:
                 for frame in inject(t):
                     frame.timestamp = t

@@ -50,8 +50,8 @@ _AGENT_FAULT_COUNTERS = (
     ("RejectedRange", "rejected_frames", "frames with a value out of range"),
     ("RejectedUnknownId", "rejected_frames", "frames with an ID outside the DBC"),
     ("RepeatedCounter", "stale_frames", "frames repeating the last counter (stale data)"),
-    ("Untrusted", "untrusted_source", "frames rejected from a source ID made untrusted by "
-     "consecutive E2E failures"),
+    ("Untrusted", "untrusted_source", "untrusted-source alarms (a source ID with 5 "
+     "consecutive authentication or E2E failures)"),
     ("ImplausiblePrice", "implausible_frames", "prices rejected as implausible (bounds or step)"),
     ("ImplausibleLambda", "implausible_frames", "neighbour λ rejected as implausible (step per "
      "sample)"),
@@ -72,8 +72,10 @@ _SIM_FAULT_COUNTERS = (
     ("malformed", "rejected_frames", "remote, error or FD frames"),
     ("repeated_counter", "stale_frames", "frames repeating the last counter (stale data)"),
     ("send_failure", "send_failure", "frames it failed to send"),
-    ("untrusted", "untrusted_source", "frames rejected from a source ID made untrusted by "
-     "consecutive E2E failures"),
+    ("untrusted_sources", "untrusted_source", "untrusted-source alarms (a source ID with 5 "
+     "consecutive authentication or E2E failures)"),
+    ("untrusted", "untrusted_source", "frames rejected from an E2E-only source ID made "
+     "untrusted by consecutive E2E failures"),
     ("auth", "auth_failed", "secured frames or syncs whose MAC does not verify (forged, "
      "replayed or corrupted)"),
 )

@@ -72,11 +72,15 @@ FRAME_SLACK = 2      # frames a node may send after the recorder stopped reading
 
 
 def log_frames(out: Path) -> list[tuple[float, DecodedFrame]]:
+    """Every decodable frame of DIR/run.log but the ``<name>_Sync`` ones."""
+    from firmware_py.contract import SYNCED_BY
     from firmware_py.errors import FrameError
 
     codec = _codec()
     frames = []
     for msg in can.LogReader(str(out / "run.log")):
+        if msg.arbitration_id in SYNCED_BY:  # freshness syncs: not a tick's frames
+            continue
         try:
             frames.append((msg.timestamp, codec.decode(msg)))
         except FrameError:

@@ -241,12 +241,12 @@ def test_delay_and_jitter_up_to_three_samples(tmp_path: Path, udp_port: int,
 # --------------------------------------------------------------------------- 4. kill/restart
 
 
-def _kill_restart_times(recs: list[Rec]) -> tuple[float, float, float, float]:
-    """(agent 4's last MC frame before the restart, agent 1's first MC frame counting
-    NeighboursAlive < 3 after it, restarted agent 4's first MC frame in RUNNING (only a
-    RUNNING neighbour counts), agent 1's first MC frame counting 3 again after that)."""
+def _kill_restart_times(recs: list[Rec], alive1: list[tuple[float, int]]
+                        ) -> tuple[float, float, float, float]:
+    """(agent 4's last MC frame before the restart, agent 1's first tick counting fewer
+    than 3 neighbours alive after it, restarted agent 4's first MC frame in RUNNING (only
+    a RUNNING neighbour counts), agent 1's first tick counting 3 again after that)."""
     a4 = series(recs, "AGENT_4_MC", "State")
-    alive1 = series(recs, "AGENT_1_MC", "NeighboursAlive")
     last_before = max(t for t, _ in a4 if t < 7.5 - EPS)
     t_drop = next(t for t, v in alive1 if t > last_before and v < 3)
     first_after = min(t for t, v in a4 if t > t_drop and v == RUNNING)
@@ -254,40 +254,60 @@ def _kill_restart_times(recs: list[Rec]) -> tuple[float, float, float, float]:
     return last_before, t_drop, first_after, t_back
 
 
+def run_kill_restart_simulated(tmp: Path) -> tuple[dict[str, Any], list[Rec],
+                                                   list[tuple[float, int]]]:
+    """agent_4 gone at 5 s, a fresh one from 7.5 s, on the simulated clock; with agent
+    1's neighbours alive at every tick (the MC frame no longer carries the count: the
+    DBC gave its bits to the MAC)."""
+    alive1: list[tuple[float, int]] = []
+
+    def observe(t: float, nodes: dict[str, Any]) -> None:
+        alive1.append((t, nodes["agent_1"].neighbours_alive))
+
+    m, recs = run_simulated(tmp, 15.0, restarts=[("agent_4", 5.0, 7.5)], observe=observe)
+    return m, recs, alive1
+
+
 def test_agent_killed_and_restarted_simulated_clock(tmp_path: Path) -> None:
     """Expected (exact, simulated clock): agent_4 gone at 5 s and a fresh agent_4 from
-    7.5 s (busrun.run_in_process(restarts=...)). Agent 1 drops it (NeighboursAlive 3 → 2)
+    7.5 s (busrun.run_in_process(restarts=...)). Agent 1 drops it (neighbours alive 3 → 2)
     no earlier than the 3·Ts neighbour timeout and within 3·Ts + Ts + one sample of
     transport after agent 4's last MC frame; agents 1–3 stay converged meanwhile (< 1e-3
-    at 7.4 s); the restarted agent starts in INIT, is RUNNING once it heard a price and
-    counted by agent 1 one sample after its first RUNNING frame,
-    and the whole system reconverges (< 1e-3 at 15 s)."""
-    m, recs = run_simulated(tmp_path, 15.0, restarts=[("agent_4", 5.0, 7.5)])
-    last_before, t_drop, first_after, t_back = _kill_restart_times(recs)
+    at 7.4 s); the restarted agent starts in INIT with a new boot counter (its syncs
+    first: no frame of it is rejected), is RUNNING once it heard a price and counted by
+    agent 1 one sample after its first RUNNING frame, and the whole system reconverges
+    (< 1e-3 at 15 s)."""
+    m, recs, alive1 = run_kill_restart_simulated(tmp_path)
+    last_before, t_drop, first_after, t_back = _kill_restart_times(recs, alive1)
     assert last_before == pytest.approx(5.0 - TS)
     assert 3 * TS - EPS <= t_drop - last_before <= 3 * TS + TS + TS + EPS
     restarted = [t for t, _ in series(recs, "AGENT_4_MC", "State") if t > t_drop]
     assert restarted[0] == pytest.approx(7.5)  # as INIT: a fresh agent
     assert dict(series(recs, "AGENT_4_MC", "State"))[restarted[0]] == 0
-    assert first_after == pytest.approx(7.5 + TS)  # RUNNING once it heard a price
+    # RUNNING once it heard a price it can verify: its syncs at 7.5 s make the router
+    # re-announce the price's at 7.51 s (heard at 7.52 s), then the next price frame
+    price_cycle = contract.cycle_s("ER_Price", TS)
+    assert 7.5 + 2 * TS < first_after <= 7.5 + 2 * TS + price_cycle + TS + EPS
     assert t_back - first_after == pytest.approx(TS)
     assert lam_error_at(recs, 7.4, [1, 2, 3]) < FINAL_TOL
     assert m["final_error"] < FINAL_TOL
-    assert m["node_diagnostics"]["agent_1"]["NeighbourTimeouts"] == 1
-    # the fresh agent_4 starts from INIT, as a restarted process does
+    d1 = m["node_diagnostics"]["agent_1"]
+    assert d1["NeighbourTimeouts"] == 1 and d1["RejectedAuth"] == 0 and d1["Unsynced"] == 0
+    assert "auth_failed" not in {a["kind"] for a in m["anomalies"]}, m["anomalies"]
 
 
 @pytest.mark.realtime
 def test_agent_killed_and_restarted(tmp_path: Path, udp_port: int) -> None:
-    """Expected (real processes, any load): agent_4 SIGKILLed at 5 s: agent 1 drops it
-    (NeighboursAlive 3 → 2) after agent 4's last MC frame, within 3 + 1 + 1 of its own
-    ticks (MC frames; the timeout is 3·Ts); agents 1–3 stay converged while it is away.
-    Restarted at 7.5 s with the same argv (its start-up takes as long as the host lets
-    it), it rejoins (NeighboursAlive back to 3) within 2 of agent 1's ticks of its first
-    new RUNNING frame, and the whole system reconverges (< 1e-3) by the end of the 20 s
-    run if that leaves 2× the time the simulated-clock twin needs from agent 4's return
-    (≈ 4.5 s; the restart's start-up is the host's), else agent 4 is at least back in
-    the consensus."""
+    """Expected (real processes, any load): agent_4 SIGKILLed at 5 s and restarted at
+    7.5 s with the same argv and key file (its start-up takes as long as the host lets
+    it; its boot counter moves on, so its frames are fresh): agent 1 counts one
+    neighbour timeout, agents 1–3 stay converged while it is away, no frame is rejected
+    as forged (the restarted agent's syncs come first), agent 4 comes back RUNNING, and
+    the whole system reconverges (< 1e-3) by the end of the 20 s run if that leaves 2×
+    the time the simulated-clock twin needs from agent 4's return (≈ 4.5 s), else agent
+    4 is at least back in the consensus. The drop-out and rejoin latencies in ticks are
+    asserted on the simulated clock (the MC frame does not carry agent 1's count of
+    neighbours alive)."""
     def kill(specs: list[busrun.NodeSpec], _logdir: Path) -> None:
         spec = next(s for s in specs if s.name == "agent_4")
         assert spec.proc is not None
@@ -297,24 +317,20 @@ def test_agent_killed_and_restarted(tmp_path: Path, udp_port: int) -> None:
     def restart(specs: list[busrun.NodeSpec], logdir: Path) -> None:
         busrun.start(next(s for s in specs if s.name == "agent_4"), logdir)
 
-    _, sim = run_simulated(tmp_path / "simulated", 15.0, restarts=[("agent_4", 5.0, 7.5)])
-    _, _, sim_back, _ = _kill_restart_times(sim)
+    _, sim, alive1 = run_kill_restart_simulated(tmp_path / "simulated")
+    _, _, sim_back, _ = _kill_restart_times(sim, alive1)
     need = next(t for t in (sim_back + 0.1 * k for k in range(100))
                 if lam_error_at(sim, t, range(1, N + 1)) < FINAL_TOL) - sim_back
     m = run_case(tmp_path, udp_port, 20.0, account=False,
                  actions=[(5.0, kill), (7.5, restart)])
     recs = decode_log(tmp_path)
-    last_before, t_drop, first_after, t_back = _kill_restart_times(recs)
-    ticks_to_drop = frames_between(recs, "AGENT_1_MC", last_before, t_drop) + 1
-    ticks_to_back = frames_between(recs, "AGENT_1_MC", first_after, t_back) + 1
+    a4 = series(recs, "AGENT_4_MC", "State")
+    last_before = max(t for t, _ in a4 if t < 7.5 - EPS)
+    first_after = min(t for t, v in a4 if t > 7.5 - EPS and v == RUNNING)
     err_gap = lam_error_at(recs, first_after - 0.1, [1, 2, 3])
-    print(f"drop-out detected {1000 * (t_drop - last_before):.1f} ms ({ticks_to_drop} "
-          f"ticks) after agent 4's last frame; rejoined {1000 * (t_back - first_after):.1f} "
-          f"ms ({ticks_to_back} ticks) after its first new frame (t = {t_back:.2f} s); "
+    print(f"agent 4 silent from {last_before:.2f} s, RUNNING again at {first_after:.2f} s; "
           f"agents 1–3 before it: {err_gap:.1e}; final {m['final_error']:.1e}")
     assert 5.0 - TS <= last_before < first_after
-    assert ticks_to_drop <= 3 + 1 + 1
-    assert ticks_to_back <= 2
     assert err_gap < FINAL_TOL
     t_end = max(r.t for r in recs)
     print(f"reconvergence budget {2 * need:.1f} s, had {t_end - first_after:.1f} s")
@@ -322,7 +338,9 @@ def test_agent_killed_and_restarted(tmp_path: Path, udp_port: int) -> None:
         assert m["final_error"] < FINAL_TOL
     else:  # the restart took the run's time: agent 4 must be back in the consensus
         assert series(recs, "AGENT_4_MC", "State")[-1][1] == RUNNING
-    assert m["node_diagnostics"]["agent_1"]["NeighbourTimeouts"] >= 1
+    d1 = m["node_diagnostics"]["agent_1"]
+    assert d1["NeighbourTimeouts"] >= 1 and d1["RejectedAuth"] == 0, d1
+    assert "auth_failed" not in {a["kind"] for a in m["anomalies"]}, m["anomalies"]
 
 
 # --------------------------------------------------------------------------- 5. router silent

@@ -1,6 +1,12 @@
 """The node safety model (docs/safety-model.md): every rule triggers on a crafted frame
-sequence built with the codec (valid CRC and counter unless the rule is about them), does
-not trigger on healthy sequences, and the paper cases' bus runs keep every new counter at 0.
+sequence built as the real senders build it (``FleetSender``: valid MAC and freshness
+unless the rule is about them), does not trigger on healthy sequences, and the paper
+cases' bus runs keep every new counter at 0.
+
+Secured frames (price, command, MC, setpoint, status) that fail their MAC — forged with
+a wrong key, a bit flipped, or replayed — are rejected under ``auth``, which joins the
+untrusted streak; an untrusted secured ID still takes genuine frames (their MAC proves
+them), only the E2E-only IDs (AGENT_i_Diag, ER_Balance) are blocked.
 
 All clocks are injected (frame times and ticks are arguments): nothing sleeps."""
 
@@ -22,38 +28,66 @@ from firmware_py.config import (
 )
 from firmware_py.errors import ConfigError
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
-from firmware_py.nodeio import NodeIO
+from firmware_py.nodeio import FleetSender, NodeIO
 from firmware_py.runtime import DIAG_EVERY, SAFETY_CAUSES, AgentRuntime, State
 from sim.plant import PlantNode
 from sim.scenario import load_case, scaled
 
 CODEC = FrameCodec()
 TS = 0.01
-NEW_DIAG = ("Untrusted", "ImplausiblePrice", "ImplausibleLambda", "ImplausibleGains")
+NEW_DIAG = ("Untrusted", "ImplausiblePrice", "ImplausibleLambda", "ImplausibleGains",
+            "RejectedAuth", "Unsynced")
 NEW_CAUSES = ("untrusted", "untrusted_sources", "implausible_price", "implausible_lambda",
-              "implausible_gains")
+              "implausible_gains", "auth", "unsynced")
+PRICE_ID = CODEC.frame_id("ER_Price")
+
+SENDER = FleetSender(CODEC)  # the genuine nodes, --insecure: boot 1, no sync needed
+WRONG_KEY = bytes(16 * [9])
 
 
-def status_frame(agent: int, counter: int) -> can.Message:
-    return CODEC.encode_phys(status_name(agent), {
-        "FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
-        "Power": 10.0, "Current": 10.0, "Voltage": 700.0, "Soc": 50.0}, counter)
+@pytest.fixture(autouse=True)
+def _fresh_senders() -> None:
+    """Every test starts with senders that just booted, as its fresh nodes expect."""
+    SENDER._count.clear()
+    SENDER.boot = 1
 
 
-def price_frame(counter: int, rho: float = 0.8) -> can.Message:
-    return CODEC.encode("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(rho), "Segment": 0},
-                        counter % 16)
+def forger() -> FleetSender:
+    """A sender that knows the layouts but not the keys: every frame it signs is forged."""
+    labels = ("router", "plant", *(f"agent_{i}" for i in range(1, 9)))
+    return FleetSender(CODEC, keys=dict.fromkeys(labels, WRONG_KEY))
 
 
-def mc_frame(agent: int, counter: int, lam: float, state: State = State.RUNNING) -> can.Message:
-    return CODEC.encode(mc_name(agent), {"State": int(state), "Lambda": fx.to_fixed(lam),
-                                         "Resets": 0, "NeighboursAlive": 1, "PriceOk": 1},
-                        counter % 16)
+def tampered(msg: can.Message) -> can.Message:
+    """A signed frame with one payload bit flipped (its MAC no longer verifies)."""
+    data = bytearray(msg.data)
+    data[7] ^= 0x01
+    return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False, data=data)
 
 
 def bad_crc(msg: can.Message) -> can.Message:
+    """An E2E-only frame with its CRC-8 broken."""
     return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False,
                        data=bytes([msg.data[0] ^ 0x5A]) + bytes(msg.data[1:]))
+
+
+def status_frame(agent: int, counter: int) -> can.Message:
+    return SENDER.frame(status_name(agent), {
+        "FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+        "Power": 10.0, "Soc": 50.0}, counter, phys=True)
+
+
+def price_raw(rho: float) -> dict[str, int]:
+    return {"PriceValid": 1, "Rho": fx.to_fixed(rho), "Segment": 0}
+
+
+def price_frame(counter: int, rho: float = 0.8) -> can.Message:
+    return SENDER.frame("ER_Price", price_raw(rho), counter % 16)
+
+
+def mc_frame(agent: int, counter: int, lam: float, state: State = State.RUNNING) -> can.Message:
+    return SENDER.frame(mc_name(agent), {"State": int(state), "Lambda": fx.to_fixed(lam),
+                                         "Resets": 0}, counter % 16)
 
 
 def agent(index: int = 0, case: int = 1) -> AgentRuntime:
@@ -76,64 +110,162 @@ def running_agent() -> AgentRuntime:
 # --------------------------------------------------------------------------- 1. untrusted
 
 
-def test_untrusted_after_n_consecutive_e2e_failures_then_expires() -> None:
-    a = running_agent()
+def test_untrusted_after_n_consecutive_failures_genuine_frames_still_used(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Five consecutive failures on ER_Price (a forged frame, a corrupted one, a replay,
+    a genuine frame out of the λ range) raise the untrusted alarm for untrusted_s.
+
+    Changed with authentication: the old counter-jump and CRC failures are now MAC
+    failures (``auth``), and a secured ID is no longer blocked while untrusted: the
+    genuine router's frames (valid MAC) keep being used, the forger's keep failing
+    ``auth``, ``untrusted`` stays 0; the alarm still expires after untrusted_s."""
+    a = agent()
     assert a.cfg.untrusted_after == 5 and a.cfg.untrusted_s == pytest.approx(1.0)
-    # a mix of E2E failures: CRC, a counter jump (two interleaved senders) and a range error
-    a.on_frame(bad_crc(price_frame(1)), 0.02)
-    a.on_frame(bad_crc(price_frame(1)), 0.03)
-    a.on_frame(price_frame(10), 0.04)                 # 10 after 0: steps back by 6 → jump
-    a.on_frame(price_frame(11, rho=20.0), 0.05)       # outside [lambda_min, lambda_max]
-    assert a.counters["crc"] == 2 and a.counters["counter_jump"] == 1
-    assert a.counters["range"] == 1 and a.counters["untrusted_sources"] == 0
-    a.on_frame(bad_crc(price_frame(12)), 0.06)        # the 5th in a row
-    assert a.counters["untrusted_sources"] == 1
-    assert a.io.untrusted(CODEC.frame_id("ER_Price"), 0.07)
-    a.on_frame(price_frame(12, rho=0.8), 0.5)          # a valid frame: still rejected
-    assert a.counters["untrusted"] == 1 and a.price_rx == 0.0
-    assert "untrusted" in a.last_error["untrusted"]
-    assert a.diag_values()["SafetySender"] == CODEC.frame_id("ER_Price")
+    first = price_frame(0)
+    a.on_frame(first, 0.0)
+    a.tick(0.0)
+    a.tick(TS)
+    bad = forger()
+    with caplog.at_level(logging.WARNING, logger="firmware_py.nodeio"):
+        a.on_frame(bad.frame("ER_Price", price_raw(0.8)), 0.02)    # wrong key
+        a.on_frame(tampered(price_frame(1)), 0.03)                  # one bit flipped
+        a.on_frame(first, 0.04)                                     # a replay
+        a.on_frame(price_frame(2, rho=20.0), 0.05)   # genuine, outside [lambda_min, lambda_max]
+        assert a.counters["auth"] == 3 and a.counters["range"] == 1
+        assert a.counters["untrusted_sources"] == 0 and a.io.last_safety == ("auth", PRICE_ID)
+        assert "forged, replayed or corrupted" in a.last_error["auth"]
+        assert a.price_rx == 0.0
+        a.on_frame(bad.frame("ER_Price", price_raw(0.8)), 0.06)    # the 5th in a row
+    assert a.counters["untrusted_sources"] == 1 and a.counters["auth"] == 4
+    assert a.io.last_safety == ("untrusted", PRICE_ID)
+    assert a.diag_values()["SafetySender"] == PRICE_ID
     assert SAFETY_CAUSES[a.diag_values()["SafetyCause"]] == "untrusted"
-    # the stated time is over at 0.06 + 1 s: the next frame is trusted and accepted
-    a.on_frame(price_frame(13, rho=0.8), 1.07)
-    assert a.price_rx == 1.07 and a.counters["untrusted"] == 1
-    assert not a.io.untrusted(CODEC.frame_id("ER_Price"), 1.08)
+    assert any("untrusted for 1.000 s after 5 consecutive" in r.getMessage()
+               for r in caplog.records)
+    assert a.io.untrusted(PRICE_ID, 0.07)
+    # untrusted, yet a genuine frame is used; a forged one is still an auth failure
+    a.on_frame(price_frame(3, rho=0.8), 0.5)
+    assert a.price_rx == 0.5 and a.counters["untrusted"] == 0
+    assert a.io.untrusted(PRICE_ID, 0.5)     # the alarm holds for its time
+    a.on_frame(bad.frame("ER_Price", price_raw(0.8)), 0.6)
+    assert a.counters["auth"] == 5 and a.counters["untrusted"] == 0
+    assert a.io.last_safety == ("auth", PRICE_ID) and a.price_rx == 0.5
+    # the stated time is over at 0.06 + 1 s
+    assert a.io._untrusted_until[PRICE_ID] == pytest.approx(1.06)
+    assert not a.io.untrusted(PRICE_ID, 1.07)
+    a.on_frame(price_frame(4, rho=0.8), 1.07)
+    assert a.price_rx == 1.07 and PRICE_ID not in a.io._untrusted_until
+    assert a.counters["untrusted_sources"] == 1 and a.counters["untrusted"] == 0
+    assert a.counters["lost_frames"] == 1    # the tampered frame's freshness step
 
 
-def test_a_valid_frame_resets_the_streak() -> None:
+def test_a_genuine_frame_resets_the_streak() -> None:
+    """4 failures, 1 genuine frame, ...: never 5 in a row, no alarm; 5 in a row then raise
+    it. A plausibility rejection (a genuine but implausible price) neither ends the
+    streak nor adds to it. (Failures are now forged frames, counted under ``auth``.)"""
     a = running_agent()
+    bad = forger()
     ctr = 1
-    for k in range(3):  # 4 failures, 1 good, 4 failures, 1 good, ...: never 5 in a row
+    for k in range(3):
         for j in range(4):
-            a.on_frame(bad_crc(price_frame(ctr)), 0.02 + 0.1 * k + 0.01 * j)
+            a.on_frame(bad.frame("ER_Price", price_raw(0.8)), 0.02 + 0.1 * k + 0.01 * j)
         a.on_frame(price_frame(ctr), 0.07 + 0.1 * k)
         ctr += 1
-    assert a.counters["crc"] == 12 and a.counters["untrusted_sources"] == 0
+    assert a.counters["auth"] == 12 and a.counters["untrusted_sources"] == 0
     assert a.counters["untrusted"] == 0 and a.price_rx == pytest.approx(0.27)
+    for j in range(4):
+        a.on_frame(bad.frame("ER_Price", price_raw(0.8)), 0.3 + 0.01 * j)
+    a.on_frame(price_frame(ctr, rho=6.0), 0.34)   # genuine, > rho_max: implausible
+    assert a.counters["implausible_price"] == 1 and a.counters["untrusted_sources"] == 0
+    a.on_frame(bad.frame("ER_Price", price_raw(0.8)), 0.35)   # the 5th failure in a row
+    assert a.counters["auth"] == 17 and a.counters["untrusted_sources"] == 1
 
 
 def test_untrusted_time_stretches_with_the_time_scale_and_is_configurable() -> None:
+    """The untrusted time follows the time scale (10 s at --time-scale 10) and both
+    parameters are configurable. Changed with authentication: on a secured ID (ER_Price)
+    the alarm no longer blocks genuine frames; the blocking is shown on an E2E-only ID
+    (AGENT_1_Diag at the router), where it still applies."""
     cfg = agent_configs_from_scenario(scaled(load_case(1), 10.0))[0]
     assert cfg.untrusted_s == pytest.approx(10.0)
-    io = NodeIO(CODEC, "test", own=(), wanted=(CODEC.frame_id("ER_Price"),),
-                untrusted_after=2, untrusted_s=0.3)
-    for t in (0.0, 0.01):
-        assert io.receive(bad_crc(price_frame(0)), t) is None
-    assert io.counters["untrusted_sources"] == 1
-    assert io.receive(price_frame(0), 0.2) is None and io.counters["untrusted"] == 1
-    assert io.receive(price_frame(1), 0.31) is not None
-
-
-def test_plant_unit_untrusted_on_forged_setpoints() -> None:
-    plant = PlantNode(load_case(1))
-    good = CODEC.encode(setpoint_name(3), {"Enable": 1, "PowerSetpoint": 5000}, 0)
+    a = AgentRuntime(cfg, CODEC)
+    assert a.io.untrusted_s == pytest.approx(10.0)
+    a.on_frame(price_frame(0), 0.0)
+    bad = forger()
     for k in range(5):
-        plant.on_frame(bad_crc(good), 0.001 * k)
-    assert plant.counters["crc"] == 5 and plant.counters["untrusted_sources"] == 1
-    plant.on_frame(good, 0.01)
-    assert plant.counters["untrusted"] == 1 and plant.unit(3).setpoint_rx is None
-    plant.on_frame(CODEC.encode(setpoint_name(3), {"Enable": 1, "PowerSetpoint": 5000}, 1), 1.01)
-    assert plant.unit(3).p_set == 50.0
+        a.on_frame(bad.frame("ER_Price", price_raw(0.8)), 0.1 * (k + 1))
+    assert a.counters["untrusted_sources"] == 1
+    assert a.io._untrusted_until[PRICE_ID] == pytest.approx(10.5)
+    assert a.io.untrusted(PRICE_ID, 10.4) and not a.io.untrusted(PRICE_ID, 10.6)
+
+    # a secured ID, untrusted_after = 2 and untrusted_s = 0.3
+    io = NodeIO(CODEC, "test", own=(mc_name(1),), wanted=(PRICE_ID,),
+                untrusted_after=2, untrusted_s=0.3)
+    assert io.receive(price_frame(1), 0.0) is not None
+    for t in (0.01, 0.02):
+        assert io.receive(bad.frame("ER_Price", price_raw(0.8)), t) is None
+    assert io.counters["auth"] == 2 and io.counters["untrusted_sources"] == 1
+    assert io._untrusted_until[PRICE_ID] == pytest.approx(0.32)
+    assert io.receive(price_frame(2), 0.2) is not None and io.counters["untrusted"] == 0
+    assert io.untrusted(PRICE_ID, 0.31) and not io.untrusted(PRICE_ID, 0.33)
+
+    # an E2E-only ID: blocked (genuine or not) until the time is over
+    diag = CODEC.frame_id(diag_name(1))
+    router = NodeIO(CODEC, "test router", own=("ER_Price",), wanted=(diag,),
+                    untrusted_after=2, untrusted_s=0.3)
+
+    def diag_frame(counter: int) -> can.Message:
+        return CODEC.encode(diag_name(1), {"Page": 0, "Resets": 0, "DeadlineMisses": 0,
+                                           "NeighboursAlive": 3, "State": 1}, counter)
+
+    for t in (0.0, 0.01):
+        assert router.receive(bad_crc(diag_frame(0)), t) is None
+    assert router.counters["crc"] == 2 and router.counters["untrusted_sources"] == 1
+    assert router.receive(diag_frame(0), 0.2) is None and router.counters["untrusted"] == 1
+    assert router.receive(diag_frame(1), 0.31) is not None
+
+
+def test_plant_keeps_following_genuine_setpoints_under_forged_ones() -> None:
+    """Forged AGENT_3_Setpoint frames (wrong key) are ``auth`` failures and raise the
+    untrusted alarm after 5 in a row. Changed with authentication: they no longer silence
+    the genuine agent 3 — the plant keeps taking its setpoints (``untrusted`` stays 0)
+    and never uses a forged one, even at 5× the genuine rate. Forged frames before the
+    first genuine one are ``unsynced`` (the insecure plant waits for the sender), not
+    forgeries."""
+    plant = PlantNode(load_case(1))
+    u = plant.unit(3)
+    name = setpoint_name(3)
+    bad = forger()
+
+    def forged() -> can.Message:
+        return bad.frame(name, {"Enable": 1, "PowerSetpoint": -9000})
+
+    plant.on_frame(forged(), 0.0)
+    assert plant.counters["unsynced"] == 1 and plant.counters["auth"] == 0
+    assert u.setpoint_rx is None
+    plant.on_frame(SENDER.frame(name, {"Enable": 1, "PowerSetpoint": 5000}, 0), 0.001)
+    assert u.p_set == 50.0
+    for k in range(5):
+        plant.on_frame(forged(), 0.002 + 0.001 * k)
+    assert plant.counters["auth"] == 5 and plant.counters["untrusted_sources"] == 1
+    assert plant.io.untrusted(CODEC.frame_id(name), 0.01)
+    plant.on_frame(SENDER.frame(name, {"Enable": 1, "PowerSetpoint": 6000}, 1), 0.01)
+    assert u.setpoint_rx == 0.01 and u.p_set == 60.0 and plant.counters["untrusted"] == 0
+    # 1 s of genuine setpoints every 50 ms, 5 forged ones in between each
+    refs = []
+    for k in range(1, 101):
+        t = 0.01 + k * TS
+        if k % 5 == 0:
+            plant.on_frame(SENDER.frame(name, {"Enable": 1, "PowerSetpoint": 6000}), t)
+        plant.on_frame(forged(), t + 0.005)
+        plant.tick(t)
+        refs.append(u.p_ref)
+        assert u.p_set == 60.0 and not u.stale, t
+    assert plant.counters["setpoints"] == 2 + 20 and plant.counters["untrusted"] == 0
+    # each genuine frame ends a streak; the 5 forged ones after it raise the alarm again
+    # (1 before the loop, then every period but the first, whose streak is only 4)
+    assert plant.counters["auth"] == 105 and plant.counters["untrusted_sources"] == 1 + 19
+    assert min(refs) >= 0.0 and refs[-1] == pytest.approx(60.0)
 
 
 # --------------------------------------------------------------------------- 2. price
@@ -165,7 +297,9 @@ def test_price_step_rejected_until_it_persists_for_k_frames() -> None:
 
 
 def test_price_step_candidate_must_repeat_exactly() -> None:
-    """A forged stream alternating two far levels (or drifting in big steps) never persists."""
+    """A stream alternating two far levels (or drifting in big steps) never persists. With
+    authentication such a stream must carry the router's MAC (a compromised router or a
+    holder of its key): only the safety model bounds it."""
     a = running_agent()
     for n in range(1, 11):
         a.tick(TS + 0.05 * n)
@@ -244,14 +378,16 @@ def test_timed_out_neighbour_is_accepted_afresh() -> None:
 
 
 def command(counter: int, cmd: int, target: int = 1, k: int = 0, h: int = 0) -> can.Message:
-    return CODEC.encode("ER_Command", {"Command": cmd, "Target": target, "GainK": k,
-                                       "GainH": h}, counter)
+    return SENDER.frame("ER_Command", {"Command": cmd, "Target": target, "GainK": k,
+                                        "GainH": h}, counter)
 
 
 def test_set_gains_outside_bounds_rejected_inside_accepted() -> None:
+    """The gains are 14 bits now (0..16.383): the issue's attack is their DBC maximum."""
     a = running_agent()
     assert (a.cfg.k_min, a.cfg.k_max, a.cfg.h_min, a.cfg.h_max) == (0.5, 2.0, 1.0, 4.0)
-    a.on_frame(command(0, 3, k=65535, h=65535), 0.02)   # the DBC maximum (the issue's attack)
+    assert CODEC.raw_range("ER_Command", "GainK") == (0, 16383)
+    a.on_frame(command(0, 3, k=16383, h=16383), 0.02)   # the DBC maximum (the issue's attack)
     a.on_frame(command(1, 3, k=1000, h=4500), 0.03)     # h just above h_max
     assert a.counters["implausible_gains"] == 2
     assert (a.ctrl.config.k, a.ctrl.config.h) == (1.0, 2.0)
@@ -265,7 +401,7 @@ def test_isolate_and_reconnect_logged_and_counted(caplog: pytest.LogCaptureFixtu
     a = running_agent()
     with caplog.at_level(logging.WARNING, logger="firmware_py.runtime"):
         a.on_frame(command(0, 1), 0.02)
-        a.on_frame(command(1, 1), 0.03)   # the router repeats each command
+        a.on_frame(command(1, 1), 0.03)   # the router repeats each command (a new FV each)
         a.on_frame(command(2, 2), 0.04)
         a.on_frame(command(3, 1, target=2), 0.05)   # not for agent 1
     assert a.counters["commands_isolate"] == 2 and a.counters["commands_reconnect"] == 1
@@ -273,6 +409,11 @@ def test_isolate_and_reconnect_logged_and_counted(caplog: pytest.LogCaptureFixtu
     msgs = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert sum("ISOLATE from claimed sender " + sender in m for m in msgs) == 2
     assert sum("RECONNECT from claimed sender " + sender in m for m in msgs) == 1
+    # the same bytes again are a replay, not a repeat: rejected before the command logic
+    replayed = command(4, 1)
+    a.on_frame(replayed, 0.06)
+    a.on_frame(replayed, 0.07)
+    assert a.counters["commands_isolate"] == 3 and a.counters["auth"] == 1
 
 
 # --------------------------------------------------------------------------- 5. plant ramp
@@ -286,7 +427,7 @@ def test_plant_ramp_limits_a_setpoint_jump() -> None:
     refs = []
     for k in range(40):
         if k % 5 == 0:
-            plant.on_frame(CODEC.encode(setpoint_name(3), {
+            plant.on_frame(SENDER.frame(setpoint_name(3), {
                 "Enable": 1, "PowerSetpoint": round(100 * u.battery.p_max)}, k // 5), k * TS)
         plant.tick(k * TS)
         refs.append(u.p_ref)
@@ -296,14 +437,14 @@ def test_plant_ramp_limits_a_setpoint_jump() -> None:
     assert refs[10] < 0.5 * u.battery.p_max
     assert plant.counters["setpoint_ramp_limited"] == 1
     # disabling goes to 0 at once (the safe direction)
-    plant.on_frame(CODEC.encode(setpoint_name(3), {"Enable": 0, "PowerSetpoint": 0}, 8), 0.4)
+    plant.on_frame(SENDER.frame(setpoint_name(3), {"Enable": 0, "PowerSetpoint": 0}, 8), 0.4)
     plant.tick(0.4)
     assert u.p_ref == 0.0
 
 
 def test_plant_ramp_configurable_and_off() -> None:
     plant = PlantNode(load_case(1), ramp_full_s=0)
-    plant.on_frame(CODEC.encode(setpoint_name(1), {"Enable": 1, "PowerSetpoint": 9000}, 0), 0.0)
+    plant.on_frame(SENDER.frame(setpoint_name(1), {"Enable": 1, "PowerSetpoint": 9000}, 0), 0.0)
     plant.tick(0.0)
     assert plant.unit(1).p_ref == 90.0 and plant.counters["setpoint_ramp_limited"] == 0
 
@@ -312,7 +453,10 @@ def test_plant_ramp_configurable_and_off() -> None:
 
 
 def test_diag_pages_carry_the_safety_counters() -> None:
+    """Pages 6 and 7 carry the safety counters and the last cause; page 8 (new with
+    authentication) the MAC failures (RejectedAuth), Unsynced and Resyncs."""
     a = running_agent()
+    a.on_frame(forger().frame("ER_Price", price_raw(0.8)), 0.014)
     a.on_frame(price_frame(1, rho=9.0), 0.015)
     a.on_frame(command(0, 3, k=9000, h=9000), 0.016)
     pages = {}
@@ -325,9 +469,15 @@ def test_diag_pages_carry_the_safety_counters() -> None:
     assert pages[7]["ImplausibleGains"] == 1
     assert pages[7]["SafetySender"] == CODEC.frame_id("ER_Command")
     assert SAFETY_CAUSES[pages[7]["SafetyCause"]] == "implausible_gains"
+    assert pages[8]["RejectedAuth"] == 1 and pages[8]["Unsynced"] == 0
+    assert pages[8]["Resyncs"] == 0
     decoded = CODEC.database.decode_message(CODEC.frame_id(diag_name(1)), CODEC.encode(
         diag_name(1), {"Page": 7, **{s: pages[7][s] for s in a.DIAG_PAGES[7]}}, 0).data)
     assert decoded["SafetyCause"] == "IMPLAUSIBLE_GAINS"
+    choices = CODEC.database.get_message_by_name(diag_name(1)).get_signal_by_name(
+        "SafetyCause").choices
+    assert choices is not None
+    assert [str(v) for v in choices.values()] == [c.upper() for c in SAFETY_CAUSES]
 
 
 # --------------------------------------------------------------------------- config
@@ -364,18 +514,20 @@ def test_paper_case_bus_run_keeps_safety_counters_at_zero(tmp_path: Path, case: 
     for name, d in m["node_diagnostics"].items():
         for sig in NEW_DIAG:
             assert d.get(sig, 0) == 0, (name, sig)
-        assert sig in d, (name, sig)  # the page was recorded
+            assert sig in d, (name, sig)  # the page was recorded
     for node in ("plant", "router"):
         c = m["node_counters"][node]["counters"]
-        assert c.get("untrusted", 0) == 0 and c.get("untrusted_sources", 0) == 0, node
+        for cause in NEW_CAUSES:
+            assert c.get(cause, 0) == 0, (node, cause)
 
 
 def test_implausible_prices_on_the_bus_are_alarms_and_the_dispatch_holds(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Every 4th ER_Price from t = 2 s carries ρ = 4.0 (valid CRC and counter: a faulty
-    or compromised router): every agent rejects each as implausible (the genuine frames
-    in between keep the new level from persisting), the dispatch holds at ρ = 0.8, and
-    the rejections are anomalies in the metrics."""
+    """Every 4th ER_Price from t = 2 s carries ρ = 4.0, signed by the router itself (a
+    faulty or compromised router: its MAC and freshness are valid, so authentication
+    cannot stop it): every agent rejects each as implausible (the genuine frames in
+    between keep the new level from persisting), the dispatch holds at ρ = 0.8, and the
+    rejections are anomalies in the metrics."""
     from sim.busrun import run_in_process
     from sim.router import RouterNode
 
@@ -413,3 +565,4 @@ def test_implausible_prices_on_the_bus_are_alarms_and_the_dispatch_holds(
     for i in range(1, 5):
         d = m["node_diagnostics"][f"agent_{i}"]
         assert d["ImplausiblePrice"] >= 20 and d["Untrusted"] == 0, d
+        assert d["RejectedAuth"] == 0, d

@@ -352,8 +352,9 @@ def _agent_diag(i: int) -> Message:
         u16("ForeignIds", 32, 5, "Of ForeignFrames: frames on IDs of agents outside the run."),
         u16("InterleavedCounters", 48, 5, "Of ForeignFrames: E2E counters that stepped back or "
             "repeated with another payload (two senders on one ID)."),
-        u16("Untrusted", 16, 6, "Received frames rejected because their source ID is untrusted "
-            "(after 5 consecutive E2E failures, for 1 s; docs/safety-model.md)."),
+        u16("Untrusted", 16, 6, "Untrusted-source alarms: times a source ID reached 5 "
+            "consecutive authentication or E2E failures (untrusted for 1 s; "
+            "docs/safety-model.md)."),
         u16("ImplausiblePrice", 32, 6, "ER_Price frames rejected as implausible (outside "
             "rho_min..rho_max, or a step above price_step_max not yet persistent)."),
         u16("ImplausibleLambda", 48, 6, "Neighbour MC frames rejected for a lambda step above "

@@ -69,14 +69,17 @@ def _prepare_dir(out: Path, force: bool) -> None:
 def peers_of(sc: Any) -> dict[str, list[str]]:
     """Need to know: the senders whose secured frames each node receives, i.e. whose
     verification keys its key file holds (agent i: the router, the plant and its
-    neighbours; the plant: every agent; the router: the plant)."""
+    neighbours; the plant: every agent and the router; the router: the plant and every
+    agent). The router and the plant use the keys of the nodes whose frames they do not
+    take only to notice a restart from its sync and re-announce their own at once."""
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
 
     out = {f"agent_{c.id}": ["router", "plant", *(f"agent_{n.id}" for n in c.neighbours)]
            for c in agent_configs_from_scenario(sc)}
-    out["plant"] = [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
-    out["router"] = ["plant"]
+    agents = [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
+    out["plant"] = [*agents, "router"]
+    out["router"] = ["plant", *agents]
     return out
 
 
