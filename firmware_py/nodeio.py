@@ -95,7 +95,7 @@ UNTRUSTED_S = 1.0     # ... make it untrusted this long (s; callers stretch it w
 # the causes that count towards the untrusted streak of the frame's ID
 STREAK_CAUSES = frozenset({"crc", "dlc", "range", "counter_jump", "counter_clash", "auth"})
 SYNC_S = contract.cycle_ms("ER_Price_Sync") / 1000.0  # a sender's sync cadence (1 s)
-HELLO_MIN_S = 0.1     # re-announce own syncs at most this often when a peer (re)starts
+HELLO_FRACTION = 0.1  # re-announce own syncs at most every 0.1 sync_s when a peer (re)starts
 LOST_WINDOWS = 8      # freshness windows tried after a sender timed out (8·16 frames)
 _FV_WINDOW = 1 << contract.FV_TX_BITS
 _COUNT_MAX = (1 << contract.FV_COUNT_BITS) - 1
@@ -111,7 +111,8 @@ class NodeIO:
         ``fleet_size``: the agents of the run (None: unknown, per-agent IDs of any agent
         the DBC defines are then not counted as foreign); ``untrusted_after`` consecutive
         E2E failures on one ID make it untrusted for ``untrusted_s``; ``keys``: this
-        node's keyring (None: the public ``--insecure`` keys, with a warning)."""
+        node's keyring (None: the public ``--insecure`` keys, with a warning); ``sync_s``:
+        its sync cadence (the DBC's, stretched like every cycle in a time-scaled run)."""
         own = list(own)
         label = contract.sender_of(own[0])
         if keys is None:
@@ -319,16 +320,18 @@ class NodeIO:
             return
         self._streak[sync_id] = 0
         last = self._fv.last(fid)
+        restarted = last is None or (last + 1) >> contract.FV_COUNT_BITS != boot
         if last is not None and fv - 1 <= last:
-            known_boot = (last + 1) >> contract.FV_COUNT_BITS
-            if not self.keys.insecure or boot >= known_boot:
+            if not self.keys.insecure or fv - 1 == last:
                 return  # nothing new (a repeat, or a replayed older sync)
-            self._fv.forget(fid)  # insecure: a restarted sender has no persisted boot
-            last = None
+            # --insecure: a restarted sender comes back at boot 1, count 0 (nothing is
+            # persisted), so its values go back; insecure mode has no replay protection
+            self._fv.forget(fid)
+            restarted = True
         self._fv.accept(fid, fv - 1)  # its next frame uses fv
         self._lost.discard(fid)
         self.counters["resyncs"] += 1
-        if last is None or last >> contract.FV_COUNT_BITS != boot:
+        if restarted:
             self._hello_due = True  # a peer (re)started: tell it our freshness now
 
     def _peer_sync(self, msg: can.Message, sync_id: int) -> bool:
@@ -365,14 +368,14 @@ class NodeIO:
 
     def syncs(self, t: float) -> list[can.Message]:
         """The ``<name>_Sync`` frames due at ``t``: all of them at the first call, every
-        ``sync_s``, and when a peer (re)started (at most every HELLO_MIN_S)."""
+        ``sync_s``, and when a peer (re)started (at most every HELLO_FRACTION·sync_s)."""
         due = self._sync_next is None or t >= self._sync_next
         if self._hello_due and t >= self._hello_after:
             due = True
         if not due:
             return []
         self._hello_due = False
-        self._hello_after = t + HELLO_MIN_S
+        self._hello_after = t + HELLO_FRACTION * self.sync_s
         self._sync_next = t + self.sync_s
         out = []
         for fid, count in self._tx_count.items():

@@ -61,7 +61,7 @@ import can
 
 from . import fixedpoint as fx
 from .config import AgentConfig, DispatchParams
-from .contract import Command, State, every_ticks, is_active
+from .contract import Command, State, cycle_s, every_ticks, is_active
 from .controllers import ControllerConfig, consensus_error, make_controller
 from .errors import FrameError, ParameterError, RangeError
 from .frames import DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name, status_name
@@ -144,7 +144,8 @@ class AgentRuntime:
                          wanted=(self.price_id, self.command_id, self.status_id,
                                  *self.neighbours), fleet_size=cfg.fleet_size,
                          untrusted_after=cfg.untrusted_after,
-                         untrusted_s=float(cfg.untrusted_s or 0.0), keys=keys)
+                         untrusted_s=float(cfg.untrusted_s or 0.0), keys=keys,
+                         sync_s=cycle_s("ER_Price_Sync", cfg.controller.ts))
         # safety limits in Q24 (docs/safety-model.md)
         self.rho_min = fx.to_fixed(cfg.rho_min, "rho_min")
         self.rho_max = fx.to_fixed(cfg.rho_max, "rho_max")

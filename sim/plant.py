@@ -344,7 +344,7 @@ class PlantNode(SimNodeClock):
         self._setpoint_fid = {u.agent: fid for fid, u in self._setpoint_ids.items()}
         self.io = NodeIO(c, "the plant", own=self._status_names, wanted=self._setpoint_ids,
                          fleet_size=scenario.n, untrusted_s=untrusted_s(scenario.ts),
-                         keys=keys)
+                         keys=keys, sync_s=cycle_s("ER_Price_Sync", scenario.ts))
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         first = self._status_names[0]

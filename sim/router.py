@@ -153,7 +153,8 @@ class RouterNode(SimNodeClock):
         self._slots = list(self._status.values())
         self.io = NodeIO(c, "the router", own=("ER_Price", "ER_Command", "ER_Balance"),
                          wanted=self._status, fleet_size=scenario.n,
-                         untrusted_s=untrusted_s(scenario.ts), keys=keys)
+                         untrusted_s=untrusted_s(scenario.ts), keys=keys,
+                         sync_s=cycle_s("ER_Price_Sync", scenario.ts))
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         self._rho_lo, self._rho_hi = c.raw_range("ER_Price", "Rho")

@@ -433,7 +433,8 @@ def test_crafted_frames_counted_by_cause(tmp_path: Path, udp_port: int) -> None:
     DLC 5, an ER_Command for agent 40 (out of range), unknown IDs and AGENT_2_MC
     impersonation, sent by `bess-ded inject` processes from t = 2 s: every agent counts
     each kind under its cause, ≥ 90 % of the injected count (udp loses a few % of a
-    burst) and never more than injected. Secured frames prove themselves one by one, so
+    burst) and never more than injected (agent 2's neighbours also verify, and reject,
+    the frames impersonating it). Secured frames prove themselves one by one, so
     the untrusted-source alarm the forgeries raise on ER_Price does not stop the genuine
     prices (docs/safety-model.md); only agent 2 counts the impersonation; the system
     still ends below 1e-3 at 12 s (or when the injectors are done, if that is later)."""
@@ -466,6 +467,8 @@ def test_crafted_frames_counted_by_cause(tmp_path: Path, udp_port: int) -> None:
     for _kind, _flags, sig, agents in CRAFTED:
         for i in agents:
             expected[(sig, i)] = expected.get((sig, i), 0) + INJECT_COUNT
+    for j in NEIGHBOURS[2]:  # agent 2's neighbours verify the impersonating frames too
+        expected[("RejectedAuth", j)] += INJECT_COUNT
     for (sig, i), n in sorted(expected.items()):
         got = diag[f"agent_{i}"][sig]
         assert int((1 - UDP_LOSS_TOL) * n) <= got <= n, (sig, i, got)

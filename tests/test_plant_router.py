@@ -1,5 +1,11 @@
-"""The plant and router nodes, pure: frames built with the codec in through on_frame,
-frames out of tick, fixed timestamps (no sleeping); plus one run on a virtual bus."""
+"""The plant and router nodes, pure: frames built as the fleet's senders build them
+(signed, firmware_py.nodeio.FleetSender) in through on_frame, frames out of tick, fixed
+timestamps (no sleeping); plus one run on a virtual bus.
+
+Nodes built without a keyring use the public --insecure keys: their receivers expect
+every sender at boot 1, count 0, so the frames of SENDER need no sync. Every tick may
+also return the node's ``<name>_Sync`` frames (first tick, every second, a peer's
+(re)start): tests that look at a node's output tell them apart by the codec's kind."""
 
 from __future__ import annotations
 
@@ -7,15 +13,25 @@ import itertools
 import math
 import threading
 import time
+from collections import Counter
 from dataclasses import replace
 
 import can
 import pytest
 
-from firmware_py.contract import COUNTER_MODULO, cycle_s, every_ticks, timeout_s
+from firmware_py.contract import (
+    COUNTER_MODULO,
+    FV_COUNT_BITS,
+    SYNCED_BY,
+    cycle_s,
+    every_ticks,
+    timeout_s,
+)
 from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec, setpoint_name, status_name
 from firmware_py.node import StopFlag, run_node
+from firmware_py.nodeio import FleetSender
+from firmware_py.secoc import INSECURE_MASTER, Keyring, derive_node_key, frame_verifies
 from sim.cli import main
 from sim.model import Battery, expenditure, kkt_optimum
 from sim.plant import TAU_S, PlantNode, cell_power, current_limit, open_circuit_voltage
@@ -26,39 +42,78 @@ CODEC = FrameCodec()
 DT = 0.01
 _channels = itertools.count()
 
+SENDER = FleetSender(CODEC)  # the agents and the plant, --insecure: boot 1, no sync needed
+PLANT_KEY = derive_node_key(INSECURE_MASTER, "plant")    # what an insecure router verifies
+ROUTER_KEY = derive_node_key(INSECURE_MASTER, "router")  # what an insecure agent verifies
+WRONG_KEY = bytes(16 * [9])                              # a forger's: right layout, no key
+
+
+@pytest.fixture(autouse=True)
+def _fresh_senders() -> None:
+    """Every test starts with senders that just booted, as its fresh nodes expect."""
+    SENDER._count.clear()
+    SENDER.boot = 1
+
 
 def T(k: int) -> float:
     """Tick k's time: exact multiples, as an MCU timer would give."""
     return k * DT
 
 
+def fv(boot: int, count: int) -> int:
+    """The full freshness value Boot ‖ Count."""
+    return boot << FV_COUNT_BITS | count
+
+
+def is_sync(msg: can.Message) -> bool:
+    return CODEC.kind(msg.arbitration_id) == "sync"
+
+
+def data_frames(frames: list[can.Message]) -> list[can.Message]:
+    """A node's output without its ``<name>_Sync`` frames."""
+    return [m for m in frames if not is_sync(m)]
+
+
 def with_batteries(sc: Scenario, **changes: float) -> Scenario:
     return replace(sc, batteries=tuple(replace(b, **changes) for b in sc.batteries))
 
 
-def setpoint(agent: int, p_kw: float, counter: int, enable: int = 1) -> can.Message:
-    return CODEC.encode(setpoint_name(agent), {"Enable": enable,
+def setpoint(agent: int, p_kw: float, counter: int | None = None, enable: int = 1,
+             sender: FleetSender = SENDER) -> can.Message:
+    """AGENT_<agent>_Setpoint as agent ``agent`` signs it (its next count, or the next one
+    whose low 4 bits are ``counter``: the skipped ones are lost frames)."""
+    return sender.frame(setpoint_name(agent), {"Enable": enable,
                                                "PowerSetpoint": round(p_kw * 100)}, counter)
 
 
-def status(agent: int, p_kw: float, counter: int, **flags: int) -> can.Message:
+def status(agent: int, p_kw: float, counter: int | None = None,
+           sender: FleetSender = SENDER, **flags: int) -> can.Message:
+    """PLANT_<agent>_Status as the plant signs it (4 flags, Power, Soc)."""
     raw = {"FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
-           "Power": round(p_kw * 100), "Current": 0, "Voltage": 2800, "Soc": 120, **flags}
-    return CODEC.encode(status_name(agent), raw, counter)
+           "Power": round(p_kw * 100), "Soc": 120, **flags}
+    return sender.frame(status_name(agent), raw, counter)
+
+
+def flipped(msg: can.Message, byte: int, mask: int = 1) -> can.Message:
+    """``msg`` with bits of one byte flipped (a corrupted or tampered frame)."""
+    data = bytearray(msg.data)
+    data[byte] ^= mask
+    return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False,
+                       data=bytes(data))
 
 
 class PlantDriver:
-    """Ticks a plant every 10 ms and feeds it a setpoint per BESS every 20 ms (like agents)."""
+    """Ticks a plant every 10 ms and feeds it a setpoint per BESS every 20 ms (like agents,
+    signed by SENDER); keeps the decoded status frames and, apart, the sync frames."""
 
     def __init__(self, plant: PlantNode) -> None:
         self.plant = plant
         self.k = 0
-        self.ctr = [0] * (plant.scenario.n + 1)
         self.status: list[tuple[float, dict[str, float]]] = []  # (t, decoded) per frame
+        self.syncs: list[tuple[float, str]] = []                # (t, name) per sync frame
 
     def send(self, agent: int, p_kw: float, enable: int = 1) -> None:
-        self.plant.on_frame(setpoint(agent, p_kw, self.ctr[agent] % 16, enable), T(self.k))
-        self.ctr[agent] += 1
+        self.plant.on_frame(setpoint(agent, p_kw, enable=enable), T(self.k))
 
     def run(self, seconds: float, setpoints: dict[int, float] | None = None) -> None:
         for _ in range(round(seconds / DT)):
@@ -67,7 +122,10 @@ class PlantDriver:
                     self.send(agent, p)
             for msg in self.plant.tick(T(self.k)):
                 f = CODEC.decode(msg)
-                d = {s: f.phys(s) for s in ("Power", "Current", "Voltage", "Soc")}
+                if is_sync(msg):
+                    self.syncs.append((T(self.k), f.name))
+                    continue
+                d = {s: f.phys(s) for s in ("Power", "Soc")}
                 d.update({s: f.raw[s] for s in ("FaultOverCurrent", "FaultVoltage", "FaultSoc",
                                                 "PowerLimited")})
                 d["agent"] = f.agent
@@ -101,7 +159,7 @@ def test_chopper_step_response_is_first_order_with_tau() -> None:
     assert p_at_tau  # the status at 50 ms reports the state after 50 ms = τ
     assert p_at_tau[0] == pytest.approx((1 - math.exp(-1)) * 50.0, abs=0.02)
     plant2 = PlantNode(sc, ramp_full_s=0)
-    plant2.on_frame(setpoint(1, 50.0, 0), 0.0)
+    plant2.on_frame(setpoint(1, 50.0, sender=FleetSender(CODEC)), 0.0)  # a fresh agent
     plant2.tick(0.0)
     plant2.tick(TAU_S)  # one uneven step of exactly τ: dt is the real elapsed time
     assert plant2.unit(1).current / i_final == pytest.approx(1 - math.exp(-1), rel=1e-6)
@@ -109,6 +167,9 @@ def test_chopper_step_response_is_first_order_with_tau() -> None:
 
 
 def test_steady_state_power_equals_setpoint_with_internal_resistance() -> None:
+    """The delivered power equals the setpoint although the terminal voltage sags by R·I.
+    PLANT_<i>_Status no longer carries Current and Voltage (dropped for the MAC; nobody
+    read them): the sag is checked on the model, the frame's Power and Soc against it."""
     plant = PlantNode(load_case(1))
     drv = PlantDriver(plant)
     drv.run(1.0, {1: 66.0, 2: -40.0})
@@ -117,8 +178,9 @@ def test_steady_state_power_equals_setpoint_with_internal_resistance() -> None:
     u = plant.unit(1)
     assert u.voltage == pytest.approx(open_circuit_voltage(u.battery, u.soc)
                                       - u.battery.r_internal * u.current)
-    assert drv.last(1)["Voltage"] == pytest.approx(u.voltage, abs=0.125)
-    assert drv.last(1)["Current"] == pytest.approx(u.current, abs=0.25)
+    assert u.voltage < open_circuit_voltage(u.battery, u.soc)  # discharging: a real sag
+    assert drv.last(1)["Power"] == pytest.approx(u.power, abs=0.005)
+    assert drv.last(1)["Soc"] == pytest.approx(100 * u.soc, abs=0.25)
     assert drv.last(1)["PowerLimited"] == 0 and drv.last(3)["Power"] == 0.0  # no setpoint: 0 kW
 
 
@@ -204,6 +266,7 @@ def test_setpoint_timeout_ramps_to_zero_and_is_counted() -> None:
     drv.run(0.5, {1: 20.0})  # setpoints back: followed again, no lost frames counted
     assert drv.last(1)["Power"] == pytest.approx(20.0, abs=0.05)
     assert plant.counters["lost_frames"] == 0
+    assert plant.counters["auth"] == plant.counters["unsynced"] == 0  # its freshness goes on
 
 
 def test_enable_zero_holds_zero_power() -> None:
@@ -218,39 +281,63 @@ def test_enable_zero_holds_zero_power() -> None:
 
 
 def test_bad_setpoints_are_rejected_by_cause_and_counters_checked() -> None:
+    """Each bad AGENT_<i>_Setpoint is rejected under its cause and its data is not used.
+    Setpoints are secured now: a corrupted frame (old: ``crc``), a replay of the same
+    bytes (old: ``repeated_counter``) and a second sender on the ID without the agent's
+    key (old: ``counter_clash``, foreign) all fail the MAC, under ``auth``; five in a
+    row raise the untrusted-source alarm, but the ID being secured, the agent's next
+    authentic frame is still used; lost frames are the steps of the freshness value.
+    Foreign and own frames as before; a sync on the plant's own sync ID from someone
+    else is impersonation too."""
     plant = PlantNode(load_case(1))
-    plant.tick(0.0)
-    good = setpoint(1, 40.0, 0)
-    bad_crc = can.Message(arbitration_id=good.arbitration_id, is_extended_id=False,
-                          data=bytes([good.data[0] ^ 0xFF]) + bytes(good.data[1:]))
-    short = can.Message(arbitration_id=good.arbitration_id, is_extended_id=False,
-                        data=bytes(good.data[:6]))
-    plant.on_frame(bad_crc, 0.001)
+    fid = CODEC.frame_id(setpoint_name(1))
+    own = plant.tick(0.0)        # the first tick: the plant's syncs (and statuses)
+    assert [CODEC.name_of(m.arbitration_id) for m in own if is_sync(m)] == [
+        f"{status_name(i)}_Sync" for i in range(1, 5)]
+    good = setpoint(1, 40.0)     # count 0
+    short = can.Message(arbitration_id=fid, is_extended_id=False, data=bytes(good.data[:6]))
     plant.on_frame(short, 0.002)
     plant.on_frame(can.Message(arbitration_id=0x7FF, is_extended_id=False, data=bytes(8)), 0.003)
-    assert plant.counters["crc"] == 1 and plant.counters["dlc"] == 1
-    assert plant.counters["unknown_id"] == 1
+    assert plant.counters["dlc"] == 1 and plant.counters["unknown_id"] == 1
     assert plant.unit(1).setpoint_rx is None and plant.unit(1).p_set == 0.0
     plant.on_frame(good, 0.004)
-    plant.on_frame(good, 0.005)  # repeated counter: no new data
-    assert plant.counters["repeated_counter"] == 1 and plant.unit(1).p_set == 40.0
-    # the same counter with another payload: a second sender on the ID (foreign), not used
-    plant.on_frame(setpoint(1, 80.0, 0), 0.005)
-    assert plant.counters["counter_clash"] == 1 and plant.counters["foreign"] == 1
-    assert plant.counters["repeated_counter"] == 1 and plant.unit(1).p_set == 40.0
-    plant.on_frame(setpoint(1, 60.0, 3), 0.006)  # counters 1, 2 lost
-    assert plant.counters["lost_frames"] == 2 and plant.unit(1).p_set == 60.0
+    assert plant.unit(1).p_set == 40.0 and plant.counters["setpoints"] == 1
+    plant.on_frame(good, 0.005)  # the same bytes again: a replay, its freshness is spent
+    assert plant.counters["auth"] == 1 and plant.counters["repeated_counter"] == 0
+    assert plant.io.last_safety == ("auth", fid)
+    nxt = setpoint(1, 80.0)      # count 1, never delivered intact
+    plant.on_frame(flipped(nxt, 0), 0.005)        # a bit of the MAC
+    plant.on_frame(flipped(nxt, 5, 0x10), 0.005)  # a bit of PowerSetpoint: was a CRC error
+    plant.on_frame(flipped(nxt, 3, 0x01), 0.005)  # a bit of the truncated freshness
+    assert plant.counters["auth"] == 4 and plant.counters["crc"] == 0
+    assert "expected a MAC that verifies" in plant.last_error["auth"]
+    # the same count with another payload from a sender without agent 1's key: was a
+    # counter clash (foreign); now it simply fails the MAC and is not used
+    forger = FleetSender(CODEC, keys={"agent_1": WRONG_KEY})
+    plant.on_frame(setpoint(1, 120.0, 1, sender=forger), 0.005)
+    assert plant.counters["auth"] == 5 and plant.counters["counter_clash"] == 0
+    assert plant.counters["foreign"] == 0 and plant.unit(1).p_set == 40.0
+    assert plant.counters["setpoints"] == 1
+    assert plant.counters["untrusted_sources"] == 1  # 5 consecutive failures: the alarm
+    plant.on_frame(setpoint(1, 60.0, 4), 0.006)  # counts 1..3 lost; a valid MAC still counts
+    assert plant.counters["lost_frames"] == 3 and plant.unit(1).p_set == 60.0
     assert plant.counters["setpoints"] == 2
     # frames not for the plant are ignored without counting; its own echoes too
-    plant.on_frame(CODEC.encode("ER_Price", {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0}, 0),
-                   0.007)
+    plant.on_frame(SENDER.frame("ER_Price", {"PriceValid": 1, "Rho": 1 << 23,
+                                             "Segment": 0}), 0.007)
+    plant.on_frame(SENDER.sync("ER_Price"), 0.007)
     other = PlantNode(with_batteries(load_case(1), soc0=0.3))
-    for msg in other.tick(0.0)[:1]:
+    for msg in data_frames(other.tick(0.0))[:1]:
         plant.on_frame(msg, 0.008)  # someone else's PLANT_1_Status: impersonation
-    for msg in plant.tick(0.01)[:1]:
-        plant.on_frame(msg, 0.011)  # our own echo: fine
-    assert plant.counters["impersonation"] == 1
-    assert sum(plant.counters[c] for c in ("crc", "dlc", "unknown_id", "range")) == 3
+    rogue = FleetSender(CODEC, boot=7)  # the plant's key (public here), another boot
+    plant.on_frame(rogue.sync(status_name(1)), 0.008)  # someone else's sync: impersonation
+    for msg in own + plant.tick(0.05):  # our own echoes (syncs and statuses): fine
+        plant.on_frame(msg, 0.051)
+    assert plant.counters["impersonation"] == 2 and plant.counters["foreign"] == 2
+    assert {c: plant.counters[c] for c in ("auth", "dlc", "unknown_id", "range", "crc",
+                                           "unsynced", "untrusted")} == {
+        "auth": 5, "dlc": 1, "unknown_id": 1, "range": 0, "crc": 0, "unsynced": 0,
+        "untrusted": 0}
 
 
 def test_injected_faults_set_the_status_flags() -> None:
@@ -288,28 +375,41 @@ def test_fault_specs_are_checked() -> None:
 
 def run_router(router: RouterNode, seconds: float, start: int = 0,
                feed: dict[int, float] | None = None) -> list[tuple[float, can.Message]]:
+    """Tick ``router`` every 10 ms, feeding it the plant's (signed) status of every agent
+    of ``feed`` every 20 ms; its output, syncs included, with the tick times."""
     out = []
-    ctr = itertools.count()
     for k in range(start, start + round(seconds / DT)):
         if feed and k % 2 == 0:
-            c = next(ctr) % 16
             for agent, p in feed.items():
-                router.on_frame(status(agent, p, c), T(k))
+                router.on_frame(status(agent, p), T(k))
         out += [(T(k), m) for m in router.tick(T(k))]
     return out
 
 
 def test_router_price_frames_carry_the_schedule() -> None:
+    """ER_Price every 50 ms with the schedule's ρ and segment (mod 8: 3 bits now), each
+    signed with the router's key at boot 1 and its own count (the Counter signal is its
+    low 4 bits); ER_Price_Sync about every second carries the count of the next price."""
     sc = load_case(5)
     router = RouterNode(sc)
-    frames = [(t, CODEC.decode(m)) for t, m in run_router(router, 50.0)
-              if m.arbitration_id == 0x010]
+    out = run_router(router, 50.0)
+    msgs = [(t, m) for t, m in out if m.arbitration_id == 0x010]
+    frames = [(t, CODEC.decode(m)) for t, m in msgs]
     assert len(frames) == 1000  # every 50 ms for 50 s
+    assert all(frame_verifies(ROUTER_KEY, 0x010, m.data, fv(1, k))
+               for k, (_, m) in enumerate(msgs))
+    assert not frame_verifies(ROUTER_KEY, 0x010, msgs[1][1].data, fv(1, 0))
+    syncs = [(t, CODEC.decode(m)) for t, m in out
+             if m.arbitration_id == CODEC.frame_id("ER_Price_Sync")]
+    assert [round(t, 2) for t, _ in syncs] == [float(s) for s in range(50)]
+    for t, f in syncs:
+        sent_before = sum(1 for tp, _ in frames if tp < t - 1e-9)
+        assert (f.raw["Boot"], f.raw["Count"]) == (1, sent_before)
     assert [t for t, _ in frames[:3]] == pytest.approx([0.0, 0.05, 0.10])
     for t, f in frames:
         rho, seg = sc.price_at(t)
         assert f.raw["PriceValid"] == 1
-        assert f.raw["Rho"] == round(rho * 2**24) and f.raw["Segment"] == seg
+        assert f.raw["Rho"] == round(rho * 2**24) and f.raw["Segment"] == seg % 8
     by_t = {round(t, 2): (f.phys("Rho"), f.raw["Segment"]) for t, f in frames}
     assert by_t[14.95] == (pytest.approx(0.8), 0) and by_t[15.0] == (pytest.approx(1.0), 1)
     assert by_t[34.95] == (pytest.approx(1.0), 1) and by_t[35.0] == (pytest.approx(0.6), 2)
@@ -319,12 +419,17 @@ def test_router_price_frames_carry_the_schedule() -> None:
 
 def test_router_sends_case4_commands_three_times_at_event_times() -> None:
     router = RouterNode(load_case(4))
-    cmds = [(round(t, 3), CODEC.decode(m)) for t, m in run_router(router, 25.0)
-            if m.arbitration_id == 0x020]
+    out = run_router(router, 25.0)
+    cmd_msgs = [m for _, m in out if m.arbitration_id == 0x020]
+    cmds = [(round(t, 3), CODEC.decode(m)) for t, m in out if m.arbitration_id == 0x020]
     got = [(t, f.raw["Command"], f.raw["Target"]) for t, f in cmds]
     assert got == [(10.0, 1, 2), (10.01, 1, 2), (10.02, 1, 2),
                    (20.0, 2, 2), (20.01, 2, 2), (20.02, 2, 2)]
     assert [f.counter for _, f in cmds] == list(range(6))  # fresh counter per transmission
+    # ... the low bits of a fresh freshness value: each transmission is signed anew
+    assert all(frame_verifies(ROUTER_KEY, 0x020, m.data, fv(1, k))
+               for k, m in enumerate(cmd_msgs))
+    assert len({bytes(m.data) for m in cmd_msgs}) == 6  # no repeat reads as a replay
     assert all(f.raw["GainK"] == f.raw["GainH"] == 0 for _, f in cmds)
     assert router.counters["events"] == 2 and router.counters["command_frames"] == 6
 
@@ -371,28 +476,57 @@ def test_router_balance_matches_the_cost_model() -> None:
 
 
 def test_router_rejects_bad_status_frames_and_times_statuses_out() -> None:
+    """A bad PLANT_<i>_Status is rejected and its power not used; a status older than 5
+    status cycles times out (counted once) and its last power is held. Statuses are
+    secured now: a corrupted frame (old: ``crc``), a replay (old: ``repeated_counter``)
+    and another payload from a sender without the plant's key (old: ``counter_clash``,
+    foreign) fail the MAC, under ``auth``; five in a row raise the untrusted-source
+    alarm, and the plant's next authentic status is still used (a secured ID proves
+    itself frame by frame). Before the first authentic frame an insecure
+    router takes a failing one for a frame of a plant already running, not a forgery:
+    ``unsynced`` (it waits for the plant's sync)."""
     router = RouterNode(load_case(1))
+    fid = CODEC.frame_id(status_name(1))
     router.tick(0.0)
-    good = status(1, 10.0, 0)
-    router.on_frame(can.Message(arbitration_id=good.arbitration_id, is_extended_id=False,
-                                data=bytes([good.data[0] ^ 1]) + bytes(good.data[1:])), 0.0)
-    assert router.counters["crc"] == 1 and router.measured_powers[0] == 0.0
+    good = status(1, 10.0)                      # count 0
+    router.on_frame(flipped(good, 4), 0.0)      # a bit of Power
+    assert router.counters["unsynced"] == 1 and router.counters["auth"] == 0
+    assert router.measured_powers[0] == 0.0
     router.on_frame(good, 0.0)
-    router.on_frame(good, 0.0)
-    assert router.counters["repeated_counter"] == 1 and router.measured_powers[0] == 10.0
-    router.on_frame(status(1, 20.0, 0), 0.0)   # same counter, new payload: foreign
-    assert router.counters["counter_clash"] == 1 and router.counters["foreign"] == 1
-    assert router.measured_powers[0] == 10.0
+    assert router.measured_powers[0] == 10.0 and router.counters["status_frames"] == 1
+    router.on_frame(good, 0.0)                  # a replay
+    nxt = status(1, 20.0)                       # count 1
+    router.on_frame(flipped(nxt, 2, 0x80), 0.0)  # a bit of the MAC
+    router.on_frame(flipped(nxt, 6), 0.0)       # a bit of Soc
+    assert router.counters["auth"] == 3 and router.counters["crc"] == 0
+    assert router.counters["repeated_counter"] == 0 and router.io.last_safety == ("auth", fid)
+    forger = FleetSender(CODEC, keys={"plant": WRONG_KEY})
+    router.on_frame(status(1, 20.0, 1, sender=forger), 0.0)  # same count, new payload
+    assert router.counters["auth"] == 4 and router.counters["counter_clash"] == 0
+    assert router.counters["foreign"] == 0 and router.measured_powers[0] == 10.0
+    assert router.counters["status_frames"] == 1
+    router.on_frame(status(1, 99.0, 2, sender=forger), 0.0)  # 5 failures in a row: alarm
+    assert router.counters["untrusted_sources"] == 1 and router.io.untrusted(fid, 0.0)
+    router.on_frame(status(1, 15.0), 0.0)       # authentic (count 2): still used
+    assert router.measured_powers[0] == 15.0 and router.counters["untrusted"] == 0
+    assert router.counters["auth"] == 5
+    assert router.counters["lost_frames"] == 1  # count 1 only ever arrived corrupted
     for k in range(1, 27):     # 5 status cycles of 50 ms: timed out after 250 ms
         router.tick(T(k))
     assert router.counters["status_timeouts"] == 1
-    assert router.measured_powers[0] == 10.0  # held
+    assert router.measured_powers[0] == 15.0  # held
 
 
 def test_router_silent_window_sends_nothing() -> None:
+    """Nothing in the window, its syncs included: the sync due at 1 s goes out with the
+    first frames after the silence (it counts the 20 prices sent before), and only the
+    data frames due in the window count as silenced."""
     router = RouterNode(load_case(4), silent=[(1.0, 2.0)])
     out = run_router(router, 3.0)
     assert out and not [t for t, _ in out if 1.0 - 1e-9 <= t < 2.0 - 1e-9]
+    syncs = [(round(t, 2), CODEC.decode(m).raw["Count"]) for t, m in out
+             if m.arbitration_id == CODEC.frame_id("ER_Price_Sync")]
+    assert syncs == [(0.0, 0), (2.0, 20)]
     prices = [round(t, 2) for t, m in out if m.arbitration_id == 0x010]
     assert prices[:20] == [round(0.05 * k, 2) for k in range(20)]
     assert prices[20] == 2.0  # the cadence goes on through the silence
@@ -413,8 +547,11 @@ def test_plant_and_router_on_a_virtual_bus() -> None:
     setpoint source and an observer, until each expected frame kind has been seen often
     enough (a condition with a generous deadline, not a fixed second: on a loaded host the
     threads get fewer ticks per second; the rates are `bess-ded bench`'s, the exact
-    counts the simulated-clock tests' above). The plant follows the setpoint, the router
-    hears the plant, nothing is rejected, and both threads stop when told."""
+    counts the simulated-clock tests' above). The setpoint source signs like agent 1
+    (--insecure, as both nodes). The plant follows the setpoint, the router hears the
+    plant, both announce their freshness by syncs, every price verifies with the
+    router's key, nothing is rejected (no MAC failure, nothing unsynced), and both
+    threads stop when told."""
     channel = f"plant-router-{next(_channels)}-{time.monotonic_ns()}"
     kw = {"interface": "virtual", "channel": channel, "receive_own_messages": False}
     sc = load_case(1)
@@ -426,8 +563,10 @@ def test_plant_and_router_on_a_virtual_bus() -> None:
                                 daemon=True)
                for node, bus in ((plant, plant_bus), (router, router_bus))]
     want = {**{f"PLANT_{i}_Status": 20 for i in range(1, 5)}, "ER_Price": 10,
-            "ER_Balance": 5}
+            "ER_Balance": 5, **{f"PLANT_{i}_Status_Sync": 1 for i in range(1, 5)},
+            "ER_Price_Sync": 1, "ER_Command_Sync": 1}
     seen: dict[str, list] = {}
+    price_msgs: list[can.Message] = []
 
     def enough() -> bool:
         return (all(len(seen.get(k, [])) >= n for k, n in want.items())
@@ -438,14 +577,14 @@ def test_plant_and_router_on_a_virtual_bus() -> None:
         for th in threads:
             th.start()
         deadline = time.monotonic() + 120.0
-        ctr = 0
         while not enough() and time.monotonic() < deadline:
-            agent_bus.send(setpoint(1, 30.0, ctr % 16))
-            ctr += 1
+            agent_bus.send(setpoint(1, 30.0))
             until = time.monotonic() + 0.02
             while (msg := watch.recv(timeout=max(0.0, until - time.monotonic()))) is not None:
                 f = CODEC.decode(msg)
                 seen.setdefault(f.name, []).append(f)
+                if f.name == "ER_Price":
+                    price_msgs.append(msg)
     finally:
         stop.set()
         for th in threads:
@@ -457,8 +596,12 @@ def test_plant_and_router_on_a_virtual_bus() -> None:
     prices = seen["ER_Price"]
     assert all(f.raw["Rho"] == round(0.8 * 2**24) for f in prices)
     assert [f.counter for f in prices] == [k % COUNTER_MODULO for k in range(len(prices))]
+    assert all(frame_verifies(ROUTER_KEY, 0x010, m.data, fv(1, k))
+               for k, m in enumerate(price_msgs))
     assert seen["PLANT_1_Status"][-1].phys("Power") == pytest.approx(30.0, abs=0.5)
-    bad = ("crc", "dlc", "range", "unknown_id", "impersonation", "malformed")
+    assert seen["PLANT_1_Status_Sync"][0].raw["Boot"] == 1
+    bad = ("crc", "dlc", "range", "unknown_id", "impersonation", "malformed", "auth",
+           "unsynced", "untrusted", "foreign")
     assert not any(plant.counters[c] or router.counters[c] for c in bad)
     # every tick accounted: the loop ticked or counted the miss (wall clock, any load)
     for node in (plant, router):
@@ -478,6 +621,7 @@ def test_cli_router_and_plant_run_and_print_their_summary(
     assert main(["router", "--case", "4", *bus, "--silent", "0.05:0.1"]) == 0
     assert main(["plant", "--case", "1", *bus, "--fault", "2:soc:0:1"]) == 0
     err = capsys.readouterr().err
+    assert "router runs --insecure" in err and "plant runs --insecure" in err
     assert "router: t=" in err and "silenced_frames=" in err
     assert "plant: 4 BESS" in err and "BESS 2:" in err and "injected_faults=1" in err
 
@@ -490,15 +634,23 @@ def test_cli_router_and_plant_run_and_print_their_summary(
     (["router", "--scenario", "/nonexistent.toml", "--insecure"], "does not exist"),
     (["router", "--case", "1", "--insecure", "--duration", "0"], "--duration"),
     (["router", "--case", "1", "--insecure", "--interface", "nosuchbus"],
-     "cannot open CAN bus"),
+     "cannot open CAN bus {'interface': 'nosuchbus'}: Unknown interface type"),
     (["router", "--case", "1", "--key", "/nonexistent.key"], "cannot read the node key"),
     (["plant", "--case", "1"], "one of the arguments --key --insecure is required"),
 ])
 def test_cli_bad_arguments_exit_2_with_one_line(argv: list[str], message: str,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """One error line naming the problem, exit code 2. A node built with --insecure
+    has already printed its one warning line when the bus fails to open: that line
+    may precede the error, nothing else may."""
     assert main(argv) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    lines = capsys.readouterr().err.strip().splitlines()
+    warnings = [ln for ln in lines if ln.startswith("bess-ded: warning:")]
+    assert all("runs --insecure" in ln for ln in warnings) and len(warnings) <= 1
+    assert not warnings or "--insecure" in argv
+    err = [ln for ln in lines if ln not in warnings]
     assert len(err) == 1 and err[0].startswith("bess-ded: error:") and message in err[0]
+    assert lines[-1] == err[0]
 
 
 def test_battery_model_constants() -> None:
@@ -513,16 +665,22 @@ def test_battery_model_constants() -> None:
 def test_plant_status_cadence_is_the_dbc_cycle_stretched_by_the_time_scale(factor: int
                                                                            ) -> None:
     """At Ts = 10 ms·F the plant sends every PLANT_<i>_Status once per DBC status cycle
-    stretched by F: every 5 of its ticks (50 ms at F = 1), never once per tick."""
+    stretched by F: every 5 of its ticks (50 ms at F = 1), never once per tick. Its
+    PLANT_<i>_Status_Sync frames are told apart (kind "sync"): all of them at the first
+    tick, and always all together."""
     sc = scaled(load_case(1), factor)
     plant = PlantNode(sc, period=sc.ts)
     every = every_ticks(status_name(1))
     assert every == 5 and plant.status_cycle == pytest.approx(cycle_s(status_name(1), sc.ts))
-    sent = {k: plant.tick(k * sc.ts) for k in range(100)}
+    out = {k: plant.tick(k * sc.ts) for k in range(100)}
+    sent = {k: data_frames(frames) for k, frames in out.items()}  # the syncs apart
     with_status = [k for k, frames in sent.items() if frames]
     assert with_status == list(range(0, 100, every))
     assert all(len(sent[k]) == sc.n for k in with_status)   # every BESS's status each time
     assert plant.counters["status_frames"] == sc.n * 100 // every
+    syncs = {k: [m for m in frames if is_sync(m)] for k, frames in out.items()}
+    assert len(syncs[0]) == sc.n  # every status's sync at the first tick, ...
+    assert all(len(v) in (0, sc.n) for v in syncs.values())  # ... and all of them each time
 
 
 def test_router_cadences_stretch_with_the_time_scale() -> None:
@@ -534,14 +692,115 @@ def test_router_cadences_stretch_with_the_time_scale() -> None:
 
 
 def test_plant_and_router_count_foreign_traffic() -> None:
-    """Frames of agents outside the scenario and impersonated frames are foreign."""
+    """Frames of agents outside the scenario and impersonated frames are foreign: as
+    before, and whether or not they are signed (the frames below carry valid MACs under
+    the public --insecure keys). The syncs count too: AGENT_9's sync is a foreign ID, a
+    sync on the node's own sync ID (another boot of its key) is impersonation."""
     plant, router = PlantNode(load_case(1)), RouterNode(load_case(1))
-    foreign_setpoint = setpoint(9, 10.0, 0)                 # agent 9 in a 4-agent run
-    fake_status = status(2, 10.0, 0)                        # the plant's own ID, not sent by it
-    fake_price = CODEC.encode("ER_Price", {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0}, 0)
-    for node, frames in ((plant, [foreign_setpoint, fake_status]),
-                         (router, [foreign_setpoint, fake_price])):
+    foreign_setpoint = setpoint(9, 10.0)                    # agent 9 in a 4-agent run
+    foreign_sync = SENDER.sync(setpoint_name(9))            # ... and its sync
+    fake_status = status(2, 10.0)                           # the plant's own ID, not sent by it
+    fake_price = SENDER.frame("ER_Price", {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0})
+    rogue = FleetSender(CODEC, boot=5)                      # the same public keys, boot 5
+    for node, frames in ((plant, [foreign_setpoint, foreign_sync, fake_status,
+                                  rogue.sync(status_name(2))]),
+                         (router, [foreign_setpoint, foreign_sync, fake_price,
+                                   rogue.sync("ER_Price")])):
         for m in frames:
             node.on_frame(m, 0.0)
-        assert node.counters["foreign"] == 2, node.counters
-        assert node.counters["foreign_id"] == 1 and node.counters["impersonation"] == 1
+        assert node.counters["foreign"] == 4, node.counters
+        assert node.counters["foreign_id"] == 2 and node.counters["impersonation"] == 2
+        assert node.counters["auth"] == node.counters["unsynced"] == 0
+
+
+# --------------------------------------------------------------------------- SecOC
+
+
+def test_plant_signs_its_status_frames_and_sends_their_syncs_every_second() -> None:
+    """Every PLANT_<i>_Status is signed with the plant's key, freshness Boot 1 ‖ its own
+    count per ID (the Counter signal: its low 4 bits); each PLANT_<i>_Status_Sync goes
+    out at the first tick and every second, carrying the freshness of that ID's next
+    frame under the plant's MAC. A router hears them all (no sync needed at boot 1)."""
+    plant, router = PlantNode(load_case(1)), RouterNode(load_case(1))
+    sent: Counter[int] = Counter()
+    syncs = []
+    for k in range(206):  # 0 .. 2.05 s
+        for m in plant.tick(T(k)):
+            fid, f = m.arbitration_id, CODEC.decode(m)
+            if is_sync(m):
+                count = sent[SYNCED_BY[fid]]
+                assert (f.raw["Boot"], f.raw["Count"]) == (1, count)
+                assert frame_verifies(PLANT_KEY, fid, m.data, fv(1, count))
+                syncs.append((round(T(k), 2), f.name))
+            else:
+                assert frame_verifies(PLANT_KEY, fid, m.data, fv(1, sent[fid]))
+                assert f.counter == sent[fid] % 16
+                sent[fid] += 1
+            router.on_frame(m, T(k))
+    assert syncs == [(t, f"{status_name(i)}_Sync") for t in (0.0, 1.0, 2.0)
+                     for i in range(1, 5)]
+    assert set(sent.values()) == {42}  # every 50 ms from t = 0 to 2.05 s
+    assert router.counters["status_frames"] == 4 * 42
+    assert not any(router.counters[c] for c in ("auth", "unsynced", "lost_frames", "foreign"))
+
+
+def test_plant_hears_an_agent_after_its_sync_and_answers_its_restart_with_its_own() -> None:
+    """Keys from one fleet master (as `bess-ded up` provisions them): the plant drops an
+    agent's setpoints before that agent's first sync (``unsynced``, not a forgery),
+    follows it after; when the agent restarts (a new boot), its sync moves the plant to
+    the new freshness and the plant re-announces its own syncs at once (at most every
+    0.1 s), so the restarted agent hears it within one round trip."""
+    master = bytes(range(16))
+    plant = PlantNode(load_case(1), keys=Keyring.fleet(master, ["plant"])["plant"])
+    agent = FleetSender(CODEC, keys={"agent_1": derive_node_key(master, "agent_1")}, boot=3)
+    assert plant.io.boot == 1 and len([m for m in plant.tick(0.0) if is_sync(m)]) == 4
+    plant.on_frame(setpoint(1, 10.0, sender=agent), 0.0)
+    assert plant.counters["unsynced"] == 1 and plant.unit(1).setpoint_rx is None
+    plant.on_frame(agent.sync(setpoint_name(1)), 0.005)
+    assert plant.counters["resyncs"] == 1
+    plant.on_frame(setpoint(1, 10.0, sender=agent), 0.005)
+    assert plant.unit(1).p_set == 10.0
+    hello = [k for k in range(1, 30) if any(is_sync(m) for m in plant.tick(T(k)))]
+    assert hello == [10]  # a first contact: the plant's syncs again, 0.1 s after the last
+    agent.restart()                                     # boot 4, counts from 0 again
+    plant.on_frame(agent.sync(setpoint_name(1)), 0.295)
+    plant.on_frame(setpoint(1, 20.0, sender=agent), 0.295)
+    assert plant.unit(1).p_set == 20.0 and plant.counters["resyncs"] == 2
+    assert [CODEC.decode(m).raw["Boot"] for m in plant.tick(0.3) if is_sync(m)] == [1] * 4
+    assert not any(plant.counters[c] for c in ("auth", "lost_frames", "foreign"))
+    assert plant.counters["unsynced"] == 1
+
+
+def _restart_plant_under_a_running_router(keys: dict[str, Keyring]) -> RouterNode:
+    """Plant and router for 1 s, then the plant restarts (a new PlantNode with the same
+    keyring, as a restarted process with the same key file) and runs 1 s more."""
+    sc = load_case(1)
+    router = RouterNode(sc, keys=keys.get("router"))
+    plant = PlantNode(sc, keys=keys.get("plant"))
+    for k in range(200):
+        if k == 100:
+            plant = PlantNode(sc, keys=keys.get("plant"))
+        for m in plant.tick(T(k)):
+            router.on_frame(m, T(k))
+        router.tick(T(k))
+    return router
+
+
+def test_a_restarted_plant_is_heard_by_the_router_after_its_sync() -> None:
+    """With keys from a master, the restarted plant's boot counter advanced: its syncs
+    at its first tick move the router to its new freshness, and not one status frame is
+    lost or rejected."""
+    router = _restart_plant_under_a_running_router(
+        Keyring.fleet(bytes(range(16)), ["router", "plant"]))
+    assert router.counters["status_frames"] == 4 * 40
+    assert router.counters["resyncs"] == 8  # first contact, then the restart, per status
+    assert not any(router.counters[c] for c in ("auth", "unsynced", "lost_frames",
+                                                 "status_timeouts", "untrusted_sources"))
+
+
+def test_a_restarted_insecure_plant_is_heard_by_the_router_after_its_sync() -> None:
+    """The same restart with --insecure keys (nothing persisted: boot 1 again). The
+    documented behaviour: its receivers accept a sync that goes back."""
+    router = _restart_plant_under_a_running_router({})
+    assert router.counters["status_frames"] == 4 * 40
+    assert not any(router.counters[c] for c in ("auth", "unsynced", "status_timeouts"))
