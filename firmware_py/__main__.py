@@ -14,7 +14,6 @@ from .cliargs import RT_PRIORITY, int_in, nonnegative_float, positive_float, pro
 from .config import load_agent_config
 from .errors import BessDedError
 from .faultinject import FaultyBus, RxFaults
-from .secoc import Keyring, KeyFileError
 from .node import (
     BusConfigError,
     StopFlag,
@@ -23,6 +22,7 @@ from .node import (
     run_node,
     with_acceptance_filter,
 )
+from .secoc import KeyFileError, Keyring
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -33,10 +33,9 @@ make that ID untrusted for ``untrusted_s`` (1 s at Ts = 10 ms): an alarm
 names the ID). An E2E-only frame on an untrusted ID is then rejected under
 ``untrusted`` before decoding. A secured frame is not: its MAC proves its sender frame
 by frame, so the genuine sender's frames keep being used while a forger's keep failing
-(else a forger could silence any sender with five bad frames). A frame accepted before the streak reaches the limit resets it; when the
-time is up the ID starts with a clean streak. The price, a neighbour or a setpoint that
-goes untrusted goes stale after its own timeout: a receiver then fails safe (SAFE,
-neighbour dropped, BESS ramped to 0) instead of acting on a stream it cannot trust.
+(else a forger could silence any sender with five bad frames). A frame accepted before
+the streak reaches the limit resets it; when the time is up the ID starts with a clean
+streak.
 
 ER_Command is an event frame with no timeout, so its counter may legitimately restart
 (a restarted router) at any value: the two counter rules apply to cyclic IDs only.

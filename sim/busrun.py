@@ -332,8 +332,9 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority, key_dir)
     for s in specs:
         s.delay = (delays or {}).get(s.name, 0.0)
-    monitor_keys = ({n: secoc.derive_node_key(secoc.INSECURE_MASTER, n)
-                     for n in secoc.fleet_nodes(sc.n)} if insecure else load_key_set(key_dir))
+    monitor_keys = (load_key_set(key_dir) if key_dir is not None else
+                    {n: secoc.derive_node_key(secoc.INSECURE_MASTER, n)
+                     for n in secoc.fleet_nodes(sc.n)})
     watch = open_bus(**{**bus.resolved(), "receive_own_messages": False})
     enlarge_receive_buffer(watch)
     writer = _Until(can.Logger(str(out / "run.log")))

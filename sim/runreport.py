@@ -7,9 +7,8 @@ started by hand or a HIL rig. So a log gives the same numbers whoever recorded i
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any

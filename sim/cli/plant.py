@@ -28,9 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..plant import PlantFault, PlantNode
     from firmware_py.__main__ import keyring_from_args
 
+    from ..plant import PlantFault, PlantNode
     from ._node import load_node_scenario, serve
 
     sc = load_node_scenario(args)

@@ -24,9 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..router import RouterNode, SilentWindow
     from firmware_py.__main__ import keyring_from_args
 
+    from ..router import RouterNode, SilentWindow
     from ._node import load_node_scenario, serve
 
     sc = load_node_scenario(args)

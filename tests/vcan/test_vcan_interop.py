@@ -3,16 +3,19 @@
 One run serves all three checks (a scenario run costs ~1.5 min in the QEMU guest):
 
 (a) the price comes from can-utils, not from the router: the router runs muted for the
-    whole run (``--silent``). Once all four agents are heard (``candump -n 1`` each, on
-    11-bit data frames only), ``cansend``
-    injects the first ER_Price frame (ρ = 0.9, not case 1's 0.8; CRC and rolling counter
-    built with FrameCodec), which takes the agents out of INIT, and ``canplayer`` then
-    keeps ER_Price coming at its cycle from a 16-frame loop file. (A ``cansend`` per
+    whole run (``--silent``), and can-utils speak for it with its key from the run's key
+    set (the frames are signed here with ``FleetSender``, as any tool holding the key
+    would). Once all four agents are heard (``candump -n 1`` each, on 11-bit data frames
+    only), ``cansend`` injects ``ER_Price_Sync`` (the freshness of boot 1000) and the
+    first ER_Price frame (ρ = 0.9, not case 1's 0.8), which takes the agents out of INIT,
+    and ``canplayer`` then plays the next frames at the price cycle, each with its own
+    freshness value (a loop would replay spent values: rejected). (A ``cansend`` per
     frame would do too on a host, but in the emulated guest each one costs ~0.3-0.6 s of
     CPU: a stream of them starved the nodes and let the price lapse past the agents'
-    1.25 s timeout.) The agents must converge to ρ = 0.9. The loop file also holds one
-    ER_Price frame with a wrong CRC and one with DLC 5: every agent counts them under
-    RejectedCrc / RejectedDlc, at most as many as ``candump`` saw.
+    1.25 s timeout.) The agents must converge to ρ = 0.9. Every 50th frame of the file is
+    followed by a tampered copy of a price frame (one payload bit flipped) and a frame of
+    DLC 5: every agent counts them under RejectedAuth / RejectedDlc, at most as many as
+    ``candump`` saw.
 (b) ``candump -L`` records the run (kernel filters: standard IDs only, joined with an
     inverse filter that drops the 0x7F0 noise) and every line decodes with
     ``python3 -m cantools decode`` against the DBC.
@@ -46,7 +49,10 @@ from vcanrun import (
 )
 
 from firmware_py import fixedpoint as fx
+from firmware_py import secoc
 from firmware_py.frames import FrameCodec
+from firmware_py.nodeio import FleetSender
+from sim.cli.keys import write_key_set
 from sim.scenario import load_case
 
 pytestmark = pytest.mark.vcan
@@ -54,23 +60,29 @@ pytestmark = pytest.mark.vcan
 RHO = 0.9
 UNFILTERED = (1, 2)  # agents that see every frame; 3 and 4 keep the kernel filter
 PRICE_CYCLE_S = 0.05  # ER_Price's GenMsgCycleTime at Ts = 10 ms
+FEEDER_BOOT = 1000    # the boot counter the can-utils "router" announces
+PRICE_FRAMES = 2000   # more than the run needs at the price cycle
+BAD_EVERY = 50        # a tampered and a short frame after every 50th price frame
+MASTER = bytes(range(16))
 
 
-def price_frames_hex() -> list[str]:
-    """ER_Price payloads for ρ = 0.9 with counters 0..15 (cansend's ID#DATA form)."""
-    codec = FrameCodec()
-    out = []
-    for ctr in range(16):
-        m = codec.encode("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(RHO), "Segment": 0},
-                         ctr)
-        assert m.arbitration_id == 0x010
-        out.append(f"010#{bytes(m.data).hex().upper()}")
-    return out
+def _hex(m: object) -> str:
+    return f"{m.arbitration_id:03X}#{bytes(m.data).hex().upper()}"  # type: ignore[attr-defined]
 
 
-def bad_crc(frame: str) -> str:
+def price_stream(router_key: bytes) -> tuple[str, list[str]]:
+    """(ER_Price_Sync, then ER_Price frames for ρ = 0.9 with counts 0, 1, 2, ...) signed
+    with the router's key at boot FEEDER_BOOT, in cansend's ID#DATA form."""
+    sender = FleetSender(FrameCodec(), keys={"router": router_key}, boot=FEEDER_BOOT)
+    sync = _hex(sender.sync("ER_Price"))
+    raw = {"PriceValid": 1, "Rho": fx.to_fixed(RHO), "Segment": 0}
+    return sync, [_hex(sender.frame("ER_Price", raw)) for _ in range(PRICE_FRAMES)]
+
+
+def tampered(frame: str) -> str:
+    """One payload bit flipped (ρ's top byte): the MAC no longer verifies."""
     head, data = frame.split("#")
-    return f"{head}#{int(data[:2], 16) ^ 0x5A:02X}{data[2:]}"
+    return f"{head}#{data[:14]}{int(data[14:], 16) ^ 0x40:02X}"
 
 
 def loop_file(path: Path, channel: str, frames: list[str]) -> None:
@@ -102,18 +114,26 @@ def interop(vcan_channel: str, can_utils: None,
             pytest.fail(f"{tool} missing (tools/install-vcan-deps)")
     out = tmp_path_factory.mktemp("interop")
     ch = vcan_channel
-    good = price_frames_hex()
-    # counters 0..15 after cansend's 15; each bad frame takes one slot, so the good ones
-    # around it are 2 cycles apart (< the agents' 25 Ts price timeout)
-    looped = good[:8] + [bad_crc(good[8])] + good[8:] + [good[0][:4 + 10]]  # + DLC 5
-    loop_file(out / "price-loop.log", ch, looped)
+    sc = replace(load_case(1), duration=8.0)
+    keys = out / "keys"
+    keys.mkdir(mode=0o700)
+    write_key_set(sc, keys, MASTER)
+    sync, good = price_stream(secoc.derive_node_key(MASTER, "router"))
+    # after cansend's first frame (count 0): counts 1, 2, ...; each bad frame takes one
+    # slot, so the good ones around it are 3 cycles apart (< the agents' 25 Ts timeout)
+    played = []
+    for k, frame in enumerate(good[1:], start=1):
+        played.append(frame)
+        if k % BAD_EVERY == 0:
+            played += [tampered(frame), frame[:4 + 10]]  # + a tampered copy, DLC 5
+    loop_file(out / "price-loop.log", ch, played)
     gap_ms = round(PRICE_CYCLE_S * TIME_SCALE * 1000)
     # wait for an AGENT_i_MC frame from every agent: mask C00007FF matches 11-bit data
     # frames only (7FF alone would also pass cangen's 29-bit IDs that end in 0x10i)
     wait_agents = " && ".join(f"candump -n 1 {ch},{0x100 + i:03X}:C00007FF >/dev/null"
                               for i in range(1, 5))
-    feeder = (f"{wait_agents} && cansend {ch} {good[15]} && "
-              f"exec canplayer -t -g {gap_ms} -l i -I {out / 'price-loop.log'}")
+    feeder = (f"{wait_agents} && cansend {ch} {sync} && cansend {ch} {good[0]} && "
+              f"exec canplayer -t -g {gap_ms} -I {out / 'price-loop.log'}")
     capture = out / "candump.log"
     procs = [
         # j: both filters must match (CAN_RAW_JOIN_FILTERS): 11-bit IDs, and not 0x7F0..7FF
@@ -125,9 +145,8 @@ def interop(vcan_channel: str, can_utils: None,
         _spawn(["sh", "-c", feeder], out / "feeder.txt"),
     ]
     try:
-        sc = replace(load_case(1), duration=8.0)
         # the router's price is muted for the whole run: ER_Price comes from can-utils only
-        run = run_on_vcan(sc, out / "run", ch, extra={
+        run = run_on_vcan(sc, out / "run", ch, keys=keys, extra={
             "router": ["--silent", "0:1000000"],
             **{f"agent_{i}": ["--no-acceptance-filter"] for i in UNFILTERED}})
     finally:
@@ -138,10 +157,10 @@ def interop(vcan_channel: str, can_utils: None,
 
 def test_agents_follow_the_price_sent_with_cansend(interop: tuple[Run, Path]) -> None:
     run, capture = interop
-    # the run's t = 0 is the frame cansend injected (counter 15), before canplayer's 0
+    # the run's t = 0 is the frame cansend injected (count 0), after its sync
     first = next(ln.split()[2] for ln in capture.read_text().splitlines()
                  if ln.split()[2].startswith("010#"))
-    assert first == price_frames_hex()[15], first
+    assert first == price_stream(secoc.derive_node_key(MASTER, "router"))[1][0], first
     prices = {round(v, 6) for _, v in run.log.series[("price", "Rho")]}
     assert prices == {round(fx.to_float(fx.to_fixed(RHO)), 6)}, prices
     assert run.m["final_error"] < FINAL_TOL, {k: run.m[k] for k in (
@@ -167,8 +186,9 @@ def test_random_traffic_on_other_ids_is_counted_not_followed(
     run, _ = interop
     # the recorder saw the noise (it records everything) ...
     assert run.m["frames_undecodable"].get("unknown_id", 0) > 100, run.m["frames_undecodable"]
-    # (and the bad price frames of test_bad_price_frames_..., under their causes)
-    assert set(run.m["frames_undecodable"]) == {"unknown_id", "crc", "dlc"}, \
+    # (and the short price frames of test_bad_price_frames_...; the tampered ones decode,
+    # and fail their MAC: auth_failed)
+    assert set(run.m["frames_undecodable"]) == {"unknown_id", "dlc"}, \
         run.m["frames_undecodable"]
     # ... the unfiltered agents rejected it under unknown_id, the filtered ones never
     # saw it, and none rejected anything else
@@ -186,10 +206,12 @@ def test_bad_price_frames_from_canplayer_are_counted_by_cause(
     run, capture = interop
     price = [ln.split()[2] for ln in capture.read_text().splitlines()
              if ln.split()[2].startswith("010#")]
-    crc, dlc = bad_crc(price_frames_hex()[8]), price_frames_hex()[0][:4 + 10]
-    sent = {"RejectedCrc": price.count(crc), "RejectedDlc": price.count(dlc)}
-    assert all(v >= 2 for v in sent.values()), sent  # canplayer looped at least twice
+    good = set(price_stream(secoc.derive_node_key(MASTER, "router"))[1])
+    sent = {"RejectedAuth": sum(len(f) == 4 + 16 and f not in good for f in price),
+            "RejectedDlc": sum(len(f) == 4 + 10 for f in price)}
+    assert all(v >= 2 for v in sent.values()), sent  # at least two bad pairs were played
     for i in range(1, run.sc.n + 1):
         d = run.m["node_diagnostics"][f"agent_{i}"]
         for cause, n in sent.items():
             assert 1 <= d[cause] <= n, (i, cause, d[cause], n)
+    assert ("auth_failed", "bus") in {(a["kind"], a["node"]) for a in run.m["anomalies"]}
