@@ -38,11 +38,11 @@ BAD = [
     (["router", *NODE, "--period", "-0.01"], "--period", "a finite number > 0, but got -0.01"),
     (["router", *NODE, "--rt-priority", "-1"], "--rt-priority",
      "a SCHED_FIFO priority in 1..99 or 0, but got -1"),
-    (["inject", "crc", "--count", "0"], "--count", "an integer ≥ 1, but got 0"),
-    (["inject", "crc", "--count", "1.5"], "--count", "an integer ≥ 1, but got '1.5'"),
-    (["inject", "crc", "--target", "33"], "--target", "an agent number in 1..32, but got 33"),
-    (["inject", "crc", "--rate", "0"], "--rate", "a finite number > 0, but got 0"),
-    (["inject", "crc", "--seed", "-1"], "--seed", "an integer ≥ 0, but got -1"),
+    (["inject", "forge", "--count", "0"], "--count", "an integer ≥ 1, but got 0"),
+    (["inject", "forge", "--count", "1.5"], "--count", "an integer ≥ 1, but got '1.5'"),
+    (["inject", "forge", "--target", "33"], "--target", "an agent number in 1..32, but got 33"),
+    (["inject", "forge", "--rate", "0"], "--rate", "a finite number > 0, but got 0"),
+    (["inject", "forge", "--seed", "-1"], "--seed", "an integer ≥ 0, but got -1"),
 ]
 
 
@@ -130,7 +130,7 @@ def test_bus_config_from_the_environment_is_checked(monkeypatch: pytest.MonkeyPa
 
 
 def test_bad_bus_config_through_the_cli(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["inject", "crc", "--interface", "virtual", "--bus-config",
+    assert main(["inject", "forge", "--interface", "virtual", "--bus-config",
                  '{"rx_queu_size": 3}']) == 2
     err = capsys.readouterr().err
     assert err.startswith("bess-ded: error: CAN config: virtual accepts ") and \
