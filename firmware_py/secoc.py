@@ -18,13 +18,13 @@ Keys
     context, L = 64) so that nodes from different provisionings can tell.
 
 Freshness
-    Per sender, a 40-bit full freshness value FV = boot counter (16 bits) ‖ message
-    counter (24 bits) (``FreshnessLayout``). The boot counter is persisted by the
-    caller (the node's key file) and bumped *before* the first frame of every start,
-    and whenever the message counter would wrap, so FV strictly increases across
-    restarts. Only the low ``tx_bits`` (8, as in profile 1) of FV go on the wire; the
-    receiver rebuilds the full value from the last one it accepted
-    (``FreshnessVerifier``).
+    Per sender and frame ID, a 40-bit full freshness value FV = boot counter (16 bits)
+    ‖ message counter (24 bits) (``FreshnessLayout``). The boot counter is persisted
+    in the node's key file and bumped *before* the first frame of every start, and
+    whenever a message counter would wrap (``Keyring.new_boot``), so FV strictly
+    increases across restarts; ``firmware_py.nodeio`` counts the messages. Only the
+    low ``tx_bits`` (4: the DBC's Counter) of FV go on the wire; the receiver rebuilds
+    the full value from the last one it accepted (``FreshnessVerifier``).
 
 Authenticator
     ``authenticator(key, data_id, payload, freshness, bits)`` is the most significant
@@ -42,7 +42,6 @@ Authenticator
 
 from __future__ import annotations
 
-import enum
 import hmac
 import os
 import re
@@ -60,7 +59,7 @@ from .errors import BessDedError
 
 KEY_BYTES = 16                      # AES-128
 MAC_BITS = 24                       # profile 1: a 24-bit truncated CMAC on the wire
-TX_FRESHNESS_BITS = 8               # profile 1: the low 8 bits of FV on the wire
+TX_FRESHNESS_BITS = 4               # the low 4 bits of FV on the wire (the DBC's Counter)
 DATA_ID_BITS = 16                   # SecOCDataId is a uint16
 FV_WIRE_BYTES = 8                   # FV in the MAC input: always 8 bytes, big-endian
 NODE_KEY_LABEL = b"bess-ded/secoc/node-key/v1"
@@ -217,55 +216,6 @@ def truncate(freshness: int, tx_bits: int = TX_FRESHNESS_BITS) -> int:
     return freshness & ((1 << tx_bits) - 1)
 
 
-class FreshnessCounter:
-    """Sender side: the next FV for every frame this node sends.
-
-    ``boot`` is the boot counter as persisted (0 in a freshly provisioned key file).
-    Creating the counter starts a new boot: ``boot + 1`` is handed to ``persist``
-    *before* any value is returned, so a crash at any point cannot reuse a value.
-    The caller's ``persist`` must write durably (``save_boot_counter``) and raise if it
-    cannot; the counter is then unusable. The message counter starts at 0 (use the
-    first value for the boot/sync frame); when it would wrap, the boot counter is
-    bumped and persisted again. When the boot counter is exhausted the fleet must be
-    re-keyed (``SecOCError``).
-    """
-
-    def __init__(self, boot: int, persist: Callable[[int], None],
-                 layout: FreshnessLayout = DEFAULT_LAYOUT) -> None:
-        if not isinstance(boot, int) or not 0 <= boot <= layout.max_boot:
-            raise SecOCError(f"boot counter: expected 0..{layout.max_boot}, but got {boot!r}")
-        self.layout = layout
-        self._persist = persist
-        self._boot = boot
-        self._counter = 0
-        self._new_boot()
-
-    def _new_boot(self) -> None:
-        if self._boot >= self.layout.max_boot:
-            raise SecOCError("boot counter exhausted: re-provision the fleet's keys "
-                             "(bess-ded keys --fleet ... --force)")
-        self._persist(self._boot + 1)  # write-ahead: durable before it is used
-        self._boot += 1
-        self._counter = 0
-
-    @property
-    def boot(self) -> int:
-        return self._boot
-
-    def peek(self) -> int:
-        """The value ``next()`` returns, without consuming it."""
-        return self.layout.join(self._boot, self._counter)
-
-    def next(self) -> int:
-        """A full FV strictly greater than every value returned before (also across
-        restarts, given a durable ``persist``)."""
-        if self._counter > self.layout.max_counter:
-            self._new_boot()
-        value = self.layout.join(self._boot, self._counter)
-        self._counter += 1
-        return value
-
-
 class FreshnessVerifier:
     """Receiver side: per sender, the last accepted FV; accepts only larger ones.
 
@@ -276,12 +226,12 @@ class FreshnessVerifier:
     acceptance window. Up to 2^tx_bits − 1 consecutive lost frames are tolerated;
     after a longer gap, or a sender restart (its boot counter moved on), the MAC
     check fails until a resynchronisation. The caller checks the MAC with the
-    candidate and calls ``accept`` only if it holds (``verify_secured`` does both).
+    candidate and calls ``accept`` only if it holds (``NodeIO`` does both).
 
     ``resync(sender, full)`` is the hook for an authenticated frame that carries a
-    sender's full FV (docs/security.md: the sender's own SYNC frame at boot and
-    periodically, or the router relaying one). Call it only after that frame's MAC
-    was verified; it moves the state forward only (a replayed sync cannot rewind).
+    sender's full FV (docs/security.md: the sender's ``<name>_Sync`` frame). Call it
+    only after that frame's MAC was verified; it moves the state forward only (a
+    replayed sync cannot rewind).
     A sender with no state yet (``last(sender) is None``) needs a resync first.
     """
 
@@ -335,35 +285,6 @@ class FreshnessVerifier:
         return self.accept(sender, full_freshness)
 
 
-class Verdict(enum.Enum):
-    """What ``verify_secured`` decided; every value but OK is a rejection cause."""
-
-    OK = "ok"
-    NO_FRESHNESS = "no_freshness"   # no state for the sender, or past the layout: resync
-    MAC = "mac"                     # wrong MAC: forged, replayed, stale, or desynchronised
-    STALE = "stale"                 # authentic but not newer (cannot happen via candidate)
-
-
-def verify_secured(key: bytes, data_id: int, payload: bytes, truncated_freshness: int,
-                   mac: int, sender: Hashable, verifier: FreshnessVerifier,
-                   bits: int = MAC_BITS) -> Verdict:
-    """Check one received secured frame and, if it is authentic and fresh, advance
-    the sender's freshness. The state changes only on ``Verdict.OK``."""
-    fv = verifier.candidate(sender, truncated_freshness)
-    if fv is None:
-        return Verdict.NO_FRESHNESS
-    if not verify(key, data_id, payload, fv, mac, bits):
-        return Verdict.MAC
-    return Verdict.OK if verifier.accept(sender, fv) else Verdict.STALE
-
-
-def secure(key: bytes, data_id: int, payload: bytes, counter: FreshnessCounter,
-           bits: int = MAC_BITS, tx_bits: int = TX_FRESHNESS_BITS) -> tuple[int, int]:
-    """Sender side of one frame: (truncated FV, MAC) to append to ``payload``."""
-    fv = counter.next()
-    return truncate(fv, tx_bits), authenticator(key, data_id, payload, fv, bits)
-
-
 # --------------------------------------------------------------------------- key files
 
 
@@ -383,7 +304,7 @@ class NodeKey:
                 f"boot_counter={self.boot_counter}, path={str(self.path)!r})")
 
     def persist(self) -> Callable[[int], None]:
-        """A ``FreshnessCounter`` persist callback writing to this key file."""
+        """A ``Keyring`` persist callback writing the boot counter to this key file."""
         return lambda boot: save_boot_counter(self.path, boot)
 
 
