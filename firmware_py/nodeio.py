@@ -321,8 +321,12 @@ class NodeIO:
         last = self._fv.last(fid)
         restarted = last is None or (last + 1) >> contract.FV_COUNT_BITS != boot
         if last is not None and fv - 1 <= last:
-            if not self.keys.insecure or fv - 1 == last:
-                return  # nothing new (a repeat, or a replayed older sync)
+            if fv - 1 == last:
+                return  # nothing new: the sender sent no frame since its last sync
+            if not self.keys.insecure:  # a genuine sync never goes back: a replay
+                self.fail(sync_id, "auth", f"{frame.name}: expected freshness above "
+                          f"{last:#x}, but got {fv - 1:#x} (a replayed sync)", t)
+                return
             # --insecure: a restarted sender comes back at boot 1, count 0 (nothing is
             # persisted), so its values go back; insecure mode has no replay protection
             self._fv.forget(fid)

@@ -130,8 +130,9 @@ class _Monitor:
             last = self.fv.last(fid)
             if last is None or fv - 1 > last:
                 self.fv.accept(fid, fv - 1)
-            return
-        raise _Forged
+            if last is None or fv - 1 >= last:
+                return
+        raise _Forged  # forged, or a replayed sync (a genuine one never goes back)
 
     def check(self, f: DecodedFrame, data: bytes | bytearray) -> bool:
         """True: authentic and fresh; False: not checkable yet (no sync seen)."""

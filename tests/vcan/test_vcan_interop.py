@@ -86,8 +86,10 @@ def tampered(frame: str) -> str:
 
 
 def loop_file(path: Path, channel: str, frames: list[str]) -> None:
-    """A candump -L file for ``canplayer -t`` (which ignores the timestamps)."""
-    path.write_text("".join(f"(0.000000) {channel} {f}\n" for f in frames))
+    """A candump -L file for ``canplayer -t -g MS``: one frame every MS ms. With -t,
+    canplayer sends the lines that share a timestamp back to back and sleeps -g between
+    such groups, so every line gets a timestamp of its own."""
+    path.write_text("".join(f"({k / 1000:.6f}) {channel} {f}\n" for k, f in enumerate(frames)))
 
 
 def _spawn(argv: list[str], out: Path) -> subprocess.Popen[bytes]:
@@ -164,7 +166,8 @@ def test_agents_follow_the_price_sent_with_cansend(interop: tuple[Run, Path]) ->
     prices = {round(v, 6) for _, v in run.log.series[("price", "Rho")]}
     assert prices == {round(fx.to_float(fx.to_fixed(RHO)), 6)}, prices
     assert run.m["final_error"] < FINAL_TOL, {k: run.m[k] for k in (
-        "final_error", "settling_times_s", "deadline_misses")}
+        "final_error", "settling_times_s", "deadline_misses", "anomalies",
+        "node_diagnostics", "node_counters")}
     for i in range(1, run.sc.n + 1):
         lam = run.log.series[(f"AGENT_{i}_MC", "Lambda")][-1][1]
         assert abs(lam - RHO) < FINAL_TOL, (i, lam)
