@@ -27,7 +27,7 @@ from pathlib import Path
 
 import can
 import pytest
-from test_vcan_interop import _spawn, _stop, loop_file
+from test_vcan_interop import _spawn, _stop, play_file
 from vcanrun import FINAL_TOL, TIME_SCALE, Run, assert_clean_exit, at, run_on_vcan
 
 from firmware_py import contract
@@ -42,7 +42,7 @@ pytestmark = pytest.mark.vcan
 
 MASTER = bytes(range(16, 32))
 FORGE_EVERY = 10     # a forged frame of each kind after every 10 replayed frames
-GAP_MS = 5           # canplayer's gap between frames (the attacker's pace, 200 frames/s)
+GAP_S = 0.005        # between the attacker's frames (200 frames/s)
 POWER_TOL_KW = 1.0
 
 
@@ -94,11 +94,11 @@ def attacked(vcan_channel: str, can_utils: None,
     run_a = run_on_vcan(cheap, out / "a", ch, keys=keys)
     assert run_a.m["final_error"] < 0.05, run_a.m["final_error"]  # it ran, at 0.5
     lines, forged = attack_frames(replayable(out / "a" / "run.log"))
-    loop_file(out / "attack.log", ch, lines)
+    play_file(out / "attack.log", ch, lines, GAP_S)
     wait_agents = " && ".join(f"candump -n 1 {ch},{0x100 + i:03X}:C00007FF >/dev/null"
                               for i in range(1, 5))
     attacker = _spawn(["sh", "-c", f"{wait_agents} && sleep {TIME_SCALE:g} && exec "
-                       f"canplayer -t -g {GAP_MS} -I {out / 'attack.log'}"],
+                       f"canplayer -I {out / 'attack.log'}"],
                       out / "attacker.txt")
     try:
         run_b = run_on_vcan(honest, out / "b", ch, keys=keys)

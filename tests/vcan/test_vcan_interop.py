@@ -8,8 +8,9 @@ One run serves all three checks (a scenario run costs ~1.5 min in the QEMU guest
     would). Once all four agents are heard (``candump -n 1`` each, on 11-bit data frames
     only), ``cansend`` injects ``ER_Price_Sync`` (the freshness of boot 1000) and the
     first ER_Price frame (ρ = 0.9, not case 1's 0.8), which takes the agents out of INIT,
-    and ``canplayer`` then plays the next frames at the price cycle, each with its own
-    freshness value (a loop would replay spent values: rejected). (A ``cansend`` per
+    and ``canplayer`` then plays the next frames at the price cycle (by the file's
+    timestamps), each with its own freshness value (a loop would replay spent values:
+    rejected). (A ``cansend`` per
     frame would do too on a host, but in the emulated guest each one costs ~0.3-0.6 s of
     CPU: a stream of them starved the nodes and let the price lapse past the agents'
     1.25 s timeout.) The agents must converge to ρ = 0.9. Every 50th frame of the file is
@@ -85,11 +86,11 @@ def tampered(frame: str) -> str:
     return f"{head}#{data[:14]}{int(data[14:], 16) ^ 0x40:02X}"
 
 
-def loop_file(path: Path, channel: str, frames: list[str]) -> None:
-    """A candump -L file for ``canplayer -t -g MS``: one frame every MS ms. With -t,
-    canplayer sends the lines that share a timestamp back to back and sleeps -g between
-    such groups, so every line gets a timestamp of its own."""
-    path.write_text("".join(f"({k / 1000:.6f}) {channel} {f}\n" for k, f in enumerate(frames)))
+def play_file(path: Path, channel: str, frames: list[str], gap_s: float) -> None:
+    """A candump -L file that ``canplayer -I`` plays one frame every ``gap_s`` (by its
+    timestamps: with -t, canplayer sends the whole file at once, then sleeps -g)."""
+    path.write_text("".join(f"({k * gap_s:.6f}) {channel} {f}\n"
+                            for k, f in enumerate(frames)))
 
 
 def _spawn(argv: list[str], out: Path) -> subprocess.Popen[bytes]:
@@ -128,14 +129,13 @@ def interop(vcan_channel: str, can_utils: None,
         played.append(frame)
         if k % BAD_EVERY == 0:
             played += [tampered(frame), frame[:4 + 10]]  # + a tampered copy, DLC 5
-    loop_file(out / "price-loop.log", ch, played)
-    gap_ms = round(PRICE_CYCLE_S * TIME_SCALE * 1000)
+    play_file(out / "price.log", ch, played, PRICE_CYCLE_S * TIME_SCALE)
     # wait for an AGENT_i_MC frame from every agent: mask C00007FF matches 11-bit data
     # frames only (7FF alone would also pass cangen's 29-bit IDs that end in 0x10i)
     wait_agents = " && ".join(f"candump -n 1 {ch},{0x100 + i:03X}:C00007FF >/dev/null"
                               for i in range(1, 5))
     feeder = (f"{wait_agents} && cansend {ch} {sync} && cansend {ch} {good[0]} && "
-              f"exec canplayer -t -g {gap_ms} -I {out / 'price-loop.log'}")
+              f"exec canplayer -I {out / 'price.log'}")
     capture = out / "candump.log"
     procs = [
         # j: both filters must match (CAN_RAW_JOIN_FILTERS): 11-bit IDs, and not 0x7F0..7FF
