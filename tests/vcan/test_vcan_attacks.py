@@ -28,13 +28,12 @@ from pathlib import Path
 import can
 import pytest
 from test_vcan_interop import _spawn, _stop, play_file
-from vcanrun import FINAL_TOL, TIME_SCALE, Run, assert_clean_exit, at, run_on_vcan
+from vcanrun import FINAL_TOL, TIME_SCALE, Run, assert_clean_exit, at, key_set, run_on_vcan
 
 from firmware_py import contract
 from firmware_py import fixedpoint as fx
 from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name
 from firmware_py.nodeio import FleetSender
-from sim.cli.keys import write_key_set
 from sim.model import kkt_optimum
 from sim.scenario import PriceStep, load_case
 
@@ -87,9 +86,7 @@ def attacked(vcan_channel: str, can_utils: None,
     out = tmp_path_factory.mktemp("attacks")
     ch = vcan_channel
     honest = replace(load_case(1), duration=8.0)
-    keys = out / "keys"
-    keys.mkdir(mode=0o700)
-    write_key_set(honest, keys, MASTER)
+    keys = key_set(out, honest, MASTER)
     cheap = replace(honest, duration=5.0, prices=(PriceStep(0.0, 0.5),))
     run_a = run_on_vcan(cheap, out / "a", ch, keys=keys)
     assert run_a.m["final_error"] < 0.05, run_a.m["final_error"]  # it ran, at 0.5

@@ -46,6 +46,7 @@ from vcanrun import (
     Run,
     assert_clean_exit,
     assert_decodes_with_cantools,
+    key_set,
     run_on_vcan,
 )
 
@@ -53,7 +54,6 @@ from firmware_py import fixedpoint as fx
 from firmware_py import secoc
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
-from sim.cli.keys import write_key_set
 from sim.scenario import load_case
 
 pytestmark = pytest.mark.vcan
@@ -118,9 +118,7 @@ def interop(vcan_channel: str, can_utils: None,
     out = tmp_path_factory.mktemp("interop")
     ch = vcan_channel
     sc = replace(load_case(1), duration=8.0)
-    keys = out / "keys"
-    keys.mkdir(mode=0o700)
-    write_key_set(sc, keys, MASTER)
+    keys = key_set(out, sc, MASTER)
     sync, good = price_stream(secoc.derive_node_key(MASTER, "router"))
     # after cansend's first frame (count 0): counts 1, 2, ...; each bad frame takes one
     # slot, so the good ones around it are 3 cycles apart (< the agents' 25 Ts timeout)

@@ -61,6 +61,17 @@ def run_on_vcan(sc: Scenario, out: Path, channel: str, scale: float = TIME_SCALE
     return Run(sc, out, rec.metrics, rec.log, rec.trajectory, scale)
 
 
+def key_set(out: Path, sc: Scenario, master: bytes) -> Path:
+    """OUT/keys: the fleet's key files from ``master`` (as `bess-ded keys --fleet`), for
+    runs that share a key set (`bess-ded up --keys DIR`) or tools that sign with it."""
+    from sim.cli.keys import write_key_set
+
+    keys = out / "keys"
+    keys.mkdir(mode=0o700)
+    write_key_set(sc, keys, master)
+    return keys
+
+
 def assert_clean_exit(run: Run) -> None:
     assert run.m["exit_codes"] and all(c == 0 for c in run.m["exit_codes"].values()), \
         run.m["exit_codes"]
