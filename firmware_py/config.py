@@ -70,9 +70,12 @@ from typing import Any
 
 import tomli_w
 
-from .contract import MC_CYCLE_S, N_AGENTS_MAX, status_name, timeout_s
+from .contract import MC_CYCLE_S, N_AGENTS_MAX, raw_range, scale, status_name, timeout_s
 from .controllers import ControllerConfig
 from .errors import ConfigError, ParameterError
+
+# the largest gain ER_Command's SET_GAINS can carry (the DBC's GainK/GainH: 14 bits, 0.001)
+GAIN_MAX = raw_range("ER_Command", "GainK")[1] * scale("ER_Command", "GainK")
 
 __all__ = ["N_AGENTS_MAX", "AgentConfig", "DispatchParams", "Neighbour",
            "agent_configs_from_scenario", "load_agent_config", "parse_agent_config"]
@@ -304,11 +307,11 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         lambda_max=num(lim, "limits", "lambda_max", -127, 127, 10.0), fleet_size=fleet,
         rho_min=num(lim, "limits", "rho_min", -127, 127, RHO_MIN),
         rho_max=num(lim, "limits", "rho_max", -127, 127, RHO_MAX),
-        price_step_max=num(lim, "limits", "price_step_max", 1e-6, 254, PRICE_STEP_MAX),
+        price_step_max=num(lim, "limits", "price_step_max", 1e-6, 127, PRICE_STEP_MAX),
         price_persist=count("price_persist", 1, 100, PRICE_PERSIST),
-        lambda_step_max=opt("lambda_step_max", 1e-6, 254),
-        k_min=opt("k_min", 0, 65.535), k_max=opt("k_max", 0, 65.535),
-        h_min=opt("h_min", 0, 65.535), h_max=opt("h_max", 0, 65.535),
+        lambda_step_max=opt("lambda_step_max", 1e-6, 127),
+        k_min=opt("k_min", 0, GAIN_MAX), k_max=opt("k_max", 0, GAIN_MAX),
+        h_min=opt("h_min", 0, GAIN_MAX), h_max=opt("h_max", 0, GAIN_MAX),
         untrusted_after=count("untrusted_after", 1, 1000, UNTRUSTED_AFTER),
         untrusted_s=opt("untrusted_s", 0, 3600), source=src)
     if not cfg.lambda_min < cfg.lambda0 < cfg.lambda_max:

@@ -172,9 +172,18 @@ class NodeIO:
         self._tx: Counter[str] = Counter()
 
     def accepted_ids(self) -> list[int]:
-        """The IDs an acceptance filter must pass: what it uses (and the syncs of it) and,
-        for the impersonation check, what it sends."""
-        return sorted(set(self._sent) | set(self.trackers) | set(self._synced_by))
+        """The IDs an acceptance filter must pass: what it uses (and the syncs of it), the
+        syncs of the fleet's other nodes whose keys it holds (the router and the plant: to
+        notice a restart, ``_peer_sync``) and, for the impersonation check, what it sends."""
+        taken = {contract.sender_of(self.codec.name_of(fid)) for fid in self._verify_key}
+        peers = set()
+        for sid, fid in contract.SYNCED_BY.items():
+            sender = contract.sender_of(self.codec.name_of(fid))
+            if (sender not in taken and sender != self.keys.node
+                    and (self.fleet_size is None or (agent_of(sid) or 0) <= self.fleet_size)
+                    and self.keys.key_of(sender, derive=False) is not None):
+                peers.add(sid)
+        return sorted(set(self._sent) | set(self.trackers) | set(self._synced_by) | peers)
 
     def receive(self, msg: can.Message, t: float | None = None,
                 defer_trust: bool = False) -> DecodedFrame | None:
@@ -322,6 +331,7 @@ class NodeIO:
         restarted = last is None or (last + 1) >> contract.FV_COUNT_BITS != boot
         if last is not None and fv - 1 <= last:
             if fv - 1 == last:
+                self._lost.discard(fid)  # in step with the sender: the normal window
                 return  # nothing new: the sender sent no frame since its last sync
             if not self.keys.insecure:  # a genuine sync never goes back: a replay
                 self.fail(sync_id, "auth", f"{frame.name}: expected freshness above "

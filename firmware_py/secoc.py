@@ -511,12 +511,13 @@ class Keyring:
         return (f"Keyring(node={self.node!r}, boot={self.boot}, insecure={self.insecure}, "
                 f"peers={sorted(self._peers) if self._master is None else 'derived'})")
 
-    def key_of(self, node: str) -> bytes | None:
-        """The verification key of ``node``'s frames, None if this node does not hold it."""
+    def key_of(self, node: str, derive: bool = True) -> bytes | None:
+        """The verification key of ``node``'s frames, None if this node does not hold it
+        (``derive=False``: only the keys listed or derived so far, not a fleet master's)."""
         if node == self.node:
             return self.key
         k = self._peers.get(node)
-        if k is None and self._master is not None:
+        if k is None and self._master is not None and derive:
             k = self._peers[node] = derive_node_key(self._master, node)
         return k
 

@@ -177,7 +177,8 @@ class RouterNode(SimNodeClock):
         """Queue an ER_Command (sent at the next tick, then repeated: 3 frames 10 ms apart).
 
         ``kind``: "isolate", "reconnect" or "set_gains" (the last needs ``k`` and ``h``,
-        0..65.535 in steps of 0.001). Thread-safe: a tool may call it while run_node runs.
+        0..16.383 in steps of 0.001: the DBC's GainK/GainH). Thread-safe: a tool may call it
+        while run_node runs.
         """
         key = str(kind).lower()
         if key not in COMMANDS:

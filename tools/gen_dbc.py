@@ -325,7 +325,7 @@ def _agent_diag(i: int) -> Message:
              receivers=rx,
              comment="Multiplexer: which diagnostics page this frame carries "
                      f"(0..{DIAG_PAGES - 1}, sent in turn)."),
-        u16("Resets", 16, 0, "Clegg resets since start (not mod 256, unlike the MC frame)."),
+        u16("Resets", 16, 0, "Clegg resets since start (not mod 4, unlike the MC frame)."),
         u16("DeadlineMisses", 32, 0, "Control periods whose step started late."),
         _sig("NeighboursAlive", 48, 8, page=0, receivers=rx,
              comment="Neighbours currently heard and RUNNING."),
