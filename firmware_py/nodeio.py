@@ -214,7 +214,7 @@ class NodeIO:
             if fid in self._synced_by:
                 self._on_sync(msg, fid, t)
                 return None
-            if fid in contract.SYNCED_BY and self._peer_sync(msg, fid):
+            if fid in contract.SYNCED_BY and self._peer_sync(msg, fid, t):
                 return None
             if fid not in self._known:
                 self.reject("unknown_id", f"0x{fid:03X}: expected an ID defined in the DBC")
@@ -347,7 +347,7 @@ class NodeIO:
         if restarted:
             self._hello_due = True  # a peer (re)started: tell it our freshness now
 
-    def _peer_sync(self, msg: can.Message, sync_id: int) -> bool:
+    def _peer_sync(self, msg: can.Message, sync_id: int, t: float) -> bool:
         """A sync of a frame this node does not use, from a fleet node whose key it holds
         (the router and the plant hold every agent's): verified only to notice a peer's
         (re)start and re-announce this node's own syncs, so that the restarted peer
@@ -367,9 +367,15 @@ class NodeIO:
             return True  # not a usable sync; not this node's input either
         boot = frame.raw["Boot"]
         fv = boot << contract.FV_COUNT_BITS | frame.raw["Count"]
-        if self._peer_boot.get(sync_id) != boot and frame_verifies(key, sync_id, msg.data, fv):
-            self._peer_boot[sync_id] = boot
-            self._hello_due = True
+        if self._peer_boot.get(sync_id) == boot:
+            return True  # that boot is known: nothing to check or do
+        if not frame_verifies(key, sync_id, msg.data, fv):
+            self.fail(sync_id, "auth", f"{name}: expected a MAC that verifies with "
+                      f"{contract.sender_of(name)}'s key, but it does not (forged or "
+                      "corrupted)", t)
+            return True
+        self._peer_boot[sync_id] = boot
+        self._hello_due = True
         return True
 
     def sender_lost(self, fid: int) -> None:
