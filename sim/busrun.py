@@ -104,6 +104,7 @@ class Progress(can.Listener):
         self.frames = 0
         self.t_last_frame = 0.0  # its timestamp (wall-clock)
         self.t_first_price: float | None = None
+        self.seen: set[int] = set()  # every frame ID heard so far
         self.lock = threading.Lock()
 
     def on_message_received(self, msg: can.Message) -> None:
@@ -111,6 +112,7 @@ class Progress(can.Listener):
         with self.lock:
             self.frames += 1
             self.t_last_frame = msg.timestamp
+            self.seen.add(fid)
             if fid != contract.ER_PRICE_ID and not 0 < fid - contract.MC_BASE <= self.n:
                 return
             try:
@@ -174,13 +176,16 @@ def _bound_udp_ports() -> set[int]:
 
 def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
                extra: dict[str, list[str]] | None = None,
-               rt_priority: int = RT_PRIORITY, keys: Path | None = None) -> list[NodeSpec]:
+               rt_priority: int = RT_PRIORITY, keys: Path | None = None,
+               exclude: frozenset[str] = frozenset()) -> list[NodeSpec]:
     """Argv for every node. Agents and plant first; the router last, since its first
     price frame is t = 0 of the schedule. Every node runs under SCHED_FIFO
     ``rt_priority`` where the OS allows it (0: not), as firmware on an embedded Linux
     would; plant and router too, or the agents starve them on an overloaded host.
     ``keys``: the key set directory (each node gets ``--key DIR/<node>.key``); None:
-    every node runs ``--insecure``."""
+    every node runs ``--insecure``. ``exclude``: nodes not started here (a device under
+    test takes their place: `bess-ded restbus`); an agent's configuration file is still
+    written, for the device."""
     extra = extra or {}
 
     def key(name: str) -> list[str]:
@@ -195,9 +200,13 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
         path = cfg_dir / f"agent_{cfg.id}.toml"
         path.write_text(cfg.to_toml())
         name = f"agent_{cfg.id}"
+        if name in exclude:
+            continue
         specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)
                               + bus.argv() + rt + extra.get(name, [])))
     for role in SIM_NODES:
+        if role in exclude:
+            continue
         specs.append(NodeSpec(role, py + ["sim.cli", role, "--scenario", str(scenario_path),
                                           "--period", repr(sc.ts), "--counters-json",
                                           str(counters_path(out, role))]
@@ -304,7 +313,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
            quiet: bool = False, rt_priority: int = RT_PRIORITY,
            actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]] = (),
            plot: bool = True, time_scale: float = 1.0, keys: Path | None = None,
-           insecure: bool = False) -> Recording:
+           insecure: bool = False, dut: str | None = None, dut_wait_s: float = 60.0,
+           on_ready: Callable[[Path | None], None] | None = None) -> Recording:
     """Run the scenario on the bus for ``duration`` s of price time (default: the
     scenario's). ``extra`` adds argv per node (fault flags),
     ``delays`` starts a node late (s after t = 0), ``actions`` calls
@@ -313,6 +323,13 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     stopped as usual). ``plot=False`` skips bus_run.png (matplotlib's import and render
     cost ~20 s in the QEMU guest). ``time_scale``: the factor ``sc`` was stretched by,
     for the plot's axis.
+
+    ``dut``: a node of the scenario ("agent_3", "plant") that is not started here: a
+    device under test on the same bus takes its place (`bess-ded restbus`). The router
+    starts only once every frame the device sends has been heard (within
+    ``dut_wait_s``, else BusRunError), so t = 0 finds it running. ``on_ready(key_dir)``
+    is called once the key set and the agents' configuration files are written, before
+    any node starts (to tell the operator, or a test, what to give the device).
 
     SIGINT or SIGTERM stops the run early: the nodes are stopped and the outputs are
     written for what was recorded, with the verdict marked interrupted. Every node that
@@ -329,7 +346,10 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
         counters_path(out, role).unlink(missing_ok=True)
     codec = FrameCodec()
     key_dir = None if insecure else keys or provision_keys(sc, out / "keys")
-    specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority, key_dir)
+    specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority, key_dir,
+                       frozenset({dut}) if dut else frozenset())
+    if on_ready is not None:
+        on_ready(key_dir)
     for s in specs:
         s.delay = (delays or {}).get(s.name, 0.0)
     monitor_keys = (load_key_set(key_dir) if key_dir is not None else
@@ -345,7 +365,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     try:
         with _sigterm_interrupts():
             try:
-                _run_nodes(specs, logdir, progress, duration, quiet, actions, deaths)
+                _run_nodes(specs, logdir, progress, duration, quiet, actions, deaths,
+                           _dut_ids(sc, dut) if dut else frozenset(), dut_wait_s)
             except KeyboardInterrupt:
                 interrupted = True
                 if not quiet:
@@ -393,12 +414,18 @@ class _Until(can.Listener):
 def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration: float,
                quiet: bool,
                actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]],
-               deaths: list[tuple[str, float, int]]) -> None:
+               deaths: list[tuple[str, float, int]],
+               dut_ids: frozenset[int] = frozenset(), dut_wait_s: float = 60.0) -> None:
     # All at once (the router last): started one after the other, each would start
-    # while the others already run, which in the QEMU guest took ~40 s per node.
+    # while the others already run, which in the QEMU guest took ~40 s per node. With a
+    # device under test, the router waits until the device is heard.
+    held = [s for s in specs if dut_ids and s.name == "router"]
     for s in specs:
-        if s.delay == 0:
+        if s.delay == 0 and s not in held:
             start(s, logdir)
+    if held:
+        _await_device(specs, logdir, progress, dut_ids, dut_wait_s, quiet)
+        start(held[0], logdir)
     t_start = time.monotonic()
     while progress.t_first_price is None:
         if time.monotonic() - t_start > START_TIMEOUT_S:
@@ -436,6 +463,37 @@ def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration
         time.sleep(0.05)
     if not quiet and tty:
         print(file=sys.stderr)
+
+
+def _dut_ids(sc: Scenario, dut: str) -> frozenset[int]:
+    """The frames a device under test must be heard sending before t = 0."""
+    if dut == "plant":
+        return frozenset(contract.STATUS_BASE + i for i in range(1, sc.n + 1))
+    i = int(dut.removeprefix("agent_"))
+    return frozenset({contract.MC_BASE + i, contract.SETPOINT_BASE + i})
+
+
+def _await_device(specs: list[NodeSpec], logdir: Path, progress: Progress,
+                  ids: frozenset[int], wait_s: float, quiet: bool) -> None:
+    t_start = time.monotonic()
+    last_note = t_start
+    while True:
+        with progress.lock:
+            missing = ids - progress.seen
+        if not missing:
+            return
+        now = time.monotonic()
+        if now - t_start > wait_s:
+            raise BusRunError(f"the device under test sent no "
+                              f"{', '.join(f'0x{i:03X}' for i in sorted(missing))} within "
+                              f"{wait_s:g} s: is it on this bus, with this run's key file?")
+        if not quiet and now - last_note >= 5.0:
+            last_note = now
+            print(f"  waiting for the device under test ({now - t_start:.0f} s): no "
+                  f"{', '.join(f'0x{i:03X}' for i in sorted(missing))} yet",
+                  file=sys.stderr, flush=True)
+        _check_alive(specs, logdir)
+        time.sleep(0.05)
 
 
 RECORDER_QUIET_S = 0.5  # the recorder is done when no frame came for this long

@@ -40,6 +40,7 @@ COMMANDS: tuple[str, ...] = (
     "compare",   # every controller on one scenario
     "bench",     # micro-benchmarks of the control core and the simulator
     "up",        # a whole case as processes on a CAN bus
+    "restbus",   # the fleet but one node, for a device under test on the bus
     "analyze",   # metrics, anomalies and plots from any recorded log
     "record",    # capture a bus to a candump log
     "agent",     # one agent firmware node

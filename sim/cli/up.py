@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -28,6 +29,8 @@ from firmware_py.__main__ import add_bus_arguments
 from firmware_py.errors import ConfigError, ParameterError
 
 if TYPE_CHECKING:
+    from ..busrun import BusOptions
+    from ..runreport import Recording
     from ..scenario import Scenario
 
 # In tools/vcan-run's QEMU TCG guest (VCAN_RUN_GUEST=1) Python runs ~20x slower: at
@@ -39,13 +42,20 @@ IN_PROCESS_INTERFACES = ("virtual",)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from firmware_py.cliargs import positive_float
-
     from ._common import one_line_errors
 
     p = one_line_errors(sub.add_parser(
         "up", help="run router, plant and every agent as processes on a bus",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter))
+    add_run_arguments(p)
+    p.set_defaults(func=run)
+
+
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of a fleet run on a bus (`up`, `restbus`): scenario, bus, duration,
+    output, time scale, keys."""
+    from firmware_py.cliargs import positive_float
+
     p.add_argument("--case", required=True, metavar="CASE",
                    help="a case number (1-7, the paper's cases) or a path to a scenario .toml")
     p.add_argument("--variant", metavar="LABEL",
@@ -54,7 +64,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_bus_arguments(p)
     p.add_argument("--duration", type=positive_float(), metavar="S",
                    help="seconds of price time (default: the scenario's duration)")
-    p.add_argument("--out", type=Path, help="output directory (default: runs/up-<scenario>)")
+    p.add_argument("--out", type=Path, help="output directory (default: runs/<command>-"
+                   "<scenario>)")
     p.add_argument("--time-scale", type=positive_float(), metavar="F",
                    help="stretch the time axis by F (Ts·F, k/F, h/F²: the same discrete "
                    "system) for hosts too slow for Ts = 10 ms, e.g. an emulated guest "
@@ -68,12 +79,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     k.add_argument("--insecure", action="store_true",
                    help="demo mode: every node signs with the public all-zero key and warns "
                         "(docs/security.md)")
-    p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
+@dataclass
+class RunPlan:
+    """A fleet run as the options describe it, checked and announced."""
+
+    sc: Scenario          # variant chosen, time scale applied
+    bus: BusOptions
+    duration: float       # s of (scaled) price time
+    scale: float
+    out: Path
+
+
+def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
+    """Check the options of a fleet run and print its banner (``nodes``: what runs)."""
     from .. import busrun
-    from ..runreport import summary_lines
     from ..scenario import scaled
     from ._common import resolve_scenario
 
@@ -83,20 +104,21 @@ def run(args: argparse.Namespace) -> int:
     kw = bus.resolved()  # checks the JSON (and the keys) before anything starts
     if kw["interface"] in IN_PROCESS_INTERFACES:
         raise ParameterError("--interface", "a bus that connects processes (udp_multicast, "
-                             "socketcan, ...): `up` runs every node as its own process, and "
-                             f"python-can's {kw['interface']!r} bus exists inside one process "
-                             "only", kw["interface"])
+                             f"socketcan, ...): `{command}` runs every node as its own "
+                             f"process, and python-can's {kw['interface']!r} bus exists "
+                             "inside one process only", kw["interface"])
     scale = args.time_scale
     if scale is None and os.environ.get("VCAN_RUN_GUEST") == "1":
         scale = GUEST_TIME_SCALE
-        print(f"bess-ded up: --time-scale {scale:g} (VCAN_RUN_GUEST=1: the emulated guest is "
-              f"too slow for Ts = {sc.ts * 1000:g} ms; give --time-scale 1 to insist)")
+        print(f"bess-ded {command}: --time-scale {scale:g} (VCAN_RUN_GUEST=1: the emulated "
+              f"guest is too slow for Ts = {sc.ts * 1000:g} ms; give --time-scale 1 to "
+              "insist)")
     scale = scale or 1.0
     sc = scaled(sc, scale)
     duration = sc.duration if args.duration is None else args.duration * scale
-    out = args.out or Path("runs") / f"up-{sc.name}"
+    out = args.out or Path("runs") / f"{command}-{sc.name}"
     bus, port = busrun.private_port(bus)
-    print(f"bess-ded up: {sc.title or sc.name}{chosen}: {sc.n} agents + plant + router for "
+    print(f"bess-ded {command}: {sc.title or sc.name}{chosen}: {nodes.format(n=sc.n)} for "
           f"{duration / scale:g} s" + (f" (run at ×{scale:g}: {duration:g} s)"
                                        if scale != 1 else ""))
     print(f"  bus: {bus.resolved()}" + (f" (port {port} private to this run; name one with "
@@ -111,12 +133,27 @@ def run(args: argparse.Namespace) -> int:
               "forge frames")
     else:
         print(f"  keys: a fresh key set for this run in {out / 'keys'}/")
-    rec = busrun.record(sc, out, bus, duration=duration, plot=not args.no_plot,
-                        time_scale=scale, keys=args.keys, insecure=args.insecure)
-    for line in summary_lines(rec.metrics, rec.verdict, scale):
+    return RunPlan(sc, bus, duration, scale, out)
+
+
+def print_report(plan: RunPlan, rec: Recording) -> int:
+    """The summary, the files written; the exit code of the verdict."""
+    from ..runreport import summary_lines
+
+    for line in summary_lines(rec.metrics, rec.verdict, plan.scale):
         print(line)
-    print(f"  wrote {', '.join(map(str, [out / 'run.log', *rec.written]))}")
+    print(f"  wrote {', '.join(map(str, [plan.out / 'run.log', *rec.written]))}")
     return rec.verdict.exit_code
+
+
+def run(args: argparse.Namespace) -> int:
+    from .. import busrun
+
+    plan = plan_run(args, "up", "{n} agents + plant + router")
+    rec = busrun.record(plan.sc, plan.out, plan.bus, duration=plan.duration,
+                        plot=not args.no_plot, time_scale=plan.scale, keys=args.keys,
+                        insecure=args.insecure)
+    return print_report(plan, rec)
 
 
 def check_key_set(keys: Path, n: int) -> str:

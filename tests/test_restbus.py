@@ -1,0 +1,79 @@
+"""`bess-ded restbus`: the fleet but one node, with a device under test in its place.
+
+The device here is firmware_py's own agent, started by hand from what restbus prints
+(its configuration and key file, the bus), as an operator would start a device on
+can0: restbus must wait for it, then run and judge the whole fleet, the device's
+frames included, as `bess-ded up` does.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from sim.cli import main
+
+DEVICE_HINT = re.compile(r"device under test: (\S+), waited for up to .*?; e\.g\. (.*)$")
+
+
+@pytest.mark.realtime
+def test_restbus_with_a_hand_started_agent_converges_like_up(tmp_path: Path) -> None:
+    """Expected (any load): `restbus --case 1 --dut 3` prints how to start agent 3 (its
+    config and key file from this run), waits for it, and the whole fleet converges
+    (< 1e-3) with agent 3 dispatching: exit 0 or 3 (deadline misses and the like on a
+    loaded host), never 1; the device's MC frames are in the recording and its frames
+    verify with the run's keys (no auth_failed)."""
+    out = tmp_path / "rb"
+    rb = subprocess.Popen([sys.executable, "-m", "sim.cli", "restbus", "--case", "1",
+                           "--dut", "3", "--duration", "8", "--no-plot", "--out", str(out)],
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    device: subprocess.Popen[bytes] | None = None
+    text = []
+    try:
+        assert rb.stdout is not None
+        for line in rb.stdout:
+            text.append(line)
+            m = DEVICE_HINT.search(line)
+            if m and device is None:
+                assert m.group(1) == "agent_3"
+                cmd = shlex.split(m.group(2))
+                assert cmd[:2] == ["bess-ded", "agent"]
+                device = subprocess.Popen([sys.executable, "-m", "firmware_py", *cmd[2:]],
+                                          stderr=subprocess.DEVNULL)
+        rb.wait(timeout=300)
+    finally:
+        for p in (rb, device):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                p.wait(timeout=30)
+    log = "".join(text)
+    assert device is not None, log
+    assert rb.returncode in (0, 3), log
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["final_error"] < 1e-3, log
+    assert m["verdict"]["converged"], m["verdict"]
+    assert "agent_3" not in m["exit_codes"]  # not a node of restbus's own
+    assert "auth_failed" not in {a["kind"] for a in m["anomalies"]}, m["anomalies"]
+    assert m["node_ticks"]["agent_3"] > 500  # its frames were recorded and counted
+
+
+def test_restbus_without_a_device_gives_up_naming_the_missing_frames(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["restbus", "--case", "1", "--dut", "2", "--duration", "2", "--no-plot",
+                 "--wait", "3", "--out", str(tmp_path / "rb")]) == 2
+    err = capsys.readouterr().err
+    assert "bess-ded: error: the device under test sent no 0x102, 0x202 within 3 s" in err
+
+
+@pytest.mark.parametrize("dut", ["5", "0", "x", "agent_3"])
+def test_restbus_rejects_a_device_outside_the_fleet(
+        dut: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["restbus", "--case", "1", "--dut", dut, "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"--dut: expected an agent number in 1..4 or 'plant', but got '{dut}'" in err
