@@ -30,8 +30,13 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
     add_rt_argument(p)
     p.add_argument("--duration", type=positive_float(), metavar="S",
                    help="stop after S seconds (default: run until SIGINT/SIGTERM)")
-    p.add_argument("--period", type=positive_float(), default=0.01, metavar="S",
-                   help="tick period of the node (default: 0.01 s)")
+    p.add_argument("--time-scale", type=positive_float(), default=1.0, metavar="F",
+                   help="run the scenario stretched by F (Ts·F, k/F, h/F², every cycle and "
+                   "timeout ×F), as `bess-ded up --time-scale F` runs it; give the agents "
+                   "the configuration files such a run writes (default: 1)")
+    p.add_argument("--period", type=positive_float(), default=None, metavar="S",
+                   help="tick period of the node (default: the scenario's Ts, after the "
+                   "time scale)")
     p.add_argument("--counters-json", metavar="FILE",
                    help="at exit, write the node's ticks and counters (deadline misses, "
                         "rejected frames by cause) to FILE as JSON: unlike the agents, the "
@@ -39,13 +44,21 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def load_node_scenario(args: argparse.Namespace) -> Any:
-    from ..scenario import load_case, load_scenario
+    """The scenario the flags name, stretched by --time-scale; sets the default --period
+    to its Ts."""
+    from ..scenario import load_case, load_scenario, scaled
 
     if args.case is not None:
         if not args.case.isdigit():
             raise ParameterError("--case", "a case number (use --scenario for a file)", args.case)
-        return load_case(int(args.case))
-    return load_scenario(args.scenario)
+        sc = load_case(int(args.case))
+    else:
+        sc = load_scenario(args.scenario)
+    if args.time_scale != 1.0:
+        sc = scaled(sc, args.time_scale)
+    if args.period is None:
+        args.period = sc.ts
+    return sc
 
 
 def serve(node: Any, args: argparse.Namespace) -> int:
