@@ -416,22 +416,15 @@ def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration
                actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]],
                deaths: list[tuple[str, float, int]],
                dut_ids: frozenset[int] = frozenset(), dut_wait_s: float = 60.0) -> None:
-    # All at once but the router: started one after the other, each would start while
-    # the others already run, which in the QEMU guest took ~40 s per node. The router
-    # starts once every other node (and a device under test) is heard, so that its first
-    # price frame, t = 0, finds the fleet running: an agent is INIT until it has a price
-    # and its plant's status.
-    held = [s for s in specs if s.name == "router"]
+    # All at once (the router last): started one after the other, each would start
+    # while the others already run, which in the QEMU guest took ~40 s per node. With a
+    # device under test, the router waits until the device is heard.
+    held = [s for s in specs if dut_ids and s.name == "router"]
     for s in specs:
         if s.delay == 0 and s not in held:
             start(s, logdir)
     if held:
-        fleet = _fleet_ids(specs, progress.n) - dut_ids
-        _await(specs, logdir, progress, fleet, START_TIMEOUT_S, quiet,
-               "node(s) of this run sent no {missing} within {wait:g} s: see " + str(logdir))
-        _await(specs, logdir, progress, dut_ids, dut_wait_s, quiet,
-               "the device under test sent no {missing} within {wait:g} s: is it on this "
-               "bus, with this run's key file?")
+        _await_device(specs, logdir, progress, dut_ids, dut_wait_s, quiet)
         start(held[0], logdir)
     t_start = time.monotonic()
     while progress.t_first_price is None:
@@ -480,19 +473,8 @@ def _dut_ids(sc: Scenario, dut: str) -> frozenset[int]:
     return frozenset({contract.MC_BASE + i, contract.SETPOINT_BASE + i})
 
 
-def _fleet_ids(specs: list[NodeSpec], n: int) -> frozenset[int]:
-    """A frame of each agent started with the run (its MC) and of the plant (every
-    status), if started here: what the router waits for (not a node started late)."""
-    names = {s.name for s in specs if s.delay == 0}
-    ids = {contract.MC_BASE + i for i in range(1, n + 1) if f"agent_{i}" in names}
-    if "plant" in names:
-        ids |= {contract.STATUS_BASE + i for i in range(1, n + 1)}
-    return frozenset(ids)
-
-
-def _await(specs: list[NodeSpec], logdir: Path, progress: Progress, ids: frozenset[int],
-           wait_s: float, quiet: bool, failure: str) -> None:
-    """Until every frame ID in ``ids`` has been heard (BusRunError after ``wait_s``)."""
+def _await_device(specs: list[NodeSpec], logdir: Path, progress: Progress,
+                  ids: frozenset[int], wait_s: float, quiet: bool) -> None:
     t_start = time.monotonic()
     last_note = t_start
     while True:
@@ -501,12 +483,15 @@ def _await(specs: list[NodeSpec], logdir: Path, progress: Progress, ids: frozens
         if not missing:
             return
         now = time.monotonic()
-        names = ", ".join(f"0x{i:03X}" for i in sorted(missing))
         if now - t_start > wait_s:
-            raise BusRunError(failure.format(missing=names, wait=wait_s))
+            raise BusRunError(f"the device under test sent no "
+                              f"{', '.join(f'0x{i:03X}' for i in sorted(missing))} within "
+                              f"{wait_s:g} s: is it on this bus, with this run's key file?")
         if not quiet and now - last_note >= 5.0:
             last_note = now
-            print(f"  waiting ({now - t_start:.0f} s) for {names}", file=sys.stderr, flush=True)
+            print(f"  waiting for the device under test ({now - t_start:.0f} s): no "
+                  f"{', '.join(f'0x{i:03X}' for i in sorted(missing))} yet",
+                  file=sys.stderr, flush=True)
         _check_alive(specs, logdir)
         time.sleep(0.05)
 
