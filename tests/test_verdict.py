@@ -259,8 +259,11 @@ def test_private_port_only_where_needed() -> None:
 @pytest.mark.realtime
 def test_concurrent_up_runs_do_not_hear_each_other(tmp_path: Path) -> None:
     """Two `bess-ded up --case 1` with no bus flags at once: each on a private port, each
-    converges with its own handful of resets and no foreign traffic. (Deadline misses and
-    bus silences may be reported on a loaded host: they are not asserted.)"""
+    reaches the price (final error < 1e-3) with its own handful of resets and no foreign
+    traffic. (Deadline misses and bus silences may be reported on a loaded host: they
+    are not asserted. Nor is the verdict's "converged": CI once starved both runs for
+    0.3 s at their very end, beside stress-ng, and an agent rightly went SAFE on a status
+    timeout; a NOT CONVERGED verdict must then come with the starvation's evidence.)"""
     procs = [subprocess.Popen([sys.executable, "-m", "sim.cli", "up", "--case", "1",
                                "--duration", "8", "--no-plot", "--out", str(tmp_path / f"r{i}")],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=ROOT)
@@ -269,8 +272,11 @@ def test_concurrent_up_runs_do_not_hear_each_other(tmp_path: Path) -> None:
     ports = set()
     for i, (p, out) in enumerate(zip(procs, outs, strict=True)):
         m = json.loads((tmp_path / f"r{i}" / "metrics.json").read_text())
-        assert p.returncode in (EXIT_OK, EXIT_ANOMALIES), out
-        assert m["verdict"]["converged"], out
+        assert p.returncode in (EXIT_OK, EXIT_ANOMALIES, EXIT_NOT_CONVERGED), out
+        if not m["verdict"]["converged"]:
+            kinds = {a["kind"] for a in m["anomalies"]}
+            assert kinds & {"bus_silence", "node_silent", "deadline_misses", "price_timeout",
+                            "status_timeout"}, out
         assert m["final_error"] < 1e-3 and max(m["resets"]) <= 20, out
         assert not [a for a in m["anomalies"] if a["kind"] in ("foreign_traffic",
                                                                "malformed_frames")], out
