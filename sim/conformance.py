@@ -40,6 +40,7 @@ from firmware_py import contract, secoc
 from firmware_py.config import AgentConfig
 from firmware_py.contract import Command, State
 from firmware_py.controllers import PIController
+from firmware_py.errors import BessDedError
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime
@@ -300,7 +301,8 @@ class Mismatch:
     got: Any
 
     def __str__(self) -> str:
-        return (f"t = {self.t:.3f} s (DUT tick {self.tick}, step {self.step}): {self.message}."
+        return (f"t = {self.t:.3f} s (the device's tick {self.tick}, step {self.step}): "
+                f"{self.message}."
                 f"{self.signal} = {self.got!r}, expected {self.expected!r}")
 
 
@@ -390,7 +392,6 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
     own = {mc_id, sp_id, diag_id}
     syncs = {contract.SYNC_OF[mc_id]: mc_id, contract.SYNC_OF[sp_id]: sp_id}
     outcome = Outcome()
-    ts = cfg.controller.ts
     dut_groups = _tick_groups(frames, mc_id, own | set(syncs))
     if not dut_groups:
         outcome.problems.append("no MC frame of the DUT was recorded")
@@ -432,7 +433,8 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
                     for f in inputs[sure:cut]:
                         twin.rt.on_frame(f.msg, f.t)
                     sent = twin.rt.tick(t_guess)
-                    diffs = _compare(codec, sent, group, outcome.ticks, step, t_tick, ts)
+                    diffs = _compare(codec, sent, group, outcome.ticks, step,
+                                     t_tick - first_sent)
                     if not diffs:
                         best = (twin, cut, [])
                         break
@@ -481,7 +483,9 @@ def _tick_groups(frames: Sequence[Frame], mc_id: int, dut_ids: set[int]) -> list
 
 
 def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence[Frame],
-             tick: int, step: str, t: float, ts: float) -> list[Mismatch]:
+             tick: int, step: str, t: float) -> list[Mismatch]:
+    """The DUT's frames of one tick against the oracle's (``t``: from the schedule's
+    start, for the report)."""
     got = [f.msg for f in group if f.msg.arbitration_id not in contract.SYNCED_BY]
     exp = [m for m in expected if m.arbitration_id not in contract.SYNCED_BY]
     diffs: list[Mismatch] = []
@@ -491,7 +495,12 @@ def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence
         return [Mismatch(t, tick, step, "frames of the tick", "", names_exp, names_got)]
     for e, g in zip(exp, got, strict=True):
         kind = codec.name_of(e.arbitration_id).split("_")[-1]
-        se, sg = _signals(codec, e), _signals(codec, g)
+        se = _signals(codec, e)
+        try:
+            sg = _signals(codec, g)
+        except BessDedError as err:
+            diffs.append(Mismatch(t, tick, step, kind, "frame", "a frame of the DBC", str(err)))
+            continue
         for name, value in se.items():
             if name in ("Mac", "Counter", "CRC", "DeadlineMisses"):
                 continue
@@ -527,7 +536,11 @@ def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
         if f.sent:
             continue
         if fid in syncs:
-            s = _signals(codec, f.msg)
+            try:
+                s = _signals(codec, f.msg)
+            except BessDedError as e:
+                outcome.auth_errors.append(f"t = {f.t:.3f} s: {e}")
+                continue
             fv = s["Boot"] << contract.FV_COUNT_BITS | s["Count"]
             if not secoc.frame_verifies(key, fid, f.msg.data, fv):
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} MAC does "
@@ -623,7 +636,7 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
             # check the rest of the schedule with that deviation modelled
             rest = check(cfg, keyring, dut_key, frames, codec, deviation)
             outcome.explained_by[must] = what
-            outcome.steps_seen = rest.steps_seen
+            outcome.steps_seen, outcome.ticks = rest.steps_seen, rest.ticks
             outcome.mismatches[1:] = rest.mismatches
             return
 
@@ -697,10 +710,15 @@ def drive(bus: can.BusABC, planned: Sequence[Planned], dut_ids: set[int], diag_i
     record: list[Frame] = []
     lock = threading.Lock()
     heard = threading.Event()
+    # the tester's own frames on the DUT's IDs (impersonation tests), should the
+    # interface echo them
+    ours = {(p.msg.arbitration_id, bytes(p.msg.data)) for p in planned}
 
     class Rec(can.Listener):
         def on_message_received(self, msg: can.Message) -> None:
-            if msg.arbitration_id in dut_ids and not msg.is_error_frame:
+            if (msg.arbitration_id in dut_ids and not msg.is_error_frame
+                    and not msg.is_extended_id
+                    and (msg.arbitration_id, bytes(msg.data)) not in ours):
                 with lock:
                     record.append(Frame(msg.timestamp, msg, False))
                 if msg.arbitration_id == diag_id:

@@ -41,6 +41,7 @@ COMMANDS: tuple[str, ...] = (
     "bench",     # micro-benchmarks of the control core and the simulator
     "up",        # a whole case as processes on a CAN bus
     "restbus",   # the fleet but one node, for a device under test on the bus
+    "conformance",  # prove an agent node conformant over the bus
     "analyze",   # metrics, anomalies and plots from any recorded log
     "record",    # capture a bus to a candump log
     "agent",     # one agent firmware node
