@@ -142,22 +142,40 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     def q(x: float) -> int:
         return round(x * (1 << 24))
 
+    # Until the control step every input sits just off the DUT's λ(0), so that |ξ| stays
+    # inside the reset band; at tick 80 the inputs move to the other side: a zero
+    # crossing that only an agent armed from the start resets on (BAND-1).
+    lam0 = cfg.lambda0
+    weights = sum(n.weight for n in cfg.neighbours) + (1.0 if cfg.pinned else 0.0)
+    offset = cfg.controller.band / (2 * weights) if weights else 0.0
+    if cfg.pinned and not cfg.rho_min + offset <= lam0 <= cfg.rho_max - offset:
+        lam0, offset = price, 0.0  # a price at λ(0) would be implausible: no BAND-1 test
+
+    def start_value(k: int) -> float:
+        return lam0 - offset if k < 80 else lam0 + offset
+
+    def ramp(k: int, target: float) -> float:
+        """From the start value to ``target`` over the first 60 ticks of control."""
+        w = min(1.0, max(0.0, (k - at["control"]) / 60))
+        return start_value(k) + (target - start_value(k)) * w
+
     def lam_j(j: int, k: int) -> int:
-        """Neighbour j's λ at tick k: near ρ, then from the control step on, a slow sine
-        (per j) with steps below the plausibility limit and one-tick pulses of either
-        sign: a pulse against the sign of ξ is a zero crossing at once followed by
-        another (a reset sample followed by a crossing: BAND-2, STEP-2..5)."""
+        """Neighbour j's λ at tick k: from the control step on, a slow sine (per j) with
+        steps below the plausibility limit and one-tick pulses of either sign: a pulse
+        against the sign of ξ is a zero crossing at once followed by another (a reset
+        sample followed by a crossing: BAND-2, STEP-2..5)."""
         base = price + 0.05 * (nbrs.index(j) + 1) * (-1) ** j
         if k < at["control"]:
-            return q(base)
-        k -= at["control"]
-        square = 0.04 if (k // 70) % 2 else -0.04
-        pulse = PULSE if k % 20 == 10 and k < 340 else 0.0
-        pulse *= -1 if k % 40 == 10 else 1
-        return q(base + square + pulse + 0.2 * math.sin(2 * math.pi * k / (230 + 17 * j)))
+            return q(start_value(k))
+        c = k - at["control"]
+        square = 0.04 if (c // 70) % 2 else -0.04
+        pulse = PULSE if c % 20 == 10 and c < 340 else 0.0
+        pulse *= -1 if c % 40 == 10 else 1
+        return q(ramp(k, base + square + pulse + 0.2 * math.sin(2 * math.pi * c /
+                                                                  (230 + 17 * j))))
 
-    rho, status = q(price), {"FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0,
-                             "PowerLimited": 0, "Power": 0, "Soc": 100}
+    status = {"FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+              "Power": 0, "Soc": 100}
     inputs = ["ER_Price", "ER_Command", status_name(i), *map(mc_name, nbrs)]
     for name in inputs:
         add(0, "start", tx.sync(name), f"sync of {name}")
@@ -178,7 +196,7 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             add(k + 0.5, step, msg)
             genuine.append(msg)
         if price_every(k) and not silent_price:
-            r = rho
+            r = q(ramp(k, price))
             if 20 <= k - at["content"] < 25:
                 r = q(6.0)  # above rho_max: implausible
             elif 40 <= k - at["content"] < 70:
@@ -201,7 +219,8 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k == at["authentication"] + 40:  # the right key, but a boot never announced
             later = FleetSender(codec, keys, boot=tx.boot + 5)
             add(k + 0.6, step, later.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
-                                                        "Rho": rho}), "frame from another boot")
+                                                        "Rho": q(price)}),
+                "frame from another boot")
         if k == at["content"] + 5:
             add(k + 0.6, step, can.Message(arbitration_id=0x100 + i, is_extended_id=True,
                                            data=bytes(8)), "extended ID")
@@ -281,13 +300,19 @@ it). Used only to name the requirement when the DUT fails."""
 
 @dataclass(frozen=True)
 class Frame:
-    """A frame on the bus: ``t`` in the tester's clock (s); ``sent``: by the tester."""
+    """A frame on the bus: ``t`` in the tester's clock (s); ``sent``: by the tester,
+    who sent it between ``t`` and ``t_end`` (the clock read before and after the send)."""
 
     t: float
     msg: can.Message
     sent: bool
     step: str = ""
     note: str = ""
+    t_end: float | None = None
+
+    @property
+    def done(self) -> float:
+        return self.t if self.t_end is None else self.t_end
 
 
 @dataclass
@@ -421,17 +446,18 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
             # inputs sent before the previous tick's frames surely reached the DUT before
             # this tick; those sent since may or may not have
             sure = pending
-            while sure < len(inputs) and inputs[sure].t < prev_t - 0.001:
+            while sure < len(inputs) and inputs[sure].done < prev_t - 0.001:
                 sure += 1
             maybe = pending + sum(1 for f in inputs[pending:] if f.t < t_tick)
             for f in inputs[pending:sure]:
-                oracle.rt.on_frame(f.msg, f.t)
+                oracle.rt.on_frame(f.msg, f.done)
             best: tuple[_Oracle, int, list[Mismatch]] | None = None
             for cut in range(max(maybe, sure), sure - 1, -1):
-                for t_guess in (t_tick, (t_tick + prev_t) / 2, prev_t + 1e-4):
-                    twin = oracle.clone()
-                    for f in inputs[sure:cut]:
-                        twin.rt.on_frame(f.msg, f.t)
+                base = oracle.clone()
+                for f in inputs[sure:cut]:
+                    base.rt.on_frame(f.msg, f.done)
+                for t_guess in _tick_times(base.rt, prev_t, t_tick):
+                    twin = base.clone()
                     sent = twin.rt.tick(t_guess)
                     diffs = _compare(codec, sent, group, outcome.ticks, step,
                                      t_tick - first_sent)
@@ -452,6 +478,19 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
             outcome.ticks += 1
             prev_t = t_tick
     return outcome
+
+
+def _tick_times(rt: AgentRuntime, prev_t: float, t_tick: float) -> list[float]:
+    """When the DUT may have ticked, as far as timeouts can tell: at the receive time of
+    its frame, or just before or after any instant where an input goes stale (the
+    DUT's receive times are not ours: frames reach its loop later on a busy host)."""
+    cfg = rt.cfg
+    stale = [s.last_rx + cfg.neighbour_timeout_periods * rt.period
+             for s in rt.neighbours.values() if s.last_rx is not None]
+    stale += [t + dt for t, dt in ((rt.price_rx, cfg.price_timeout_s),
+                                   (rt.status_rx, cfg.status_timeout_s)) if t is not None]
+    near = sorted(b for b in stale if prev_t - rt.period < b < t_tick + rt.period)
+    return [t_tick, *(b + d for b in near for d in (-1e-6, 1e-6))]
 
 
 def _step_name(inputs: Sequence[Frame], t: float) -> str:
@@ -739,9 +778,10 @@ def drive(bus: can.BusABC, planned: Sequence[Planned], dut_ids: set[int], diag_i
             delay = t0 + p.at - clock()
             if delay > 0:
                 time.sleep(delay)
+            before = clock()
             bus.send(p.msg)
             with lock:
-                record.append(Frame(clock(), p.msg, True, p.step, p.note))
+                record.append(Frame(before, p.msg, True, p.step, p.note, clock()))
             if progress is not None and int(p.at) != last_report:
                 last_report = int(p.at)
                 progress(f"t = {p.at:5.1f} s  step {p.step}")
