@@ -432,52 +432,74 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
                                 "(start the schedule only once the DUT is heard)")
         return outcome
     page = _signals(codec, align[1].msg)["Page"]
-    oracle = _Oracle(cfg, keyring, codec, deviation)
+    first = _Oracle(cfg, keyring, codec, deviation)
+    first.rt.ticks = 10 * page  # the aligned group is this tick
+    # the hypotheses: (oracle, index of the first input it has not received yet)
+    hyps: list[tuple[_Oracle, int]] = [(first, 0)]
+    start = dut_groups.index(align[0])
+    prev_t = align[0][0].t
     with _quiet_firmware():
-        oracle.rt.ticks = 10 * page  # the aligned group is this tick
-        start = dut_groups.index(align[0])
-        pending = 0  # index into inputs of the first frame not yet delivered
-        prev_t = align[0][0].t
-        for group in dut_groups[start:]:
+        # the last group may be cut short by the end of the recording
+        for group in dut_groups[start:-1]:
             t_tick = group[0].t
             step = _step_name(inputs, t_tick)
             if step:
                 outcome.steps_seen.add(step)
-            # inputs sent before the previous tick's frames surely reached the DUT before
-            # this tick; those sent since may or may not have
-            sure = pending
-            while sure < len(inputs) and inputs[sure].done < prev_t - 0.001:
-                sure += 1
-            maybe = pending + sum(1 for f in inputs[pending:] if f.t < t_tick)
-            for f in inputs[pending:sure]:
-                oracle.rt.on_frame(f.msg, f.done)
-            best: tuple[_Oracle, int, list[Mismatch]] | None = None
-            for cut in range(max(maybe, sure), sure - 1, -1):
-                base = oracle.clone()
-                for f in inputs[sure:cut]:
-                    base.rt.on_frame(f.msg, f.done)
-                for t_guess in _tick_times(base.rt, prev_t, t_tick):
-                    twin = base.clone()
-                    sent = twin.rt.tick(t_guess)
-                    diffs = _compare(codec, sent, group, outcome.ticks, step,
-                                     t_tick - first_sent)
-                    if not diffs:
-                        best = (twin, cut, [])
-                        break
-                    if best is None:
-                        best = (twin, cut, diffs)
-                if best is not None and not best[2]:
-                    break
-            assert best is not None
-            oracle, pending = best[0], best[1]
-            if best[2]:
-                outcome.mismatches.extend(best[2])
+            found: list[tuple[tuple[int, int, int, int], _Oracle, int]] = []
+            failure: tuple[_Oracle, int, list[Mismatch]] | None = None
+            for h, (oracle, pending) in enumerate(hyps):
+                # inputs sent before the DUT's previous frames reached it before this tick;
+                # those sent since may or may not have (each order is a hypothesis)
+                sure = pending
+                while sure < len(inputs) and inputs[sure].done < prev_t - 0.001:
+                    oracle.rt.on_frame(inputs[sure].msg, inputs[sure].done)
+                    sure += 1
+                maybe = sure + sum(1 for f in inputs[sure:] if f.t < t_tick)
+                # each input received when it was sent, or (a starved DUT reads its socket
+                # late and stamps the frames then) just before this tick
+                late = oracle.clone()
+                for cut in range(sure, maybe + 1):
+                    if cut > sure:
+                        f = inputs[cut - 1]
+                        oracle.rt.on_frame(f.msg, f.done)
+                        late.rt.on_frame(f.msg, max(f.done, t_tick - 1e-6))
+                    for d, chain in enumerate((oracle, late)):
+                        for g, t_guess in enumerate(_tick_times(chain.rt, prev_t, t_tick)):
+                            twin = chain.clone()
+                            diffs = _compare(codec, twin.rt.tick(t_guess), group,
+                                             outcome.ticks, step, t_tick - first_sent)
+                            if not diffs:
+                                found.append(((h, d, g, maybe - cut), twin, cut))
+                            elif failure is None or cut == maybe and d + g + h == 0:
+                                failure = (twin, cut, diffs)
+            # the likeliest first: the previous likeliest, the DUT ticking when it sent,
+            # every frame sent before that received
+            matching: dict[tuple[int, tuple], tuple[_Oracle, int]] = {}
+            for _, twin, cut in sorted(found, key=lambda m: m[0]):
+                matching.setdefault((cut, _fingerprint(twin.rt)), (twin, cut))
+            if matching:
+                hyps = list(matching.values())[:MAX_HYPOTHESES]
+            else:
+                assert failure is not None
+                outcome.mismatches.extend(failure[2])
                 if len(outcome.mismatches) >= max_mismatches:
                     break
-                _adopt(oracle.rt, codec, group, mc_id)
+                _adopt(failure[0].rt, codec, group, mc_id)
+                hyps = [(failure[0], failure[1])]
             outcome.ticks += 1
             prev_t = t_tick
     return outcome
+
+
+MAX_HYPOTHESES = 16
+
+
+def _fingerprint(rt: AgentRuntime) -> tuple:
+    """What a hypothesis remembers that later frames can tell apart (not the tick time)."""
+    return (rt.state, rt.cstate, rt.price, rt.price_rx, rt.status_rx, rt.plant_fault,
+            rt._price_candidate, rt._price_candidate_n, rt.ctrl.kts, rt.ctrl.hts,
+            tuple((s.lam, s.state, s.last_rx, s.alive) for s in rt.neighbours.values()),
+            tuple(sorted(rt.counters.items())))
 
 
 def _tick_times(rt: AgentRuntime, prev_t: float, t_tick: float) -> list[float]:
@@ -489,8 +511,16 @@ def _tick_times(rt: AgentRuntime, prev_t: float, t_tick: float) -> list[float]:
              for s in rt.neighbours.values() if s.last_rx is not None]
     stale += [t + dt for t, dt in ((rt.price_rx, cfg.price_timeout_s),
                                    (rt.status_rx, cfg.status_timeout_s)) if t is not None]
-    near = sorted(b for b in stale if prev_t - rt.period < b < t_tick + rt.period)
-    return [t_tick, *(b + d for b in near for d in (-1e-6, 1e-6))]
+    # the DUT's clock never goes back: not before this hypothesis's previous tick
+    earliest = max(prev_t - LATE_TICKS * rt.period, rt._now)
+    near = sorted(b for b in stale if earliest < b - 1e-6 and b < t_tick)
+    return [t_tick, *(b - 1e-6 for b in near)]
+
+
+LATE_TICKS = 10
+"""How late (in ticks) a DUT's loop may take a frame that the tester has sent, as far as
+its timeouts are concerned: on a starved host frames wait in the socket, and the DUT
+stamps them when it reads them (LOOP-1)."""
 
 
 def _step_name(inputs: Sequence[Frame], t: float) -> str:
@@ -739,9 +769,11 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
 
 def drive(bus: can.BusABC, planned: Sequence[Planned], dut_ids: set[int], diag_id: int,
           wait_s: float, ts: float, progress: Callable[[str], None] | None = None,
-          clock: Callable[[], float] | None = None) -> list[Frame]:
+          clock: Callable[[], float] | None = None) -> tuple[list[Frame], float]:
     """Play the schedule on ``bus`` once the DUT is heard (its Diag frame, within
-    ``wait_s``), recording the DUT's frames and the tester's own (send times)."""
+    ``wait_s``), recording the DUT's frames and the tester's own (send times). Also
+    returns how late the tester sent its latest frame (s): a loaded tester plays a
+    schedule the DUT may time out on, which the oracle then has to explain."""
     import threading
     import time
 
@@ -774,11 +806,13 @@ def drive(bus: can.BusABC, planned: Sequence[Planned], dut_ids: set[int], diag_i
         heard.wait(wait_s)  # a fresh Diag: the tick count is aligned from it
         t0 = clock() + ts / 2
         last_report = -1
+        worst = 0.0
         for p in planned:
             delay = t0 + p.at - clock()
             if delay > 0:
                 time.sleep(delay)
             before = clock()
+            worst = max(worst, before - t0 - p.at)
             bus.send(p.msg)
             with lock:
                 record.append(Frame(before, p.msg, True, p.step, p.note, clock()))
@@ -789,4 +823,4 @@ def drive(bus: can.BusABC, planned: Sequence[Planned], dut_ids: set[int], diag_i
     finally:
         notifier.stop()
     record.sort(key=lambda f: f.t)
-    return record
+    return record, worst
