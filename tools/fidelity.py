@@ -172,7 +172,8 @@ def _e(x: float) -> str:
 
 def table(results: list[Result]) -> str:
     head = (f"{'scenario':<22} {'Ts ms':>6} {'N':>3} {'stable':>6} {'max':>9} {'tail':>9} "
-            f"{'final':>9} {'cycle':>9} {'resets fx/fl':>13} {'moved':>6} {'first s':>8} {'sats':>5}")
+            f"{'final':>9} {'cycle':>9} {'resets fx/fl':>13} {'moved':>6} {'first s':>8} "
+            f"{'sats':>5}")
     rows = [head, "-" * len(head)]
     for r in results:
         first = "-" if r.first is None else f"{r.first:.3f}"
