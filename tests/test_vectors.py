@@ -57,7 +57,8 @@ def load(path: Path) -> dict[str, Any]:
 def constants(c: Controller) -> dict[str, int]:
     assert isinstance(c.ar, FixedArithmetic)
     return {"q": c.ar.q, "qc": fx.QC, "guard": fx.GUARD, "kts": int(c.kts),
-            "hts": int(c.hts), "ts": int(c.ts_q), "band": int(c.band), "dwell_samples": c.dwell_samples,
+            "hts": int(c.hts), "ts": int(c.ts_q), "band": int(c.band),
+            "dwell_samples": c.dwell_samples,
             "pow_num": c.ar._pow_num, "pow_sqrts": c.ar._pow_sqrts}
 
 
