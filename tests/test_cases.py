@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from firmware_py.controllers import DEFAULT_BAND
+from sim.graph import unpinned_components
 from sim.lockstep import run_lockstep
 from sim.metrics import compute
 from sim.scenario import Scenario, load_case
@@ -234,3 +235,27 @@ def test_fixed_and_float_twins_agree(case: int, label: str | None, ts: float) ->
         assert diff[tail].max() <= 1e-6
     else:
         assert diff.max() <= FIDELITY
+
+
+def test_fidelity_tool_runs_and_builds_connected_regular_graphs(
+        tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    """tools/fidelity.py (the full study, docs/performance.md): one case, one graph."""
+    import random
+    import runpy
+    from pathlib import Path
+
+    tool = runpy.run_path(str(Path(__file__).resolve().parent.parent / "tools" / "fidelity.py"))
+    for n in (4, 8, 31, 32):
+        degree = 4 if n % 2 else 3
+        edges = tool["random_regular_edges"](n, degree, random.Random(n))
+        deg = np.bincount(np.array(edges).ravel(), minlength=n + 1)[1:]
+        assert (deg == degree).all() and len(set(edges)) == len(edges)
+        assert unpinned_components(n, edges, [1]) == []          # connected
+    out = tmp_path / "f.json"
+    assert tool["main"](["--cases", "1", "--ts", "0.01", "--graphs", "4", "--graph-ts",
+                         "0.01", "-q", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "case1" in text and "regular4" in text
+    import json
+    res = {r["name"]: r for r in json.loads(out.read_text())["results"]}
+    assert res["case1"]["max"] <= 1e-5 and res["regular4"]["max"] <= 1e-4
