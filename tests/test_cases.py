@@ -183,7 +183,7 @@ EULER_UNSTABLE = {(3, "k=10,h=2", 0.05)}
 FINITE_TIME_CYCLE = {
     # FT never settles at these Ts: both twins end on the same discrete limit cycle
     # (peak to peak 1.74e-5 at 2.5 ms, 6.96e-5 at 5 ms, 2.78e-4 at 10 ms, equal within
-    # 1e-8 in both; their means agree within 6e-7) but out of phase: √ξ has infinite slope
+    # 9e-8 in both; their means agree within 6e-7) but out of phase: √ξ has infinite slope
     # at 0, so an LSB difference in ξ shifts the phase (at 2.5 ms the phases drift apart
     # while the cycle forms, then lock again: tail within 3.3e-8)
     (2, "finite-time", 0.0025): 1.36e-5, (2, "finite-time", 0.005): 7.98e-5,
