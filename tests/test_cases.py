@@ -1,4 +1,4 @@
-"""The paper's seven cases, run on the discrete Q24 firmware (run_lockstep) and judged
+"""The paper's seven cases, run on the discrete fixed-point firmware (run_lockstep) and judged
 with sim.metrics.compute: every case behaves as the paper says, and the fixed-point
 core agrees with its float twin."""
 
