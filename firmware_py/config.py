@@ -70,6 +70,7 @@ from typing import Any
 
 import tomli_w
 
+from . import fixedpoint as fx
 from .contract import MC_CYCLE_S, N_AGENTS_MAX, raw_range, scale, status_name, timeout_s
 from .controllers import ControllerConfig
 from .errors import ConfigError, ParameterError
@@ -324,6 +325,17 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         if not getattr(cfg, lo) <= getattr(cfg, hi):
             raise fail(f"limits.{hi}", f"expected {lo} ≤ {hi}, but got {getattr(cfg, lo)} > "
                        f"{getattr(cfg, hi)}")
+    # SET_GAINS may set k = k_max, h = h_max: their products with Ts must fit the
+    # controller's int32 Q1.30 constants as k·ts and h·ts do (fixedpoint.to_q30)
+    for name, gain in (("k_max", cfg.k_max), ("h_max", cfg.h_max)):
+        assert gain is not None
+        try:
+            fx.to_q30(gain * controller.ts, f"{name}·ts")
+        except ParameterError:
+            given = "set" if name in lim else f"the default {GAIN_HI:g}·{name[0]}"
+            raise fail(f"limits.{name}", f"expected {name}·ts < 2 (SET_GAINS may set the gain "
+                       f"to {name}; int32 Q1.30), but got {name} = {gain:g} ({given}), "
+                       f"{name}·ts = {gain * controller.ts:g}") from None
     return cfg
 
 

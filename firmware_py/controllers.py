@@ -5,8 +5,11 @@ runs): ``step(state, xi) -> (state, StepOutput)``. The clock is never read and
 nothing is printed; the runtime feeds ξ and applies the output.
 
 The algorithm is written once against an ``Arithmetic`` and instantiated twice:
-``FixedArithmetic`` (int32 Q24, saturating, what the firmware runs) and
-``FloatArithmetic`` (the float twin, used to bound the quantisation error).
+``FixedArithmetic`` (what the firmware runs: Q24 words on the wire and in ξ, Q1.30
+constants, a Q54 state with 30 guard bits, saturating; see firmware_py/fixedpoint.py)
+and ``FloatArithmetic`` (the float twin, used to bound the quantisation error).
+The λ an agent sends, and uses as its own λ in ξ, is the state rounded to Q24
+(``Controller.wire_lambda``).
 
 Controllers (u is the MC rate dλ/dt; ν is the integral of ξ):
 
@@ -60,7 +63,7 @@ class ControllerConfig:
         if self.kind not in KINDS:
             raise ParameterError("kind", f"one of {', '.join(KINDS)}", self.kind)
         fx.check_q(self.q)
-        _positive("ts", self.ts, upper=10.0)
+        _positive("ts", self.ts, upper=1.0)
         _positive("k", self.k, upper=1e4)
         if self.kind in ("pi", "reset", "dwell"):
             _positive("h", self.h, upper=1e4)
@@ -77,12 +80,11 @@ class ControllerConfig:
                 and (self.ft_exponent * 16).is_integer()):
             raise ParameterError("ft_exponent", "a in (0, 1) that is a multiple of 1/16",
                                  self.ft_exponent)
-        for name, product in (("k·ts", self.k * self.ts), ("h·ts", self.h * self.ts)):
-            if product >= 1 << (31 - self.q):
-                raise ParameterError(name, f"< {1 << (31 - self.q)} to fit int32 Q{self.q}",
-                                     product)
-            if 0 < product * (1 << self.q) < 1:
-                raise ParameterError(name, f"≥ one LSB (2**-{self.q}) of Q{self.q}", product)
+        # the controller's constants are int32 Q1.30 (fixedpoint.to_q30): < 2, and 0 or
+        # at least one LSB (2**-30)
+        for name, value in (("k·ts", self.k * self.ts), ("h·ts", self.h * self.ts),
+                            ("ts", self.ts)):
+            fx.to_q30(value, name)
 
     @property
     def dwell_samples(self) -> int:
@@ -103,15 +105,57 @@ def _positive(name: str, x: object, upper: float) -> None:
 
 
 class Arithmetic(Protocol):
-    def quantise(self, x: float, name: str) -> float | int: ...
-    def real(self, v: float | int) -> float: ...
-    def mul(self, a: float | int, b: float | int) -> float | int: ...
-    def sat(self, v: float | int) -> tuple[float | int, bool]: ...
-    def frac_pow(self, v: float | int) -> float | int: ...
+    """What the control law needs of its numbers. "Word": a Q24 value as on the wire (λ_j,
+    ρ, ξ, weights, band); "gain": a controller constant k·Ts, h·Ts, Ts; "state": λ, ν and
+    the increments, which keep more fractional bits than a word in the fixed core."""
+
+    def quantise(self, x: float, name: str) -> float | int:
+        """A configuration value or wire quantity as a word."""
+        ...
+
+    def quantise_gain(self, x: float, name: str) -> float | int:
+        """A controller constant as a gain (finer than a word: no gain error to speak of)."""
+        ...
+
+    def real(self, v: float | int) -> float:
+        """A word's real value."""
+        ...
+
+    def real_state(self, v: float | int) -> float:
+        """A state word's real value."""
+        ...
+
+    def mul(self, a: float | int, b: float | int) -> float | int:
+        """word · word → word (rounded)."""
+        ...
+
+    def gain_mul(self, c: float | int, v: float | int) -> float | int:
+        """gain · word → state word (exact in the fixed core: Q30·Q24 = Q54)."""
+        ...
+
+    def sat(self, v: float | int) -> tuple[float | int, bool]:
+        """Clamp a word to its range; (value, clamped?)."""
+        ...
+
+    def sat_state(self, v: float | int) -> tuple[float | int, bool]:
+        """Clamp a state word to its range; (value, clamped?)."""
+        ...
+
+    def narrow(self, v: float | int) -> float | int:
+        """A state word rounded to a word: the λ that goes on the wire, ν in h·Ts·ν."""
+        ...
+
+    def widen(self, v: float | int) -> float | int:
+        """A word as a state word (exact): λ(0)."""
+        ...
+
+    def frac_pow(self, v: float | int) -> float | int:
+        """|v|**a, a word."""
+        ...
 
 
 class FixedArithmetic:
-    """int32 Q-format arithmetic with counted saturation."""
+    """int32 Q-format words, int32 Q1.30 gains, int64 Q(q+30) state; counted saturation."""
 
     def __init__(self, q: int = fx.Q, exponent: float = 0.5) -> None:
         self.q = fx.check_q(q)
@@ -122,14 +166,32 @@ class FixedArithmetic:
     def quantise(self, x: float, name: str) -> int:
         return fx.to_fixed(x, name, self.q)
 
+    def quantise_gain(self, x: float, name: str) -> int:
+        return fx.to_q30(x, name)
+
     def real(self, v: float | int) -> float:
         return fx.to_float(int(v), self.q)
+
+    def real_state(self, v: float | int) -> float:
+        return fx.to_float(int(v), self.q + fx.GUARD)
 
     def mul(self, a: float | int, b: float | int) -> int:
         return fx.mul(int(a), int(b), self.q)
 
+    def gain_mul(self, c: float | int, v: float | int) -> int:
+        return int(c) * int(v)          # int32 × int32 → int64, exact (SMULL)
+
     def sat(self, v: float | int) -> tuple[int, bool]:
         return fx.saturate(int(v))
+
+    def sat_state(self, v: float | int) -> tuple[int, bool]:
+        return fx.saturate_state(int(v))
+
+    def narrow(self, v: float | int) -> int:
+        return fx.narrow(int(v))
+
+    def widen(self, v: float | int) -> int:
+        return fx.widen(int(v))
 
     def frac_pow(self, v: float | int) -> int:
         """|v|**(p/2**n): n integer square roots, then p − 1 products."""
@@ -151,14 +213,32 @@ class FloatArithmetic:
     def quantise(self, x: float, name: str) -> float:
         return float(x)
 
+    def quantise_gain(self, x: float, name: str) -> float:
+        return float(x)
+
     def real(self, v: float | int) -> float:
+        return float(v)
+
+    def real_state(self, v: float | int) -> float:
         return float(v)
 
     def mul(self, a: float | int, b: float | int) -> float:
         return a * b
 
+    def gain_mul(self, c: float | int, v: float | int) -> float:
+        return c * v
+
     def sat(self, v: float | int) -> tuple[float, bool]:
         return float(v), False
+
+    def sat_state(self, v: float | int) -> tuple[float, bool]:
+        return float(v), False
+
+    def narrow(self, v: float | int) -> float:
+        return float(v)
+
+    def widen(self, v: float | int) -> float:
+        return float(v)
 
     def frac_pow(self, v: float | int) -> float:
         return abs(v) ** self.exponent
@@ -169,11 +249,14 @@ class FloatArithmetic:
 
 @dataclass(frozen=True, slots=True)
 class ControllerState:
-    """Everything one agent's controller remembers between samples."""
+    """Everything one agent's controller remembers between samples.
 
-    lam: float | int            # λ, the marginal cost
-    nu: float | int = 0         # ν, integral of ξ since the last reset
-    xi_prev: float | int = 0    # ξ at the previous sample (zero-crossing detection)
+    λ and ν are state words (fixed core: int64 Q54 = Q24 + 30 guard bits); the λ the
+    agent sends is ``Controller.wire_lambda(state)``, not ``lam`` itself."""
+
+    lam: float | int            # λ, the marginal cost (state word)
+    nu: float | int = 0         # ν, integral of ξ since the last reset (state word)
+    xi_prev: float | int = 0    # ξ at the previous sample (zero-crossing detection), a word
     armed: bool = True          # reset band: may the next crossing reset?
     since_reset: int = 0        # samples since the last reset (the start counts as one)
     resets: int = 0
@@ -182,7 +265,7 @@ class ControllerState:
 
 @dataclass(frozen=True, slots=True)
 class StepOutput:
-    dlam: float | int   # λ increment applied this sample (= Ts·u), controller's format
+    dlam: float | int   # λ increment applied this sample (= Ts·u), a state word (Q54)
     reset: bool         # ν was reset at this sample
 
 
@@ -211,20 +294,32 @@ class Controller:
         self.fixed = fixed
         self.ar: Arithmetic = (FixedArithmetic(config.q, config.ft_exponent) if fixed
                                else FloatArithmetic(config.ft_exponent))
-        self.kts = self.ar.quantise(config.k * config.ts, "k·ts")
-        self.hts = self.ar.quantise(config.h * config.ts, "h·ts")
-        self.ts_q = self.ar.quantise(config.ts, "ts")
+        self.kts = self.ar.quantise_gain(config.k * config.ts, "k·ts")
+        self.hts = self.ar.quantise_gain(config.h * config.ts, "h·ts")
+        self.ts_q = self.ar.quantise_gain(config.ts, "ts")
         self.band = self.ar.quantise(config.band, "band")
         self.dwell_samples = config.dwell_samples
 
     def initial_state(self, lam0: float) -> ControllerState:
-        return ControllerState(lam=self.ar.quantise(lam0, "lambda0"))
+        """λ = q24(lam0) widened to the state (so λ(0) on the wire is q24(lam0))."""
+        return ControllerState(lam=self.ar.widen(self.ar.quantise(lam0, "lambda0")))
+
+    def wire_lambda(self, s: ControllerState) -> float | int:
+        """The λ the agent sends (MC frame), uses as its own λ in ξ, maps to a setpoint
+        and reports: the state's λ rounded to Q24 (fixed core), λ itself (float twin)."""
+        return self.ar.narrow(s.lam)
 
     def quantise(self, x: float, name: str = "value") -> float | int:
+        """A wire quantity (λ_j, ρ, a weight) as the core's word."""
         return self.ar.quantise(x, name)
 
     def real(self, v: float | int) -> float:
+        """A word's (wire λ, ξ) real value."""
         return self.ar.real(v)
+
+    def real_state(self, v: float | int) -> float:
+        """A state word's (λ, ν, Δλ) real value."""
+        return self.ar.real_state(v)
 
     def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
         raise NotImplementedError
@@ -232,7 +327,7 @@ class Controller:
     def _advance(self, s: ControllerState, xi: float | int, dlam: float | int, sats: int,
                  nu: float | int, reset: bool, armed: bool) -> tuple[ControllerState,
                                                                      StepOutput]:
-        lam, s1 = self.ar.sat(s.lam + dlam)
+        lam, s1 = self.ar.sat_state(s.lam + dlam)
         return (ControllerState(lam=lam, nu=nu, xi_prev=xi, armed=armed,
                                 since_reset=1 if reset else s.since_reset + 1,
                                 resets=s.resets + reset, saturations=s.saturations + sats + s1),
@@ -241,14 +336,14 @@ class Controller:
 
 class ProportionalController(Controller):
     def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
-        dlam, sat = self.ar.sat(-self.ar.mul(self.kts, xi))
+        dlam, sat = self.ar.sat_state(-self.ar.gain_mul(self.kts, xi))
         return self._advance(s, xi, dlam, sat, 0, False, s.armed)
 
 
 class FiniteTimeController(Controller):
     def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
-        mag = self.ar.mul(self.kts, self.ar.frac_pow(xi))
-        dlam, sat = self.ar.sat(-mag if xi > 0 else mag if xi < 0 else 0)
+        mag = self.ar.gain_mul(self.kts, self.ar.frac_pow(xi))
+        dlam, sat = self.ar.sat_state(-mag if xi > 0 else mag if xi < 0 else 0)
         return self._advance(s, xi, dlam, sat, 0, False, s.armed)
 
 
@@ -265,8 +360,11 @@ class PIController(Controller):
         # sample itself: in continuous time ξ = 0 there, and counting it would let a
         # crossing detected a sample late re-arm at once and fire an echo reset)
         armed = not reset and (s.armed or abs(xi) > self.band)
-        dlam, sat1 = self.ar.sat(-(self.ar.mul(self.kts, xi) + self.ar.mul(self.hts, nu)))
-        nu_next, sat2 = self.ar.sat(nu + self.ar.mul(self.ts_q, xi))
+        # every product is a gain times a word, exact; ν enters h·Ts·ν rounded to a word
+        nu_word = self.ar.narrow(nu)
+        dlam, sat1 = self.ar.sat_state(-(self.ar.gain_mul(self.kts, xi)
+                                         + self.ar.gain_mul(self.hts, nu_word)))
+        nu_next, sat2 = self.ar.sat_state(nu + self.ar.gain_mul(self.ts_q, xi))
         return self._advance(s, xi, dlam, sat1 + sat2, nu_next, reset, armed)
 
 

@@ -340,7 +340,7 @@ class AgentRuntime:
         if is_active(self.state):
             nbrs = [(s.weight, s.lam) for s in self.neighbours.values()
                     if s.alive and is_active(s.state) and s.lam is not None]
-            xi, sat = consensus_error(self.ctrl.ar, self.cstate.lam, nbrs,
+            xi, sat = consensus_error(self.ctrl.ar, self.lambda_q24, nbrs,
                                       self.pin if self.price is not None else 0,
                                       self.price or 0)
             self.cstate, _ = self.ctrl.step(self.cstate, xi)
@@ -405,12 +405,12 @@ class AgentRuntime:
 
     def _mc_frame(self) -> can.Message:
         return self.io.send(mc_name(self.cfg.id), {
-            "State": int(self.state), "Lambda": int(self.cstate.lam),
+            "State": int(self.state), "Lambda": self.lambda_q24,
             "Resets": self.cstate.resets % (self._mc_max["Resets"] + 1)})
 
     def _setpoint_frame(self) -> can.Message:
         enable = is_active(self.state)
-        p, limited = self.setpoint(int(self.cstate.lam)) if enable else (0, False)
+        p, limited = self.setpoint(self.lambda_q24) if enable else (0, False)
         self.counters["setpoint_limited"] += limited
         return self.io.send(setpoint_name(self.cfg.id), {"Enable": int(enable), "PowerSetpoint": p})
 
@@ -455,8 +455,13 @@ class AgentRuntime:
     # ------------------------------------------------------------------ reporting
 
     @property
+    def lambda_q24(self) -> int:
+        """The agent's λ as it sends it (Q24 raw): the controller state rounded to Q24."""
+        return int(self.ctrl.wire_lambda(self.cstate))
+
+    @property
     def lam(self) -> float:
-        return fx.to_float(int(self.cstate.lam))
+        return fx.to_float(self.lambda_q24)
 
     def summary(self) -> str:
         c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items()) if v) or "none"

@@ -37,7 +37,7 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
     act = np.zeros(shape, dtype=bool)
     rho_arr, seg_arr = np.zeros(steps), np.zeros(steps, dtype=int)
     resets: list[list[float]] = [[] for _ in range(n)]
-    real = ctrl.real
+    real, real_state, wire = ctrl.real, ctrl.real_state, ctrl.wire_lambda
 
     for k in range(steps):
         t = k * ts
@@ -49,20 +49,20 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
         rho, seg = sc.price_at(t)
         rho_q = q(rho, "rho")
         rho_arr[k], seg_arr[k] = rho, seg
-        lams = [s.lam for s in states]
+        lams = [wire(s) for s in states]     # the λ each agent sends at this sample
         for i, s in enumerate(states):
-            lam[k, i] = real(s.lam)
+            lam[k, i] = real(lams[i])
             act[k, i] = active[i]
             if not active[i]:
                 continue
             nbrs = [(w, lams[j]) for j, w in neighbours[i] if active[j]]
-            x, sat = consensus_error(ctrl.ar, s.lam, nbrs, pin[i], rho_q)
+            x, sat = consensus_error(ctrl.ar, lams[i], nbrs, pin[i], rho_q)
             new, out = ctrl.step(s, x)
             if sat:
                 new = replace(new, saturations=new.saturations + 1)
             xi[k, i] = real(x)
-            nu[k, i] = 0.0 if out.reset else real(s.nu)
-            u[k, i] = real(out.dlam) / ts
+            nu[k, i] = 0.0 if out.reset else real_state(s.nu)
+            u[k, i] = real_state(out.dlam) / ts
             if out.reset:
                 resets[i].append(t)
             states[i] = new

@@ -155,7 +155,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
     r = _Reader(src)
     r.only(data, "", {"name", "title", "ts", "duration", "load_kw", "controller", "graph",
                       "price", "battery", "event", "variant"})
-    ts = r.number(data, "ts", lo=1e-4, hi=10.0)
+    ts = r.number(data, "ts", lo=1e-4, hi=1.0)
     duration = r.number(data, "duration", lo=ts, hi=1e5)
 
     g = r.table(data, "graph")

@@ -70,13 +70,31 @@ def test_old_config_without_fleet_size_or_status_s_still_loads(tmp_path: Path) -
     ("fleet_size = 4", "fleet_size = 1", "agent.fleet_size"),
     ("fleet_size = 4", "fleet_size = 33", "agent.fleet_size"),
     ("status_s = 0.25", "status_s = 0.0", "timeouts.status_s"),
+    ("ts = 0.01", "ts = 1.5", "controller.ts"),          # Ts in (0, 1] s
+    ("k = 1.0", "k = 250.0", "controller.k·ts"),         # k·Ts = 2.5: not Q1.30
+    ("k_max = 2.0", "k_max = 16.0", "limits.k_max"),     # with ts = 0.2 (below)
 ])
 def test_bad_config_names_the_key(tmp_path: Path, old: str, new: str, key: str) -> None:
     text = good_text()
+    if key == "limits.k_max":   # k_max·ts = 3.2 ≥ 2 while k·ts = 0.2 is fine
+        text = text.replace("ts = 0.01", "ts = 0.2")
     assert old in text
     with pytest.raises(ConfigError) as e:
         load_agent_config(write(tmp_path, text.replace(old, new, 1)))
     assert f"[{key}]" in str(e.value) and "agent.toml" in str(e.value)
+
+
+def test_default_gain_bound_that_does_not_fit_q30_is_named(tmp_path: Path) -> None:
+    """k·ts = 1.5 fits Q1.30, but the default k_max = 2·k gives k_max·ts = 3: SET_GAINS
+    could not set it, so the file is refused naming limits.k_max and the default."""
+    text = good_text().replace("ts = 0.01", "ts = 0.5").replace("k = 1.0", "k = 3.0")
+    text = text.replace("h = 2.0", "h = 1.0")
+    text = "\n".join(line for line in text.splitlines()
+                     if not line.startswith(("k_max", "k_min", "h_max", "h_min")))
+    with pytest.raises(ConfigError) as e:
+        load_agent_config(write(tmp_path, text))
+    msg = str(e.value)
+    assert "[limits.k_max]" in msg and "the default 2·k" in msg and "k_max·ts = 3" in msg
 
 
 def test_not_toml_and_missing_file(tmp_path: Path) -> None:

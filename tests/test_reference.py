@@ -166,7 +166,7 @@ def test_finite_time_is_not_supported() -> None:
 def test_discrete_firmware_tracks_the_reference(case: int) -> None:
     """Tolerance 1e-2 on λ at Ts = 10 ms: forward Euler's global error is O(Ts)
     (measured 0.57·Ts = 5.74e-3, in the first transient); see the module docstring.
-    At the end both sit on ρ, so they agree to 1e-4 (the firmware's Q24 dead band and
+    At the end both sit on ρ, so they agree to 1e-4 (the firmware's Q24 wire λ and
     its last resets)."""
     r, d = ref(case), disc(case)
     assert np.array_equal(r.t, d.t) and np.array_equal(r.rho, d.rho)

@@ -36,10 +36,12 @@ VECTOR_DIR = VECTOR_ROOT / "controller"
 GEN_VECTORS = ROOT / "tools" / "gen_vectors.py"
 VECTORS = sorted(VECTOR_DIR.glob("*.json"))
 
-FORMAT = "bess-ded controller vector 1"
-FIELDS = ["xi", "dlam", "reset", "lam", "nu", "armed", "since_reset", "resets", "saturations"]
-STATE_FIELDS = ["lam", "nu", "xi_prev", "armed", "since_reset", "resets", "saturations"]
-SIZE_BUDGET = 500 * 1024  # bytes, the whole of tests/vectors/
+FORMAT = "bess-ded controller vector 2"
+FIELDS = ["xi", "dlam", "reset", "lam", "nu", "lam_q24", "armed", "since_reset", "resets",
+          "saturations"]
+STATE_FIELDS = ["lam", "nu", "lam_q24", "xi_prev", "armed", "since_reset", "resets",
+                "saturations"]
+SIZE_BUDGET = 1024 * 1024  # bytes, the whole of tests/vectors/ (Q54 state: ~19 digits)
 LONG = 2000               # steps of a "long" vector (the random walks)
 
 
@@ -54,18 +56,20 @@ def load(path: Path) -> dict[str, Any]:
 
 def constants(c: Controller) -> dict[str, int]:
     assert isinstance(c.ar, FixedArithmetic)
-    return {"q": c.ar.q, "kts": int(c.kts), "hts": int(c.hts), "ts": int(c.ts_q),
-            "band": int(c.band), "dwell_samples": c.dwell_samples,
+    return {"q": c.ar.q, "qc": fx.QC, "guard": fx.GUARD, "kts": int(c.kts),
+            "hts": int(c.hts), "ts": int(c.ts_q), "band": int(c.band),
+            "dwell_samples": c.dwell_samples,
             "pow_num": c.ar._pow_num, "pow_sqrts": c.ar._pow_sqrts}
 
 
-def state_fields(s: ControllerState) -> dict[str, Any]:
-    return {"lam": s.lam, "nu": s.nu, "xi_prev": s.xi_prev, "armed": s.armed,
-            "since_reset": s.since_reset, "resets": s.resets, "saturations": s.saturations}
+def state_fields(c: Controller, s: ControllerState) -> dict[str, Any]:
+    return {"lam": s.lam, "nu": s.nu, "lam_q24": c.wire_lambda(s), "xi_prev": s.xi_prev,
+            "armed": s.armed, "since_reset": s.since_reset, "resets": s.resets,
+            "saturations": s.saturations}
 
 
-def step_fields(xi: int, o: StepOutput, s: ControllerState) -> dict[str, Any]:
-    return {"xi": xi, "dlam": o.dlam, "reset": o.reset, **state_fields(s)}
+def step_fields(c: Controller, xi: int, o: StepOutput, s: ControllerState) -> dict[str, Any]:
+    return {"xi": xi, "dlam": o.dlam, "reset": o.reset, **state_fields(c, s)}
 
 
 def _same(want: Any, got: Any) -> bool:
@@ -95,18 +99,18 @@ def replay(vec: dict[str, Any]) -> None:
     for field, got in fixed.items():
         check("fixed", field, vec["fixed"][field], got)
     s = c.initial_state(vec["lambda0"] / fx.ONE)
-    check("initial state", "lambda0", vec["lambda0"], s.lam)
+    check("initial state", "lambda0", vec["lambda0"], c.wire_lambda(s))
     if list(vec["initial"]) != STATE_FIELDS:
         raise VectorMismatch(f"{name}: initial state fields {list(vec['initial'])}, "
                              f"expected {STATE_FIELDS}")
-    for field, got in state_fields(s).items():
+    for field, got in state_fields(c, s).items():
         check("initial state", field, vec["initial"][field], got)
     for t, row in enumerate(vec["steps"]):
         if len(row) != len(FIELDS):
             raise VectorMismatch(f"{name}: step {t}: {len(row)} values, expected {len(FIELDS)}")
         xi = row[0]
         s, o = c.step(s, xi)
-        out = step_fields(xi, o, s)
+        out = step_fields(c, xi, o, s)
         for field, want in zip(FIELDS, row, strict=True):
             check(f"step {t}", field, want, out[field])
         check(f"step {t}", "xi_prev", xi, s.xi_prev)  # not repeated in the row: = xi
@@ -165,7 +169,7 @@ def test_generator_check_finds_stale_missing_and_extra_files(
     written = sorted(p.name for p in out.glob("*.json"))
     assert written == [p.name for p in VECTORS]
     (out / "pc_steps.json").write_text(
-        (out / "pc_steps.json").read_text().replace("[1,0,0,", "[1,1,0,", 1))
+        (out / "pc_steps.json").read_text().replace("[1,-10737418,", "[1,-10737417,", 1))
     (out / "dwell_edges.json").unlink()
     (out / "old_vector.json").write_text("{}")
     capsys.readouterr()
@@ -190,15 +194,15 @@ def crossed(prev: int, xi: int) -> bool:
     return (prev > 0 and xi <= 0) or (prev < 0 and xi >= 0)
 
 
-def tie(a: int, b: int, q: int) -> bool:
-    """a·b lies exactly half-way between two Q-format values."""
-    return (a * b) % (1 << q) == 1 << (q - 1)
+def tie(x: int) -> bool:
+    """A state word lies exactly half-way between two Q24 values (its rounding ties)."""
+    return x % (1 << fx.GUARD) == 1 << (fx.GUARD - 1)
 
 
 def features(vec: dict[str, Any]) -> Iterator[str]:
     """The edge cases one vector exercises, computed from its rows alone."""
     kind, f = vec["config"]["kind"], vec["fixed"]
-    band, dwell, q = f["band"], f["dwell_samples"], f["q"]
+    band, dwell = f["band"], f["dwell_samples"]
     resetting = kind in ("reset", "dwell")
     integrating = kind in ("pi", "reset", "dwell")
     yield f"kind {kind}"
@@ -215,11 +219,11 @@ def features(vec: dict[str, Any]) -> Iterator[str]:
         cross = crossed(xi_prev, xi)
         if xi == fx.INT32_MIN:
             yield "xi = INT32_MIN"
-        if xi < 0 and kind != "ft" and tie(f["kts"], xi, q):
-            yield "negative tie k*Ts*xi"
+        if tie(r["lam"]):
+            yield f"{'negative' if r['lam'] < 0 else 'positive'} tie lam_q24"
         nu_used = 0 if r["reset"] else prev["nu"]
-        if integrating and nu_used < 0 and tie(f["hts"], nu_used, q):
-            yield "negative tie h*Ts*nu"
+        if integrating and tie(nu_used):
+            yield f"{'negative' if nu_used < 0 else 'positive'} tie of nu in h*Ts*nu"
         if r["reset"]:
             yield "reset"
             if t == 1:
@@ -253,10 +257,10 @@ def features(vec: dict[str, Any]) -> Iterator[str]:
         if grew >= 3:
             yield "three saturations in one step"
         for field in ("lam", "nu", "dlam"):
-            if r[field] == fx.INT32_MAX:
-                yield f"{field} = INT32_MAX"
-            if r[field] == fx.INT32_MIN:
-                yield f"{field} = INT32_MIN"
+            if r[field] == fx.STATE_MAX:
+                yield f"{field} = STATE_MAX"
+            if r[field] == fx.STATE_MIN:
+                yield f"{field} = STATE_MIN"
         prev = {**prev, **{k: r[k] for k in STATE_FIELDS if k in r}, "xi_prev": xi}
 
 
@@ -271,8 +275,9 @@ REQUIRED = (
        "band re-arm", "band: just above re-arms", "band: exactly at the band does not re-arm",
        "band: just below does not re-arm", "band 0: xi = 0 does not re-arm",
        "saturation", "three saturations in one step", "xi = INT32_MIN",
-       "negative tie k*Ts*xi", "negative tie h*Ts*nu"]
-    + [f"{f} = {lim}" for f in ("lam", "nu", "dlam") for lim in ("INT32_MAX", "INT32_MIN")]
+       "negative tie lam_q24", "positive tie lam_q24", "negative tie of nu in h*Ts*nu",
+       "positive tie of nu in h*Ts*nu"]
+    + [f"{f} = {lim}" for f in ("lam", "nu", "dlam") for lim in ("STATE_MAX", "STATE_MIN")]
 )
 
 

@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Generate ``tests/vectors/controller/*.json``, golden vectors of the controller core.
 
-Each vector pins ``firmware_py.controllers`` (int32 Q24, ``fixed=True``) bit for bit:
+Each vector pins ``firmware_py.controllers`` (``fixed=True``: Q24 words, Q1.30
+constants, an int64 Q54 state) bit for bit:
 a controller configuration with the integer constants the controller derives from it,
 an initial λ and a sequence of consensus errors ξ, and after every step the exact step
 output and controller state. A port (the C firmware, a third-party node) that
@@ -46,14 +47,16 @@ from firmware_py.controllers import (  # noqa: E402
 )
 
 DEFAULT_OUTPUT = ROOT / "tests" / "vectors" / "controller"
-FORMAT = "bess-ded controller vector 1"
+FORMAT = "bess-ded controller vector 2"
 
-# One row per step: the input ξ, then StepOutput, then ControllerState after the step.
-# Booleans are 0/1; every value is an int (Q24 raw for xi, dlam, lam, nu). The state's
-# xi_prev after a step is always that step's ξ, so the row does not repeat it (the
-# replay checks it against "xi"): that keeps the long vectors ~15 % smaller.
-FIELDS = ("xi", "dlam", "reset", "lam", "nu", "armed", "since_reset", "resets", "saturations")
-STATE_FIELDS = ("lam", "nu", "xi_prev", "armed", "since_reset", "resets", "saturations")
+# One row per step: the input ξ, then StepOutput, then ControllerState after the step,
+# then the wire λ. Booleans are 0/1; every value is an int: xi and lam_q24 Q24 raw
+# (int32), dlam, lam and nu Q54 raw (int64). The state's xi_prev after a step is always
+# that step's ξ, so the row does not repeat it (the replay checks it against "xi").
+FIELDS = ("xi", "dlam", "reset", "lam", "nu", "lam_q24", "armed", "since_reset", "resets",
+          "saturations")
+STATE_FIELDS = ("lam", "nu", "lam_q24", "xi_prev", "armed", "since_reset", "resets",
+                "saturations")
 
 MAX, MIN = fx.INT32_MAX, fx.INT32_MIN
 ONE = fx.ONE
@@ -87,6 +90,8 @@ def fixed_constants(c: Controller) -> dict[str, int]:
         raise TypeError("golden vectors are for the fixed-point controller (fixed=True)")
     return {
         "q": ar.q,
+        "qc": fx.QC,
+        "guard": fx.GUARD,
         "kts": _int(c.kts, "kts"),
         "hts": _int(c.hts, "hts"),
         "ts": _int(c.ts_q, "ts"),
@@ -97,22 +102,23 @@ def fixed_constants(c: Controller) -> dict[str, int]:
     }
 
 
-def state_row(s: ControllerState) -> list[int]:
-    return [_int(s.lam, "lam"), _int(s.nu, "nu"), _int(s.xi_prev, "xi_prev"), int(s.armed),
-            s.since_reset, s.resets, s.saturations]
+def state_row(c: Controller, s: ControllerState) -> list[int]:
+    return [_int(s.lam, "lam"), _int(s.nu, "nu"), _int(c.wire_lambda(s), "lam_q24"),
+            _int(s.xi_prev, "xi_prev"), int(s.armed), s.since_reset, s.resets, s.saturations]
 
 
-def step_row(xi: int, o: StepOutput, s: ControllerState) -> list[int]:
+def step_row(c: Controller, xi: int, o: StepOutput, s: ControllerState) -> list[int]:
     if s.xi_prev != xi:
         raise AssertionError(f"xi_prev after a step is {s.xi_prev}, not the step's ξ {xi}")
     return [xi, _int(o.dlam, "dlam"), int(o.reset), _int(s.lam, "lam"), _int(s.nu, "nu"),
-            int(s.armed), s.since_reset, s.resets, s.saturations]
+            _int(c.wire_lambda(s), "lam_q24"), int(s.armed), s.since_reset, s.resets,
+            s.saturations]
 
 
 def initial(c: Controller, lambda0: int) -> ControllerState:
     """``initial_state`` from the Q24 raw λ(0) (raw / 2**24 is exact in binary64)."""
     s = c.initial_state(lambda0 / ONE)
-    if s.lam != lambda0:
+    if s.lam != lambda0 << fx.GUARD or c.wire_lambda(s) != lambda0:
         raise AssertionError(f"initial_state did not reproduce λ(0) = {lambda0}: {s.lam}")
     return s
 
@@ -120,13 +126,13 @@ def initial(c: Controller, lambda0: int) -> ControllerState:
 def run(spec: Spec) -> dict[str, Any]:
     c = make_controller(spec.config, fixed=True)
     s = initial(c, spec.lambda0)
-    init = state_row(s)
+    init = state_row(c, s)
     rows = []
     for xi in spec.xis:
         if not MIN <= xi <= MAX:
             raise ValueError(f"{spec.name}: ξ = {xi} is not an int32")
         s, o = c.step(s, xi)
-        rows.append(step_row(xi, o, s))
+        rows.append(step_row(c, xi, o, s))
     vec: dict[str, Any] = {"format": FORMAT, "name": spec.name,
                            "description": spec.description}
     if spec.source is not None:
@@ -187,16 +193,6 @@ def random_walk(seed: int, steps: int, stride: int, bound: int) -> tuple[int, ..
     return tuple(out)
 
 
-def xi_setting_nu(c: Controller, nu: int, target: int) -> int:
-    """The ξ whose step takes ν from ``nu`` to exactly ``target`` (PI, no reset)."""
-    ts = _int(c.ts_q, "ts")
-    guess = (target - nu) * ONE // ts
-    for xi in range(guess - 4, guess + 5):
-        if nu + fx.mul(ts, xi) == target:
-            return xi
-    raise ValueError(f"no ξ takes ν from {nu} to {target} in one step")
-
-
 def cfg(kind: str, **kw: Any) -> ControllerConfig:
     return ControllerConfig(kind=kind, **kw)
 
@@ -209,30 +205,24 @@ def edge_specs() -> list[Spec]:
     specs: list[Spec] = []
     add = specs.append
     b = BAND
-    t21 = 1 << 21  # k*Ts*ξ and Ts*ξ land exactly half-way between two LSB (default gains)
+    t21 = 1 << 21  # half-way products in the former Q24 core (kept: now exact)
 
-    add(Spec("pc_steps", "Proportional consensus: zero, +/-1 LSB, rounding ties of k*Ts*xi "
-             "(+/-2**21, +/-3*2**21: half an LSB, rounded toward +inf), the band values and the "
-             "int32 extremes.", cfg("pc"), LAM0,
+    add(Spec("pc_steps", "Proportional consensus: zero, +/-1 LSB (k*Ts*xi is exact in Q54: "
+             "a 1-LSB xi moves lambda by k*Ts LSB of Q24, far below one wire LSB), +/-2**21, "
+             "+/-3*2**21, the band values and the int32 extremes.", cfg("pc"), LAM0,
              (0, 1, -1, t21, -t21, 3 * t21, -3 * t21, 1 << 23, -(1 << 23), 100, -100, 12345,
               -12345, b, -b, MAX, MIN, 0)))
 
-    # PI rounding: ties of k*Ts*ξ and Ts*ξ, then ν set to +/-2**20*odd so that h*Ts*ν ties
-    c = make_controller(cfg("pi"), fixed=True)
-    xis: list[int] = [t21, -t21, 3 * t21, -3 * t21, 0]
-    s = initial(c, LAM0)
-    for xi in xis:
-        s, _ = c.step(s, xi)
-    for target in (1 << 20, -(1 << 20), 3 << 20, -(3 << 20), 5 << 20, -(5 << 20)):
-        xi = xi_setting_nu(c, _int(s.nu, "nu"), target)
-        for x in (xi, 0):  # set ν, then a step whose only term is h*Ts*ν (a tie)
-            s, _ = c.step(s, x)
-            xis.append(x)
-    xis += [1, -1, 2, -2, 0, 40000, -80000, 0]
-    add(Spec("pi_rounding", "PI without reset: rounding ties of k*Ts*xi and Ts*xi (+/-2**21), "
-             "then nu set to +/-2**20*odd followed by xi = 0, so that h*Ts*nu is an exact tie "
-             "(rounded toward +inf, also when negative); zero crossings never reset.",
-             cfg("pi"), LAM0, tuple(xis)))
+    # Rounding of the state to Q24 (lam_q24, and ν in h·Ts·ν): Ts = 2**-7 makes
+    # k·Ts = Ts = 2**23 and h·Ts = 2**24 in Q1.30, so ξ = ±64 moves λ and ν by exactly
+    # half a Q24 LSB (2**29 in Q54): the roundings hit exact ties of both signs
+    add(Spec("pi_rounding", "PI without reset, k = 1, h = 2, Ts = 2**-7 (k*Ts = Ts = 2**23, "
+             "h*Ts = 2**24 in Q1.30), lambda(0) = 0: xi = +/-64 moves lambda and nu by half a "
+             "Q24 LSB, so lam_q24 = (lam + 2**29) >> 30 and the nu of h*Ts*nu round exact ties "
+             "(toward +inf, also when negative: -0.5 LSB -> 0, -1.5 LSB -> -1); zero crossings "
+             "never reset.", cfg("pi", ts=2.0 ** -7), 0,
+             (64, 0, -64, -64, 0, -128, 0, 128, 64, 0, 192, -64, 0, 1, -1, 0, -192, 0, 64,
+              -64, 2, -2, 0, 40000, -80000, 0)))
 
     add(Spec("reset_band", "Reset-PI, band 1678 LSB: a reset disarms; |xi| exactly at the band "
              "and just below never re-arm, just above (1679) does, on either side; sign changes "
@@ -295,35 +285,36 @@ def edge_specs() -> list[Spec]:
              cfg("dwell", dwell=0.045), LAM0, (e, e, e, e, -e, e, -e, -e, -e, -e, e)))
 
     # ---- saturation: gains at the top of the range make every term overflow
-    big = {"k": 100.0, "h": 100.0, "ts": 1.0}  # k*Ts = h*Ts = 100 (Q24 1677721600), Ts = 1
-    add(Spec("sat_pc", "Proportional, k*Ts = 100: lambda runs into both int32 limits, "
-             "dlam saturates (counted), lambda + dlam saturates (counted).",
+    big = {"k": 1.5, "h": 1.5, "ts": 1.0}  # k*Ts = h*Ts = 1.5 (Q30 1610612736), Ts = 1
+    add(Spec("sat_pc", "Proportional, k*Ts = 1.5: lambda runs into both limits of the state "
+             "(the Q54 image of int32), dlam saturates (counted), lambda + dlam saturates "
+             "(counted).",
              cfg("pc", **big), 0,
              (ONE, ONE, MAX, MIN, MIN, MIN, 1, -1, MAX, 0, MIN)))
 
-    add(Spec("sat_pc_negation", "Proportional, k*Ts = 1 exactly: xi = INT32_MIN gives "
-             "k*Ts*xi = INT32_MIN and -INT32_MIN = 2**31 saturates to INT32_MAX (use 64 bits, "
-             "not a 32-bit negation); lambda starts at INT32_MAX.",
+    add(Spec("sat_pc_negation", "Proportional, k*Ts = 1 exactly (2**30): xi = INT32_MIN "
+             "gives k*Ts*xi = -2**61 and its negation 2**61 saturates to INT32_MAX*2**30; "
+             "lambda starts at INT32_MAX.",
              cfg("pc", k=100.0, ts=0.01), MAX, (MIN, MIN, MAX, MAX, 0, -ONE, 0)))
 
-    add(Spec("sat_pi", "PI, k*Ts = h*Ts = 100, Ts = 1: dlam, nu and lambda all saturate, up "
-             "to three counts in one step; nu at both int32 limits.",
+    add(Spec("sat_pi", "PI, k*Ts = h*Ts = 1.5, Ts = 1: dlam, nu and lambda all saturate, up "
+             "to three counts in one step; nu at both limits.",
              cfg("pi", **big), 0,
              (MAX, MAX, MAX, MIN, MIN, MIN, MIN, 0, 1, -1, MAX, MAX, MAX, 0)))
 
-    add(Spec("sat_reset", "Reset-PI, k*Ts = h*Ts = 100, Ts = 1: saturated nu is "
+    add(Spec("sat_reset", "Reset-PI, k*Ts = h*Ts = 1.5, Ts = 1: saturated nu is "
              "reset to 0 at a crossing; lambda saturates at both limits.",
              cfg("reset", **big), 0,
              (MAX, MAX, MAX, MIN, MIN, MAX, MAX, MIN, -ONE, ONE, 0, MIN, MIN, MAX)))
 
-    add(Spec("sat_dwell", "Dwell reset-PI, k*Ts = h*Ts = 100, Ts = 1, dwell 3 samples: "
+    add(Spec("sat_dwell", "Dwell reset-PI, k*Ts = h*Ts = 1.5, Ts = 1, dwell 3 samples: "
              "saturated nu survives a dwell-blocked crossing, is reset by the next one.",
              cfg("dwell", dwell=3.0, **big), MIN,
              (MIN, MIN, MAX, MIN, MIN, MIN, MIN, MAX, MAX, MAX, MIN)))
 
-    add(Spec("sat_ft", "Finite-time, k*Ts = 100: |xi|**0.5 of the int32 extremes (|INT32_MIN| "
-             "= 2**31 does not fit an int32: take it in 64 bits), dlam and lambda saturate.",
-             cfg("ft", k=100.0, ts=1.0), 0,
+    add(Spec("sat_ft", "Finite-time, k*Ts = 1.9, a = 15/16: |xi|**a of the int32 extremes "
+             "(|INT32_MIN| = 2**31 does not fit an int32: take it in 64 bits), dlam and lambda "
+             "saturate.", cfg("ft", k=1.9, h=1.0, ts=1.0, ft_exponent=0.9375), 0,
              (MIN, MIN, MAX, MAX, MAX, 1, -1, ONE, -ONE, 0)))
 
     add(Spec("sat_lambda0", "Reset-PI at the default gains starting from lambda = INT32_MIN: "
@@ -337,11 +328,12 @@ def edge_specs() -> list[Spec]:
     for a in (0.5, 0.75, 0.0625, 0.9375):
         label = f"{a:g}".replace(".", "p")
         add(Spec(f"ft_pow_{label}", f"Finite-time, exponent {a:g} (|xi|**a by "
-                 "integer square roots and products), k*Ts = 1 so dlam = -sign(xi)*|xi|**a; "
+                 "integer square roots and products), k*Ts = 1 so dlam = -sign(xi)*|xi|**a "
+                 "(times 2**30); "
                  "+v, -v pairs bring lambda back.",
                  cfg("ft", k=50.0, ts=0.02, ft_exponent=a), 0, tuple(pairs)))
     add(Spec("ft_default", "Finite-time at the default gains (k = 1, Ts = 0.01, a = 0.5): the "
-             "product k*Ts*|xi|**a rounded.", cfg("ft"), LAM0, tuple(pairs)))
+             "product k*Ts*|xi|**a, exact in Q54.", cfg("ft"), LAM0, tuple(pairs)))
     return specs
 
 
@@ -394,7 +386,7 @@ def case_specs() -> list[Spec]:
                     source=f"sim.lockstep.run_lockstep(sim.scenario.load_case({CASE})"
                            f".with_controller({args})).xi[:{CASE_STEPS}, {i}]")
         # the replay must be the lockstep run's own agent, bit for bit
-        lam = [row[3] for row in run(spec)["steps"]]
+        lam = [row[FIELDS.index("lam_q24")] for row in run(spec)["steps"]]
         ref = [q24(float(x)) for x in traj.lam[1:CASE_STEPS + 1, i]]
         if lam != ref:
             raise AssertionError(f"{spec.name}: replay does not match the lockstep λ")

@@ -41,7 +41,7 @@ def add_scenario_argument(p: argparse.ArgumentParser) -> None:
 def add_arithmetic_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--fixed", dest="fixed", action="store_true", default=True,
-                   help="int32 Q24 fixed point, what the firmware runs (default)")
+                   help="fixed point (Q24 words, Q54 state), what the firmware runs (default)")
     g.add_argument("--float", dest="fixed", action="store_false",
                    help="the float twin of the same controller")
 
@@ -77,7 +77,7 @@ def _json_default(x: Any) -> Any:
 
 
 def describe(sc: Scenario, fixed: bool) -> str:
-    arith = f"fixed point Q{sc.controller.q}" if fixed else "float"
+    arith = f"fixed point Q{sc.controller.q}+30" if fixed else "float"
     return (f"{sc.n} agents, Ts = {sc.ts * 1e3:g} ms, {sc.duration:g} s, {arith}, "
             f"η_max(H) = {sc.analysis().eta_max:.4f}")
 

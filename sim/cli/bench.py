@@ -92,7 +92,7 @@ def controller_step(quick: bool) -> Table:
     rows = [[kind, f"{r['fixed']:.2f}", f"{r['float']:.2f}", f"{r['fixed'] / r['float']:.2f}"]
             for kind, r in results.items()]
     return Table("Agent step (consensus_error + step), µs, median",
-                 ["controller", "fixed Q24", "float", "fixed/float"], rows,
+                 ["controller", "fixed", "float", "fixed/float"], rows,
                  note=f"hub of case 1 (3 neighbours + price), {samples} samples × {reps} "
                  "repetitions per cell",
                  data={"us_per_step": results, "samples": samples, "repetitions": reps})
