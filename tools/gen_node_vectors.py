@@ -397,7 +397,7 @@ def sc_start_steady() -> Scenario:
          "STEP-5", "STEP-6", "STEP-7", "STEP-8", "BAND-1", "BAND-2", "BAND-3", "LIVE-1",
          "LIVE-2", "TMO-1", "TMO-3", "PRICE-6", "RX-8", "RX-10", "RX-11", "AUTH-1", "AUTH-2",
          "AUTH-3", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-10", "AUTH-11",
-         "AUTH-12", "AUTH-15", "AUTH-16", "NUM-1", "NUM-2", "NUM-3"])
+         "AUTH-12", "AUTH-15", "AUTH-16", "NUM-1"])
     nb = neighbours()
     s.tick()                                   # tick 0: INIT, own syncs, Diag page 0
     s.price(RHO, note="before the router's sync: unsynced")
@@ -485,7 +485,7 @@ def sc_price_timeout() -> Scenario:
         "window); SAFE -> RUNNING at the tick after the third frame.",
         ["STATE-2", "STATE-3", "STATE-4", "STATE-6", "STATE-10", "TMO-1", "TMO-2", "TMO-4",
          "PRICE-1", "PRICE-3", "PRICE-4", "PRICE-6", "SP-3", "AUTH-13", "AUTH-15",
-         "DIAG-1", "DIAG-5"])
+         "DIAG-1"])
     nb = start(s)
     s.run(40, price=RHO, nbrs=nb)
     s.run(5, price=None, nbrs=nb)
@@ -536,7 +536,7 @@ def sc_commands() -> Scenario:
         "h*Ts), outside (implausible_gains), inside the bounds with h = 0 (h_min = 0 here) "
         "that the controller refuses (range).",
         ["CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "STATE-7", "STATE-8", "STATE-9",
-         "STATE-10", "TMO-2", "DIAG-1", "DIAG-3", "DIAG-4", "DIAG-5", "RX-10", "XI-1"],
+         "STATE-10", "TMO-2", "DIAG-1", "DIAG-3", "DIAG-4", "RX-10", "XI-1"],
         extra_toml="\n[limits]\nh_min = 0.0\n")
     nb = start(s)
     s.run(60, price=RHO, nbrs=nb)
@@ -635,7 +635,7 @@ def sc_peer_restart() -> Scenario:
     s.sync("agent_1", mc_name(1), note="agent 1's sync, new boot: resync, hello pending")
     s.run(20, price=RHO, nbrs=nb)
     s.sync("plant", status_name(1), note="peer sync PLANT_1_Status_Sync: hello")
-    s.run(3, price=RHO, nbrs=nb)
+    s.run(13, price=RHO, nbrs=nb)
     s.sync("agent_1", setpoint_name(1), note="peer sync AGENT_1_Setpoint_Sync: hello")
     s.run(15, price=RHO, nbrs=nb)
     s.sync("agent_1", setpoint_name(1), note="same boot again: nothing")
@@ -723,7 +723,7 @@ def sc_price_steps() -> Scenario:
         "count; forged frames and PriceValid = 0 between them do not break the run); a "
         "price outside [rho_min, rho_max] is rejected and forgets the candidate.",
         ["PRICE-1", "PRICE-2", "PRICE-3", "PRICE-4", "PRICE-6", "RX-9", "RX-10", "DIAG-1",
-         "DIAG-4", "DIAG-5"])
+         "DIAG-4"])
     nb = start(s)
     s.run(20, price=RHO, nbrs=nb)
     steps = [(1.2, "step 0.4: accepted"), (1.6, "step 0.4: accepted"),
