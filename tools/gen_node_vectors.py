@@ -542,6 +542,8 @@ def sc_commands() -> Scenario:
     s.run(60, price=RHO, nbrs=nb)
     s.command("ISOLATE", target=3, note="ISOLATE for agent 3: ignored")
     s.run(5, price=RHO, nbrs=nb)
+    s.command("RECONNECT", target=3, note="RECONNECT for agent 3: ignored")
+    s.run(5, price=RHO, nbrs=nb)
     s.command("ISOLATE", note="ISOLATE: ISOLATED at once")
     s.run(10, price=RHO, nbrs=nb)
     s.command("ISOLATE", note="ISOLATE again: counted, nothing changes")
