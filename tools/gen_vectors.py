@@ -18,9 +18,10 @@ produces, so a change of the control core that moves one bit shows up as stale v
 
 Usage::
 
-    python tools/gen_vectors.py            # (re)write tests/vectors/controller/
+    python tools/gen_vectors.py            # (re)write tests/vectors/controller/ and node/
     python tools/gen_vectors.py --check    # exit 1 if the committed vectors are stale
-    python tools/gen_vectors.py -o DIR     # write elsewhere
+    python tools/gen_vectors.py -o DIR     # write the controller vectors elsewhere
+    python tools/gen_vectors.py --node-output DIR  # the node vectors (gen_node_vectors.py)
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from firmware_py.controllers import (  # noqa: E402
 )
 
 DEFAULT_OUTPUT = ROOT / "tests" / "vectors" / "controller"
+NODE_OUTPUT = ROOT / "tests" / "vectors" / "node"  # tools/gen_node_vectors.py
 FORMAT = "bess-ded controller vector 2"
 
 # One row per step: the input ξ, then StepOutput, then ControllerState after the step,
@@ -413,9 +415,35 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("-o", "--output", type=Path, default=DEFAULT_OUTPUT,
                    help="directory of the vectors (default: tests/vectors/controller)")
+    p.add_argument("--node-output", type=Path, default=None,
+                   help="directory of the node vectors (tools/gen_node_vectors.py; default: "
+                        "tests/vectors/node, or none when -o names another directory)")
     p.add_argument("--check", action="store_true",
                    help="do not write; exit 1 if the directory differs from the generator")
     args = p.parse_args(argv)
+    node_out = args.node_output
+    if node_out is None and args.output.resolve() == DEFAULT_OUTPUT.resolve():
+        node_out = NODE_OUTPUT
+    rc = _controller_main(args)
+    if node_out is not None:
+        rc |= _node_main(node_out, args.check)
+    if rc:
+        sys.stderr.write("run python tools/gen_vectors.py\n")
+    return rc
+
+
+def _node_main(out: Path, check: bool) -> int:
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "gen_node_vectors", Path(__file__).with_name("gen_node_vectors.py"))
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return int(mod.write_or_check(mod.render_all(), out, check))
+
+
+def _controller_main(args: argparse.Namespace) -> int:
     files = render_all()
     out: Path = args.output
     present = {f.name for f in out.glob("*.json")} if out.is_dir() else set()
@@ -428,7 +456,6 @@ def main(argv: list[str] | None = None) -> int:
         for n in extra:
             sys.stderr.write(f"{out / n} is not produced by the generator\n")
         if stale or extra:
-            sys.stderr.write("run python tools/gen_vectors.py\n")
             return 1
         return 0
     out.mkdir(parents=True, exist_ok=True)

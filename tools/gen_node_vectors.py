@@ -1,0 +1,894 @@
+#!/usr/bin/env python3
+"""Generate ``tests/vectors/node/*.json``, golden vectors of one agent node.
+
+Each vector pins ``firmware_py.runtime.AgentRuntime`` (with its ``NodeIO`` receive and
+transmit path: decode, SecOC MAC and freshness, the safety rules, the state machine, the
+controller, the frame encoders) byte for byte: an agent configuration (TOML text), its
+key material (derived from a fixed, public test master key), a timed trace of received
+CAN frames and ticks, and every frame the agent sent, in order, at the tick that sent it.
+
+The seam is the agent's own ``Node`` interface (firmware_py/node.py): ``on_frame(msg, t)``
+for each received frame and ``tick(t)`` for each period, with simulated times, exactly as
+``run_node`` calls them on a bus; python-can's bus and the run loop are not involved
+(so no deadline miss, error frame or send failure occurs: LOOP-* are not pinned here).
+The runtime reads no clock and no randomness of its own; the inputs below are fixed
+(integer arithmetic and splitmix64 only), so a run regenerates identical files.
+
+Usage: ``python tools/gen_vectors.py`` (controller and node vectors), or this module's
+``main`` with ``-o DIR`` / ``--check`` (tests/vectors/README.md, "Node-level vectors").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import tomllib
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import can
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))  # this worktree's firmware_py, not an installed copy
+
+from firmware_py import contract  # noqa: E402
+from firmware_py import fixedpoint as fx  # noqa: E402
+from firmware_py.config import parse_agent_config  # noqa: E402
+from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name  # noqa: E402
+from firmware_py.runtime import AgentRuntime  # noqa: E402
+from firmware_py.secoc import (  # noqa: E402
+    INSECURE_MASTER,
+    KDF_NAME,
+    MAC_NAME,
+    Keyring,
+    derive_node_key,
+    fleet_id,
+    sign_frame,
+)
+
+DEFAULT_OUTPUT = ROOT / "tests" / "vectors" / "node"
+FORMAT = "bess-ded node vector 1"
+
+# The public test master key of every secure vector (never a real fleet's key), and the
+# boot counters: the agent's key file holds BOOT_COUNTER, so it runs at BOOT_COUNTER + 1
+# (AUTH-3); the other nodes' frames are built at their own boot counters.
+TEST_MASTER = bytes.fromhex("000102030405060708090a0b0c0d0e0f")
+BOOT_COUNTER = 6
+SENDER_BOOTS = {"router": 3, "plant": 5, "agent_1": 2, "agent_3": 4, "agent_4": 9}
+
+AGENT = 2
+RX_OFFSET = 0.004  # received frames arrive 4 ms after a tick: never at a timeout boundary
+
+CODEC = FrameCodec()
+
+BASE_TOML = """\
+[agent]
+id = 2
+lambda0 = 0.8
+pinned = true
+fleet_size = 4
+
+[controller]
+kind = "reset"
+k = 1.0
+h = 2.0
+ts = 0.01
+band = 0.0001
+
+[battery]
+alpha = 0.005
+beta = 0.18
+m = 0.08
+p_min = -100.0
+p_max = 100.0
+{extra}
+[[neighbour]]
+id = 1
+weight = 1.0
+
+[[neighbour]]
+id = 3
+weight = 0.5
+"""
+
+
+def q24(x: float) -> int:
+    return fx.to_fixed(x)
+
+
+def splitmix64(seed: int) -> Iterator[int]:
+    state = seed & 0xFFFFFFFFFFFFFFFF
+    while True:
+        state = (state + 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF
+        z = state
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+        yield z ^ (z >> 31)
+
+
+def noise(seed: int, n: int, amplitude: int) -> list[int]:
+    """n integers r mod (2·amplitude + 1) − amplitude of splitmix64(seed)."""
+    rng = splitmix64(seed)
+    return [next(rng) % (2 * amplitude + 1) - amplitude for _ in range(n)]
+
+
+def set_bits(data: bytearray, start: int, length: int, value: int) -> None:
+    """Write ``value`` into bits start..start+length−1 (Intel / little-endian numbering)."""
+    x = int.from_bytes(data, "little")
+    mask = ((1 << length) - 1) << start
+    x = (x & ~mask) | ((value << start) & mask)
+    data[:] = x.to_bytes(len(data), "little")
+
+
+class Sender:
+    """One other node of the fleet (router, plant, a neighbour): its key, boot counter and
+    the message count of each secured ID it sends, as its NodeIO would keep them."""
+
+    def __init__(self, label: str, key: bytes, boot: int) -> None:
+        self.label, self.key, self.boot = label, key, boot
+        self.count: dict[int, int] = {}
+
+    def frame(self, name: str, raw: Mapping[str, int], skip: int = 0,
+              patch: tuple[int, int, int] | None = None) -> can.Message:
+        """The next ``name`` frame (``skip`` counts left out first, as lost frames);
+        ``patch`` = (start bit, length, raw value) written before signing (out of range)."""
+        fid = CODEC.frame_id(name)
+        c = self.count.get(fid, 0) + skip
+        msg = CODEC.encode(name, raw, c % (1 << contract.FV_TX_BITS))
+        if patch is not None:
+            set_bits(msg.data, *patch)
+        sign_frame(self.key, fid, msg.data, self.boot << contract.FV_COUNT_BITS | c)
+        self.count[fid] = c + 1
+        return msg
+
+    def sync(self, name: str, count: int | None = None, boot: int | None = None) -> can.Message:
+        """``<name>_Sync`` announcing the next count (or ``count``) under ``boot``."""
+        fid = CODEC.frame_id(name)
+        count = self.count.get(fid, 0) if count is None else count
+        boot = self.boot if boot is None else boot
+        sync_id = contract.SYNC_OF[fid]
+        msg = CODEC.encode(CODEC.name_of(sync_id), {"Count": count, "Boot": boot}, 0)
+        sign_frame(self.key, sync_id, msg.data, boot << contract.FV_COUNT_BITS | count)
+        return msg
+
+    def restart(self) -> None:
+        self.boot += 1
+        self.count.clear()
+
+
+def _hex(msg: can.Message) -> str:
+    return bytes(msg.data).hex()
+
+
+class Scenario:
+    """Runs the agent live while the script feeds it, recording inputs and outputs."""
+
+    def __init__(self, name: str, description: str, covers: list[str], extra_toml: str = "",
+                 insecure: bool = False, tx_count: int | None = None,
+                 toml: str | None = None) -> None:
+        self.name, self.description, self.covers = name, description, covers
+        self.toml = toml if toml is not None else BASE_TOML.format(extra=extra_toml)
+        self.cfg = parse_agent_config(tomllib.loads(self.toml), f"{name}.json")
+        self.ts = self.cfg.controller.ts
+        self.insecure = insecure
+        master = INSECURE_MASTER if insecure else TEST_MASTER
+        node = f"agent_{self.cfg.id}"
+        peer_labels = ["router", "plant", *(f"agent_{n.id}" for n in self.cfg.neighbours)]
+        self.keys_doc: dict[str, Any]
+        if insecure:
+            keys = None
+            self.keys_doc = {"insecure": True, "master_key": master.hex(), "kdf": KDF_NAME,
+                             "mac": MAC_NAME, "node": node}
+            boots = dict.fromkeys(SENDER_BOOTS, 1)
+        else:
+            peers = {p: derive_node_key(master, p) for p in peer_labels}
+            keys = Keyring(node, derive_node_key(master, node), BOOT_COUNTER, lambda _b: None,
+                           peers=peers, fleet=fleet_id(master))
+            self.keys_doc = {"insecure": False, "master_key": master.hex(), "kdf": KDF_NAME,
+                             "mac": MAC_NAME, "fleet_id": fleet_id(master), "node": node,
+                             "key": derive_node_key(master, node).hex(),
+                             "boot_counter": BOOT_COUNTER,
+                             "peers": {p: k.hex() for p, k in peers.items()}}
+            boots = dict(SENDER_BOOTS)
+        self.agent = AgentRuntime(self.cfg, CODEC, keys=keys)
+        self.setup: dict[str, Any] = {}
+        if tx_count is not None:
+            # a test hook: start the agent's own message counts high (AUTH-5 in seconds)
+            for fid in self.agent.io._tx_count:
+                self.agent.io._tx_count[fid] = tx_count
+            self.setup["tx_count"] = tx_count
+        self.senders = {lbl: Sender(lbl, derive_node_key(master, lbl), boots[lbl])
+                        for lbl in SENDER_BOOTS}
+        self.keys_doc["sender_boots"] = {lbl: s.boot for lbl, s in self.senders.items()}
+        self.router, self.plant = self.senders["router"], self.senders["plant"]
+        self.inputs: list[list[Any]] = []
+        self.outputs: list[list[Any]] = []
+        self.last_t = -1.0
+        self.n = 0  # the next tick number
+        self.sent: list[can.Message] = []
+
+    # ---- time
+    def t_tick(self, n: int) -> float:
+        return n * self.ts
+
+    def t_rx(self, n: int) -> float:
+        """Receive time after tick n (and before tick n + 1)."""
+        return n * self.ts + RX_OFFSET
+
+    def _at(self, t: float) -> None:
+        if t < self.last_t:
+            raise ValueError(f"{self.name}: events out of order ({t} after {self.last_t})")
+        self.last_t = t
+
+    # ---- events
+    def tick(self) -> list[can.Message]:
+        t = self.t_tick(self.n)
+        self._at(t)
+        self.inputs.append(["tick", t])
+        frames = self.agent.tick(t)
+        for f in frames:
+            if f.is_extended_id or f.is_remote_frame or f.is_fd or f.dlc != 8:
+                raise AssertionError(f"{self.name}: the agent sent a non-classic frame {f}")
+            self.outputs.append([t, f.arbitration_id, _hex(f)])
+        self.sent.extend(frames)
+        self.n += 1
+        return frames
+
+    def rx(self, msg: can.Message, note: str = "", flags: str = "") -> None:
+        """Deliver ``msg`` after the last tick (at t_rx of the tick before self.n)."""
+        t = self.t_rx(self.n - 1)
+        self._at(t)
+        if flags:
+            msg = can.Message(arbitration_id=msg.arbitration_id, data=msg.data,
+                              is_extended_id="ext" in flags, is_remote_frame="rtr" in flags,
+                              is_fd="fd" in flags, dlc=len(msg.data), check=False)
+        row: list[Any] = ["rx", t, msg.arbitration_id, _hex(msg)]
+        extra = {k: v for k, v in (("flags", flags), ("note", note)) if v}
+        if extra:
+            row.append(extra)
+        self.inputs.append(row)
+        self.agent.on_frame(msg, t)
+
+    def raw(self, fid: int, data: bytes | str, note: str = "", flags: str = "") -> None:
+        if isinstance(data, str):
+            data = bytes.fromhex(data)
+        self.rx(can.Message(arbitration_id=fid, data=data, is_extended_id=False,
+                            dlc=len(data), check=False), note, flags)
+
+    # ---- the usual traffic
+    def price(self, rho: int, valid: int = 1, segment: int = 0, skip: int = 0,
+              note: str = "") -> can.Message:
+        m = self.router.frame("ER_Price", {"PriceValid": valid, "Segment": segment,
+                                           "Rho": rho}, skip)
+        self.rx(m, note)
+        return m
+
+    def status(self, oc: int = 0, volt: int = 0, soc_fault: int = 0, limited: int = 0,
+               skip: int = 0, note: str = "") -> can.Message:
+        m = self.plant.frame(status_name(AGENT), {
+            "FaultOverCurrent": oc, "FaultVoltage": volt, "FaultSoc": soc_fault,
+            "PowerLimited": limited, "Power": 1000, "Soc": 100}, skip)
+        self.rx(m, note)
+        return m
+
+    def mc(self, j: int, lam: int, state: int = 1, skip: int = 0, note: str = "",
+           resets: int = 0) -> can.Message:
+        m = self.senders[f"agent_{j}"].frame(mc_name(j), {"State": state, "Lambda": lam,
+                                                          "Resets": resets}, skip)
+        self.rx(m, note)
+        return m
+
+    def command(self, cmd: str, target: int = AGENT, k: int = 0, h: int = 0,
+                patch: tuple[int, int, int] | None = None, note: str = "") -> can.Message:
+        m = self.router.frame("ER_Command", {"Command": int(contract.Command[cmd]),
+                                             "Target": target, "GainK": k, "GainH": h},
+                              patch=patch)
+        self.rx(m, note)
+        return m
+
+    def sync(self, label: str, name: str, note: str = "", **kw: int) -> can.Message:
+        m = self.senders[label].sync(name, **kw)
+        self.rx(m, note)
+        return m
+
+    def sync_all(self, note: str = "the senders' syncs") -> None:
+        self.sync("router", "ER_Price", note)
+        self.sync("router", "ER_Command")
+        self.sync("plant", status_name(AGENT))
+        for nb in self.cfg.neighbours:
+            self.sync(f"agent_{nb.id}", mc_name(nb.id))
+
+    def run(self, ticks: int, *, price: int | None | Callable[[int], int | None] = None,
+            status: bool | Callable[[int], bool] = True,
+            nbrs: Mapping[int, Callable[[int], tuple[int, int] | None]] | None = None,
+            hook: Callable[[int], object] | None = None) -> None:
+        """``ticks`` ticks, each followed by the periodic inputs: every neighbour's MC
+        (``nbrs[j](n)`` = (state, λ) or None: silent), the price at ticks n ≡ 0 (mod 5)
+        (``price``: ρ, or a function of n, None: silent), the plant status at n ≡ 2
+        (mod 5); then ``hook(n)`` for extra frames."""
+        for _ in range(ticks):
+            self.tick()
+            n = self.n - 1
+            for j, f in (nbrs or {}).items():
+                v = f(n)
+                if v is not None:
+                    self.mc(j, v[1], v[0])
+            p = price(n) if callable(price) else price
+            if p is not None and n % 5 == 0:
+                self.price(p)
+            s = status(n) if callable(status) else status
+            if s and n % 5 == 2:
+                self.status()
+            if hook is not None:
+                hook(n)
+
+    # ---- output
+    def vector(self) -> dict[str, Any]:
+        vec: dict[str, Any] = {
+            "format": FORMAT, "name": self.name, "description": self.description,
+            "covers": sorted(set(self.covers), key=_req_key), "config": self.toml,
+            "keys": self.keys_doc}
+        if self.setup:
+            vec["setup"] = self.setup
+        vec["input"] = self.inputs
+        vec["output"] = self.outputs
+        return vec
+
+
+def _req_key(req: str) -> tuple[str, int]:
+    prefix, _, num = req.rpartition("-")
+    return prefix, int(num)
+
+
+def to_json(vec: dict[str, Any]) -> str:
+    """Compact JSON, one header key and one event / frame per line (diffable, ASCII)."""
+    parts = []
+    for key, value in vec.items():
+        if key in ("input", "output"):
+            body = ",\n".join(json.dumps(r, separators=(",", ":")) for r in value)
+            parts.append(f'"{key}":[\n{body}\n]')
+        else:
+            parts.append(f"{json.dumps(key)}:{json.dumps(value, separators=(',', ':'))}")
+    return "{\n" + ",\n".join(parts) + "\n}\n"
+
+
+# --------------------------------------------------------------------------- scenarios
+
+RHO = q24(0.8)
+LAM1, LAM3 = q24(0.81), q24(0.79)
+NOISE_LSB = 3000  # neighbour λ ripple: ξ straddles the default band (1678 LSB)
+
+
+def neighbours(seed: int = 1, n: int = 4000) -> dict[int, Callable[[int], tuple[int, int]]]:
+    """Agents 1 and 3 RUNNING at λ ≈ 0.81 and 0.79 with a seeded ripple of ±3000 LSB."""
+    r1, r3 = noise(seed, n, NOISE_LSB), noise(seed + 100, n, NOISE_LSB)
+    return {1: lambda k: (1, LAM1 + r1[k]), 3: lambda k: (1, LAM3 + r3[k])}
+
+
+def start(s: Scenario, ticks: int = 10) -> dict[int, Callable[[int], tuple[int, int]]]:
+    """Tick 0, the senders' syncs, then ``ticks`` − 1 ticks of traffic: RUNNING after."""
+    nb = neighbours()
+    s.tick()
+    s.sync_all()
+    for j, f in nb.items():
+        s.mc(j, f(0)[1], 1)
+    s.price(RHO)
+    s.status()
+    s.run(ticks - 1, price=RHO, nbrs=nb)
+    return nb
+
+
+def sc_start_steady() -> Scenario:
+    s = Scenario(
+        "start_steady",
+        "Normal start and steady stepping, secure keys: frames before the senders' syncs are "
+        "unsynced; the syncs (resync, a hello: the agent re-sends its own syncs 0.1 s after "
+        "its first); INIT until both price and status are fresh (agent 3 INIT for 0.2 s: "
+        "alive but not in xi); RUNNING with a pinned price and two neighbours rippling "
+        "around the price (zero crossings, resets, the band); MC every tick, Setpoint every "
+        "5, Diag every 10 (pages 0..8 three times, E2E counter and CRC), syncs every 1 s.",
+        ["GEN-1", "GEN-2", "GEN-4", "STATE-1", "STATE-2", "STATE-4", "STATE-10", "TICK-1",
+         "TX-1", "TX-2", "TX-3", "TX-4", "TX-5", "SP-1", "SP-3", "DIAG-1",
+         "XI-1", "XI-2", "CTRL-1", "CTRL-4", "CTRL-5", "STEP-1", "STEP-2", "STEP-3", "STEP-4",
+         "STEP-5", "STEP-6", "STEP-7", "STEP-8", "BAND-1", "BAND-2", "BAND-3", "LIVE-1",
+         "LIVE-2", "TMO-1", "TMO-3", "PRICE-6", "RX-8", "RX-10", "RX-11", "AUTH-1", "AUTH-2",
+         "AUTH-3", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-10", "AUTH-11",
+         "AUTH-12", "AUTH-15", "AUTH-16", "NUM-1"])
+    nb = neighbours()
+    s.tick()                                   # tick 0: INIT, own syncs, Diag page 0
+    s.price(RHO, note="before the router's sync: unsynced")
+    s.mc(1, nb[1](0)[1], note="before agent 1's sync: unsynced")
+    s.sync_all()
+    s.price(RHO, note="first price: accepted")
+    s.run(1, price=None, nbrs={1: nb[1], 3: lambda k: (0, LAM3)})
+    s.run(20, price=RHO, nbrs={1: nb[1], 3: lambda k: (0, LAM3)})  # status from tick 2
+    s.run(280, price=RHO, nbrs=nb)
+    return s
+
+
+def sc_init_wait() -> Scenario:
+    s = Scenario(
+        "init_wait_status",
+        "INIT until the plant is heard: a fresh price alone keeps INIT (no timeout counted "
+        "for a status never received); a status with an over-current fault keeps INIT "
+        "(counted), INIT never goes to SAFE even when the price then stops; the fault "
+        "clears with the price back: RUNNING at that tick, stepping at once.",
+        ["STATE-1", "STATE-2", "STATE-4", "STATE-5", "STATE-10", "TMO-3", "TMO-2", "RX-11",
+         "SP-3", "DIAG-1"])
+    nb = neighbours()
+    s.tick()
+    s.sync_all()
+    s.run(40, price=RHO, status=False, nbrs=nb)
+    for _ in range(3):
+        s.run(4, price=RHO, status=False, nbrs=nb)
+        s.status(oc=1, note="over-current fault")
+        s.run(1, price=RHO, status=False, nbrs=nb)
+    s.run(40, price=None, status=False, nbrs=nb,
+          hook=lambda n: s.status(oc=1) if n % 5 == 2 else None)  # price lost in INIT
+    s.price(RHO)
+    s.status(note="fault cleared")
+    s.run(60, price=RHO, nbrs=nb)
+    return s
+
+
+def sc_neighbour_timeout() -> Scenario:
+    s = Scenario(
+        "neighbour_timeout",
+        "Neighbour liveness: agent 1 silent for 10 ticks drops out after 3 periods (counted, "
+        "its ID marked lost) and comes back 11 counts later (found within 8 freshness "
+        "windows: lost frames counted); agent 3 silent for 1.5 s comes back 150 counts "
+        "later (beyond 8 windows: unsynced until its sync, then resynced); a RUNNING "
+        "neighbour's lambda step beyond lambda_step_max is rejected (last good kept), the "
+        "same step after the slot timed out is accepted (not checked), a step while the "
+        "neighbour reports SAFE is not checked either.",
+        ["LIVE-1", "LIVE-2", "LIVE-3", "XI-1", "LAM-1", "LAM-2", "TMO-4", "AUTH-13",
+         "AUTH-14", "AUTH-15", "AUTH-16", "DIAG-1", "DIAG-4", "RX-9", "RX-12"])
+    nb = start(s)
+    s.run(40, price=RHO, nbrs=nb)
+    jump = q24(0.25)
+    s.run(1, price=RHO, nbrs={3: nb[3]})
+    s.mc(1, nb[1](s.n - 1)[1] + jump, note="agent 1: lambda step 0.25 > 0.1: implausible")
+    s.run(1, price=RHO, nbrs={3: nb[3]})
+    s.mc(1, nb[1](s.n - 1)[1] + jump, note="again: implausible (2 samples: 0.25 > 0.2)")
+    s.run(3, price=RHO, nbrs=nb)
+    s.run(10, price=RHO, nbrs={3: nb[3]})          # agent 1 silent: times out
+    s.mc(1, nb[1](s.n - 1)[1] + jump, skip=10,
+         note="agent 1 back 11 counts on (lost: wider window), lambda +0.25: not checked")
+    s.run(30, price=RHO, nbrs={1: lambda k: (1, nb[1](k)[1] + jump), 3: nb[3]})
+    s.run(150, price=RHO, nbrs={1: lambda k: (1, nb[1](k)[1] + jump)})  # agent 3 silent
+    s.mc(3, nb[3](s.n - 1)[1], skip=150, note="agent 3 back 151 counts on: unsynced")
+    s.run(1, price=RHO, nbrs={1: lambda k: (1, nb[1](k)[1] + jump)})
+    s.mc(3, nb[3](s.n - 1)[1], note="unsynced")
+    s.sync("agent_3", mc_name(3), note="agent 3's periodic sync: resynced")
+    s.run(20, price=RHO, nbrs={1: lambda k: (1, nb[1](k)[1] + jump), 3: nb[3]})
+    s.run(1, price=RHO, nbrs={1: lambda k: (1, nb[1](k)[1] + jump)})
+    s.mc(3, nb[3](s.n - 1)[1] - jump, state=3, note="agent 3 SAFE, lambda -0.25: not checked")
+    s.run(5, price=RHO, nbrs={1: lambda k: (1, nb[1](k)[1] + jump),
+                              3: lambda k: (3, nb[3](k)[1] - jump)})
+    s.run(40, price=RHO, nbrs={1: lambda k: (1, nb[1](k)[1] + jump),
+                               3: lambda k: (1, nb[3](k)[1] - jump)})
+    return s
+
+
+def sc_price_timeout() -> Scenario:
+    s = Scenario(
+        "price_timeout_safe",
+        "Price lost: RUNNING -> SAFE when the last valid price is older than price_s "
+        "(counted once, ER_Price marked lost; nu and xi_prev zeroed, lambda held, setpoint "
+        "disabled); PriceValid = 0 frames meanwhile refresh nothing; the router comes back "
+        "with a level 0.7 above the last price (beyond price_step_max: needs 3 frames even "
+        "though the old price went stale), its counts 50 on (lost: found in the wider "
+        "window); SAFE -> RUNNING at the tick after the third frame.",
+        ["STATE-2", "STATE-3", "STATE-4", "STATE-6", "STATE-10", "TMO-1", "TMO-2", "TMO-4",
+         "PRICE-1", "PRICE-3", "PRICE-4", "PRICE-6", "SP-3", "AUTH-13", "AUTH-15",
+         "DIAG-1"])
+    nb = start(s)
+    s.run(40, price=RHO, nbrs=nb)
+    s.run(5, price=None, nbrs=nb)
+    s.run(15, price=None, nbrs=nb,
+          hook=lambda n: s.price(RHO, valid=0) if n % 5 == 0 else None)
+    s.run(40, price=None, nbrs=nb)
+    new = q24(1.5)
+    s.price(new, skip=50, note="back, 0.7 above the last price: 1 of 3")
+    s.run(5, price=new, nbrs=nb)
+    s.run(60, price=new, nbrs=nb)
+    return s
+
+
+def sc_status() -> Scenario:
+    s = Scenario(
+        "status_fault_timeout",
+        "Plant status: an over-current fault -> SAFE (counted on its rising edge only), "
+        "cleared -> RUNNING; FaultSoc and PowerLimited change nothing; a voltage fault -> "
+        "SAFE; the status stops -> SAFE at status_s (counted once, PLANT_2_Status lost), "
+        "back -> RUNNING.",
+        ["STATE-2", "STATE-3", "STATE-4", "STATE-6", "RX-11", "TMO-1", "TMO-2", "TMO-4",
+         "DIAG-1", "SP-3"])
+    nb = start(s)
+    s.run(20, price=RHO, nbrs=nb)
+
+    def faults(oc: int = 0, volt: int = 0, soc: int = 0, lim: int = 0, k: int = 30) -> None:
+        s.run(k, price=RHO, status=False, nbrs=nb,
+              hook=lambda n: s.status(oc, volt, soc, lim) if n % 5 == 2 else None)
+
+    faults(oc=1, k=30)
+    faults(k=20)
+    faults(soc=1, lim=1, k=20)
+    faults(volt=1, k=20)
+    faults(k=20)
+    s.run(40, price=RHO, status=False, nbrs=nb)
+    s.run(40, price=RHO, nbrs=nb)
+    return s
+
+
+def sc_commands() -> Scenario:
+    s = Scenario(
+        "commands",
+        "Every command: ISOLATE (ISOLATED at once, idle MC, counters of the controller "
+        "zeroed), ISOLATE again (counted, no effect), a price outage while ISOLATED (counted, "
+        "stays ISOLATED), SET_GAINS while ISOLATED, RECONNECT (INIT at once, RUNNING at the "
+        "next tick with a stepped lambda), RECONNECT while RUNNING (counted, no effect), "
+        "commands for agent 3 (ignored), SET_GAINS inside the bounds (nu := 0, new k*Ts, "
+        "h*Ts), outside (implausible_gains), inside the bounds with h = 0 (h_min = 0 here) "
+        "that the controller refuses (range).",
+        ["CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "STATE-7", "STATE-8", "STATE-9",
+         "STATE-10", "TMO-2", "DIAG-1", "DIAG-3", "DIAG-4", "RX-10", "XI-1"],
+        extra_toml="\n[limits]\nh_min = 0.0\n")
+    nb = start(s)
+    s.run(60, price=RHO, nbrs=nb)
+    s.command("ISOLATE", target=3, note="ISOLATE for agent 3: ignored")
+    s.run(5, price=RHO, nbrs=nb)
+    s.command("RECONNECT", target=3, note="RECONNECT for agent 3: ignored")
+    s.run(5, price=RHO, nbrs=nb)
+    s.command("ISOLATE", note="ISOLATE: ISOLATED at once")
+    s.run(10, price=RHO, nbrs=nb)
+    s.command("ISOLATE", note="ISOLATE again: counted, nothing changes")
+    s.run(10, price=RHO, nbrs=nb)
+    s.run(40, price=None, nbrs=nb)      # price lost while ISOLATED
+    s.command("SET_GAINS", k=1500, h=3000, note="SET_GAINS k = 1.5, h = 3 while ISOLATED")
+    s.run(10, price=RHO, nbrs=nb)
+    s.command("RECONNECT", note="RECONNECT: INIT now, RUNNING at the next tick")
+    s.run(30, price=RHO, nbrs=nb)
+    s.command("RECONNECT", note="RECONNECT while RUNNING: counted, no effect")
+    s.run(10, price=RHO, nbrs=nb)
+    s.command("SET_GAINS", target=3, k=1000, h=2000, note="SET_GAINS for agent 3: ignored")
+    s.run(10, price=RHO, nbrs=nb)
+    s.command("SET_GAINS", k=2000, h=4000, note="SET_GAINS k = 2, h = 4: at the bounds")
+    s.run(30, price=RHO, nbrs=nb)
+    s.command("SET_GAINS", k=2001, h=2000, note="k = 2.001 > k_max: implausible_gains")
+    s.run(10, price=RHO, nbrs=nb)
+    s.command("SET_GAINS", k=1000, h=0, note="h = 0: in the bounds, refused (range)")
+    s.run(10, price=RHO, nbrs=nb)
+    s.command("SET_GAINS", k=499, h=2000, note="k = 0.499 < k_min: implausible_gains")
+    s.run(60, price=RHO, nbrs=nb)
+    return s
+
+
+def sc_auth() -> Scenario:
+    s = Scenario(
+        "auth_forgery_replay",
+        "Authentication: a price with a forged MAC (auth, last_safety = auth), five in a "
+        "row (untrusted verdict; the genuine price keeps being used), a replayed MC of "
+        "agent 1 (auth), a genuine status 20 counts on while not lost (beyond the window: "
+        "auth), a sync in step (nothing), a replayed older sync (auth), a forged sync "
+        "(auth on the sync ID), a sync with Boot = 0 (range on the sync ID), a status "
+        "sync that moves the plant on (resync).",
+        ["AUTH-7", "AUTH-10", "AUTH-12", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-17",
+         "RX-8", "RX-10", "RX-12", "RX-13", "DIAG-1", "DIAG-4"])
+    nb = start(s)
+    s.run(20, price=RHO, nbrs=nb)
+    forged = s.router.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": q24(2.0)})
+    forged.data[0] ^= 0x5A
+    s.router.count[CODEC.frame_id("ER_Price")] -= 1  # the router itself never sent it
+    s.rx(forged, note="forged MAC (price 2.0): auth")
+    s.run(10, price=RHO, nbrs=nb)
+    for i in range(5):
+        f = s.router.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": q24(3.0)})
+        f.data[1] ^= 1 + i
+        s.router.count[CODEC.frame_id("ER_Price")] -= 1
+        s.rx(f, note=f"forged MAC {i + 1} of 5" + (": untrusted" if i == 4 else ""))
+    s.run(20, price=RHO, nbrs=nb)
+    old = s.mc(1, nb[1](s.n - 1)[1] + 1, note="genuine")
+    s.run(5, price=RHO, nbrs=nb)
+    s.rx(old, note="replay of agent 1's MC 5 ticks ago: auth")
+    s.run(10, price=RHO, nbrs=nb)
+    s.status(skip=20, note="genuine status 21 counts on, ID not lost: auth")
+    s.plant.count[CODEC.frame_id(status_name(AGENT))] -= 21
+    s.run(10, price=RHO, nbrs=nb)
+    s.sync("router", "ER_Price", note="sync in step: nothing")
+    old_sync = s.router.sync("ER_Price", count=3)
+    s.rx(old_sync, note="an older sync of the router: replay, auth")
+    bad = s.router.sync("ER_Command")
+    bad.data[2] ^= 0x80
+    s.rx(bad, note="forged sync: auth on ER_Command_Sync")
+    zero = s.router.sync("ER_Price")
+    set_bits(zero.data, 48, 16, 0)
+    s.rx(zero, note="sync with Boot = 0: range")
+    s.run(10, price=RHO, nbrs=nb)
+    s.plant.count[CODEC.frame_id(status_name(AGENT))] += 30
+    s.sync("plant", status_name(AGENT), note="plant sync 30 counts on: resync")
+    s.run(40, price=RHO, nbrs=nb)
+    return s
+
+
+def sc_peer_restart() -> Scenario:
+    s = Scenario(
+        "peer_restart",
+        "Restarted senders: agent 1 restarts (boot + 1, count 0): its frames before its "
+        "sync fail (auth), its sync with the new boot resyncs it and makes a hello pending: "
+        "the agent re-sends its syncs 0.1 s after its last; the router restarts likewise; "
+        "peer syncs: PLANT_1_Status_Sync (the plant's key is held) and agent 1's "
+        "Setpoint_Sync of a new boot make a hello, the same boot again nothing, a forged one "
+        "counts auth; AGENT_4_MC_Sync (no key held) is ignored; the agent's own frames "
+        "echoed back are ignored, the same IDs with other data are impersonation.",
+        ["AUTH-9", "AUTH-11", "AUTH-14", "AUTH-16", "AUTH-18", "AUTH-19", "RX-3", "RX-4",
+         "RX-5", "RX-6", "LIVE-2", "DIAG-1"])
+    nb = start(s)
+    s.run(40, price=RHO, nbrs=nb)
+    a1 = s.senders["agent_1"]
+    a1.restart()
+    s.run(1, price=RHO, nbrs={3: nb[3]})
+    s.mc(1, nb[1](s.n - 1)[1], note="agent 1 restarted, before its sync: auth")
+    s.run(1, price=RHO, nbrs={3: nb[3]})
+    s.sync("agent_1", mc_name(1), note="agent 1's sync, new boot: resync, hello pending")
+    s.run(20, price=RHO, nbrs=nb)
+    s.sync("plant", status_name(1), note="peer sync PLANT_1_Status_Sync: hello")
+    s.run(13, price=RHO, nbrs=nb)
+    s.sync("agent_1", setpoint_name(1), note="peer sync AGENT_1_Setpoint_Sync: hello")
+    s.run(15, price=RHO, nbrs=nb)
+    s.sync("agent_1", setpoint_name(1), note="same boot again: nothing")
+    bad = s.senders["plant"].sync(status_name(3), boot=7)
+    bad.data[0] ^= 1
+    s.rx(bad, note="forged PLANT_3_Status_Sync: auth")
+    s.sync("agent_4", mc_name(4), note="AGENT_4_MC_Sync, no key held: ignored")
+    s.run(15, price=RHO, nbrs=nb)
+    s.router.restart()
+    s.run(4, price=None, nbrs=nb)
+    s.sync("router", "ER_Price", note="router restarted: its price sync")
+    s.sync("router", "ER_Command")
+    s.run(20, price=RHO, nbrs=nb)
+    own = [m for m in s.sent if m.arbitration_id == CODEC.frame_id(mc_name(AGENT))][-1]
+    s.rx(own, note="own MC echoed back: ignored")
+    own_sync = [m for m in s.sent if m.arbitration_id == contract.SYNC_OF[own.arbitration_id]]
+    s.rx(own_sync[-1], note="own MC_Sync echoed back: ignored")
+    spoof = bytearray(own.data)
+    spoof[5] ^= 0x10
+    s.raw(own.arbitration_id, bytes(spoof), note="own MC ID, other data: impersonation")
+    s.run(40, price=RHO, nbrs=nb)
+    return s
+
+
+def sc_malformed() -> Scenario:
+    s = Scenario(
+        "malformed_foreign",
+        "Frames the agent must drop and count by cause: extended ID, remote and FD frames, "
+        "an ID not in the DBC, AGENT_9_MC of an agent outside the fleet (foreign), "
+        "AGENT_4_MC (not a neighbour: ignored), DLC 7 (five in a row: untrusted verdict), "
+        "Soc > 200, Command 0, Target 0 and 33 (range), a price above lambda_max and a "
+        "neighbour lambda below lambda_min (range, after the MAC), a price below rho_min "
+        "(implausible_price).",
+        ["RX-1", "RX-2", "RX-6", "RX-7", "RX-9", "RX-12", "RX-13", "PRICE-2", "DIAG-1",
+         "DIAG-4", "GEN-3", "LIVE-1"])
+    nb = start(s)
+    s.run(20, price=RHO, nbrs=nb)
+    good = s.router.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": RHO})
+    s.router.count[CODEC.frame_id("ER_Price")] -= 1
+    s.raw(0x010, bytes(good.data), flags="ext", note="extended ID 0x00000010: unknown_id")
+    s.raw(0x010, bytes(good.data), flags="rtr", note="remote frame: malformed")
+    s.raw(0x010, bytes(good.data), flags="fd", note="CAN FD frame: malformed")
+    s.raw(0x7F0, "0011223344556677", note="ID not in the DBC: unknown_id")
+    s.raw(mc_name_id(9), "0011223344556677", note="AGENT_9_MC, fleet of 4: foreign_id")
+    s.raw(status_id(3), "0011223344556677", note="PLANT_3_Status: not for this agent")
+    s.rx(s.senders["agent_4"].frame(mc_name(4), {"State": 1, "Lambda": RHO, "Resets": 0}),
+         note="AGENT_4_MC, not a neighbour: ignored")
+    s.run(5, price=RHO, nbrs=nb)
+    for i in range(5):
+        m = s.plant.frame(status_name(AGENT), {
+            "FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+            "Power": 0, "Soc": 100})
+        s.plant.count[CODEC.frame_id(status_name(AGENT))] -= 1
+        s.raw(m.arbitration_id, bytes(m.data[:7]),
+              note="DLC 7: dlc" + (" (5th: untrusted)" if i == 4 else ""))
+    s.run(10, price=RHO, nbrs=nb)
+    s.rx(s.plant.frame(status_name(AGENT), {
+        "FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+        "Power": 0, "Soc": 200}, patch=(48, 8, 201)), note="Soc raw 201 > 200: range")
+    s.command("ISOLATE", patch=(28, 2, 0), note="Command 0: range")
+    s.command("ISOLATE", patch=(30, 6, 0), note="Target 0: range")
+    s.command("ISOLATE", patch=(30, 6, 33), note="Target 33: range")
+    s.run(10, price=RHO, nbrs=nb)
+    s.price(q24(10.5), note="price 10.5 > lambda_max: range")
+    s.mc(1, q24(-10.5), note="lambda -10.5 < lambda_min: range")
+    s.run(5, price=RHO, nbrs=nb)
+    s.price(q24(-0.1), note="price -0.1 < rho_min: implausible_price")
+    s.run(40, price=RHO, nbrs=nb)
+    return s
+
+
+def mc_name_id(j: int) -> int:
+    return CODEC.frame_id(mc_name(j))
+
+
+def status_id(j: int) -> int:
+    return CODEC.frame_id(status_name(j))
+
+
+def sc_price_steps() -> Scenario:
+    s = Scenario(
+        "price_steps",
+        "Price plausibility: a step within price_step_max is accepted at once; a step "
+        "beyond it needs price_persist = 3 equal frames (a different level restarts the "
+        "count; forged frames and PriceValid = 0 between them do not break the run); a "
+        "price outside [rho_min, rho_max] is rejected and forgets the candidate.",
+        ["PRICE-1", "PRICE-2", "PRICE-3", "PRICE-4", "PRICE-6", "RX-9", "RX-10", "DIAG-1",
+         "DIAG-4"])
+    nb = start(s)
+    s.run(20, price=RHO, nbrs=nb)
+    steps = [(1.2, "step 0.4: accepted"), (1.6, "step 0.4: accepted"),
+             (2.2, "step 0.6: 1 of 3"), (2.2, "2 of 3"), (2.4, "another level: 1 of 3"),
+             (2.4, "2 of 3"), (2.4, "3 of 3: accepted"), (2.0, "step 0.4: accepted")]
+    for p, note in steps:
+        s.run(2, price=None, nbrs=nb)
+        s.price(q24(p), note=note)
+    s.run(5, price=None, nbrs=nb)
+    lvl = q24(2.6)
+    for k in range(3):
+        s.price(lvl, note=f"{k + 1} of 3 with other frames between")
+        f = s.router.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": lvl})
+        s.router.count[CODEC.frame_id("ER_Price")] -= 1
+        f.data[0] ^= 0xFF
+        s.rx(f, note="forged: does not break the run")
+        s.price(q24(0.5), valid=0, note="PriceValid = 0: does not break the run")
+        s.run(3, price=None, nbrs=nb)
+    s.price(q24(0.5), note="a step down of 2.0: 1 of 3")
+    s.price(q24(5.5), note="above rho_max: implausible_price, candidate forgotten")
+    s.price(q24(0.5), note="1 of 3 again")
+    s.run(5, price=q24(0.5), nbrs=nb)
+    s.run(30, price=q24(0.5), nbrs=nb)
+    return s
+
+
+def sc_tx_wrap() -> Scenario:
+    s = Scenario(
+        "tx_count_wrap",
+        "The agent's message counts start at 2**24 - 12 (setup.tx_count, a test hook): "
+        "the MC count reaches 2**24 after 12 frames: a new boot (persisted), every count "
+        "back to 0, the frame sent under the new boot and the syncs at the next tick.",
+        ["AUTH-3", "AUTH-4", "AUTH-5", "AUTH-9"],
+        tx_count=(1 << contract.FV_COUNT_BITS) - 12)
+    nb = start(s)
+    s.run(40, price=RHO, nbrs=nb)
+    return s
+
+
+INSECURE_TOML = """\
+# time scale 2 (sim.scenario.scaled): ts = 0.02, k = 1/2, h = 2/4
+[agent]
+id = 2
+lambda0 = 0.8033
+pinned = false
+fleet_size = 4
+
+[controller]
+kind = "dwell"
+k = 0.5
+h = 0.5
+ts = 0.02
+dwell = 0.2
+band = 0.0001
+
+[battery]
+alpha = 0.005
+beta = 0.18
+m = 0.08
+p_min = -100.0
+p_max = 100.0
+
+[limits]
+price_persist = 1
+
+[[neighbour]]
+id = 1
+weight = 1.0
+
+[[neighbour]]
+id = 3
+weight = 0.5
+"""
+
+
+def sc_insecure() -> Scenario:
+    s = Scenario(
+        "insecure_scaled",
+        "--insecure (all-zero master key, every node at boot 1, no sync needed), a "
+        "time-scaled agent (F = 2: ts = 0.02, k = 0.5, h = 0.5, dwell controller with "
+        "dwell = 0.2 s = 10 samples, not pinned, lambda(0) at the neighbours' weighted mean: "
+        "crossings blocked by the dwell): every cadence in ticks, timeouts in Ts; "
+        "price_persist = 1 takes a far step at once; a status outage (SAFE and back: the "
+        "dwell timer and the band run on); SET_GAINS carries the scaled gains (k = 0.6, "
+        "h = 0.8); a restarted insecure router (boot 1, count 0 again) fails until its sync, "
+        "which goes back and is accepted.",
+        ["AUTH-20", "AUTH-16", "AUTH-17", "PRICE-5", "CMD-5", "CMD-6", "SCALE-2", "STATE-3",
+         "STATE-4", "STATE-6", "DWELL-1", "DWELL-2", "CTRL-2", "TMO-1", "TMO-2", "DIAG-1"],
+        insecure=True, toml=INSECURE_TOML)
+    nb = neighbours(7)
+    s.tick()
+    s.run(60, price=RHO, nbrs=nb)
+    s.run(1, price=None, nbrs=nb)
+    s.price(q24(1.6), note="a step of 0.8 > 0.5, price_persist = 1: accepted")
+    s.run(20, price=q24(1.6), nbrs=nb)
+    s.run(32, price=q24(1.6), status=False, nbrs=nb)  # status_s = 25 Ts: SAFE, then back
+    s.run(20, price=q24(1.6), nbrs=nb)
+    s.command("SET_GAINS", k=600, h=800, note="SET_GAINS k = 0.6, h = 0.8 (scaled)")
+    s.run(10, price=q24(1.6), nbrs=nb)
+    s.router.restart()
+    s.router.boot = 1
+    s.run(1, price=None, nbrs=nb)
+    s.price(q24(1.6), note="restarted router, boot 1 count 0 again: auth")
+    s.sync("router", "ER_Price", note="its sync goes back: accepted (insecure)")
+    s.run(20, price=q24(1.6), nbrs=nb)
+    return s
+
+
+SCENARIOS: tuple[Callable[[], Scenario], ...] = (
+    sc_start_steady, sc_init_wait, sc_neighbour_timeout, sc_price_timeout, sc_status,
+    sc_commands, sc_auth, sc_peer_restart, sc_malformed, sc_price_steps, sc_tx_wrap,
+    sc_insecure)
+
+
+def render_all() -> dict[str, str]:
+    """File name → text of every node vector, exactly as committed."""
+    out: dict[str, str] = {}
+    fw_log = logging.getLogger("firmware_py")
+    level = fw_log.level
+    fw_log.setLevel(logging.ERROR)  # the scenarios provoke every warning on purpose
+    try:
+        for make in SCENARIOS:
+            s = make()
+            name = f"{s.name}.json"
+            if name in out:
+                raise ValueError(f"two vectors named {s.name}")
+            out[name] = to_json(s.vector())
+    finally:
+        fw_log.setLevel(level)
+    return out
+
+
+def write_or_check(files: dict[str, str], out: Path, check: bool) -> int:
+    """Write ``files`` into ``out`` (removing stale *.json), or with ``check`` report
+    every file that differs, is missing or extra and return 1."""
+    present = {f.name for f in out.glob("*.json")} if out.is_dir() else set()
+    if check:
+        stale = sorted(n for n, text in files.items()
+                       if n not in present or (out / n).read_bytes() != text.encode("ascii"))
+        extra = sorted(present - files.keys())
+        for n in stale:
+            sys.stderr.write(f"{out / n} is stale or missing\n")
+        for n in extra:
+            sys.stderr.write(f"{out / n} is not produced by the generator\n")
+        return 1 if stale or extra else 0
+    out.mkdir(parents=True, exist_ok=True)
+    for n in sorted(present - files.keys()):
+        (out / n).unlink()
+    for n, text in files.items():
+        (out / n).write_bytes(text.encode("ascii"))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("-o", "--output", type=Path, default=DEFAULT_OUTPUT)
+    p.add_argument("--check", action="store_true")
+    args = p.parse_args(argv)
+    rc = write_or_check(render_all(), args.output, args.check)
+    if rc:
+        sys.stderr.write("run python tools/gen_vectors.py\n")
+    return rc
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
