@@ -256,7 +256,8 @@ class Tester:
             node_keys = fleet_keys(secoc.INSECURE_MASTER)
         self.keys = node_keys
         self.as_node = None if as_node is None else node_label(as_node)
-        self._sender = FleetSender(self.codec, node_keys, boot=boot)
+        self._boot = boot
+        self._senders: dict[str, FleetSender] = {}  # signing identity -> its sequences
         self._monitor = _Monitor(node_keys)
         self._clock: Clock = clock or WallClock()
         self.sync_s = sync_s
@@ -267,7 +268,7 @@ class Tester:
         self._consumed: dict[str, int] = {}         # per message: the last one expect returned
         self._inbox: dict[str, deque[Received]] = {}
         self._echo: dict[int, deque[bytes]] = {}
-        self._synced: dict[int, float] = {}         # secured ID -> bus time of its last sync
+        self._synced: dict[tuple[str, int], float] = {}  # (identity, ID) -> its last sync
         self.rejected: Counter[str] = Counter()     # cause -> frames
         self.rejected_by_id: dict[int, Counter[str]] = {}
         self.last_rejection: dict[str, str] = {}    # cause -> its last reason
@@ -396,25 +397,24 @@ class Tester:
             raise TesterError("as_node", f"a node whose key the tester holds "
                               f"({', '.join(sorted(self.keys))})", label)
         fid = self.codec.frame_id(name)
+        self._check_signals(name, signals)
         with self._tx_lock:
             sender = contract.sender_of(name.removesuffix("_Sync"))
-            # FleetSender signs with the DBC sender's key: as another node, sign with
-            # that node's key (a forgery the receivers must reject)
-            saved = self._sender.keys.get(sender)
-            self._sender.keys[sender] = self.keys[label]
-            try:
-                self._check_signals(name, signals)
-                out: list[can.Message] = []
-                t = self.now()
-                if fid in contract.SECURED_IDS:
-                    last = self._synced.get(fid)
-                    if last is None or t - last >= self.sync_s:
-                        out.append(self._sender.sync(name))
-                        self._synced[fid] = t
-                out.append(self._sender.frame(name, signals, phys=True))
-            finally:
-                if saved is not None:
-                    self._sender.keys[sender] = saved
+            # one FleetSender per identity: as the DBC's sender, the genuine sequence;
+            # as another node, that node's key and a freshness sequence of its own (a
+            # forgery the receivers must reject, which leaves the genuine one intact)
+            fs = self._senders.get(label)
+            if fs is None:
+                fs = self._senders[label] = FleetSender(self.codec, {}, boot=self._boot)
+            fs.keys[sender] = self.keys[label]
+            out: list[can.Message] = []
+            t = self.now()
+            if fid in contract.SECURED_IDS:
+                last = self._synced.get((label, fid))
+                if last is None or t - last >= self.sync_s:
+                    out.append(fs.sync(name))
+                    self._synced[(label, fid)] = t
+            out.append(fs.frame(name, signals, phys=True))
             for m in out:
                 m.timestamp = t
                 with self._cond:
@@ -573,10 +573,12 @@ class Tester:
                                    f"{got[0].t:.3f} s: {_signals_text(got[0])}")
 
     def sleep(self, duration_s: float) -> None:
-        """Let ``duration_s`` of bus time pass (on the simulated clock: step the fleet)."""
+        """Let ``duration_s`` of bus time pass (on the simulated clock: step the fleet);
+        ``expect`` then looks at frames received after it."""
         end = self.now() + duration_s
         while (left := end - self.now()) > 1e-12:
             self._clock.wait(self, left)
+        self.mark()  # what came before is old news for expect
 
     # ------------------------------------------------------------ diagnostics
 
