@@ -514,8 +514,11 @@ class Tester:
         t_start = self.now()
         deadline = t_start + timeout_s
         fid = self.codec.frame_id(message)
+        ids = [fid]  # its sync too: a sync that fails leaves the frames unsynced
+        if fid in contract.SYNC_OF:
+            ids.append(contract.SYNC_OF[fid])
         with self._cond:
-            rej_before = Counter(self.rejected_by_id.get(fid, Counter()))
+            rej_before = {i: Counter(self.rejected_by_id.get(i, Counter())) for i in ids}
             seen_before = self.received[message]
         while True:
             with self._cond:
@@ -528,8 +531,11 @@ class Tester:
                 break
             self._clock.wait(self, deadline - self.now())
         with self._cond:
-            rej = Counter(self.rejected_by_id.get(fid, Counter()))
-            rej.subtract(rej_before)
+            rejs = {}
+            for i in ids:
+                rej = Counter(self.rejected_by_id.get(i, Counter()))
+                rej.subtract(rej_before[i])
+                rejs[i] = {k: v for k, v in rej.items() if v > 0}
             seen = self.received[message] - seen_before
             last = next((r for r in reversed(self._inbox.get(message, ()))
                          if r.seq > self._after(message, since)), None)
@@ -537,10 +543,13 @@ class Tester:
         detail = f"{seen} {message} frame(s) passed the checks meanwhile"
         if last is not None:
             detail += f", the last: {_signals_text(last)}"
-        bad = {k: v for k, v in rej.items() if v > 0}
-        if bad:
-            detail += (f"; {sum(bad.values())} frame(s) of 0x{fid:03X} rejected ("
-                       + ", ".join(f"{k}: {v}" for k, v in sorted(bad.items())) + ")")
+        for i, bad in rejs.items():
+            if bad:
+                detail += (f"; {sum(bad.values())} frame(s) of 0x{i:03X} "
+                           f"({self.codec.name_of(i)}) rejected ("
+                           + ", ".join(f"{k}: {v}" for k, v in sorted(bad.items())) + ")")
+        if any(rejs.values()) and "unsynced" in self.last_rejection and self.rejected["auth"]:
+            detail += " (are the tester's keys the fleet's?)"
         raise ExpectationError(f"expected {message}{cond} within {timeout_s:g} s of bus time "
                                f"(t = {t_start:.3f} → {deadline:.3f} s), but got none: "
                                f"{detail}")
