@@ -45,6 +45,8 @@ class TesterError(BessDedError, ValueError):
     """A misuse of the tester (an unknown message, signal or node): names what was
     expected and what was given."""
 
+    __test__ = False  # not a test class for pytest, whatever the module importing it
+
     def __init__(self, what: str, expected: str, got: object) -> None:
         super().__init__(f"{what}: expected {expected}, but got {got!r}")
 
@@ -245,6 +247,8 @@ class Tester:
     sender). The tester reads the bus from a thread of its own on the wall clock;
     ``close()`` stops it and every periodic message (not the bus)."""
 
+    __test__ = False  # not a test class for pytest, whatever the module importing it
+
     def __init__(self, bus: can.BusABC, keys: Any = None, *, as_node: str | int | None = None,
                  clock: Clock | None = None, codec: FrameCodec | None = None,
                  boot: int = secoc.INSECURE_BOOT, sync_s: float = SYNC_S) -> None:
@@ -272,6 +276,7 @@ class Tester:
         self.rejected: Counter[str] = Counter()     # cause -> frames
         self.rejected_by_id: dict[int, Counter[str]] = {}
         self.last_rejection: dict[str, str] = {}    # cause -> its last reason
+        self._rejections: dict[int, deque[tuple[int, str]]] = {}  # ID -> (seq, cause)
         self.received: Counter[str] = Counter()     # message -> frames that passed
         self.sent: Counter[str] = Counter()
         self._periodic: list[Periodic] = []
@@ -353,6 +358,10 @@ class Tester:
     def _reject(self, fid: int, cause: str, reason: str) -> None:
         self.rejected[cause] += 1
         self.rejected_by_id.setdefault(fid, Counter())[cause] += 1
+        log = self._rejections.get(fid)
+        if log is None:
+            log = self._rejections[fid] = deque(maxlen=INBOX_DEPTH)
+        log.append((self._seq, cause))  # after frame number _seq: for expect's report
         self.last_rejection[cause] = reason
         self._cond.notify_all()
 
@@ -518,8 +527,7 @@ class Tester:
         if fid in contract.SYNC_OF:
             ids.append(contract.SYNC_OF[fid])
         with self._cond:
-            rej_before = {i: Counter(self.rejected_by_id.get(i, Counter())) for i in ids}
-            seen_before = self.received[message]
+            window = self._after(message, since)  # frames and rejections after this one
         while True:
             with self._cond:
                 after = self._after(message, since)
@@ -531,16 +539,14 @@ class Tester:
                 break
             self._clock.wait(self, deadline - self.now())
         with self._cond:
-            rejs = {}
-            for i in ids:
-                rej = Counter(self.rejected_by_id.get(i, Counter()))
-                rej.subtract(rej_before[i])
-                rejs[i] = {k: v for k, v in rej.items() if v > 0}
-            seen = self.received[message] - seen_before
+            rejs = {i: Counter(c for s, c in self._rejections.get(i, ()) if s >= window)
+                    for i in ids}
+            seen = sum(1 for r in self._inbox.get(message, ()) if r.seq > window)
             last = next((r for r in reversed(self._inbox.get(message, ()))
-                         if r.seq > self._after(message, since)), None)
+                         if r.seq > window), None)
         cond = "" if where is None else f" with {_describe(where)}"
-        detail = f"{seen} {message} frame(s) passed the checks meanwhile"
+        detail = (f"{seen} {message} frame(s) passed the checks in its window (after the "
+                  "last send, mark, sleep or match)")
         if last is not None:
             detail += f", the last: {_signals_text(last)}"
         for i, bad in rejs.items():
