@@ -48,6 +48,21 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                      "default: 1)")
 
 
+# the markers the examples use (docs/testing.md), for projects that do not define them
+MARKERS = {
+    "realtime": "bess-ded test kit: node processes on the wall clock (assert only what "
+                "holds at any load)",
+    "slow": "bess-ded test kit: bus-level runs of seconds",
+}
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    defined = {line.split(":")[0].split("(")[0].strip() for line in config.getini("markers")}
+    for name, text in MARKERS.items():
+        if name not in defined:
+            config.addinivalue_line("markers", f"{name}: {text}")
+
+
 @pytest.fixture
 def bess_bus_options(request: pytest.FixtureRequest) -> Any:
     """The bus of this test: the --bess-* options, else CAN_* variables, else
