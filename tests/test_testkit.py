@@ -69,6 +69,10 @@ def test_the_tester_as_router_isolates_and_reconnects_an_agent(keys: KeySet) -> 
         tester.expect_none("AGENT_3_MC", 1.0, where={"State": "RUNNING"})
         tester.send("ER_Command", Command="RECONNECT", Target=3, **NO_GAINS)
         tester.expect("AGENT_3_MC", 0.1, where={"State": "RUNNING"})
+        watcher = fleet.tester()  # the tester does not hear its own frames; a new one
+        # takes the price once it heard its next sync (within sync_s = 1 s)
+        watcher.expect("ER_Price", 1.5, where={"Rho": 0.62})  # as encoded: 0.62 ± 2^-25
+        assert watcher.rejected.keys() <= {"unsynced"}
         price.update(Rho=0.7)
         tester.sleep(8.0)
         assert abs(tester.expect("AGENT_3_MC", 0.1)["Lambda"] - 0.7) < 1e-3

@@ -485,6 +485,7 @@ class Tester:
             raise TesterError(f"{name} where", f"signals among {', '.join(known)}",
                               sorted(unknown))
         conds = dict(where)
+        half_step = {sig: self.codec.scale(name, sig) / 2 for sig in conds}
 
         def match(r: Received) -> bool:
             for sig, want in conds.items():
@@ -496,8 +497,8 @@ class Tester:
                 elif isinstance(want, str):
                     if r.frame.label(sig) != want:
                         return False
-                elif r.frame.phys(sig) != want:
-                    return False
+                elif abs(r.frame.phys(sig) - want) > half_step[sig]:
+                    return False  # a number: the value as encoded (half a raw step)
             return True
 
         return match
@@ -512,10 +513,11 @@ class Tester:
     def expect(self, message: str, timeout_s: float = 1.0, where: Where = None, *,
                since: float | None = None) -> Received:
         """The first ``message`` frame that passed every check, was received after the
-        last ``send`` (or ``mark``, or the frame the previous ``expect`` of this message
-        returned) and matches ``where`` ({signal: value}: a number compares with the
-        physical value, a string with the choice name, a callable is a predicate of the
-        physical value; or a predicate of the ``Received`` frame), within ``timeout_s``
+        last ``send``, ``mark`` or ``sleep`` (or the frame the previous ``expect`` of
+        this message returned) and matches ``where`` ({signal: value}: a number matches
+        the physical value as encoded, within half a raw step (``Rho=0.8``), a string the
+        choice name, a callable is a predicate of the physical value; or a predicate of
+        the ``Received`` frame), within ``timeout_s``
         of bus time; else ExpectationError (with what was received and rejected).
         ``since``: a bus time instead (frames received after it)."""
         self._message(message)
@@ -556,6 +558,8 @@ class Tester:
                            + ", ".join(f"{k}: {v}" for k, v in sorted(bad.items())) + ")")
         if any(rejs.values()) and "unsynced" in self.last_rejection and self.rejected["auth"]:
             detail += " (are the tester's keys the fleet's?)"
+        if "bus_error" in self.last_rejection:
+            detail += f"; the bus reader failed: {self.last_rejection['bus_error']}"
         raise ExpectationError(f"expected {message}{cond} within {timeout_s:g} s of bus time "
                                f"(t = {t_start:.3f} → {deadline:.3f} s), but got none: "
                                f"{detail}")
@@ -597,7 +601,7 @@ class Tester:
 
     # ------------------------------------------------------------ diagnostics
 
-    def diagnostics(self, node: str | int, timeout_s: float = 5.0) -> dict[str, int]:
+    def diagnostics(self, node: str | int, timeout_s: float = 10.0) -> dict[str, int]:
         """Every counter of an agent's ``AGENT_<i>_Diag`` pages, from pages received from
         now on (one full round of pages; each page's newest value)."""
         label = node_label(node)
@@ -634,7 +638,7 @@ class Tester:
             out.update(got[p])
         return out
 
-    def assert_diagnostics(self, node: str | int, timeout_s: float = 5.0,
+    def assert_diagnostics(self, node: str | int, timeout_s: float = 10.0,
                            **expected: Any) -> dict[str, int]:
         """``diagnostics(node)`` with each named counter equal to a value or satisfying a
         predicate (``RejectedAuth=lambda n: n >= 1``). Returns the diagnostics."""
