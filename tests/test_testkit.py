@@ -238,3 +238,14 @@ def test_bad_plugin_options_are_one_line_errors(tmp_path: Path) -> None:
     assert out.returncode != 0
     assert "bess-ded test kit: CAN config: expected a JSON object, but got '{oops'" in (
         out.stdout + out.stderr)
+
+
+def test_a_process_fleet_refuses_an_in_process_bus(tmp_path: Path, keys: KeySet) -> None:
+    from sim.busrun import BusOptions
+    from sim.testkit.fleet import ProcessFleet
+
+    with pytest.raises(TesterError, match="bus: expected a bus that connects processes"):
+        ProcessFleet(1, tmp_path / "f", BusOptions("virtual", "x"), keys)
+    with pytest.raises(ValueError, match="nodes: expected nodes of case1"):
+        ProcessFleet(1, tmp_path / "f", BusOptions("udp_multicast", None, '{"port": 31999}'),
+                     keys).start(["agent_9"])

@@ -147,6 +147,14 @@ class ProcessFleet:
     def __init__(self, case: int | str | Path | Scenario, out: Path, bus: busrun.BusOptions,
                  keys: KeySet | None, *, variant: str | None = None, time_scale: float = 1.0,
                  rt_priority: int = 0) -> None:
+        from ..cli.up import IN_PROCESS_INTERFACES
+
+        interface = bus.resolved()["interface"]
+        if interface in IN_PROCESS_INTERFACES:
+            raise TesterError("bus", "a bus that connects processes (udp_multicast, "
+                              "socketcan, ...): python-can's virtual bus exists inside one "
+                              "process only (for an in-process fleet: SimFleet, "
+                              "bess_fleet(processes=False))", interface)
         self.scenario = fleet_scenario(case, variant, time_scale)
         self.time_scale = time_scale
         self.out = Path(out)
