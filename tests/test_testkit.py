@@ -230,14 +230,23 @@ def test_the_plugin_loads_from_its_entry_point_once_and_documents_its_options(
     assert "ERROR" not in col.stdout and "already registered" not in col.stderr
 
 
-def test_bad_plugin_options_are_one_line_errors(tmp_path: Path) -> None:
+@pytest.mark.parametrize("args, message", [
+    (["--bess-bus-config", "{oops"],
+     "bess-ded test kit: CAN config: expected a JSON object, but got '{oops'"),
+    (["--bess-bus-config", '{"prot": 1}'], "bess-ded test kit: CAN config: udp_multicast "
+     "accepts"),
+    (["--bess-time-scale", "0.5"], "--bess-time-scale: expected a factor ≥ 1, but got 0.5"),
+    (["--bess-keys", "/nonexistent"], "--bess-keys: expected a key set directory"),
+])
+def test_bad_plugin_options_are_one_line_usage_errors(tmp_path: Path, args: list[str],
+                                                      message: str) -> None:
+    """Expected: checked once at startup (exit code 4, pytest's usage error), before any
+    test runs, with what was expected and given."""
     test = tmp_path / "test_probe.py"
     test.write_text("def test_probe(bess_bus):\n    pass\n")
-    out = _pytest(tmp_path, "-q", "-p", "no:cacheprovider", "--bess-bus-config", "{oops",
-                  str(test))
-    assert out.returncode != 0
-    assert "bess-ded test kit: CAN config: expected a JSON object, but got '{oops'" in (
-        out.stdout + out.stderr)
+    out = _pytest(tmp_path, "-q", "-p", "no:cacheprovider", *args, str(test))
+    assert out.returncode == 4, out.stdout + out.stderr
+    assert message in out.stderr
 
 
 def test_a_process_fleet_refuses_an_in_process_bus(tmp_path: Path, keys: KeySet) -> None:

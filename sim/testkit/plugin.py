@@ -61,23 +61,38 @@ def pytest_configure(config: pytest.Config) -> None:
     for name, text in MARKERS.items():
         if name not in defined:
             config.addinivalue_line("markers", f"{name}: {text}")
+    opt = config.getoption
+    given = [opt(o) for o in ("--bess-interface", "--bess-channel", "--bess-bus-config")]
+    if any(v is not None for v in given):  # checked at once, not in every test's setup
+        _bus_options(*given)
+    scale = opt("--bess-time-scale")
+    if scale is not None and not (scale >= 1 and scale != float("inf")):
+        raise pytest.UsageError(f"--bess-time-scale: expected a factor ≥ 1, but got {scale!r}")
+    keys = opt("--bess-keys")
+    if keys is not None and not Path(keys).is_dir():
+        raise pytest.UsageError(f"--bess-keys: expected a key set directory (bess-ded keys "
+                                f"--fleet ... --out DIR), but got {str(keys)!r}")
 
 
-@pytest.fixture
-def bess_bus_options(request: pytest.FixtureRequest) -> Any:
-    """The bus of this test: the --bess-* options, else CAN_* variables, else
-    udp_multicast on a free port of its own (never python-can's shared default)."""
+def _bus_options(interface: str | None, channel: str | None, config: str | None) -> Any:
     from sim import busrun
 
-    opt = request.config.getoption
-    bus = busrun.BusOptions(opt("--bess-interface"), opt("--bess-channel"),
-                            opt("--bess-bus-config"))
+    bus = busrun.BusOptions(interface, channel, config)
     try:
         bus.resolved()
         bus, _port = busrun.private_port(bus)
     except Exception as e:  # a bad option: one clear line, not a traceback
         raise pytest.UsageError(f"bess-ded test kit: {e}") from None
     return bus
+
+
+@pytest.fixture
+def bess_bus_options(request: pytest.FixtureRequest) -> Any:
+    """The bus of this test: the --bess-* options, else CAN_* variables, else
+    udp_multicast on a free port of its own (never python-can's shared default)."""
+    opt = request.config.getoption
+    return _bus_options(opt("--bess-interface"), opt("--bess-channel"),
+                        opt("--bess-bus-config"))
 
 
 @pytest.fixture
@@ -98,10 +113,7 @@ def bess_keys(request: pytest.FixtureRequest, tmp_path: Path) -> Any:
     from .fleet import KeySet
 
     given = request.config.getoption("--bess-keys")
-    if given is not None:
-        if not Path(given).is_dir():
-            raise pytest.UsageError(f"--bess-keys: expected a key set directory (bess-ded "
-                                    f"keys --fleet ... --out DIR), but got {str(given)!r}")
+    if given is not None:  # a directory: checked by pytest_configure
         return KeySet(given)
     return KeySet.fresh(tmp_path / "keys")
 
