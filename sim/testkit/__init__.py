@@ -6,6 +6,7 @@ scenario's nodes, as ``bess-ded`` processes on a real bus or in-process on a sim
 clock; ``sim.testkit.plugin`` is the pytest plugin with the ``bess_*`` fixtures.
 """
 
+from .fleet import FleetError, KeySet, ProcessFleet, SimFleet
 from .tester import (
     ExpectationError,
     Periodic,
@@ -17,5 +18,5 @@ from .tester import (
     node_label,
 )
 
-__all__ = ["ExpectationError", "Periodic", "Received", "Tester", "TesterError", "WallClock",
-           "fleet_keys", "node_label"]
+__all__ = ["ExpectationError", "FleetError", "KeySet", "Periodic", "ProcessFleet", "Received",
+           "SimFleet", "Tester", "TesterError", "WallClock", "fleet_keys", "node_label"]
