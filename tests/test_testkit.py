@@ -258,3 +258,14 @@ def test_a_process_fleet_refuses_an_in_process_bus(tmp_path: Path, keys: KeySet)
     with pytest.raises(ValueError, match="nodes: expected nodes of case1"):
         ProcessFleet(1, tmp_path / "f", BusOptions("udp_multicast", None, '{"port": 31999}'),
                      keys).start(["agent_9"])
+
+
+def test_loading_the_plugin_imports_nothing_heavy() -> None:
+    """Expected: installed, the plugin loads in every pytest session of the environment;
+    until a test asks for a fixture it imports neither python-can, cantools, numpy nor
+    the firmware (nor compiles the DBC)."""
+    code = ("import sys, sim.testkit.plugin; print(sorted(m for m in sys.modules if "
+            "m.split('.')[0] in ('can', 'cantools', 'numpy', 'firmware_py', 'matplotlib')))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert out.stdout.strip() == "[]"
