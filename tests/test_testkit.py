@@ -269,3 +269,21 @@ def test_loading_the_plugin_imports_nothing_heavy() -> None:
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                          text=True, check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert out.stdout.strip() == "[]"
+
+
+def test_a_device_model_joins_the_simulated_fleet(keys: KeySet) -> None:
+    """Expected: the fleet but agent 3, plus a node of one's own in its place (here our
+    own AgentRuntime, built from the fleet's configuration and keyring, as a binding of
+    one's firmware would be): it runs and converges to ρ = 0.8 with the rest."""
+    from firmware_py.runtime import AgentRuntime
+
+    with SimFleet(1, nodes=["router", "plant", 1, 2, 4], keys=keys) as fleet:
+        fleet.add("agent_3", AgentRuntime(fleet.agent_config(3),
+                                          keys=fleet.keyring("agent_3")))
+        with pytest.raises(TesterError, match="name: expected a node not yet in the fleet"):
+            fleet.add("agent_3", object())
+        tester = fleet.tester()
+        tester.expect("AGENT_3_MC", 1.0, where={"State": "RUNNING"})
+        tester.sleep(8.0)
+        assert abs(tester.expect("AGENT_3_MC", 0.1)["Lambda"] - 0.8) < 1e-3
+        tester.assert_diagnostics(3, RejectedAuth=0, Unsynced=0)

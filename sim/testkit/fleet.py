@@ -267,6 +267,7 @@ class SimFleet:
         self.keys = keys
         rings = (keys.keyrings(secoc.fleet_nodes(sc.n)) if keys is not None else
                  {n: secoc.Keyring.insecure_for(n) for n in secoc.fleet_nodes(sc.n)})
+        self._rings = rings
         factories = busrun.in_process_nodes(sc, FrameCodec(), rings)
         self.channel = channel or f"bess-testkit-{os.getpid()}-{next(_channels)}"
         self._bus_kw: dict[str, Any] = {"interface": "virtual", "channel": self.channel,
@@ -309,6 +310,35 @@ class SimFleet:
     def detach(self, tester: Tester) -> None:
         if tester in self._testers:
             self._testers.remove(tester)
+
+    def add(self, name: str, node: Any) -> None:
+        """A node of your own in the fleet (a model, or a binding of your firmware): any
+        object with ``on_frame(msg, t)`` and ``tick(t)`` → frames to send, stepped with
+        the others on a bus instance of its own. ``agent_config`` and ``keyring`` give
+        what a node of the scenario needs."""
+        if name in self.nodes:
+            raise TesterError("name", f"a node not yet in the fleet (it runs "
+                              f"{', '.join(self.nodes)})", name)
+        for attr in ("on_frame", "tick"):
+            if not callable(getattr(node, attr, None)):
+                raise TesterError(name, "a node with on_frame(msg, t) and tick(t) methods",
+                                  type(node).__name__)
+        self.nodes[name] = node
+        self._buses[name] = can.Bus(**self._bus_kw)
+
+    def agent_config(self, agent: str | int) -> Any:
+        """Agent ``agent``'s configuration (``firmware_py.config.AgentConfig``)."""
+        from firmware_py.config import agent_configs_from_scenario
+
+        name = node_names(self.scenario, [agent])[0]
+        for cfg in agent_configs_from_scenario(self.scenario):
+            if f"agent_{cfg.id}" == name:
+                return cfg
+        raise TesterError("agent", "an agent of the scenario", agent)
+
+    def keyring(self, node: str | int) -> secoc.Keyring:
+        """``node``'s keyring in this fleet (its key and every peer's)."""
+        return self._rings[node_names(self.scenario, [node])[0]]
 
     def open_bus(self) -> can.BusABC:
         """Another bus instance on the fleet's channel (closed with the fleet)."""
