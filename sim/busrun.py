@@ -38,7 +38,8 @@ from .runreport import Recording, report
 from .scenario import Scenario, to_toml
 from .verdict import RunFacts
 
-__all__ = ["BusOptions", "NodeSpec", "Recording", "record", "run", "run_in_process"]
+__all__ = ["BusOptions", "NodeSpec", "Recording", "in_process_nodes", "record", "run",
+           "run_in_process"]
 
 STOP_GRACE_S = 5.0     # SIGTERM → SIGKILL
 # nodes must be up (router speaking) by then. In tools/vcan-run's emulated guest a node
@@ -546,6 +547,27 @@ def _check_alive(specs: list[NodeSpec], logdir: Path) -> None:
                               f"run started:\n{tail}")
 
 
+def in_process_nodes(sc: Scenario, codec: FrameCodec, rings: Mapping[str, secoc.Keyring],
+                     plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = ()
+                     ) -> dict[str, Callable[[], Any]]:
+    """Node name (as in `up`) → a factory of that node as an in-process object (``on_frame(msg,
+    t)``, ``tick(t)`` → frames), agents first, then the plant and the router: what
+    ``run_in_process`` steps, and ``sim.testkit.SimFleet`` for any subset of them."""
+    from firmware_py.runtime import AgentRuntime
+
+    from .plant import PlantNode
+    from .router import RouterNode
+
+    factories: dict[str, Callable[[], Any]] = {
+        f"agent_{c.id}": functools.partial(AgentRuntime, c, codec, rings[f"agent_{c.id}"])
+        for c in agent_configs_from_scenario(sc)}
+    factories["plant"] = lambda: PlantNode(sc, period=sc.ts, faults=plant_faults,
+                                           keys=rings["plant"])
+    factories["router"] = lambda: RouterNode(sc, period=sc.ts, silent=router_silent,
+                                             keys=rings["router"])
+    return factories
+
+
 def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bess-ded",
                    plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = (),
                    restarts: Sequence[tuple[str, float, float]] = (),
@@ -582,11 +604,6 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     ``observe(t, nodes)``: called after every sample with the live nodes by name (a
     test's window on state the bus does not carry, e.g. an agent's neighbours alive).
     """
-    from firmware_py.runtime import AgentRuntime
-
-    from .plant import PlantNode
-    from .router import RouterNode
-
     out.mkdir(parents=True, exist_ok=True)
     codec = FrameCodec()
     nodes_ = secoc.fleet_nodes(sc.n)
@@ -602,13 +619,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
             shutil.rmtree(key_dir)
         key_dir.mkdir(mode=0o700)
         write_key_set(sc, key_dir, master)
-    factories: dict[str, Callable[[], Any]] = {
-        f"agent_{c.id}": functools.partial(AgentRuntime, c, codec, rings[f"agent_{c.id}"])
-        for c in agent_configs_from_scenario(sc)}
-    factories["plant"] = lambda: PlantNode(sc, period=sc.ts, faults=plant_faults,
-                                           keys=rings["plant"])
-    factories["router"] = lambda: RouterNode(sc, period=sc.ts, silent=router_silent,
-                                             keys=rings["router"])
+    factories = in_process_nodes(sc, codec, rings, plant_faults, router_silent)
     names = list(factories)
     nodes: list[Any] = [make() for make in factories.values()]
     down = {name: (t_down, t_up) for name, t_down, t_up in restarts}

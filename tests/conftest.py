@@ -15,6 +15,10 @@ import pytest
 
 from firmware_py.frames import DecodedFrame, FrameCodec
 
+# the test kit's fixtures (bess_bus, bess_keys, bess_fleet, bess_tester: docs/testing.md);
+# an installed package registers them through its pytest11 entry point as well
+pytest_plugins = ("sim.testkit.plugin",)
+
 # udp_multicast runs of one test session take ports from a block of 100 of its own (by
 # pid), so two sessions running at once (a developer's and CI's) never hear each other.
 _ports = itertools.count(43200 + (os.getpid() % 200) * 100)

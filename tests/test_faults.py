@@ -693,16 +693,24 @@ def test_power_limit_keeps_agent_running(plant_faults: tuple[dict[str, Any], lis
 # --------------------------------------------------------------------------- 7. shutdown
 
 
-def _wait_for_frames(port: int, ids: set[int], timeout: float = LOAD_TOLERANT_S) -> None:
-    """Block until a frame of each ID was heard on the bus (the nodes are up)."""
-    missing = set(ids)
-    with can.Bus(interface="udp_multicast", port=port, fd=False) as bus:
-        end = time.monotonic() + timeout
-        while missing and time.monotonic() < end:
-            msg = bus.recv(timeout=0.2)
-            if msg is not None:
-                missing.discard(msg.arbitration_id)
-    assert not missing, f"no frames from {sorted(missing)} within {timeout} s"
+def _wait_for_frames(port: int, names: list[str], timeout: float = LOAD_TOLERANT_S,
+                     keys: Path | None = None) -> None:
+    """Block until a frame of each message was heard on the bus and verified (the test
+    kit's Tester: decoded with the CRC and range checks, its MAC and freshness checked
+    with the run's key set ``keys``, which `up` writes before it starts any node, or the
+    public --insecure keys): the nodes are up and signing."""
+    from sim.testkit import Tester
+
+    end = time.monotonic() + timeout
+    if keys is not None:  # the router's key file is the last one `up` writes
+        while not (keys / "router.key").exists():
+            assert time.monotonic() < end, f"no key set in {keys} within {timeout} s"
+            time.sleep(0.05)
+    with can.Bus(interface="udp_multicast", port=port, fd=False) as bus, \
+            Tester(bus, keys) as tester:
+        for name in names:
+            tester.expect(name, max(0.0, end - time.monotonic()), since=float("-inf"))
+        assert tester.rejected["auth"] == 0, tester.summary()
 
 
 @pytest.mark.realtime
@@ -721,7 +729,7 @@ def test_agent_and_router_stop_cleanly(tmp_path: Path, udp_port: int, sig: int) 
     procs = {k: subprocess.Popen(v, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
              for k, v in cmds.items()}
     try:
-        _wait_for_frames(udp_port, {0x101, 0x010})
+        _wait_for_frames(udp_port, ["AGENT_1_MC", "ER_Price"])
         for p in procs.values():
             p.send_signal(sig)
         t0 = time.monotonic()
@@ -765,7 +773,8 @@ def test_up_interrupted_stops_every_node(tmp_path: Path, udp_port: int) -> None:
                           "udp_multicast", "--bus-config", f"{{{port_text}}}"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
-        _wait_for_frames(udp_port, {0x101, 0x102, 0x103, 0x104, 0x010})
+        _wait_for_frames(udp_port, [*(f"AGENT_{i}_MC" for i in range(1, N + 1)), "ER_Price"],
+                         keys=tmp_path / "keys")
         time.sleep(1.0)
         assert len(_procs_with(port_text)) == 1 + N + 2, _procs_with(port_text)
         p.send_signal(signal.SIGINT)
