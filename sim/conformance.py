@@ -37,6 +37,7 @@ from typing import Any
 import can
 
 from firmware_py import contract, secoc
+from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig
 from firmware_py.contract import Command, State
 from firmware_py.controllers import PIController
@@ -495,10 +496,13 @@ MAX_HYPOTHESES = 16
 
 
 def _fingerprint(rt: AgentRuntime) -> tuple:
-    """What a hypothesis remembers that later frames can tell apart (not the tick time)."""
-    return (rt.state, rt.cstate, rt.price, rt.price_rx, rt.status_rx, rt.plant_fault,
-            rt._price_candidate, rt._price_candidate_n, rt.ctrl.kts, rt.ctrl.hts,
-            tuple((s.lam, s.state, s.last_rx, s.alive) for s in rt.neighbours.values()),
+    """What a hypothesis remembers that the DUT's frames can show, receive times aside:
+    hypotheses that differ only in when frames arrived are one (the likeliest kept);
+    whether an input was late matters at the tick it is late for, and each tick tries
+    that again."""
+    return (rt.state, rt.cstate, rt.price, rt._price_fresh, rt._status_fresh,
+            rt.plant_fault, rt._price_candidate, rt._price_candidate_n, rt.ctrl.kts,
+            rt.ctrl.hts, tuple((s.lam, s.state, s.alive) for s in rt.neighbours.values()),
             tuple(sorted(rt.counters.items())))
 
 
@@ -592,7 +596,8 @@ def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: i
     mc = next(f.msg for f in group if f.msg.arbitration_id == mc_id)
     s = _signals(codec, mc)
     rt.state = State(s["State"])
-    rt.cstate = replace(rt.cstate, lam=s["Lambda"])
+    if rt.lambda_q24 != s["Lambda"]:  # its guard bits are unknown: take the wire value's
+        rt.cstate = replace(rt.cstate, lam=fx.widen(s["Lambda"]))
 
 
 def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
