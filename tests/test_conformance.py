@@ -10,14 +10,12 @@ separately started agent process, as a vendor would drive their device.
 from __future__ import annotations
 
 import re
-import shlex
-import subprocess
-import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from conformance_run import DEVIANT, FIRMWARE_PY, run_conformance
 
 from firmware_py import secoc
 from firmware_py.config import AgentConfig, agent_configs_from_scenario
@@ -180,48 +178,10 @@ def test_no_device_is_a_failure_naming_the_frame(udp_port: int, tmp_path: Path,
     assert "FAIL: no 0x302 frame of the device under test in 1 s" in err
 
 
-DEVICE_HINT = re.compile(r"start the device with its configuration and key, e\.g\.: (.*)$")
-
-
-def run_conformance(tmp_path: Path, device: list[str], extra: list[str] = ()
-                    ) -> tuple[int, str]:
-    """`bess-ded conformance --case 1 --dut 3`, with the device started from the
-    command line it prints (``device``: the program to run instead of `bess-ded
-    agent`)."""
-    # both real-time, as on a HIL rig: a tester or device starved by other work plays
-    # or sees a schedule of its own (conformance.drive says how late it was)
-    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", "conformance", "--case", "1",
-                             "--dut", "3", "--out", str(tmp_path / "cf"), "--junit",
-                             str(tmp_path / "junit.xml"), "--rt-priority", "20", *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    dut: subprocess.Popen[bytes] | None = None
-    text = []
-    try:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            text.append(line)
-            m = DEVICE_HINT.search(line)
-            if m and dut is None:
-                cmd = shlex.split(m.group(1))
-                assert cmd[:2] == ["bess-ded", "agent"]
-                dut = subprocess.Popen([*device, *cmd[2:]], stderr=subprocess.DEVNULL)
-        proc.wait(timeout=300)
-    finally:
-        for p in (proc, dut):
-            if p is not None and p.poll() is None:
-                p.terminate()
-                p.wait(timeout=30)
-    assert dut is not None, "".join(text)
-    return proc.returncode, "".join(text)
-
-
-DEVIANT = [sys.executable, str(Path(__file__).parent / "deviant_agent.py"), "BAND-2"]
-
-
 @pytest.mark.realtime
 def test_firmware_py_agent_process_passes_on_udp_multicast(tmp_path: Path) -> None:
     """Expected (any load): exit 0, every requirement PASS, JUnit without failures."""
-    code, log = run_conformance(tmp_path, [sys.executable, "-m", "firmware_py"])
+    code, log = run_conformance(tmp_path, FIRMWARE_PY)
     assert code == 0, log
     assert "bess-ded conformance: PASS" in log and "FAIL" not in log
     suite = ET.parse(tmp_path / "junit.xml").getroot().find("testsuite")

@@ -1,0 +1,47 @@
+"""Run `bess-ded conformance --case 1 --dut 3` against a device started from the command
+line it prints, as an operator would (tests/test_conformance.py, tests/vcan)."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+DEVICE_HINT = re.compile(r"start the device with its configuration and key, e\.g\.: (.*)$")
+FIRMWARE_PY = [sys.executable, "-m", "firmware_py"]
+DEVIANT = [sys.executable, str(Path(__file__).parent / "deviant_agent.py"), "BAND-2"]
+
+
+def run_conformance(tmp_path: Path, device: list[str], extra: Sequence[str] = ()
+                    ) -> tuple[int, str]:
+    """`bess-ded conformance --case 1 --dut 3`, with the device started from the
+    command line it prints (``device``: the program to run instead of `bess-ded
+    agent`)."""
+    # both real-time, as on a HIL rig: a tester or device starved by other work plays
+    # or sees a schedule of its own (conformance.drive says how late it was)
+    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", "conformance", "--case", "1",
+                             "--dut", "3", "--out", str(tmp_path / "cf"), "--junit",
+                             str(tmp_path / "junit.xml"), "--rt-priority", "20", *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    dut: subprocess.Popen[bytes] | None = None
+    text = []
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            text.append(line)
+            m = DEVICE_HINT.search(line)
+            if m and dut is None:
+                cmd = shlex.split(m.group(1))
+                assert cmd[:2] == ["bess-ded", "agent"]
+                dut = subprocess.Popen([*device, *cmd[2:]], stderr=subprocess.DEVNULL)
+        proc.wait(timeout=300)
+    finally:
+        for p in (proc, dut):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                p.wait(timeout=30)
+    assert dut is not None, "".join(text)
+    return proc.returncode, "".join(text)
