@@ -15,29 +15,25 @@ FIRMWARE_PY = [sys.executable, "-m", "firmware_py"]
 DEVIANT = [sys.executable, str(Path(__file__).parent / "deviant_agent.py"), "BAND-2"]
 
 
-def run_conformance(tmp_path: Path, device: list[str], extra: Sequence[str] = ()
-                    ) -> tuple[int, str]:
-    """`bess-ded conformance --case 1 --dut 3`, with the device started from the
-    command line it prints (``device``: the program to run instead of `bess-ded
-    agent`)."""
-    # both real-time, as on a HIL rig: a tester or device starved by other work plays
-    # or sees a schedule of its own (conformance.drive says how late it was)
-    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", "conformance", "--case", "1",
-                             "--dut", "3", "--out", str(tmp_path / "cf"), "--junit",
-                             str(tmp_path / "junit.xml"), "--rt-priority", "20", *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+def with_device(argv: Sequence[str], hint: re.Pattern[str], device: list[str],
+                timeout: float = 300) -> tuple[int, str]:
+    """Run the bess-ded command ``argv``; when it prints the device's command line (group
+    1 of ``hint``, `bess-ded agent ...`), start ``device`` with those arguments instead of
+    `bess-ded agent`, as an operator would start theirs. The exit code and the output."""
+    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
     dut: subprocess.Popen[bytes] | None = None
     text = []
     try:
         assert proc.stdout is not None
         for line in proc.stdout:
             text.append(line)
-            m = DEVICE_HINT.search(line)
+            m = hint.search(line)
             if m and dut is None:
                 cmd = shlex.split(m.group(1))
-                assert cmd[:2] == ["bess-ded", "agent"]
+                assert cmd[:2] == ["bess-ded", "agent"], line
                 dut = subprocess.Popen([*device, *cmd[2:]], stderr=subprocess.DEVNULL)
-        proc.wait(timeout=300)
+        proc.wait(timeout=timeout)
     finally:
         for p in (proc, dut):
             if p is not None and p.poll() is None:
@@ -45,3 +41,13 @@ def run_conformance(tmp_path: Path, device: list[str], extra: Sequence[str] = ()
                 p.wait(timeout=30)
     assert dut is not None, "".join(text)
     return proc.returncode, "".join(text)
+
+
+def run_conformance(tmp_path: Path, device: list[str], extra: Sequence[str] = ()
+                    ) -> tuple[int, str]:
+    """`bess-ded conformance --case 1 --dut 3` against ``device`` (``FIRMWARE_PY``,
+    ``DEVIANT``), both real-time as on a HIL rig: a tester or device starved by other
+    work plays or sees a schedule of its own (the tool reports how late it was)."""
+    return with_device(["conformance", "--case", "1", "--dut", "3", "--out",
+                        str(tmp_path / "cf"), "--junit", str(tmp_path / "junit.xml"),
+                        "--rt-priority", "20", *extra], DEVICE_HINT, device)

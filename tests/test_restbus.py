@@ -10,16 +10,15 @@ from __future__ import annotations
 
 import json
 import re
-import shlex
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from conformance_run import with_device
 
 from sim.cli import main
 
-DEVICE_HINT = re.compile(r"device under test: (\S+), waited for up to .*?; e\.g\. (.*)$")
+DEVICE_HINT = re.compile(r"device under test: \S+, waited for up to .*?; e\.g\. (.*)$")
 
 
 @pytest.mark.realtime
@@ -30,31 +29,11 @@ def test_restbus_with_a_hand_started_agent_converges_like_up(tmp_path: Path) -> 
     loaded host), never 1; the device's MC frames are in the recording and its frames
     verify with the run's keys (no auth_failed)."""
     out = tmp_path / "rb"
-    rb = subprocess.Popen([sys.executable, "-m", "sim.cli", "restbus", "--case", "1",
-                           "--dut", "3", "--duration", "8", "--no-plot", "--out", str(out)],
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    device: subprocess.Popen[bytes] | None = None
-    text = []
-    try:
-        assert rb.stdout is not None
-        for line in rb.stdout:
-            text.append(line)
-            m = DEVICE_HINT.search(line)
-            if m and device is None:
-                assert m.group(1) == "agent_3"
-                cmd = shlex.split(m.group(2))
-                assert cmd[:2] == ["bess-ded", "agent"]
-                device = subprocess.Popen([sys.executable, "-m", "firmware_py", *cmd[2:]],
-                                          stderr=subprocess.DEVNULL)
-        rb.wait(timeout=300)
-    finally:
-        for p in (rb, device):
-            if p is not None and p.poll() is None:
-                p.terminate()
-                p.wait(timeout=30)
-    log = "".join(text)
-    assert device is not None, log
-    assert rb.returncode in (0, 3), log
+    code, log = with_device(["restbus", "--case", "1", "--dut", "3", "--duration", "8",
+                             "--no-plot", "--out", str(out)], DEVICE_HINT,
+                            [sys.executable, "-m", "firmware_py"])
+    assert re.search(r"device under test: agent_3,", log), log
+    assert code in (0, 3), log
     m = json.loads((out / "metrics.json").read_text())
     assert m["final_error"] < 1e-3, log
     assert m["verdict"]["converged"], m["verdict"]

@@ -25,7 +25,7 @@ import json
 import logging
 import sys
 import tomllib
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -34,9 +34,11 @@ import can
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))  # this worktree's firmware_py, not an installed copy
+sys.path.insert(0, str(Path(__file__).parent))  # tools/gen_vectors.py
+
+from gen_vectors import q24, splitmix64  # noqa: E402  (the same PRNG as the controller's)
 
 from firmware_py import contract  # noqa: E402
-from firmware_py import fixedpoint as fx  # noqa: E402
 from firmware_py.config import parse_agent_config  # noqa: E402
 from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name  # noqa: E402
 from firmware_py.runtime import AgentRuntime  # noqa: E402
@@ -94,20 +96,6 @@ weight = 1.0
 id = 3
 weight = 0.5
 """
-
-
-def q24(x: float) -> int:
-    return fx.to_fixed(x)
-
-
-def splitmix64(seed: int) -> Iterator[int]:
-    state = seed & 0xFFFFFFFFFFFFFFFF
-    while True:
-        state = (state + 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF
-        z = state
-        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
-        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
-        yield z ^ (z >> 31)
 
 
 def noise(seed: int, n: int, amplitude: int) -> list[int]:
