@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import inspect
 import random
+import re
 import time
 import tomllib
 from collections.abc import Callable
@@ -831,3 +832,48 @@ def test_a_late_tick_first_drains_at_most_256_queued_frames() -> None:
     assert all(t == 2 * T for e, t in node.events[1:] if e == "rx")
     assert node.ticks() == [0, 2 * T, 3 * T]
     assert node.counters == {"deadline_miss": 2}
+
+
+# --------------------------------------------------------------------------- the table
+
+SPEC = Path(__file__).resolve().parent.parent / "docs" / "firmware-spec.md"
+
+
+def coverage_rows() -> tuple[str, dict[str, tuple[str, str]]]:
+    text = SPEC.read_text(encoding="utf-8")
+    sec = text[text.index("## 16. Coverage"):text.index("## 17. ")]
+    rows = {m[0]: (m[1], m[2]) for m in re.findall(
+        r"^\| ([A-Z]+-\d+) \| ([a-z ]+) \| (.*) \|$", sec, flags=re.M)}
+    return sec, rows
+
+
+def test_coverage_table_is_complete_and_its_totals_and_conformance_steps_agree() -> None:
+    """Section 16: one row per requirement of sections 1..14, the Totals line counts the
+    rows, the `conformance:` column is sim.conformance.STEPS, and every test named in
+    this file's rows exists."""
+    from sim.conformance import STEPS
+
+    text = SPEC.read_text(encoding="utf-8")
+    defined = set(re.findall(r"^- \*\*([A-Z]+-\d+)\*\*", text[:text.index("## 15. ")],
+                             flags=re.M))
+    sec, rows = coverage_rows()
+    assert set(rows) == defined
+    counts = {s: sum(st == s for st, _ in rows.values()) for s in ("covered", "partial",
+                                                                   "not yet")}
+    assert (f"Totals: {counts['covered']} covered, {counts['partial']} partial, "
+            f"{counts['not yet']} not yet (of {len(rows)}).") in sec
+    steps: dict[str, list[str]] = {}
+    for step in STEPS:
+        for must in step.musts:
+            steps.setdefault(must, [])
+            if step.name not in steps[must]:
+                steps[must].append(step.name)
+    for rid, (_, cell) in rows.items():
+        m = re.search(r"; conformance: ([^|]*)$", cell)
+        assert (m[1].split(", ") if m else []) == steps.get(rid, []), rid
+    here = set(re.findall(r"^def (test_\w+)", Path(__file__).read_text(), flags=re.M))
+    for rid, (_, cell) in rows.items():
+        for part in cell.split("; "):
+            if part.startswith("test_spec_coverage.py::"):
+                names = re.findall(r"(?:::|, ::)(test_\w+)", part)
+                assert names and set(names) <= here, (rid, names)
