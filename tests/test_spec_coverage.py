@@ -367,11 +367,23 @@ def write_key_file(path: Path, node: str, peers: list[str]) -> Path:
     return path
 
 
-def test_a_key_file_lacking_a_senders_key_stops_the_start(tmp_path: Path) -> None:
+def test_a_key_file_lacking_a_senders_key_stops_the_start(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """CFG-8: agent 2 of case 1 takes ER_* (router), PLANT_2_Status (plant) and
     AGENT_1_MC (agent_1): a key file without any one of them stops the start naming the
-    sender; with all three it starts (and persists its new boot, AUTH-3)."""
+    sender (the agent's command exits 2 before it opens a bus); with all three it
+    starts (and persists its new boot, AUTH-3)."""
+    from firmware_py.__main__ import main
+
     cfg = agent_configs_from_scenario(load_case(1))[1]
+    conf = tmp_path / "agent.toml"
+    conf.write_text(cfg.to_toml())
+    path = write_key_file(tmp_path / "no_plant.toml", "agent_2", ["router", "agent_1"])
+    capsys.readouterr()
+    assert main(["--config", str(conf), "--key", str(path), "--interface", "virtual",
+                 "--channel", "cfg8-never-opened", "--duration", "0.01"]) == 2
+    err = capsys.readouterr().err
+    assert "verification key of plant" in err and "Traceback" not in err
     every = ["router", "plant", "agent_1"]
     for missing in every:
         path = write_key_file(tmp_path / f"no_{missing}.toml", "agent_2",
@@ -877,3 +889,125 @@ def test_coverage_table_is_complete_and_its_totals_and_conformance_steps_agree()
             if part.startswith("test_spec_coverage.py::"):
                 names = re.findall(r"(?:::|, ::)(test_\w+)", part)
                 assert names and set(names) <= here, (rid, names)
+
+
+# --------------------------------------------------------------------------- the details
+# that some "covered" rows listed as not asserted
+
+
+def pinned_alone(**timeouts: float) -> dict[str, Any]:
+    doc = base()
+    doc["agent"]["pinned"] = True
+    doc["neighbour"] = []
+    doc["timeouts"] = {"status_s": 60.0, **timeouts}
+    return doc
+
+
+def mc_of(frames: list[can.Message], agent: int = 2) -> dict[str, int]:
+    return next(CODEC.decode(m).raw for m in frames if m.arbitration_id == 0x100 + agent)
+
+
+def test_safe_and_running_entries_zero_nu_and_xiprev_and_step_at_once() -> None:
+    """STATE-3, STATE-4, STATE-6, TX-1, TICK-1: a stale price at a tick → SAFE with
+    ν := 0, ξprev := 0 and the rest of the state kept, λ held; a fresh price → RUNNING
+    at the next tick, whose step (from ν = 0, ξprev = 0) already shows on that tick's MC
+    frame; a tick's frames go out syncs, MC, Setpoint, Diag."""
+    a = running(pinned_alone())
+    first = a.tick(0.0)
+    assert [m.arbitration_id for m in first] == [0x502, 0x602, 0x102, 0x202, 0x302]
+    for k in range(1, 5):
+        a.tick(k * 0.01)
+    s = a.cstate
+    assert s.nu != 0 and s.xi_prev != 0
+    frames = a.tick(0.3)                  # the price of t = 0 is 0.3 s old > 0.25
+    assert a.state == State.SAFE and a.counters["price_timeouts"] == 1
+    assert a.cstate == s.__class__(lam=s.lam, nu=0, xi_prev=0, armed=s.armed,
+                                   since_reset=s.since_reset, resets=s.resets,
+                                   saturations=s.saturations)
+    mc = mc_of(frames)
+    assert (mc["State"], mc["Lambda"], mc["Resets"]) == (int(State.SAFE), fx.narrow(s.lam),
+                                                         s.resets % 4)
+    a.tick(0.31)
+    assert a.cstate.lam == s.lam            # held while SAFE
+    a.on_frame(price_frame(0.8), 0.315)
+    frames = a.tick(0.32)
+    xi = fx.narrow(s.lam) - fx.to_fixed(0.8)            # mulq(ONE, x) = x
+    lam = s.lam - a.ctrl.kts * xi                        # NU24 = 0: ν was zeroed
+    assert a.state == State.RUNNING
+    assert (a.cstate.lam, a.cstate.nu, a.cstate.xi_prev) == (lam, a.ctrl.ts_q * xi, xi)
+    assert a.cstate.resets == s.resets and a.cstate.since_reset == s.since_reset + 1
+    mc = mc_of(frames)
+    assert (mc["State"], mc["Lambda"]) == (int(State.RUNNING), fx.narrow(lam))
+
+
+def test_set_gains_zeroes_nu_and_keeps_the_rest_in_any_state() -> None:
+    """CMD-5: an accepted SET_GAINS recomputes KTS = q30(k·ts), HTS = q30(h·ts) with
+    k = GainK·0.001, h = GainH·0.001, sets ν := 0 and keeps λ (all its bits), ξprev, armed,
+    since_reset, resets, ctrl_sats; it applies in ISOLATED too."""
+    a = running(pinned_alone())
+    for k in range(5):
+        a.tick(k * 0.01)
+    s = a.cstate
+    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 2, "GainK": 1500,
+                                           "GainH": 3000}), 0.045)
+    assert (a.ctrl.kts, a.ctrl.hts) == (fx.to_q30(1500 * 0.001 * 0.01),
+                                         fx.to_q30(3000 * 0.001 * 0.01))
+    assert a.cstate == s.__class__(lam=s.lam, nu=0, xi_prev=s.xi_prev, armed=s.armed,
+                                   since_reset=s.since_reset, resets=s.resets,
+                                   saturations=s.saturations)
+    a.on_frame(command(1, 2), 0.046)
+    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 2, "GainK": 700,
+                                           "GainH": 1100}), 0.047)
+    assert a.state == State.ISOLATED and a.ctrl.kts == fx.to_q30(700 * 0.001 * 0.01)
+    assert a.cfg.k_min == 0.5 and a.cfg.k_max == 2.0   # the bounds do not move
+
+
+def test_plant_fault_flags() -> None:
+    """RX-11: FaultOverCurrent or FaultVoltage is a fault (false → true counts once in
+    plant_faults); FaultSoc and PowerLimited have no effect on the agent."""
+    a = running(pinned_alone())
+    a.tick(0.0)
+
+    def status(**flags: int) -> can.Message:
+        raw = {"FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+               "Power": 0.0, "Soc": 50.0, **flags}
+        return SENDER.frame(status_name(2), raw, phys=True)
+
+    a.on_frame(status(FaultSoc=1, PowerLimited=1), 0.005)
+    a.tick(0.01)
+    assert a.state == State.RUNNING and a.counters["plant_faults"] == 0
+    a.on_frame(status(FaultVoltage=1), 0.015)
+    a.on_frame(status(FaultVoltage=1, FaultOverCurrent=1), 0.016)
+    a.tick(0.02)
+    assert a.state == State.SAFE and a.counters["plant_faults"] == 1
+    a.on_frame(status(), 0.025)
+    a.tick(0.03)
+    assert a.state == State.RUNNING
+    a.on_frame(status(FaultOverCurrent=1), 0.035)
+    assert a.counters["plant_faults"] == 2
+
+
+def test_first_price_is_bounds_checked_only_and_a_stale_last_price_still_counts() -> None:
+    """PRICE-3: the very first price is checked against the bounds only (a far first
+    price is accepted); the step rule uses the last accepted price even after it went
+    stale."""
+    a = AgentRuntime(parse(pinned_alone()), CODEC)
+    a.on_frame(price_frame(4.0), 0.0)      # 4.0 − nothing: no step rule
+    assert a.price == fx.to_fixed(4.0) and a.counters["implausible_price"] == 0
+    a.tick(0.0)
+    a.tick(0.3)                             # stale (0.3 > 0.25), still the last price
+    assert not a.price_ok
+    a.on_frame(price_frame(1.0), 0.31)     # a step of 3 > 0.5 from the stale 4.0
+    assert a.counters["implausible_price"] == 1 and a.price == fx.to_fixed(4.0)
+
+
+def test_an_agent_sends_only_its_five_frames_classic_standard_dlc8() -> None:
+    """GEN-1, GEN-2: over 250 ticks (syncs twice) every frame an agent sends is one of
+    AGENT_i_MC, _Setpoint, _Diag, _MC_Sync, _Setpoint_Sync: classic CAN, 11-bit, DLC 8,
+    not remote."""
+    a = running(pinned_alone(price_s=60.0))
+    sent = [m for k in range(250) for m in a.tick(k * 0.01)]
+    assert {m.arbitration_id for m in sent} == {0x102, 0x202, 0x302, 0x502, 0x602}
+    assert all(not m.is_extended_id and not m.is_fd and not m.is_remote_frame
+               and not m.is_error_frame and m.dlc == 8 and len(m.data) == 8 for m in sent)
+    assert sum(m.arbitration_id == 0x502 for m in sent) == 3   # t = 0, 1, 2 s
