@@ -1011,3 +1011,19 @@ def test_an_agent_sends_only_its_five_frames_classic_standard_dlc8() -> None:
     assert all(not m.is_extended_id and not m.is_fd and not m.is_remote_frame
                and not m.is_error_frame and m.dlc == 8 and len(m.data) == 8 for m in sent)
     assert sum(m.arbitration_id == 0x502 for m in sent) == 3   # t = 0, 1, 2 s
+
+
+def test_generated_parts_of_the_table_are_current() -> None:
+    """tools/spec_coverage.py (the conformance column, the Totals line) has nothing to
+    change."""
+    import importlib.util
+
+    path = SPEC.parent.parent / "tools" / "spec_coverage.py"
+    spec = importlib.util.spec_from_file_location("spec_coverage", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    text = SPEC.read_text(encoding="utf-8")
+    assert mod.refreshed(text) == text
+    broken = text.replace("; conformance: commands |", " |", 1)
+    assert broken != text and mod.refreshed(broken) == text
