@@ -1027,3 +1027,95 @@ def test_generated_parts_of_the_table_are_current() -> None:
     assert mod.refreshed(text) == text
     broken = text.replace("; conformance: commands |", " |", 1)
     assert broken != text and mod.refreshed(broken) == text
+
+
+def test_setpoint_map_worked_example_bit_exact() -> None:
+    """SP-1: G = rne(6553600/(((1+m)·2)·α)), O = rne((100·β)/(2·α)), lo/hi = rne(100·p);
+    P(λ) = ((λ·G + 2^39) >> 40) − O clipped (section 9.1's example)."""
+    from firmware_py.runtime import SetpointMap
+
+    b = parse(base()).battery
+    assert (b.alpha, b.beta, b.m, b.p_min, b.p_max) == (0.005, 0.18, 0.08, -100.0, 100.0)
+    sp = SetpointMap(b)
+    assert (sp.gain, sp.offset, sp.lo, sp.hi) == (606814815, 1800, -10000, 10000)
+    assert sp(10015998) == (3728, False)
+    lam = 10015998 * 606814815
+    assert lam == 6077855973410370 and (lam + (1 << 39)) >> 40 == 5528
+    assert sp(fx.to_fixed(10.0)) == (10000, True) and sp(fx.to_fixed(-10.0)) == (-10000, True)
+    assert sp(-1) == (((-606814815 + (1 << 39)) >> 40) - 1800, False)
+
+
+def test_xi_uses_alive_running_neighbours_and_the_pin() -> None:
+    """XI-1, XI-2: ξ = mulq(PIN, Λ − ρ) + Σ mulq(W_j, Λ − λ_j) over the slots alive and
+    RUNNING; an alive INIT neighbour and a silent one do not count (ξprev' = ξ)."""
+    doc = pinned_alone()
+    doc["neighbour"] = [{"id": 1, "weight": 0.5}, {"id": 3, "weight": 2.0},
+                        {"id": 4, "weight": 1.0}]
+    a = running(doc, rho=0.7)
+    a.on_frame(mc_frame(1, fx.to_fixed(0.9)), 0.0)
+    a.on_frame(mc_frame(3, fx.to_fixed(0.1), state=0), 0.0)     # alive, INIT
+    lam = fx.narrow(a.cstate.lam)
+    a.tick(0.0)
+    assert a.neighbours_alive == 1
+    xi = (lam - fx.to_fixed(0.7)) + fx.mul(1 << 23, lam - fx.to_fixed(0.9))
+    assert a.cstate.xi_prev == xi
+
+
+def test_reconnect_runs_at_the_next_tick() -> None:
+    """STATE-8: RECONNECT in ISOLATED → INIT at once, controller state unchanged; at the
+    next tick with fresh price and status the agent is RUNNING and that tick's MC frame
+    carries RUNNING and a stepped λ; RECONNECT in another state changes nothing."""
+    a = running(pinned_alone())
+    a.tick(0.0)
+    a.on_frame(command(2, 2), 0.001)
+    assert a.state == State.RUNNING
+    a.on_frame(command(1, 2), 0.002)
+    a.tick(0.01)
+    s = a.cstate
+    a.on_frame(command(2, 2), 0.015)
+    assert a.state == State.INIT and a.cstate is s
+    mc = mc_of(a.tick(0.02))
+    assert mc["State"] == int(State.RUNNING) and mc["Lambda"] != fx.narrow(s.lam)
+    assert mc["Lambda"] == fx.narrow(a.cstate.lam)
+
+
+def test_only_accepted_mc_frames_refresh_a_slot() -> None:
+    """LIVE-1: an accepted MC frame sets λ_j, state_j and last_rx_j = t_rx; a rejected one
+    (bad MAC, out-of-range λ) changes nothing in the slot."""
+    doc = pinned_alone()
+    doc["neighbour"] = [{"id": 1}]
+    a = running(doc)
+    slot = next(iter(a.neighbours.values()))
+    assert (slot.lam, slot.state, slot.last_rx, slot.alive) == (None, State.INIT, None,
+                                                                False)
+    a.on_frame(mc_frame(1, fx.to_fixed(0.9)), 0.004)
+    assert (slot.lam, slot.state, slot.last_rx) == (fx.to_fixed(0.9), State.RUNNING, 0.004)
+    bad = mc_frame(1, fx.to_fixed(0.8))
+    bad.data = bytearray(bad.data)
+    bad.data[1] ^= 0x40
+    a.on_frame(bad, 0.006)
+    a.on_frame(mc_frame(1, fx.to_fixed(11.0)), 0.007)    # beyond lambda_max = 10
+    assert (slot.lam, slot.state, slot.last_rx) == (fx.to_fixed(0.9), State.RUNNING, 0.004)
+    assert a.counters["auth"] == 1 and a.counters["range"] == 1
+
+
+def test_an_old_sync_is_an_auth_failure_with_a_key_file() -> None:
+    """AUTH-16, AUTH-17: with real keys a sync whose FV − 1 is below `last` is a replay:
+    `auth` on the sync ID, `last_safety` = (auth, sync ID), `last` does not move back."""
+    master = bytes(range(16))
+    ring = Keyring.fleet(master, ["agent_2"])["agent_2"]
+    a = AgentRuntime(parse(pinned_alone()), CODEC, keys=ring)
+    router = FleetSender(CODEC, keys={"router": derive_node_key(master, "router")}, boot=5)
+    first = router.sync("ER_Price")
+    a.on_frame(first, 0.0)
+    assert a.counters["resyncs"] == 1
+    for k in range(3):
+        a.on_frame(router.frame("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(0.8),
+                                             "Segment": 0}), 0.001 * k)
+    assert a.counters["auth"] == 0 and a.price == fx.to_fixed(0.8)
+    a.on_frame(first, 0.01)
+    assert a.counters["auth"] == 1 and a.io.last_safety == ("auth", 0x410)
+    assert a.counters["resyncs"] == 1
+    a.on_frame(router.frame("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(0.8),
+                                         "Segment": 0}), 0.02)
+    assert a.counters["auth"] == 1 and a.counters["lost_frames"] == 0
