@@ -28,12 +28,11 @@ from firmware_py.controllers import (
     make_controller,
 )
 from firmware_py.errors import ConfigError, ParameterError
-from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
+from firmware_py.frames import FrameCodec, mc_name, status_name
 from firmware_py.node import run_node
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime, State
 from firmware_py.secoc import (
-    INSECURE_MASTER,
     KEY_FILE_HEADER,
     Keyring,
     derive_node_key,
@@ -801,11 +800,6 @@ def test_a_scaled_agent_steps_as_the_unscaled_one_up_to_quantisation(kind: str) 
             sa2, _ = a.step(sa2, xi)
             off = max(off, abs(a.wire_lambda(sa2) - wrong.wire_lambda(sw)))
         assert off > 1000
-
-
-def test_setpoint_and_diag_names() -> None:
-    assert setpoint_name(2) == "AGENT_2_Setpoint" and diag_name(2) == "AGENT_2_Diag"
-    assert INSECURE_MASTER == bytes(16)
 
 
 def test_acceptance_filters_pass_the_syncs_of_the_keys_held(tmp_path: Path) -> None:
