@@ -774,7 +774,7 @@ def test_a_scaled_agent_steps_as_the_unscaled_one_up_to_quantisation(kind: str) 
     assert abs(a.kts - b.kts) <= 1 and a.ts_q * F - b.ts_q in range(-F, F + 1)
     sa, sb = a.initial_state(0.6), b.initial_state(0.6)
     rng = random.Random(7)
-    worst = 0
+    worst: float = 0
     resets = 0
     for n in range(300):
         xi = rng.randint(-3 << 20, 3 << 20) if n % 50 else 0
@@ -793,7 +793,7 @@ def test_a_scaled_agent_steps_as_the_unscaled_one_up_to_quantisation(kind: str) 
     if kind not in ("pc", "ft"):   # they do not use h
         sw, sa2 = wrong.initial_state(0.6), a.initial_state(0.6)
         rng = random.Random(7)
-        off = 0
+        off: float = 0
         for n in range(300):
             xi = rng.randint(-3 << 20, 3 << 20) if n % 50 else 0
             sw, _ = wrong.step(sw, xi)
@@ -919,13 +919,13 @@ def test_safe_and_running_entries_zero_nu_and_xiprev_and_step_at_once() -> None:
                                    since_reset=s.since_reset, resets=s.resets,
                                    saturations=s.saturations)
     mc = mc_of(frames)
-    assert (mc["State"], mc["Lambda"], mc["Resets"]) == (int(State.SAFE), fx.narrow(s.lam),
+    assert (mc["State"], mc["Lambda"], mc["Resets"]) == (int(State.SAFE), fx.narrow(int(s.lam)),
                                                          s.resets % 4)
     a.tick(0.31)
     assert a.cstate.lam == s.lam            # held while SAFE
     a.on_frame(price_frame(0.8), 0.315)
     frames = a.tick(0.32)
-    xi = fx.narrow(s.lam) - fx.to_fixed(0.8)            # mulq(ONE, x) = x
+    xi = fx.narrow(int(s.lam)) - fx.to_fixed(0.8)            # mulq(ONE, x) = x
     lam = s.lam - a.ctrl.kts * xi                        # NU24 = 0: ν was zeroed
     assert a.state == State.RUNNING
     assert (a.cstate.lam, a.cstate.nu, a.cstate.xi_prev) == (lam, a.ctrl.ts_q * xi, xi)
@@ -1048,7 +1048,7 @@ def test_xi_uses_alive_running_neighbours_and_the_pin() -> None:
     a = running(doc, rho=0.7)
     a.on_frame(mc_frame(1, fx.to_fixed(0.9)), 0.0)
     a.on_frame(mc_frame(3, fx.to_fixed(0.1), state=0), 0.0)     # alive, INIT
-    lam = fx.narrow(a.cstate.lam)
+    lam = fx.narrow(int(a.cstate.lam))
     a.tick(0.0)
     assert a.neighbours_alive == 1
     xi = (lam - fx.to_fixed(0.7)) + fx.mul(1 << 23, lam - fx.to_fixed(0.9))
@@ -1069,8 +1069,8 @@ def test_reconnect_runs_at_the_next_tick() -> None:
     a.on_frame(command(2, 2), 0.015)
     assert a.state == State.INIT and a.cstate is s
     mc = mc_of(a.tick(0.02))
-    assert mc["State"] == int(State.RUNNING) and mc["Lambda"] != fx.narrow(s.lam)
-    assert mc["Lambda"] == fx.narrow(a.cstate.lam)
+    assert mc["State"] == int(State.RUNNING) and mc["Lambda"] != fx.narrow(int(s.lam))
+    assert mc["Lambda"] == fx.narrow(int(a.cstate.lam))
 
 
 def test_only_accepted_mc_frames_refresh_a_slot() -> None:
