@@ -279,8 +279,10 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
     if not battery.p_min < battery.p_max:
         raise fail("battery.p_max", f"expected p_min < p_max, but got {battery.p_min} ≥ "
                    f"{battery.p_max}")
-    if not (-327.67 <= battery.p_min and battery.p_max <= 327.67):
-        raise fail("battery.p_max", "expected limits within ±327.67 kW (the setpoint frame)")
+    for key, value in (("p_min", battery.p_min), ("p_max", battery.p_max)):
+        if not -327.67 <= value <= 327.67:
+            raise fail(f"battery.{key}", f"expected a limit within ±327.67 kW (the setpoint "
+                       f"frame's range), but got {value}")
 
     t = table("timeouts", {"neighbour_periods", "price_s", "status_s"}, required=False)
     lim = table("limits", {"lambda_min", "lambda_max", "rho_min", "rho_max", "price_step_max",
