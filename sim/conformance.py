@@ -411,18 +411,22 @@ def _signals(codec: FrameCodec, msg: can.Message) -> dict[str, int]:
 def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
           codec: FrameCodec | None = None,
           deviation: Callable[[AgentRuntime], None] | None = None,
-          max_mismatches: int = 20) -> Outcome:
+          max_mismatches: int = 20, filtered_first: bool = False) -> Outcome:
     """Compare the DUT's frames in ``frames`` (time order) with the oracle's. A DUT may
     filter in its CAN controller what it neither uses nor sends (GEN-5), and then never
-    counts the frames of foreign IDs: when the unfiltered oracle does not explain the DUT,
-    the filtered one is tried, and the one that explains more is the verdict."""
-    plain = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches, False)
-    if not plain.mismatches:
-        return plain
-    filtered = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches, True)
-    better = (len(filtered.mismatches) == 0 or (filtered.mismatches[0].tick, filtered.ticks)
-              > (plain.mismatches[0].tick, plain.ticks))
-    return filtered if better else plain
+    counts the frames of foreign IDs: when the oracle without (``filtered_first``: with)
+    a filter does not explain the DUT, the other is tried, and the one that explains
+    more is the verdict."""
+    first = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
+                   filtered_first)
+    if not first.mismatches:
+        return first
+    other = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
+                   not filtered_first)
+    if not other.mismatches or ((other.mismatches[0].tick, other.ticks)
+                                > (first.mismatches[0].tick, first.ticks)):
+        return other
+    return first
 
 
 def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
@@ -726,10 +730,12 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
         return
     first = outcome.mismatches[0].tick
     for must, (what, deviation) in MUTANTS.items():
-        alt = check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches=1)
+        alt = check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches=1,
+                    filtered_first=outcome.filtered)
         if not alt.mismatches or alt.mismatches[0].tick > first + 50:
             # check the rest of the schedule with that deviation modelled
-            rest = check(cfg, keyring, dut_key, frames, codec, deviation)
+            rest = check(cfg, keyring, dut_key, frames, codec, deviation,
+                         filtered_first=alt.filtered)
             outcome.explained_by[must] = what
             outcome.steps_seen, outcome.ticks = rest.steps_seen, rest.ticks
             outcome.mismatches[1:] = rest.mismatches
@@ -760,12 +766,13 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
              deviation: Callable[[AgentRuntime], None] | None = None,
              codec: FrameCodec | None = None, lead_ticks: int = 12,
              phase: float = 0.37, latency: float = 2e-4, jitter: float = 0.0,
-             seed: int = 0) -> list[Frame]:
+             seed: int = 0, filtered: bool = False) -> list[Frame]:
     """The schedule played against firmware_py's agent (with ``deviation``) on a
     simulated clock: the record a bus run of a DUT would give, without the bus. The DUT
     ticks ``lead_ticks`` times before the schedule starts (as a device already running
     when the tester starts) at the phase ``phase`` of Ts; ``jitter``: each tick and each
-    tester frame up to that fraction of Ts late (seeded), as on a loaded host."""
+    tester frame up to that fraction of Ts late (seeded), as on a loaded host;
+    ``filtered``: the DUT's CAN controller passes only its acceptance IDs (GEN-5)."""
     import random
 
     rnd = random.Random(seed)
@@ -778,13 +785,17 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
     inputs = sorted((Frame(t0 + p.at + rnd.uniform(0, jitter * ts), p.msg, True, p.step,
                            p.note) for p in planned), key=lambda f: f.t)
     end = t0 + STEPS[-1].end * ts + 3 * ts
+    passed = set(dut.io.accepted_ids())
     record: list[Frame] = []
     nxt = 0
     k = 0
     with _quiet_firmware():
         while (tick := (k + phase + rnd.uniform(0, jitter)) * ts) < end:
             while nxt < len(inputs) and inputs[nxt].t + latency < tick:
-                dut.on_frame(inputs[nxt].msg, inputs[nxt].t + latency)
+                msg = inputs[nxt].msg
+                if not filtered or (not msg.is_extended_id
+                                    and msg.arbitration_id in passed):
+                    dut.on_frame(msg, inputs[nxt].t + latency)
                 record.append(inputs[nxt])
                 nxt += 1
             for msg in dut.tick(tick):

@@ -67,6 +67,21 @@ def test_firmware_py_passes_every_requirement_at_any_timing(
     assert outcome.ticks >= conf.STEPS[-1].end - 5
 
 
+@pytest.mark.parametrize("filtered_first", [False, True])
+def test_a_device_filtering_foreign_ids_passes_judged_with_the_filter(
+        filtered_first: bool) -> None:
+    """Expected: a DUT whose CAN controller passes only its acceptance IDs (GEN-5: it
+    never counts the unknown and extended IDs of the content step) passes, and the
+    outcome says it filters; whichever model is tried first."""
+    cfg, ring, planned = _setup(1, 3)
+    frames = conf.simulate(cfg, ring(), planned, filtered=True, jitter=0.3)
+    outcome = conf.check(cfg, ring(), KEYS["agent_3"], frames, filtered_first=filtered_first)
+    assert not outcome.mismatches and outcome.filtered
+    unfiltered = conf.check(cfg, ring(), KEYS["agent_3"], conf.simulate(cfg, ring(), planned),
+                            filtered_first=filtered_first)
+    assert not unfiltered.mismatches and not unfiltered.filtered
+
+
 @pytest.mark.parametrize("must,case,dut", [("BAND-2", 1, 3), ("BAND-2", 7, 5),
                                            ("BAND-1", 4, 2)])
 def test_a_known_deviation_fails_naming_its_requirement(must: str, case: int,
