@@ -9,8 +9,13 @@
   with INT32_MIN/MAX, ±band, ±1, 0 and random walks), and the arithmetic helpers and ξ
   (XI-2, XI-3) against firmware_py's.
 
-Needs ``make`` and a C compiler (tools/install-c-deps): skipped without them, except
-under CI (env ``CI`` set), where that fails.
+* the same vectors through firmware_c/tools/vector_runner.c, natively and cross-built
+  for arm-linux-gnueabihf under qemu-arm; the arm-none-eabi (Cortex-M4, -Os) size of the
+  core; cppcheck clean.
+
+Needs ``make`` and a C compiler, and for the cross tier gcc-arm-linux-gnueabihf,
+qemu-user, gcc-arm-none-eabi and cppcheck (tools/install-c-deps): skipped without them,
+except under CI (env ``CI`` set), where that fails.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import os
 import random
 import re
 import shutil
+import subprocess
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -57,19 +63,31 @@ def _in_ci() -> bool:
     return os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
 
 
-@pytest.fixture(scope="module")
-def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
-    """A fresh build of firmware_c (not the cache): (library, make's output)."""
-    missing = [t for t in ("make", os.environ.get("CC", "cc")) if shutil.which(t) is None]
+def _need(*tools: str) -> None:
+    """Skip (fail under CI) unless every tool is on PATH."""
+    missing = [t for t in tools if shutil.which(t) is None]
     if missing:
         reason = f"{', '.join(missing)} missing (tools/install-c-deps)"
         if _in_ci():
-            pytest.fail(f"{reason}; CI must build the C core", pytrace=False)
+            pytest.fail(f"{reason}; CI must run the C tier", pytrace=False)
         pytest.skip(reason)
+
+
+def _make(build: Path, target: str) -> str:
+    proc = subprocess.run(["make", "-s", "-C", str(cimpl.SOURCE_DIR), f"BUILD={build}", target],
+                          capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, f"make {target}:\n{proc.stdout}{proc.stderr}"
+    assert proc.stderr.strip() == "", proc.stderr
+    return proc.stdout
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """A fresh build of firmware_c (not the cache): (library, make's output)."""
+    _need("make", os.environ.get("CC", "cc"))
     out = tmp_path_factory.mktemp("firmware_c")
     lib = cimpl.build(out)
     log = (out / "build.log")
-    import subprocess  # the build's own output, for the warnings test
     proc = subprocess.run(["make", "-C", str(cimpl.SOURCE_DIR), f"BUILD={out}", "-B", "all"],
                           capture_output=True, text=True, check=True)
     log.write_text(proc.stdout + proc.stderr)
@@ -341,3 +359,68 @@ def test_from_config_steps_match_firmware_py(core: cimpl.CCore) -> None:
             for t, xi in enumerate(xis):
                 s, o = ref.step(s, xi)
                 assert got[t] == (s, o), (cfg, t)
+
+
+# --------------------------------------------------------------------------- C runner, cross
+
+
+def dump_vectors(path: Path) -> tuple[int, int]:
+    """The text dump firmware_c/tools/vector_runner.c reads; (vectors, steps)."""
+    lines, steps = [], 0
+    for p in VECTORS:
+        vec = json.loads(p.read_text(encoding="ascii"))
+        f = vec["fixed"]
+        lines.append(" ".join(map(str, [
+            "V", vec["name"], cimpl.KIND_CODES[vec["config"]["kind"]], f["kts"], f["hts"],
+            f["ts"], f["band"], f["dwell_samples"], f["pow_num"], f["pow_sqrts"],
+            vec["lambda0"], len(vec["steps"])])))
+        lines += [" ".join(["S", *map(str, row)]) for row in vec["steps"]]
+        steps += len(vec["steps"])
+    path.write_text("\n".join(lines) + "\n", encoding="ascii")
+    return len(VECTORS), steps
+
+
+def _run_runner(cmd: list[str], dump: Path) -> subprocess.CompletedProcess[str]:
+    with dump.open() as stdin:
+        return subprocess.run(cmd, stdin=stdin, capture_output=True, text=True, check=False,
+                              timeout=300)
+
+
+def test_vector_runner_native_and_it_catches_a_wrong_bit(tmp_path: Path,
+                                                         built: tuple[Path, str]) -> None:
+    _make(tmp_path, "runner")
+    dump = tmp_path / "vectors.txt"
+    n, steps = dump_vectors(dump)
+    proc = _run_runner([str(tmp_path / "vector_runner")], dump)
+    assert proc.returncode == 0 and proc.stdout.split() == ["PASS", str(n), str(steps)], proc
+    text = dump.read_text().split("\n")
+    i = next(k for k, line in enumerate(text) if line.startswith("S "))
+    row = text[i].split()
+    row[4] = str(int(row[4]) + 1)                     # one LSB of λ after step 0
+    dump.write_text("\n".join(text[:i] + [" ".join(row)] + text[i + 1:]))
+    proc = _run_runner([str(tmp_path / "vector_runner")], dump)
+    assert proc.returncode == 1 and "step 0 field lam" in proc.stdout, proc.stdout
+
+
+def test_vectors_replay_cross_built_for_arm_under_qemu(tmp_path: Path) -> None:
+    _need("make", "arm-linux-gnueabihf-gcc", "qemu-arm")
+    _make(tmp_path, "arm-runner")
+    dump = tmp_path / "vectors.txt"
+    n, steps = dump_vectors(dump)
+    proc = _run_runner(["qemu-arm", str(tmp_path / "vector_runner.arm")], dump)
+    assert proc.returncode == 0 and proc.stdout.split() == ["PASS", str(n), str(steps)], proc
+
+
+def test_cortex_m4_size_of_the_core(tmp_path: Path) -> None:
+    """arm-none-eabi -Os: the core has no static data, and its code stays small."""
+    _need("make", "arm-none-eabi-gcc", "arm-none-eabi-size")
+    out = _make(tmp_path, "arm-size").split("\n")
+    text, data, bss = map(int, out[1].split()[:3])
+    print(f"Cortex-M4 -Os: text {text} data {data} bss {bss}")
+    assert data == 0 and bss == 0
+    assert 0 < text < 2048
+
+
+def test_cppcheck_clean(tmp_path: Path) -> None:
+    _need("make", "cppcheck")
+    _make(tmp_path, "cppcheck")
