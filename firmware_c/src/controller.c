@@ -82,7 +82,7 @@ uint64_t bd_isqrt_u64(uint64_t x)
         bit >>= 2;
     }
     while (bit != 0u) {
-        if (rem >= root + bit) {
+        if (rem >= (root + bit)) {
             rem -= root + bit;
             root = (root >> 1) + bit;
         } else {
@@ -113,18 +113,18 @@ int64_t bd_fpow(int32_t v, uint32_t pow_num, uint32_t pow_sqrts)
 
 int bd_ctrl_config_check(const bd_ctrl_config *cfg)
 {
-    if (cfg->kind < BD_KIND_PC || cfg->kind > BD_KIND_FT) {
+    if ((cfg->kind < BD_KIND_PC) || (cfg->kind > BD_KIND_FT)) {
         return BD_ERR_KIND;
     }
-    if (cfg->kts < 0 || cfg->hts < 0 || cfg->tsq < 0) {
+    if ((cfg->kts < 0) || (cfg->hts < 0) || (cfg->tsq < 0)) {
         return BD_ERR_GAIN;
     }
     if (cfg->band < 0) {
         return BD_ERR_BAND;
     }
-    if (cfg->kind == BD_KIND_FT
-        && (cfg->pow_sqrts < 1u || cfg->pow_sqrts > 4u || (cfg->pow_num & 1u) == 0u
-            || cfg->pow_num >= (1u << cfg->pow_sqrts))) {
+    if ((cfg->kind == BD_KIND_FT)
+        && ((cfg->pow_sqrts < 1u) || (cfg->pow_sqrts > 4u) || ((cfg->pow_num & 1u) == 0u)
+            || (cfg->pow_num >= (1u << cfg->pow_sqrts)))) {
         return BD_ERR_EXPONENT;
     }
     return BD_OK;
@@ -150,13 +150,13 @@ int32_t bd_ctrl_wire_lambda(const bd_ctrl_state *s)
 /* STEP-2, STEP-3: the reset decision of the PI family, from the old state. */
 static int reset_now(const bd_ctrl_config *cfg, const bd_ctrl_state *s, int32_t xi)
 {
-    int crossed = (s->xi_prev > 0 && xi <= 0) || (s->xi_prev < 0 && xi >= 0);
+    int crossed = ((s->xi_prev > 0) && (xi <= 0)) || ((s->xi_prev < 0) && (xi >= 0));
 
     switch (cfg->kind) {
     case BD_KIND_RESET:
-        return crossed && s->armed;
+        return crossed && (s->armed != 0);
     case BD_KIND_DWELL:
-        return crossed && s->armed && s->since_reset >= cfg->dwell;
+        return crossed && (s->armed != 0) && (s->since_reset >= cfg->dwell);
     default:
         return 0;
     }
@@ -177,16 +177,17 @@ void bd_ctrl_step(const bd_ctrl_config *cfg, bd_ctrl_state *s, int32_t xi,
     } else if (cfg->kind == BD_KIND_FT) {
         /* STEP-11: |KTS * fpow| <= (2^31 - 1) * 2^31 < 2^62 */
         int64_t mag = (int64_t)cfg->kts * bd_fpow(xi, cfg->pow_num, cfg->pow_sqrts);
-        dlam = bd_sat54(xi > 0 ? -mag : (xi < 0 ? mag : 0), &sats);
+        dlam = bd_sat54((xi > 0) ? -mag : ((xi < 0) ? mag : 0), &sats);
     } else {
         int64_t nu_used;
         int64_t abs_xi = (xi < 0) ? -(int64_t)xi : (int64_t)xi;  /* BAND-3: 64-bit */
 
         reset = reset_now(cfg, s, xi);                      /* STEP-2, STEP-3 */
-        nu_used = reset ? 0 : s->nu;                        /* STEP-4 */
-        armed_next = (!reset && (s->armed || abs_xi > (int64_t)cfg->band)) ? 1 : 0; /* STEP-5 */
+        nu_used = (reset != 0) ? 0 : s->nu;                        /* STEP-4 */
+        armed_next = ((reset == 0) && ((s->armed != 0) || (abs_xi > (int64_t)cfg->band)))
+                     ? 1 : 0;                              /* STEP-5 */
         /* STEP-6: two exact 32x32->64 products, one sum, one negation (NUM-7) */
-        dlam = bd_sat54(-((int64_t)cfg->kts * xi + (int64_t)cfg->hts * bd_wire(nu_used)),
+        dlam = bd_sat54(-(((int64_t)cfg->kts * xi) + ((int64_t)cfg->hts * bd_wire(nu_used))),
                         &sats);
         nu_next = bd_sat54(nu_used + (int64_t)cfg->tsq * xi, &sats);  /* STEP-7 */
     }
@@ -195,7 +196,7 @@ void bd_ctrl_step(const bd_ctrl_config *cfg, bd_ctrl_state *s, int32_t xi,
     s->nu = nu_next;
     s->xi_prev = xi;
     s->armed = armed_next;
-    if (reset) {
+    if (reset != 0) {
         s->since_reset = 1u;
         count_up(&s->resets);
     } else {
