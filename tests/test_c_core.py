@@ -57,6 +57,7 @@ I32_MIN, I32_MAX = fx.INT32_MIN, fx.INT32_MAX
 STEPS_PER_EXAMPLE = 300
 EXAMPLES_PER_KIND = 350          # × 300 = 105,000 steps per kind
 STEPS_RUN: Counter[str] = Counter()
+EVENTS: Counter[tuple[str, str]] = Counter()   # what the random steps exercised
 
 
 def _in_ci() -> bool:
@@ -312,6 +313,10 @@ def run_both(core: cimpl.CCore, kind: str, kts: int, hts: int, ts: int, band: in
             raise AssertionError(f"{kind} step {t} (xi={xi}): firmware_py {s} {o}, "
                                  f"C {got[t][0]} {got[t][1]}")
     STEPS_RUN[kind] += len(xis)
+    EVENTS[kind, "resets"] += s.resets
+    EVENTS[kind, "saturations"] += s.saturations
+    EVENTS[kind, "zero crossings"] += sum((a > 0 >= b) or (a < 0 <= b)
+                                          for a, b in zip([0, *xis], xis, strict=False))
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -334,9 +339,12 @@ def test_random_step_budget() -> None:
     """Runs after the random-step tests (file order): each kind got ≥ 100,000 steps."""
     if not STEPS_RUN:
         pytest.skip("the random-step tests did not run in this session")
-    print(f"random steps per kind: {dict(STEPS_RUN)}")
+    print(f"random steps per kind: {dict(STEPS_RUN)}; events: {dict(EVENTS)}")
     for kind, steps in STEPS_RUN.items():
         assert steps >= 100_000, (kind, steps)
+        assert EVENTS[kind, "saturations"] > 0 and EVENTS[kind, "zero crossings"] > 0, kind
+        if kind in ("reset", "dwell"):
+            assert EVENTS[kind, "resets"] > 0, kind
 
 
 def test_from_config_steps_match_firmware_py(core: cimpl.CCore) -> None:
