@@ -49,6 +49,7 @@ from firmware_py.controllers import (
 from sim import cimpl
 
 ROOT = Path(__file__).resolve().parent.parent
+SOURCE = ROOT / "firmware_c"   # this checkout's, whichever sim/ is imported
 VECTORS = sorted((ROOT / "tests" / "vectors" / "controller").glob("*.json"))
 FIELDS = ["xi", "dlam", "reset", "lam", "nu", "lam_q24", "armed", "since_reset", "resets",
           "saturations"]
@@ -75,7 +76,7 @@ def _need(*tools: str) -> None:
 
 
 def _make(build: Path, target: str) -> str:
-    proc = subprocess.run(["make", "-s", "-C", str(cimpl.SOURCE_DIR), f"BUILD={build}", target],
+    proc = subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={build}", target],
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 0, f"make {target}:\n{proc.stdout}{proc.stderr}"
     assert proc.stderr.strip() == "", proc.stderr
@@ -87,9 +88,9 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     """A fresh build of firmware_c (not the cache): (library, make's output)."""
     _need("make", os.environ.get("CC", "cc"))
     out = tmp_path_factory.mktemp("firmware_c")
-    lib = cimpl.build(out)
+    lib = cimpl.build(out, source_dir=SOURCE)
     log = (out / "build.log")
-    proc = subprocess.run(["make", "-C", str(cimpl.SOURCE_DIR), f"BUILD={out}", "-B", "all"],
+    proc = subprocess.run(["make", "-C", str(SOURCE), f"BUILD={out}", "-B", "all"],
                           capture_output=True, text=True, check=True)
     log.write_text(proc.stdout + proc.stderr)
     return lib, proc.stderr
@@ -107,13 +108,13 @@ def test_build_is_warning_free_under_werror(built: tuple[Path, str]) -> None:
     lib, stderr = built
     assert lib.exists()
     assert stderr.strip() == "", f"the compiler said something:\n{stderr}"
-    makefile = (cimpl.SOURCE_DIR / "Makefile").read_text()
+    makefile = (SOURCE / "Makefile").read_text()
     for flag in ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-Wconversion"):
         assert flag in makefile, flag
 
 
 def test_core_has_no_floating_point_and_no_heap() -> None:
-    text = "".join(p.read_text() for p in cimpl.sources() if p.suffix in (".c", ".h"))
+    text = "".join(p.read_text() for p in cimpl.sources(SOURCE) if p.suffix in (".c", ".h"))
     code = re.sub(r"/\*.*?\*/", "", text, flags=re.S)  # comments may say "floating point"
     for word in ("float", "double", "malloc", "calloc", "realloc", "free", "math", "sqrt"):
         assert not re.search(rf"\b{word}\b", code), word
@@ -121,10 +122,10 @@ def test_core_has_no_floating_point_and_no_heap() -> None:
 
 def test_a_warning_fails_the_build(tmp_path: Path, built: tuple[Path, str]) -> None:
     src = tmp_path / "src"
-    shutil.copytree(cimpl.SOURCE_DIR / "include", tmp_path / "include")
+    shutil.copytree(SOURCE / "include", tmp_path / "include")
     src.mkdir()
-    shutil.copy(cimpl.SOURCE_DIR / "Makefile", tmp_path / "Makefile")
-    text = (cimpl.SOURCE_DIR / "src" / "controller.c").read_text()
+    shutil.copy(SOURCE / "Makefile", tmp_path / "Makefile")
+    text = (SOURCE / "src" / "controller.c").read_text()
     (src / "controller.c").write_text(text + "\nint bd_narrowing(int64_t x);\n"
                                       "int bd_narrowing(int64_t x) { return x; }\n")
     with pytest.raises(cimpl.CBuildError, match="conversion"):
