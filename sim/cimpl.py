@@ -16,6 +16,7 @@ from __future__ import annotations
 import ctypes
 import hashlib
 import os
+import shutil
 import subprocess
 from collections.abc import Sequence
 from fractions import Fraction
@@ -142,7 +143,13 @@ def load(lib_path: Path | None = None) -> CCore:
     if _CORE is None:
         path = cache_dir() / LIB_NAME
         if not path.exists():
-            build(path.parent)
+            # build beside it, then rename: two processes on first use never load a
+            # half-written library
+            tmp = path.parent.with_name(f"{path.parent.name}.tmp{os.getpid()}")
+            built = build(tmp)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(built, path)
+            shutil.rmtree(tmp, ignore_errors=True)
         _CORE = CCore(path)
     return _CORE
 

@@ -132,6 +132,21 @@ def test_a_warning_fails_the_build(tmp_path: Path, built: tuple[Path, str]) -> N
         cimpl.build(tmp_path / "out", source_dir=tmp_path)
 
 
+def test_binding_builds_into_its_cache_on_first_use(tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch,
+                                                    built: tuple[Path, str]) -> None:
+    if cimpl.SOURCE_DIR.resolve() != SOURCE.resolve():
+        pytest.skip("sim/ is imported from an installed copy, not this checkout")
+    monkeypatch.setenv("BESSDED_C_CACHE", str(tmp_path))
+    monkeypatch.setattr(cimpl, "_CORE", None)
+    core = cimpl.load()
+    assert core.path.parent.parent == tmp_path and core.path.exists()
+    assert cimpl.load() is core
+    assert [p.name for p in tmp_path.iterdir()] == [core.path.parent.name]  # no leftovers
+    c = cimpl.CController.from_config(ControllerConfig(kind="pi"))
+    assert c.step(c.initial_state(0.5), 1000)[0].nu == 1000 * c.ts_q
+
+
 # --------------------------------------------------------------------------- vectors
 
 
