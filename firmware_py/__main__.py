@@ -16,7 +16,9 @@ from .errors import BessDedError
 from .faultinject import FaultyBus, RxFaults
 from .node import (
     BusConfigError,
+    RxTxBus,
     StopFlag,
+    behind_filter,
     bus_kwargs,
     open_bus,
     run_node,
@@ -116,12 +118,14 @@ def run_agent(args: argparse.Namespace) -> int:
         set_realtime(args.rt_priority)
     stop = StopFlag()
     stop.install_signal_handlers()
-    bus = open_bus(**with_acceptance_filter(
-        bus_kwargs(args.interface, args.channel, args.bus_config), agent.io.accepted_ids(),
-        args.acceptance_filter))
+    kw = with_acceptance_filter(bus_kwargs(args.interface, args.channel, args.bus_config),
+                                agent.io.accepted_ids(), args.acceptance_filter)
+    bus = open_bus(**kw)
     faults = RxFaults(args.inject_rx_loss, args.inject_rx_delay, args.inject_rx_jitter,
                       args.inject_seed)
-    node_bus = FaultyBus(bus, faults) if faults.active else bus
+    node_bus: RxTxBus = behind_filter(bus, kw)
+    if faults.active:
+        node_bus = FaultyBus(node_bus, faults)
     try:
         run_node(agent, node_bus, duration=args.duration, stop=stop)
     finally:

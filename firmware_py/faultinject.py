@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import can
 
 from .contract import MC_BASE, N_AGENTS_MAX
+from .node import RxTxBus
 
 
 @dataclass
@@ -44,7 +45,7 @@ class RxFaults:
 class FaultyBus:
     """Wraps a python-can bus; ``recv`` applies RxFaults, ``send`` passes through."""
 
-    def __init__(self, bus: can.BusABC, faults: RxFaults,
+    def __init__(self, bus: RxTxBus, faults: RxFaults,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if not 0 <= faults.loss < 1:
             raise ValueError(f"loss: expected a probability in [0, 1), but got {faults.loss}")
@@ -92,4 +93,6 @@ class FaultyBus:
                 return None
 
     def shutdown(self) -> None:
-        self.bus.shutdown()
+        shutdown = getattr(self.bus, "shutdown", None)  # a python-can bus, or a wrapper
+        if shutdown is not None:
+            shutdown()

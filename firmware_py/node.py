@@ -175,6 +175,34 @@ def with_acceptance_filter(kw: dict[str, Any], ids: Iterable[int],
                                   for i in sorted(set(ids))]}
 
 
+class AcceptanceBus:
+    """The bus as its acceptance filter leaves it (GEN-5). python-can binds a SocketCAN
+    socket before it installs the kernel filter, so a frame sent in between still reaches
+    the node; this drops every data frame the filter would not have passed, uncounted as
+    the filter itself would. Error frames pass (LOOP-4)."""
+
+    def __init__(self, bus: can.BusABC, filters: Iterable[dict[str, Any]],
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.bus, self.clock = bus, clock
+        self.ids = frozenset(f["can_id"] for f in filters)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.bus.send(msg, timeout=timeout)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        end = None if timeout is None else self.clock() + timeout
+        while True:
+            msg = self.bus.recv(timeout=None if end is None else max(0.0, end - self.clock()))
+            if (msg is None or msg.is_error_frame
+                    or (not msg.is_extended_id and msg.arbitration_id in self.ids)):
+                return msg
+
+
+def behind_filter(bus: can.BusABC, kw: dict[str, Any]) -> RxTxBus:
+    """What the node reads: ``bus``, behind its acceptance filter's gap when it has one."""
+    return AcceptanceBus(bus, kw["can_filters"]) if kw.get("can_filters") else bus
+
+
 class StopFlag:
     """Set by SIGINT/SIGTERM (or by a test) to end the loop cleanly."""
 

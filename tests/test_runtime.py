@@ -548,3 +548,34 @@ def test_restarted_router_after_the_price_timeout_is_heard_after_its_sync() -> N
     a.on_frame(price_frame(1, rho=0.7), 0.33)
     assert a.counters["foreign"] == 0 and a.counters["auth"] == 0 and a.price_rx == 0.33
     assert a.price == fx.to_fixed(0.7) and a.counters["resyncs"] == 1
+
+
+def test_a_frame_that_slips_in_before_the_kernel_filter_is_dropped_as_the_filter_would(
+) -> None:
+    """GEN-5: python-can binds a SocketCAN socket before it installs the filter, so a
+    frame can arrive in between. The node reads through AcceptanceBus, which drops every
+    data frame the filter would not pass (uncounted, as the filter would) and keeps the
+    ones it passes and error frames (LOOP-4)."""
+    from firmware_py.node import AcceptanceBus, behind_filter, with_acceptance_filter
+
+    frames = [can.Message(arbitration_id=0x7F0, data=bytes(8), is_extended_id=False),
+              can.Message(arbitration_id=0x010, data=bytes(8), is_extended_id=True),
+              can.Message(arbitration_id=0x010, data=bytes(8), is_extended_id=False),
+              can.Message(arbitration_id=0x20000080, is_error_frame=True)]
+
+    class Queue:
+        def recv(self, timeout: float | None = None) -> can.Message | None:
+            return frames.pop(0) if frames else None
+
+        def send(self, msg: can.Message, timeout: float | None = None) -> None:
+            raise AssertionError("not sent")
+
+    kw = with_acceptance_filter({"interface": "socketcan", "channel": "vcan0"}, [0x010, 0x101])
+    reader = behind_filter(Queue(), kw)  # type: ignore[arg-type]
+    assert isinstance(reader, AcceptanceBus)
+    got = [reader.recv(timeout=0), reader.recv(timeout=0), reader.recv(timeout=0)]
+    assert [(m.arbitration_id, m.is_error_frame) for m in got if m] == [
+        (0x010, False), (0x20000080, True)]
+    assert got[2] is None
+    plain = Queue()
+    assert behind_filter(plain, {"interface": "udp_multicast"}) is plain  # type: ignore[arg-type]

@@ -65,18 +65,25 @@ def serve(node: Any, args: argparse.Namespace) -> int:
     """Run ``node`` on the bus the flags name until --duration or SIGINT/SIGTERM; always
     shut the bus down and print the node's summary to stderr."""
     from firmware_py.__main__ import set_realtime
-    from firmware_py.node import StopFlag, bus_kwargs, open_bus, run_node, with_acceptance_filter
+    from firmware_py.node import (
+        StopFlag,
+        behind_filter,
+        bus_kwargs,
+        open_bus,
+        run_node,
+        with_acceptance_filter,
+    )
 
     if args.rt_priority:
         set_realtime(args.rt_priority)
     stop = StopFlag()
-    bus = open_bus(**with_acceptance_filter(
-        bus_kwargs(args.interface, args.channel, args.bus_config), node.io.accepted_ids(),
-        args.acceptance_filter))
+    kw = with_acceptance_filter(bus_kwargs(args.interface, args.channel, args.bus_config),
+                                node.io.accepted_ids(), args.acceptance_filter)
+    bus = open_bus(**kw)
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         stop.install_signal_handlers()
-        run_node(node, bus, duration=args.duration, stop=stop)
+        run_node(node, behind_filter(bus, kw), duration=args.duration, stop=stop)
     finally:
         try:
             for s, h in previous.items():  # in-process callers (tests) get theirs back
