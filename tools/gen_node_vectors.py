@@ -36,7 +36,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))  # this worktree's firmware_py, not an installed copy
 sys.path.insert(0, str(Path(__file__).parent))  # tools/gen_vectors.py
 
-from gen_vectors import q24, splitmix64  # noqa: E402  (the same PRNG as the controller's)
+from gen_vectors import q24, splitmix64, write_or_check  # noqa: E402  (shared with the controller's)
 
 from firmware_py import contract  # noqa: E402
 from firmware_py.config import parse_agent_config  # noqa: E402
@@ -844,27 +844,6 @@ def render_all() -> dict[str, str]:
     finally:
         fw_log.setLevel(level)
     return out
-
-
-def write_or_check(files: dict[str, str], out: Path, check: bool) -> int:
-    """Write ``files`` into ``out`` (removing stale *.json), or with ``check`` report
-    every file that differs, is missing or extra and return 1."""
-    present = {f.name for f in out.glob("*.json")} if out.is_dir() else set()
-    if check:
-        stale = sorted(n for n, text in files.items()
-                       if n not in present or (out / n).read_bytes() != text.encode("ascii"))
-        extra = sorted(present - files.keys())
-        for n in stale:
-            sys.stderr.write(f"{out / n} is stale or missing\n")
-        for n in extra:
-            sys.stderr.write(f"{out / n} is not produced by the generator\n")
-        return 1 if stale or extra else 0
-    out.mkdir(parents=True, exist_ok=True)
-    for n in sorted(present - files.keys()):
-        (out / n).unlink()
-    for n, text in files.items():
-        (out / n).write_bytes(text.encode("ascii"))
-    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

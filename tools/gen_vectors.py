@@ -440,14 +440,19 @@ def _node_main(out: Path, check: bool) -> int:
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    return int(mod.write_or_check(mod.render_all(), out, check))
+    return write_or_check(mod.render_all(), out, check)
 
 
 def _controller_main(args: argparse.Namespace) -> int:
-    files = render_all()
-    out: Path = args.output
+    return write_or_check(render_all(), args.output, args.check)
+
+
+def write_or_check(files: dict[str, str], out: Path, check: bool) -> int:
+    """Write ``files`` into ``out`` (removing stale *.json), or with ``check`` report
+    every file that differs, is missing or extra and return 1 (controller and node
+    vectors alike)."""
     present = {f.name for f in out.glob("*.json")} if out.is_dir() else set()
-    if args.check:
+    if check:
         stale = sorted(n for n, text in files.items()
                        if n not in present or (out / n).read_bytes() != text.encode("ascii"))
         extra = sorted(present - files.keys())
@@ -455,9 +460,7 @@ def _controller_main(args: argparse.Namespace) -> int:
             sys.stderr.write(f"{out / n} is stale or missing\n")
         for n in extra:
             sys.stderr.write(f"{out / n} is not produced by the generator\n")
-        if stale or extra:
-            return 1
-        return 0
+        return 1 if stale or extra else 0
     out.mkdir(parents=True, exist_ok=True)
     for n in sorted(present - files.keys()):
         (out / n).unlink()
