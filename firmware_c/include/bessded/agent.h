@@ -1,0 +1,233 @@
+/*
+ * The agent runtime (docs/firmware-spec.md sections 7-14): receive checks (E2E,
+ * SecOC freshness and MAC, echo and impersonation, foreign traffic, untrusted sources),
+ * the safety rules, liveness and timeouts, the state machine, commands, the controller
+ * step and the frames an agent sends. Bit-exact C99 port of firmware_py/runtime.py and
+ * firmware_py/nodeio.py.
+ *
+ * Pure like the controller core: no clock, no bus, no heap, no floating point. The node
+ * loop (src/node.c) hands every received frame to bd_agent_rx with its receive time and
+ * calls bd_agent_tick once per period; the platform seam (platform.h) does the rest.
+ * Times are int64 nanoseconds of a monotonic clock. Every binary64 quantity of the
+ * configuration is turned into integers once, before the agent starts (bd_agent_params,
+ * filled by src/config.c on a host, or by a build step for an MCU).
+ */
+#ifndef BESSDED_AGENT_H
+#define BESSDED_AGENT_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "bd_contract.h"   /* generated from the DBC (tools/gen_c_contract.py) */
+#include "bessded/controller.h"
+#include "bessded/frame.h"
+#include "bessded/secoc.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define BD_MAX_NEIGHBOURS (BD_N_AGENTS_MAX - 1)
+#define BD_MAX_PEERS (BD_N_AGENTS_MAX + 2)       /* every agent, the plant, the router */
+#define BD_TICK_FRAMES_MAX 5                      /* 2 syncs, MC, Setpoint, Diag */
+#define BD_ECHO_DEPTH 4                           /* own frames kept to tell their echo */
+
+/* Errors of bd_agent_init (and of the config loader, which adds its own). */
+#define BD_ERR_PARAMS 10        /* a parameter outside what the runtime can hold */
+#define BD_ERR_MISSING_KEY 11   /* CFG-8: no verification key of a sender of an input */
+#define BD_ERR_BOOT 12          /* boot counter exhausted, or persisting it failed */
+#define BD_ERR_CRYPTO 13        /* the CMAC primitive failed */
+
+/* Every configuration value as the runtime uses it (spec sections 3, 4, 9.1, 10, 11),
+ * integers only. Times in ns: rne(seconds * 1e9) of the binary64 values. */
+typedef struct {
+    uint32_t id;                  /* 1..BD_N_AGENTS_MAX */
+    uint32_t fleet_size;          /* 0: unknown (RX-6 not checked) */
+    int32_t pinned;               /* 0/1 (CTRL-5) */
+    int32_t lambda0;              /* q24(lambda0) */
+    bd_ctrl_config ctrl;          /* KTS, HTS, TSQ, BAND, D, ft exponent (CTRL-1..3) */
+    uint32_t n_neighbours;
+    uint32_t neighbour_id[BD_MAX_NEIGHBOURS];
+    int32_t neighbour_weight[BD_MAX_NEIGHBOURS];   /* q24(weight) */
+    /* SP-1: P = ((lambda * sp_gain + 2^39) >> 40) - sp_offset, clipped to [sp_lo, sp_hi] */
+    int64_t sp_gain;
+    int64_t sp_offset;
+    int32_t sp_lo;
+    int32_t sp_hi;
+    int32_t idle_lambda;          /* q24(beta * (1 + m)) (CMD-3) */
+    int64_t period_ns;            /* Ts */
+    int64_t neighbour_timeout_ns; /* neighbour_periods * Ts (LIVE-2) */
+    int64_t price_timeout_ns;     /* STATE-2 */
+    int64_t status_timeout_ns;
+    int64_t untrusted_ns;         /* RX-12 */
+    int64_t sync_ns;              /* AUTH-13: the sync cadence (ER_Price_Sync's cycle at Ts) */
+    int64_t hello_ns;             /* AUTH-15: 0.1 * sync */
+    int32_t lambda_min;           /* q24 limits (CFG-7) */
+    int32_t lambda_max;
+    int32_t rho_min;
+    int32_t rho_max;
+    int32_t price_step_max;
+    int32_t lambda_step_max;
+    uint32_t price_persist;
+    uint32_t untrusted_after;
+    /* CMD-5: the accepted GainK/GainH raw ranges (the binary64 bounds, as raw values) */
+    uint32_t gain_k_raw_min;
+    uint32_t gain_k_raw_max;
+    uint32_t gain_h_raw_min;
+    uint32_t gain_h_raw_max;
+} bd_agent_params;
+
+/* The node's key material (CFG-8, AUTH-1..3, AUTH-20). */
+typedef struct {
+    char node[BD_LABEL_MAX + 1];          /* "agent_<id>" */
+    uint8_t key[BD_KEY_BYTES];            /* own signing key */
+    uint32_t boot;                        /* boot counter stored before this start */
+    int32_t insecure;                     /* 1: --insecure (all-zero master, boot 1) */
+    uint32_t n_peers;
+    char peer_label[BD_MAX_PEERS][BD_LABEL_MAX + 1];
+    uint8_t peer_key[BD_MAX_PEERS][BD_KEY_BYTES];
+    /* Persist a new boot counter before it is used (write-ahead, AUTH-3); 0 on
+     * success. NULL: nothing persisted (insecure mode, tests). */
+    int (*persist_boot)(void *ctx, uint32_t boot);
+    void *persist_ctx;
+} bd_keyring;
+
+/* Counters (spec section 13), indexed by BD_C_*; the names are firmware_py's. */
+enum {
+    BD_C_CRC, BD_C_DLC, BD_C_RANGE, BD_C_UNKNOWN_ID, BD_C_MALFORMED, BD_C_IMPERSONATION,
+    BD_C_REPEATED_COUNTER, BD_C_LOST_FRAMES, BD_C_SATURATIONS, BD_C_NEIGHBOUR_TIMEOUTS,
+    BD_C_PRICE_TIMEOUTS, BD_C_STATUS_TIMEOUTS, BD_C_PLANT_FAULTS, BD_C_FOREIGN,
+    BD_C_FOREIGN_ID, BD_C_COUNTER_JUMP, BD_C_COUNTER_CLASH, BD_C_UNTRUSTED_SOURCES,
+    BD_C_UNTRUSTED, BD_C_IMPLAUSIBLE_PRICE, BD_C_IMPLAUSIBLE_LAMBDA, BD_C_IMPLAUSIBLE_GAINS,
+    BD_C_AUTH, BD_C_UNSYNCED, BD_C_RESYNCS, BD_C_DEADLINE_MISS, BD_C_SEND_FAILURE,
+    BD_C_ERROR_FRAME, BD_C_COMMANDS, BD_C_COMMANDS_ISOLATE, BD_C_COMMANDS_RECONNECT,
+    BD_C_PRICE_STEPS_ACCEPTED, BD_C_SETPOINT_LIMITED,
+    BD_C_COUNT
+};
+
+/* The counter's name as firmware_py counts it ("crc", "deadline_miss", ...); NULL if
+ * out of range. */
+const char *bd_counter_name(int counter);
+
+/* Events for the platform's log: every counter increment (event = BD_C_*, frame_id the
+ * frame's ID where there is one, detail the new count) and the state changes
+ * (BD_EV_STATE, detail = new state). */
+#define BD_EV_STATE 100
+typedef void (*bd_event_fn)(void *ctx, int event, uint32_t frame_id, uint32_t detail);
+
+/* ---- the agent's state: private to src/agent.c, public only for static allocation */
+typedef struct {
+    uint32_t id;                  /* 0: unused */
+    int32_t has_last;             /* E2E counter tracker */
+    uint32_t last_counter;
+    uint8_t last_data[8];
+    int32_t has_data;
+    uint32_t streak;              /* consecutive E2E failures (RX-12) */
+    int32_t untrusted;            /* 1 while untrusted_until is set */
+    int64_t untrusted_until;
+    int32_t secured;              /* SecOC frame: key_index valid */
+    int32_t key_index;            /* into bd_agent.key */
+    int32_t has_fv;               /* the last accepted freshness value is known */
+    uint64_t fv;
+    int32_t lost;                 /* sender timed out (LOST_WINDOWS tried) */
+    int32_t cyclic;
+} bd_rx_slot;
+
+typedef struct {
+    int32_t lam;                  /* last lambda_j (Q24) */
+    int32_t has_lam;
+    uint32_t state;
+    int64_t last_rx;
+    int32_t has_rx;
+    int32_t alive;
+} bd_neighbour;
+
+typedef struct {
+    uint32_t id;
+    uint32_t n;                   /* frames remembered */
+    uint32_t next;
+    uint8_t data[BD_ECHO_DEPTH][8];
+} bd_echo;
+
+typedef struct {
+    bd_agent_params p;
+    bd_ctrl_config ctrl;          /* current constants (SET_GAINS changes KTS, HTS) */
+    bd_ctrl_state cs;
+    uint32_t state;               /* BD_STATE_* */
+    uint32_t ticks;
+    uint32_t count[BD_C_COUNT];
+    /* receive side */
+    uint32_t n_rx;
+    bd_rx_slot rx[BD_MAX_NEIGHBOURS + 3 + 2];     /* neighbours' MC, price, command, status,
+                                                     and the untrusted state of sync IDs */
+    bd_neighbour nb[BD_MAX_NEIGHBOURS];
+    uint32_t n_keys;
+    char key_label[BD_MAX_PEERS][BD_LABEL_MAX + 1];
+    uint8_t key[BD_MAX_PEERS][BD_KEY_BYTES];
+    int32_t insecure;
+    uint32_t peer_boot[BD_N_SYNC_IDS];            /* 0: no boot known (boots are >= 1) */
+    uint32_t safety_rejections;
+    uint32_t last_safety_cause;                   /* BD_SAFETY_CAUSE_* (0: none) */
+    uint32_t last_safety_sender;
+    /* inputs */
+    int32_t price;
+    int32_t has_price;
+    uint32_t price_segment;
+    int64_t price_rx;
+    int32_t has_price_rx;
+    int64_t status_rx;
+    int32_t has_status_rx;
+    int32_t price_fresh;
+    int32_t status_fresh;
+    int32_t plant_fault;
+    int32_t power_limited;
+    int32_t candidate;
+    int32_t has_candidate;
+    uint32_t candidate_n;
+    int64_t now;
+    /* transmit side */
+    uint8_t own_key[BD_KEY_BYTES];
+    bd_keyring *keys;             /* for new boots (persist) */
+    uint32_t boot;
+    uint32_t tx_count[2];         /* MC, Setpoint message counts under this boot */
+    uint32_t diag_counter;
+    bd_echo echo[5];              /* MC, Setpoint, Diag, MC_Sync, Setpoint_Sync */
+    int32_t sync_pending;         /* 1: syncs due at the next tick (start, new boot) */
+    int64_t sync_next;
+    int32_t hello_due;
+    int64_t hello_after;
+    bd_event_fn on_event;
+    void *event_ctx;
+} bd_agent;
+
+/* Start an agent (spec 3, 4, AUTH-3): params must be valid (src/config.c checks them);
+ * keys->boot is advanced and persisted before any frame is signed. Returns BD_OK or a
+ * BD_ERR_*. keys must outlive the agent (a count wrap starts a new boot, AUTH-5). */
+int bd_agent_init(bd_agent *a, const bd_agent_params *p, bd_keyring *keys,
+                  bd_event_fn on_event, void *event_ctx);
+
+/* One received frame at time t_ns (spec section 10). */
+void bd_agent_rx(bd_agent *a, const bd_frame *f, int64_t t_ns);
+
+/* The periodic step at t_ns (TICK-1): the frames to send, in order, into out[0..max-1];
+ * returns how many (at most BD_TICK_FRAMES_MAX). */
+size_t bd_agent_tick(bd_agent *a, int64_t t_ns, bd_frame *out, size_t max);
+
+/* A runtime event of the loop: BD_C_DEADLINE_MISS, BD_C_SEND_FAILURE, BD_C_ERROR_FRAME. */
+void bd_agent_note(bd_agent *a, int counter, uint32_t n);
+
+/* The IDs an acceptance filter must pass (firmware_py NodeIO.accepted_ids), sorted;
+ * returns how many (writes at most max). */
+size_t bd_agent_accepted_ids(const bd_agent *a, uint32_t *ids, size_t max);
+
+/* The wire lambda (Q24) the agent sends now. */
+int32_t bd_agent_lambda(const bd_agent *a);
+
+/* sizeof(bd_agent), for bindings that allocate it. */
+size_t bd_agent_size(void);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* BESSDED_AGENT_H */

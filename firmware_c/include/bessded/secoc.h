@@ -1,0 +1,60 @@
+/*
+ * SecOC-style frame authentication (docs/firmware-spec.md section 12, docs/security.md):
+ * the node key derivation (AUTH-1), the 24-bit truncated CMAC of a secured or sync
+ * frame (AUTH-6..8) and the receiver's freshness reconstruction (AUTH-9..11).
+ *
+ * The only cryptographic primitive is CMAC-AES-128, and it is the crypto seam:
+ * bd_cmac_aes128 is implemented by src/crypto_mbedtls.c (mbedTLS) on Linux; an MCU
+ * port links its own (a hardware AES, an HSM/SHE) instead. Nothing here is hand-written
+ * cryptography.
+ */
+#ifndef BESSDED_SECOC_H
+#define BESSDED_SECOC_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define BD_KEY_BYTES 16
+#define BD_LABEL_MAX 32       /* node labels: [a-z][a-z0-9_]{0,31} */
+
+/* The crypto seam: the full 16-byte CMAC-AES-128 tag (NIST SP 800-38B) of msg.
+ * Returns 0 on success, nonzero if the platform's primitive failed. */
+int bd_cmac_aes128(const uint8_t key[BD_KEY_BYTES], const uint8_t *msg, size_t len,
+                   uint8_t tag[16]);
+
+/* AUTH-1: K_node = CMAC(K_master, 00000001 || "bess-ded/secoc/node-key/v1" || 00 ||
+ * label || 00000080). label: NUL-terminated, 1..32 characters. 0 on success. */
+int bd_derive_node_key(const uint8_t master[BD_KEY_BYTES], const char *label,
+                       uint8_t out[BD_KEY_BYTES]);
+
+/* The public fleet tag of a key set (the KDF with label "bess-ded/secoc/fleet-id/v1",
+ * empty context, L = 64): 8 bytes. 0 on success. */
+int bd_fleet_id(const uint8_t master[BD_KEY_BYTES], uint8_t out[8]);
+
+/* AUTH-6..8: write the leading 24 bits of CMAC(key, id (2 bytes BE) || data[3] & 0xF0 ||
+ * data[4..7] || fv (8 bytes BE)) into data[0..2] (MSB first). 0 on success. */
+int bd_sign_frame(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id, uint8_t data[8],
+                  uint64_t fv);
+
+/* 1 if data[0..2] is the MAC bd_sign_frame would write for (key, frame_id, data, fv),
+ * else 0 (also when the primitive failed). The comparison does not stop at the first
+ * differing byte. */
+int bd_frame_verifies(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id,
+                      const uint8_t data[8], uint64_t fv);
+
+/* AUTH-9: the full freshness value a frame carrying the low tx_bits `truncated` is
+ * verified with, from the last accepted value `last`: the high bits of last, plus one
+ * step of 2^tx_bits when truncated <= the low bits of last. Returns 0 and *out, or -1
+ * when the candidate would exceed max_value (re-key or resync needed). */
+int bd_fv_candidate(uint64_t last, uint32_t truncated, unsigned tx_bits, uint64_t max_value,
+                    uint64_t *out);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* BESSDED_SECOC_H */
