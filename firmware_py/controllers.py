@@ -29,6 +29,7 @@ interval runs from t = 0.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -85,6 +86,15 @@ class ControllerConfig:
         for name, value in (("k·ts", self.k * self.ts), ("h·ts", self.h * self.ts),
                             ("ts", self.ts)):
             fx.to_q30(value, name)
+
+    def with_gains(self, k: float, h: float) -> ControllerConfig:
+        """This config with the gains a SET_GAINS carried (CMD-5). Not re-validated: the
+        runtime checked the gains in integers, and the controller's constants come from
+        them, not from k·ts and h·ts."""
+        new = copy.copy(self)
+        object.__setattr__(new, "k", k)
+        object.__setattr__(new, "h", h)
+        return new
 
     @property
     def dwell_samples(self) -> int:

@@ -61,9 +61,9 @@ import can
 
 from . import fixedpoint as fx
 from .config import AgentConfig, DispatchParams
-from .contract import Command, State, cycle_s, every_ticks, is_active
-from .controllers import ControllerConfig, consensus_error, make_controller
-from .errors import FrameError, ParameterError, RangeError
+from .contract import Command, State, cycle_s, every_ticks, is_active, scale
+from .controllers import consensus_error, make_controller
+from .errors import FrameError, RangeError
 from .frames import DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from .nodeio import NodeIO
 from .secoc import Keyring
@@ -76,6 +76,8 @@ log = logging.getLogger(__name__)
 SETPOINT_EVERY = every_ticks(setpoint_name(1))   # ticks between setpoints (5 in the DBC)
 DIAG_EVERY = every_ticks(diag_name(1))           # ticks between diag frames (10)
 # AGENT_<i>_Diag SafetyCause values (tools/gen_dbc.py SAFETY_CAUSE_CHOICES)
+# SET_GAINS carries gains in units of 1/GAIN_DIV (GainK's DBC factor 0.001)
+GAIN_DIV = round(1 / scale("ER_Command", "GainK"))
 SAFETY_CAUSES = ("none", "untrusted", "implausible_price", "implausible_lambda",
                  "implausible_gains", "auth")
 
@@ -291,18 +293,33 @@ class AgentRuntime:
                     f"[{c.k_min:g}, {c.k_max:g}] and h in [{c.h_min:g}, {c.h_max:g}] "
                     f"(limits.k_min..h_max), but got k = {k:g}, h = {h:g}; gains unchanged")
                 return
-            try:
-                cfg = replace(self.ctrl.config, k=k, h=h)
-            except ParameterError as e:
-                    raise RangeError(f"ER_Command SET_GAINS: {e}") from None
-            self._set_controller(cfg)
+            self._set_gains(f.raw["GainK"], f.raw["GainH"], k, h)
         elif cmd not in Command._value2member_map_:
             raise RangeError(f"ER_Command.Command: expected one of {[int(c) for c in Command]}, "
                              f"but got {cmd}")
 
-    def _set_controller(self, cfg: ControllerConfig) -> None:
-        self.ctrl = make_controller(cfg, fixed=True)
+    def _set_gains(self, k_raw: int, h_raw: int, k: float, h: float) -> None:
+        """CMD-5: KTS and HTS from the raw gains in integers, ``(2·raw·TSQ + D) // 2D``
+        with D = 1/scale (1000): what an MCU computes without floating point. Refused
+        (RangeError) unless k > 0, h > 0 where the kind integrates, and both constants
+        are at least one LSB and fit an int32."""
+        ctrl = self.ctrl
+        kts, hts = self._gain_q30(k_raw), self._gain_q30(h_raw)
+        needs_h = ctrl.config.kind in ("pi", "reset", "dwell")
+        if (k_raw == 0 or (needs_h and h_raw == 0) or not 0 < kts <= fx.INT32_MAX
+                or (h_raw != 0 and not 0 < hts <= fx.INT32_MAX)):
+            and_h = " and h > 0" if needs_h else ""
+            raise RangeError(f"ER_Command SET_GAINS: expected k > 0{and_h}"
+                             f" with k·ts and h·ts of at least one Q1.30 LSB, but got k = {k:g}, "
+                             f"h = {h:g} (k·ts = {kts}, h·ts = {hts} LSB)")
+        self.ctrl = make_controller(ctrl.config, fixed=True)
+        self.ctrl.config = ctrl.config.with_gains(k, h)
+        self.ctrl.kts, self.ctrl.hts = kts, hts
         self.cstate = replace(self.cstate, nu=0)
+
+    def _gain_q30(self, raw: int) -> int:
+        """A SET_GAINS gain (raw, 1/GAIN_DIV units) times Ts, in Q1.30, rounded half up."""
+        return (2 * raw * int(self.ctrl.ts_q) + GAIN_DIV) // (2 * GAIN_DIV)
 
     def _on_status(self, f: DecodedFrame, t: float) -> None:
         r = f.raw

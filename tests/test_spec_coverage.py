@@ -934,24 +934,27 @@ def test_safe_and_running_entries_zero_nu_and_xiprev_and_step_at_once() -> None:
 
 
 def test_set_gains_zeroes_nu_and_keeps_the_rest_in_any_state() -> None:
-    """CMD-5: an accepted SET_GAINS recomputes KTS = q30(k·ts), HTS = q30(h·ts) with
-    k = GainK·0.001, h = GainH·0.001, sets ν := 0 and keeps λ (all its bits), ξprev, armed,
-    since_reset, resets, ctrl_sats; it applies in ISOLATED too."""
+    """CMD-5: an accepted SET_GAINS recomputes KTS = (2·GainK·TSQ + 1000) div 2000 and
+    HTS = (2·GainH·TSQ + 1000) div 2000 in integers (TSQ = q30(ts); not q30(k·ts), which
+    differs by an LSB: h = 3, ts = 0.01), sets ν := 0 and keeps λ (all its bits), ξprev,
+    armed, since_reset, resets, ctrl_sats; it applies in ISOLATED too."""
     a = running(pinned_alone())
     for k in range(5):
         a.tick(k * 0.01)
     s = a.cstate
     a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 2, "GainK": 1500,
                                            "GainH": 3000}), 0.045)
-    assert (a.ctrl.kts, a.ctrl.hts) == (fx.to_q30(1500 * 0.001 * 0.01),
-                                         fx.to_q30(3000 * 0.001 * 0.01))
+    tsq = fx.to_q30(0.01)
+    assert (a.ctrl.kts, a.ctrl.hts) == ((2 * 1500 * tsq + 1000) // 2000,
+                                         (2 * 3000 * tsq + 1000) // 2000)
+    assert a.ctrl.hts == fx.to_q30(3000 * 0.001 * 0.01) - 1   # the one-LSB difference
     assert a.cstate == s.__class__(lam=s.lam, nu=0, xi_prev=s.xi_prev, armed=s.armed,
                                    since_reset=s.since_reset, resets=s.resets,
                                    saturations=s.saturations)
     a.on_frame(command(1, 2), 0.046)
     a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 2, "GainK": 700,
                                            "GainH": 1100}), 0.047)
-    assert a.state == State.ISOLATED and a.ctrl.kts == fx.to_q30(700 * 0.001 * 0.01)
+    assert a.state == State.ISOLATED and a.ctrl.kts == (2 * 700 * tsq + 1000) // 2000
     assert a.cfg.k_min == 0.5 and a.cfg.k_max == 2.0   # the bounds do not move
 
 
