@@ -64,8 +64,10 @@ class _Record(ctypes.Structure):
 
 def sources(source_dir: Path = SOURCE_DIR) -> list[Path]:
     """The files the library is built from (what the cache key hashes)."""
+    root = source_dir.parent
     return [source_dir / "Makefile", *sorted((source_dir / "include").rglob("*.h")),
-            *sorted((source_dir / "src").glob("*.c"))]
+            *sorted((source_dir / "src").glob("*.[ch]")), root / "tools" / "gen_c_contract.py",
+            root / "dbc" / "bess_ded.dbc"]
 
 
 def build(build_dir: Path, source_dir: Path = SOURCE_DIR, target: str = "all") -> Path:
@@ -146,7 +148,7 @@ def load(lib_path: Path | None = None) -> CCore:
             # build beside it, then rename: two processes on first use never load a
             # half-written library
             tmp = path.parent.with_name(f"{path.parent.name}.tmp{os.getpid()}")
-            built = build(tmp)
+            built = build(tmp, target=str(tmp.resolve() / LIB_NAME))
             path.parent.mkdir(parents=True, exist_ok=True)
             os.replace(built, path)
             shutil.rmtree(tmp, ignore_errors=True)

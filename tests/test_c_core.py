@@ -435,14 +435,30 @@ def test_vectors_replay_cross_built_for_arm_under_qemu(tmp_path: Path) -> None:
     assert proc.returncode == 0 and proc.stdout.split() == ["PASS", str(n), str(steps)], proc
 
 
-def test_cortex_m4_size_of_the_core(tmp_path: Path) -> None:
-    """arm-none-eabi -Os: the core has no static data, and its code stays small."""
+def _sizes(make_output: str) -> dict[str, tuple[int, int, int]]:
+    """arm-none-eabi-size's rows in ``make``'s output: file name → (text, data, bss)."""
+    rows = {}
+    for line in make_output.splitlines():
+        parts = line.split()
+        if len(parts) == 6 and parts[0].isdigit():
+            rows[Path(parts[5]).name] = (int(parts[0]), int(parts[1]), int(parts[2]))
+    return rows
+
+
+def test_cortex_m4_size_of_the_core_and_the_agent(tmp_path: Path) -> None:
+    """arm-none-eabi -Os, soft float: the core has no static data and stays small; the
+    whole agent with 31 neighbours (tools/cm4_image.c: core, runtime, codec, SecOC; the
+    board's CAN driver and AES engine stubbed) fits 16 KiB of flash and 4 KiB of RAM, and
+    links no floating-point routine (the make target fails if it does)."""
     _need("make", "arm-none-eabi-gcc", "arm-none-eabi-size")
-    out = _make(tmp_path, "arm-size").split("\n")
-    text, data, bss = map(int, out[1].split()[:3])
-    print(f"Cortex-M4 -Os: text {text} data {data} bss {bss}")
+    sizes = _sizes(_make(tmp_path, "arm-size"))
+    text, data, bss = sizes["controller.cm4.o"]
+    print(f"Cortex-M4 -Os core: text {text} data {data} bss {bss}")
     assert data == 0 and bss == 0
     assert 0 < text < 2048
+    text, data, bss = sizes["agent.cm4.elf"]
+    print(f"Cortex-M4 -Os agent: text {text} data {data} bss {bss}")
+    assert text + data < 16 * 1024 and data + bss < 4 * 1024
 
 
 def test_cppcheck_clean(tmp_path: Path) -> None:

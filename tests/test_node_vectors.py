@@ -99,11 +99,12 @@ def describe(fid: int, data: str) -> str:
     return f"{f.name} {f.raw}"
 
 
-def replay(vec: dict[str, Any]) -> int:
-    """Run the vector; raise NodeVectorMismatch at the first difference. The number of
-    frames compared."""
+def replay(vec: dict[str, Any], make: Callable[[dict[str, Any]], Any] = agent_of) -> int:
+    """Run the vector on the agent ``make(vec)`` builds (firmware_py's by default; any
+    object with ``on_frame`` and ``tick``); raise NodeVectorMismatch at the first
+    difference. The number of frames compared."""
     name = vec["name"]
-    agent = agent_of(vec)
+    agent = make(vec)
     expected = vec["output"]
     i = 0
     for row in vec["input"]:

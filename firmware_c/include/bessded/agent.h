@@ -115,95 +115,98 @@ const char *bd_counter_name(int counter);
 #define BD_EV_STATE 100
 typedef void (*bd_event_fn)(void *ctx, int event, uint32_t frame_id, uint32_t detail);
 
-/* ---- the agent's state: private to src/agent.c, public only for static allocation */
+/* ---- the agent's state: private to src/agent.c, public only for static allocation.
+ * Laid out for a small MCU: about 3 KB with 31 neighbours (firmware_c/README.md). */
+#define BD_RX_UNTRUSTED 0x01u     /* bd_rx_slot.flags: untrusted_until is set */
+#define BD_RX_HAS_FV 0x02u        /* the last accepted freshness value is known */
+#define BD_RX_LOST 0x04u          /* its sender timed out: LOST_WINDOWS windows tried */
 typedef struct {
-    uint32_t id;                  /* 0: unused */
-    int32_t has_last;             /* E2E counter tracker */
-    uint32_t last_counter;
-    uint8_t last_data[8];
-    int32_t has_data;
-    uint32_t streak;              /* consecutive E2E failures (RX-12) */
-    int32_t untrusted;            /* 1 while untrusted_until is set */
     int64_t untrusted_until;
-    int32_t secured;              /* SecOC frame: key_index valid */
-    int32_t key_index;            /* into bd_agent.key */
-    int32_t has_fv;               /* the last accepted freshness value is known */
-    uint64_t fv;
-    int32_t lost;                 /* sender timed out (LOST_WINDOWS tried) */
-    int32_t cyclic;
+    uint64_t fv;                  /* the last accepted freshness value */
+    uint16_t id;                  /* the input's frame ID */
+    uint16_t sync_id;             /* its <name>_Sync */
+    uint16_t streak;              /* consecutive E2E failures (RX-12) */
+    uint8_t key_index;            /* its sender's verification key, in bd_agent.key */
+    uint8_t flags;                /* BD_RX_* */
 } bd_rx_slot;
 
+#define BD_NB_HAS_LAM 0x01u
+#define BD_NB_HAS_RX 0x02u
+#define BD_NB_ALIVE 0x04u
 typedef struct {
-    int32_t lam;                  /* last lambda_j (Q24) */
-    int32_t has_lam;
-    uint32_t state;
     int64_t last_rx;
-    int32_t has_rx;
-    int32_t alive;
+    int32_t lam;                  /* last lambda_j accepted (Q24) */
+    uint8_t state;                /* its last State */
+    uint8_t flags;                /* BD_NB_* */
 } bd_neighbour;
 
 typedef struct {
-    uint32_t id;
-    uint32_t n;                   /* frames remembered */
-    uint32_t next;
     uint8_t data[BD_ECHO_DEPTH][8];
+    uint16_t id;
+    uint8_t n;                    /* frames remembered (<= BD_ECHO_DEPTH) */
+    uint8_t next;
 } bd_echo;
+
+#define BD_RX_PRICE 0
+#define BD_RX_COMMAND 1
+#define BD_RX_STATUS 2
+#define BD_RX_MC0 3               /* neighbour j's MC: slot BD_RX_MC0 + j */
+#define BD_N_ECHO 5               /* MC, Setpoint, Diag, MC_Sync, Setpoint_Sync */
 
 typedef struct {
     bd_agent_params p;
-    bd_ctrl_config ctrl;          /* current constants (SET_GAINS changes KTS, HTS) */
+    bd_ctrl_config ctrl;          /* the constants in use (SET_GAINS changes KTS, HTS) */
     bd_ctrl_state cs;
-    uint32_t state;               /* BD_STATE_* */
+    uint32_t count[BD_C_COUNT];   /* saturating */
     uint32_t ticks;
-    uint32_t count[BD_C_COUNT];
+    uint32_t state;               /* BD_STATE_* */
+    int32_t fatal;                /* BD_ERR_BOOT / BD_ERR_CRYPTO: the node must stop */
     /* receive side */
-    uint32_t n_rx;
-    bd_rx_slot rx[BD_MAX_NEIGHBOURS + 3 + 2];     /* neighbours' MC, price, command, status,
-                                                     and the untrusted state of sync IDs */
+    bd_rx_slot rx[BD_RX_MC0 + BD_MAX_NEIGHBOURS];
     bd_neighbour nb[BD_MAX_NEIGHBOURS];
-    uint32_t n_keys;
-    char key_label[BD_MAX_PEERS][BD_LABEL_MAX + 1];
     uint8_t key[BD_MAX_PEERS][BD_KEY_BYTES];
+    uint8_t key_label[BD_MAX_PEERS];              /* 1..32 agent, 33 plant, 34 router */
+    uint16_t sync_streak[BD_N_SYNC_IDS];          /* E2E streak of each sync ID */
+    uint16_t peer_boot[BD_N_SYNC_IDS];            /* a peer's known boot (0: none) */
+    uint32_t n_rx;
+    uint32_t n_keys;
+    uint32_t n_listed;                            /* keys [0, n_listed) count as held for
+                                                     the acceptance filter's peer syncs */
     int32_t insecure;
-    uint32_t peer_boot[BD_N_SYNC_IDS];            /* 0: no boot known (boots are >= 1) */
     uint32_t safety_rejections;
     uint32_t last_safety_cause;                   /* BD_SAFETY_CAUSE_* (0: none) */
     uint32_t last_safety_sender;
     /* inputs */
-    int32_t price;
-    int32_t has_price;
-    uint32_t price_segment;
     int64_t price_rx;
-    int32_t has_price_rx;
     int64_t status_rx;
-    int32_t has_status_rx;
-    int32_t price_fresh;
-    int32_t status_fresh;
-    int32_t plant_fault;
-    int32_t power_limited;
-    int32_t candidate;
-    int32_t has_candidate;
-    uint32_t candidate_n;
     int64_t now;
+    int32_t price;
+    int32_t candidate;
+    uint32_t candidate_n;
+    uint32_t price_segment;
+    uint8_t has_price, has_price_rx, has_status_rx, price_fresh, status_fresh, plant_fault,
+        power_limited, has_candidate;
     /* transmit side */
     uint8_t own_key[BD_KEY_BYTES];
-    bd_keyring *keys;             /* for new boots (persist) */
-    uint32_t boot;
-    uint32_t tx_count[2];         /* MC, Setpoint message counts under this boot */
-    uint32_t diag_counter;
-    bd_echo echo[5];              /* MC, Setpoint, Diag, MC_Sync, Setpoint_Sync */
-    int32_t sync_pending;         /* 1: syncs due at the next tick (start, new boot) */
+    int (*persist_boot)(void *ctx, uint32_t boot);
+    void *persist_ctx;
     int64_t sync_next;
-    int32_t hello_due;
     int64_t hello_after;
+    uint32_t boot;
+    uint32_t tx_count[2];         /* MC, Setpoint: message counts under this boot */
+    uint32_t diag_counter;
+    int32_t sync_pending;         /* syncs due at the next tick (start, new boot) */
+    int32_t hello_due;
+    bd_echo echo[BD_N_ECHO];
     bd_event_fn on_event;
     void *event_ctx;
 } bd_agent;
 
 /* Start an agent (spec 3, 4, AUTH-3): params must be valid (src/config.c checks them);
- * keys->boot is advanced and persisted before any frame is signed. Returns BD_OK or a
- * BD_ERR_*. keys must outlive the agent (a count wrap starts a new boot, AUTH-5). */
-int bd_agent_init(bd_agent *a, const bd_agent_params *p, bd_keyring *keys,
+ * the boot counter keys->boot + 1 is persisted (keys->persist_boot) before any frame is
+ * signed. Returns BD_OK or a BD_ERR_*. The agent copies what it needs of keys: the
+ * keyring may live in flash or be discarded (a count wrap calls persist_boot, AUTH-5). */
+int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
                   bd_event_fn on_event, void *event_ctx);
 
 /* One received frame at time t_ns (spec section 10). */
@@ -223,8 +226,21 @@ size_t bd_agent_accepted_ids(const bd_agent *a, uint32_t *ids, size_t max);
 /* The wire lambda (Q24) the agent sends now. */
 int32_t bd_agent_lambda(const bd_agent *a);
 
-/* sizeof(bd_agent), for bindings that allocate it. */
+/* Test hook of the node vectors' `setup` (AUTH-5 in seconds, not 2^24 frames): the own
+ * message counts of MC and Setpoint. */
+void bd_agent_set_tx_count(bd_agent *a, uint32_t mc, uint32_t setpoint);
+
+/* For bindings and logs: a counter's value, the state, the resets so far. */
+uint32_t bd_agent_counter(const bd_agent *a, int counter);
+uint32_t bd_agent_state(const bd_agent *a);
+uint32_t bd_agent_resets(const bd_agent *a);
+uint32_t bd_agent_boot(const bd_agent *a);   /* the boot counter the agent signs under */
+
+/* sizeof(bd_agent), sizeof(bd_agent_params), sizeof(bd_keyring): for bindings that
+ * allocate them or mirror their layout. */
 size_t bd_agent_size(void);
+size_t bd_agent_params_size(void);
+size_t bd_keyring_size(void);
 
 #ifdef __cplusplus
 }

@@ -1,0 +1,326 @@
+"""The C agent runtime (firmware_c/src/agent.c) from Python, through ctypes.
+
+``CAgent`` has the node seam of firmware_py's ``AgentRuntime`` (``on_frame(msg, t)``,
+``tick(t) -> frames``, ``note``, ``counters``, ``state``, ``lam``), so tests replay the
+node vectors and drive fleets with it exactly as with the Python agent. Times cross
+the seam as int64 nanoseconds (``round(t·1e9)``), as the C node's clock gives them.
+
+``params_of(cfg)`` computes the integers the C runtime runs from (bd_agent_params) with
+firmware_py's own arithmetic, so a difference between the two runtimes is the runtime's,
+not the configuration's; the C configuration loader (src/config.c) is checked against
+the same function in tests/test_c_config.py.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import shutil
+from collections import Counter
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+import can
+
+from firmware_py import fixedpoint as fx
+from firmware_py.config import AgentConfig
+from firmware_py.contract import State, cycle_s, raw_range, scale
+from firmware_py.controllers import make_controller
+from firmware_py.nodeio import HELLO_FRACTION
+from firmware_py.runtime import SetpointMap
+from firmware_py.secoc import Keyring
+
+from . import cimpl
+
+LIB_NAME = "libbessded.so"
+N_AGENTS_MAX = 32
+MAX_NEIGHBOURS = N_AGENTS_MAX - 1
+MAX_PEERS = N_AGENTS_MAX + 2
+LABEL_MAX = 32
+TICK_FRAMES_MAX = 5
+FRAME_EXT, FRAME_RTR, FRAME_FD, FRAME_ERR = 0x01, 0x02, 0x04, 0x08
+EV_STATE = 100
+
+
+class Params(ctypes.Structure):
+    """bd_agent_params (include/bessded/agent.h), field for field."""
+
+    _fields_ = [
+        ("id", ctypes.c_uint32), ("fleet_size", ctypes.c_uint32), ("pinned", ctypes.c_int32),
+        ("lambda0", ctypes.c_int32), ("ctrl", cimpl._Config),
+        ("n_neighbours", ctypes.c_uint32),
+        ("neighbour_id", ctypes.c_uint32 * MAX_NEIGHBOURS),
+        ("neighbour_weight", ctypes.c_int32 * MAX_NEIGHBOURS),
+        ("sp_gain", ctypes.c_int64), ("sp_offset", ctypes.c_int64),
+        ("sp_lo", ctypes.c_int32), ("sp_hi", ctypes.c_int32), ("idle_lambda", ctypes.c_int32),
+        ("period_ns", ctypes.c_int64), ("neighbour_timeout_ns", ctypes.c_int64),
+        ("price_timeout_ns", ctypes.c_int64), ("status_timeout_ns", ctypes.c_int64),
+        ("untrusted_ns", ctypes.c_int64), ("sync_ns", ctypes.c_int64),
+        ("hello_ns", ctypes.c_int64),
+        ("lambda_min", ctypes.c_int32), ("lambda_max", ctypes.c_int32),
+        ("rho_min", ctypes.c_int32), ("rho_max", ctypes.c_int32),
+        ("price_step_max", ctypes.c_int32), ("lambda_step_max", ctypes.c_int32),
+        ("price_persist", ctypes.c_uint32), ("untrusted_after", ctypes.c_uint32),
+        ("gain_k_raw_min", ctypes.c_uint32), ("gain_k_raw_max", ctypes.c_uint32),
+        ("gain_h_raw_min", ctypes.c_uint32), ("gain_h_raw_max", ctypes.c_uint32),
+    ]
+
+
+PERSIST_FN = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32)
+EVENT_FN = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_int, ctypes.c_uint32,
+                            ctypes.c_uint32)
+
+
+class KeyringC(ctypes.Structure):
+    """bd_keyring."""
+
+    _fields_ = [
+        ("node", ctypes.c_char * (LABEL_MAX + 1)), ("key", ctypes.c_uint8 * 16),
+        ("boot", ctypes.c_uint32), ("insecure", ctypes.c_int32), ("n_peers", ctypes.c_uint32),
+        ("peer_label", (ctypes.c_char * (LABEL_MAX + 1)) * MAX_PEERS),
+        ("peer_key", (ctypes.c_uint8 * 16) * MAX_PEERS),
+        ("persist_boot", PERSIST_FN), ("persist_ctx", ctypes.c_void_p),
+    ]
+
+
+class Frame(ctypes.Structure):
+    """bd_frame."""
+
+    _fields_ = [("id", ctypes.c_uint32), ("len", ctypes.c_uint8), ("flags", ctypes.c_uint8),
+                ("data", ctypes.c_uint8 * 8)]
+
+
+class Runtime:
+    """libbessded.so (core, runtime, SecOC, config loader) with its prototypes."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        lib = ctypes.CDLL(str(self.path))
+        vp, sz, i64, u32 = ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int64, ctypes.c_uint32
+        for name, res, args in (
+            ("bd_agent_size", sz, []),
+            ("bd_agent_params_size", sz, []),
+            ("bd_keyring_size", sz, []),
+            ("bd_agent_init", ctypes.c_int, [vp, ctypes.POINTER(Params),
+                                             ctypes.POINTER(KeyringC), EVENT_FN, vp]),
+            ("bd_agent_rx", None, [vp, ctypes.POINTER(Frame), i64]),
+            ("bd_agent_tick", sz, [vp, i64, ctypes.POINTER(Frame), sz]),
+            ("bd_agent_note", None, [vp, ctypes.c_int, u32]),
+            ("bd_agent_accepted_ids", sz, [vp, ctypes.POINTER(u32), sz]),
+            ("bd_agent_lambda", ctypes.c_int32, [vp]),
+            ("bd_agent_set_tx_count", None, [vp, u32, u32]),
+            ("bd_agent_counter", u32, [vp, ctypes.c_int]),
+            ("bd_agent_state", u32, [vp]),
+            ("bd_agent_resets", u32, [vp]),
+            ("bd_counter_name", ctypes.c_char_p, [ctypes.c_int]),
+        ):
+            fn = getattr(lib, name)
+            fn.restype = res
+            fn.argtypes = args
+        if lib.bd_agent_params_size() != ctypes.sizeof(Params):
+            raise cimpl.CBuildError(f"bd_agent_params is {lib.bd_agent_params_size()} bytes "
+                                    f"in C but {ctypes.sizeof(Params)} in sim/cagent.py")
+        if lib.bd_keyring_size() != ctypes.sizeof(KeyringC):
+            raise cimpl.CBuildError(f"bd_keyring is {lib.bd_keyring_size()} bytes in C but "
+                                    f"{ctypes.sizeof(KeyringC)} in sim/cagent.py")
+        self.lib = lib
+        names = []
+        while (name := lib.bd_counter_name(len(names))) is not None:
+            names.append(name.decode())
+        self.counter_names = tuple(names)
+
+
+_RUNTIME: Runtime | None = None
+
+
+def load() -> Runtime:
+    """The runtime library from the cache (built on first use, like sim.cimpl.load)."""
+    global _RUNTIME
+    if _RUNTIME is None:
+        path = cimpl.cache_dir() / LIB_NAME
+        if not path.exists():
+            tmp = path.parent.with_name(f"{path.parent.name}.rt{os.getpid()}")
+            cimpl.build(tmp, target=str(tmp.resolve() / LIB_NAME))
+            path.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(tmp / LIB_NAME, path)
+            shutil.rmtree(tmp, ignore_errors=True)
+        _RUNTIME = Runtime(path)
+    return _RUNTIME
+
+
+def ns(t: float) -> int:
+    """Seconds (binary64) → int64 ns, as the C node's clock counts."""
+    return round(t * 1e9)
+
+
+def _gain_raw_bounds(lo: float, hi: float) -> tuple[int, int]:
+    """The GainK/GainH raw values whose raw·scale lies in [lo, hi] (binary64, as
+    DecodedFrame.phys and the runtime's comparison): (min, max), min > max if none."""
+    s = scale("ER_Command", "GainK")
+    top = raw_range("ER_Command", "GainK")[1]
+    inside = [r for r in range(top + 1) if lo <= r * s <= hi]
+    return (inside[0], inside[-1]) if inside else (top + 1, 0)
+
+
+def params_of(cfg: AgentConfig) -> Params:
+    """bd_agent_params from firmware_py's arithmetic (NUM-4, NUM-6, CTRL-1..5, SP-1)."""
+    c = cfg.controller
+    ref = make_controller(c, fixed=True)
+    p_num, p_sqrts = cimpl.exponent_parts(c.ft_exponent)
+    sp = SetpointMap(cfg.battery)
+    b = cfg.battery
+    sync_s = cycle_s("ER_Price_Sync", c.ts)
+    assert cfg.lambda_step_max is not None and cfg.untrusted_s is not None
+    assert cfg.k_min is not None and cfg.k_max is not None
+    assert cfg.h_min is not None and cfg.h_max is not None
+    p = Params()
+    p.id = cfg.id
+    p.fleet_size = cfg.fleet_size or 0
+    p.pinned = int(cfg.pinned)
+    p.lambda0 = fx.to_fixed(cfg.lambda0)
+    p.ctrl = cimpl._Config(cimpl.KIND_CODES[c.kind], int(ref.kts), int(ref.hts),
+                           int(ref.ts_q), int(ref.band), ref.dwell_samples, p_num, p_sqrts)
+    p.n_neighbours = len(cfg.neighbours)
+    for j, nb in enumerate(cfg.neighbours):
+        p.neighbour_id[j] = nb.id
+        p.neighbour_weight[j] = fx.to_fixed(nb.weight)
+    p.sp_gain, p.sp_offset, p.sp_lo, p.sp_hi = sp.gain, sp.offset, sp.lo, sp.hi
+    p.idle_lambda = fx.to_fixed(b.beta * (1 + b.m), "idle λ β·(1+m)")
+    p.period_ns = ns(c.ts)
+    p.neighbour_timeout_ns = ns(cfg.neighbour_timeout_periods * c.ts)
+    p.price_timeout_ns = ns(cfg.price_timeout_s)
+    p.status_timeout_ns = ns(cfg.status_timeout_s)
+    p.untrusted_ns = ns(float(cfg.untrusted_s))
+    p.sync_ns = ns(sync_s)
+    p.hello_ns = ns(HELLO_FRACTION * sync_s)
+    for name in ("lambda_min", "lambda_max", "rho_min", "rho_max", "price_step_max",
+                 "lambda_step_max"):
+        setattr(p, name, fx.to_fixed(float(getattr(cfg, name)), name))
+    p.price_persist = cfg.price_persist
+    p.untrusted_after = cfg.untrusted_after
+    p.gain_k_raw_min, p.gain_k_raw_max = _gain_raw_bounds(cfg.k_min, cfg.k_max)
+    p.gain_h_raw_min, p.gain_h_raw_max = _gain_raw_bounds(cfg.h_min, cfg.h_max)
+    return p
+
+
+def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | None = None,
+               insecure: bool = False) -> KeyringC:
+    k = KeyringC()
+    k.node = node.encode()
+    k.key[:] = list(key)
+    k.boot = boot
+    k.insecure = int(insecure)
+    peers = dict(peers or {})
+    if len(peers) > MAX_PEERS:
+        raise ValueError(f"at most {MAX_PEERS} peer keys, got {len(peers)}")
+    k.n_peers = len(peers)
+    for i, (label, pk) in enumerate(peers.items()):
+        k.peer_label[i].value = label.encode()
+        k.peer_key[i][:] = list(pk)
+    return k
+
+
+def keyring_from(ring: Keyring) -> KeyringC:
+    """A firmware_py Keyring as bd_keyring (insecure: the public keys, boot 0 → 1)."""
+    if ring.insecure:
+        return keyring_of(ring.node, ring.key, ring.boot, insecure=True)
+    return keyring_of(ring.node, ring.key, ring.boot, ring._peers)
+
+
+class CAgent:
+    """An agent on the C runtime, behind firmware_py's node seam (firmware_py.node)."""
+
+    def __init__(self, cfg: AgentConfig, keys: Keyring | KeyringC | None = None,
+                 runtime: Runtime | None = None) -> None:
+        self.rt = runtime or load()
+        self.cfg = cfg
+        self.period = cfg.controller.ts
+        self.params = params_of(cfg)
+        if keys is None:
+            keys = Keyring.insecure_for(f"agent_{cfg.id}")
+        self.keys = keys if isinstance(keys, KeyringC) else keyring_from(keys)
+        self._buf = ctypes.create_string_buffer(self.rt.lib.bd_agent_size())
+        self._events: list[tuple[int, int, int]] = []
+        self._on_event = EVENT_FN(self._event)
+        err = self.rt.lib.bd_agent_init(self._buf, ctypes.byref(self.params),
+                                        ctypes.byref(self.keys), self._on_event, None)
+        if err:
+            raise ValueError(f"bd_agent_init refused agent {cfg.id}: error {err}")
+        self._out = (Frame * TICK_FRAMES_MAX)()
+        self.ticks = 0
+
+    def _event(self, _ctx: int | None, event: int, frame_id: int, detail: int) -> None:
+        self._events.append((event, frame_id, detail))
+
+    def events(self) -> list[tuple[int, int, int]]:
+        """(event, frame ID, detail) since the last call: counter increments and states."""
+        ev, self._events = self._events, []
+        return ev
+
+    def set_tx_count(self, mc: int, setpoint: int) -> None:
+        self.rt.lib.bd_agent_set_tx_count(self._buf, mc, setpoint)
+
+    # ---------------------------------------------------------------- node seam
+
+    def on_frame(self, msg: can.Message, t: float) -> None:
+        self.rx(msg.arbitration_id, bytes(msg.data),
+                (FRAME_EXT if msg.is_extended_id else 0)
+                | (FRAME_RTR if msg.is_remote_frame else 0)
+                | (FRAME_FD if msg.is_fd else 0) | (FRAME_ERR if msg.is_error_frame else 0),
+                ns(t))
+
+    def rx(self, frame_id: int, data: bytes, flags: int, t_ns: int) -> None:
+        f = Frame(frame_id, len(data), flags)
+        f.data[:len(data)] = list(data[:8])
+        self.rt.lib.bd_agent_rx(self._buf, ctypes.byref(f), t_ns)
+
+    def tick_raw(self, t_ns: int) -> list[tuple[int, bytes]]:
+        n = self.rt.lib.bd_agent_tick(self._buf, t_ns, self._out, TICK_FRAMES_MAX)
+        self.ticks += 1
+        return [(self._out[k].id, bytes(self._out[k].data)[:self._out[k].len])
+                for k in range(n)]
+
+    def tick(self, t: float) -> list[can.Message]:
+        return [can.Message(arbitration_id=fid, data=data, is_extended_id=False)
+                for fid, data in self.tick_raw(ns(t))]
+
+    def note(self, event: str, count: int = 1) -> None:
+        self.rt.lib.bd_agent_note(self._buf, self.rt.counter_names.index(event), count)
+
+    def accepted_ids(self) -> list[int]:
+        ids = (ctypes.c_uint32 * 512)()
+        n = self.rt.lib.bd_agent_accepted_ids(self._buf, ids, 512)
+        return list(ids[:n])
+
+    # ---------------------------------------------------------------- reporting
+
+    @property
+    def counters(self) -> Counter[str]:
+        lib = self.rt.lib
+        return Counter({name: v for i, name in enumerate(self.rt.counter_names)
+                        if (v := lib.bd_agent_counter(self._buf, i))})
+
+    @property
+    def state(self) -> State:
+        return State(self.rt.lib.bd_agent_state(self._buf))
+
+    @property
+    def lambda_q24(self) -> int:
+        return int(self.rt.lib.bd_agent_lambda(self._buf))
+
+    @property
+    def lam(self) -> float:
+        return fx.to_float(self.lambda_q24)
+
+    @property
+    def resets(self) -> int:
+        return int(self.rt.lib.bd_agent_resets(self._buf))
+
+    def summary(self) -> str:
+        c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items())) or "none"
+        return (f"agent {self.cfg.id} (C): state={self.state.name} λ={self.lam:.6f} "
+                f"resets={self.resets} ticks={self.ticks} counters: {c}")
+
+
+def frames_of(rows: Iterable[tuple[int, bytes]]) -> list[can.Message]:
+    return [can.Message(arbitration_id=fid, data=d, is_extended_id=False) for fid, d in rows]

@@ -1,0 +1,186 @@
+#!/usr/bin/env python3
+"""Generate the C firmware's view of the bus contract from dbc/bess_ded.dbc.
+
+Run by firmware_c/Makefile at build time (``make`` regenerates when the DBC or this
+script changes); nothing it writes is committed. Into OUT_DIR:
+
+* ``bd_dbc.h`` / ``bd_dbc.c``: pack/unpack of every message layout the agent uses, by
+  ``cantools generate_c_source --no-floating-point-numbers`` from a DBC holding only
+  the router's messages and agent 1's (``AGENT_1_MC``, ``PLANT_1_Status``, ...). Every
+  agent's messages have the same layout as agent 1's (checked here, signal by signal),
+  so the firmware packs ``AGENT_i_*`` with agent 1's functions and the ID from below;
+  this keeps the generated code at 11 messages instead of 229.
+* ``bd_contract.h`` / ``bd_contract.c``: every constant of the contract the firmware
+  needs (IDs and per-agent ID bases, the agent limit, cadences, the E2E counter, the
+  SecOC bit widths, State/Command/SafetyCause values, raw ranges, the Diag pages), and
+  tables of every DBC ID (kind, cycle) and of the sync IDs. Read from the DBC through
+  firmware_py's contract module, which checks the ID plan on load.
+
+Usage: python tools/gen_c_contract.py OUT_DIR
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+import cantools  # noqa: E402
+from cantools.database.can import Database  # noqa: E402
+
+from dbc import DBC_PATH  # noqa: E402
+from firmware_py import contract  # noqa: E402
+from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name  # noqa: E402
+from firmware_py.runtime import AgentRuntime  # noqa: E402
+
+DB_NAME = "bd_dbc"
+# the layouts the agent packs or unpacks: the router's messages and agent 1's templates
+TEMPLATES = ("ER_Price", "ER_Command", "ER_Price_Sync", "ER_Command_Sync", mc_name(1),
+             setpoint_name(1), diag_name(1), status_name(1), mc_name(1) + "_Sync",
+             setpoint_name(1) + "_Sync", status_name(1) + "_Sync")
+PER_AGENT = {"MC": mc_name, "SETPOINT": setpoint_name, "STATUS": status_name,
+             "DIAG": diag_name}
+
+
+def _layout(m):
+    return [(s.name, s.start, s.length, s.byte_order, s.is_signed, s.scale, s.offset,
+             s.minimum, s.maximum, s.multiplexer_ids, s.is_multiplexer) for s in m.signals]
+
+
+def check_templates(db: Database) -> None:
+    """Every agent's message has agent 1's layout (else one packer cannot serve all)."""
+    for i in contract.agent_ids():
+        for make in (*PER_AGENT.values(), lambda j: mc_name(j) + "_Sync",
+                     lambda j: setpoint_name(j) + "_Sync", lambda j: status_name(j) + "_Sync"):
+            m, t = db.get_message_by_name(make(i)), db.get_message_by_name(make(1))
+            if _layout(m) != _layout(t) or m.length != t.length:
+                sys.exit(f"gen_c_contract: {m.name} does not have {t.name}'s layout: the C "
+                         "firmware packs every agent's frames with agent 1's code")
+
+
+def generate_codec(db: Database, out: Path) -> None:
+    sub = Database(messages=[db.get_message_by_name(n) for n in TEMPLATES], nodes=db.nodes,
+                   buses=db.buses, version=db.version, dbc_specifics=db.dbc)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"{DB_NAME}.dbc"
+        cantools.database.dump_file(sub, str(path))
+        subprocess.run([sys.executable, "-m", "cantools", "generate_c_source",
+                        "--no-floating-point-numbers", "--database-name", DB_NAME,
+                        "-o", str(out), str(path)], check=True, stdout=subprocess.DEVNULL)
+
+
+def _id_base(make) -> int:
+    base = FrameCodec().frame_id(make(1)) - 1
+    for i in contract.agent_ids():
+        if FrameCodec().frame_id(make(i)) != base + i:
+            sys.exit(f"gen_c_contract: {make(i)} is not at {make(1)}'s base + {i}")
+    return base
+
+
+def contract_header(db: Database) -> tuple[str, str]:
+    codec = FrameCodec()
+    d: list[tuple[str, int, str]] = []
+
+    def define(name: str, value: int, why: str = "") -> None:
+        d.append((name, value, why))
+
+    define("BD_N_AGENTS_MAX", contract.N_AGENTS_MAX, "agents the DBC defines")
+    define("BD_DLC", 8, "every frame is a classic 8-byte frame")
+    for name in ("ER_Price", "ER_Command", "ER_Balance", "ER_Price_Sync", "ER_Command_Sync"):
+        define(f"BD_{name.upper()}_ID", codec.frame_id(name), name)
+    for key, make in PER_AGENT.items():
+        pattern = make(1).replace("_1_", "_<i>_")
+        define(f"BD_{key}_BASE", _id_base(make), f"{pattern} = base + i")
+        if key != "DIAG":
+            define(f"BD_{key}_SYNC_BASE", _id_base(lambda j, m=make: m(j) + "_Sync"),
+                   f"{pattern}_Sync = base + i")
+    define("BD_COUNTER_MODULO", contract.COUNTER_MODULO, "E2E counter modulus")
+    define("BD_COUNTER_STEP_MAX", contract.COUNTER_MODULO // 2,
+           "a larger forward step reads as a step back")
+    define("BD_MAC_BITS", contract.MAC_BITS, "truncated CMAC on the wire")
+    define("BD_FV_TX_BITS", contract.FV_TX_BITS, "freshness bits on the wire")
+    define("BD_FV_COUNT_BITS", contract.FV_COUNT_BITS, "message counter of the FV")
+    define("BD_FV_BOOT_BITS", contract.FV_BOOT_BITS, "boot counter of the FV")
+    define("BD_TIMEOUT_CYCLES", contract.TIMEOUT_CYCLES, "cycles of a frame before a timeout")
+    define("BD_MC_CYCLE_MS", contract.cycle_ms(mc_name(1)), "Ts the cycles are written for")
+    for key, name in (("PRICE", "ER_Price"), ("STATUS", status_name(1)),
+                      ("SETPOINT", setpoint_name(1)), ("DIAG", diag_name(1)),
+                      ("SYNC", "ER_Price_Sync")):
+        define(f"BD_{key}_EVERY", contract.every_ticks(name), f"{name}: every n MC cycles")
+    for s in contract.State:
+        define(f"BD_STATE_{s.name}", int(s), "AGENT_<i>_MC.State")
+    for c in contract.Command:
+        define(f"BD_CMD_{c.name}", int(c), "ER_Command.Command")
+    cause = db.get_message_by_name(diag_name(1)).get_signal_by_name("SafetyCause")
+    for value, label in sorted(cause.choices.items()):
+        define(f"BD_SAFETY_CAUSE_{label}", int(value), "AGENT_<i>_Diag.SafetyCause")
+    gk = codec.raw_range("ER_Command", "GainK")
+    scale = codec.scale("ER_Command", "GainK")
+    div = round(1 / scale)
+    if codec.raw_range("ER_Command", "GainH") != gk or abs(div * scale - 1) > 1e-12:
+        sys.exit("gen_c_contract: GainK and GainH must share a range and a 1/n scale")
+    define("BD_GAIN_RAW_MAX", gk[1], "GainK/GainH raw maximum")
+    define("BD_GAIN_SCALE_DIV", div, "GainK/GainH = raw / this (1/s, 1/s^2)")
+    for name, sig in ((mc_name(1), "Resets"), (mc_name(1), "State"), ("ER_Command", "Target"),
+                      ("ER_Command", "Command"), (setpoint_name(1), "PowerSetpoint"),
+                      (status_name(1), "Soc"), (diag_name(1), "NeighboursAlive"),
+                      (diag_name(1), "SafetySender"), (diag_name(1), "SafetyCause"),
+                      (diag_name(1), "Resets"), (diag_name(1), "Page")):
+        lo, hi = codec.raw_range(name, sig)
+        tag = f"{name.replace('_1_', '_')}_{sig}".upper()
+        define(f"BD_{tag}_MIN", lo, f"{name}.{sig} raw range")
+        define(f"BD_{tag}_MAX", hi, "")
+    define("BD_DIAG_PAGES", len(AgentRuntime.DIAG_PAGES), "AGENT_<i>_Diag pages")
+    define("BD_LAMBDA_Q", 24, "the wire λ and ρ are Q24 (the DBC's factor 2^-24)")
+
+    ids = sorted(codec.frame_ids())
+    syncs = sorted(contract.SYNCED_BY)
+    define("BD_N_DBC_IDS", len(ids), "messages in the DBC")
+    define("BD_N_SYNC_IDS", len(syncs), "<name>_Sync messages in the DBC")
+
+    h = ["/* Generated by tools/gen_c_contract.py from dbc/bess_ded.dbc: do not edit. */",
+         "#ifndef BD_CONTRACT_H", "#define BD_CONTRACT_H", "", "#include <stdint.h>", ""]
+    for name, value, why in d:
+        text = f"0x{value:03X}" if name.endswith(("_ID", "_BASE")) else str(value)
+        h.append(f"#define {name} {text}" + (f"  /* {why} */" if why else ""))
+    h += ["", "/* Every 11-bit ID the DBC defines: bit (id % 8) of bd_dbc_ids[id / 8]. */",
+          "extern const uint8_t bd_dbc_ids[256];",
+          "/* The sync IDs (sorted) and the secured frame ID each carries the freshness of. */",
+          "extern const uint16_t bd_sync_ids[BD_N_SYNC_IDS];",
+          "extern const uint16_t bd_synced_by[BD_N_SYNC_IDS];",
+          "", "#endif /* BD_CONTRACT_H */", ""]
+    bitmap = [0] * 256
+    for fid in ids:
+        bitmap[fid // 8] |= 1 << (fid % 8)
+    rows = [", ".join(f"0x{b:02X}" for b in bitmap[k:k + 16]) + "," for k in range(0, 256, 16)]
+    c = ["/* Generated by tools/gen_c_contract.py from dbc/bess_ded.dbc: do not edit. */",
+         '#include "bd_contract.h"', "",
+         "const uint8_t bd_dbc_ids[256] = {", *(f"    {r}" for r in rows), "};", "",
+         "const uint16_t bd_sync_ids[BD_N_SYNC_IDS] = {",
+         *(f"    0x{s:03X},  /* {codec.name_of(s)} */" for s in syncs), "};", "",
+         "const uint16_t bd_synced_by[BD_N_SYNC_IDS] = {",
+         *(f"    0x{contract.SYNCED_BY[s]:03X}," for s in syncs), "};", ""]
+    return "\n".join(h), "\n".join(c)
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 1:
+        print(__doc__, file=sys.stderr)
+        return 2
+    out = Path(argv[0])
+    out.mkdir(parents=True, exist_ok=True)
+    db = cantools.database.load_file(str(DBC_PATH), strict=True)
+    check_templates(db)
+    generate_codec(db, out)
+    h, c = contract_header(db)
+    (out / "bd_contract.h").write_text(h)
+    (out / "bd_contract.c").write_text(c)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
