@@ -124,7 +124,7 @@ class Runtime:
             raise cimpl.CBuildError(f"bd_keyring is {lib.bd_keyring_size()} bytes in C but "
                                     f"{ctypes.sizeof(KeyringC)} in sim/cagent.py")
         self.lib = lib
-        names = []
+        names: list[str] = []
         while (name := lib.bd_counter_name(len(names))) is not None:
             names.append(name.decode())
         self.counter_names = tuple(names)
