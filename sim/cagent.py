@@ -112,6 +112,8 @@ class Runtime:
             ("bd_agent_counter", u32, [vp, ctypes.c_int]),
             ("bd_agent_state", u32, [vp]),
             ("bd_agent_resets", u32, [vp]),
+            ("bd_agent_boot", u32, [vp]),
+            ("bd_agent_fatal", ctypes.c_int32, [vp]),
             ("bd_counter_name", ctypes.c_char_p, [ctypes.c_int]),
         ):
             fn = getattr(lib, name)
@@ -136,6 +138,8 @@ _RUNTIME: Runtime | None = None
 def load() -> Runtime:
     """The runtime library from the cache (built on first use, like sim.cimpl.load)."""
     global _RUNTIME
+    if _RUNTIME is None and os.environ.get(cimpl.LIB_DIR_ENV):
+        _RUNTIME = Runtime(Path(os.environ[cimpl.LIB_DIR_ENV]) / LIB_NAME)
     if _RUNTIME is None:
         path = cimpl.cache_dir() / LIB_NAME
         if not path.exists():
@@ -221,21 +225,34 @@ def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | No
 
 
 def keyring_from(ring: Keyring) -> KeyringC:
-    """A firmware_py Keyring as bd_keyring (insecure: the public keys, boot 0 → 1)."""
+    """A firmware_py Keyring as bd_keyring (insecure: the public keys, boot 0 → 1). The
+    C agent persists its new boots through the Keyring (``new_boot``'s write-ahead)."""
     if ring.insecure:
         return keyring_of(ring.node, ring.key, ring.boot, insecure=True)
-    return keyring_of(ring.node, ring.key, ring.boot, ring._peers)
+    k = keyring_of(ring.node, ring.key, ring.boot, ring._peers)
+
+    def persist(_ctx: int | None, boot: int) -> int:
+        try:
+            ring._persist(boot)
+        except Exception:  # noqa: BLE001 - any failure refuses the boot (C: nonzero)
+            return 1
+        ring.boot = boot
+        return 0
+
+    k.persist_boot = PERSIST_FN(persist)
+    k._persist_ref = k.persist_boot   # type: ignore[attr-defined]  # keep it alive
+    return k
 
 
 class CAgent:
     """An agent on the C runtime, behind firmware_py's node seam (firmware_py.node)."""
 
     def __init__(self, cfg: AgentConfig, keys: Keyring | KeyringC | None = None,
-                 runtime: Runtime | None = None) -> None:
+                 runtime: Runtime | None = None, params: Params | None = None) -> None:
         self.rt = runtime or load()
         self.cfg = cfg
         self.period = cfg.controller.ts
-        self.params = params_of(cfg)
+        self.params = params if params is not None else params_of(cfg)
         if keys is None:
             keys = Keyring.insecure_for(f"agent_{cfg.id}")
         self.keys = keys if isinstance(keys, KeyringC) else keyring_from(keys)
@@ -315,6 +332,16 @@ class CAgent:
     @property
     def resets(self) -> int:
         return int(self.rt.lib.bd_agent_resets(self._buf))
+
+    @property
+    def fatal(self) -> int:
+        """0, or the BD_ERR_* that stopped the agent (no boot left, the CMAC failed)."""
+        return int(self.rt.lib.bd_agent_fatal(self._buf))
+
+    @property
+    def boot(self) -> int:
+        """The boot counter the agent signs under (AUTH-3)."""
+        return int(self.rt.lib.bd_agent_boot(self._buf))
 
     def summary(self) -> str:
         c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items())) or "none"

@@ -36,6 +36,8 @@ SOURCE_DIR = Path(os.environ.get("BESSDED_FIRMWARE_C",
 LIB_NAME = "libbessded_core.so"
 KIND_CODES = {kind: code for code, kind in enumerate(KINDS)}  # BD_KIND_* in controller.h
 UINT32_MAX = (1 << 32) - 1
+# a directory of libraries built elsewhere (tools/c_coverage.py: an instrumented build)
+LIB_DIR_ENV = "BESSDED_C_LIB_DIR"
 
 
 class CBuildError(RuntimeError):
@@ -142,6 +144,9 @@ def load(lib_path: Path | None = None) -> CCore:
     global _CORE
     if lib_path is not None:
         return CCore(lib_path)
+    if _CORE is None and os.environ.get(LIB_DIR_ENV):
+        # the whole firmware's library holds the core too: one instrumented build
+        _CORE = CCore(Path(os.environ[LIB_DIR_ENV]) / "libbessded.so")
     if _CORE is None:
         path = cache_dir() / LIB_NAME
         if not path.exists():

@@ -19,11 +19,12 @@ from hypothesis import strategies as st
 from test_node_vectors import VECTORS, keyring, load, replay
 
 from firmware_py.config import parse_agent_config
+from firmware_py.contract import SYNCED_BY
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring, derive_node_key
-from sim.cagent import CAgent
+from sim.cagent import CAgent, keyring_from, params_of
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -52,7 +53,7 @@ CONFIG = f"""
 id = 2
 lambda0 = 0.8
 pinned = true
-fleet_size = 4
+{{fleet}}
 
 [controller]
 kind = "reset"
@@ -65,8 +66,8 @@ band = 0.001
 alpha = 0.005
 beta = 0.18
 m = 0.08
-p_min = -100.0
-p_max = 100.0
+p_min = {{p_min}}
+p_max = {{p_max}}
 
 [limits]
 price_persist = 2
@@ -100,13 +101,25 @@ EVENT = st.one_of(
     st.tuples(st.just("forge"), st.sampled_from(sorted(SENDER_OF)),
               st.binary(min_size=8, max_size=8)),
     st.tuples(st.just("junk"), st.integers(0, 0x7FF), st.binary(max_size=8), st.integers(0, 15)),
+    st.tuples(st.just("junk"), st.sampled_from(sorted(SYNCED_BY)),
+              st.binary(min_size=7, max_size=8), st.just(0)),
 )
+# the configuration variants: key file and fleet of 4; the setpoint clipped at ±0.5 kW;
+# --insecure with no fleet size (peer syncs of any agent, keys derived on demand)
+VARIANTS = {"base": ("fleet_size = 4", -100.0, 100.0, False),
+            "clipped": ("fleet_size = 4", -0.5, 0.5, False),
+            "insecure": ("", -100.0, 100.0, True)}
 
 
-def _both() -> tuple[AgentRuntime, CAgent]:
-    cfg = parse_agent_config(tomllib.loads(CONFIG), "random.toml")
+def _both(variant: str) -> tuple[AgentRuntime, CAgent]:
+    fleet, p_min, p_max, insecure = VARIANTS[variant]
+    cfg = parse_agent_config(tomllib.loads(CONFIG.format(fleet=fleet, p_min=p_min,
+                                                         p_max=p_max)), "random.toml")
     peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
+
     def ring() -> Keyring:
+        if insecure:
+            return Keyring.insecure_for("agent_2")
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
                        peers=peers)
     return AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
@@ -124,17 +137,21 @@ TRAFFIC = st.one_of(st.tuples(st.just("tick"), st.just(1)),
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(events=st.lists(TRAFFIC, min_size=20, max_size=300))
-def test_c_and_python_agents_agree_on_random_traffic(events: list[tuple]) -> None:
+@given(variant=st.sampled_from(sorted(VARIANTS)),
+       events=st.lists(TRAFFIC, min_size=20, max_size=300))
+def test_c_and_python_agents_agree_on_random_traffic(variant: str, events: list[tuple]) -> None:
     """Both runtimes get the same frames at the same times: valid and invalid prices,
     neighbours' λ, plant status and commands, syncs, sender restarts, replays of earlier
     frames, forged MACs, frames of a sender whose key the agent lacks, junk IDs, wrong
     DLCs, remote/extended/FD frames (out-of-range values come with the forged ones), and
     gaps of up to 40 ticks. Every frame either sends, the counters, the state and λ
     agree at every tick."""
-    py, c = _both()
-    senders = {n: FleetSender(keys={n: derive_node_key(MASTER, n)}, boot=b)
-               for n, b in zip(LABELS, (3, 5, 2, 4, 9), strict=True)}
+    py, c = _both(variant)
+    if VARIANTS[variant][3]:   # every insecure sender runs at boot 1 with the public keys
+        senders = {n: FleetSender() for n in LABELS}
+    else:
+        senders = {n: FleetSender(keys={n: derive_node_key(MASTER, n)}, boot=b)
+                   for n, b in zip(LABELS, (3, 5, 2, 4, 9), strict=True)}
     history: list[can.Message] = []
     n = 0
     t_rx = TS / 2
@@ -184,3 +201,88 @@ def test_c_and_python_agents_agree_on_random_traffic(events: list[tuple]) -> Non
             deliver(can.Message(arbitration_id=fid, data=data, dlc=len(data), check=False,
                                 is_extended_id=bool(flags & 1), is_remote_frame=bool(flags & 2),
                                 is_fd=bool(flags & 4)))
+
+
+# --------------------------------------------------------------------------- edges
+
+
+def _cfg(variant: str = "base") -> Any:
+    fleet, p_min, p_max, _ = VARIANTS[variant]
+    return parse_agent_config(tomllib.loads(CONFIG.format(fleet=fleet, p_min=p_min,
+                                                          p_max=p_max)), "edge.toml")
+
+
+@pytest.mark.parametrize("peers", [("router", "plant", "agent_1", "agent_3"),
+                                   ("router", "plant", "agent_1", "agent_3", "agent_4",
+                                    "agent_12"), None])
+def test_acceptance_filter_ids_are_firmware_pys(peers: tuple[str, ...] | None) -> None:
+    """bd_agent_accepted_ids: the own IDs, the inputs and their syncs, and the peer syncs
+    of key holders beyond the inputs' senders (none in insecure mode), as NodeIO's."""
+    cfg = _cfg()
+    if peers is None:
+        ring = Keyring.insecure_for("agent_2")
+        ring_c = Keyring.insecure_for("agent_2")
+    else:
+        keys = {n: derive_node_key(MASTER, n) for n in peers}
+        ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 0, lambda _b: None,
+                       peers=keys)
+        ring_c = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 0, lambda _b: None,
+                         peers=keys)
+    assert CAgent(cfg, ring_c).accepted_ids() == AgentRuntime(cfg, keys=ring).io.accepted_ids()
+
+
+def test_loop_events_are_counted_and_reported_on_the_diag_frame() -> None:
+    py, c = _both("base")
+    for agent in (py, c):
+        agent.note("deadline_miss", 3)
+        agent.note("send_failure")
+    assert c.counters == +py.counters
+    assert [bytes(m.data) for m in c.tick(0.0)] == [bytes(m.data) for m in py.tick(0.0)]
+
+
+def test_init_refuses_what_the_runtime_cannot_hold() -> None:
+    cfg = _cfg()
+    ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 0, lambda _b: None,
+                   peers={"router": derive_node_key(MASTER, "router")})
+    with pytest.raises(ValueError, match="error 11"):   # no key of plant, agent_1, agent_3
+        CAgent(cfg, ring)
+    bad = keyring_from(Keyring.insecure_for("agent_2"))
+    bad.n_peers = 1
+    bad.peer_label[0].value = b"agent_99"
+    with pytest.raises(ValueError, match="error 10"):
+        CAgent(cfg, bad)
+    params = params_of(cfg)
+    params.id = 0
+    with pytest.raises(ValueError, match="error 10"):
+        CAgent(cfg, None, params=params)
+
+
+def test_boot_is_persisted_before_use_and_a_failure_refuses_the_start() -> None:
+    saved: list[int] = []
+    peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
+    ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, saved.append,
+                   peers=peers)
+    c = CAgent(_cfg(), ring)
+    assert saved == [7] and c.boot == 7 and ring.boot == 7
+
+    def refuse(_boot: int) -> None:
+        raise OSError("disk full")
+    ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, refuse, peers=peers)
+    with pytest.raises(ValueError, match="error 12"):
+        CAgent(_cfg(), ring)
+    ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 65535, saved.append,
+                   peers=peers)
+    with pytest.raises(ValueError, match="error 12"):   # the boot counter is exhausted
+        CAgent(_cfg(), ring)
+
+
+def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
+    """AUTH-5 with no boot left: firmware_py raises (the node ends); the C agent sends
+    nothing more and reports BD_ERR_BOOT."""
+    peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
+    ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 65534, lambda _b: None,
+                   peers=peers)
+    c = CAgent(_cfg(), ring)
+    c.set_tx_count((1 << 24) - 1, 0)
+    assert len(c.tick(0.0)) == 5          # syncs, the last MC count, setpoint, diag
+    assert c.tick(TS) == [] and c.fatal == 12

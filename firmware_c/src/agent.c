@@ -63,6 +63,11 @@ uint32_t bd_agent_state(const bd_agent *a)
     return a->state;
 }
 
+int32_t bd_agent_fatal(const bd_agent *a)
+{
+    return a->fatal;
+}
+
 uint32_t bd_agent_boot(const bd_agent *a)
 {
     return a->boot;

@@ -235,6 +235,9 @@ uint32_t bd_agent_counter(const bd_agent *a, int counter);
 uint32_t bd_agent_state(const bd_agent *a);
 uint32_t bd_agent_resets(const bd_agent *a);
 uint32_t bd_agent_boot(const bd_agent *a);   /* the boot counter the agent signs under */
+/* 0, or the BD_ERR_* that stopped the agent: no boot counter left at a count wrap
+ * (AUTH-5), or the CMAC primitive failed. The node must stop (the reference raises). */
+int32_t bd_agent_fatal(const bd_agent *a);
 
 /* sizeof(bd_agent), sizeof(bd_agent_params), sizeof(bd_keyring): for bindings that
  * allocate them or mirror their layout. */
