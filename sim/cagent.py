@@ -115,6 +115,11 @@ class Runtime:
             ("bd_agent_boot", u32, [vp]),
             ("bd_agent_fatal", ctypes.c_int32, [vp]),
             ("bd_counter_name", ctypes.c_char_p, [ctypes.c_int]),
+            ("bd_config_parse", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p,
+                                               ctypes.POINTER(Params), ctypes.c_char_p, sz]),
+            ("bd_keyfile_load", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p,
+                                               ctypes.POINTER(KeyringC), ctypes.c_char_p, sz]),
+            ("bd_keyring_insecure", ctypes.c_int, [ctypes.c_char_p, ctypes.POINTER(KeyringC)]),
         ):
             fn = getattr(lib, name)
             fn.restype = res
@@ -130,6 +135,44 @@ class Runtime:
         while (name := lib.bd_counter_name(len(names))) is not None:
             names.append(name.decode())
         self.counter_names = tuple(names)
+
+
+class CConfigError(ValueError):
+    """The C loader refused a configuration or key file (its message, as the node prints)."""
+
+
+def parse_config(text: str, src: str = "<config>", runtime: Runtime | None = None) -> Params:
+    """bd_config_parse: the C loader's bd_agent_params of an agent TOML text."""
+    rt = runtime or load()
+    p = Params()
+    err = ctypes.create_string_buffer(1024)
+    if rt.lib.bd_config_parse(text.encode(), src.encode(), ctypes.byref(p), err, len(err)):
+        raise CConfigError(err.value.decode())
+    return p
+
+
+def load_keyfile(path: Path | str, node: str, runtime: Runtime | None = None) -> KeyringC:
+    """bd_keyfile_load: a node key file as the C node loads it (its persist writes it)."""
+    rt = runtime or load()
+    k = KeyringC()
+    err = ctypes.create_string_buffer(1024)
+    if rt.lib.bd_keyfile_load(str(path).encode(), node.encode(), ctypes.byref(k), err,
+                              len(err)):
+        raise CConfigError(err.value.decode())
+    return k
+
+
+def params_dict(p: Params) -> dict[str, object]:
+    """Every field of bd_agent_params, for comparisons (arrays cut to n_neighbours)."""
+    out: dict[str, object] = {}
+    for name, _ in Params._fields_:
+        v = getattr(p, name)
+        if name == "ctrl":
+            v = tuple(getattr(v, f) for f, _ in cimpl._Config._fields_)
+        elif name in ("neighbour_id", "neighbour_weight"):
+            v = tuple(v[:p.n_neighbours])
+        out[name] = v
+    return out
 
 
 _RUNTIME: Runtime | None = None

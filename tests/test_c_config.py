@@ -1,0 +1,206 @@
+"""The C node's configuration and key-file loader (firmware_c/src/config.c).
+
+Every paper case's agent configurations and every node vector's, written as `bess-ded up`
+writes them, load in C to exactly the integers firmware_py computes (sim.cagent.params_of:
+q24, q30, the setpoint map, the timeouts in ns, the SET_GAINS raw bounds). Bad files are
+refused naming the key firmware_py names. Key files written by firmware_py load in C, and
+the boot counter C persists loads back in firmware_py.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tomllib
+from pathlib import Path
+
+import pytest
+from test_node_vectors import VECTORS
+
+from firmware_py.config import agent_configs_from_scenario, parse_agent_config
+from firmware_py.errors import ConfigError
+from firmware_py.secoc import (
+    KEY_FILE_HEADER,
+    derive_node_key,
+    fleet_id,
+    load_node_key,
+    node_key_document,
+    write_private,
+)
+from sim.cagent import CConfigError, load_keyfile, params_dict, params_of, parse_config
+from sim.scenario import load_case
+
+MASTER = bytes(range(16))
+
+
+def _configs() -> list[tuple[str, str]]:
+    out = []
+    for n in range(1, 8):
+        for cfg in agent_configs_from_scenario(load_case(n)):
+            out.append((f"case{n}-agent{cfg.id}", cfg.to_toml()))
+    for path in VECTORS:
+        out.append((path.stem, json.loads(path.read_text())["config"]))
+    return out
+
+
+CONFIGS = _configs()
+
+
+@pytest.mark.parametrize("name,text", CONFIGS, ids=[n for n, _ in CONFIGS])
+def test_c_loader_computes_firmware_pys_integers(name: str, text: str) -> None:
+    cfg = parse_agent_config(tomllib.loads(text), name)
+    assert params_dict(parse_config(text, name)) == params_dict(params_of(cfg))
+
+
+def test_scaled_and_explicit_limits_load_alike() -> None:
+    """Every optional key given (a time-scaled agent at Ts = 40 ms with hand limits)."""
+    text = """
+[agent]
+id = 3
+lambda0 = -0.25
+pinned = false
+fleet_size = 7
+[controller]
+kind = "dwell"
+k = 0.25
+h = 0.125
+ts = 0.04
+dwell = 0.1
+band = 0.0002
+ft_exponent = 0.75
+[battery]
+alpha = 0.0125
+beta = -0.5
+m = 0.0
+p_min = -327.67
+p_max = 12.5
+[timeouts]
+neighbour_periods = 3.9
+price_s = 1.0
+status_s = 0.75
+[limits]
+lambda_min = -3
+lambda_max = 4.5
+rho_min = -1
+rho_max = 2
+price_step_max = 0.001
+price_persist = 7
+lambda_step_max = 0.05
+k_min = 0.1
+k_max = 1.25
+h_min = 0.0
+h_max = 0.5
+untrusted_after = 9
+untrusted_s = 0
+[[neighbour]]
+id = 7
+weight = 0.001
+[[neighbour]]
+id = 1
+weight = 100
+"""
+    cfg = parse_agent_config(tomllib.loads(text), "x")
+    assert params_dict(parse_config(text)) == params_dict(params_of(cfg))
+
+
+BASE = CONFIGS[0][1]
+
+
+def _edit(table: str, key: str, value: str) -> str:
+    """BASE with ``key = value`` set in ``[table]`` (added if missing)."""
+    doc = tomllib.loads(BASE)
+    lines = BASE.splitlines()
+    out, current, done = [], None, False
+    for line in lines:
+        s = line.strip()
+        if s.startswith("["):
+            if current == table and not done:
+                out.append(f"{key} = {value}")
+                done = True
+            current = s.strip("[]")
+        if current == table and s.split("=")[0].strip() == key:
+            out.append(f"{key} = {value}")
+            done = True
+            continue
+        out.append(line)
+    if not done:
+        if table not in doc:
+            out.append(f"[{table}]")
+        out.append(f"{key} = {value}")
+    return "\n".join(out) + "\n"
+
+
+BAD = [
+    ("agent", "id", "0"), ("agent", "id", "33"), ("agent", "id", '"2"'),
+    ("agent", "pinned", "1"), ("agent", "fleet_size", "0"), ("agent", "lambda0", "101"),
+    ("agent", "lambda0", "inf"), ("agent", "lambda0", "nan"), ("agent", "lambda0", "true"),
+    ("agent", "lambda0", "11"), ("agent", "colour", "1"),
+    ("controller", "kind", '"pid"'), ("controller", "k", "0"), ("controller", "k", "1e5"),
+    ("controller", "h", "-1"), ("controller", "ts", "2"), ("controller", "band", "1"),
+    ("controller", "ft_exponent", "0.3"), ("controller", "k", "300"),
+    ("controller", "dwell", "-1"), ("controller", "gain", "1"),
+    ("battery", "alpha", "0"), ("battery", "m", "-1"), ("battery", "p_min", "200"),
+    ("battery", "p_min", "-400"), ("battery", "p_max", "400"), ("battery", "soc", "1"),
+    ("timeouts", "price_s", "0"), ("timeouts", "status_s", "61"),
+    ("timeouts", "neighbour_periods", "0.5"), ("timeouts", "other", "1"),
+    ("limits", "rho_min", "6"), ("limits", "price_persist", "0"),
+    ("limits", "price_persist", "1.5"), ("limits", "k_min", "3"), ("limits", "k_max", "17"),
+    ("limits", "h_max", "199"), ("limits", "untrusted_after", "1001"),
+    ("limits", "untrusted_s", "-1"), ("limits", "lambda_step_max", "0"),
+    ("limits", "speed", "1"), ("extra", "x", "1"),
+]
+
+
+@pytest.mark.parametrize("table,key,value", BAD, ids=[f"{t}.{k}={v}" for t, k, v in BAD])
+def test_c_loader_refuses_what_firmware_py_refuses_naming_the_key(table: str, key: str,
+                                                                  value: str) -> None:
+    text = _edit(table, key, value)
+    with pytest.raises(ConfigError) as py:
+        parse_agent_config(tomllib.loads(text), "agent.toml")
+    with pytest.raises(CConfigError) as c:
+        parse_config(text, "agent.toml")
+    assert f"[{py.value.key}]" in str(c.value), (str(py.value), str(c.value))
+    assert str(c.value).startswith("agent.toml: ")
+
+
+@pytest.mark.parametrize("text", ["[agent\nid = 1", "[agent]\nid = ", "[agent]\nid = 1\nid = 2",
+                                  "[agent]\n= 3", "[agent]\nid 3", '[agent]\nx = "a"b"'])
+def test_c_loader_refuses_broken_toml(text: str) -> None:
+    with pytest.raises(CConfigError, match=r"^x\.toml: \[file\] expected valid TOML"):
+        parse_config(text, "x.toml")
+
+
+def _key_file(tmp_path: Path, boot: int = 6) -> Path:
+    peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
+    doc = node_key_document("agent_2", derive_node_key(MASTER, "agent_2"), fleet_id(MASTER),
+                            boot, peers)
+    import tomli_w
+
+    path = tmp_path / "agent_2.key"
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    return path
+
+
+def test_key_file_loads_and_the_persisted_boot_loads_in_firmware_py(tmp_path: Path) -> None:
+    path = _key_file(tmp_path)
+    k = load_keyfile(path, "agent_2")
+    ref = load_node_key(path)
+    assert bytes(k.key) == ref.key and k.boot == 6 and k.node == b"agent_2"
+    assert {k.peer_label[i].value.decode(): bytes(k.peer_key[i]) for i in range(k.n_peers)} \
+        == dict(ref.peers)
+    assert k.persist_boot(k.persist_ctx, 7) == 0
+    again = load_node_key(path)
+    assert again.boot_counter == 7 and again.key == ref.key and dict(again.peers) == \
+        dict(ref.peers) and again.fleet_id == ref.fleet_id
+    assert os.stat(path).st_mode & 0o777 == 0o600
+
+
+def test_key_file_refusals(tmp_path: Path) -> None:
+    path = _key_file(tmp_path)
+    with pytest.raises(CConfigError, match="expected the key file of agent_3"):
+        load_keyfile(path, "agent_3")
+    os.chmod(path, 0o644)
+    with pytest.raises(CConfigError, match="too open"):
+        load_keyfile(path, "agent_2")
+    with pytest.raises(CConfigError, match="cannot read"):
+        load_keyfile(tmp_path / "missing.key", "agent_2")
