@@ -165,10 +165,10 @@ def load_keyfile(path: Path | str, node: str, runtime: Runtime | None = None) ->
 def params_dict(p: Params) -> dict[str, object]:
     """Every field of bd_agent_params, for comparisons (arrays cut to n_neighbours)."""
     out: dict[str, object] = {}
-    for name, _ in Params._fields_:
+    for name, *_ in Params._fields_:
         v = getattr(p, name)
         if name == "ctrl":
-            v = tuple(getattr(v, f) for f, _ in cimpl._Config._fields_)
+            v = tuple(getattr(v, f) for f, *_ in cimpl._Config._fields_)
         elif name in ("neighbour_id", "neighbour_weight"):
             v = tuple(v[:p.n_neighbours])
         out[name] = v
