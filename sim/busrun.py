@@ -178,7 +178,9 @@ def _bound_udp_ports() -> set[int]:
 def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
                extra: dict[str, list[str]] | None = None,
                rt_priority: int = RT_PRIORITY, keys: Path | None = None,
-               exclude: frozenset[str] = frozenset()) -> list[NodeSpec]:
+               exclude: frozenset[str] = frozenset(),
+               c_agents: frozenset[int] = frozenset(),
+               c_node: Path | None = None) -> list[NodeSpec]:
     """Argv for every node. Agents and plant first; the router last, since its first
     price frame is t = 0 of the schedule. Every node runs under SCHED_FIFO
     ``rt_priority`` where the OS allows it (0: not), as firmware on an embedded Linux
@@ -186,7 +188,9 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
     ``keys``: the key set directory (each node gets ``--key DIR/<node>.key``); None:
     every node runs ``--insecure``. ``exclude``: nodes not started here (a device under
     test takes their place: `bess-ded restbus`); an agent's configuration file is still
-    written, for the device."""
+    written, for the device. ``c_agents``: the agents that run the C firmware's node
+    program ``c_node`` (firmware_c's bessded-agent, SocketCAN only) from the same
+    configuration and key files."""
     extra = extra or {}
 
     def key(name: str) -> list[str]:
@@ -202,6 +206,13 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
         path.write_text(cfg.to_toml())
         name = f"agent_{cfg.id}"
         if name in exclude:
+            continue
+        if cfg.id in c_agents:
+            if c_node is None or extra.get(name):
+                raise BusRunError(f"{name}: the C agent needs its node program and takes no "
+                                  "fault-injection flags")
+            specs.append(NodeSpec(name, [str(c_node), "--config", str(path)] + key(name)
+                                  + ["--channel", str(bus.resolved().get("channel"))] + rt))
             continue
         specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)
                               + bus.argv() + rt + extra.get(name, [])))
@@ -315,7 +326,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
            actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]] = (),
            plot: bool = True, time_scale: float = 1.0, keys: Path | None = None,
            insecure: bool = False, dut: str | None = None, dut_wait_s: float = 60.0,
-           on_ready: Callable[[Path | None], None] | None = None) -> Recording:
+           on_ready: Callable[[Path | None], None] | None = None,
+           c_agents: frozenset[int] = frozenset(), c_node: Path | None = None) -> Recording:
     """Run the scenario on the bus for ``duration`` s of price time (default: the
     scenario's). ``extra`` adds argv per node (fault flags),
     ``delays`` starts a node late (s after t = 0), ``actions`` calls
@@ -331,6 +343,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     ``dut_wait_s``, else BusRunError), so t = 0 finds it running. ``on_ready(key_dir)``
     is called once the key set and the agents' configuration files are written, before
     any node starts (to tell the operator, or a test, what to give the device).
+    ``c_agents`` run firmware_c's node program ``c_node`` instead of firmware_py.
 
     SIGINT or SIGTERM stops the run early: the nodes are stopped and the outputs are
     written for what was recorded, with the verdict marked interrupted. Every node that
@@ -348,7 +361,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     codec = FrameCodec()
     key_dir = None if insecure else keys or provision_keys(sc, out / "keys")
     specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority, key_dir,
-                       frozenset({dut}) if dut else frozenset())
+                       frozenset({dut}) if dut else frozenset(), c_agents, c_node)
     if on_ready is not None:
         on_ready(key_dir)
     for s in specs:

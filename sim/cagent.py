@@ -76,7 +76,9 @@ class KeyringC(ctypes.Structure):
 
     _fields_ = [
         ("node", ctypes.c_char * (LABEL_MAX + 1)), ("key", ctypes.c_uint8 * 16),
-        ("boot", ctypes.c_uint32), ("insecure", ctypes.c_int32), ("n_peers", ctypes.c_uint32),
+        ("boot", ctypes.c_uint32), ("insecure", ctypes.c_int32),
+        ("has_master", ctypes.c_int32), ("master", ctypes.c_uint8 * 16),
+        ("n_peers", ctypes.c_uint32),
         ("peer_label", (ctypes.c_char * (LABEL_MAX + 1)) * MAX_PEERS),
         ("peer_key", (ctypes.c_uint8 * 16) * MAX_PEERS),
         ("persist_boot", PERSIST_FN), ("persist_ctx", ctypes.c_void_p),
@@ -195,6 +197,21 @@ def load() -> Runtime:
     return _RUNTIME
 
 
+NODE_NAME = "bessded-agent"
+
+
+def node_program() -> Path:
+    """firmware_c's node program (Linux SocketCAN), from the cache (built on first use)."""
+    path = cimpl.cache_dir() / NODE_NAME
+    if not path.exists():
+        tmp = path.parent.with_name(f"{path.parent.name}.node{os.getpid()}")
+        cimpl.build(tmp, target=str(tmp.resolve() / NODE_NAME))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp / NODE_NAME, path)
+        shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
 def ns(t: float) -> int:
     """Seconds (binary64) → int64 ns, as the C node's clock counts."""
     return round(t * 1e9)
@@ -273,6 +290,9 @@ def keyring_from(ring: Keyring) -> KeyringC:
     if ring.insecure:
         return keyring_of(ring.node, ring.key, ring.boot, insecure=True)
     k = keyring_of(ring.node, ring.key, ring.boot, ring._peers)
+    if ring._master is not None:   # a simulated fleet: any sender's key on demand
+        k.has_master = 1
+        k.master[:] = list(ring._master)
 
     def persist(_ctx: int | None, boot: int) -> int:
         try:

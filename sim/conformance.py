@@ -766,9 +766,12 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
              deviation: Callable[[AgentRuntime], None] | None = None,
              codec: FrameCodec | None = None, lead_ticks: int = 12,
              phase: float = 0.37, latency: float = 2e-4, jitter: float = 0.0,
-             seed: int = 0, filtered: bool = False) -> list[Frame]:
-    """The schedule played against firmware_py's agent (with ``deviation``) on a
-    simulated clock: the record a bus run of a DUT would give, without the bus. The DUT
+             seed: int = 0, filtered: bool = False,
+             make_dut: Callable[[AgentConfig, FrameCodec, Keyring], Any] | None = None
+             ) -> list[Frame]:
+    """The schedule played against firmware_py's agent (with ``deviation``), or the
+    agent ``make_dut`` builds (any object with the node seam: the C agent, sim.cagent),
+    on a simulated clock: the record a bus run of a DUT would give, without the bus. The DUT
     ticks ``lead_ticks`` times before the schedule starts (as a device already running
     when the tester starts) at the phase ``phase`` of Ts; ``jitter``: each tick and each
     tester frame up to that fraction of Ts late (seeded), as on a loaded host;
@@ -778,14 +781,14 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
     rnd = random.Random(seed)
     codec = codec or FrameCodec()
     ts = cfg.controller.ts
-    dut = AgentRuntime(cfg, codec, keys=keyring)
+    dut: Any = (make_dut or AgentRuntime)(cfg, codec, keyring)
     if deviation is not None:
         deviation(dut)
     t0 = (lead_ticks + 0.5) * ts  # the schedule's start, after the DUT's first Diag
     inputs = sorted((Frame(t0 + p.at + rnd.uniform(0, jitter * ts), p.msg, True, p.step,
                            p.note) for p in planned), key=lambda f: f.t)
     end = t0 + STEPS[-1].end * ts + 3 * ts
-    passed = set(dut.io.accepted_ids())
+    passed = set(getattr(dut, "io", dut).accepted_ids())
     record: list[Frame] = []
     nxt = 0
     k = 0

@@ -18,12 +18,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_node_vectors import VECTORS, keyring, load, replay
 
-from firmware_py.config import parse_agent_config
+from firmware_py.config import agent_configs_from_scenario, parse_agent_config
 from firmware_py.contract import SYNCED_BY
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime
-from firmware_py.secoc import Keyring, derive_node_key
+from firmware_py.secoc import Keyring, derive_node_key, fleet_nodes
 from sim.cagent import CAgent, keyring_from, params_of
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -286,3 +286,35 @@ def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
     c.set_tx_count((1 << 24) - 1, 0)
     assert len(c.tick(0.0)) == 5          # syncs, the last MC count, setpoint, diag
     assert c.tick(TS) == [] and c.fatal == 12
+
+
+# --------------------------------------------------------------------------- conformance
+
+
+@pytest.mark.parametrize("case,dut,jitter,filtered", [(1, 3, 0.0, False), (1, 1, 0.9, True),
+                                                      (7, 5, 0.5, False)])
+def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter: float,
+                                                     filtered: bool) -> None:
+    """`bess-ded conformance`'s whole schedule (sim.conformance: 910 ticks, 84
+    requirements) played against the C agent on a simulated clock, with late ticks and
+    frames, and behind its acceptance filter: every requirement passes."""
+    from sim import conformance as conf
+    from sim.scenario import load_case
+
+    sc = load_case(case)
+    cfg = agent_configs_from_scenario(sc)[dut - 1]
+    keys = {n: derive_node_key(MASTER, n) for n in fleet_nodes(sc.n)}
+    node = f"agent_{dut}"
+
+    def ring() -> Keyring:
+        return Keyring(node, keys[node], 0, lambda _b: None, master=MASTER)
+
+    planned = conf.plan(cfg, keys, sc.prices[0].rho)
+    frames = conf.simulate(cfg, ring(), planned, jitter=jitter, seed=dut, filtered=filtered,
+                           make_dut=lambda c, _codec, k: CAgent(c, k))
+    outcome = conf.check(cfg, ring(), keys[node], frames)
+    results = conf.verdict(outcome)
+    assert not outcome.mismatches, outcome.mismatches[:3]
+    assert not outcome.auth_errors and not outcome.problems
+    assert outcome.steps_seen == {s.name for s in conf.STEPS}
+    assert all(r.passed for r in results), [r for r in results if not r.passed]

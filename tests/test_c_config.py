@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
 import tomllib
 from pathlib import Path
 
@@ -27,7 +28,14 @@ from firmware_py.secoc import (
     node_key_document,
     write_private,
 )
-from sim.cagent import CConfigError, load_keyfile, params_dict, params_of, parse_config
+from sim.cagent import (
+    CConfigError,
+    load_keyfile,
+    node_program,
+    params_dict,
+    params_of,
+    parse_config,
+)
 from sim.scenario import load_case
 
 MASTER = bytes(range(16))
@@ -204,3 +212,43 @@ def test_key_file_refusals(tmp_path: Path) -> None:
         load_keyfile(path, "agent_2")
     with pytest.raises(CConfigError, match="cannot read"):
         load_keyfile(tmp_path / "missing.key", "agent_2")
+
+
+# --------------------------------------------------------------------------- the node program
+
+
+def _node(*argv: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(node_program()), *argv], capture_output=True, text=True,
+                          timeout=60, check=False)
+
+
+def test_node_program_refuses_bad_input_with_exit_2(tmp_path: Path) -> None:
+    cfg = tmp_path / "agent_2.toml"
+    cfg.write_text(json.loads(VECTORS[0].read_text())["config"])
+    bad = tmp_path / "bad.toml"
+    bad.write_text(_edit("agent", "id", "0"))
+    key = _key_file(tmp_path)
+    agent_1 = tmp_path / "agent_1.toml"
+    agent_1.write_text(BASE)
+    cases = [
+        ((), "expected --config, --channel and exactly one of --key or --insecure"),
+        (("--config", str(cfg), "--insecure", "--key", str(key), "--channel", "vcan0"),
+         "exactly one of --key or --insecure"),
+        (("--config", str(bad), "--insecure", "--channel", "vcan0"), "[agent.id] expected"),
+        (("--config", str(tmp_path / "none.toml"), "--insecure", "--channel", "vcan0"),
+         "does not exist"),
+        (("--config", str(cfg), "--insecure", "--channel", "vcan0", "--interface",
+          "udp_multicast"), "--interface: expected socketcan"),
+        (("--config", str(cfg), "--insecure", "--channel", "vcan0", "--duration", "-1"),
+         "--duration: expected a number of seconds"),
+        (("--config", str(cfg), "--insecure", "--channel", "vcan0", "--speed", "2"),
+         "but got '--speed'"),
+        (("--config", str(agent_1), "--key", str(key), "--channel", "no-such-can9"),
+         "expected the key file of agent_1"),
+        (("--config", str(cfg), "--insecure", "--channel", "no-such-can9"), "error: "),
+    ]
+    for argv, message in cases:
+        res = _node(*argv)
+        assert res.returncode == 2, (argv, res.stderr)
+        assert "bessded-agent: error: " in res.stderr and message in res.stderr, \
+            (argv, res.stderr)

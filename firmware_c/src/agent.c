@@ -229,13 +229,12 @@ static int key_of(bd_agent *a, uint32_t label)
             return (int)k;
         }
     }
-    if (!a->insecure || a->n_keys >= BD_MAX_PEERS) {
+    if (!a->derive || a->n_keys >= BD_MAX_PEERS) {
         return -1;
     }
-    static const uint8_t zero[BD_KEY_BYTES] = {0};
     char text[BD_LABEL_MAX + 1];
     label_text(label, text);
-    if (bd_derive_node_key(zero, text, a->key[a->n_keys]) != 0) {
+    if (bd_derive_node_key(a->master, text, a->key[a->n_keys]) != 0) {
         a->fatal = BD_ERR_CRYPTO;
         return -1;
     }
@@ -283,6 +282,10 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     a->persist_boot = keys->persist_boot;
     a->persist_ctx = keys->persist_ctx;
     a->insecure = keys->insecure;
+    a->derive = keys->insecure || keys->has_master;
+    if (keys->has_master && !keys->insecure) {
+        memcpy(a->master, keys->master, BD_KEY_BYTES);
+    }   /* insecure: the public all-zero master (memset above) */
     for (uint32_t k = 0u; k < keys->n_peers; ++k) {
         uint32_t code = label_code(keys->peer_label[k]);
         if (code == 0u) {
@@ -316,7 +319,7 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
         }
     }
     /* the peer syncs the acceptance filter passes: keys held beyond the inputs' senders */
-    a->n_listed = a->insecure ? 0u : a->n_keys;
+    a->n_listed = a->derive ? 0u : a->n_keys;
     init_echo(&a->echo[ECHO_MC], BD_MC_BASE + p->id);
     init_echo(&a->echo[ECHO_SETPOINT], BD_SETPOINT_BASE + p->id);
     init_echo(&a->echo[ECHO_DIAG], BD_DIAG_BASE + p->id);

@@ -2,7 +2,8 @@
  * bessded-agent: one BESS agent on Linux SocketCAN, the C twin of `bess-ded agent`.
  *
  *   bessded-agent --config agent_3.toml (--key agent_3.key | --insecure) --channel can0
- *                 [--duration S] [--rt-priority N] [--no-acceptance-filter]
+ *                 [--interface socketcan] [--duration S] [--rt-priority N]
+ *                 [--no-acceptance-filter]
  *
  * The configuration and key files are the ones firmware_py reads (`bess-ded up` and
  * `bess-ded keys` write them). Bad input: "bessded-agent: error: ..." and exit 2. On
@@ -101,6 +102,13 @@ int main(int argc, char **argv)
         } else if (strcmp(a, "--channel") == 0) {
             channel = v;
             ++i;
+        } else if (strcmp(a, "--interface") == 0) {   /* bess-ded agent's bus flags */
+            if (strcmp(v, "socketcan") != 0) {
+                (void)snprintf(err, sizeof err, "--interface: expected socketcan (this node "
+                               "runs on Linux SocketCAN only), but got '%s'", v);
+                return usage(err);
+            }
+            ++i;
         } else if (strcmp(a, "--duration") == 0) {
             if (parse_seconds(v, &duration) != 0) {
                 (void)snprintf(err, sizeof err, "--duration: expected a number of seconds "
@@ -119,8 +127,8 @@ int main(int argc, char **argv)
             ++i;
         } else {
             (void)snprintf(err, sizeof err, "expected one of --config, --key, --insecure, "
-                           "--channel, --duration, --rt-priority, --[no-]acceptance-filter, "
-                           "but got '%s'", a);
+                           "--channel, --interface socketcan, --duration, --rt-priority, "
+                           "--[no-]acceptance-filter, but got '%s'", a);
             return usage(err);
         }
     }

@@ -48,6 +48,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "up", help="run router, plant and every agent as processes on a bus",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter))
     add_run_arguments(p)
+    c = p.add_mutually_exclusive_group()
+    c.add_argument("--agent-impl", choices=("py", "c"), default="py",
+                   help="the agents' firmware: firmware_py (default) or firmware_c's node "
+                   "program (SocketCAN only: --interface socketcan --channel vcan0)")
+    c.add_argument("--c-agents", metavar="I,J,...",
+                   help="run these agents on firmware_c, the others on firmware_py "
+                   "(SocketCAN only)")
     p.set_defaults(func=run)
 
 
@@ -149,11 +156,53 @@ def print_report(plan: RunPlan, rec: Recording) -> int:
 def run(args: argparse.Namespace) -> int:
     from .. import busrun
 
+    c_flag, c_ids = c_agent_choice(args)
+    if c_flag:
+        kw = busrun.BusOptions(args.interface, args.channel, args.bus_config).resolved()
+        if kw["interface"] != "socketcan" or not kw.get("channel"):
+            raise ParameterError(c_flag, "--interface socketcan with a --channel (the C agent "
+                                 "is a Linux SocketCAN program: vcan0, can0, ...)",
+                                 f"{kw['interface']} {kw.get('channel') or ''}".strip())
     plan = plan_run(args, "up", "{n} agents + plant + router")
+    c_agents: frozenset[int] = frozenset()
+    c_node = None
+    if c_flag:
+        c_agents = frozenset(range(1, plan.sc.n + 1)) if c_ids is None else c_ids
+        if max(c_agents) > plan.sc.n:
+            raise ParameterError("--c-agents", f"agents of this run (1..{plan.sc.n})",
+                                 args.c_agents)
+        c_node = c_node_program(c_flag)
+        print(f"  agents in C: {', '.join(map(str, sorted(c_agents)))} ({c_node.name})")
     rec = busrun.record(plan.sc, plan.out, plan.bus, duration=plan.duration,
                         plot=not args.no_plot, time_scale=plan.scale, keys=args.keys,
-                        insecure=args.insecure)
+                        insecure=args.insecure, c_agents=c_agents, c_node=c_node)
     return print_report(plan, rec)
+
+
+def c_agent_choice(args: argparse.Namespace) -> tuple[str | None, frozenset[int] | None]:
+    """Which flag asks for C agents (None: none), and which agents (None: every one)."""
+    if args.c_agents is not None:
+        try:
+            ids = frozenset(int(x) for x in args.c_agents.split(","))
+        except ValueError:
+            ids = frozenset()
+        if not ids or min(ids) < 1:
+            raise ParameterError("--c-agents", "agent ids like 3,5", args.c_agents)
+        return "--c-agents", ids
+    return ("--agent-impl c", None) if args.agent_impl == "c" else (None, None)
+
+
+def c_node_program(flag: str) -> Path:
+    """firmware_c's bessded-agent, built on first use (an error names the cause)."""
+    from ..cagent import node_program
+    from ..cimpl import CBuildError
+
+    try:
+        return node_program()
+    except (CBuildError, OSError) as e:
+        first = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+        raise ParameterError(flag, "firmware_c to build (make, a C compiler, libmbedtls-dev: "
+                             "tools/install-c-deps)", first) from None
 
 
 def check_key_set(keys: Path, n: int) -> str:

@@ -83,6 +83,9 @@ typedef struct {
     uint8_t key[BD_KEY_BYTES];            /* own signing key */
     uint32_t boot;                        /* boot counter stored before this start */
     int32_t insecure;                     /* 1: --insecure (all-zero master, boot 1) */
+    int32_t has_master;                   /* 1: derive any sender's key from master (a
+                                             simulated fleet; insecure: the zero key) */
+    uint8_t master[BD_KEY_BYTES];
     uint32_t n_peers;
     char peer_label[BD_MAX_PEERS][BD_LABEL_MAX + 1];
     uint8_t peer_key[BD_MAX_PEERS][BD_KEY_BYTES];
@@ -173,6 +176,8 @@ typedef struct {
     uint32_t n_listed;                            /* keys [0, n_listed) count as held for
                                                      the acceptance filter's peer syncs */
     int32_t insecure;
+    int32_t derive;                               /* keys derived on demand from master */
+    uint8_t master[BD_KEY_BYTES];
     uint32_t safety_rejections;
     uint32_t last_safety_cause;                   /* BD_SAFETY_CAUSE_* (0: none) */
     uint32_t last_safety_sender;
