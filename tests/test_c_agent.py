@@ -9,7 +9,11 @@ order) and compares every frame sent and every counter.
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 import tomllib
+from pathlib import Path
 from typing import Any
 
 import can
@@ -23,8 +27,9 @@ from firmware_py.contract import SYNCED_BY
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime
-from firmware_py.secoc import Keyring, derive_node_key, fleet_nodes
-from sim.cagent import CAgent, keyring_from, params_of
+from firmware_py.secoc import INSECURE_MASTER, Keyring, derive_node_key, fleet_nodes
+from sim.cagent import CAgent, keyring_from, ns, params_of
+from sim.cimpl import SOURCE_DIR as SOURCE
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -318,3 +323,85 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     assert not outcome.auth_errors and not outcome.problems
     assert outcome.steps_seen == {s.name for s in conf.STEPS}
     assert all(r.passed for r in results), [r for r in results if not r.passed]
+
+
+# --------------------------------------------------------------------------- the vector runner
+
+
+def dump_node_vectors(path: Path) -> dict[str, list[tuple[int, int, str]]]:
+    """The text dump firmware_c/tools/node_runner.c replays (its header comment); the
+    frames each vector expects, times in ns."""
+    lines, expected = [], {}
+    for p in VECTORS:
+        vec = load(p)
+        k = vec["keys"]
+        lines.append(f"V {vec['name']} {vec['config'].encode().hex()}")
+        if k["insecure"]:
+            key = derive_node_key(INSECURE_MASTER, k["node"])
+            lines.append(f"K {k['node']} 1 {key.hex()} 0 0")
+        else:
+            peers = " ".join(f"{label} {h}" for label, h in k["peers"].items())
+            lines.append(f"K {k['node']} 0 {k['key']} {k['boot_counter']} {len(k['peers'])} "
+                         f"{peers}")
+        if "tx_count" in vec.get("setup", {}):
+            lines.append(f"S {vec['setup']['tx_count']}")
+        for row in vec["input"]:
+            if row[0] == "tick":
+                lines.append(f"T {ns(row[1])}")
+                continue
+            flags = row[4].get("flags", "") if len(row) > 4 else ""
+            bits = (1 if "ext" in flags else 0) | (2 if "rtr" in flags else 0) \
+                | (4 if "fd" in flags else 0)
+            lines.append(f"R {ns(row[1])} {row[2]} {bits} {row[3] or '-'}")
+        lines.append("E")
+        expected[vec["name"]] = [(ns(t), fid, data) for t, fid, data in vec["output"]]
+    path.write_text("\n".join(lines) + "\n", encoding="ascii")
+    return expected
+
+
+def _replay_runner(cmd: list[str], dump: Path, expected: dict[str, list[tuple[int, int, str]]]
+                   ) -> None:
+    with dump.open() as stdin:
+        proc = subprocess.run(cmd, stdin=stdin, capture_output=True, text=True, check=False,
+                              timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    got: dict[str, list[tuple[int, int, str]]] = {}
+    frames: list[tuple[int, int, str]] = []
+    for line in proc.stdout.splitlines():
+        parts = line.split()
+        if parts[0] == "F":
+            frames.append((int(parts[1]), int(parts[2]), parts[3]))
+        elif parts[0] == "END":
+            got[parts[1]], frames = frames, []
+    assert set(got) == set(expected)
+    for name, want in expected.items():
+        diff = [i for i, (a, b) in enumerate(zip(got[name], want, strict=False)) if a != b]
+        assert got[name] == want, (name, len(got[name]), len(want), diff[:1])
+
+
+def test_node_vectors_through_the_c_runner_natively(tmp_path: Path) -> None:
+    """tools/node_runner.c: the configuration through the C loader, then every vector,
+    output compared frame by frame (the dump format is the one a port would use)."""
+    subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={tmp_path}", "node-runner"],
+                   check=True, capture_output=True)
+    dump = tmp_path / "node_vectors.txt"
+    _replay_runner([str(tmp_path / "node_runner")], dump, dump_node_vectors(dump))
+
+
+def test_node_vectors_cross_built_for_arm_under_qemu(tmp_path: Path) -> None:
+    """The same, cross-built for arm-linux-gnueabihf (32-bit: int64 arithmetic in two
+    registers, mbedTLS's armhf build) and run under qemu-arm."""
+    for tool in ("make", "arm-linux-gnueabihf-gcc", "qemu-arm"):
+        if shutil.which(tool) is None:
+            if os.environ.get("CI"):
+                pytest.fail(f"{tool} is missing: tools/install-c-deps installs it")
+            pytest.skip(f"{tool} is not installed (tools/install-c-deps)")
+    if not Path("/usr/lib/arm-linux-gnueabihf/libmbedcrypto.a").exists():
+        if os.environ.get("CI"):
+            pytest.fail("libmbedtls-dev:armhf is missing: tools/install-c-deps installs it")
+        pytest.skip("libmbedtls-dev:armhf is not installed (tools/install-c-deps)")
+    subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={tmp_path}", "arm-node-runner"],
+                   check=True, capture_output=True)
+    dump = tmp_path / "node_vectors.txt"
+    _replay_runner(["qemu-arm", str(tmp_path / "node_runner.arm")], dump,
+                   dump_node_vectors(dump))

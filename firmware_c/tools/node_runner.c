@@ -1,0 +1,144 @@
+/*
+ * Replays node vectors (tests/vectors/node) through the C agent, for a host or a cross
+ * target (qemu-arm): the configuration through the C loader (src/config.c), the keys,
+ * then every received frame and tick; prints every frame the agent sends. Reads on stdin
+ * the text dump tests/test_c_agent.py writes, one vector after the other:
+ *
+ *   V <name> <config TOML as hex>
+ *   K <node> <insecure 0/1> <key hex> <boot> <n_peers> [<label> <key hex>]...
+ *   S <tx_count>                        (optional: the vector's setup)
+ *   R <t_ns> <id> <flags> <data hex or ->
+ *   T <t_ns>
+ *   E
+ *
+ * Prints "F <t_ns> <id> <8 data bytes hex>" per frame sent, "END <name>" per vector, or
+ * "FAIL <name>: <why>" (exit 1) when the configuration or the keys are refused.
+ */
+#include <inttypes.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "bessded/agent.h"
+#include "bessded/config.h"
+
+#define TEXT_MAX 65536
+
+static int unhex(const char *s, uint8_t *out, size_t max, size_t *n)
+{
+    size_t len = strlen(s);
+    if (strcmp(s, "-") == 0) {
+        *n = 0u;
+        return 0;
+    }
+    if (len % 2u != 0u || len / 2u > max) {
+        return -1;
+    }
+    for (size_t k = 0u; k < len / 2u; ++k) {
+        unsigned v;
+        if (sscanf(&s[2u * k], "%2x", &v) != 1) {
+            return -1;
+        }
+        out[k] = (uint8_t)v;
+    }
+    *n = len / 2u;
+    return 0;
+}
+
+int main(void)
+{
+    static char hex[2 * TEXT_MAX + 1];
+    static char text[TEXT_MAX];
+    static bd_agent agent;
+    static bd_keyring keys;
+    char tag[2];
+    char name[128];
+    char err[1024];
+    bd_agent_params params;
+    int failed = 0;
+
+    while (scanf("%1s", tag) == 1) {
+        if (tag[0] == 'V') {
+            size_t n;
+            if (scanf("%127s %131072s", name, hex) != 2
+                || unhex(hex, (uint8_t *)text, TEXT_MAX - 1u, &n) != 0) {
+                printf("BAD INPUT at V\n");
+                return 2;
+            }
+            text[n] = '\0';
+            if (bd_config_parse(text, name, &params, err, sizeof err) != 0) {
+                printf("FAIL %s: %s\n", name, err);
+                failed = 1;
+            }
+        } else if (tag[0] == 'K') {
+            char khex[64];
+            int insecure;
+            uint32_t n_peers;
+            size_t n;
+            memset(&keys, 0, sizeof keys);
+            if (scanf("%32s %d %63s %" SCNu32 " %" SCNu32, keys.node, &insecure, khex,
+                      &keys.boot, &n_peers) != 5 || n_peers > BD_MAX_PEERS
+                || unhex(khex, keys.key, BD_KEY_BYTES, &n) != 0) {
+                printf("BAD INPUT at K\n");
+                return 2;
+            }
+            keys.insecure = insecure;
+            for (uint32_t p = 0u; p < n_peers; ++p) {
+                if (scanf("%32s %63s", keys.peer_label[p], khex) != 2
+                    || unhex(khex, keys.peer_key[p], BD_KEY_BYTES, &n) != 0) {
+                    printf("BAD INPUT at K peers\n");
+                    return 2;
+                }
+            }
+            keys.n_peers = n_peers;
+            int rc = bd_agent_init(&agent, &params, &keys, NULL, NULL);
+            if (rc != BD_OK) {
+                printf("FAIL %s: bd_agent_init %d\n", name, rc);
+                failed = 1;
+            }
+        } else if (tag[0] == 'S') {
+            uint32_t count;
+            if (scanf("%" SCNu32, &count) != 1) {
+                printf("BAD INPUT at S\n");
+                return 2;
+            }
+            bd_agent_set_tx_count(&agent, count, count);
+        } else if (tag[0] == 'R') {
+            bd_frame f;
+            int64_t t;
+            uint32_t id;
+            unsigned flags;
+            size_t n;
+            memset(&f, 0, sizeof f);
+            if (scanf("%" SCNd64 " %" SCNu32 " %u %31s", &t, &id, &flags, hex) != 4
+                || unhex(hex, f.data, 8u, &n) != 0) {
+                printf("BAD INPUT at R\n");
+                return 2;
+            }
+            f.id = id;
+            f.flags = (uint8_t)flags;
+            f.len = (uint8_t)n;
+            bd_agent_rx(&agent, &f, t);
+        } else if (tag[0] == 'T') {
+            bd_frame out[BD_TICK_FRAMES_MAX];
+            int64_t t;
+            if (scanf("%" SCNd64, &t) != 1) {
+                printf("BAD INPUT at T\n");
+                return 2;
+            }
+            size_t n = bd_agent_tick(&agent, t, out, BD_TICK_FRAMES_MAX);
+            for (size_t k = 0u; k < n; ++k) {
+                printf("F %" PRId64 " %" PRIu32 " ", t, out[k].id);
+                for (size_t b = 0u; b < 8u; ++b) {
+                    printf("%02x", out[k].data[b]);
+                }
+                printf("\n");
+            }
+        } else if (tag[0] == 'E') {
+            printf("END %s\n", name);
+        } else {
+            printf("BAD INPUT: tag %c\n", tag[0]);
+            return 2;
+        }
+    }
+    return failed;
+}
