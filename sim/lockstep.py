@@ -20,13 +20,35 @@ from .trajectory import Trajectory
 
 
 def run_lockstep(sc: Scenario, fixed: bool = True,
-                 progress: Callable[[int, int], None] | None = None) -> Trajectory:
+                 progress: Callable[[int, int], None] | None = None,
+                 impl: str = "py") -> Trajectory:
+    """``impl``: "py" steps firmware_py's controllers, "c" the C core (firmware_c,
+    through sim.cimpl: its controller step and its ξ), fixed point only; the two give
+    the same trajectory bit for bit."""
     ctrl = make_controller(sc.controller, fixed)
+    step, initial, wire = ctrl.step, ctrl.initial_state, ctrl.wire_lambda
+
+    def xi_of(lam: int, nbrs: list[tuple[int, int]], pin: int, rho: int) -> tuple[int, bool]:
+        return consensus_error(ctrl.ar, lam, nbrs, pin, rho)  # type: ignore[return-value]
+
+    if impl == "c":
+        from .cimpl import CController
+
+        if not fixed:
+            raise ValueError("the C core is fixed point only (impl='c' with fixed=False)")
+        c = CController.from_config(sc.controller)
+        step, initial, wire = c.step, c.initial_state, c.wire_lambda  # type: ignore[assignment]
+
+        def xi_of(lam: int, nbrs: list[tuple[int, int]], pin: int, rho: int
+                  ) -> tuple[int, bool]:
+            return c.core.xi(lam, pin, rho, nbrs)
+    elif impl != "py":
+        raise ValueError(f"impl: expected 'py' or 'c', but got {impl!r}")
     q = ctrl.quantise
     n, steps, ts = sc.n, sc.steps + 1, sc.ts
     neighbours = [[(j - 1, q(w, "weight")) for j, w in sc.neighbours(i)] for i in range(1, n + 1)]
     pin = [q(1.0, "pin") if i in sc.pinned else 0 for i in range(1, n + 1)]
-    states = [ctrl.initial_state(l0) for l0 in sc.lambda0]
+    states = [initial(l0) for l0 in sc.lambda0]
     active = [True] * n
     events: dict[int, list[Event]] = {round(e.t / ts): [] for e in sc.events}
     for e in sc.events:
@@ -37,7 +59,7 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
     act = np.zeros(shape, dtype=bool)
     rho_arr, seg_arr = np.zeros(steps), np.zeros(steps, dtype=int)
     resets: list[list[float]] = [[] for _ in range(n)]
-    real, real_state, wire = ctrl.real, ctrl.real_state, ctrl.wire_lambda
+    real, real_state = ctrl.real, ctrl.real_state
 
     for k in range(steps):
         t = k * ts
@@ -45,7 +67,7 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
             i = e.agent - 1
             active[i] = e.action == "reconnect"
             if e.action == "isolate":  # off the network: P = 0, λ at its idle MC
-                states[i] = ctrl.initial_state(sc.batteries[i].idle_lambda)
+                states[i] = initial(sc.batteries[i].idle_lambda)
         rho, seg = sc.price_at(t)
         rho_q = q(rho, "rho")
         rho_arr[k], seg_arr[k] = rho, seg
@@ -56,8 +78,8 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
             if not active[i]:
                 continue
             nbrs = [(w, lams[j]) for j, w in neighbours[i] if active[j]]
-            x, sat = consensus_error(ctrl.ar, lams[i], nbrs, pin[i], rho_q)
-            new, out = ctrl.step(s, x)
+            x, sat = xi_of(lams[i], nbrs, pin[i], rho_q)  # type: ignore[arg-type]
+            new, out = step(s, x)
             if sat:
                 new = replace(new, saturations=new.saturations + 1)
             xi[k, i] = real(x)

@@ -21,6 +21,7 @@ from typing import Any
 
 from firmware_py.cliargs import nonnegative_float, positive_float
 from firmware_py.controllers import KINDS
+from firmware_py.errors import ParameterError
 
 from ..graph import GraphReport
 from ..metrics import SETTLING_BAND
@@ -62,6 +63,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"dwell Δ in s for the dwell controller (default: the scenario's, else "
                    f"{DEFAULT_DWELL_S:g})")
     add_arithmetic_arguments(p)
+    p.add_argument("--impl", choices=("py", "c"), default="py",
+                   help="the controller implementation the agents step: firmware_py "
+                   "(default) or firmware_c's C core (fixed point; the same trajectory bit "
+                   "for bit)")
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output directory (default: runs/<scenario name>, e.g. runs/case1)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
@@ -88,7 +93,7 @@ def plan(sc: Scenario, controller: str | None = None, band: float | None = None,
     return [(label, s.with_controller(**over) if over else s) for label, s in sc.runs()]
 
 
-def simulate(runs: list[tuple[str, Scenario]], fixed: bool) -> list[Run]:
+def simulate(runs: list[tuple[str, Scenario]], fixed: bool, impl: str = "py") -> list[Run]:
     """Run each (label, scenario) in lockstep: (label, scenario, trajectory, metrics)."""
     from ..lockstep import run_lockstep
     from ..metrics import compute
@@ -97,12 +102,13 @@ def simulate(runs: list[tuple[str, Scenario]], fixed: bool) -> list[Run]:
     for label, s in runs:
         progress = Progress(label)
         try:
-            tr = run_lockstep(s, fixed=fixed, progress=progress)
+            tr = run_lockstep(s, fixed=fixed, progress=progress, impl=impl)
         finally:
             progress.done()
         tr.label = label
         m = compute(s, tr)
         m["arithmetic"] = "fixed" if fixed else "float"
+        m["implementation"] = "firmware_c" if impl == "c" else "firmware_py"
         out.append((label, s, tr, m))
     return out
 
@@ -113,9 +119,11 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     sc = resolve_scenario(args.case)
     runs = plan(sc, args.controller, args.band, args.dwell)
+    if args.impl == "c":
+        check_c_core(args.fixed)
     out: Path = args.out or Path("runs") / slug(sc.name)
     out.mkdir(parents=True, exist_ok=True)
-    results = simulate(runs, args.fixed)
+    results = simulate(runs, args.fixed, args.impl)
 
     first = results[0][3]
     top: dict[str, Any] = {**first, "title": sc.title, "source": sc.source}
@@ -145,7 +153,8 @@ def run(args: argparse.Namespace) -> int:
                                           batteries=sc.batteries))
 
     print(f"bess-ded case: {sc.title or sc.name}")
-    print(f"  {describe(runs[0][1], args.fixed)}")
+    print(f"  {describe(runs[0][1], args.fixed)}; controllers: "
+          f"{'firmware_c (the C core)' if args.impl == 'c' else 'firmware_py'}")
     if len(runs) == 1:
         print(f"  controller {controller_desc(runs[0][1].controller)}")
         for line in runs[0][1].analysis().describe()[1:]:
@@ -173,6 +182,20 @@ def run(args: argparse.Namespace) -> int:
     for path in written:
         print(f"  {path}")
     return 0
+
+
+def check_c_core(fixed: bool) -> None:
+    """--impl c: fixed point, and the C core builds (else a one-line error, exit 2)."""
+    from ..cimpl import CBuildError, load
+
+    if not fixed:
+        raise ParameterError("--impl c", "--fixed (the C core is fixed point only)", "--float")
+    try:
+        load()
+    except (CBuildError, OSError) as e:
+        last = (str(e).strip().splitlines() or [type(e).__name__])[-1]
+        raise ParameterError("--impl c", "firmware_c to build (make and a C compiler: "
+                             "tools/install-c-deps)", last) from None
 
 
 def summary_table(rows: list[tuple[str, dict[str, Any]]],
