@@ -198,18 +198,25 @@ def load() -> Runtime:
 
 
 NODE_NAME = "bessded-agent"
+RUNNER_NAME = "node_runner"
+
+
+def built(name: str) -> Path:
+    """A program of firmware_c's Makefile (``bessded-agent``, ``node_runner``) from the
+    cache, built on first use."""
+    path = cimpl.cache_dir() / name
+    if not path.exists():
+        tmp = path.parent.with_name(f"{path.parent.name}.{name}{os.getpid()}")
+        cimpl.build(tmp, target=str(tmp.resolve() / name))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp / name, path)
+        shutil.rmtree(tmp, ignore_errors=True)
+    return path
 
 
 def node_program() -> Path:
-    """firmware_c's node program (Linux SocketCAN), from the cache (built on first use)."""
-    path = cimpl.cache_dir() / NODE_NAME
-    if not path.exists():
-        tmp = path.parent.with_name(f"{path.parent.name}.node{os.getpid()}")
-        cimpl.build(tmp, target=str(tmp.resolve() / NODE_NAME))
-        path.parent.mkdir(parents=True, exist_ok=True)
-        os.replace(tmp / NODE_NAME, path)
-        shutil.rmtree(tmp, ignore_errors=True)
-    return path
+    """firmware_c's node program (Linux SocketCAN)."""
+    return built(NODE_NAME)
 
 
 def ns(t: float) -> int:

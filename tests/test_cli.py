@@ -98,6 +98,8 @@ def test_bench_quick(capsys: pytest.CaptureFixture[str]) -> None:
     for kind in ("pc", "pi", "reset", "dwell", "ft"):
         assert f"\n{kind} " in stdout
     assert "case1" in stdout and "case7" in stdout
+    assert "Controller step, firmware_c against firmware_py" in stdout
+    assert "Agent tick, firmware_c against firmware_py" in stdout
 
 
 @pytest.mark.parametrize("argv", [

@@ -13,15 +13,59 @@
  *
  * Prints "F <t_ns> <id> <8 data bytes hex>" per frame sent, "END <name>" per vector, or
  * "FAIL <name>: <why>" (exit 1) when the configuration or the keys are refused.
+ *
+ * `node_runner --bench` (bess-ded bench): one vector; its R/T events are read into memory
+ * first, then replayed with the clock read around each tick's work (the frames received
+ * since the last tick and the tick itself); prints "BENCH <ticks> <ns total> <ns worst>"
+ * and nothing per frame.
  */
+#define _POSIX_C_SOURCE 199309L
 #include <inttypes.h>
 #include <stdio.h>
 #include <string.h>
+#include <time.h>
 
 #include "bessded/agent.h"
 #include "bessded/config.h"
 
 #define TEXT_MAX 65536
+#define BENCH_EVENTS 400000
+
+typedef struct {
+    int64_t t;
+    bd_frame f;   /* id 0 and len 0xFF: a tick */
+} event;
+
+static event events[BENCH_EVENTS];
+
+static int64_t now_ns(void)
+{
+    struct timespec ts;
+    (void)clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
+}
+
+static void bench(bd_agent *agent, size_t n)
+{
+    bd_frame out[BD_TICK_FRAMES_MAX];
+    int64_t total = 0;
+    int64_t worst = 0;
+    long ticks = 0;
+    int64_t start = now_ns();
+    for (size_t k = 0u; k < n; ++k) {
+        if (events[k].f.len != 0xFFu) {
+            bd_agent_rx(agent, &events[k].f, events[k].t);
+            continue;
+        }
+        (void)bd_agent_tick(agent, events[k].t, out, BD_TICK_FRAMES_MAX);
+        int64_t end = now_ns();
+        total += end - start;
+        worst = end - start > worst ? end - start : worst;
+        ticks++;
+        start = now_ns();
+    }
+    printf("BENCH %ld %" PRId64 " %" PRId64 "\n", ticks, total, worst);
+}
 
 static int unhex(const char *s, uint8_t *out, size_t max, size_t *n)
 {
@@ -44,8 +88,10 @@ static int unhex(const char *s, uint8_t *out, size_t max, size_t *n)
     return 0;
 }
 
-int main(void)
+int main(int argc, char **argv)
 {
+    int bench_mode = argc > 1 && strcmp(argv[1], "--bench") == 0;
+    size_t n_events = 0u;
     static char hex[2 * TEXT_MAX + 1];
     static char text[TEXT_MAX];
     static bd_agent agent;
@@ -117,13 +163,24 @@ int main(void)
             f.id = id;
             f.flags = (uint8_t)flags;
             f.len = (uint8_t)n;
-            bd_agent_rx(&agent, &f, t);
+            if (bench_mode && n_events < BENCH_EVENTS) {
+                events[n_events].t = t;
+                events[n_events++].f = f;
+            } else {
+                bd_agent_rx(&agent, &f, t);
+            }
         } else if (tag[0] == 'T') {
             bd_frame out[BD_TICK_FRAMES_MAX];
             int64_t t;
             if (scanf("%" SCNd64, &t) != 1) {
                 printf("BAD INPUT at T\n");
                 return 2;
+            }
+            if (bench_mode && n_events < BENCH_EVENTS) {
+                memset(&events[n_events].f, 0, sizeof events[n_events].f);
+                events[n_events].f.len = 0xFFu;
+                events[n_events++].t = t;
+                continue;
             }
             size_t n = bd_agent_tick(&agent, t, out, BD_TICK_FRAMES_MAX);
             for (size_t k = 0u; k < n; ++k) {
@@ -134,7 +191,12 @@ int main(void)
                 printf("\n");
             }
         } else if (tag[0] == 'E') {
-            printf("END %s\n", name);
+            if (bench_mode) {
+                bench(&agent, n_events);
+                n_events = 0u;
+            } else {
+                printf("END %s\n", name);
+            }
         } else {
             printf("BAD INPUT: tag %c\n", tag[0]);
             return 2;

@@ -309,10 +309,156 @@ def realtime_bus(quick: bool) -> Table:
                  "exit as `bess-ded up` (3: converged with anomalies)", data=data)
 
 
+def c_controller_step(quick: bool) -> Table:
+    """µs per controller step, firmware_c's core against firmware_py's fixed controller,
+    every kind, on the ξ of case 1's hub: C in one ``bd_ctrl_run`` call per repetition
+    (no binding overhead per step), Python one ``step`` per sample."""
+    import ctypes
+
+    from firmware_py.controllers import KINDS, ControllerConfig, make_controller
+
+    from ..cimpl import CController, _Record, _to_c
+    from ..lockstep import run_lockstep
+    from ..scenario import load_case
+
+    sc = load_case(1)
+    tr = run_lockstep(sc)
+    q = make_controller(sc.controller).quantise
+    assert tr.xi is not None
+    xis = [int(q(float(x))) for x in tr.xi[:, 0]] * (1 if quick else 10)
+    reps = 3 if quick else 9
+    rows, data = [], {}
+    for kind in KINDS:
+        cfg = ControllerConfig(kind=kind, k=sc.controller.k, h=sc.controller.h, ts=sc.ts,
+                               dwell=1.0 if kind == "dwell" else 0.0)
+        py, c = make_controller(cfg), CController.from_config(cfg)
+        s0 = py.initial_state(sc.lambda0[0])
+
+        def run_py(py: Controller = py, s0: ControllerState = s0) -> None:
+            s = s0
+            for x in xis:
+                s, _ = py.step(s, x)
+
+        arr = (ctypes.c_int32 * len(xis))(*xis)
+        rec = (_Record * len(xis))()
+
+        def run_c(c: CController = c, s0: ControllerState = s0, arr: Any = arr,
+                  rec: Any = rec) -> None:
+            c.core.lib.bd_ctrl_run(ctypes.byref(c._cfg), ctypes.byref(_to_c(s0)), arr,
+                                   len(xis), rec)
+
+        us_py = _median_us(run_py, 1, reps) / len(xis)
+        us_c = _median_us(run_c, 1, reps) / len(xis)
+        data[kind] = {"python_us": us_py, "c_us": us_c}
+        rows.append([kind, f"{us_py:.2f}", f"{us_c * 1000:.1f}", f"{us_py / us_c:.0f}×"])
+    return Table("Controller step, firmware_c against firmware_py (fixed point), median",
+                 ["controller", "Python [µs]", "C [ns]", "C faster by"], rows,
+                 note=f"{len(xis)} steps of case 1's hub ξ × {reps}; C through one "
+                 "bd_ctrl_run call (its per-call binding cost included, spread over the "
+                 "steps)", data=data)
+
+
+def _tick_traffic(n_nbrs: int, ticks: int) -> tuple[str, list[tuple[str, float, Any]]]:
+    """An agent with ``n_nbrs`` RUNNING neighbours at Ts = 10 ms, insecure: its TOML and
+    its inputs, every tick: each neighbour's MC, and the price and its plant status every
+    5 ticks (their cycles), all authentic (the MAC checked on every frame)."""
+    from firmware_py.config import AgentConfig, DispatchParams, Neighbour
+    from firmware_py.controllers import ControllerConfig
+    from firmware_py.nodeio import FleetSender
+
+    cfg = AgentConfig(id=1, lambda0=0.8, pinned=True, controller=ControllerConfig(),
+                      neighbours=tuple(Neighbour(j, 1.0) for j in range(2, n_nbrs + 2)),
+                      battery=DispatchParams(0.005, 0.18, 0.08, -100.0, 100.0),
+                      fleet_size=32)
+    tx = FleetSender()
+    events: list[tuple[str, float, Any]] = []
+    for k in range(ticks):
+        t = k * 0.01
+        events.append(("tick", t, None))
+        rx = t + 0.004
+        for j in range(2, n_nbrs + 2):
+            lam = 13_421_773 + ((k * 7 + j * 13) % 41 - 20) * 200
+            events.append(("rx", rx, tx.frame(f"AGENT_{j}_MC", {"State": 1, "Resets": 0,
+                                                                "Lambda": lam})))
+        if k % 5 == 0:
+            events.append(("rx", rx, tx.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
+                                                           "Rho": 13_421_773})))
+            events.append(("rx", rx, tx.frame("PLANT_1_Status", {
+                "FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+                "Power": 100, "Soc": 100})))
+    return cfg.to_toml(), events
+
+
+def agent_tick(quick: bool) -> Table:
+    """µs of work per tick of one agent (the frames received since the last tick, each
+    authenticated, and the tick: ξ, the step, the frames it signs), C against Python,
+    for 2, 8 and 31 neighbours. C natively (firmware_c/tools/node_runner.c --bench: the
+    clock read around each tick's work), Python through AgentRuntime (no bus, no loop)."""
+    import logging
+    import subprocess
+    import tempfile
+
+    import can
+
+    from firmware_py.config import parse_agent_config
+    from firmware_py.runtime import AgentRuntime
+    from firmware_py.secoc import Keyring
+
+    from ..cagent import RUNNER_NAME, built, ns
+
+    runner = built(RUNNER_NAME)
+    ticks = 300 if quick else 2000
+    logging.disable(logging.WARNING)   # the insecure agents' warning, once per agent
+    rows, data = [], {}
+    for n_nbrs in (2, 8, 31):
+        toml, events = _tick_traffic(n_nbrs, ticks)
+        cfg = parse_agent_config(__import__("tomllib").loads(toml), "bench")
+        py_ns: list[int] = []
+        agent = AgentRuntime(cfg, keys=Keyring.insecure_for("agent_1"))
+        start = time.perf_counter_ns()
+        for kind, t, msg in events:
+            if kind == "rx":
+                agent.on_frame(msg, t)
+            else:
+                agent.tick(t)
+                end = time.perf_counter_ns()
+                py_ns.append(end - start)
+                start = time.perf_counter_ns()
+        lines = [f"V bench {toml.encode().hex()}",
+                 f"K agent_1 1 {Keyring.insecure_for('agent_1').key.hex()} 0 0"]
+        for kind, t, msg in events:
+            if kind == "rx":
+                assert isinstance(msg, can.Message)
+                lines.append(f"R {ns(t)} {msg.arbitration_id} 0 {bytes(msg.data).hex()}")
+            else:
+                lines.append(f"T {ns(t)}")
+        lines.append("E")
+        with tempfile.TemporaryFile("w+") as dump:
+            dump.write("\n".join(lines) + "\n")
+            dump.seek(0)
+            out = subprocess.run([str(runner), "--bench"], stdin=dump, capture_output=True,
+                                 text=True, check=True, timeout=300).stdout.split()
+        n, total, worst = int(out[1]), int(out[2]), int(out[3])
+        us_py = statistics.mean(py_ns) / 1e3
+        us_c = total / n / 1e3
+        data[str(n_nbrs)] = {"python_us": us_py, "python_worst_us": max(py_ns) / 1e3,
+                             "c_us": us_c, "c_worst_us": worst / 1e3, "ticks": n}
+        rows.append([str(n_nbrs), f"{us_py:.1f}", f"{max(py_ns) / 1e3:.0f}", f"{us_c:.2f}",
+                     f"{worst / 1e3:.1f}", f"{us_py / us_c:.0f}×"])
+    logging.disable(logging.NOTSET)
+    return Table("Agent tick, firmware_c against firmware_py: µs of work per tick (mean)",
+                 ["neighbours", "Python", "Python worst", "C", "C worst", "C faster by"],
+                 rows, note=f"{ticks} ticks at Ts = 10 ms: every neighbour's MC each tick, "
+                 "price and status every 5th, each frame's MAC verified; no bus, no loop",
+                 data=data)
+
+
 # Sections in print order. To add one (bus load, frame codec, ...): write a
 # `def name(quick: bool) -> Table` above and append it here.
 BENCHES: list[Bench] = [
     controller_step,
+    c_controller_step,
+    agent_tick,
     lockstep_speed,
     codec_speed,
     secoc_cost,
