@@ -1,0 +1,117 @@
+#!/usr/bin/env python3
+"""The largest fleet that runs in real time at Ts = 10 ms, C agents against Python agents.
+
+Each run is `bess-ded up`'s own path (``busrun.record``) on SocketCAN: a random regular
+graph of n agents (tools/fidelity.py's, two price steps), every agent a process running
+firmware_c's node program or firmware_py, with the plant and the router (Python) beside
+them, for ``--seconds`` of price time at Ts = 10 ms (no time scale). Reported per run:
+each agent's deadline misses (AGENT_i_Diag.DeadlineMisses over its ticks), the plant's
+and the router's, the final error and the verdict. A fleet "runs in real time" when no
+agent misses more than 0.1 % of its deadlines. Writes JSON and a PNG.
+
+Made for the vcan tier's QEMU guest (the issue asks for the numbers there):
+
+    tools/vcan-run python3 tools/fleet_capacity.py --json runs/fleet.json --png runs/fleet.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tools"))
+
+from fidelity import graph_scenario  # noqa: E402
+
+from sim import busrun  # noqa: E402
+from sim.cagent import node_program  # noqa: E402
+from sim.scenario import PriceStep  # noqa: E402
+
+MISS_LIMIT_PCT = 0.1
+
+
+def run(n: int, impl: str, seconds: float, channel: str) -> dict[str, Any]:
+    sc = replace(graph_scenario(n, 0.01), duration=seconds,
+                 prices=(PriceStep(0.0, 0.8), PriceStep(seconds / 2, 1.0)))
+    c_agents = frozenset(range(1, n + 1)) if impl == "c" else frozenset()
+    with tempfile.TemporaryDirectory(prefix=f"bess-ded-fleet-{impl}{n}-") as tmp:
+        rec = busrun.record(sc, Path(tmp), busrun.BusOptions("socketcan", channel),
+                            quiet=True, plot=False, c_agents=c_agents,
+                            c_node=node_program() if c_agents else None)
+    m = rec.metrics
+    pct = {k: 100.0 * m["deadline_misses"][k] / max(t, 1) for k, t in m["node_ticks"].items()}
+    agents = [v for k, v in pct.items() if k.startswith("agent_")]
+    return {"impl": impl, "agents": n, "seconds": seconds,
+            "agent_miss_pct_max": max(agents) if agents else None,
+            "agent_miss_pct_mean": sum(agents) / len(agents) if agents else None,
+            "plant_miss_pct": pct.get("plant"), "router_miss_pct": pct.get("router"),
+            "final_error": m.get("final_error"), "exit_code": m["verdict"]["exit_code"],
+            "anomalies": sorted({a["kind"] for a in m["anomalies"]})}
+
+
+def plot(results: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for impl, label in (("c", "firmware_c (bessded-agent)"), ("py", "firmware_py")):
+        rs = [r for r in results if r["impl"] == impl]
+        if rs:
+            ax.plot([r["agents"] for r in rs], [max(r["agent_miss_pct_max"], 1e-3) for r in rs],
+                    "o-", label=label)
+    ax.axhline(MISS_LIMIT_PCT, color="k", ls="--", lw=1, label="0.1 % (real time)")
+    ax.set_yscale("log")
+    ax.set_xlabel("agents (processes) at Ts = 10 ms")
+    ax.set_ylabel("worst agent's deadline misses [%]")
+    ax.set_title("Fleet size against deadline misses, vcan0")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--c-sizes", default="4,8,16,32", help="C fleets (default: %(default)s)")
+    p.add_argument("--py-sizes", default="2,4,8", help="Python fleets (default: %(default)s)")
+    p.add_argument("--seconds", type=float, default=10.0, help="price time per run")
+    p.add_argument("--channel", default="vcan0")
+    p.add_argument("--json", type=Path)
+    p.add_argument("--png", type=Path)
+    args = p.parse_args(argv)
+    results = []
+    plan = [("c", int(n)) for n in args.c_sizes.split(",") if n] + \
+        [("py", int(n)) for n in args.py_sizes.split(",") if n]
+    for k, (impl, n) in enumerate(plan, 1):
+        print(f"[{k}/{len(plan)}] {n} agents, {impl} ...", flush=True)
+        r = run(n, impl, args.seconds, args.channel)
+        results.append(r)
+        print(f"  worst agent {r['agent_miss_pct_max']:.3f} % missed (mean "
+              f"{r['agent_miss_pct_mean']:.3f} %), plant {r['plant_miss_pct']:.2f} %, router "
+              f"{r['router_miss_pct']:.2f} %, final error {r['final_error']:.1e}, exit "
+              f"{r['exit_code']} {r['anomalies']}", flush=True)
+    for impl in ("c", "py"):
+        ok = [r["agents"] for r in results if r["impl"] == impl
+              and r["agent_miss_pct_max"] is not None
+              and r["agent_miss_pct_max"] < MISS_LIMIT_PCT]
+        print(f"largest {impl} fleet under {MISS_LIMIT_PCT} % misses: "
+              f"{max(ok) if ok else 'none of those tried'}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(results, indent=1))
+    if args.png:
+        args.png.parent.mkdir(parents=True, exist_ok=True)
+        plot(results, args.png)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
