@@ -5,9 +5,11 @@ Each run is `bess-ded up`'s own path (``busrun.record``) on SocketCAN: a random 
 graph of n agents (tools/fidelity.py's, two price steps), every agent a process running
 firmware_c's node program or firmware_py, with the plant and the router (Python) beside
 them, for ``--seconds`` of price time at Ts = 10 ms (no time scale). Reported per run:
-each agent's deadline misses (AGENT_i_Diag.DeadlineMisses over its ticks), the plant's
-and the router's, the final error and the verdict. A fleet "runs in real time" when no
-agent misses more than 0.1 % of its deadlines. Writes JSON and a PNG.
+each agent's deadline misses (AGENT_i_Diag.DeadlineMisses over its ticks) over the whole
+run and in steady state (from WARMUP_S after the first price on: the guest is still
+starting the other processes before), the plant's and the router's, the final error and
+the verdict. A fleet "runs in real time" when no agent misses more than 0.1 % of its
+deadlines in steady state. Writes JSON and a PNG.
 
 Made for the vcan tier's QEMU guest (the issue asks for the numbers there):
 
@@ -35,6 +37,37 @@ from sim.cagent import node_program  # noqa: E402
 from sim.scenario import PriceStep  # noqa: E402
 
 MISS_LIMIT_PCT = 0.1
+WARMUP_S = 2.0   # the first seconds after the first price: the guest still starts processes
+
+
+def steady_misses(log_path: Path, n: int, t_first_price: float) -> dict[int, tuple[int, int]]:
+    """Per agent, (deadline misses, ticks) from WARMUP_S after the first price to the end,
+    read from the recording: AGENT_i_Diag page 0's DeadlineMisses and the MC frames."""
+    import can
+
+    from firmware_py.frames import FrameCodec, diag_name, mc_name
+
+    codec = FrameCodec()
+    diag = {codec.frame_id(diag_name(i)): i for i in range(1, n + 1)}
+    mc = {codec.frame_id(mc_name(i)): i for i in range(1, n + 1)}
+    start = t_first_price + WARMUP_S
+    first: dict[int, int] = {}
+    last: dict[int, int] = {}
+    ticks = dict.fromkeys(range(1, n + 1), 0)
+    for msg in can.LogReader(str(log_path)):
+        if msg.timestamp < start or msg.is_error_frame:
+            continue
+        i = mc.get(msg.arbitration_id)
+        if i is not None:
+            ticks[i] += 1
+            continue
+        i = diag.get(msg.arbitration_id)
+        if i is not None:
+            f = codec.decode(msg)
+            if f.raw["Page"] == 0:
+                first.setdefault(i, f.raw["DeadlineMisses"])
+                last[i] = f.raw["DeadlineMisses"]
+    return {i: (last.get(i, 0) - first.get(i, 0), ticks[i]) for i in range(1, n + 1)}
 
 
 def run(n: int, impl: str, seconds: float, channel: str) -> dict[str, Any]:
@@ -45,10 +78,15 @@ def run(n: int, impl: str, seconds: float, channel: str) -> dict[str, Any]:
         rec = busrun.record(sc, Path(tmp), busrun.BusOptions("socketcan", channel),
                             quiet=True, plot=False, c_agents=c_agents,
                             c_node=node_program() if c_agents else None)
+        steady = steady_misses(Path(tmp) / "run.log", n, rec.log.t_first_price or 0.0)
     m = rec.metrics
+    steady_pct = [100.0 * miss / max(t, 1) for miss, t in steady.values()]
     pct = {k: 100.0 * m["deadline_misses"][k] / max(t, 1) for k, t in m["node_ticks"].items()}
     agents = [v for k, v in pct.items() if k.startswith("agent_")]
     return {"impl": impl, "agents": n, "seconds": seconds,
+            "steady_agent_miss_pct_max": max(steady_pct),
+            "steady_agent_misses": sum(miss for miss, _ in steady.values()),
+            "steady_agent_ticks": sum(t for _, t in steady.values()),
             "agent_miss_pct_max": max(agents) if agents else None,
             "agent_miss_pct_mean": sum(agents) / len(agents) if agents else None,
             "plant_miss_pct": pct.get("plant"), "router_miss_pct": pct.get("router"),
@@ -66,12 +104,12 @@ def plot(results: list[dict[str, Any]], path: Path) -> None:
     for impl, label in (("c", "firmware_c (bessded-agent)"), ("py", "firmware_py")):
         rs = [r for r in results if r["impl"] == impl]
         if rs:
-            ax.plot([r["agents"] for r in rs], [max(r["agent_miss_pct_max"], 1e-3) for r in rs],
-                    "o-", label=label)
+            ax.plot([r["agents"] for r in rs],
+                    [max(r["steady_agent_miss_pct_max"], 1e-3) for r in rs], "o-", label=label)
     ax.axhline(MISS_LIMIT_PCT, color="k", ls="--", lw=1, label="0.1 % (real time)")
     ax.set_yscale("log")
     ax.set_xlabel("agents (processes) at Ts = 10 ms")
-    ax.set_ylabel("worst agent's deadline misses [%]")
+    ax.set_ylabel("worst agent's deadline misses, steady state [%]")
     ax.set_title("Fleet size against deadline misses, vcan0")
     ax.legend()
     fig.tight_layout()
@@ -94,14 +132,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[{k}/{len(plan)}] {n} agents, {impl} ...", flush=True)
         r = run(n, impl, args.seconds, args.channel)
         results.append(r)
-        print(f"  worst agent {r['agent_miss_pct_max']:.3f} % missed (mean "
+        print(f"  steady state: worst agent {r['steady_agent_miss_pct_max']:.3f} % missed "
+              f"({r['steady_agent_misses']} of {r['steady_agent_ticks']} ticks); whole run: "
+              f"worst agent {r['agent_miss_pct_max']:.3f} % (mean "
               f"{r['agent_miss_pct_mean']:.3f} %), plant {r['plant_miss_pct']:.2f} %, router "
               f"{r['router_miss_pct']:.2f} %, final error {r['final_error']:.1e}, exit "
               f"{r['exit_code']} {r['anomalies']}", flush=True)
     for impl in ("c", "py"):
         ok = [r["agents"] for r in results if r["impl"] == impl
-              and r["agent_miss_pct_max"] is not None
-              and r["agent_miss_pct_max"] < MISS_LIMIT_PCT]
+              and r["steady_agent_miss_pct_max"] < MISS_LIMIT_PCT]
         print(f"largest {impl} fleet under {MISS_LIMIT_PCT} % misses: "
               f"{max(ok) if ok else 'none of those tried'}")
     if args.json:
