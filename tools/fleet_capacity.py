@@ -130,7 +130,13 @@ def main(argv: list[str] | None = None) -> int:
         [("py", int(n)) for n in args.py_sizes.split(",") if n]
     for k, (impl, n) in enumerate(plan, 1):
         print(f"[{k}/{len(plan)}] {n} agents, {impl} ...", flush=True)
-        r = run(n, impl, args.seconds, args.channel)
+        try:
+            r = run(n, impl, args.seconds, args.channel)
+        except busrun.BusRunError as e:   # e.g. a router starved before its first price
+            print(f"  did not run: {e}", flush=True)
+            results.append({"impl": impl, "agents": n, "seconds": args.seconds,
+                            "steady_agent_miss_pct_max": 100.0, "did_not_run": str(e)})
+            continue
         results.append(r)
         print(f"  steady state: worst agent {r['steady_agent_miss_pct_max']:.3f} % missed "
               f"({r['steady_agent_misses']} of {r['steady_agent_ticks']} ticks); whole run: "
