@@ -31,8 +31,20 @@ from firmware_py.controllers import (
     make_controller,
 )
 
-SOURCE_DIR = Path(os.environ.get("BESSDED_FIRMWARE_C",
-                                 Path(__file__).resolve().parent.parent / "firmware_c"))
+
+def _source_dir() -> Path:
+    """firmware_c/: $BESSDED_FIRMWARE_C, else beside sim/ (a checkout, an editable
+    install), else in the working directory (`pip install .` run from the checkout)."""
+    env = os.environ.get("BESSDED_FIRMWARE_C")
+    if env:
+        return Path(env)
+    for base in (Path(__file__).resolve().parent.parent, Path.cwd()):
+        if (base / "firmware_c" / "Makefile").is_file():
+            return base / "firmware_c"
+    return Path(__file__).resolve().parent.parent / "firmware_c"
+
+
+SOURCE_DIR = _source_dir()
 LIB_NAME = "libbessded_core.so"
 KIND_CODES = {kind: code for code, kind in enumerate(KINDS)}  # BD_KIND_* in controller.h
 UINT32_MAX = (1 << 32) - 1
