@@ -122,6 +122,16 @@ class Runtime:
             ("bd_keyfile_load", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p,
                                                ctypes.POINTER(KeyringC), ctypes.c_char_p, sz]),
             ("bd_keyring_insecure", ctypes.c_int, [ctypes.c_char_p, ctypes.POINTER(KeyringC)]),
+            ("bd_derive_node_key", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p,
+                                                  ctypes.c_char_p]),
+            ("bd_fleet_id", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p]),
+            ("bd_sign_frame", ctypes.c_int, [ctypes.c_char_p, u32, ctypes.c_char_p,
+                                             ctypes.c_uint64]),
+            ("bd_frame_verifies", ctypes.c_int, [ctypes.c_char_p, u32, ctypes.c_char_p,
+                                                 ctypes.c_uint64]),
+            ("bd_fv_candidate", ctypes.c_int, [ctypes.c_uint64, u32, ctypes.c_uint,
+                                               ctypes.c_uint64,
+                                               ctypes.POINTER(ctypes.c_uint64)]),
         ):
             fn = getattr(lib, name)
             fn.restype = res

@@ -405,3 +405,61 @@ def test_node_vectors_cross_built_for_arm_under_qemu(tmp_path: Path) -> None:
     dump = tmp_path / "node_vectors.txt"
     _replay_runner(["qemu-arm", str(tmp_path / "node_runner.arm")], dump,
                    dump_node_vectors(dump))
+
+
+# --------------------------------------------------------------------------- SecOC in C
+
+
+def test_c_secoc_against_firmware_py() -> None:
+    """secoc.c over mbedTLS: the KDF, the fleet tag, the frame MAC and the freshness
+    candidate equal firmware_py's (cryptography's CMAC); bad inputs are refused."""
+    import ctypes
+    import random
+
+    from firmware_py import secoc
+    from sim.cagent import load
+
+    lib = load().lib
+    rnd = random.Random(11)
+    for master in (bytes(16), MASTER, bytes(rnd.randrange(256) for _ in range(16))):
+        for label in ("agent_1", "agent_32", "plant", "router"):
+            out = ctypes.create_string_buffer(16)
+            assert lib.bd_derive_node_key(master, label.encode(), out) == 0
+            assert out.raw == secoc.derive_node_key(master, label)
+        tag = ctypes.create_string_buffer(8)
+        assert lib.bd_fleet_id(master, tag) == 0 and tag.raw.hex() == secoc.fleet_id(master)
+    out = ctypes.create_string_buffer(16)
+    assert lib.bd_derive_node_key(MASTER, b"", out) == -1
+    assert lib.bd_derive_node_key(MASTER, b"a" * 33, out) == -1
+    key = secoc.derive_node_key(MASTER, "agent_1")
+    for _ in range(300):
+        fid, fv = rnd.randrange(0x800), rnd.randrange(1 << 40)
+        data = bytearray(rnd.randrange(256) for _ in range(8))
+        buf = ctypes.create_string_buffer(bytes(data), 8)
+        assert lib.bd_sign_frame(key, fid, buf, fv) == 0
+        secoc.sign_frame(key, fid, data, fv)
+        assert buf.raw == bytes(data)
+        assert lib.bd_frame_verifies(key, fid, buf.raw, fv) == 1
+        assert lib.bd_frame_verifies(key, fid, buf.raw, fv + 1) == 0
+        bad = bytearray(buf.raw)
+        bad[rnd.randrange(3)] ^= 1 << rnd.randrange(8)
+        assert lib.bd_frame_verifies(key, fid, bytes(bad), fv) == 0
+    verifier = secoc.FreshnessVerifier()
+    got = ctypes.c_uint64()
+    for _ in range(300):
+        last, low = rnd.randrange(1 << 40), rnd.randrange(16)
+        verifier._last["x"] = last
+        want = verifier.candidate("x", low)
+        rc = lib.bd_fv_candidate(last, low, 4, (1 << 40) - 1, ctypes.byref(got))
+        assert (rc == 0 and got.value == want) or (rc == -1 and want is None)
+    assert lib.bd_fv_candidate((1 << 40) - 1, 3, 4, (1 << 40) - 1, ctypes.byref(got)) == -1
+    assert lib.bd_fv_candidate(5, 16, 4, (1 << 40) - 1, ctypes.byref(got)) == -1   # > mask
+    assert lib.bd_fv_candidate(5, 0, 0, (1 << 40) - 1, ctypes.byref(got)) == -1    # 0 bits
+
+
+def test_c_agent_reports_resets_and_names_every_counter() -> None:
+    py, c = _both("base")
+    assert c.resets == py.cstate.resets == 0
+    assert c.rt.counter_names == tuple(sorted(c.rt.counter_names, key=c.rt.counter_names.index))
+    assert c.rt.lib.bd_counter_name(-1) is None and c.rt.lib.bd_counter_name(99) is None
+    assert set(c.rt.counter_names) >= {"crc", "auth", "unsynced", "deadline_miss"}

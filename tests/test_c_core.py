@@ -20,6 +20,7 @@ except under CI (env ``CI`` set), where that fails.
 
 from __future__ import annotations
 
+import ctypes
 import json
 import math
 import os
@@ -475,3 +476,20 @@ def test_cortex_m4_size_of_the_core_and_the_agent(tmp_path: Path) -> None:
 def test_cppcheck_clean(tmp_path: Path) -> None:
     _need("make", "cppcheck")
     _make(tmp_path, "cppcheck")
+
+
+def test_config_check_names_each_refusal(core: cimpl.CCore) -> None:
+    """bd_ctrl_config_check: a bad kind, a negative gain, a negative band, an exponent
+    that is not p/2^n with p odd each get their own error."""
+    good = dict(kind=2, kts=10737418, hts=21474836, tsq=10737418, band=1678, dwell=0,
+                pow_num=1, pow_sqrts=1)
+
+    def check(**over: int) -> int:
+        cfg = cimpl._Config(**{**good, **over})
+        return int(core.lib.bd_ctrl_config_check(ctypes.byref(cfg)))
+
+    assert check() == 0
+    assert check(kind=9) == 1
+    assert check(kts=-1) == 2 and check(hts=-1) == 2 and check(tsq=-1) == 2
+    assert check(band=-1) == 3
+    assert check(kind=4, pow_num=2, pow_sqrts=2) == 4 and check(kind=4, pow_sqrts=5) == 4

@@ -33,6 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fail-under", type=float, default=0.0, metavar="PCT",
                    help="exit 1 if a measured file's line coverage is below PCT")
     args = p.parse_args(argv)
+    if args.out:
+        args.out = args.out.resolve()   # gcovr runs in firmware_c/
     with tempfile.TemporaryDirectory(prefix="bessded-cov-") as tmp:
         build = Path(tmp)
         libs = [str(build / "libbessded.so"), str(build / "libbessded_core.so")]
