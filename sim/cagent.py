@@ -207,6 +207,23 @@ def load() -> Runtime:
     return _RUNTIME
 
 
+FAULTY_LIB_NAME = "libbessded_faulty.so"
+
+
+def load_faulty() -> Runtime:
+    """libbessded_faulty.so: the runtime whose CMAC primitive fails on demand
+    (firmware_c/tools/crypto_faulty.c), for tests of what a failed primitive does:
+    ``rt.lib.bd_test_cmac_fail_after(n)`` lets n more calls succeed, then fails every
+    one (-1: none fails)."""
+    lib_dir = os.environ.get(cimpl.LIB_DIR_ENV)
+    rt = Runtime(Path(lib_dir) / FAULTY_LIB_NAME if lib_dir else built(FAULTY_LIB_NAME))
+    rt.lib.bd_test_cmac_fail_after.restype = None
+    rt.lib.bd_test_cmac_fail_after.argtypes = [ctypes.c_int32]
+    rt.lib.bd_test_cmac_calls.restype = ctypes.c_uint32
+    rt.lib.bd_test_cmac_calls.argtypes = []
+    return rt
+
+
 NODE_NAME = "bessded-agent"
 RUNNER_NAME = "node_runner"
 

@@ -151,6 +151,13 @@ def test_c_and_python_agents_agree_on_random_traffic(variant: str, events: list[
     DLCs, remote/extended/FD frames (out-of-range values come with the forged ones), and
     gaps of up to 40 ticks. Every frame either sends, the counters, the state and λ
     agree at every tick."""
+    run_both(variant, PREAMBLE + events)
+
+
+def run_both(variant: str, events: list[tuple]) -> tuple[AgentRuntime, CAgent]:
+    """Both runtimes through the same events (EVENT's kinds; ("at", dt): the next frames
+    arrive dt after the last tick, which may go back in time), frames, counters, state
+    and λ compared at every tick."""
     py, c = _both(variant)
     if VARIANTS[variant][3]:   # every insecure sender runs at boot 1 with the public keys
         senders = {n: FleetSender() for n in LABELS}
@@ -166,7 +173,7 @@ def test_c_and_python_agents_agree_on_random_traffic(variant: str, events: list[
         py.on_frame(msg, t_rx)
         c.on_frame(msg, t_rx)
 
-    for ev in PREAMBLE + events:
+    for ev in events:
         kind = ev[0]
         if kind == "tick":
             n += ev[1]
@@ -177,6 +184,8 @@ def test_c_and_python_agents_agree_on_random_traffic(variant: str, events: list[
             assert c.counters == +py.counters, f"tick {n}: counters differ"
             assert c.state == py.state and c.lambda_q24 == py.lambda_q24
             t_rx = t + TS / 2
+        elif kind == "at":
+            t_rx = n * TS + ev[1]
         elif kind == "price":
             deliver(senders["router"].frame("ER_Price", {"PriceValid": int(ev[2]),
                                                          "Segment": ev[3], "Rho": ev[1]}))
@@ -206,6 +215,7 @@ def test_c_and_python_agents_agree_on_random_traffic(variant: str, events: list[
             deliver(can.Message(arbitration_id=fid, data=data, dlc=len(data), check=False,
                                 is_extended_id=bool(flags & 1), is_remote_frame=bool(flags & 2),
                                 is_fd=bool(flags & 4)))
+    return py, c
 
 
 # --------------------------------------------------------------------------- edges

@@ -23,7 +23,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 FIRMWARE = ROOT / "firmware_c"
-TESTS = ["tests/test_c_core.py", "tests/test_c_agent.py", "tests/test_c_config.py"]
+TESTS = ["tests/test_c_core.py", "tests/test_c_agent.py", "tests/test_c_edges.py",
+         "tests/test_c_config.py"]
 MEASURED = ("controller.c", "agent.c", "frames.c", "secoc.c", "config.c")
 
 
@@ -37,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
         args.out = args.out.resolve()   # gcovr runs in firmware_c/
     with tempfile.TemporaryDirectory(prefix="bessded-cov-") as tmp:
         build = Path(tmp)
-        libs = [str(build / "libbessded.so"), str(build / "libbessded_core.so")]
+        libs = [str(build / name) for name in ("libbessded.so", "libbessded_core.so",
+                                               "libbessded_faulty.so")]
         subprocess.run(["make", "-s", "-C", str(FIRMWARE), f"BUILD={build}",
                         "CFLAGS=-O0 --coverage", *libs], check=True)
         env = {**os.environ, "BESSDED_C_LIB_DIR": str(build)}

@@ -159,16 +159,6 @@ static int sync_index(uint32_t id)
     return -1;
 }
 
-static uint32_t sync_of(uint32_t id)
-{
-    for (int k = 0; k < BD_N_SYNC_IDS; ++k) {
-        if (bd_synced_by[k] == id) {
-            return bd_sync_ids[k];
-        }
-    }
-    return 0u;
-}
-
 /* ------------------------------------------------------------------ keys */
 
 static int starts_with(const char *s, const char *prefix)
@@ -297,17 +287,22 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     }
     /* inputs (RX-1): price, command, own status, neighbours' MC; each with its sender's key */
     uint32_t ids[BD_RX_MC0 + BD_MAX_NEIGHBOURS];
+    uint32_t sync_ids[BD_RX_MC0 + BD_MAX_NEIGHBOURS];   /* each input's <name>_Sync */
     ids[BD_RX_PRICE] = BD_ER_PRICE_ID;
+    sync_ids[BD_RX_PRICE] = BD_ER_PRICE_SYNC_ID;
     ids[BD_RX_COMMAND] = BD_ER_COMMAND_ID;
+    sync_ids[BD_RX_COMMAND] = BD_ER_COMMAND_SYNC_ID;
     ids[BD_RX_STATUS] = BD_STATUS_BASE + p->id;
+    sync_ids[BD_RX_STATUS] = BD_STATUS_SYNC_BASE + p->id;
     for (uint32_t j = 0u; j < p->n_neighbours; ++j) {
         ids[BD_RX_MC0 + j] = BD_MC_BASE + p->neighbour_id[j];
+        sync_ids[BD_RX_MC0 + j] = BD_MC_SYNC_BASE + p->neighbour_id[j];
     }
     a->n_rx = BD_RX_MC0 + p->n_neighbours;
     for (uint32_t r = 0u; r < a->n_rx; ++r) {
         bd_rx_slot *s = &a->rx[r];
         s->id = (uint16_t)ids[r];
-        s->sync_id = (uint16_t)sync_of(ids[r]);
+        s->sync_id = (uint16_t)sync_ids[r];
         int k = key_of(a, sender_of(ids[r]));
         if (k < 0) {
             return a->fatal != 0 ? a->fatal : BD_ERR_MISSING_KEY;
@@ -351,22 +346,17 @@ static void safety_reject(bd_agent *a, int cause, uint32_t safety_cause, uint32_
     reject(a, cause, id);
 }
 
-static int streak_cause(int cause)
-{
-    return cause == BD_C_CRC || cause == BD_C_DLC || cause == BD_C_RANGE
-           || cause == BD_C_COUNTER_JUMP || cause == BD_C_COUNTER_CLASH || cause == BD_C_AUTH;
-}
-
-/* RX-12: an E2E failure on `id` (an input's slot, or a sync ID's streak). */
+/* RX-13: an E2E failure (dlc, range, auth: each adds to the streak) on `id`, an
+ * input's slot or a sync ID's streak. */
 static void fail(bd_agent *a, bd_rx_slot *slot, uint32_t id, int cause, int64_t t)
 {
+    if (cause == BD_C_AUTH && a->fatal == BD_ERR_CRYPTO) {
+        return;   /* the primitive failed: nothing was verified, and the agent stops */
+    }
     reject(a, cause, id);
     if (cause == BD_C_AUTH) {
         a->last_safety_cause = BD_SAFETY_CAUSE_AUTH;
         a->last_safety_sender = id;
-    }
-    if (!streak_cause(cause)) {
-        return;
     }
     uint32_t streak = 0u;
     int s = -1;
@@ -450,10 +440,15 @@ static bd_rx_slot *slot_synced_by(bd_agent *a, uint32_t sync_id)
     return NULL;
 }
 
-static int verifies(bd_agent *a, uint32_t key_index, uint32_t id, const uint8_t d[8],
+/* 1 if the frame's MAC verifies under key; a failed primitive stops the agent. */
+static int verifies(bd_agent *a, const uint8_t *key, uint32_t id, const uint8_t d[8],
                     uint64_t fv)
 {
-    return bd_frame_verifies(a->key[key_index], id, d, fv);
+    int v = bd_frame_verifies(key, id, d, fv);
+    if (v < 0) {
+        a->fatal = BD_ERR_CRYPTO;
+    }
+    return v == 1;
 }
 
 /* AUTH-9..12: 1 if a decoded secured frame is authentic and fresh (and accepted). */
@@ -469,7 +464,7 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
     int found = 0;
     if (bd_fv_candidate(s->fv, counter, BD_FV_TX_BITS, FV_MAX, &fv) == 0) {
         for (; tries > 0u; --tries, fv += FV_WINDOW) {
-            if (verifies(a, s->key_index, f->id, f->data, fv)) {
+            if (verifies(a, a->key[s->key_index], f->id, f->data, fv)) {
                 found = 1;
                 break;
             }
@@ -506,7 +501,7 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
         return;
     }
     uint64_t fv = ((uint64_t)m.boot << BD_FV_COUNT_BITS) | m.count;
-    if (!verifies(a, s->key_index, f->id, f->data, fv)) {
+    if (!verifies(a, a->key[s->key_index], f->id, f->data, fv)) {
         fail(a, NULL, f->id, BD_C_AUTH, t);
         return;
     }
@@ -560,7 +555,7 @@ static int peer_sync(bd_agent *a, const bd_frame *f, int64_t t, int k)
     }
     uint64_t fv = ((uint64_t)m.boot << BD_FV_COUNT_BITS) | m.count;
     const uint8_t *kk = (key == -2) ? a->own_key : a->key[key];
-    if (!bd_frame_verifies(kk, f->id, f->data, fv)) {
+    if (!verifies(a, kk, f->id, f->data, fv)) {
         fail(a, NULL, f->id, BD_C_AUTH, t);
         return 1;
     }

@@ -29,7 +29,7 @@ static int kdf(const uint8_t master[BD_KEY_BYTES], const char *label, const char
     size_t nc = strlen(context);
     size_t k = 0u;
     if (nl + 1u > sizeof NODE_KEY_LABEL || nc > BD_LABEL_MAX || out_len > sizeof tag) {
-        return -1;
+        return -1;   /* the message would not fit m (a node label over BD_LABEL_MAX) */
     }
     put_be32(&m[k], 1u);
     k += 4u;
@@ -50,8 +50,7 @@ static int kdf(const uint8_t master[BD_KEY_BYTES], const char *label, const char
 int bd_derive_node_key(const uint8_t master[BD_KEY_BYTES], const char *label,
                        uint8_t out[BD_KEY_BYTES])
 {
-    size_t n = strlen(label);
-    if (n < 1u || n > BD_LABEL_MAX) {
+    if (label[0] == '\0') {
         return -1;
     }
     return kdf(master, NODE_KEY_LABEL, label, 8u * BD_KEY_BYTES, out, BD_KEY_BYTES);
@@ -93,7 +92,7 @@ int bd_frame_verifies(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id,
 {
     uint8_t tag[16];
     if (frame_tag(key, frame_id, data, fv, tag) != 0) {
-        return 0;
+        return -1;
     }
     unsigned diff = 0u;   /* no early exit: the time does not tell where they differ */
     for (unsigned k = 0u; k < 3u; ++k) {

@@ -41,8 +41,8 @@ int bd_sign_frame(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id, uint8_t da
                   uint64_t fv);
 
 /* 1 if data[0..2] is the MAC bd_sign_frame would write for (key, frame_id, data, fv),
- * else 0 (also when the primitive failed). The comparison does not stop at the first
- * differing byte. */
+ * 0 if it is not, -1 if the primitive failed (nothing can be verified: the caller
+ * stops). The comparison does not stop at the first differing byte. */
 int bd_frame_verifies(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id,
                       const uint8_t data[8], uint64_t fv);
 
