@@ -17,6 +17,7 @@ import math
 from collections import Counter, defaultdict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -85,6 +86,8 @@ class LogContents:
     forged: Counter[str] = field(default_factory=Counter)
     unverified: Counter[str] = field(default_factory=Counter)
     syncs: int = 0
+    # frames the capture received before an earlier-stamped one (read_log sorts them)
+    reordered: int = 0
 
     @property
     def start_recorded(self) -> bool:
@@ -113,10 +116,15 @@ def _cycle_s(name: str, ts: float) -> float:
 
 class _Monitor:
     """Checks the MAC and freshness of every secured frame with the run's keys, as a
-    receiver would (syncs included), but with a wide window: a recorder misses frames."""
+    receiver would (syncs included), but with a wide window: a recorder misses frames.
+    ``boot_floors`` (label → the lowest boot counter the sender may use in this
+    recording): a sync of an earlier boot is a replay even before the sender's genuine
+    sync is seen, the receiver-side state a node does not have (docs/security.md)."""
 
-    def __init__(self, keys: Mapping[str, bytes]) -> None:
+    def __init__(self, keys: Mapping[str, bytes],
+                 boot_floors: Mapping[str, int] | None = None) -> None:
         self.keys = keys
+        self.boot_floors = boot_floors or {}
         self.fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
 
     def _key(self, name: str) -> bytes | None:
@@ -126,7 +134,9 @@ class _Monitor:
         key = self._key(f.name)
         fv = f.raw["Boot"] << contract.FV_COUNT_BITS | f.raw["Count"]
         fid = contract.SYNCED_BY[f.frame_id]
-        if key is not None and frame_verifies(key, f.frame_id, data, fv):
+        floor = self.boot_floors.get(contract.sender_of(f.name.removesuffix("_Sync")), 0)
+        if key is not None and f.raw["Boot"] >= floor and frame_verifies(key, f.frame_id,
+                                                                         data, fv):
             last = self.fv.last(fid)
             if last is None or fv - 1 > last:
                 self.fv.accept(fid, fv - 1)
@@ -155,8 +165,8 @@ class _Forged(Exception):
 
 
 def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
-             ts: float | None = None, keys: Mapping[str, bytes] | None = None
-             ) -> LogContents:
+             ts: float | None = None, keys: Mapping[str, bytes] | None = None,
+             boot_floors: Mapping[str, int] | None = None) -> LogContents:
     """Decode every frame of a candump-format log (``can.LogReader``: any suffix it knows).
 
     ``n``: the run's fleet size, so frames of agents beyond it count as outside the run;
@@ -164,17 +174,25 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     cycles of a time-scaled run (the DBC's cycles are for Ts = 10 ms); ``keys``: the
     run's node keys (label → key), to leave out forged and replayed secured frames
     (``forged``) as every receiver does. Without them, secured frames are taken as
-    they are: a forgery on the bus then reads as the run's own data."""
+    they are: a forgery on the bus then reads as the run's own data. ``boot_floors``:
+    each node's lowest boot counter in this recording (``_Monitor``).
+
+    Frames are taken in the order of their timestamps, not of the file: a capture
+    socket can receive one sender's frames out of order (vcan on a multi-core host
+    queues each frame on the sending CPU, and a descheduled CPU delivers late), while
+    the kernel stamped them in the order they were sent; ``reordered`` counts them."""
     codec = codec or FrameCodec()
     out = LogContents()
-    monitor = _Monitor(keys) if keys else None
+    monitor = _Monitor(keys, boot_floors) if keys else None
     segment_raw: int | None = None
     segment = 0
     segment_mod = codec.raw_range("ER_Price", "Segment")[1] + 1
     silence = 3 * ts if ts else None
     cycles: dict[str, float] = {}
     t_prev: float | None = None
-    for msg in can.LogReader(str(path)):
+    captured = list(can.LogReader(str(path)))
+    out.reordered = sum(b.timestamp < a.timestamp for a, b in pairwise(captured))
+    for msg in sorted(captured, key=lambda m: m.timestamp):   # stable: ties keep file order
         out.frames += 1
         t = msg.timestamp
         out.t_end = max(out.t_end, t)

@@ -33,7 +33,7 @@ from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import FrameCodec
 from firmware_py.node import bus_kwargs, open_bus
 
-from .cli.keys import load_key_set, write_key_set
+from .cli.keys import load_boot_floors, load_key_set, write_key_set
 from .runreport import Recording, report
 from .scenario import Scenario, to_toml
 from .verdict import RunFacts
@@ -362,6 +362,12 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     key_dir = None if insecure else keys or provision_keys(sc, out / "keys")
     specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority, key_dir,
                        frozenset({dut}) if dut else frozenset(), c_agents, c_node)
+    # read before any node starts, for the nodes this run starts (not a device under
+    # test, whose key file is its own): a sync of an earlier boot is then a replay
+    # (--insecure senders always run at boot 1: no floor to know)
+    started = {s.name for s in specs}
+    boot_floors = (None if key_dir is None else
+                   {n: b for n, b in load_boot_floors(key_dir).items() if n in started})
     if on_ready is not None:
         on_ready(key_dir)
     for s in specs:
@@ -397,7 +403,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     facts = RunFacts(exit_codes=codes, deaths=deaths, node_counters=sim_node_counters(out),
                      interrupted=interrupted)
     return report(sc, out / "run.log", out, facts, plot=plot, time_scale=time_scale,
-                  codec=codec, keys=monitor_keys)
+                  codec=codec, keys=monitor_keys, boot_floors=boot_floors)
 
 
 def provision_keys(sc: Scenario, key_dir: Path) -> Path:

@@ -34,16 +34,18 @@ class Recording:
 
 def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = None,
            plot: bool = True, time_scale: float = 1.0,
-           codec: FrameCodec | None = None, keys: Mapping[str, bytes] | None = None
-           ) -> Recording:
+           codec: FrameCodec | None = None, keys: Mapping[str, bytes] | None = None,
+           boot_floors: Mapping[str, int] | None = None) -> Recording:
     """Decode ``log_path`` against the scenario ``sc`` (as it ran: variant chosen, time
     scale applied), judge it and write DIR/metrics.json, DIR/trajectory.csv and, with
     ``plot``, DIR/bus_run.png. ``time_scale`` only relabels the plot's time axis in
     scenario seconds. ``keys``: the run's node keys (label → key): forged and replayed
-    secured frames are then left out of the analysis and reported."""
+    secured frames are then left out of the analysis and reported; ``boot_floors``:
+    each node's lowest boot counter in the run (buslog._Monitor)."""
     facts = facts or RunFacts()
     out.mkdir(parents=True, exist_ok=True)
-    log = buslog.read_log(log_path, codec, n=sc.n, ts=sc.ts, keys=keys)
+    log = buslog.read_log(log_path, codec, n=sc.n, ts=sc.ts, keys=keys,
+                          boot_floors=boot_floors)
     tr = buslog.trajectory_from_log(sc, log) if log.t_first_price is not None else None
     m: dict[str, Any] = {"scenario": sc.name, "time_scale": time_scale}
     if tr is not None and tr.t.size:

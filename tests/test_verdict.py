@@ -349,3 +349,62 @@ def test_up_refuses_a_scenario_that_leaves_agents_unpinned(tmp_path: Path, capsy
     assert main(["up", "--case", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "agents 3, 4 cannot reach a pinned agent" in err
+
+
+def test_a_capture_received_out_of_order_is_judged_in_bus_order(
+        clean_run: tuple[Path, dict], tmp_path: Path) -> None:
+    """vcan on two CPUs can hand a capture socket one sender's frame after later ones
+    (the kernel stamped it when it was sent): every 50th AGENT_1_MC frame written three
+    frames late, timestamp kept. The analysis takes frames in timestamp order, so with
+    the run's keys nothing is forged, nothing is out of sequence, and the run is judged
+    as recorded in order; ``reordered`` says how many came late."""
+    from sim import buslog
+
+    held: list[can.Message] = []
+    seen = {"n": 0, "late": 0}
+
+    def edit(msg: can.Message) -> list[can.Message]:
+        if msg.arbitration_id != 0x101 or seen["n"] >= 903:
+            return [msg]
+        seen["n"] += 1
+        if seen["n"] % 50 == 0:
+            held.append(msg)
+            return []
+        if held and seen["n"] % 50 == 3:
+            seen["late"] += 1
+            return [msg, held.pop()]
+        return [msg]
+
+    log = rewrite(clean_run[0], tmp_path / "late.log", edit)
+    keys = clean_run[0].parent / "keys"
+    rc, m = analyze(log, tmp_path / "a", "--keys", str(keys))
+    assert rc == EXIT_OK, m["anomalies"]
+    assert m["final_error"] == clean_run[1]["final_error"]
+    assert seen["late"] == 18 and buslog.read_log(log).reordered == 18
+
+
+def test_a_replayed_sync_below_the_run_s_boot_floor_is_forged(tmp_path: Path) -> None:
+    """A receiver with no freshness state takes the first sync that verifies
+    (docs/security.md): a sync and a price replayed from the router's previous boot,
+    ahead of its genuine ones, pass a monitor without the run's boot floors. With them
+    (busrun.record reads them from the key files before the nodes start), the old sync
+    is forged and the old price never verifies; the genuine frames after them do."""
+    from firmware_py.nodeio import FleetSender
+    from sim import buslog
+
+    key = bytes(range(16))
+    old, new = (FleetSender(keys={"router": key}, boot=b) for b in (3, 4))
+    frames = [old.sync("ER_Price"),
+              old.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": 5 << 23}),
+              new.sync("ER_Price"),
+              new.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": 8 << 23})]
+    path = tmp_path / "replay.log"
+    with can.Logger(str(path)) as writer:
+        for t, f in enumerate(frames):
+            f.timestamp = 100.0 + 0.01 * t
+            writer.on_message_received(f)
+    blind = buslog.read_log(path, keys={"router": key})
+    assert not blind.forged and [v for _, v in blind.series[("price", "Rho")]] == [2.5, 4.0]
+    floored = buslog.read_log(path, keys={"router": key}, boot_floors={"router": 4})
+    assert floored.forged == {"ER_Price_Sync": 1} and floored.unverified == {"ER_Price": 1}
+    assert [v for _, v in floored.series[("price", "Rho")]] == [4.0]

@@ -108,6 +108,17 @@ def load_key_set(keys_dir: Path) -> dict[str, bytes]:
                                     if p.name != "master.key")}
 
 
+def load_boot_floors(keys_dir: Path) -> dict[str, int]:
+    """Every node's lowest boot counter at its next start (label -> the key file's
+    counter + 1: a start uses a new one, AUTH-3). Read before a run, it tells the
+    run's monitor that a sync of a lower boot is from an earlier start: a replay."""
+    from firmware_py import secoc
+
+    return {k.node: k.boot_counter + 1
+            for k in (secoc.load_node_key(p) for p in _key_files(keys_dir)
+                      if p.name != "master.key")}
+
+
 def run(args: argparse.Namespace) -> int:
     from firmware_py import secoc
 
