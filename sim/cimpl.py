@@ -80,7 +80,8 @@ def sources(source_dir: Path = SOURCE_DIR) -> list[Path]:
     """The files the library is built from (what the cache key hashes)."""
     root = source_dir.parent
     return [source_dir / "Makefile", *sorted((source_dir / "include").rglob("*.h")),
-            *sorted((source_dir / "src").glob("*.[ch]")), root / "tools" / "gen_c_contract.py",
+            *sorted((source_dir / "src").glob("*.[ch]")),
+            *sorted((source_dir / "tools").glob("*.c")), source_dir / "gen_contract.py",
             root / "dbc" / "bess_ded.dbc"]
 
 

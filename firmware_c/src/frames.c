@@ -64,7 +64,7 @@ int bd_decode_status(const uint8_t d[8], bd_status_msg *m)
 
 int bd_decode_sync(const uint8_t d[8], bd_sync_msg *m)
 {
-    /* every <name>_Sync has ER_Price_Sync's layout (tools/gen_c_contract.py) */
+    /* every <name>_Sync has ER_Price_Sync's layout (firmware_c/gen_contract.py) */
     struct bd_dbc_er_price_sync_t f;
     (void)bd_dbc_er_price_sync_unpack(&f, d, 8u);
     m->count = f.count;

@@ -1,7 +1,7 @@
 /*
  * The agent's frames as raw integers (GEN-1, section 7/8/10), over the pack/unpack code
  * cantools generates from the DBC (build/gen/bd_dbc.c). Every agent's frames share agent
- * 1's layout (tools/gen_c_contract.py checks it), so one packer serves every ID.
+ * 1's layout (firmware_c/gen_contract.py checks it), so one packer serves every ID.
  * Internal to the runtime.
  */
 #ifndef BESSDED_FRAMES_H

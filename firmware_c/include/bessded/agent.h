@@ -18,7 +18,7 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#include "bd_contract.h"   /* generated from the DBC (tools/gen_c_contract.py) */
+#include "bd_contract.h"   /* generated from the DBC (firmware_c/gen_contract.py) */
 #include "bessded/controller.h"
 #include "bessded/frame.h"
 #include "bessded/secoc.h"
