@@ -39,7 +39,8 @@ class Node(Protocol):
     def on_frame(self, msg: can.Message, t: float) -> None: ...
     def tick(self, t: float) -> Iterable[can.Message]: ...
     def note(self, event: str, count: int = 1) -> None:
-        """Count a runtime event: "deadline_miss", "send_failure" or "error_frame"."""
+        """Count a runtime event: "deadline_miss", "send_failure", "error_frame" or a
+        bus input that is not a frame (RX_CAUSES)."""
 
 
 class RxTxBus(Protocol):
@@ -222,6 +223,106 @@ class StopFlag:
 
 DRAIN_MAX = 256  # frames read per tick when late: bounded, so a flood cannot stop the ticks
 
+# What a bus can hand up instead of a frame, counted by the node under these causes:
+RX_CAUSES = (
+    "not_a_frame",    # bytes python-can cannot read as a message (udp_multicast: any datagram)
+    "invalid_frame",  # a message no CAN bus carries: ID beyond 11/29 bits, DLC > 8 on a
+                      # classic frame, data longer than its DLC, fields of the wrong type
+    "rx_error",       # the receive itself failed (socket error, interface down)
+)
+RX_LOG_FIRST = 5  # receive failures logged in full per cause, then every 1000th
+
+
+def rx_cause(e: BaseException) -> str:
+    """The RX_CAUSES entry of an exception raised by a python-can ``recv``.
+
+    udp_multicast unpacks each datagram with msgpack into ``can.Message(check=True)``
+    and raises CanOperationError from what failed: an error raised inside can.Message
+    (its check, or a field of the wrong type) is an impossible frame; any other (msgpack's,
+    or arguments that are not a message's) means the bytes are no message at all."""
+    inner = e.__cause__
+    if inner is None or not isinstance(e, can.CanOperationError):
+        return "rx_error"
+    tb = inner.__traceback__
+    while tb is not None:
+        if tb.tb_frame.f_code.co_filename == _MESSAGE_PY:
+            return "invalid_frame"
+        tb = tb.tb_next
+    return "not_a_frame"
+
+
+_MESSAGE_PY = can.message.__file__
+
+
+def frame_fault(msg: can.Message) -> str | None:
+    """Why ``msg`` cannot be a CAN frame, or None. python-can checks ranges, not types:
+    a float ID or a string flag in a udp_multicast datagram passes its check and would
+    break whatever formats or indexes with it."""
+    fid, data = msg.arbitration_id, msg.data
+    if type(fid) is not int or not isinstance(data, (bytes, bytearray)):
+        return f"expected an int ID and bytes, but got {type(fid).__name__} and " \
+               f"{type(data).__name__}"
+    flags = (msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame, msg.is_fd)
+    if not all(type(f) is bool for f in flags):
+        return f"expected boolean frame flags, but got {[type(f).__name__ for f in flags]}"
+    limit = 0x1FFFFFFF if msg.is_extended_id else 0x7FF
+    if not 0 <= fid <= limit:
+        return f"expected an ID in 0..0x{limit:X}, but got {fid:#x}"
+    if len(data) > (64 if msg.is_fd else 8):
+        return f"expected at most {64 if msg.is_fd else 8} data bytes, but got {len(data)}"
+    return None
+
+
+class GuardedBus:
+    """The bus as a node reads it: nothing it delivers ends the node. What python-can
+    raises from ``recv`` instead of a message, and messages whose fields no CAN frame
+    has (``frame_fault``), are counted through ``note(cause)`` under RX_CAUSES and
+    reading goes on within the same timeout, so the node keeps its schedule. A failing
+    receive (``rx_error``) waits out the rest of the timeout (at most ERROR_PAUSE_S)
+    instead of spinning on an interface that keeps failing."""
+
+    ERROR_PAUSE_S = 0.01
+    BURST_MAX = DRAIN_MAX  # bad datagrams read per call: recv(timeout=0) stays bounded
+
+    def __init__(self, bus: RxTxBus, note: Callable[[str], None],
+                 clock: Callable[[], float] = time.monotonic, who: str = "node") -> None:
+        self.bus, self.note, self.clock, self.who = bus, note, clock, who
+        self.counters: dict[str, int] = dict.fromkeys(RX_CAUSES, 0)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.bus.send(msg, timeout=timeout)
+
+    def _count(self, cause: str, reason: str) -> None:
+        self.counters[cause] += 1
+        self.note(cause)
+        n = self.counters[cause]
+        if n <= RX_LOG_FIRST or n % 1000 == 0:
+            log.warning("%s dropped a bus input (%s #%d): %s", self.who, cause, n, reason)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        end = None if timeout is None else self.clock() + timeout
+        for _ in range(self.BURST_MAX):
+            left = None if end is None else max(0.0, end - self.clock())
+            try:
+                msg = self.bus.recv(timeout=left)
+            except (can.CanError, OSError) as e:
+                cause = rx_cause(e)
+                self._count(cause, f"{e}" + (f": {e.__cause__}" if e.__cause__ else ""))
+                if cause == "rx_error":
+                    time.sleep(min(self.ERROR_PAUSE_S, left if left is not None else
+                                   self.ERROR_PAUSE_S))
+                    return None
+            else:
+                if msg is None:
+                    return None
+                fault = frame_fault(msg)
+                if fault is None:
+                    return msg
+                self._count("invalid_frame", fault)
+            if end is not None and self.clock() >= end and timeout != 0:
+                return None
+        return None
+
 
 def _deliver(node: Node, msg: can.Message | None, clock: Callable[[], float]) -> None:
     if msg is None:
@@ -241,6 +342,8 @@ def run_node(node: Node, bus: RxTxBus, *, duration: float | None = None,
     (``note("send_failure")``) and logged; they never end the loop.
     """
     stop = stop or StopFlag()
+    if not isinstance(bus, GuardedBus):
+        bus = GuardedBus(bus, node.note, clock)
     period = node.period
     start = clock()
     release = start

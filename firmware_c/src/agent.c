@@ -31,7 +31,7 @@ static const char *const counter_names[BD_C_COUNT] = {
     "untrusted_sources", "untrusted", "implausible_price", "implausible_lambda",
     "implausible_gains", "auth", "unsynced", "resyncs", "deadline_miss", "send_failure",
     "error_frame", "commands", "commands_isolate", "commands_reconnect",
-    "price_steps_accepted", "setpoint_limited"};
+    "price_steps_accepted", "setpoint_limited", "not_a_frame", "invalid_frame", "rx_error"};
 
 const char *bd_counter_name(int counter)
 {

@@ -1,7 +1,7 @@
 /*
  * The platform seam on Linux SocketCAN (platform.h): a raw CAN socket with the agent's
  * acceptance filter installed before it is bound (no gap for foreign frames, GEN-5),
- * error frames on, the monotonic clock, ppoll for the deadline, SIGINT/SIGTERM to stop.
+ * error frames and CAN FD frames on (to count them), the monotonic clock, ppoll for the deadline, SIGINT/SIGTERM to stop.
  */
 #define _GNU_SOURCE
 #include "linux_socketcan.h"
@@ -82,6 +82,10 @@ int bd_linux_open(bd_platform *plat, const char *ifname, const uint32_t *ids, si
     }
     can_err_mask_t errors = CAN_ERR_MASK;   /* error frames are counted (LOOP-4) */
     (void)setsockopt(fd, SOL_CAN_RAW, CAN_RAW_ERR_FILTER, &errors, sizeof errors);
+    /* CAN FD frames are read too, so that they are counted (malformed, RX-2) instead of
+     * being dropped unseen by the kernel; the node itself sends classic frames only */
+    int fd_frames = 1;
+    (void)setsockopt(fd, SOL_CAN_RAW, CAN_RAW_FD_FRAMES, &fd_frames, sizeof fd_frames);
     memset(&addr, 0, sizeof addr);
     addr.can_family = AF_CAN;
     addr.can_ifindex = ifr.ifr_ifindex;
@@ -123,17 +127,18 @@ int bd_platform_recv(bd_platform *plat, bd_frame *f, int64_t deadline_ns)
     if (r <= 0) {
         return (r < 0 && errno != EINTR) ? -1 : 0;
     }
-    struct can_frame cf;
+    struct canfd_frame cf;   /* a classic frame fills its first CAN_MTU bytes */
     ssize_t n = recv(plat->fd, &cf, sizeof cf, MSG_DONTWAIT);
-    if (n != (ssize_t)sizeof cf) {
-        return (n < 0 && errno != EAGAIN && errno != EINTR) ? -1 : 0;
+    if (n != (ssize_t)CAN_MTU && n != (ssize_t)CANFD_MTU) {
+        return (n < 0 && (errno == EAGAIN || errno == EINTR)) ? 0 : -1;
     }
     memset(f, 0, sizeof *f);
     f->flags = (uint8_t)(((cf.can_id & CAN_EFF_FLAG) != 0u ? BD_FRAME_EXT : 0u)
                          | ((cf.can_id & CAN_RTR_FLAG) != 0u ? BD_FRAME_RTR : 0u)
-                         | ((cf.can_id & CAN_ERR_FLAG) != 0u ? BD_FRAME_ERR : 0u));
+                         | ((cf.can_id & CAN_ERR_FLAG) != 0u ? BD_FRAME_ERR : 0u)
+                         | (n == (ssize_t)CANFD_MTU ? BD_FRAME_FD : 0u));
     f->id = cf.can_id & ((cf.can_id & CAN_EFF_FLAG) != 0u ? CAN_EFF_MASK : CAN_SFF_MASK);
-    f->len = cf.can_dlc <= 8u ? cf.can_dlc : 8u;
+    f->len = cf.len <= 8u ? cf.len : 8u;   /* bd_frame holds 8: an FD frame is dropped anyway */
     memcpy(f->data, cf.data, f->len);
     plat->received++;
     return 1;

@@ -15,6 +15,19 @@ static void deliver(bd_agent *a, bd_platform *plat, const bd_frame *f)
     }
 }
 
+/* One receive: 1 if a frame was delivered, -1 after a receive error (counted as rx_error,
+ * LOOP-6: the loop goes on), 0 if nothing came. */
+static int receive(bd_agent *a, bd_platform *plat, bd_frame *f, int64_t deadline_ns)
+{
+    int r = bd_platform_recv(plat, f, deadline_ns);
+    if (r == 1) {
+        deliver(a, plat, f);
+    } else if (r < 0) {
+        bd_agent_note(a, BD_C_RX_ERROR, 1u);
+    }
+    return r;
+}
+
 int bd_node_run(bd_agent *a, bd_platform *plat, int64_t duration_ns)
 {
     const int64_t period = a->p.period_ns;
@@ -31,16 +44,13 @@ int bd_node_run(bd_agent *a, bd_platform *plat, int64_t duration_ns)
         if (now < release) {
             /* wake at least every 50 ms to notice a stop request */
             int64_t until = release - now > 50000000 ? now + 50000000 : release;
-            if (bd_platform_recv(plat, &f, until) == 1) {
-                deliver(a, plat, &f);
-            }
+            receive(a, plat, &f, until);
             continue;
         }
         for (int k = 0; k < BD_DRAIN_MAX; ++k) {   /* LOOP-3: what is already queued */
-            if (bd_platform_recv(plat, &f, now) != 1) {
+            if (receive(a, plat, &f, now) != 1) {
                 break;
             }
-            deliver(a, plat, &f);
         }
         int64_t late = now - release;
         if (late > period / 2) {   /* LOOP-2: a miss, and every whole period skipped */

@@ -105,6 +105,7 @@ enum {
     BD_C_AUTH, BD_C_UNSYNCED, BD_C_RESYNCS, BD_C_DEADLINE_MISS, BD_C_SEND_FAILURE,
     BD_C_ERROR_FRAME, BD_C_COMMANDS, BD_C_COMMANDS_ISOLATE, BD_C_COMMANDS_RECONNECT,
     BD_C_PRICE_STEPS_ACCEPTED, BD_C_SETPOINT_LIMITED,
+    BD_C_NOT_A_FRAME, BD_C_INVALID_FRAME, BD_C_RX_ERROR,   /* the bus's inputs (LOOP-6) */
     BD_C_COUNT
 };
 
@@ -221,7 +222,8 @@ void bd_agent_rx(bd_agent *a, const bd_frame *f, int64_t t_ns);
  * returns how many (at most BD_TICK_FRAMES_MAX). */
 size_t bd_agent_tick(bd_agent *a, int64_t t_ns, bd_frame *out, size_t max);
 
-/* A runtime event of the loop: BD_C_DEADLINE_MISS, BD_C_SEND_FAILURE, BD_C_ERROR_FRAME. */
+/* A runtime event of the loop: BD_C_DEADLINE_MISS, BD_C_SEND_FAILURE, BD_C_ERROR_FRAME,
+ * BD_C_NOT_A_FRAME, BD_C_INVALID_FRAME, BD_C_RX_ERROR. */
 void bd_agent_note(bd_agent *a, int counter, uint32_t n);
 
 /* The IDs an acceptance filter must pass (firmware_py NodeIO.accepted_ids), sorted;
