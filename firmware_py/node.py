@@ -86,8 +86,10 @@ def bus_kwargs(interface: str | None = None, channel: str | None = None,
         kw.setdefault("channel", "bess-ded")
     if interface == "virtual":
         kw.setdefault("receive_own_messages", False)
-    if interface == "udp_multicast":
-        kw.setdefault("fd", False)  # classic CAN only
+    if interface in ("udp_multicast", "socketcan"):
+        # CAN FD frames are read, not dropped unseen by python-can or the kernel: every node
+        # rejects and counts them (malformed, RX-2) and sends classic frames only
+        kw.setdefault("fd", True)
     return kw
 
 
@@ -266,7 +268,7 @@ def frame_fault(msg: can.Message) -> str | None:
     if not all(type(f) is bool for f in flags):
         return f"expected boolean frame flags, but got {[type(f).__name__ for f in flags]}"
     limit = 0x1FFFFFFF if msg.is_extended_id else 0x7FF
-    if not 0 <= fid <= limit:
+    if not msg.is_error_frame and not 0 <= fid <= limit:  # an error frame's ID: its class
         return f"expected an ID in 0..0x{limit:X}, but got {fid:#x}"
     if len(data) > (64 if msg.is_fd else 8):
         return f"expected at most {64 if msg.is_fd else 8} data bytes, but got {len(data)}"

@@ -31,7 +31,7 @@ from firmware_py import contract, secoc
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import FrameCodec
-from firmware_py.node import bus_kwargs, open_bus
+from firmware_py.node import GuardedBus, bus_kwargs, open_bus
 
 from .cli.keys import load_boot_floors, load_key_set, write_key_set
 from .runreport import Recording, report
@@ -379,7 +379,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     enlarge_receive_buffer(watch)
     writer = _Until(can.Logger(str(out / "run.log")))
     progress = Progress(codec, sc.n)
-    notifier = can.Notifier(watch, [writer, progress])
+    notifier = Recorder(watch, [writer, progress])
     deaths: list[tuple[str, float, int]] = []
     interrupted = False
     try:
@@ -401,7 +401,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
         writer.stop()
         watch.shutdown()
     facts = RunFacts(exit_codes=codes, deaths=deaths, node_counters=sim_node_counters(out),
-                     interrupted=interrupted)
+                     interrupted=interrupted, recorder_counters=notifier.counters())
     return report(sc, out / "run.log", out, facts, plot=plot, time_scale=time_scale,
                   codec=codec, keys=monitor_keys, boot_floors=boot_floors)
 
@@ -414,6 +414,35 @@ def provision_keys(sc: Scenario, key_dir: Path) -> Path:
     key_dir.mkdir(mode=0o700, parents=True)
     write_key_set(sc, key_dir, secrets.token_bytes(secoc.KEY_BYTES))
     return key_dir
+
+
+class Recorder:
+    """The recorder's receive thread (in place of can.Notifier, which ends at the first
+    exception python-can raises from recv): every frame goes to ``listeners``; what the
+    bus delivers that is not a frame is counted by cause (GuardedBus, ``counters``) and
+    the recording goes on."""
+
+    def __init__(self, bus: can.BusABC, listeners: Sequence[can.Listener]) -> None:
+        self.bus = GuardedBus(bus, lambda cause: None, who="recorder")
+        self.listeners = list(listeners)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(timeout=0.1)
+            if msg is not None:
+                for listener in self.listeners:
+                    listener.on_message_received(msg)
+
+    def counters(self) -> dict[str, int]:
+        """The inputs dropped so far, by cause (only those that occurred)."""
+        return {k: v for k, v in self.bus.counters.items() if v}
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
 
 
 class _Until(can.Listener):

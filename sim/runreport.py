@@ -70,6 +70,7 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
         "start_recorded": log.start_recorded,
         "node_diagnostics": diag,
         "node_counters": sim_nodes,
+        "recorder_counters": facts.recorder_counters or {},
         "deadline_misses": {k: misses for k, (misses, _) in deadlines.items()},
         "node_ticks": {k: ticks for k, (_, ticks) in deadlines.items()},
         "exit_codes": facts.exit_codes or {},

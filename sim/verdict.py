@@ -70,6 +70,12 @@ _SIM_FAULT_COUNTERS = (
     ("range", "rejected_frames", "frames with a value out of range"),
     ("unknown_id", "rejected_frames", "frames with an ID outside the DBC"),
     ("malformed", "rejected_frames", "remote, error or FD frames"),
+    ("not_a_frame", "malformed_frames", "bus inputs that are not CAN messages at all (e.g. a "
+     "stray UDP datagram on the run's port)"),
+    ("invalid_frame", "malformed_frames", "messages no CAN bus can carry (an ID beyond 11/29 "
+     "bits, DLC > 8 on a classic frame, data longer than the DLC, fields of the wrong type)"),
+    ("rx_error", "receive_error", "failed receives (socket error, interface down)"),
+    ("error_frame", "bus_errors", "CAN error frames"),
     ("repeated_counter", "stale_frames", "frames repeating the last counter (stale data)"),
     ("send_failure", "send_failure", "frames it failed to send"),
     ("untrusted_sources", "untrusted_source", "untrusted-source alarms (a source ID with 5 "
@@ -126,6 +132,7 @@ class RunFacts:
     exit_codes: dict[str, int | None] | None = None
     deaths: list[tuple[str, float, int]] | None = None   # (node, s after t0, exit code)
     node_counters: dict[str, Any] | None = None          # plant/router counters JSON
+    recorder_counters: dict[str, int] | None = None      # bus inputs it dropped, by cause
     interrupted: bool = False
 
 
@@ -306,6 +313,11 @@ def _counters(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly
         for key, kind, what in _SIM_FAULT_COUNTERS:
             if counters.get(key, 0):
                 out.append(Anomaly(kind, node, f"{counters[key]} {what}"))
+    recorder = facts.recorder_counters or {}
+    for key, kind, what in _SIM_FAULT_COUNTERS:
+        if recorder.get(key, 0):
+            out.append(Anomaly(kind, "recorder", f"{recorder[key]} {what}, heard on the bus "
+                               "and left out of the recording"))
     for node, (misses, ticks) in node_deadlines(log, facts.node_counters).items():
         if misses and misses > DEADLINE_MISS_FRACTION * max(ticks, 1):
             out.append(Anomaly("deadline_misses", node, f"{misses} deadline misses in {ticks} "

@@ -34,17 +34,19 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from firmware_py.node import StopFlag, bus_kwargs, open_bus
+    from firmware_py.node import GuardedBus, StopFlag, bus_kwargs, open_bus
 
     from ..busrun import enlarge_receive_buffer
 
     kw = {**bus_kwargs(args.interface, args.channel, args.bus_config),
           "receive_own_messages": False}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    bus = open_bus(**kw)
+    raw = open_bus(**kw)
     stop = StopFlag()
     stop.install_signal_handlers()
-    enlarge_receive_buffer(bus)
+    enlarge_receive_buffer(raw)
+    # what the bus delivers that is not a frame is counted and left out, never the end
+    bus = GuardedBus(raw, lambda cause: None, who="bess-ded record")
     writer = can.Logger(str(args.out))
     frames = 0
     tty = sys.stderr.isatty()
@@ -71,7 +73,11 @@ def run(args: argparse.Namespace) -> int:
             frames += 1
     finally:
         writer.stop()
-        bus.shutdown()
+        raw.shutdown()
     print(("\n" if tty else "") + f"bess-ded record: {frames} frames in "
           f"{time.monotonic() - start:.1f} s to {args.out}", file=sys.stderr)
+    dropped = {k: v for k, v in bus.counters.items() if v}
+    if dropped:
+        print("bess-ded record: anomaly: " + ", ".join(f"{v} {k}" for k, v in dropped.items())
+              + " (bus inputs that are not CAN frames, left out of the log)", file=sys.stderr)
     return 0

@@ -24,6 +24,7 @@ import can
 from firmware_py import secoc
 from firmware_py.errors import BessDedError
 from firmware_py.frames import FrameCodec
+from firmware_py.node import GuardedBus
 
 from .. import busrun
 from ..scenario import Scenario, load_scenario, scaled, to_toml
@@ -359,8 +360,8 @@ class SimFleet:
         self._k += 1
         self._t = t
         for name, node in self.nodes.items():
-            bus = self._buses[name]
-            while (msg := bus.recv(timeout=0)) is not None:
+            guarded = GuardedBus(self._buses[name], node.note, who=name)  # as run_node reads
+            while (msg := guarded.recv(timeout=0)) is not None:
                 node.on_frame(msg, t)
         for name, node in self.nodes.items():
             bus = self._buses[name]

@@ -28,6 +28,7 @@ import can
 from firmware_py import contract, secoc
 from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import DecodedFrame, FrameCodec, diag_name
+from firmware_py.node import GuardedBus, frame_fault, rx_cause
 from firmware_py.nodeio import SYNC_S, FleetSender
 
 from ..buslog import _Forged, _Monitor
@@ -306,20 +307,30 @@ class Tester:
             def on_message_received(self, msg: can.Message) -> None:
                 tester.on_frame(msg)
 
-            def on_error(self, exc: Exception) -> None:  # keep reading: count it
-                with tester._cond:
-                    tester.rejected["bus_error"] += 1
-                    tester.last_rejection["bus_error"] = str(exc)
+            def on_error(self, exc: Exception) -> None:  # keep reading: count it by cause
+                tester._bus_input(rx_cause(exc), f"{exc}: {exc.__cause__}")
 
         return _L()
 
+    def _bus_input(self, cause: str, reason: str) -> None:
+        """Something the bus delivered that is not a frame (node.RX_CAUSES): counted."""
+        with self._cond:
+            self.rejected[cause] += 1
+            self.last_rejection[cause] = reason
+            self._cond.notify_all()
+
     def pump(self) -> None:
         """Read what the bus holds now (the simulated clock calls it after each step)."""
-        while (msg := self.bus.recv(timeout=0)) is not None:
+        bus = GuardedBus(self.bus, lambda cause: self._bus_input(cause, "a bus input that "
+                         "is not a frame (logged)"), who="tester")
+        while (msg := bus.recv(timeout=0)) is not None:
             self.on_frame(msg)
 
     def on_frame(self, msg: can.Message) -> None:
         """Check one received frame: keep it for ``expect`` or count its rejection."""
+        if (fault := frame_fault(msg)) is not None:  # e.g. a float ID: not even a frame
+            self._bus_input("invalid_frame", fault)
+            return
         fid = msg.arbitration_id
         data = bytes(msg.data)
         with self._cond:
