@@ -12,8 +12,11 @@ from __future__ import annotations
 import random
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
 
 import can
+import msgpack
 
 from firmware_py import fixedpoint as fx
 from firmware_py.contract import COUNTER_MODULO, State
@@ -83,3 +86,131 @@ def send(bus: can.BusABC, kind: str, count: int, target: int = 1, rate: float = 
         if delay > 0:
             time.sleep(delay)
     return sent
+
+
+# --------------------------------------------------------------------------- transport fuzz
+
+FUZZ_SHARES = (("bytes", 0.30), ("fields", 0.25), ("exotic", 0.15), ("mutated", 0.30))
+
+
+@dataclass(frozen=True)
+class FuzzInput:
+    """One fuzz input for udp_multicast: the datagram, and what every receiver must make
+    of it: ``not_a_frame`` or ``invalid_frame`` (dropped and counted under that cause by
+    firmware_py.node.GuardedBus), or ``frame``: a CAN frame (``msg``), which the nodes
+    reject by its own cause (unknown_id, malformed, error_frame, crc, dlc, auth, ...)."""
+
+    label: str
+    datagram: bytes
+    msg: can.Message | None = None
+
+
+def _fields(rng: random.Random) -> dict[str, Any]:
+    """A python-can message's fields of which one is impossible (Message's check, or a
+    wrong type): the receiver's python-can raises, or its GuardedBus refuses it."""
+    f: dict[str, Any] = {"timestamp": 0.0, "arbitration_id": rng.randint(0, 0x7FF),
+                         "is_extended_id": False, "is_remote_frame": False,
+                         "is_error_frame": False, "channel": None, "dlc": 8,
+                         "data": rng.randbytes(8), "is_fd": False, "bitrate_switch": False,
+                         "error_state_indicator": False}
+    how = rng.randrange(12)
+    if how == 0:    # a standard frame's ID beyond 11 bits (the issue's 0x800)
+        f["arbitration_id"] = rng.randint(0x800, 0x1FFFFFFF)
+    elif how == 1:  # an extended ID beyond 29 bits
+        f.update(is_extended_id=True, arbitration_id=rng.randint(1 << 29, (1 << 32) - 1))
+    elif how == 2:
+        f["arbitration_id"] = -rng.randint(1, 1 << 20)
+    elif how == 3:  # DLC > 8 on a classic frame
+        n = rng.randint(9, 64)
+        f.update(dlc=n, data=rng.randbytes(n))
+    elif how == 4:  # data longer than its DLC
+        f["dlc"] = rng.randint(0, 7)
+    elif how == 5:  # a CAN FD remote frame
+        f.update(is_remote_frame=True, is_fd=True, data=b"", dlc=0)
+    elif how == 6:  # bit-rate switch on a classic frame
+        f["bitrate_switch"] = True
+    elif how == 7:  # a float ID: passes python-can's check, refused by GuardedBus
+        f["arbitration_id"] = rng.randint(0, 0x7FF) + 0.5
+    elif how == 8:
+        f["arbitration_id"] = f"{rng.randint(0, 0x7FF):x}"
+    elif how == 9:  # a flag of the wrong type
+        f["is_extended_id"] = rng.choice(["no", 2, [0]])
+    elif how == 10:  # data bytes out of range
+        f["data"] = [rng.randint(256, 1000)] * 8
+    else:  # a negative DLC
+        f["dlc"] = -rng.randint(1, 8)
+    return f
+
+
+def _exotic(rng: random.Random, codec: FrameCodec) -> can.Message:
+    """A CAN frame a classic 11-bit node must reject: extended ID, remote, FD, error
+    frame, or a classic frame on an ID the DBC does not define."""
+    how = rng.randrange(5)
+    if how == 0:
+        return can.Message(arbitration_id=rng.randint(0, 0x1FFFFFFF), is_extended_id=True,
+                           data=rng.randbytes(rng.randint(0, 8)))
+    if how == 1:
+        return can.Message(arbitration_id=rng.choice(sorted(codec.frame_ids())),
+                           is_extended_id=False, is_remote_frame=True, dlc=rng.randint(0, 8))
+    if how == 2:
+        n = rng.choice([0, 8, 12, 16, 20, 24, 32, 48, 64])
+        return can.Message(arbitration_id=rng.choice(sorted(codec.frame_ids())),
+                           is_extended_id=False, is_fd=True, bitrate_switch=rng.random() < 0.5,
+                           data=rng.randbytes(n))
+    if how == 3:
+        # python-can's error frame: the error class in the ID (socketcan strips the flag)
+        return can.Message(arbitration_id=rng.randint(1, 0x3FF), is_error_frame=True,
+                           data=rng.randbytes(8))
+    known = codec.frame_ids()
+    fid = rng.randint(0, 0x7FF)
+    while fid in known:
+        fid = rng.randint(0, 0x7FF)
+    return can.Message(arbitration_id=fid, is_extended_id=False,
+                       data=rng.randbytes(rng.randint(0, 8)))
+
+
+def mutate(rng: random.Random, real: can.Message) -> can.Message:
+    """A copy of a real frame changed in one way, never left equal to it: one data bit
+    flipped (bad CRC or MAC), its length changed (bad DLC), or made extended, remote or
+    FD."""
+    data = bytearray(real.data)
+    how = rng.randrange(6)
+    fid = real.arbitration_id
+    if how <= 2 and data:
+        bit = rng.randrange(8 * len(data))
+        data[bit // 8] ^= 1 << bit % 8
+        return can.Message(arbitration_id=fid, is_extended_id=False, data=data)
+    if how == 3:
+        n = rng.choice([k for k in range(9) if k != len(data)])
+        data = (data + rng.randbytes(8))[:n]
+        return can.Message(arbitration_id=fid, is_extended_id=False, data=data)
+    if how == 4:
+        return can.Message(arbitration_id=fid, is_extended_id=True, data=data)
+    if how == 5 and rng.random() < 0.5:
+        return can.Message(arbitration_id=fid, is_extended_id=False, is_remote_frame=True,
+                           dlc=len(data))
+    return can.Message(arbitration_id=fid, is_extended_id=False, is_fd=True, data=data)
+
+
+def fuzz_inputs(count: int, seed: int, real: list[can.Message],
+                codec: FrameCodec | None = None) -> list[FuzzInput]:
+    """``count`` seeded fuzz inputs for a udp_multicast bus, in FUZZ_SHARES (shuffled):
+    random bytes, python-can messages with an impossible field, exotic CAN frames, and
+    mutated copies of ``real`` frames (recorded from the fleet)."""
+    from can.interfaces.udp_multicast.utils import pack_message
+
+    codec = codec or FrameCodec()
+    rng = random.Random(seed)
+    out: list[FuzzInput] = []
+    for kind, share in FUZZ_SHARES:
+        for _ in range(round(share * count)):
+            if kind == "bytes":  # ≥ 2 bytes: no lone msgpack value that could be a message
+                out.append(FuzzInput("not_a_frame", rng.randbytes(rng.randint(2, 96))))
+            elif kind == "fields":
+                out.append(FuzzInput("invalid_frame", msgpack.packb(_fields(rng),
+                                                                    use_bin_type=True)))
+            else:
+                m = _exotic(rng, codec) if kind == "exotic" else mutate(rng, rng.choice(real))
+                out.append(FuzzInput("frame", pack_message(m), m))
+    rng.shuffle(out)
+    return out
