@@ -287,8 +287,9 @@ class GuardedBus:
     BURST_MAX = DRAIN_MAX  # bad datagrams read per call: recv(timeout=0) stays bounded
 
     def __init__(self, bus: RxTxBus, note: Callable[[str], None],
-                 clock: Callable[[], float] = time.monotonic, who: str = "node") -> None:
-        self.bus, self.note, self.clock, self.who = bus, note, clock, who
+                 clock: Callable[[], float] = time.monotonic, who: str = "node",
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        self.bus, self.note, self.clock, self.who, self.sleep = bus, note, clock, who, sleep
         self.counters: dict[str, int] = dict.fromkeys(RX_CAUSES, 0)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
@@ -311,7 +312,7 @@ class GuardedBus:
                 cause = rx_cause(e)
                 self._count(cause, f"{e}" + (f": {e.__cause__}" if e.__cause__ else ""))
                 if cause == "rx_error":
-                    time.sleep(min(self.ERROR_PAUSE_S, left if left is not None else
+                    self.sleep(min(self.ERROR_PAUSE_S, left if left is not None else
                                    self.ERROR_PAUSE_S))
                     return None
             else:

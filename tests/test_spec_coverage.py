@@ -707,6 +707,81 @@ def test_failed_sends_and_bad_frames_are_counted_and_the_loop_goes_on() -> None:
     assert agent.state == State.RUNNING
 
 
+class RaisingBus(FakeBus):
+    """A FakeBus whose scheduled items may be exceptions: recv raises them at their time,
+    as python-can does for a datagram it cannot read; from ``failing`` on, every recv
+    fails at once (an interface down), with no time passing."""
+
+    def __init__(self, clock: Clock, items: list[tuple[float, Any]],
+                 failing: tuple[float, float] = (1.0, 1.0)) -> None:
+        super().__init__(clock, items)
+        self.failing = failing
+        self.calls = 0
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        self.calls += 1
+        if self.failing[0] <= self.clock.t < self.failing[1]:
+            raise can.CanOperationError("Failed to wait for IP/UDP socket: [Errno 9]")
+        if self.queue and isinstance(self.queue[0][1], BaseException):
+            assert timeout is not None
+            if self.queue[0][0] <= self.clock.t + timeout:
+                t, exc = self.queue.pop(0)
+                self.clock.t = max(self.clock.t, t)
+                raise exc
+        return super().recv(timeout)
+
+
+def unreadable(data: bytes) -> can.CanOperationError:
+    """What python-can's udp_multicast raises for ``data`` (its own unpacking)."""
+    from can.interfaces.udp_multicast.utils import unpack_message
+
+    try:
+        unpack_message(data, replace={"timestamp": 0.0}, check=True)
+    except Exception as e:
+        err = can.CanOperationError("could not unpack received message")
+        err.__cause__ = e
+        return err
+    raise AssertionError(f"{data!r} unpacks")
+
+
+def test_inputs_that_are_not_frames_are_counted_and_the_loop_keeps_its_schedule() -> None:
+    """LOOP-6: a datagram that is no message (not_a_frame), a message no CAN bus carries
+    (invalid_frame: an 11-bit frame with ID 0x800, a float ID that python-can's own check
+    lets pass) and failing receives (rx_error) are counted, the frames between them are
+    handled, and every release is kept (no miss). A receive that keeps failing pauses
+    (GuardedBus.sleep) instead of spinning: at most one failed recv per pause."""
+    import msgpack
+    from can.interfaces.udp_multicast.utils import pack_message
+
+    from firmware_py.node import GuardedBus
+
+    cfg = agent_configs_from_scenario(load_case(1))[1]
+    agent = AgentRuntime(cfg, CODEC)
+    clock = Clock()
+    wide = can.Message(arbitration_id=0x800, is_extended_id=False, data=bytes(8),
+                       check=False)
+    items: list[tuple[float, Any]] = [
+        (0.0, status_frame(2)), (0.001, unreadable(bytes(13))),
+        (0.002, unreadable(pack_message(wide))),
+        (0.003, can.Message(arbitration_id=0x10, is_extended_id=False, data=bytes(8))),
+        (0.004, unreadable(msgpack.packb([1, 2, 3]))), (0.005, price_frame(0.8))]
+    items[3][1].arbitration_id = 16.5   # a float ID in a datagram passes python-can
+    bus = RaisingBus(clock, items, failing=(0.052, 0.071))
+    pauses: list[float] = []
+
+    def sleep(s: float) -> None:
+        pauses.append(s)
+        clock.t += s
+
+    guarded = GuardedBus(bus, agent.note, clock, sleep=sleep)
+    run_node(agent, guarded, duration=0.1 - 1e-9, clock=clock)
+    assert (agent.counters["not_a_frame"], agent.counters["invalid_frame"]) == (2, 2)
+    assert agent.counters["rx_error"] == len(pauses) >= 2
+    assert sum(pauses) == pytest.approx(0.071 - 0.052, abs=T)
+    assert agent.ticks == 10 and agent.counters["deadline_miss"] == 0
+    assert agent.price is not None and agent.state == State.RUNNING   # the frames got in
+
+
 # --------------------------------------------------------------------------- peer syncs
 
 
