@@ -595,6 +595,10 @@ def _check_alive(specs: list[NodeSpec], logdir: Path) -> None:
                               f"run started:\n{tail}")
 
 
+def _note(nodes: list[Any], i: int, cause: str) -> None:
+    nodes[i].note(cause)
+
+
 def in_process_nodes(sc: Scenario, codec: FrameCodec, rings: Mapping[str, secoc.Keyring],
                      plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = ()
                      ) -> dict[str, Callable[[], Any]]:
@@ -680,6 +684,10 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
                           "receive_own_messages": False, "preserve_timestamps": True}
     buses = [can.Bus(**kw) for _ in nodes]
     watch = can.Bus(**kw)
+    recorder = GuardedBus(watch, lambda cause: None, who="recorder")
+    # what each node reads, as run_node reads it (the node at index i, restarts included)
+    guards = [GuardedBus(bus, functools.partial(_note, nodes, i), who=name)
+              for i, (bus, name) in enumerate(zip(buses, names, strict=True))]
     attacker = can.Bus(**kw) if inject is not None else None
     writer = can.Logger(str(out / "run.log"))
     try:
@@ -694,8 +702,8 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
                         alive[i] = False
                     elif t >= t_up - eps and t - sc.ts < t_up - eps:
                         nodes[i] = factories[name]()  # restarted: a fresh process
-            for node, bus, up in zip(nodes, buses, alive, strict=True):
-                while (msg := bus.recv(timeout=0)) is not None:
+            for node, guarded, up in zip(nodes, guards, alive, strict=True):
+                while (msg := guarded.recv(timeout=0)) is not None:  # as run_node reads
                     if up:
                         node.on_frame(msg, t)
             for node, bus, up in zip(nodes, buses, alive, strict=True):
@@ -709,7 +717,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
                 for frame in inject(t):
                     frame.timestamp = t
                     attacker.send(frame)
-            while (msg := watch.recv(timeout=0)) is not None:
+            while (msg := recorder.recv(timeout=0)) is not None:
                 writer.on_message_received(msg)
     finally:
         writer.stop()
@@ -717,7 +725,9 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
             bus.shutdown()
     counters = {role: {"ticks": node.ticks, "counters": dict(node.counters)}
                 for role, node in zip(SIM_NODES, nodes[-2:], strict=True)}
-    m = report(sc, out / "run.log", out, RunFacts(node_counters=counters), plot=False,
-               codec=codec, keys={n: r.key for n, r in rings.items()}).metrics
+    dropped = {k: v for k, v in recorder.counters.items() if v}
+    m = report(sc, out / "run.log", out, RunFacts(node_counters=counters,
+                                                  recorder_counters=dropped),
+               plot=False, codec=codec, keys={n: r.key for n, r in rings.items()}).metrics
     m["node_summaries"] = [n.summary() for n in nodes]
     return m

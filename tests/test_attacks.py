@@ -246,3 +246,40 @@ def test_100000_random_forged_frames_on_every_dispatch_id_none_accepted() -> Non
             msg = can.Message(arbitration_id=fid, is_extended_id=False, data=rng.randbytes(8))
             assert io.receive(msg, 0.0) is None
         assert io.counters["auth"] + io.counters["range"] - before == 100_000
+
+
+def impossible_messages(t: float) -> list[can.Message]:
+    """Per tick from ATTACK_FROM_S: three messages no CAN bus carries, as a udp_multicast
+    datagram can hand them to python-can — ID 0x800 on a standard frame, 12 data bytes on
+    a classic frame, and a float ID (python-can's own check lets that one pass)."""
+    if t < ATTACK_FROM_S:
+        return []
+    floating = can.Message(arbitration_id=0x10, is_extended_id=False, data=bytes(8))
+    floating.arbitration_id = 16.5  # type: ignore[assignment]
+    return [can.Message(arbitration_id=0x800, is_extended_id=False, data=bytes(8),
+                        check=False),
+            can.Message(arbitration_id=0x10, is_extended_id=False, data=bytes(12),
+                        check=False),
+            floating]
+
+
+def test_messages_no_bus_carries_are_counted_and_the_dispatch_holds(
+        honest: tuple[dict[str, Any], np.ndarray], tmp_path: Path) -> None:
+    """LOOP-6 on every node at once (the in-process twin of tests/test_transport_fuzz.py):
+    every impossible message is dropped and counted as invalid_frame by the plant, the
+    router, every agent and the recorder (none reaches run.log), the verdict names them
+    (malformed_frames), and the dispatch is the honest one."""
+    m, tr = _run(tmp_path, impossible_messages)
+    sent = 3 * sum(1 for k in range(round(DURATION_S / TS)) if k * TS >= ATTACK_FROM_S)
+    err, p = _final(tr)
+    assert err < 1e-3 and np.max(np.abs(p - _final(honest[1])[1])) < 1.0
+    assert m["recorder_counters"] == {"invalid_frame": sent}
+    heard = sent - 3   # the nodes read a tick's frames at the next one: not the last tick's
+    for role in ("plant", "router"):
+        assert m["node_counters"][role]["counters"]["invalid_frame"] == heard
+    for line in m["node_summaries"]:
+        if line.startswith("agent"):
+            assert f"invalid_frame={heard}" in line, line
+    named = {(a["kind"], a["node"]) for a in m["anomalies"]}
+    assert {("malformed_frames", n) for n in ("recorder", "plant", "router")} <= named
+    assert m["verdict"]["converged"] and m["verdict"]["exit_code"] == 3

@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
 import os
 import secrets
@@ -276,6 +277,7 @@ class SimFleet:
                                         "preserve_timestamps": True}
         self.nodes: dict[str, Any] = {n: factories[n]() for n in self.names}
         self._buses = {n: can.Bus(**self._bus_kw) for n in self.names}
+        self._guards: dict[str, GuardedBus] = {}
         self._extra: list[can.BusABC] = []
         self._testers: list[Tester] = []
         self._tasks: list[list[Any]] = []  # [next_due, period, fn]
@@ -351,6 +353,9 @@ class SimFleet:
         """A ``Tester`` on this fleet's bus and clock (keys: the fleet's by default)."""
         return Tester(self.open_bus(), self.keys if keys is None else keys, clock=self, **kw)
 
+    def _note(self, name: str, cause: str) -> None:
+        self.nodes[name].note(cause)
+
     def step(self) -> None:
         """One sample: every node reads what its bus holds, then ticks and sends; the
         testers' periodic messages due are sent; the testers read the bus."""
@@ -360,8 +365,11 @@ class SimFleet:
         self._k += 1
         self._t = t
         for name, node in self.nodes.items():
-            guarded = GuardedBus(self._buses[name], node.note, who=name)  # as run_node reads
-            while (msg := guarded.recv(timeout=0)) is not None:
+            guarded = self._guards.get(name)
+            if guarded is None or guarded.bus is not self._buses[name]:  # new, or restarted
+                guarded = self._guards[name] = GuardedBus(
+                    self._buses[name], functools.partial(self._note, name), who=name)
+            while (msg := guarded.recv(timeout=0)) is not None:  # as run_node reads
                 node.on_frame(msg, t)
         for name, node in self.nodes.items():
             bus = self._buses[name]
