@@ -473,3 +473,16 @@ def test_c_agent_reports_resets_and_names_every_counter() -> None:
     assert c.rt.counter_names == tuple(sorted(c.rt.counter_names, key=c.rt.counter_names.index))
     assert c.rt.lib.bd_counter_name(-1) is None and c.rt.lib.bd_counter_name(99) is None
     assert set(c.rt.counter_names) >= {"crc", "auth", "unsynced", "deadline_miss"}
+
+
+def test_c_agent_in_the_python_loop_counts_inputs_that_are_not_frames() -> None:
+    """LOOP-6 through the binding: run_node's GuardedBus notes not_a_frame, invalid_frame
+    and rx_error by name, and the C agent has a counter of each name (the C node's own
+    loop counts rx_error; the other two cannot come from a SocketCAN socket)."""
+    from firmware_py.node import RX_CAUSES
+
+    _, c = _both("base")
+    for k, cause in enumerate(RX_CAUSES, start=1):
+        c.note(cause, k)
+    assert {cause: c.counters[cause] for cause in RX_CAUSES} == {
+        cause: k for k, cause in enumerate(RX_CAUSES, start=1)}

@@ -28,7 +28,7 @@ import can
 from firmware_py import contract, secoc
 from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import DecodedFrame, FrameCodec, diag_name
-from firmware_py.node import GuardedBus, frame_fault, rx_cause
+from firmware_py.node import RX_CAUSES, GuardedBus, frame_fault, rx_cause
 from firmware_py.nodeio import SYNC_S, FleetSender
 
 from ..buslog import _Forged, _Monitor
@@ -574,8 +574,10 @@ class Tester:
                            + ", ".join(f"{k}: {v}" for k, v in sorted(bad.items())) + ")")
         if any(rejs.values()) and "unsynced" in self.last_rejection and self.rejected["auth"]:
             detail += " (are the tester's keys the fleet's?)"
-        if "bus_error" in self.last_rejection:
-            detail += f"; the bus reader failed: {self.last_rejection['bus_error']}"
+        for cause in RX_CAUSES:
+            if cause in self.last_rejection:
+                detail += (f"; {self.rejected[cause]} bus input(s) that are no frame "
+                           f"({cause}), the last: {self.last_rejection[cause]}")
         raise ExpectationError(f"expected {message}{cond} within {timeout_s:g} s of bus time "
                                f"(t = {t_start:.3f} → {deadline:.3f} s), but got none: "
                                f"{detail}")
