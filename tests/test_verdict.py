@@ -309,7 +309,11 @@ def test_router_killed_mid_run_is_named(tmp_path: Path, udp_port: int) -> None:
 @pytest.mark.realtime
 def test_record_captures_a_bus_for_analyze(tmp_path: Path, udp_port: int) -> None:
     """`bess-ded record` on a udp_multicast port until SIGINT: every frame sent lands in
-    a candump log that python-can and `cantools decode` read back."""
+    a candump log that python-can and `cantools decode` read back; the datagrams between
+    them that are no frame (13 bytes of garbage, a standard frame with ID 0x800) end
+    neither the recording nor a frame: they are counted by cause and reported."""
+    from can.interfaces.udp_multicast.utils import pack_message
+
     import signal
 
     log = tmp_path / "bus.log"
@@ -322,7 +326,10 @@ def test_record_captures_a_bus_for_analyze(tmp_path: Path, udp_port: int) -> Non
         assert p.stderr.readline().startswith("bess-ded record:")  # the bus is open
         codec = FrameCodec()
         with can.Bus(interface="udp_multicast", port=udp_port, fd=False) as bus:
+            wide = can.Message(arbitration_id=0x800, is_extended_id=False, data=bytes(8),
+                               check=False)
             for k in range(50):
+                bus._multicast.send(bytes(range(13)) if k % 2 else pack_message(wide))
                 bus.send(codec.encode("ER_Price", {"PriceValid": 1, "Rho": k << 20,
                                                    "Segment": 0}, k % 16))
         # loopback delivery is synchronous: the frames wait in record's socket, which it
@@ -335,6 +342,7 @@ def test_record_captures_a_bus_for_analyze(tmp_path: Path, udp_port: int) -> Non
             p.wait()
     assert p.returncode == 0, err
     assert "50 frames" in err
+    assert "anomaly: 25 not_a_frame, 25 invalid_frame" in err, err
     frames = list(can.LogReader(str(log)))
     assert [codec.decode(f).raw["Rho"] for f in frames] == [k << 20 for k in range(50)]
 

@@ -3,7 +3,9 @@
 Records every frame of any python-can bus (the same bus flags as every node) until
 --duration elapses or SIGINT/SIGTERM, in the format FILE's suffix names (.log:
 candump -L, what `analyze`, `cantools decode` and can-utils read; .asc, .blf, .csv
-also work). On udp_multicast, give the run's port: `bess-ded up` prints it.
+also work). On udp_multicast, give the run's port: `bess-ded up` prints it. What the
+bus delivers that is no CAN frame (a stray datagram, a message no CAN bus carries) is
+left out of the log, counted by cause and reported at the end as an anomaly.
 """
 
 from __future__ import annotations
