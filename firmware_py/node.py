@@ -241,9 +241,10 @@ def rx_cause(e: BaseException) -> str:
     udp_multicast unpacks each datagram with msgpack into ``can.Message(check=True)``
     and raises CanOperationError from what failed: an error raised inside can.Message
     (its check, or a field of the wrong type) is an impossible frame; any other (msgpack's,
-    or arguments that are not a message's) means the bytes are no message at all."""
+    or arguments that are not a message's) means the bytes are no message at all. A
+    socket's error (python-can raises CanOperationError from the OSError) is ``rx_error``."""
     inner = e.__cause__
-    if inner is None or not isinstance(e, can.CanOperationError):
+    if inner is None or not isinstance(e, can.CanOperationError) or isinstance(inner, OSError):
         return "rx_error"
     tb = inner.__traceback__
     while tb is not None:
@@ -261,9 +262,10 @@ def frame_fault(msg: can.Message) -> str | None:
     a float ID or a string flag in a udp_multicast datagram passes its check and would
     break whatever formats or indexes with it."""
     fid, data = msg.arbitration_id, msg.data
-    if type(fid) is not int or not isinstance(data, (bytes, bytearray)):
-        return f"expected an int ID and bytes, but got {type(fid).__name__} and " \
-               f"{type(data).__name__}"
+    if type(fid) is not int or type(msg.dlc) is not int or not isinstance(data, (bytes,
+                                                                              bytearray)):
+        return f"expected an int ID and DLC and bytes, but got {type(fid).__name__}, " \
+               f"{type(msg.dlc).__name__} and {type(data).__name__}"
     flags = (msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame, msg.is_fd)
     if not all(type(f) is bool for f in flags):
         return f"expected boolean frame flags, but got {[type(f).__name__ for f in flags]}"

@@ -720,8 +720,9 @@ class RaisingBus(FakeBus):
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         self.calls += 1
-        if self.failing[0] <= self.clock.t < self.failing[1]:
-            raise can.CanOperationError("Failed to wait for IP/UDP socket: [Errno 9]")
+        if self.failing[0] <= self.clock.t < self.failing[1]:  # as python-can raises it
+            raise can.CanOperationError("Failed to wait for IP/UDP socket: [Errno 100] "
+                                        "Network is down") from OSError(100, "Network is down")
         if self.queue and isinstance(self.queue[0][1], BaseException):
             assert timeout is not None
             if self.queue[0][0] <= self.clock.t + timeout:
