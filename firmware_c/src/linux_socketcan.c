@@ -1,7 +1,8 @@
 /*
  * The platform seam on Linux SocketCAN (platform.h): a raw CAN socket with the agent's
  * acceptance filter installed before it is bound (no gap for foreign frames, GEN-5),
- * error frames and CAN FD frames on (to count them), the monotonic clock, ppoll for the deadline, SIGINT/SIGTERM to stop.
+ * error frames and CAN FD frames on (to count them), the monotonic clock, ppoll for the
+ * deadline, SIGINT/SIGTERM to stop.
  */
 #define _GNU_SOURCE
 #include "linux_socketcan.h"
