@@ -22,7 +22,8 @@ static int receive(bd_agent *a, bd_platform *plat, bd_frame *f, int64_t deadline
     int r = bd_platform_recv(plat, f, deadline_ns);
     if (r == 1) {
         deliver(a, plat, f);
-    } else if (r < 0) {
+    }
+    if (r < 0) {
         bd_agent_note(a, BD_C_RX_ERROR, 1u);
     }
     return r;
