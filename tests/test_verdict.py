@@ -312,9 +312,9 @@ def test_record_captures_a_bus_for_analyze(tmp_path: Path, udp_port: int) -> Non
     a candump log that python-can and `cantools decode` read back; the datagrams between
     them that are no frame (13 bytes of garbage, a standard frame with ID 0x800) end
     neither the recording nor a frame: they are counted by cause and reported."""
-    from can.interfaces.udp_multicast.utils import pack_message
-
     import signal
+
+    from can.interfaces.udp_multicast.utils import pack_message
 
     log = tmp_path / "bus.log"
     config = json.dumps({"port": udp_port})
