@@ -191,10 +191,16 @@ class AgentConfig:
 def load_agent_config(path: str | Path) -> AgentConfig:
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_bytes().decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(str(path), "file", "expected an existing TOML file, but it does not "
                           "exist") from None
+    except IsADirectoryError:
+        raise ConfigError(str(path), "file", "expected a TOML file, but it is a directory")\
+            from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(str(path), "file", f"expected a UTF-8 text file, but byte {e.start} "
+                          f"is 0x{e.object[e.start]:02x}, not text") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(str(path), "file", f"expected valid TOML, but got: {e}") from None
     return parse_agent_config(data, str(path))
@@ -273,8 +279,11 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         raise fail("neighbour", "expected each neighbour once, but got duplicates")
 
     b = table("battery", {"alpha", "beta", "m", "p_min", "p_max"})
-    battery = DispatchParams(alpha=num(b, "battery", "alpha", 1e-9), beta=num(b, "battery", "beta"),
-                             m=num(b, "battery", "m", 0), p_min=num(b, "battery", "p_min"),
+    # the ranges of sim.scenario.BATTERY_RANGES: α > 0 (λ(P) invertible), m ≥ 0 (1 + m
+    # divides), β within the λ range
+    battery = DispatchParams(alpha=num(b, "battery", "alpha", 1e-9, 100),
+                             beta=num(b, "battery", "beta", -100, 100),
+                             m=num(b, "battery", "m", 0, 100), p_min=num(b, "battery", "p_min"),
                              p_max=num(b, "battery", "p_max"))
     if not battery.p_min < battery.p_max:
         raise fail("battery.p_max", f"expected p_min < p_max, but got {battery.p_min} ≥ "

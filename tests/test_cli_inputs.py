@@ -23,25 +23,30 @@ BAD = [
     (["case", "1", "--band", "nan"], "--band", "a finite number ≥ 0, but got nan"),
     (["case", "1", "--dwell", "0"], "--dwell", "a finite number > 0, but got 0"),
     (["case", "1", "--dwell", "soon"], "--dwell", "a finite number > 0, but got 'soon'"),
-    (["agent", *AGENT, "--duration", "-1"], "--duration", "a finite number > 0, but got -1"),
+    (["agent", *AGENT, "--duration", "-1"], "--duration",
+     "a finite number > 0 and ≤ 100000, but got -1"),
     (["agent", *AGENT, "--rt-priority", "100"], "--rt-priority",
      "a SCHED_FIFO priority in 1..99 or 0, but got 100"),
     (["agent", *AGENT, "--inject-rx-loss", "1.5"], "--inject-rx-loss",
      "a probability in [0, 1], but got 1.5"),
     (["agent", *AGENT, "--inject-rx-delay", "-0.1"], "--inject-rx-delay",
-     "a finite number ≥ 0, but got -0.1"),
+     "a finite number in [0, 60], but got -0.1"),
     (["agent", *AGENT, "--inject-rx-jitter", "inf"], "--inject-rx-jitter",
-     "a finite number ≥ 0, but got inf"),
+     "a finite number in [0, 60], but got inf"),
     (["agent", *AGENT, "--inject-seed", "-3"], "--inject-seed", "an integer ≥ 0, but got -3"),
-    (["plant", *NODE, "--period", "0"], "--period", "a finite number > 0, but got 0"),
-    (["plant", *NODE, "--duration", "-5"], "--duration", "a finite number > 0, but got -5"),
-    (["router", *NODE, "--period", "-0.01"], "--period", "a finite number > 0, but got -0.01"),
+    (["plant", *NODE, "--period", "0"], "--period",
+     "a finite number > 0 and ≤ 1000, but got 0"),
+    (["plant", *NODE, "--duration", "-5"], "--duration",
+     "a finite number > 0 and ≤ 100000, but got -5"),
+    (["router", *NODE, "--period", "-0.01"], "--period",
+     "a finite number > 0 and ≤ 1000, but got -0.01"),
     (["router", *NODE, "--rt-priority", "-1"], "--rt-priority",
      "a SCHED_FIFO priority in 1..99 or 0, but got -1"),
     (["inject", "forge", "--count", "0"], "--count", "an integer ≥ 1, but got 0"),
     (["inject", "forge", "--count", "1.5"], "--count", "an integer ≥ 1, but got '1.5'"),
     (["inject", "forge", "--target", "33"], "--target", "an agent number in 1..32, but got 33"),
-    (["inject", "forge", "--rate", "0"], "--rate", "a finite number > 0, but got 0"),
+    (["inject", "forge", "--rate", "0"], "--rate",
+     "a finite number > 0 and ≤ 1e+06, but got 0"),
     (["inject", "forge", "--seed", "-1"], "--seed", "an integer ≥ 0, but got -1"),
 ]
 
@@ -64,7 +69,7 @@ def test_the_agent_entry_point_checks_the_same(capsys: pytest.CaptureFixture[str
     assert agent_main.main([*AGENT, "--duration", "0"]) == 2
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last == ("python -m firmware_py: error: argument --duration: expected a finite "
-                    "number > 0, but got 0")
+                    "number > 0 and ≤ 100000, but got 0")
 
 
 def test_good_values_parse() -> None:
