@@ -288,6 +288,12 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
     if not battery.p_min < battery.p_max:
         raise fail("battery.p_max", f"expected p_min < p_max, but got {battery.p_min} ≥ "
                    f"{battery.p_max}")
+    idle = battery.beta * (1.0 + battery.m)  # an ISOLATE sets λ to it (CMD-3), as firmware_c
+    try:
+        fx.to_fixed(idle, "battery.beta")
+    except ParameterError:
+        raise fail("battery.beta", f"expected an idle marginal cost β·(1+m) that fits int32 "
+                   f"Q24 (|β·(1+m)| < 128, CMD-3), but got {idle:.17g}") from None
     for key, value in (("p_min", battery.p_min), ("p_max", battery.p_max)):
         if not -327.67 <= value <= 327.67:
             raise fail(f"battery.{key}", f"expected a limit within ±327.67 kW (the setpoint "

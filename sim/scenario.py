@@ -216,6 +216,9 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         if not kw["p_min"] < kw["p_max"]:
             raise ConfigError(src, f"{key}.p_max", f"expected p_min < p_max, but got "
                               f"{kw['p_min']} ≥ {kw['p_max']}")
+        if not abs(idle := kw["beta"] * (1 + kw["m"])) < 128:
+            raise ConfigError(src, f"{key}.beta", f"expected an idle marginal cost β·(1+m) "
+                              f"within ±128 cu/kWh (the agent's int32 Q24), but got {idle:g}")
         batteries.append(Battery(**kw))
         lambda0.append(r.number(b, "lambda0", lo=-100, hi=100, key=f"{key}.lambda0"))
 
