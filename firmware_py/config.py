@@ -368,5 +368,9 @@ def agent_configs_from_scenario(sc: Any) -> list[AgentConfig]:
             # 5 missed frames mean the price (the plant) is lost, at the run's Ts
             price_timeout_s=timeout_s("ER_Price", sc.ts),
             status_timeout_s=timeout_s(status_name(i), sc.ts),
+            # SET_GAINS carries at most GAIN_MAX: the default 2·k (2·h) capped there, so a
+            # fast variant (case 3's k = 10) writes a file its agent accepts
+            k_max=min(GAIN_HI * sc.controller.k, GAIN_MAX),
+            h_max=min(GAIN_HI * sc.controller.h, GAIN_MAX),
             fleet_size=sc.n, source=f"{sc.source}#agent{i}"))
     return out

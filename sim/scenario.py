@@ -264,12 +264,30 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         r.controller({**ctrl, **overrides}, ts, key)  # validate now, not at run time
         variants.append(Variant(label, overrides))
 
-    return Scenario(
+    sc = Scenario(
         name=str(data.get("name", Path(src).stem)), title=str(data.get("title", "")), source=src,
         ts=ts, duration=duration, load_kw=r.number(data, "load_kw", lo=-1e6, hi=1e6),
         controller=controller, n=n, edges=edges, pinned=pinned, batteries=tuple(batteries),
         lambda0=tuple(lambda0), prices=tuple(prices), events=tuple(events),
         variants=tuple(variants))
+    for label, run in sc.runs():
+        check_agents(run, "variant " + label if sc.variants else "")
+    return sc
+
+
+def check_agents(sc: Scenario, where: str) -> None:
+    """Every agent's configuration as `up` writes it loads in firmware_py (its λ(0) inside
+    the agent's limits, k_max·Ts in Q1.30, timeouts ≤ 60 s, ...): a scenario, variant or
+    time scale the nodes would refuse at their start is refused here, before any runs."""
+    from firmware_py.config import agent_configs_from_scenario, parse_agent_config
+
+    for cfg in agent_configs_from_scenario(sc):
+        try:
+            parse_agent_config(tomllib.loads(cfg.to_toml()), cfg.source)
+        except ConfigError as e:
+            raise ConfigError(sc.source, f"agent {cfg.id}" + (f", {where}" if where else ""),
+                              f"expected values agent {cfg.id}'s configuration takes, but "
+                              f"its [{e.key}] {e.problem}") from None
 
 
 class _Reader:
@@ -360,12 +378,19 @@ def scaled(sc: Scenario, factor: float) -> Scenario:
     if factor == 1:
         return sc
     c = sc.controller
-    ctrl = replace(c, ts=c.ts * factor, k=c.k / factor, h=c.h / factor**2,
-                   dwell=c.dwell * factor)
-    return replace(sc, ts=sc.ts * factor, duration=sc.duration * factor, controller=ctrl,
-                   prices=tuple(PriceStep(p.t * factor, p.rho) for p in sc.prices),
-                   events=tuple(Event(e.t * factor, e.agent, e.action) for e in sc.events),
-                   name=f"{sc.name}-x{factor:g}", variants=())
+    try:
+        ctrl = replace(c, ts=c.ts * factor, k=c.k / factor, h=c.h / factor**2,
+                       dwell=c.dwell * factor)
+    except ParameterError as e:
+        raise ConfigError(sc.source, "time_scale", f"expected a factor that keeps the "
+                          f"controller valid (Ts·F ≤ 1 s: F ≤ {1 / c.ts:g} here), but got "
+                          f"{factor:g}: {e}") from None
+    out = replace(sc, ts=sc.ts * factor, duration=sc.duration * factor, controller=ctrl,
+                  prices=tuple(PriceStep(p.t * factor, p.rho) for p in sc.prices),
+                  events=tuple(Event(e.t * factor, e.agent, e.action) for e in sc.events),
+                  name=f"{sc.name}-x{factor:g}", variants=())
+    check_agents(out, f"time scale {factor:g}")
+    return out
 
 
 def to_toml(sc: Scenario) -> str:

@@ -476,3 +476,38 @@ def test_a_key_file_through_a_symlink_is_refused(tmp_path: Path,
                             "--interface", "virtual"]) == 2
     assert "a symbolic link" in capsys.readouterr().err
     assert secoc.load_node_key(elsewhere).boot_counter == 0  # nothing written through it
+
+
+def test_a_scenario_its_agents_would_refuse_is_exit_2(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]
+                                                      ) -> None:
+    """λ(0) = 50 passed the scenario's own range but not the agent's limits: `up` then
+    lost that node at its start. Every agent's configuration is loaded as the node would."""
+    path = tmp_path / "l50.toml"
+    path.write_text(edited("lambda0 = 0.3 ", "lambda0 = 50.0 "))
+    assert main(["case", str(path), "--out", str(tmp_path / "o"), "--no-plots"]) == 2
+    assert capsys.readouterr().err == (
+        f"bess-ded: error: {path}: [agent 1] expected values agent 1's configuration takes, "
+        "but its [agent.lambda0] expected a value inside limits [-10.0, 10.0], but got 50.0\n")
+
+
+def test_every_bundled_variant_writes_configs_its_agents_accept() -> None:
+    """Case 3's k = 10 derived k_max = 20, beyond what SET_GAINS carries (16.383): the
+    agent refused the file `up` wrote. The default bound is capped there."""
+    import tomllib
+
+    from firmware_py.config import GAIN_MAX, agent_configs_from_scenario, parse_agent_config
+    from sim.scenario import load_case
+
+    for label, sc in load_case(3).runs():
+        for cfg in agent_configs_from_scenario(sc):
+            back = parse_agent_config(tomllib.loads(cfg.to_toml()), label)
+            assert back.k_max == min(2 * sc.controller.k, GAIN_MAX)
+
+
+def test_a_time_scale_the_controller_cannot_take_is_exit_2(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["up", "--case", "1", "--time-scale", "200", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "[time_scale] expected a factor that keeps the controller valid (Ts·F ≤ 1 s: F ≤ " \
+        "100 here), but got 200" in err and err.count("\n") == 1
