@@ -491,15 +491,20 @@ static int controller(doc *d, bd_ctrl_config *c, double *k_out, double *h_out, d
     }
     e = find(d, "controller", -1, "dwell");
     if (e != NULL) {
-        if (!finite_entry(e) || !(e->f >= 0.0)) {
-            return errorf(d, "controller.dwell", "expected a finite number of seconds ≥ 0, "
-                          "but got %s", repr(e, got, sizeof got));
+        /* ≤ 1e5 s: D = ceil(dwell/ts) fits the uint32 below for any ts ≥ 1e-4 (CTRL-2) */
+        if (!finite_entry(e) || !(e->f >= 0.0 && e->f <= 1e5)) {
+            return errorf(d, "controller.dwell", "expected a finite number of seconds in "
+                          "[0, 100000], but got %s", repr(e, got, sizeof got));
         }
         dwell = e->f;
     }
     if (kind == BD_KIND_DWELL && dwell < ts) {
         return errorf(d, "controller.dwell", "expected Δ ≥ Ts = %.17g s for the dwell "
                       "controller, but got %.17g", ts, dwell);
+    }
+    if (kind == BD_KIND_DWELL && ceil(dwell / ts - 1e-9) > 4294967295.0) {
+        return errorf(d, "controller.dwell", "expected Δ/Ts < 2^32 (D = ceil(Δ/Ts) is a "
+                      "uint32, CTRL-2), but got Δ = %.17g s at Ts = %.17g s", dwell, ts);
     }
     e = find(d, "controller", -1, "band");
     if (e != NULL) {
