@@ -191,11 +191,15 @@ def read_frames(path: Path, skipped: Counter[str]) -> Iterator[can.Message]:
     candump -L (.log) is read line by line here; other formats by python-can's LogReader,
     without its frames whose timestamp is not finite."""
     if path.suffix.lower() != ".log":
-        for msg in can.LogReader(str(path)):
-            if math.isfinite(msg.timestamp):
-                yield msg
-            else:
-                skipped["bad_timestamp"] += 1
+        try:
+            for msg in can.LogReader(str(path)):
+                if math.isfinite(msg.timestamp):
+                    yield msg
+                else:
+                    skipped["bad_timestamp"] += 1
+        except Exception as e:  # noqa: BLE001 (each reader fails its own way on a bad file)
+            raise ConfigError(str(path), "LOG", f"expected a CAN log python-can reads, but "
+                              f"got: {type(e).__name__}: {e}") from None
         return
     with open(path, "rb") as f:
         for raw in f:

@@ -511,3 +511,17 @@ def test_a_time_scale_the_controller_cannot_take_is_exit_2(
     err = capsys.readouterr().err
     assert "[time_scale] expected a factor that keeps the controller valid (Ts·F ≤ 1 s: F ≤ " \
         "100 here), but got 200" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".csv", ".db", ".txt"])
+def test_a_garbage_log_of_any_format_is_exit_2(suffix: str, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """python-can's readers fail each its own way (struct.error, sqlite3.DatabaseError,
+    UnicodeDecodeError): all are the one-line error."""
+    log = tmp_path / f"g{suffix}"
+    log.write_bytes(b"\x00\xffgarbage\nmore,1,2\n")
+    assert main(["analyze", str(log), "--case", "1", "--out", str(tmp_path / "a"),
+                 "--no-plot"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"bess-ded: error: {log}: [LOG] expected a CAN log python-can "
+                          "reads, but got: ") and err.count("\n") == 1, err
