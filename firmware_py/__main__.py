@@ -150,6 +150,10 @@ def main(argv: list[str] | None = None) -> int:
     except BessDedError as e:
         print(f"bess-ded agent: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # a key file it cannot rewrite (its boot counter), a bus it cannot open
+        print(f"bess-ded agent: error: {e.strerror or e}" + (f": {e.filename}" if e.filename
+                                                            else ""), file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -198,6 +198,9 @@ def load_agent_config(path: str | Path) -> AgentConfig:
     except IsADirectoryError:
         raise ConfigError(str(path), "file", "expected a TOML file, but it is a directory")\
             from None
+    except OSError as e:  # unreadable (permissions, I/O): the user's to fix
+        raise ConfigError(str(path), "file", f"expected a readable TOML file, but got: "
+                          f"{e.strerror or e}") from None
     except UnicodeDecodeError as e:
         raise ConfigError(str(path), "file", f"expected a UTF-8 text file, but byte {e.start} "
                           f"is 0x{e.object[e.start]:02x}, not text") from None

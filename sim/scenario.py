@@ -165,6 +165,9 @@ def load_scenario(path: str | Path) -> Scenario:
             from None
     except IsADirectoryError:
         raise ConfigError(src, "file", "expected a TOML file, but it is a directory") from None
+    except OSError as e:  # unreadable (permissions, I/O): the user's to fix
+        raise ConfigError(src, "file", f"expected a readable TOML file, but got: "
+                          f"{e.strerror or e}") from None
     except UnicodeDecodeError as e:
         raise ConfigError(src, "file", f"expected a UTF-8 text file, but byte {e.start} is "
                           f"0x{e.object[e.start]:02x}, not text") from None
