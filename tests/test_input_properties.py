@@ -42,7 +42,7 @@ from sim.scenario import (
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE1 = (SCENARIO_DIR / "case1.toml").read_text()
-PROPS = settings(max_examples=150, deadline=None, derandomize=True,
+PROPS = settings(max_examples=100, deadline=None, derandomize=True,
                  suppress_health_check=[HealthCheck.function_scoped_fixture,
                                         HealthCheck.too_slow])
 
