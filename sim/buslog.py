@@ -139,8 +139,9 @@ LINE_CAUSES = {
     "not_text": "with bytes that are not text",
 }
 # a frame this many Ts or more away from the rest of the recording is a timestamp outlier:
-# 60 s at Ts = 10 ms; no fleet leaves its bus silent that long during a run
-OUTLIER_GAP_TS = 6000
+# an hour at Ts = 10 ms. Long: a fleet whose bus stalls for minutes must still be judged
+# whole (its silences are anomalies); a far-off stamp (years) must not stretch the grid
+OUTLIER_GAP_TS = 360_000
 
 # candump -L: "(1700000000.123456) vcan0 123#DEADBEEF" (an optional " R"/" T" direction)
 _CANDUMP = re.compile(r"\((?P<t>[^()\s]*)\)\s+(?P<ch>\S+)\s+(?P<id>[0-9A-Fa-f]{1,8})#"

@@ -346,7 +346,7 @@ def test_a_far_future_timestamp_is_reported_and_the_log_still_analysed(
     assert m["timestamp_outliers"] == [-1e9, 1e9]
     assert m["final_error"] == clean["final_error"] and m["frames_recorded"] == \
         clean["frames_recorded"]
-    assert ("warning: left out 2 frame(s) whose timestamp lies more than 6000 Ts away from "
+    assert ("warning: left out 2 frame(s) whose timestamp lies more than 360000 Ts away from "
             "the rest of the recording (t = -1000000000.000000, 1000000000.000000)") in out
 
 
@@ -525,3 +525,21 @@ def test_a_garbage_log_of_any_format_is_exit_2(suffix: str, tmp_path: Path,
     err = capsys.readouterr().err
     assert err.startswith(f"bess-ded: error: {log}: [LOG] expected a CAN log python-can "
                           "reads, but got: ") and err.count("\n") == 1, err
+
+
+def test_a_bus_silent_for_minutes_is_judged_whole_not_left_out(
+        run_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Only stamps an hour (at Ts = 10 ms) off the rest are outliers: a fleet whose bus
+    stalled for two minutes is analysed whole, and the stall is an anomaly."""
+    lines = (run_dir / "run.log").read_text().splitlines()
+    half = len(lines) // 2
+
+    def shifted(line: str) -> str:
+        t, rest = line[1:].split(")", 1)
+        return f"({float(t) + 120:.6f}){rest}"
+
+    log = tmp_path / "stalled.log"
+    log.write_text("\n".join(lines[:half] + [shifted(x) for x in lines[half:]]) + "\n")
+    rc, m = analyze(log, tmp_path / "a")
+    assert m["timestamp_outliers"] == [] and m["frames_recorded"] == len(lines)
+    assert rc != 0 and {"bus_silence", "node_silent"} & {a["kind"] for a in m["anomalies"]}
