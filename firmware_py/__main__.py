@@ -10,7 +10,7 @@ import logging
 import os
 import sys
 
-from .cliargs import RT_PRIORITY, int_in, nonnegative_float, positive_float, probability
+from .cliargs import RT_PRIORITY, duration_s, float_in, int_in, probability
 from .config import load_agent_config
 from .errors import BessDedError
 from .faultinject import FaultyBus, RxFaults
@@ -32,15 +32,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_key_arguments(p)
     add_bus_arguments(p)
     add_filter_argument(p)
-    p.add_argument("--duration", type=positive_float(), default=None, metavar="S",
+    p.add_argument("--duration", type=duration_s(), default=None, metavar="S",
                    help="stop after S seconds")
     add_rt_argument(p)
     t = p.add_argument_group("fault injection on received MC frames (tests and HIL rigs)")
     t.add_argument("--inject-rx-loss", type=probability, default=0.0, metavar="P",
                    help="drop each neighbour MC frame with probability P")
-    t.add_argument("--inject-rx-delay", type=nonnegative_float(), default=0.0, metavar="S",
+    t.add_argument("--inject-rx-delay", type=float_in(0.0, 60.0), default=0.0, metavar="S",
                    help="delay neighbour MC frames by S seconds")
-    t.add_argument("--inject-rx-jitter", type=nonnegative_float(), default=0.0, metavar="S",
+    t.add_argument("--inject-rx-jitter", type=float_in(0.0, 60.0), default=0.0, metavar="S",
                    help="extra uniform random delay in [0, S] seconds")
     t.add_argument("--inject-seed", type=int_in(0), default=0, metavar="N",
                    help="seed of the injected faults")
@@ -149,6 +149,10 @@ def main(argv: list[str] | None = None) -> int:
         return run_agent(args)
     except BessDedError as e:
         print(f"bess-ded agent: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a key file it cannot rewrite (its boot counter), a bus it cannot open
+        print(f"bess-ded agent: error: {e.strerror or e}" + (f": {e.filename}" if e.filename
+                                                            else ""), file=sys.stderr)
         return 2
 
 

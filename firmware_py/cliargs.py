@@ -50,6 +50,26 @@ def positive_float(what: str = "a finite number") -> Callable[[str], float]:
     return float_in(0.0, lo_open=True, what=what)
 
 
+# the longest a node, a run or a capture may be asked to last (27.8 h): larger values are
+# typos (1e300 ran until killed), and a run's log must stay analysable
+MAX_DURATION_S = 1e5
+# the longest tick period (--period): Ts = 1 s (the scenarios' largest) at the largest scale
+MAX_PERIOD_S = 1000.0
+# the largest --time-scale: Ts = 10 ms stretched to 10 s per sample
+MAX_TIME_SCALE = 1000.0
+
+
+def duration_s(what: str = "a finite number") -> Callable[[str], float]:
+    """--duration, --wait: > 0 and at most MAX_DURATION_S."""
+    return float_in(0.0, MAX_DURATION_S, lo_open=True, what=what)
+
+
+def time_scale(text: str) -> float:
+    """--time-scale F: the time axis stretched by F, 1..MAX_TIME_SCALE (a slower host
+    needs a larger Ts; a smaller one than the scenario's is not what the option means)."""
+    return float_in(1.0, MAX_TIME_SCALE, what="a factor")(text)
+
+
 def nonnegative_float(what: str = "a finite number") -> Callable[[str], float]:
     """Bands, delays, jitters: finite and ≥ 0."""
     return float_in(0.0, what=what)

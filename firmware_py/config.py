@@ -191,10 +191,19 @@ class AgentConfig:
 def load_agent_config(path: str | Path) -> AgentConfig:
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_bytes().decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(str(path), "file", "expected an existing TOML file, but it does not "
                           "exist") from None
+    except IsADirectoryError:
+        raise ConfigError(str(path), "file", "expected a TOML file, but it is a directory")\
+            from None
+    except OSError as e:  # unreadable (permissions, I/O): the user's to fix
+        raise ConfigError(str(path), "file", f"expected a readable TOML file, but got: "
+                          f"{e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(str(path), "file", f"expected a UTF-8 text file, but byte {e.start} "
+                          f"is 0x{e.object[e.start]:02x}, not text") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(str(path), "file", f"expected valid TOML, but got: {e}") from None
     return parse_agent_config(data, str(path))
@@ -273,12 +282,21 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         raise fail("neighbour", "expected each neighbour once, but got duplicates")
 
     b = table("battery", {"alpha", "beta", "m", "p_min", "p_max"})
-    battery = DispatchParams(alpha=num(b, "battery", "alpha", 1e-9), beta=num(b, "battery", "beta"),
-                             m=num(b, "battery", "m", 0), p_min=num(b, "battery", "p_min"),
+    # the ranges of sim.scenario.BATTERY_RANGES: α > 0 (λ(P) invertible), m ≥ 0 (1 + m
+    # divides), β within the λ range
+    battery = DispatchParams(alpha=num(b, "battery", "alpha", 1e-9, 100),
+                             beta=num(b, "battery", "beta", -100, 100),
+                             m=num(b, "battery", "m", 0, 100), p_min=num(b, "battery", "p_min"),
                              p_max=num(b, "battery", "p_max"))
     if not battery.p_min < battery.p_max:
         raise fail("battery.p_max", f"expected p_min < p_max, but got {battery.p_min} ≥ "
                    f"{battery.p_max}")
+    idle = battery.beta * (1.0 + battery.m)  # an ISOLATE sets λ to it (CMD-3), as firmware_c
+    try:
+        fx.to_fixed(idle, "battery.beta")
+    except ParameterError:
+        raise fail("battery.beta", f"expected an idle marginal cost β·(1+m) that fits int32 "
+                   f"Q24 (|β·(1+m)| < 128, CMD-3), but got {idle:.17g}") from None
     for key, value in (("p_min", battery.p_min), ("p_max", battery.p_max)):
         if not -327.67 <= value <= 327.67:
             raise fail(f"battery.{key}", f"expected a limit within ±327.67 kW (the setpoint "
@@ -353,5 +371,9 @@ def agent_configs_from_scenario(sc: Any) -> list[AgentConfig]:
             # 5 missed frames mean the price (the plant) is lost, at the run's Ts
             price_timeout_s=timeout_s("ER_Price", sc.ts),
             status_timeout_s=timeout_s(status_name(i), sc.ts),
+            # SET_GAINS carries at most GAIN_MAX: the default 2·k (2·h) capped there, so a
+            # fast variant (case 3's k = 10) writes a file its agent accepts
+            k_max=min(GAIN_HI * sc.controller.k, GAIN_MAX),
+            h_max=min(GAIN_HI * sc.controller.h, GAIN_MAX),
             fleet_size=sc.n, source=f"{sc.source}#agent{i}"))
     return out

@@ -70,10 +70,15 @@ class ControllerConfig:
             _positive("h", self.h, upper=1e4)
         elif not (_finite(self.h) and self.h >= 0):
             raise ParameterError("h", "a finite number ≥ 0", self.h)
-        if not (_finite(self.dwell) and self.dwell >= 0):
-            raise ParameterError("dwell", "a finite number of seconds ≥ 0", self.dwell)
+        # at most DWELL_MAX_S: D = ceil(dwell/ts) then fits firmware_c's uint32 (CTRL-2)
+        if not (_finite(self.dwell) and 0 <= self.dwell <= DWELL_MAX_S):
+            raise ParameterError("dwell", f"a finite number of seconds in [0, {DWELL_MAX_S:g}]",
+                                 self.dwell)
         if self.kind == "dwell" and self.dwell < self.ts:
             raise ParameterError("dwell", f"Δ ≥ Ts = {self.ts} s for the dwell controller",
+                                 self.dwell)
+        if self.kind == "dwell" and math.ceil(self.dwell / self.ts - 1e-9) > 0xFFFFFFFF:
+            raise ParameterError("dwell", "Δ/Ts < 2^32 (D = ceil(Δ/Ts) is a uint32, CTRL-2)",
                                  self.dwell)
         if not (_finite(self.band) and 0 <= self.band < 1):
             raise ParameterError("band", "a reset band in [0, 1) cu/kWh", self.band)
@@ -100,6 +105,9 @@ class ControllerConfig:
     def dwell_samples(self) -> int:
         """Δ as a whole number of samples (rounded up: never shorter than asked)."""
         return math.ceil(self.dwell / self.ts - 1e-9) if self.kind == "dwell" else 0
+
+
+DWELL_MAX_S = 1e5  # the longest run (sim.scenario's duration bound), 27.8 h
 
 
 def _finite(x: object) -> bool:

@@ -358,9 +358,15 @@ def write_private(path: Path, text: str) -> None:
 
 def _check_private(path: Path, what: str) -> None:
     try:
-        st = os.stat(path)
+        st = os.lstat(path)
     except OSError as e:
         raise KeyFileError(f"{path}: cannot read the {what}: {e.strerror or e}") from e
+    if stat.S_ISLNK(st.st_mode):
+        # refused, not followed: the link's directory and the target's could differ in who
+        # may access them, and a boot counter saved through it would replace the link by
+        # a copy (write_private renames over it), leaving the target's counter behind
+        raise KeyFileError(f"{path}: expected the {what} itself, but got a symbolic link "
+                           f"(to {os.readlink(path)}): give the file's own path")
     if not stat.S_ISREG(st.st_mode):
         raise KeyFileError(f"{path}: expected a regular file for the {what}")
     if st.st_mode & 0o077:

@@ -14,8 +14,9 @@ sequences (recorder misses vs. interleaved senders), silences of the whole bus.
 from __future__ import annotations
 
 import math
+import re
 from collections import Counter, defaultdict
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from itertools import pairwise
 from pathlib import Path
@@ -26,12 +27,12 @@ import numpy as np
 
 from firmware_py import contract
 from firmware_py.contract import COUNTER_MODULO, MC_CYCLE_S, TIMEOUT_CYCLES, State
-from firmware_py.errors import FrameError
+from firmware_py.errors import ConfigError, FrameError
 from firmware_py.frames import COUNTER_STEP_MAX, DecodedFrame, FrameCodec
 from firmware_py.nodeio import LOST_WINDOWS
 from firmware_py.secoc import FreshnessVerifier, frame_verifies
 
-from .scenario import Scenario
+from .scenario import MAX_AGENT_SAMPLES, Scenario
 from .trajectory import Trajectory
 
 # a message silent this long restarts its counter sequence, as the nodes' trackers do
@@ -88,6 +89,27 @@ class LogContents:
     syncs: int = 0
     # frames the capture received before an earlier-stamped one (read_log sorts them)
     reordered: int = 0
+    # log lines that hold no frame, by cause (LINE_CAUSES): skipped, never silently
+    skipped_lines: Counter[str] = field(default_factory=Counter)
+    # timestamps of frames far outside the recording's time span (a clock jump or a
+    # corrupt line): left out, so one of them cannot stretch the analysis to years
+    time_outliers: list[float] = field(default_factory=list)
+
+    def warnings(self) -> list[str]:
+        """What was left out of the log before the analysis, one line per cause."""
+        out = []
+        if self.skipped_lines:
+            causes = "; ".join(f"{v} {LINE_CAUSES[k]}"
+                               for k, v in sorted(self.skipped_lines.items()))
+            out.append(f"skipped {sum(self.skipped_lines.values())} log line(s) that hold no "
+                       f"frame: {causes}")
+        if self.time_outliers:
+            shown = ", ".join(f"{t:.6f}" for t in self.time_outliers[:3])
+            more = ", ..." if len(self.time_outliers) > 3 else ""
+            out.append(f"left out {len(self.time_outliers)} frame(s) whose timestamp lies more "
+                       f"than {OUTLIER_GAP_TS:g} Ts away from the rest of the recording "
+                       f"(t = {shown}{more})")
+        return out
 
     @property
     def start_recorded(self) -> bool:
@@ -107,6 +129,113 @@ class LogContents:
     def mc_frames(self, agent: int) -> int:
         s = self.sequences.get(f"AGENT_{agent}_MC")
         return 0 if s is None else s.frames
+
+
+# why a log line holds no frame (LogContents.skipped_lines), as the report words it
+LINE_CAUSES = {
+    "truncated": "truncated last line (no newline at the end: the capture was cut off)",
+    "bad_timestamp": "with a timestamp that is not a finite number",
+    "malformed": "not in candump -L format",
+    "not_text": "with bytes that are not text",
+}
+# a frame this many Ts or more away from the rest of the recording is a timestamp outlier:
+# an hour at Ts = 10 ms. Long: a fleet whose bus stalls for minutes must still be judged
+# whole (its silences are anomalies); a far-off stamp (years) must not stretch the grid
+OUTLIER_GAP_TS = 360_000
+
+# candump -L: "(1700000000.123456) vcan0 123#DEADBEEF" (an optional " R"/" T" direction)
+_CANDUMP = re.compile(r"\((?P<t>[^()\s]*)\)\s+(?P<ch>\S+)\s+(?P<id>[0-9A-Fa-f]{1,8})#"
+                      r"(?P<data>\S*)(?:\s+[RrTt])?")
+_HEX = re.compile(r"(?:[0-9A-Fa-f]{2})*")
+CAN_ERR_FLAG, CAN_ERR_BUSERROR = 0x20000000, 0x80  # linux/can/error.h, as python-can reads
+
+
+def _parse_candump(line: str) -> can.Message | str:
+    """One candump -L line as a Message, or the cause (LINE_CAUSES) it is not one. Strict,
+    unlike python-can's reader: an odd hex digit, a NaN time or a cut line is no frame."""
+    m = _CANDUMP.fullmatch(line)
+    if m is None:
+        return "malformed"
+    try:
+        t = float(m["t"])
+    except ValueError:
+        return "bad_timestamp"
+    if not math.isfinite(t):
+        return "bad_timestamp"
+    ident, data = int(m["id"], 16), m["data"]
+    extended = len(m["id"]) > 3
+    if ident & CAN_ERR_FLAG and ident & CAN_ERR_BUSERROR:
+        return can.Message(timestamp=t, is_error_frame=True, channel=m["ch"])
+    if not extended and ident > 0x7FF:
+        return "malformed"
+    fd = data.startswith("#")
+    if fd:
+        if len(data) < 2 or data[1] not in "0123456789ABCDEFabcdef":
+            return "malformed"
+        flags, data = int(data[1], 16), data[2:]
+    if not fd and data[:1] in ("R", "r"):
+        if not (data[1:] == "" or (data[1:].isdigit() and int(data[1:]) <= 8)):
+            return "malformed"
+        return can.Message(timestamp=t, arbitration_id=ident & 0x1FFFFFFF,
+                           is_extended_id=extended, is_remote_frame=True,
+                           dlc=int(data[1:] or 0), channel=m["ch"])
+    if not _HEX.fullmatch(data) or len(data) > (128 if fd else 16):
+        return "malformed"
+    return can.Message(timestamp=t, arbitration_id=ident & 0x1FFFFFFF, is_extended_id=extended,
+                       is_fd=fd, bitrate_switch=fd and bool(flags & 1),
+                       error_state_indicator=fd and bool(flags & 2),
+                       data=bytes.fromhex(data), channel=m["ch"])
+
+
+def read_frames(path: Path, skipped: Counter[str]) -> Iterator[can.Message]:
+    """The frames of a log, counting every line that holds none in ``skipped`` by cause.
+    candump -L (.log) is read line by line here; other formats by python-can's LogReader,
+    without its frames whose timestamp is not finite."""
+    if path.suffix.lower() != ".log":
+        try:
+            for msg in can.LogReader(str(path)):
+                if math.isfinite(msg.timestamp):
+                    yield msg
+                else:
+                    skipped["bad_timestamp"] += 1
+        except Exception as e:  # noqa: BLE001 (each reader fails its own way on a bad file)
+            raise ConfigError(str(path), "LOG", f"expected a CAN log python-can reads, but "
+                              f"got: {type(e).__name__}: {e}") from None
+        return
+    with open(path, "rb") as f:
+        for raw in f:
+            try:
+                line = raw.decode("utf-8").strip()
+            except UnicodeDecodeError:
+                skipped["not_text"] += 1
+                continue
+            if not line:
+                continue
+            got = _parse_candump(line)
+            if isinstance(got, can.Message):
+                yield got
+            elif not raw.endswith(b"\n"):
+                skipped["truncated"] += 1  # only the last line can lack its newline
+            else:
+                skipped[got] += 1
+
+
+def _main_span(frames: list[can.Message], gap: float) -> tuple[list[can.Message], list[float]]:
+    """The frames of the recording's main stretch (sorted by timestamp), and the
+    timestamps of the others: frames more than ``gap`` from the biggest stretch of frames
+    without such a gap (a far-future or far-past stamp among them)."""
+    if not frames:
+        return frames, []
+    t = np.array([m.timestamp for m in frames])
+    order = np.argsort(t, kind="stable")
+    cuts = np.flatnonzero(np.diff(t[order]) > gap) + 1
+    if not cuts.size:
+        return [frames[i] for i in order], []
+    bounds = np.concatenate(([0], cuts, [t.size]))
+    main = int(np.argmax(np.diff(bounds)))  # the most frames; the earliest on a tie
+    lo, hi = bounds[main], bounds[main + 1]
+    outliers = [float(t[i]) for i in np.concatenate((order[:lo], order[hi:]))]
+    return [frames[i] for i in order[lo:hi]], outliers
 
 
 def _cycle_s(name: str, ts: float) -> float:
@@ -180,7 +309,12 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     Frames are taken in the order of their timestamps, not of the file: a capture
     socket can receive one sender's frames out of order (vcan on a multi-core host
     queues each frame on the sending CPU, and a descheduled CPU delivers late), while
-    the kernel stamped them in the order they were sent; ``reordered`` counts them."""
+    the kernel stamped them in the order they were sent; ``reordered`` counts them.
+
+    Damaged logs are read as far as they hold frames: a line that is not one (garbage, a
+    NaN timestamp, a last line cut off) is skipped and counted (``skipped_lines``), and a
+    frame far off the recording's time span (a clock jump) is left out and listed
+    (``time_outliers``); ``LogContents.warnings`` words both for the report."""
     codec = codec or FrameCodec()
     out = LogContents()
     monitor = _Monitor(keys, boot_floors) if keys else None
@@ -190,12 +324,13 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     silence = 3 * ts if ts else None
     cycles: dict[str, float] = {}
     t_prev: float | None = None
-    captured = list(can.LogReader(str(path)))
+    captured = list(read_frames(path, out.skipped_lines))
     out.reordered = sum(b.timestamp < a.timestamp for a, b in pairwise(captured))
-    for msg in sorted(captured, key=lambda m: m.timestamp):   # stable: ties keep file order
+    frames, out.time_outliers = _main_span(captured, OUTLIER_GAP_TS * (ts or MC_CYCLE_S))
+    for msg in frames:   # in timestamp order; ties keep the file's
         out.frames += 1
         t = msg.timestamp
-        out.t_end = max(out.t_end, t)
+        out.t_end = t  # frames come in timestamp order
         if (silence is not None and t_prev is not None and out.t_first_price is not None
                 and t - t_prev > silence):
             out.silences.append((t_prev, t))
@@ -303,6 +438,11 @@ def trajectory_from_log(sc: Scenario, log: LogContents, label: str = "bus") -> T
     if log.t_first_price is None:
         raise ValueError("the log holds no ER_Price frame: the router never spoke")
     t0, ts = log.t_first_price, sc.ts
+    if (log.t_end - t0) / ts * sc.n > MAX_AGENT_SAMPLES:  # refused, not memory exhausted
+        raise ConfigError(sc.source, "log", f"expected a recording of at most "
+                          f"{MAX_AGENT_SAMPLES:.0e} agent-samples ({sc.n} agents × its span "
+                          f"/ Ts = {ts:g} s), but it spans {log.t_end - t0:.6g} s from the "
+                          f"first price")
     grid = t0 + np.arange(0.0, log.t_end - t0, ts)
     lam = np.column_stack([_hold(log.series[(f"AGENT_{i}_MC", "Lambda")], grid, sc.lambda0[i - 1])
                            for i in range(1, sc.n + 1)])

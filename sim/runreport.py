@@ -75,6 +75,10 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
         "node_ticks": {k: ticks for k, (_, ticks) in deadlines.items()},
         "exit_codes": facts.exit_codes or {},
         "router_ledger": buslog.router_ledger(log),
+        # lines of the log that held no frame, and frames far off its time span: left out
+        "log_lines_skipped": dict(log.skipped_lines),
+        "timestamp_outliers": log.time_outliers,
+        "log_warnings": log.warnings(),
     })
     written = [out / "metrics.json"]
     written[0].write_text(json.dumps(m, indent=2, default=_json_default) + "\n")
@@ -103,7 +107,7 @@ def summary_lines(m: dict[str, Any], verdict: Verdict, time_scale: float = 1.0) 
     def secs(x: float | None) -> str:
         return "never" if x is None else f"{x / time_scale:.2f} s"
 
-    lines = []
+    lines = [f"  warning: {w}" for w in m.get("log_warnings", [])]
     st = m.get("settling_times_s")
     if st is not None:
         unit = " (scenario time)" if time_scale != 1 else ""

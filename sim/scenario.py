@@ -30,6 +30,23 @@ MAX_AGENTS = N_AGENTS_MAX  # the DBC's AGENT_1..AGENT_N frames
 CONTROLLER_KEYS = {"kind", "k", "h", "dwell", "band", "ft_exponent"}
 BATTERY_KEYS = {"alpha", "beta", "m", "p_min", "p_max", "capacity_kwh", "soc0", "v_nom",
                 "r_internal", "lambda0"}
+# physically possible ranges of a battery's parameters (units as in sim.model.Battery);
+# (lo, hi, lo excluded). Limits: the setpoint frame's range (AGENT_i_Setpoint, ±327.67 kW)
+P_LIMIT_KW = 327.67
+BATTERY_RANGES: dict[str, tuple[float, float, bool]] = {
+    "alpha": (0.0, 100.0, True),           # cu/(kW²·h): > 0, or λ(P) is not invertible
+    "beta": (-100.0, 100.0, False),        # cu/kWh, within the λ range
+    "m": (0.0, 100.0, False),              # degradation adds cost: ≥ 0 (1 + m divides)
+    "p_min": (-P_LIMIT_KW, P_LIMIT_KW, False),
+    "p_max": (-P_LIMIT_KW, P_LIMIT_KW, False),
+    "capacity_kwh": (0.0, 1e6, True),      # the SoC integrates P / capacity
+    "soc0": (0.0, 1.0, False),
+    "v_nom": (0.0, 1e4, True),             # V; the current is P / V
+    "r_internal": (0.0, 100.0, False),     # Ω
+}
+# the longest run: agents × samples (duration / Ts), what the simulator and the log
+# analysis hold in memory (80 MB per float array): e.g. 4 agents for 6.9 h at Ts = 10 ms
+MAX_AGENT_SAMPLES = 10_000_000
 
 
 @dataclass(frozen=True)
@@ -142,10 +159,18 @@ def load_scenario(path: str | Path) -> Scenario:
     path = Path(path)
     src = str(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_bytes().decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(src, "file", "expected an existing TOML file, but it does not exist")\
             from None
+    except IsADirectoryError:
+        raise ConfigError(src, "file", "expected a TOML file, but it is a directory") from None
+    except OSError as e:  # unreadable (permissions, I/O): the user's to fix
+        raise ConfigError(src, "file", f"expected a readable TOML file, but got: "
+                          f"{e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(src, "file", f"expected a UTF-8 text file, but byte {e.start} is "
+                          f"0x{e.object[e.start]:02x}, not text") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(src, "file", f"expected valid TOML, but got: {e}") from None
     return parse_scenario(data, src)
@@ -186,18 +211,17 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
     for i, b in enumerate(bats):
         key = f"battery[{i}]"
         r.only(b, key, BATTERY_KEYS)
-        kw = {k: r.number(b, k, key=f"{key}.{k}") for k in BATTERY_KEYS - {"lambda0"} if k in b}
         for need in ("alpha", "beta", "m", "p_min", "p_max"):
-            if need not in kw:
+            if need not in b:
                 raise ConfigError(src, f"{key}.{need}", "is required")
-        if kw["alpha"] <= 0:
-            raise ConfigError(src, f"{key}.alpha", f"expected > 0, but got {kw['alpha']}")
+        kw = {k: r.number(b, k, lo=lo, hi=hi, lo_open=lo_open, key=f"{key}.{k}")
+              for k, (lo, hi, lo_open) in BATTERY_RANGES.items() if k in b}
         if not kw["p_min"] < kw["p_max"]:
             raise ConfigError(src, f"{key}.p_max", f"expected p_min < p_max, but got "
                               f"{kw['p_min']} ≥ {kw['p_max']}")
-        if not 0 <= kw.get("soc0", 0.5) <= 1:
-            raise ConfigError(src, f"{key}.soc0", f"expected a fraction in [0, 1], but got "
-                              f"{kw['soc0']}")
+        if not abs(idle := kw["beta"] * (1 + kw["m"])) < 128:
+            raise ConfigError(src, f"{key}.beta", f"expected an idle marginal cost β·(1+m) "
+                              f"within ±128 cu/kWh (the agent's int32 Q24), but got {idle:g}")
         batteries.append(Battery(**kw))
         lambda0.append(r.number(b, "lambda0", lo=-100, hi=100, key=f"{key}.lambda0"))
 
@@ -210,6 +234,15 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         raise ConfigError(src, "price", "expected a schedule whose first step is at t = 0")
     if any(b.t <= a.t for a, b in zip(prices, prices[1:], strict=False)):
         raise ConfigError(src, "price", "expected strictly increasing times")
+    if late := [(i, p.t) for i, p in enumerate(prices) if p.t >= duration]:
+        i, t = late[0]
+        raise ConfigError(src, f"price[{i}].t", f"expected a time before the scenario's end "
+                          f"(duration = {duration:g} s), but got {t:g}: the step would never "
+                          "apply")
+    if n * duration / ts > MAX_AGENT_SAMPLES:
+        raise ConfigError(src, "duration", f"expected at most {MAX_AGENT_SAMPLES:.0e} "
+                          f"agent-samples (graph.agents × duration / ts = {n} × "
+                          f"{duration:g} / {ts:g}), but got {n * duration / ts:.3g}")
 
     events = []
     for i, e in enumerate(data.get("event", [])):
@@ -234,12 +267,30 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         r.controller({**ctrl, **overrides}, ts, key)  # validate now, not at run time
         variants.append(Variant(label, overrides))
 
-    return Scenario(
+    sc = Scenario(
         name=str(data.get("name", Path(src).stem)), title=str(data.get("title", "")), source=src,
         ts=ts, duration=duration, load_kw=r.number(data, "load_kw", lo=-1e6, hi=1e6),
         controller=controller, n=n, edges=edges, pinned=pinned, batteries=tuple(batteries),
         lambda0=tuple(lambda0), prices=tuple(prices), events=tuple(events),
         variants=tuple(variants))
+    for label, run in sc.runs():
+        check_agents(run, "variant " + label if sc.variants else "")
+    return sc
+
+
+def check_agents(sc: Scenario, where: str) -> None:
+    """Every agent's configuration as `up` writes it loads in firmware_py (its λ(0) inside
+    the agent's limits, k_max·Ts in Q1.30, timeouts ≤ 60 s, ...): a scenario, variant or
+    time scale the nodes would refuse at their start is refused here, before any runs."""
+    from firmware_py.config import agent_configs_from_scenario, parse_agent_config
+
+    for cfg in agent_configs_from_scenario(sc):
+        try:
+            parse_agent_config(tomllib.loads(cfg.to_toml()), cfg.source)
+        except ConfigError as e:
+            raise ConfigError(sc.source, f"agent {cfg.id}" + (f", {where}" if where else ""),
+                              f"expected values agent {cfg.id}'s configuration takes, but "
+                              f"its [{e.key}] {e.problem}") from None
 
 
 class _Reader:
@@ -274,7 +325,8 @@ class _Reader:
         return value
 
     def number(self, data: Mapping[str, Any], name: str, lo: float = -math.inf,
-               hi: float = math.inf, key: str | None = None, integer: bool = False) -> float:
+               hi: float = math.inf, key: str | None = None, integer: bool = False,
+               lo_open: bool = False) -> float:
         key = key or name
         if name not in data:
             raise self.fail(key, "is required")
@@ -283,8 +335,9 @@ class _Reader:
             raise self.fail(key, f"expected a number, but got {x!r}")
         if integer and not float(x).is_integer():
             raise self.fail(key, f"expected an integer, but got {x!r}")
-        if not lo <= x <= hi:
-            raise self.fail(key, f"expected a value in [{lo:g}, {hi:g}], but got {x!r}")
+        if not lo <= x <= hi or (lo_open and x == lo):
+            raise self.fail(key, f"expected a value in {'(' if lo_open else '['}{lo:g}, "
+                            f"{hi:g}], but got {x!r}")
         return float(x)
 
     def agent(self, x: Any, n: int, key: str) -> int:
@@ -328,12 +381,19 @@ def scaled(sc: Scenario, factor: float) -> Scenario:
     if factor == 1:
         return sc
     c = sc.controller
-    ctrl = replace(c, ts=c.ts * factor, k=c.k / factor, h=c.h / factor**2,
-                   dwell=c.dwell * factor)
-    return replace(sc, ts=sc.ts * factor, duration=sc.duration * factor, controller=ctrl,
-                   prices=tuple(PriceStep(p.t * factor, p.rho) for p in sc.prices),
-                   events=tuple(Event(e.t * factor, e.agent, e.action) for e in sc.events),
-                   name=f"{sc.name}-x{factor:g}", variants=())
+    try:
+        ctrl = replace(c, ts=c.ts * factor, k=c.k / factor, h=c.h / factor**2,
+                       dwell=c.dwell * factor)
+    except ParameterError as e:
+        raise ConfigError(sc.source, "time_scale", f"expected a factor that keeps the "
+                          f"controller valid (Ts·F ≤ 1 s: F ≤ {1 / c.ts:g} here), but got "
+                          f"{factor:g}: {e}") from None
+    out = replace(sc, ts=sc.ts * factor, duration=sc.duration * factor, controller=ctrl,
+                  prices=tuple(PriceStep(p.t * factor, p.rho) for p in sc.prices),
+                  events=tuple(Event(e.t * factor, e.agent, e.action) for e in sc.events),
+                  name=f"{sc.name}-x{factor:g}", variants=())
+    check_agents(out, f"time scale {factor:g}")
+    return out
 
 
 def to_toml(sc: Scenario) -> str:

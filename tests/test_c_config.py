@@ -146,8 +146,9 @@ BAD = [
     ("controller", "kind", '"pid"'), ("controller", "k", "0"), ("controller", "k", "1e5"),
     ("controller", "h", "-1"), ("controller", "ts", "2"), ("controller", "band", "1"),
     ("controller", "ft_exponent", "0.3"), ("controller", "k", "300"),
-    ("controller", "dwell", "-1"), ("controller", "gain", "1"),
+    ("controller", "dwell", "-1"), ("controller", "dwell", "1e300"), ("controller", "gain", "1"),
     ("battery", "alpha", "0"), ("battery", "m", "-1"), ("battery", "p_min", "200"),
+    ("battery", "alpha", "101"), ("battery", "beta", "-101"), ("battery", "m", "101"),
     ("battery", "p_min", "-400"), ("battery", "p_max", "400"), ("battery", "soc", "1"),
     ("timeouts", "price_s", "0"), ("timeouts", "status_s", "61"),
     ("timeouts", "neighbour_periods", "0.5"), ("timeouts", "other", "1"),
@@ -169,6 +170,26 @@ def test_c_loader_refuses_what_firmware_py_refuses_naming_the_key(table: str, ke
         parse_config(text, "agent.toml")
     assert f"[{py.value.key}]" in str(c.value), (str(py.value), str(c.value))
     assert str(c.value).startswith("agent.toml: ")
+
+
+def test_a_dwell_of_2_to_the_32_samples_is_refused_by_both() -> None:
+    """CTRL-2: D = ceil(Δ/Ts) is a uint32 in C; Δ = 5e4 s at Ts = 1e-5 s is 5e9 samples
+    (the C cast was undefined, firmware_py's D unbounded): both refuse it naming dwell."""
+    text = (BASE.replace('kind = "reset"', 'kind = "dwell"').replace("ts = 0.01", "ts = 1e-5")
+            .replace("dwell = 0.0", "dwell = 5e4"))
+    with pytest.raises(ConfigError, match=r"\[controller\.dwell\] expected Δ/Ts < 2\^32"):
+        parse_agent_config(tomllib.loads(text), "agent.toml")
+    with pytest.raises(CConfigError, match=r"\[controller\.dwell\] expected Δ/Ts < 2\^32"):
+        parse_config(text, "agent.toml")
+
+
+def test_an_idle_mc_beyond_q24_is_refused_by_both_naming_beta() -> None:
+    """CMD-3: β·(1+m) = 100·1.3 = 130 does not fit Q24: neither loader starts with it."""
+    text = _edit("battery", "beta", "100.0").replace("m = 0.1\n", "m = 0.3\n")
+    with pytest.raises(ConfigError, match=r"\[battery\.beta\] expected an idle marginal"):
+        parse_agent_config(tomllib.loads(text), "agent.toml")
+    with pytest.raises(CConfigError, match=r"\[battery\.beta\] expected an idle marginal"):
+        parse_config(text, "agent.toml")
 
 
 @pytest.mark.parametrize("text", ["[agent\nid = 1", "[agent]\nid = ", "[agent]\nid = 1\nid = 2",
@@ -212,6 +233,11 @@ def test_key_file_refusals(tmp_path: Path) -> None:
         load_keyfile(path, "agent_2")
     with pytest.raises(CConfigError, match="cannot read"):
         load_keyfile(tmp_path / "missing.key", "agent_2")
+    os.chmod(path, 0o600)
+    link = tmp_path / "link.key"
+    link.symlink_to(path)
+    with pytest.raises(CConfigError, match="symbolic link"):
+        load_keyfile(link, "agent_2")
 
 
 # --------------------------------------------------------------------------- the node program

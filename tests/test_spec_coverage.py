@@ -262,13 +262,17 @@ def test_battery_rules(key: str, value: Any, named: str) -> None:
 
 
 def test_battery_limits_that_are_allowed_and_p_min_rules() -> None:
-    """CFG-5: the edges are accepted (alpha = 1e-9, m = 0, any finite beta, ±327.67);
-    p_min ≥ p_max is refused naming p_max (the pair's second key), p_min < −327.67
-    naming p_min."""
+    """CFG-5: the edges are accepted (alpha = 1e-9 and 100, m = 0 and 100, beta ±100,
+    ±327.67), beyond them refused; p_min ≥ p_max is refused naming p_max (the pair's
+    second key), p_min < −327.67 naming p_min."""
     doc = base()
-    doc["battery"].update(alpha=1e-9, m=0.0, beta=-1e6, p_min=-327.67, p_max=327.67)
+    doc["battery"].update(alpha=1e-9, m=0.0, beta=-100.0, p_min=-327.67, p_max=327.67)
     b = parse(doc).battery
-    assert (b.alpha, b.m, b.beta, b.p_min, b.p_max) == (1e-9, 0.0, -1e6, -327.67, 327.67)
+    assert (b.alpha, b.m, b.beta, b.p_min, b.p_max) == (1e-9, 0.0, -100.0, -327.67, 327.67)
+    doc["battery"].update(alpha=100.0, m=100.0, beta=1.0)
+    assert parse(doc).battery.m == 100.0
+    for key, value in (("alpha", 100.01), ("m", 100.01), ("beta", 100.01), ("beta", -101.0)):
+        refused({**doc, "battery": {**doc["battery"], key: value}}, f"battery.{key}")
     doc["battery"].update(p_min=5.0, p_max=5.0)
     refused(doc, "battery.p_max")
     doc["battery"].update(p_min=-327.68, p_max=5.0)
@@ -551,15 +555,17 @@ def test_counters_off_the_diag_frame_are_kept_and_printed() -> None:
     assert a.counters["untrusted"] == 0   # an agent has no E2E input to block
 
 
-def test_unrepresentable_idle_mc_ends_the_node_at_isolate() -> None:
-    """CMD-3, LOOP-5 (Open point 6): β·(1+m) = 200 is accepted at start; an ISOLATE makes
-    the state ISOLATED and then raises ParameterError out of on_frame."""
+def test_unrepresentable_idle_mc_is_refused_at_start() -> None:
+    """CMD-3, LOOP-5: β·(1+m) = 130 (β = 100, m = 0.3) does not fit Q24: the configuration
+    is refused naming battery.beta, as firmware_c refuses it, instead of the node's loop
+    ending at the first ISOLATE (was Open point 6); 127 is accepted and isolates."""
     doc = base()
-    doc["battery"].update(beta=200.0, m=0.0)
+    doc["battery"].update(beta=100.0, m=0.3)
+    refused(doc, "battery.beta")
+    doc["battery"].update(beta=127.0 / 1.5, m=0.5)
     a = running(doc)
     a.tick(0.0)
-    with pytest.raises(ParameterError):
-        a.on_frame(command(1, 2), 0.001)
+    a.on_frame(command(1, 2), 0.001)
     assert a.state == State.ISOLATED
 
 

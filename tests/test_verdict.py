@@ -220,10 +220,10 @@ def test_a_log_without_a_price_is_judged_too(clean_run: tuple[Path, dict],
 
 
 @pytest.mark.parametrize("argv, says", [
-    (["--duration", "-1"], "--duration: expected a finite number > 0, but got -1"),
-    (["--duration", "0"], "--duration: expected a finite number > 0, but got 0"),
-    (["--duration", "nan"], "--duration: expected a finite number > 0, but got nan"),
-    (["--time-scale", "0"], "--time-scale: expected a finite number > 0, but got 0"),
+    (["--duration", "-1"], "--duration: expected a finite number > 0 and ≤ 100000, but got -1"),
+    (["--duration", "0"], "--duration: expected a finite number > 0 and ≤ 100000, but got 0"),
+    (["--duration", "nan"], "--duration: expected a finite number > 0 and ≤ 100000, but got nan"),
+    (["--time-scale", "0"], "--time-scale: expected a factor in [1, 1000], but got 0"),
     (["--interface", "virtual"], "exists inside one process only"),
     (["--variant", "PC"], "has no variants"),
     (["--bus-config", "[1]"], "expected a JSON object"),

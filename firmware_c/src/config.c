@@ -491,15 +491,20 @@ static int controller(doc *d, bd_ctrl_config *c, double *k_out, double *h_out, d
     }
     e = find(d, "controller", -1, "dwell");
     if (e != NULL) {
-        if (!finite_entry(e) || !(e->f >= 0.0)) {
-            return errorf(d, "controller.dwell", "expected a finite number of seconds ≥ 0, "
-                          "but got %s", repr(e, got, sizeof got));
+        /* ≤ 1e5 s: D = ceil(dwell/ts) fits the uint32 below for any ts ≥ 1e-4 (CTRL-2) */
+        if (!finite_entry(e) || !(e->f >= 0.0 && e->f <= 1e5)) {
+            return errorf(d, "controller.dwell", "expected a finite number of seconds in "
+                          "[0, 100000], but got %s", repr(e, got, sizeof got));
         }
         dwell = e->f;
     }
     if (kind == BD_KIND_DWELL && dwell < ts) {
         return errorf(d, "controller.dwell", "expected Δ ≥ Ts = %.17g s for the dwell "
                       "controller, but got %.17g", ts, dwell);
+    }
+    if (kind == BD_KIND_DWELL && ceil(dwell / ts - 1e-9) > 4294967295.0) {
+        return errorf(d, "controller.dwell", "expected Δ/Ts < 2^32 (D = ceil(Δ/Ts) is a "
+                      "uint32, CTRL-2), but got Δ = %.17g s at Ts = %.17g s", dwell, ts);
     }
     e = find(d, "controller", -1, "band");
     if (e != NULL) {
@@ -708,9 +713,9 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
     static const char *const battery_keys[] = {"alpha", "beta", "m", "p_min", "p_max", NULL};
     double alpha, beta, m, p_min, p_max;
     if (check_keys(&d, "battery", battery_keys, "alpha, beta, m, p_max, p_min") != 0
-        || num(&d, "battery", -1, "alpha", 1e-9, INFINITY, NULL, &alpha) != 0
-        || num(&d, "battery", -1, "beta", -INFINITY, INFINITY, NULL, &beta) != 0
-        || num(&d, "battery", -1, "m", 0.0, INFINITY, NULL, &m) != 0
+        || num(&d, "battery", -1, "alpha", 1e-9, 100.0, NULL, &alpha) != 0
+        || num(&d, "battery", -1, "beta", -100.0, 100.0, NULL, &beta) != 0
+        || num(&d, "battery", -1, "m", 0.0, 100.0, NULL, &m) != 0
         || num(&d, "battery", -1, "p_min", -INFINITY, INFINITY, NULL, &p_min) != 0
         || num(&d, "battery", -1, "p_max", -INFINITY, INFINITY, NULL, &p_max) != 0) {
         return -1;
@@ -983,9 +988,16 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
     struct stat st;
     key_file *kf = &key_file_state;
     memset(k, 0, sizeof *k);
-    if (stat(path, &st) != 0) {
+    if (lstat(path, &st) != 0) {
         (void)snprintf(err, errlen, "%s: cannot read the node key file: %s", path,
                        strerror(errno));
+        return -1;
+    }
+    /* a symbolic link is refused, not followed, as firmware_py does: a boot counter saved
+     * through it would replace the link by a copy and leave the target's behind */
+    if (S_ISLNK(st.st_mode)) {
+        (void)snprintf(err, errlen, "%s: expected the node key file itself, but got a "
+                       "symbolic link: give the file's own path", path);
         return -1;
     }
     if (!S_ISREG(st.st_mode)) {

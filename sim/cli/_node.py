@@ -15,7 +15,7 @@ from firmware_py.__main__ import (
     add_key_arguments,
     add_rt_argument,
 )
-from firmware_py.cliargs import positive_float
+from firmware_py.cliargs import MAX_PERIOD_S, duration_s, float_in, time_scale
 from firmware_py.errors import ParameterError
 
 
@@ -28,13 +28,14 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
     add_bus_arguments(p)
     add_filter_argument(p)
     add_rt_argument(p)
-    p.add_argument("--duration", type=positive_float(), metavar="S",
+    p.add_argument("--duration", type=duration_s(), metavar="S",
                    help="stop after S seconds (default: run until SIGINT/SIGTERM)")
-    p.add_argument("--time-scale", type=positive_float(), default=1.0, metavar="F",
+    p.add_argument("--time-scale", type=time_scale, default=1.0, metavar="F",
                    help="run the scenario stretched by F (Ts·F, k/F, h/F², every cycle and "
                    "timeout ×F), as `bess-ded up --time-scale F` runs it; give the agents "
                    "the configuration files such a run writes (default: 1)")
-    p.add_argument("--period", type=positive_float(), default=None, metavar="S",
+    p.add_argument("--period", type=float_in(0.0, MAX_PERIOD_S, lo_open=True), default=None,
+                   metavar="S",
                    help="tick period of the node (default: the scenario's Ts, after the "
                    "time scale)")
     p.add_argument("--counters-json", metavar="FILE",

@@ -15,12 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
-from firmware_py.errors import ConfigError
+from firmware_py.errors import BessDedError, ConfigError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from firmware_py.cliargs import positive_float
+    from firmware_py.cliargs import time_scale
 
     from ._common import one_line_errors
 
@@ -32,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--case", metavar="CASE", help="a case number (1-7) or a scenario .toml")
     src.add_argument("--scenario", metavar="FILE", help="a scenario .toml (docs/scenarios.md)")
     p.add_argument("--variant", metavar="LABEL", help="the variant that ran (cases 2, 3, 6)")
-    p.add_argument("--time-scale", type=positive_float(), default=1.0, metavar="F",
+    p.add_argument("--time-scale", type=time_scale, default=1.0, metavar="F",
                    help="the --time-scale the run used (default: 1)")
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output directory (default: LOG's directory/<LOG stem>-analysis)")
@@ -67,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     for role in ("plant", "router"):
         path = counters_dir / f"{role}.counters.json"
         if path.is_file():
-            counters[role] = json.loads(path.read_text())
+            counters[role] = load_node_counters(path)
     if args.counters is not None and not counters:
         raise ConfigError(str(args.counters), "--counters", "expected plant.counters.json "
                           "and/or router.counters.json in it, but found neither")
@@ -83,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         rec = report(sc, args.log, out, RunFacts(node_counters=counters or None),
                      plot=not args.no_plot, time_scale=args.time_scale, keys=keys)
+    except BessDedError:
+        raise
     except (ValueError, EOFError) as e:  # python-can's readers on a file of another format
         raise ConfigError(str(args.log), "LOG", f"expected a CAN log python-can reads, but "
                           f"got: {e}") from None
@@ -90,3 +93,24 @@ def run(args: argparse.Namespace) -> int:
         print(line)
     print(f"  wrote {', '.join(map(str, rec.written))}")
     return rec.verdict.exit_code
+
+
+def load_node_counters(path: Path) -> dict[str, Any]:
+    """A plant's or router's --counters-json file: {"ticks": N, "counters": {name: N}},
+    checked, so a truncated or foreign file is a clear error, not a traceback."""
+    try:
+        doc = json.loads(path.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ConfigError(str(path), "--counters", f"expected the JSON a node writes with "
+                          f"--counters-json, but got unreadable JSON ({e})") from None
+
+    def count(x: Any) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool) and x >= 0
+
+    counters = doc.get("counters", {}) if isinstance(doc, dict) else None
+    if (not isinstance(counters, dict) or not count(doc.get("ticks", 0))
+            or not all(isinstance(k, str) and count(v) for k, v in counters.items())):
+        raise ConfigError(str(path), "--counters", "expected an object with \"ticks\": N and "
+                          "\"counters\": {name: N} (N integers ≥ 0), but got "
+                          f"{json.dumps(doc)[:80]}")
+    return doc

@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 
 def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.__main__ import add_bus_arguments, add_rt_argument
-    from firmware_py.cliargs import positive_float
+    from firmware_py.cliargs import duration_s, time_scale
 
     from ._common import one_line_errors
 
@@ -52,12 +52,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--variant", metavar="LABEL", help="for a scenario with variants")
     p.add_argument("--dut", required=True, metavar="I", help="the agent the device replaces")
     add_bus_arguments(p)
-    p.add_argument("--time-scale", type=positive_float(), metavar="F",
+    p.add_argument("--time-scale", type=time_scale, metavar="F",
                    help="the device runs Ts·F, k/F, h/F² (its configuration says so); "
                         "default 1, or 5 under tools/vcan-run")
     p.add_argument("--out", type=Path, help="output directory (default: "
                    "runs/conformance-<scenario>-agent<I>)")
-    p.add_argument("--wait", type=positive_float(), default=60.0, metavar="S",
+    p.add_argument("--wait", type=duration_s(), default=60.0, metavar="S",
                    help="how long to wait for the device (default: 60 s)")
     p.add_argument("--junit", type=Path, metavar="FILE", help="write JUnit XML here")
     add_rt_argument(p)
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         if key_dir is None:
             key_dir = busrun.provision_keys(sc, out / "keys")
         else:
-            check_key_set(key_dir, sc.n)
+            check_key_set(key_dir, sc.n, sc)
         keys = load_key_set(key_dir)
         own = secoc.load_node_key(key_dir / f"{node}.key")
         ring = secoc.Keyring(node, own.key, own.boot_counter, lambda _b: None,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from firmware_py.__main__ import add_bus_arguments
-from firmware_py.cliargs import int_in, positive_float, positive_int
+from firmware_py.cliargs import float_in, int_in, positive_int
 
 from ..scenario import MAX_AGENTS
 from ._common import one_line_errors
@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="frames to send (default: 100)")
     p.add_argument("--target", type=int_in(1, MAX_AGENTS, what="an agent number"), default=1,
                    metavar="AGENT", help="agent impersonated (default: 1)")
-    p.add_argument("--rate", type=positive_float(), default=1000.0, metavar="HZ",
+    p.add_argument("--rate", type=float_in(0.0, 1e6, lo_open=True), default=1000.0, metavar="HZ",
                    help="frames per second (default: 1000)")
     p.add_argument("--seed", type=int_in(0), default=0, metavar="N")
     add_bus_arguments(p)

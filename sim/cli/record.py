@@ -18,7 +18,7 @@ from pathlib import Path
 
 def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.__main__ import add_bus_arguments
-    from firmware_py.cliargs import positive_float
+    from firmware_py.cliargs import duration_s
 
     from ._common import one_line_errors
 
@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_bus_arguments(p)
     p.add_argument("--out", type=Path, required=True, metavar="FILE",
                    help="the log to write (.log for candump format)")
-    p.add_argument("--duration", type=positive_float(), metavar="S",
+    p.add_argument("--duration", type=duration_s(), metavar="S",
                    help="stop after S seconds (default: until SIGINT/SIGTERM)")
     p.set_defaults(func=run)
 

@@ -24,7 +24,7 @@ from firmware_py.errors import ParameterError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from firmware_py.cliargs import positive_float
+    from firmware_py.cliargs import duration_s
 
     from ._common import one_line_errors
     from .up import add_run_arguments
@@ -36,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dut", required=True, metavar="I|plant",
                    help="the node the device under test replaces: an agent number, or "
                         "'plant' (real choppers)")
-    p.add_argument("--wait", type=positive_float(), default=60.0, metavar="S",
+    p.add_argument("--wait", type=duration_s(), default=60.0, metavar="S",
                    help="how long to wait for the device before giving up (default: 60 s)")
     p.set_defaults(func=run)
 

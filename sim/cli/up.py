@@ -61,7 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
     """The options of a fleet run on a bus (`up`, `restbus`): scenario, bus, duration,
     output, time scale, keys."""
-    from firmware_py.cliargs import positive_float
+    from firmware_py.cliargs import duration_s, time_scale
 
     p.add_argument("--case", required=True, metavar="CASE",
                    help="a case number (1-7, the paper's cases) or a path to a scenario .toml")
@@ -69,11 +69,11 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="for a scenario with variants (cases 2, 3, 6): which one to run "
                    "(default: the first)")
     add_bus_arguments(p)
-    p.add_argument("--duration", type=positive_float(), metavar="S",
+    p.add_argument("--duration", type=duration_s(), metavar="S",
                    help="seconds of price time (default: the scenario's duration)")
     p.add_argument("--out", type=Path, help="output directory (default: runs/<command>-"
                    "<scenario>)")
-    p.add_argument("--time-scale", type=positive_float(), metavar="F",
+    p.add_argument("--time-scale", type=time_scale, metavar="F",
                    help="stretch the time axis by F (Ts·F, k/F, h/F²: the same discrete "
                    "system) for hosts too slow for Ts = 10 ms, e.g. an emulated guest "
                    f"(default: 1, or {GUEST_TIME_SCALE:g} under tools/vcan-run)")
@@ -102,7 +102,7 @@ class RunPlan:
 def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
     """Check the options of a fleet run and print its banner (``nodes``: what runs)."""
     from .. import busrun
-    from ..scenario import scaled
+    from ..scenario import MAX_AGENT_SAMPLES, scaled
     from ._common import resolve_scenario
 
     base = resolve_scenario(args.case)
@@ -123,6 +123,11 @@ def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
     scale = scale or 1.0
     sc = scaled(sc, scale)
     duration = sc.duration if args.duration is None else args.duration * scale
+    if sc.n * duration / sc.ts > MAX_AGENT_SAMPLES:  # its log could not be analysed
+        raise ParameterError("--duration", f"at most {MAX_AGENT_SAMPLES * sc.ts / sc.n / scale:g}"
+                             f" s for {sc.n} agents at Ts = {sc.ts / scale:g} s (the analysis "
+                             f"holds {MAX_AGENT_SAMPLES:.0e} agent-samples)",
+                             args.duration)
     out = args.out or Path("runs") / f"{command}-{sc.name}"
     bus, port = busrun.private_port(bus)
     print(f"bess-ded {command}: {sc.title or sc.name}{chosen}: {nodes.format(n=sc.n)} for "
@@ -133,7 +138,7 @@ def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
     for line in sc.analysis().describe()[1:]:
         print(f"  {line}")
     if args.keys is not None:
-        fleet = check_key_set(args.keys, sc.n)
+        fleet = check_key_set(args.keys, sc.n, sc)
         print(f"  keys: {args.keys}/ (fleet id {fleet})")
     elif args.insecure:
         print("  keys: INSECURE (--insecure): the public demo key, anyone on the bus can "
@@ -205,20 +210,50 @@ def c_node_program(flag: str) -> Path:
                              "tools/install-c-deps)", first) from None
 
 
-def check_key_set(keys: Path, n: int) -> str:
-    """Load every key file a fleet of ``n`` agents needs from ``keys`` (permissions,
-    format, one fleet) before anything starts; the fleet id."""
+def check_key_set(keys: Path, n: int, sc: Scenario | None = None) -> str:
+    """Load every key file a fleet of ``n`` agents needs from ``keys`` before anything
+    starts, and check what a node would refuse at its start: permissions (the directory's
+    too), format, one fleet, a boot counter left to start with, and the keys of the peers
+    it receives from (with ``sc``, whose graph says who that is), so a bad set is exit 2
+    here, never a node refusing its file mid-start; the fleet id."""
+    import stat
+
     from firmware_py import secoc
 
+    from .keys import peers_of
+
+    if not keys.is_dir():
+        raise ParameterError("--keys", "a key set directory (bess-ded keys --fleet ... --out "
+                             "DIR)", str(keys))
+    mode = stat.S_IMODE(keys.stat().st_mode)
+    if mode & 0o077:
+        raise ParameterError("--keys", f"a directory only its owner may access (chmod 700 "
+                             f"{keys})", f"{keys} with mode {mode:04o}")
     fleets = set()
+    loaded = {}
     for node in secoc.fleet_nodes(n):
         path = keys / f"{node}.key"
-        if not path.exists():
+        if not path.exists() and not path.is_symlink():
             raise ParameterError("--keys", f"a key set with {node}.key (bess-ded keys --fleet "
                                  f"... --out {keys})", str(keys))
-        fleets.add(secoc.load_node_key(path).fleet_id)
+        k = loaded[node] = secoc.load_node_key(path)
+        if k.node != node:
+            raise ParameterError("--keys", f"{node}.key to hold the key of {node}",
+                                 f"the key of {k.node}")
+        if k.boot_counter >= secoc.DEFAULT_LAYOUT.max_boot:
+            raise ParameterError("--keys", f"{node}.key with a boot counter below "
+                                 f"{secoc.DEFAULT_LAYOUT.max_boot} (each start uses the next; "
+                                 "re-provision with bess-ded keys --fleet ... --force)",
+                                 f"{k.boot_counter}, exhausted")
+        fleets.add(k.fleet_id)
     if len(fleets) != 1:
         raise ParameterError("--keys", "key files of one fleet", f"fleet ids {sorted(fleets)}")
+    sc_peers = peers_of(sc) if sc is not None else {}
+    for node, k in loaded.items():
+        if missing := [p for p in sc_peers.get(node, []) if p not in k.peers]:
+            raise ParameterError("--keys", f"{node}.key with the keys of the nodes it receives "
+                                 f"from ({', '.join(sc_peers[node])})",
+                                 f"none for {', '.join(missing)}")
     return fleets.pop()
 
 
