@@ -72,7 +72,9 @@ Setpoint consistency (sim.consistency): the plant also hears every agent's MC fr
 (its key file holds every agent's key) and takes a setpoint only when it is the agent's
 own dispatch rule applied to the λ it publishes; otherwise it counts
 ``setpoint_inconsistent`` (and ``setpoint_inconsistent_agent_<i>``) and holds the last
-consistent setpoint, unless ``obey_inconsistent`` (``bess-ded plant --obey-inconsistent``).
+consistent setpoint, unless ``obey_inconsistent`` (``bess-ded plant --obey-inconsistent``:
+every setpoint is followed on arrival, as a plant without the check would, and only
+counted). A setpoint waits for at most the agent's next MC frame to be checked.
 A compromised agent cannot then steer its battery away from the λ its neighbours see.
 
 Fault injection (tests): ``faults`` = (agent, kind, t_start, t_end) windows in
@@ -388,11 +390,18 @@ class PlantNode(SimNodeClock):
         unit.setpoint_rx = t   # the agent is alive, whatever it commands
         unit.stale = False
         sp = Setpoint(bool(f.raw["Enable"]), f.raw["PowerSetpoint"], t)
+        if self.obey_inconsistent:  # obeyed at once; the check only counts
+            self._apply(unit, sp)
         self._decided(unit, self._checks[unit.agent].setpoint(sp))
 
+    def _apply(self, u: BessUnit, sp: Setpoint) -> None:
+        u.enable = sp.enable
+        u.p_set = sp.raw * self._sp_scale
+
     def _decided(self, u: BessUnit, outcomes: list[tuple[Check, Setpoint]]) -> None:
-        """Apply the setpoints whose check is decided: a consistent one; an inconsistent
-        one only with ``obey_inconsistent`` (else the last consistent one holds)."""
+        """Apply the setpoints whose check is decided and consistent (an inconsistent one
+        leaves the last consistent one in force); with ``obey_inconsistent`` every
+        setpoint was applied on arrival and this only counts."""
         for check, sp in outcomes:
             if check is Check.UNVERIFIED:
                 self.counters["setpoint_unverified"] += 1
@@ -405,10 +414,9 @@ class PlantNode(SimNodeClock):
                                 "the λ it publishes: %s", u.agent, sp.raw * self._sp_scale,
                                 "obeyed (obey_inconsistent)" if self.obey_inconsistent
                                 else "holding its last consistent setpoint")
-                if not self.obey_inconsistent:
-                    continue
-            u.enable = sp.enable
-            u.p_set = sp.raw * self._sp_scale
+                continue
+            if not self.obey_inconsistent:
+                self._apply(u, sp)
 
     # ------------------------------------------------------------------ periodic
 
