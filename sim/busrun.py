@@ -708,6 +708,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     counters = {role: {"ticks": node.ticks, "counters": dict(node.counters)}
                 for role, node in zip(SIM_NODES, nodes[-2:], strict=True)}
     # left as `up` leaves them, so `analyze DIR` judges this run as it is judged here
+    (out / "scenario.toml").write_text(to_toml(sc))
     (out / "logs").mkdir(exist_ok=True)
     for role, c in counters.items():
         counters_path(out, role).write_text(json.dumps(c) + "\n")

@@ -11,7 +11,8 @@ sends, so only what it says can give it away).
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import can
 
@@ -79,6 +80,18 @@ def deviate(requirement: str, agent: int | None = None) -> None:
             apply(self)
 
     runtime.AgentRuntime.__init__ = deviant_init  # type: ignore[method-assign]
+
+
+@contextmanager
+def lying(requirement: str, agent: int) -> Iterator[None]:
+    """``deviate(requirement, agent)`` for the agents built inside the block (in-process
+    runs: sim.busrun.run_in_process); every AgentRuntime after it is honest again."""
+    init = runtime.AgentRuntime.__init__
+    deviate(requirement, agent)
+    try:
+        yield
+    finally:
+        runtime.AgentRuntime.__init__ = init  # type: ignore[method-assign]
 
 
 if __name__ == "__main__":
