@@ -241,11 +241,14 @@ def _setpoints(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomal
 
 def _lambda_outliers(sc: Scenario, tr: Trajectory, tolerance: float,
                      out: list[Anomaly]) -> None:
-    """An agent whose told λ stays more than ``tolerance`` off the median of the other
-    dispatching agents' over the run's last OUTLIER_WINDOW_S: what a liar that keeps
-    its setpoints consistent with its lie still gives away. The median of the others
-    (not of its graph neighbours): robust to one liar among ≥ 3 others, where a
-    neighbour of the liar, averaging over two, would look off too."""
+    """An agent whose told λ stays off the median of the other dispatching agents' over
+    the run's last OUTLIER_WINDOW_S: what a liar that keeps its setpoints consistent with
+    its lie still gives away. Off by more than ``tolerance``; or by more than a quarter of
+    it while no other agent is off by even a third as much (one agent apart from a fleet
+    that agrees: a lie too small to break the tolerance alone, which pulls every honest λ
+    by as much as it tells). The median of the others, not of its graph neighbours: robust
+    to one liar among ≥ 3 others, where a neighbour of the liar, averaging over two, would
+    look off too."""
     assert tr.state is not None
     # OUTLIER_WINDOW_S scenario seconds are that many samples at any time scale
     k = min(tr.t.size, max(1, round(OUTLIER_WINDOW_S / MC_CYCLE_S)))
@@ -253,18 +256,36 @@ def _lambda_outliers(sc: Scenario, tr: Trajectory, tolerance: float,
     on = tr.judged[-k:] & (tr.state[-k:] == RUNNING)
     if sc.n < 4 or on.sum(axis=1).min() < 4:
         return  # with fewer than 3 others the median cannot tell who is off
+    dev = np.zeros(sc.n)
     for i in range(sc.n):
         others = np.where(on, lam, np.nan)
         others[:, i] = np.nan
-        dev = np.abs(lam[:, i] - np.nanmedian(others, axis=1))
+        dev[i] = np.median(np.abs(lam[:, i] - np.nanmedian(others, axis=1)))
+    named = 0
+    for i in range(sc.n):
         if not on[:, i].all():
             continue
-        if np.median(dev) > tolerance:
+        rest = np.delete(dev, i)
+        if dev[i] > tolerance or (dev[i] > tolerance / 4 and dev[i] > 3 * rest.max()):
+            named += 1
             out.append(Anomaly("lambda_outlier", f"agent_{i + 1}",
-                               f"its λ stayed {np.median(dev):.2e} cu/kWh off the median of "
-                               f"the other dispatching agents over the last "
-                               f"{OUTLIER_WINDOW_S:g} s (tolerance {tolerance:g}): it tells "
-                               f"its neighbours a λ the consensus does not explain",
+                               f"its λ stayed {dev[i]:.2e} cu/kWh off the median of the other "
+                               f"dispatching agents over the last {OUTLIER_WINDOW_S:g} s (the "
+                               f"others: at most {rest.max():.1e}; tolerance {tolerance:g}): "
+                               "it tells its neighbours a λ the consensus does not explain",
+                               float(tr.t[-k])))
+    # every λ agrees, but not with ρ: only the pinned agents hear ρ and pull the
+    # consensus to it, so one of them tells a λ off ρ (a liar pinned to the price drags
+    # the whole fleet along, and no agent stands out)
+    off = float(np.median(np.abs(np.median(lam, axis=1) - tr.rho[-k:])))
+    if not named and dev.max() <= tolerance / 4 and off > tolerance:
+        for i in sc.pinned:
+            out.append(Anomaly("lambda_outlier", f"agent_{i}",
+                               f"the whole fleet agrees on a λ {off:.2e} cu/kWh off ρ over the "
+                               f"last {OUTLIER_WINDOW_S:g} s (tolerance {tolerance:g}); agent "
+                               f"{i} is pinned to the price, and only the pinned agents "
+                               f"({', '.join(map(str, sc.pinned))}) pull the consensus to ρ: "
+                               "one of them tells a λ the price does not explain",
                                float(tr.t[-k])))
 
 

@@ -36,7 +36,8 @@ from sim.scenario import load_case
 from sim.verdict import (EXIT_ANOMALIES, EXIT_NOT_CONVERGED, Anomaly, RunFacts,
                          _host_overload)
 
-CASE = replace(load_case(1), duration=10.0)
+CASE = replace(load_case(1), duration=6.0)
+DURATION_S = 6.0
 CODEC = FrameCodec()
 BATTERY_3 = agent_configs_from_scenario(CASE)[2].battery
 Q24 = 1 << 24
@@ -98,15 +99,15 @@ def test_the_plant_holds_the_last_consistent_setpoint_unless_told_to_obey(obey: 
 # --------------------------------------------------------------------------- the runs
 
 
-def _liar(kind: str) -> Callable[[Path], dict[str, Any]]:
+def _liar(kind: str, agent: int = 3) -> Callable[[Path], dict[str, Any]]:
     def run(out: Path) -> dict[str, Any]:
-        with lying(kind, 3):
-            return busrun.run_in_process(CASE, out, 10.0, channel=f"liar-{out.name}")
+        with lying(kind, agent):
+            return busrun.run_in_process(CASE, out, DURATION_S, channel=f"liar-{out.name}")
     return run
 
 
 def _plain(**kw: Any) -> Callable[[Path], dict[str, Any]]:
-    return lambda out: busrun.run_in_process(CASE, out, 10.0, channel=f"liar-{out.name}", **kw)
+    return lambda out: busrun.run_in_process(CASE, out, DURATION_S, channel=f"liar-{out.name}", **kw)
 
 
 RUNS: dict[str, Callable[[Path], dict[str, Any]]] = {
@@ -114,10 +115,11 @@ RUNS: dict[str, Callable[[Path], dict[str, Any]]] = {
     "lie-setpoint": _liar("LIE-SETPOINT"),
     "lie-lambda": _liar("LIE-LAMBDA"),
     "lie-ramp": _liar("LIE-RAMP"),
+    "lie-lambda-hub": _liar("LIE-LAMBDA", 1),   # the star's hub, the agent pinned to ρ
     "insecure": _plain(insecure=True),
     "router-outage": _plain(router_silent=((4.0, 4.6),)),
     "plant-faults": _plain(plant_faults=((2, "overcurrent", 3.0, 3.5),
-                                         (4, "power_limit", 8.0, 10.0))),
+                                         (4, "power_limit", 4.5, 6.0))),
 }
 
 
@@ -154,16 +156,18 @@ def test_an_agent_commanding_its_plant_off_its_lambda_is_named_and_not_obeyed(ru
     assert m["node_counters"]["plant"]["counters"]["setpoint_inconsistent_agent_3"] > 100
 
 
-@pytest.mark.parametrize("run", ["lie-lambda", "lie-ramp"])
-def test_an_agent_telling_a_lambda_off_the_others_is_named(run: str, runs) -> None:
+@pytest.mark.parametrize("run, liar", [("lie-lambda", "agent_3"), ("lie-ramp", "agent_3"),
+                                       ("lie-lambda-hub", "agent_1")])
+def test_an_agent_telling_a_lambda_off_the_others_is_named(run: str, liar: str,
+                                                          runs) -> None:
     """0.3 % of ρ above its λ, with setpoints consistent with the lie (LIE-LAMBDA), or a
-    lie growing by 0.002 cu/kWh per s (LIE-RAMP): not converged, agent 3 named as the
-    most likely cause."""
+    lie growing by 0.002 cu/kWh per s (LIE-RAMP): not converged, the liar named as the
+    most likely cause. A leaf's lie leaves it apart from the others; the hub's (pinned to
+    ρ) drags every λ along, and the fleet agreeing off ρ names the pinned agent."""
     out, m = runs(run)
     assert m["verdict"]["exit_code"] == EXIT_NOT_CONVERGED
-    assert ("lambda_outlier", "agent_3") in _named(m)
-    assert [n for k, n in _named(m) if k == "lambda_outlier"] == ["agent_3"]
-    assert m["verdict"]["cause"].startswith("lambda_outlier [agent_3]")
+    assert [n for k, n in _named(m) if k == "lambda_outlier"] == [liar]
+    assert m["verdict"]["cause"].startswith(f"lambda_outlier [{liar}]")
 
 
 def test_the_honest_run_is_clean_and_within_the_tolerance(runs) -> None:
