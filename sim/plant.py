@@ -95,8 +95,7 @@ from typing import Any
 import can
 
 from firmware_py.config import agent_configs_from_scenario, untrusted_s
-from firmware_py.contract import (MC_CYCLE_S, cycle_s, mc_name, setpoint_name, status_name,
-                                  timeout_s)
+from firmware_py.contract import MC_CYCLE_S, cycle_s, mc_name, setpoint_name, status_name, timeout_s
 from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import NodeIO

@@ -33,8 +33,7 @@ from sim.cli import main
 from sim.consistency import Check, Setpoint, SetpointCheck
 from sim.plant import PlantNode
 from sim.scenario import load_case
-from sim.verdict import (EXIT_ANOMALIES, EXIT_NOT_CONVERGED, Anomaly, RunFacts,
-                         _host_overload)
+from sim.verdict import EXIT_ANOMALIES, EXIT_NOT_CONVERGED, Anomaly, RunFacts, _host_overload
 
 CASE = replace(load_case(1), duration=6.0)
 DURATION_S = 6.0
@@ -107,7 +106,8 @@ def _liar(kind: str, agent: int = 3) -> Callable[[Path], dict[str, Any]]:
 
 
 def _plain(**kw: Any) -> Callable[[Path], dict[str, Any]]:
-    return lambda out: busrun.run_in_process(CASE, out, DURATION_S, channel=f"liar-{out.name}", **kw)
+    return lambda out: busrun.run_in_process(CASE, out, DURATION_S,
+                                             channel=f"liar-{out.name}", **kw)
 
 
 RUNS: dict[str, Callable[[Path], dict[str, Any]]] = {
