@@ -10,8 +10,11 @@ firmware's own map (never re-derived here), within the wire's rounding.
 
 A setpoint that matches none of the last ``MC_WINDOW`` MC frames waits for the next one
 (it may have overtaken the MC frame of its own tick): it is consistent if that one
-explains it, inconsistent if not. A second setpoint arriving while one still waits (the
-MC frames are not getting through) leaves the first unverified, not inconsistent.
+explains it, or if it lies between what the MC frames before and after it give (the
+MC frame of its own tick was lost), inconsistent if not. A disabled setpoint (0 kW) is
+always consistent: it is the safe direction, as a stale setpoint is. A second setpoint
+arriving while one still waits (the MC frames are not getting through) leaves the first
+unverified, not inconsistent.
 """
 
 from __future__ import annotations
@@ -58,16 +61,28 @@ class SetpointCheck:
         return (True, self.map(lam_raw)[0]) if active else (False, 0)
 
     def _explains(self, sp: Setpoint, state: int, lam_raw: int) -> bool:
+        if not sp.enable and sp.raw == 0:
+            return True   # disabled: the safe direction, whatever the state says
         enable, raw = self.expected(state, lam_raw)
         return sp.enable == enable and abs(sp.raw - raw) <= ROUNDING_RAW
 
+    def _between(self, sp: Setpoint, a: tuple[int, int], b: tuple[int, int]) -> bool:
+        """Within the setpoints of two consecutive MC frames, one of them dispatching:
+        the MC frame of the setpoint's own tick was lost between them (λ moves little in
+        one tick; the state may have changed in it)."""
+        pa, pb = self.map(a[1])[0], self.map(b[1])[0]
+        return (sp.enable and (self.expected(*a)[0] or self.expected(*b)[0])
+                and min(pa, pb) - ROUNDING_RAW <= sp.raw <= max(pa, pb) + ROUNDING_RAW)
+
     def mc(self, state: int, lam_raw: int) -> tuple[Check, Setpoint] | None:
         """An MC frame of the agent; the outcome of a setpoint that waited for it."""
+        prev = self.mcs[-1] if self.mcs else None
         self.mcs.append((state, lam_raw))
         sp, self.pending = self.pending, None
         if sp is None:
             return None
-        ok = self._explains(sp, state, lam_raw)
+        ok = self._explains(sp, state, lam_raw) or (
+            prev is not None and self._between(sp, prev, (state, lam_raw)))
         return (Check.CONSISTENT if ok else Check.INCONSISTENT), sp
 
     def setpoint(self, sp: Setpoint) -> list[tuple[Check, Setpoint]]:
