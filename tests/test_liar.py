@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import pytest
 from deviant_agent import LIE_SETPOINT_KW, lying
+from test_attacks import spoofed_mc
 
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.frames import FrameCodec, mc_name, setpoint_name
@@ -121,6 +122,7 @@ RUNS: dict[str, Callable[[Path], dict[str, Any]]] = {
     "lie-lambda-hub": _liar("LIE-LAMBDA", 1),   # the star's hub, the agent pinned to ρ
     "insecure": _plain(insecure=True),
     "router-outage": _plain(router_silent=((4.0, 4.6),)),
+    "forged-mc": _plain(inject=spoofed_mc(1)),
     "plant-faults": _plain(plant_faults=((2, "overcurrent", 3.0, 3.5),
                                          (4, "power_limit", 4.5, 6.0))),
 }
@@ -238,6 +240,7 @@ def test_an_insecure_run_is_an_anomaly_and_exits_3_at_best(runs, tmp_path) -> No
     ("lie-setpoint", {"setpoint_inconsistent"}),
     ("lie-lambda", {"lambda_outlier"}),
     ("insecure", {"insecure_keys"}),
+    ("forged-mc", {"auth_failed"}),
     ("router-outage", {"price_timeout", "agent_safe"}),
     ("plant-faults", {"plant_fault", "agent_safe", "power_limit"}),
 ])
