@@ -309,3 +309,14 @@ def test_a_node_late_alone_is_still_named() -> None:
                 "router": {"ticks": 1000, "counters": {"deadline_miss": 0}}}
     before = _per_node(log, counters)
     assert _host_overload(log, RunFacts(node_counters=counters), before) == before
+
+
+def test_analyze_names_bad_run_facts(runs, tmp_path: Path, capsys) -> None:
+    src, _ = runs("honest")
+    out = tmp_path / "run"
+    shutil.copytree(src, out)
+    for bad in ('{"deaths": 7}', '{"time_scale": -1}', '[1, 2]', '{"boot_floors": [1]}'):
+        (out / "logs" / "run_facts.json").write_text(bad)
+        assert main(["analyze", str(out), "--no-plot"]) == 2, bad
+        err = capsys.readouterr().err
+        assert err.startswith("bess-ded: error:") and "run_facts.json" in err, (bad, err)

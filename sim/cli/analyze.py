@@ -90,9 +90,17 @@ def run(args: argparse.Namespace) -> int:
     known = _json(facts_path) if facts_path.is_file() else {}
     if not isinstance(known, dict):
         raise ConfigError(str(facts_path), "run facts", "expected a JSON object")
-    facts = RunFacts.from_json(known, counters or None)
-    time_scale = args.time_scale or float(known.get("time_scale") or 1.0)
-    tolerance = args.tolerance or float(known.get("tolerance") or TOLERANCE)
+    try:
+        facts = RunFacts.from_json(known, counters or None)
+        time_scale = args.time_scale or float(known.get("time_scale") or 1.0)
+        tolerance = args.tolerance or float(known.get("tolerance") or TOLERANCE)
+        floors = {str(k): int(v) for k, v in (known.get("boot_floors") or {}).items()}
+    except (TypeError, ValueError, AttributeError) as e:
+        raise ConfigError(str(facts_path), "run facts", f"expected them as `up` writes them, "
+                          f"but got: {e}") from None
+    if not (time_scale > 0 and tolerance > 0):
+        raise ConfigError(str(facts_path), "run facts", "expected a positive time_scale and "
+                          f"tolerance, but got {time_scale} and {tolerance}")
     spec = args.case or args.scenario
     if spec is None:
         if not (run_dir / "scenario.toml").is_file():
@@ -114,7 +122,6 @@ def run(args: argparse.Namespace) -> int:
             for n in secoc.fleet_nodes(sc.n)}
     if keys is None and (facts.insecure or _demo_signed(log_path, sc, demo)):
         keys, facts.insecure = demo, True
-    floors = {k: int(v) for k, v in (known.get("boot_floors") or {}).items()}
     print(f"bess-ded analyze: {log_path} as {sc.title or sc.name}{chosen} ({sc.n} agents)"
           + (f"; node counters from {counters_dir}" if counters else "")
           + (f"; run facts from {facts_path}" if known else "")
