@@ -56,6 +56,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--c-agents", metavar="I,J,...",
                    help="run these agents on firmware_c, the others on firmware_py "
                    "(SocketCAN only)")
+    p.add_argument("--obey-inconsistent", action="store_true",
+                   help="the plant follows a setpoint that is not its agent's dispatch rule "
+                   "at the λ it publishes (still reported: setpoint_inconsistent); default: "
+                   "it holds the last consistent one (docs/security.md)")
     p.set_defaults(func=run)
 
 
@@ -189,7 +193,9 @@ def run(args: argparse.Namespace) -> int:
     rec = busrun.record(plan.sc, plan.out, plan.bus, duration=plan.duration,
                         plot=not args.no_plot, time_scale=plan.scale, keys=args.keys,
                         insecure=args.insecure, c_agents=c_agents, c_node=c_node,
-                        tolerance=args.tolerance)
+                        tolerance=args.tolerance,
+                        extra={"plant": ["--obey-inconsistent"]} if args.obey_inconsistent
+                        else None)
     return print_report(plan, rec)
 
 
