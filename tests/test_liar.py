@@ -320,3 +320,27 @@ def test_analyze_names_bad_run_facts(runs, tmp_path: Path, capsys) -> None:
         assert main(["analyze", str(out), "--no-plot"]) == 2, bad
         err = capsys.readouterr().err
         assert err.startswith("bess-ded: error:") and "run_facts.json" in err, (bad, err)
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+def test_a_lying_device_on_restbus_is_named(tmp_path: Path) -> None:
+    """The same liar as a device under test of `bess-ded restbus` (node processes on the
+    wall clock, the operator's way to bring a device): started with the key file restbus
+    made for agent 3 and nothing else. Expected at any load: exit ≠ 0, agent 3 named,
+    the plant holding its last consistent setpoint."""
+    import re
+    import sys
+
+    from conformance_run import with_device
+
+    hint = re.compile(r"device under test: \S+, waited for up to .*?; e\.g\. (.*)$")
+    out = tmp_path / "rb"
+    code, log = with_device(["restbus", "--case", "1", "--dut", "3", "--duration", "6",
+                             "--no-plot", "--out", str(out)], hint,
+                            [sys.executable, str(Path(__file__).parent / "deviant_agent.py"),
+                             "LIE-SETPOINT"])
+    assert code != 0, log
+    m = json.loads((out / "metrics.json").read_text())
+    assert ("setpoint_inconsistent", "agent_3") in _named(m), log
+    assert m["node_counters"]["plant"]["counters"]["setpoint_inconsistent_agent_3"] > 0
