@@ -81,8 +81,11 @@ class SetpointCheck:
         sp, self.pending = self.pending, None
         if sp is None:
             return None
-        ok = self._explains(sp, state, lam_raw) or (
-            prev is not None and self._between(sp, prev, (state, lam_raw)))
+        if self._explains(sp, state, lam_raw):
+            return Check.CONSISTENT, sp
+        if prev is None:  # the checker started between its tick's MC frame and it
+            return Check.UNVERIFIED, sp
+        ok = self._between(sp, prev, (state, lam_raw))
         return (Check.CONSISTENT if ok else Check.INCONSISTENT), sp
 
     def setpoint(self, sp: Setpoint) -> list[tuple[Check, Setpoint]]:

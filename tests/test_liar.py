@@ -73,6 +73,10 @@ def test_a_setpoint_ahead_of_its_mc_frame_waits_for_it_and_one_without_is_unveri
     lost = Setpoint(True, SetpointMap(BATTERY_3)(round(0.95 * Q24))[0], 0.1)
     assert check.setpoint(lost) == []
     assert check.mc(1, round(1.0 * Q24)) == (Check.CONSISTENT, lost)
+    # a checker (a plant) started between a tick's MC frame and its setpoint: unverified
+    fresh, early = SetpointCheck(BATTERY_3), Setpoint(True, 1234, 0.0)
+    assert fresh.setpoint(early) == []
+    assert fresh.mc(1, round(0.8 * Q24)) == (Check.UNVERIFIED, early)
     first, second = Setpoint(True, 1, 0.0), Setpoint(True, 2, 0.1)
     assert check.setpoint(first) == []
     assert check.setpoint(second) == [(Check.UNVERIFIED, first)]   # MC frames not getting
