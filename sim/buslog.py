@@ -89,6 +89,10 @@ class LogContents:
     syncs: int = 0
     # frames the capture received before an earlier-stamped one (read_log sorts them)
     reordered: int = 0
+    # per agent, in bus order: (t, "mc", State, Lambda raw) and (t, "setpoint", Enable,
+    # PowerSetpoint raw), for the setpoint-consistency check (sim.consistency)
+    dispatch: dict[int, list[tuple[float, str, int, int]]] = field(
+        default_factory=lambda: defaultdict(list))
     # log lines that hold no frame, by cause (LINE_CAUSES): skipped, never silently
     skipped_lines: Counter[str] = field(default_factory=Counter)
     # timestamps of frames far outside the recording's time span (a clock jump or a
@@ -375,6 +379,10 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
             out.first_mc_state.setdefault(f.name, f.raw["State"])
             for sig in ("Lambda", "State", "Resets"):
                 out.series[(f.name, sig)].append((t, f.phys(sig)))
+            out.dispatch[f.agent or 0].append((t, "mc", f.raw["State"], f.raw["Lambda"]))
+        elif f.name.endswith("_Setpoint"):
+            out.dispatch[f.agent or 0].append((t, "setpoint", f.raw["Enable"],
+                                               f.raw["PowerSetpoint"]))
         elif f.name.endswith("_Status"):
             for sig in ("Power", "PowerLimited"):
                 out.series[(f.name, sig)].append((t, f.phys(sig)))

@@ -36,7 +36,7 @@ from firmware_py.node import GuardedBus, bus_kwargs, open_bus
 from .cli.keys import load_boot_floors, load_key_set, write_key_set
 from .runreport import Recording, report
 from .scenario import Scenario, to_toml
-from .verdict import RunFacts
+from .verdict import TOLERANCE, RunFacts
 
 __all__ = ["BusOptions", "NodeSpec", "Recording", "in_process_nodes", "record", "run",
            "run_in_process"]
@@ -327,7 +327,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
            plot: bool = True, time_scale: float = 1.0, keys: Path | None = None,
            insecure: bool = False, dut: str | None = None, dut_wait_s: float = 60.0,
            on_ready: Callable[[Path | None], None] | None = None,
-           c_agents: frozenset[int] = frozenset(), c_node: Path | None = None) -> Recording:
+           c_agents: frozenset[int] = frozenset(), c_node: Path | None = None,
+           tolerance: float = TOLERANCE) -> Recording:
     """Run the scenario on the bus for ``duration`` s of price time (default: the
     scenario's). ``extra`` adds argv per node (fault flags),
     ``delays`` starts a node late (s after t = 0), ``actions`` calls
@@ -344,6 +345,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     is called once the key set and the agents' configuration files are written, before
     any node starts (to tell the operator, or a test, what to give the device).
     ``c_agents`` run firmware_c's node program ``c_node`` instead of firmware_py.
+    ``tolerance``: the verdict's bound on the final |λ − ρ| (cu/kWh).
 
     SIGINT or SIGTERM stops the run early: the nodes are stopped and the outputs are
     written for what was recorded, with the verdict marked interrupted. Every node that
@@ -358,6 +360,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     logdir.mkdir(exist_ok=True)
     for role in SIM_NODES:  # a previous run's, in a reused DIR
         counters_path(out, role).unlink(missing_ok=True)
+    run_facts_path(out).unlink(missing_ok=True)
     codec = FrameCodec()
     key_dir = None if insecure else keys or provision_keys(sc, out / "keys")
     specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority, key_dir,
@@ -401,9 +404,26 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
         writer.stop()
         watch.shutdown()
     facts = RunFacts(exit_codes=codes, deaths=deaths, node_counters=sim_node_counters(out),
-                     interrupted=interrupted, recorder_counters=notifier.counters())
+                     interrupted=interrupted, recorder_counters=notifier.counters(),
+                     insecure=key_dir is None)
+    write_run_facts(out, facts, boot_floors, time_scale, tolerance)
     return report(sc, out / "run.log", out, facts, plot=plot, time_scale=time_scale,
-                  codec=codec, keys=monitor_keys, boot_floors=boot_floors)
+                  codec=codec, keys=monitor_keys, boot_floors=boot_floors,
+                  tolerance=tolerance)
+
+
+def run_facts_path(out: Path) -> Path:
+    """What `up` knew beyond the recording (exit codes, deaths, --insecure, the boot
+    floors its monitor used, time scale, tolerance): `analyze DIR` reads it back, so the
+    same run gets the same verdict from both."""
+    return out / "logs" / "run_facts.json"
+
+
+def write_run_facts(out: Path, facts: RunFacts, boot_floors: Mapping[str, int] | None,
+                    time_scale: float, tolerance: float) -> None:
+    doc = {**facts.as_json(), "boot_floors": dict(boot_floors or {}),
+           "time_scale": time_scale, "tolerance": tolerance}
+    run_facts_path(out).write_text(json.dumps(doc, indent=2) + "\n")
 
 
 def provision_keys(sc: Scenario, key_dir: Path) -> Path:
@@ -626,8 +646,8 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
                    keyrings: Mapping[str, secoc.Keyring] | None = None,
                    insecure: bool = False,
                    inject: Callable[[float], Sequence[can.Message]] | None = None,
-                   observe: Callable[[float, dict[str, Any]], None] | None = None
-                   ) -> dict[str, Any]:
+                   observe: Callable[[float, dict[str, Any]], None] | None = None,
+                   tolerance: float = TOLERANCE) -> dict[str, Any]:
     """The same nodes as `up` on python-can's in-process ``virtual`` bus, stepped on a
     simulated clock.
 
@@ -726,8 +746,14 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     counters = {role: {"ticks": node.ticks, "counters": dict(node.counters)}
                 for role, node in zip(SIM_NODES, nodes[-2:], strict=True)}
     dropped = {k: v for k, v in recorder.counters.items() if v}
-    m = report(sc, out / "run.log", out, RunFacts(node_counters=counters,
-                                                  recorder_counters=dropped),
-               plot=False, codec=codec, keys={n: r.key for n, r in rings.items()}).metrics
+    # left as `up` leaves them, so `analyze DIR` judges this run as it is judged here
+    (out / "scenario.toml").write_text(to_toml(sc))
+    (out / "logs").mkdir(exist_ok=True)
+    for role, c in counters.items():
+        counters_path(out, role).write_text(json.dumps(c) + "\n")
+    facts = RunFacts(node_counters=counters, recorder_counters=dropped, insecure=insecure)
+    write_run_facts(out, facts, None, 1.0, tolerance)
+    m = report(sc, out / "run.log", out, facts, plot=False, codec=codec,
+               keys={n: r.key for n, r in rings.items()}, tolerance=tolerance).metrics
     m["node_summaries"] = [n.summary() for n in nodes]
     return m

@@ -68,6 +68,15 @@ engages after a tick it did not counts one ``setpoint_ramp_limited`` (an episode
 every tick); it does not set PowerLimited. The healthy start transient of the paper
 cases engages it once per BESS (see docs/safety-model.md for what it changes).
 
+Setpoint consistency (sim.consistency): the plant also hears every agent's MC frame
+(its key file holds every agent's key) and takes a setpoint only when it is the agent's
+own dispatch rule applied to the λ it publishes; otherwise it counts
+``setpoint_inconsistent`` (and ``setpoint_inconsistent_agent_<i>``) and holds the last
+consistent setpoint, unless ``obey_inconsistent`` (``bess-ded plant --obey-inconsistent``:
+every setpoint is followed on arrival, as a plant without the check would, and only
+counted). A setpoint waits for at most the agent's next MC frame to be checked.
+A compromised agent cannot then steer its battery away from the λ its neighbours see.
+
 Fault injection (tests): ``faults`` = (agent, kind, t_start, t_end) windows in
 seconds from the node's first tick; while one is active the flag is forced:
 ``overcurrent`` → FaultOverCurrent, ``voltage`` → FaultVoltage, ``soc`` → FaultSoc
@@ -85,13 +94,14 @@ from typing import Any
 
 import can
 
-from firmware_py.config import untrusted_s
-from firmware_py.contract import MC_CYCLE_S, cycle_s, setpoint_name, status_name, timeout_s
+from firmware_py.config import agent_configs_from_scenario, untrusted_s
+from firmware_py.contract import MC_CYCLE_S, cycle_s, mc_name, setpoint_name, status_name, timeout_s
 from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import NodeIO
 from firmware_py.secoc import Keyring
 
+from .consistency import Check, Setpoint, SetpointCheck
 from .model import Battery
 from .nodeclock import SimNodeClock, TimeWindow
 from .scenario import Scenario
@@ -316,9 +326,12 @@ class PlantNode(SimNodeClock):
     def __init__(self, scenario: Scenario, period: float = 0.01,
                  faults: Iterable[PlantFault | Sequence[Any] | str] = (),
                  codec: FrameCodec | None = None, ramp_full_s: float | None = None,
-                 keys: Keyring | None = None) -> None:
+                 keys: Keyring | None = None, obey_inconsistent: bool = False) -> None:
         """``ramp_full_s``: the setpoint ramp limit as the time to go from 0 to p_max
-        (None: RAMP_FULL_S stretched with the scenario's Ts; 0: no ramp limit)."""
+        (None: RAMP_FULL_S stretched with the scenario's Ts; 0: no ramp limit).
+        ``obey_inconsistent``: follow a setpoint that is not the agent's dispatch rule
+        applied to the λ it publishes (sim.consistency) instead of holding the last
+        consistent one; it is counted either way."""
         if not (math.isfinite(period) and period > 0):
             raise ParameterError("period", "a positive number of seconds", period)
         if ramp_full_s is None:
@@ -342,7 +355,13 @@ class PlantNode(SimNodeClock):
         self._setpoint_ids = {c.frame_id(setpoint_name(u.agent)): u for u in self.units}
         self._status_names = [status_name(u.agent) for u in self.units]
         self._setpoint_fid = {u.agent: fid for fid, u in self._setpoint_ids.items()}
-        self.io = NodeIO(c, "the plant", own=self._status_names, wanted=self._setpoint_ids,
+        # each agent's MC frames too: its setpoints must be its λ through its dispatch rule
+        self._mc_ids = {c.frame_id(mc_name(u.agent)): u for u in self.units}
+        self.obey_inconsistent = obey_inconsistent
+        self._checks = {cfg.id: SetpointCheck(cfg.battery)
+                        for cfg in agent_configs_from_scenario(scenario)}
+        self.io = NodeIO(c, "the plant", own=self._status_names,
+                         wanted=[*self._setpoint_ids, *self._mc_ids],
                          fleet_size=scenario.n, untrusted_s=untrusted_s(scenario.ts),
                          keys=keys, sync_s=cycle_s("ER_Price_Sync", scenario.ts))
         self.counters = self.io.counters
@@ -351,6 +370,7 @@ class PlantNode(SimNodeClock):
         self._ranges = {s: c.raw_range(first, s) for s in _STATUS_SIGNALS}
         self._scales = {s: c.scale(first, s) for s in _STATUS_SIGNALS}
         self._active_faults: set[int] = set()
+        self._sp_scale = c.scale(setpoint_name(1), "PowerSetpoint")
         self._init_clock()
 
     # ------------------------------------------------------------------ receive
@@ -359,12 +379,43 @@ class PlantNode(SimNodeClock):
         f = self.io.receive(msg, t)
         if f is None:
             return
+        mc_unit = self._mc_ids.get(f.frame_id)
+        if mc_unit is not None:
+            done = self._checks[mc_unit.agent].mc(f.raw["State"], f.raw["Lambda"])
+            self._decided(mc_unit, [done] if done else [])
+            return
         unit = self._setpoint_ids[f.frame_id]
         self.counters["setpoints"] += 1
-        unit.enable = bool(f.raw["Enable"])
-        unit.p_set = f.phys("PowerSetpoint")
-        unit.setpoint_rx = t
+        unit.setpoint_rx = t   # the agent is alive, whatever it commands
         unit.stale = False
+        sp = Setpoint(bool(f.raw["Enable"]), f.raw["PowerSetpoint"], t)
+        if self.obey_inconsistent:  # obeyed at once; the check only counts
+            self._apply(unit, sp)
+        self._decided(unit, self._checks[unit.agent].setpoint(sp))
+
+    def _apply(self, u: BessUnit, sp: Setpoint) -> None:
+        u.enable = sp.enable
+        u.p_set = sp.raw * self._sp_scale
+
+    def _decided(self, u: BessUnit, outcomes: list[tuple[Check, Setpoint]]) -> None:
+        """Apply the setpoints whose check is decided and consistent (an inconsistent one
+        leaves the last consistent one in force); with ``obey_inconsistent`` every
+        setpoint was applied on arrival and this only counts."""
+        for check, sp in outcomes:
+            if check is Check.UNVERIFIED:
+                self.counters["setpoint_unverified"] += 1
+                continue
+            if check is Check.INCONSISTENT:
+                self.counters["setpoint_inconsistent"] += 1
+                self.counters[f"setpoint_inconsistent_agent_{u.agent}"] += 1
+                if self.counters[f"setpoint_inconsistent_agent_{u.agent}"] == 1:
+                    log.warning("plant: agent %d commands %.2f kW, not its dispatch rule at "
+                                "the λ it publishes: %s", u.agent, sp.raw * self._sp_scale,
+                                "obeyed (obey_inconsistent)" if self.obey_inconsistent
+                                else "holding its last consistent setpoint")
+                continue
+            if not self.obey_inconsistent:
+                self._apply(u, sp)
 
     # ------------------------------------------------------------------ periodic
 

@@ -18,7 +18,7 @@ from firmware_py.frames import FrameCodec
 from . import buslog, metrics
 from .scenario import Scenario
 from .trajectory import Trajectory
-from .verdict import RunFacts, Verdict, anomalies_json, judge, node_deadlines
+from .verdict import TOLERANCE, RunFacts, Verdict, anomalies_json, judge, node_deadlines
 
 
 @dataclass
@@ -35,13 +35,15 @@ class Recording:
 def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = None,
            plot: bool = True, time_scale: float = 1.0,
            codec: FrameCodec | None = None, keys: Mapping[str, bytes] | None = None,
-           boot_floors: Mapping[str, int] | None = None) -> Recording:
+           boot_floors: Mapping[str, int] | None = None,
+           tolerance: float = TOLERANCE) -> Recording:
     """Decode ``log_path`` against the scenario ``sc`` (as it ran: variant chosen, time
     scale applied), judge it and write DIR/metrics.json, DIR/trajectory.csv and, with
     ``plot``, DIR/bus_run.png. ``time_scale`` only relabels the plot's time axis in
     scenario seconds. ``keys``: the run's node keys (label → key): forged and replayed
     secured frames are then left out of the analysis and reported; ``boot_floors``:
-    each node's lowest boot counter in the run (buslog._Monitor)."""
+    each node's lowest boot counter in the run (buslog._Monitor); ``tolerance``: how close
+    to ρ every dispatching agent's final λ must be for the run to converge (cu/kWh)."""
     facts = facts or RunFacts()
     out.mkdir(parents=True, exist_ok=True)
     log = buslog.read_log(log_path, codec, n=sc.n, ts=sc.ts, keys=keys,
@@ -54,7 +56,7 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
         tr = None
     diag = buslog.node_diagnostics(log)
     sim_nodes = facts.node_counters or {}
-    verdict = judge(sc, log, tr, m, facts)
+    verdict = judge(sc, log, tr, m, facts, tolerance)
     deadlines = node_deadlines(log, sim_nodes)
     m.update({
         "source": "bus",
@@ -74,6 +76,8 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
         "deadline_misses": {k: misses for k, (misses, _) in deadlines.items()},
         "node_ticks": {k: ticks for k, (_, ticks) in deadlines.items()},
         "exit_codes": facts.exit_codes or {},
+        "tolerance": tolerance,
+        "insecure": facts.insecure,
         "router_ledger": buslog.router_ledger(log),
         # lines of the log that held no frame, and frames far off its time span: left out
         "log_lines_skipped": dict(log.skipped_lines),
@@ -138,6 +142,8 @@ def summary_lines(m: dict[str, Any], verdict: Verdict, time_scale: float = 1.0) 
         head = "CONVERGED" + (" with anomalies" if verdict.anomalies else "")
     else:
         head = "NOT CONVERGED: " + "; ".join(verdict.reasons)
+    if verdict.cause and not verdict.interrupted:
+        lines.append(f"  most likely cause: {verdict.cause}")
     lines.append(f"  verdict: {head} (exit code {verdict.exit_code})")
     return lines
 

@@ -7,7 +7,8 @@ node processes' exit codes — and returns the anomalies and the verdict that
 their exit code. Every rule is listed in docs/runs.md.
 
 A run *converged* when every agent that the scenario means to be dispatching at the end
-is RUNNING there, the last price segment settled into its 2 % band, and no node died.
+is RUNNING there, the last price segment settled into its 2 % band, every such agent's
+final λ is within ``tolerance`` of ρ, and no node died.
 Anything else that should not happen in a healthy run is an *anomaly*; a converged run
 with anomalies is not a success either.
 """
@@ -36,6 +37,18 @@ SILENCE_CLUSTER_S = 1.0   # (scenario s) silences closer than this are reported 
 STATE_GRACE_TS = 10       # INIT/ISOLATED/RUNNING may lag the plan by this many Ts
 DEADLINE_MISS_FRACTION = 0.01
 POWER_LIMIT_HOLD_S = 1.0  # (scenario s) a battery limited over the run's last second
+TOLERANCE = 1e-3          # cu/kWh: the final λ of every dispatching agent within this of ρ
+OUTLIER_WINDOW_S = 1.0    # (scenario s) the λ outlier test looks at the run's last second
+HOST_OVERLOAD_SHARE = 0.75  # this share of the nodes (≥ 2) all late: the host, not the nodes
+# timeouts a starved host causes at every node (reported inside host_overloaded)
+_LATE_KINDS = ("deadline_misses", "price_timeout", "status_timeout", "setpoint_timeout")
+# the anomaly kinds most likely to explain a run that did not converge, most likely first
+_CAUSES = ("node_died", "node_not_started", "no_price", "setpoint_inconsistent",
+           "lambda_outlier", "insecure_keys", "auth_failed", "untrusted_source",
+           "foreign_traffic", "host_overloaded", "agent_safe_at_end", "agent_init_at_end",
+           "agent_isolated_at_end", "agent_silent", "node_silent", "plant_fault",
+           "price_timeout", "status_timeout", "setpoint_timeout", "deadline_misses",
+           "bus_silence", "agent_safe", "power_limit")
 INIT, RUNNING, ISOLATED, SAFE = State.INIT, State.RUNNING, State.ISOLATED, State.SAFE
 
 # AGENT_i_Diag counters that a healthy run keeps at 0: (signal, anomaly kind, what)
@@ -105,6 +118,7 @@ class Verdict:
     reasons: list[str]           # why not converged (empty when it did)
     anomalies: list[Anomaly]
     interrupted: bool = False
+    cause: str | None = None     # not converged: the most likely cause, from the anomalies
 
     @property
     def exit_code(self) -> int:
@@ -121,7 +135,7 @@ class Verdict:
     def as_json(self) -> dict[str, Any]:
         return {"converged": self.converged, "reasons": self.reasons,
                 "interrupted": self.interrupted, "exit_code": self.exit_code,
-                "ok": self.ok}
+                "ok": self.ok, "cause": self.cause}
 
 
 @dataclass
@@ -134,10 +148,27 @@ class RunFacts:
     node_counters: dict[str, Any] | None = None          # plant/router counters JSON
     recorder_counters: dict[str, int] | None = None      # bus inputs it dropped, by cause
     interrupted: bool = False
+    insecure: bool = False   # signed with the public demo keys (--insecure)
+
+    def as_json(self) -> dict[str, Any]:
+        """What ``up`` leaves in DIR/logs/run_facts.json, for ``analyze`` of the run."""
+        return {"exit_codes": self.exit_codes, "deaths": self.deaths,
+                "interrupted": self.interrupted, "insecure": self.insecure,
+                "recorder_counters": self.recorder_counters}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any], node_counters: dict[str, Any] | None
+                  ) -> RunFacts:
+        return cls(exit_codes=d.get("exit_codes"),
+                   deaths=[tuple(x) for x in d["deaths"]] if d.get("deaths") else None,
+                   node_counters=node_counters, interrupted=bool(d.get("interrupted")),
+                   insecure=bool(d.get("insecure")),
+                   recorder_counters=d.get("recorder_counters"))
 
 
 def judge(sc: Scenario, log: LogContents, tr: Trajectory | None, m: dict[str, Any],
-          facts: RunFacts | None = None) -> Verdict:
+          facts: RunFacts | None = None, tolerance: float = TOLERANCE) -> Verdict:
+    """``tolerance`` (cu/kWh): how close to ρ every dispatching agent's final λ must be."""
     facts = facts or RunFacts()
     out: list[Anomaly] = []
     reasons: list[str] = []
@@ -145,21 +176,148 @@ def judge(sc: Scenario, log: LogContents, tr: Trajectory | None, m: dict[str, An
     if facts.interrupted:
         out.append(Anomaly("interrupted", "run", "stopped by a signal before the scenario's "
                            "end: results cover what was recorded"))
+    if facts.insecure:
+        out.append(Anomaly("insecure_keys", "run", "the nodes signed with the public demo "
+                           "key (--insecure): anyone on the bus could forge any frame, so "
+                           "nothing in this run is authenticated"))
     _node_exits(facts, out, reasons)
     if t0 is None or tr is None:
         out.append(Anomaly("no_price", "router", "no ER_Price frame in the recording: the "
                            "router never spoke (or the recorder heard another bus)"))
         reasons.append("no price was ever heard")
-        return Verdict(False, reasons, out, facts.interrupted)
+        return _verdict(reasons, out, facts)
     _agent_states(sc, log, tr, out, reasons)
     _recording(sc, log, out)
     _counters(sc, log, facts, out)
     _power_limits(sc, log, tr, out)
+    _setpoints(sc, log, facts, out)
+    _lambda_outliers(sc, tr, tolerance, out)
     st = m.get("settling_times_s") or [None]
+    err = m.get("final_error", float("nan"))
     if st[-1] is None:
         reasons.append(f"the last price segment never settled into its 2 % band (final "
-                       f"error {m.get('final_error', float('nan')):.2e} cu/kWh)")
-    return Verdict(not reasons, reasons, out, facts.interrupted)
+                       f"error {err:.2e} cu/kWh)")
+    elif not err <= tolerance:
+        reasons.append(f"the final λ is {err:.2e} cu/kWh from ρ, more than the tolerance "
+                       f"{tolerance:g} cu/kWh")
+    return _verdict(reasons, _host_overload(log, facts, out), facts)
+
+
+def _verdict(reasons: list[str], out: list[Anomaly], facts: RunFacts) -> Verdict:
+    cause = None
+    if reasons:
+        ranked = [a for k in _CAUSES for a in out if a.kind == k]
+        cause = (f"{ranked[0].kind} [{ranked[0].node}]: {ranked[0].detail}" if ranked
+                 else "no anomaly explains it: " + reasons[0])
+    return Verdict(not reasons, reasons, out, facts.interrupted, cause)
+
+
+def _setpoints(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly]) -> None:
+    """Each agent's setpoints against its own dispatch rule at the λ it publishes (the
+    check the plant makes, sim.consistency), from the recording."""
+    from firmware_py.config import agent_configs_from_scenario
+
+    from .consistency import Check, Setpoint, SetpointCheck
+
+    t0 = log.t_first_price or 0.0
+    plant = ((facts.node_counters or {}).get("plant") or {}).get("counters", {})
+    for cfg in agent_configs_from_scenario(sc):
+        check = SetpointCheck(cfg.battery)
+        bad: list[tuple[Setpoint, int]] = []   # (the setpoint, the λ raw it ignored)
+        total = 0
+        for t, what, a, b in log.dispatch.get(cfg.id, []):
+            if what == "mc":
+                done = check.mc(a, b)
+                decided = [done] if done else []
+            else:
+                total += 1
+                decided = check.setpoint(Setpoint(bool(a), b, t))
+            bad += [(sp, check.mcs[-1][1] if check.mcs else 0)
+                    for c, sp in decided if c is Check.INCONSISTENT]
+        if not bad:
+            continue
+        sp, lam = bad[0]
+        _, raw = check.expected(1, lam)
+        held = plant.get(f"setpoint_inconsistent_agent_{cfg.id}", 0)
+        out.append(Anomaly(
+            "setpoint_inconsistent", f"agent_{cfg.id}",
+            f"{len(bad)} of its {total} setpoints are not its dispatch rule at the λ it "
+            f"publishes (first: {sp.raw / 100:.2f} kW{'' if sp.enable else ' disabled'} "
+            f"where λ = {lam / (1 << 24):.4f} gives {raw / 100:.2f} kW): a compromised or "
+            "faulty agent" + (f"; the plant held its last consistent setpoint {held} times"
+                              if held else ""), sp.t - t0))
+
+
+def _lambda_outliers(sc: Scenario, tr: Trajectory, tolerance: float,
+                     out: list[Anomaly]) -> None:
+    """An agent whose told λ stays off the median of the other dispatching agents' over
+    the run's last OUTLIER_WINDOW_S: what a liar that keeps its setpoints consistent with
+    its lie still gives away. Off by more than ``tolerance``; or by more than a quarter of
+    it while no other agent is off by even a third as much (one agent apart from a fleet
+    that agrees: a lie too small to break the tolerance alone, which pulls every honest λ
+    by as much as it tells). The median of the others, not of its graph neighbours: robust
+    to one liar among ≥ 3 others, where a neighbour of the liar, averaging over two, would
+    look off too."""
+    assert tr.state is not None
+    # OUTLIER_WINDOW_S scenario seconds are that many samples at any time scale
+    k = min(tr.t.size, max(1, round(OUTLIER_WINDOW_S / MC_CYCLE_S)))
+    lam = tr.lam[-k:]
+    on = tr.judged[-k:] & (tr.state[-k:] == RUNNING)
+    if sc.n < 4 or on.sum(axis=1).min() < 4:
+        return  # with fewer than 3 others the median cannot tell who is off
+    dev = np.zeros(sc.n)
+    for i in range(sc.n):
+        others = np.where(on, lam, np.nan)
+        others[:, i] = np.nan
+        dev[i] = np.median(np.abs(lam[:, i] - np.nanmedian(others, axis=1)))
+    named = 0
+    for i in range(sc.n):
+        if not on[:, i].all():
+            continue
+        rest = np.delete(dev, i)
+        if dev[i] > tolerance or (dev[i] > tolerance / 4 and dev[i] > 3 * rest.max()):
+            named += 1
+            out.append(Anomaly("lambda_outlier", f"agent_{i + 1}",
+                               f"its λ stayed {dev[i]:.2e} cu/kWh off the median of the other "
+                               f"dispatching agents over the last {OUTLIER_WINDOW_S:g} s (the "
+                               f"others: at most {rest.max():.1e}; tolerance {tolerance:g}): "
+                               "it tells its neighbours a λ the consensus does not explain",
+                               float(tr.t[-k])))
+    # every λ agrees, but not with ρ: only the pinned agents hear ρ and pull the
+    # consensus to it, so one of them tells a λ off ρ (a liar pinned to the price drags
+    # the whole fleet along, and no agent stands out)
+    off = float(np.median(np.abs(np.median(lam, axis=1) - tr.rho[-k:])))
+    if not named and dev.max() <= tolerance / 4 and off > tolerance:
+        for i in sc.pinned:
+            out.append(Anomaly("lambda_outlier", f"agent_{i}",
+                               f"the whole fleet agrees on a λ {off:.2e} cu/kWh off ρ over the "
+                               f"last {OUTLIER_WINDOW_S:g} s (tolerance {tolerance:g}); agent "
+                               f"{i} is pinned to the price, and only the pinned agents "
+                               f"({', '.join(map(str, sc.pinned))}) pull the consensus to ρ: "
+                               "one of them tells a λ the price does not explain",
+                               float(tr.t[-k])))
+
+
+def _host_overload(log: LogContents, facts: RunFacts, out: list[Anomaly]) -> list[Anomaly]:
+    """When most nodes missed their deadlines (HOST_OVERLOAD_SHARE of them, ≥ 2), the host
+    was starved, not each node: one ``host_overloaded`` with its measure replaces the
+    per-node deadline and timeout anomalies. Fewer late nodes are named one by one."""
+    rates = {n: m / max(t, 1) for n, (m, t) in node_deadlines(log, facts.node_counters).items()
+             if t}
+    late = {n: r for n, r in rates.items() if r > DEADLINE_MISS_FRACTION}
+    if len(late) < 2 or len(late) < HOST_OVERLOAD_SHARE * len(rates):
+        return out
+    folded = [a for a in out if a.kind in _LATE_KINDS]
+    worst = max(late, key=lambda n: late[n])
+    kinds = ", ".join(f"{k} ×{sum(a.kind == k for a in folded)}" for k in _LATE_KINDS
+                      if any(a.kind == k for a in folded))
+    host = Anomaly("host_overloaded", "host",
+                   f"{len(late)} of {len(rates)} nodes missed more than "
+                   f"{100 * DEADLINE_MISS_FRACTION:g} % of their deadlines (median "
+                   f"{100 * float(np.median(list(late.values()))):.1f} %, worst "
+                   f"{100 * late[worst]:.1f} % at {worst}): the host starved every node at "
+                   "once, not a fault of one" + (f"; folded in: {kinds}" if kinds else ""))
+    return [a for a in out if a.kind not in _LATE_KINDS] + [host]
 
 
 def _node_exits(facts: RunFacts, out: list[Anomaly], reasons: list[str]) -> None:

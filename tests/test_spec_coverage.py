@@ -903,7 +903,10 @@ def test_acceptance_filters_pass_the_syncs_of_the_keys_held(tmp_path: Path) -> N
     plant = PlantNode(load_case(1), keys=Keyring.from_file(
         write_key_file(tmp_path / "p.toml", "plant", [*agents, "router"])))
     assert {0x410, 0x420} <= set(plant.io.accepted_ids())
-    assert not {0x501, 0x502} & set(plant.io.accepted_ids())
+    # the plant takes every agent's MC frames too (each setpoint is checked against the λ
+    # its agent publishes, sim/consistency.py), so their syncs are its own, not peer syncs
+    assert {0x501, 0x502, 0x503, 0x504} <= set(plant.io.accepted_ids())
+    assert not {0x500, 0x505} & set(plant.io.accepted_ids())
 
 
 def test_a_late_tick_first_drains_at_most_256_queued_frames() -> None:

@@ -43,7 +43,7 @@ def test_a_clean_run_converges_without_anomalies(clean_run: tuple[Path, dict]) -
     _, m = clean_run
     assert m["anomalies"] == []
     assert m["verdict"] == {"converged": True, "reasons": [], "interrupted": False,
-                            "exit_code": EXIT_OK, "ok": True}
+                            "exit_code": EXIT_OK, "ok": True, "cause": None}
     assert m["final_error"] < 1e-3
     # the router's own ledger is reported next to the cost recomputed from the powers
     ledger = m["router_ledger"]

@@ -23,6 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ramp-full-s", type=float, default=None, metavar="S",
                    help="setpoint ramp limit: the time from 0 to p_max (default 0.25 s at "
                    "Ts = 10 ms, stretched with Ts; 0: no limit; docs/safety-model.md)")
+    p.add_argument("--obey-inconsistent", action="store_true",
+                   help="follow a setpoint that is not its agent's dispatch rule at the λ it "
+                   "publishes (counted either way); default: hold the last consistent one")
     one_line_errors(p)
     p.set_defaults(func=run)
 
@@ -37,4 +40,5 @@ def run(args: argparse.Namespace) -> int:
     faults = [PlantFault.parse(f).check(sc.n) for f in args.fault]
     return serve(PlantNode(sc, period=args.period, faults=faults,
                            ramp_full_s=args.ramp_full_s,
+                           obey_inconsistent=args.obey_inconsistent,
                            keys=keyring_from_args(args, "plant")), args)

@@ -69,5 +69,6 @@ def run(args: argparse.Namespace) -> int:
 
     rec = busrun.record(plan.sc, plan.out, plan.bus, duration=plan.duration,
                         plot=not args.no_plot, time_scale=plan.scale, keys=args.keys,
-                        insecure=args.insecure, dut=dut, dut_wait_s=args.wait, on_ready=tell)
+                        insecure=args.insecure, dut=dut, dut_wait_s=args.wait, on_ready=tell,
+                        tolerance=args.tolerance)
     return print_report(plan, rec)

@@ -8,9 +8,10 @@ DIR/trajectory.csv and DIR/bus_run.png, and exits with:
 
   0    converged, no anomaly
   1    not converged (an agent SAFE/INIT/ISOLATED at the end, a node died, the last
-       price segment never settled, ...): the reasons are printed
+       price segment never settled, a final λ more than --tolerance from ρ, ...): the
+       reasons and the most likely cause are printed
   2    bad input (nothing was run)
-  3    converged, but with anomalies (listed)
+  3    converged, but with anomalies (listed); --insecure runs exit 3 at best
   130  interrupted: the outputs cover what was recorded until then
 
 On udp_multicast, a run without a port of its own (--bus-config '{"port": N}' or
@@ -55,6 +56,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--c-agents", metavar="I,J,...",
                    help="run these agents on firmware_c, the others on firmware_py "
                    "(SocketCAN only)")
+    p.add_argument("--obey-inconsistent", action="store_true",
+                   help="the plant follows a setpoint that is not its agent's dispatch rule "
+                   "at the λ it publishes (still reported: setpoint_inconsistent); default: "
+                   "it holds the last consistent one (docs/security.md)")
     p.set_defaults(func=run)
 
 
@@ -78,6 +83,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    "system) for hosts too slow for Ts = 10 ms, e.g. an emulated guest "
                    f"(default: 1, or {GUEST_TIME_SCALE:g} under tools/vcan-run)")
     p.add_argument("--no-plot", action="store_true", help="skip bus_run.png")
+    add_tolerance_argument(p)
     k = p.add_mutually_exclusive_group()
     k.add_argument("--keys", type=Path, metavar="DIR",
                    help="sign with this key set from `bess-ded keys --fleet` (its boot "
@@ -86,6 +92,17 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     k.add_argument("--insecure", action="store_true",
                    help="demo mode: every node signs with the public all-zero key and warns "
                         "(docs/security.md)")
+
+
+def add_tolerance_argument(p: argparse.ArgumentParser) -> None:
+    from firmware_py.cliargs import positive_float
+
+    from ..verdict import TOLERANCE
+
+    p.add_argument("--tolerance", type=positive_float(), default=TOLERANCE, metavar="CU",
+                   help="converged only if every dispatching agent's final λ is within CU "
+                   f"cu/kWh of ρ (default: {TOLERANCE:g}); a λ this far off the others' "
+                   "is a lambda_outlier")
 
 
 @dataclass
@@ -180,7 +197,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"  agents in C: {', '.join(map(str, sorted(c_agents)))} ({c_node.name})")
     rec = busrun.record(plan.sc, plan.out, plan.bus, duration=plan.duration,
                         plot=not args.no_plot, time_scale=plan.scale, keys=args.keys,
-                        insecure=args.insecure, c_agents=c_agents, c_node=c_node)
+                        insecure=args.insecure, c_agents=c_agents, c_node=c_node,
+                        tolerance=args.tolerance,
+                        extra={"plant": ["--obey-inconsistent"]} if args.obey_inconsistent
+                        else None)
     return print_report(plan, rec)
 
 
