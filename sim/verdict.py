@@ -252,10 +252,9 @@ def _lambda_outliers(sc: Scenario, tr: Trajectory, tolerance: float,
                      out: list[Anomaly]) -> None:
     """An agent whose told λ stays off the median of the other dispatching agents' over
     the run's last OUTLIER_WINDOW_S: what a liar that keeps its setpoints consistent with
-    its lie still gives away. Off by more than ``tolerance``; or by more than a quarter of
-    it while no other agent is off by even a third as much (one agent apart from a fleet
-    that agrees: a lie too small to break the tolerance alone, which pulls every honest λ
-    by as much as it tells). The median of the others, not of its graph neighbours: robust
+    its lie still gives away. Off by more than a quarter of ``tolerance`` while no other
+    agent is off by even a third as much (one agent apart from a fleet that agrees; a
+    fleet still converging has every agent apart alike, and names nobody). The median of the others, not of its graph neighbours: robust
     to one liar among ≥ 3 others, where a neighbour of the liar, averaging over two, would
     look off too."""
     assert tr.state is not None
@@ -275,7 +274,8 @@ def _lambda_outliers(sc: Scenario, tr: Trajectory, tolerance: float,
         if not on[:, i].all():
             continue
         rest = np.delete(dev, i)
-        if dev[i] > tolerance or (dev[i] > tolerance / 4 and dev[i] > 3 * rest.max()):
+        # apart from every other agent: a fleet still converging has no one agent apart
+        if dev[i] > tolerance / 4 and dev[i] > 3 * rest.max():
             named += 1
             out.append(Anomaly("lambda_outlier", f"agent_{i + 1}",
                                f"its λ stayed {dev[i]:.2e} cu/kWh off the median of the other "
@@ -286,8 +286,10 @@ def _lambda_outliers(sc: Scenario, tr: Trajectory, tolerance: float,
     # every λ agrees, but not with ρ: only the pinned agents hear ρ and pull the
     # consensus to it, so one of them tells a λ off ρ (a liar pinned to the price drags
     # the whole fleet along, and no agent stands out)
-    off = float(np.median(np.abs(np.median(lam, axis=1) - tr.rho[-k:])))
-    if not named and dev.max() <= tolerance / 4 and off > tolerance:
+    gap = np.abs(np.median(lam, axis=1) - tr.rho[-k:])
+    off = float(np.median(gap))
+    approaching = float(gap[0] - gap[-1]) > tolerance / 4  # an honest fleet not yet settled
+    if not named and not approaching and dev.max() <= tolerance / 4 and off > tolerance:
         for i in sc.pinned:
             out.append(Anomaly("lambda_outlier", f"agent_{i}",
                                f"the whole fleet agrees on a λ {off:.2e} cu/kWh off ρ over the "

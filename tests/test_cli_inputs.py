@@ -271,14 +271,14 @@ def test_the_bundled_scenarios_still_load() -> None:
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Case 1 for 3 s on the virtual bus (simulated clock): a run.log, its keys."""
+    """Case 1 for 8 s (converged to the tolerance) on the virtual bus (simulated clock): a run.log, its keys."""
     from dataclasses import replace
 
     from sim import busrun
     from sim.scenario import load_case
 
     out = tmp_path_factory.mktemp("run")
-    busrun.run_in_process(replace(load_case(1), duration=3.0), out, duration=3.0,
+    busrun.run_in_process(replace(load_case(1), duration=8.0), out, duration=8.0,
                           channel="inputs-clean")
     return out
 
