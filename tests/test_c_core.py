@@ -78,7 +78,8 @@ def _need(*tools: str) -> None:
 
 
 def _make(build: Path, target: str) -> str:
-    proc = subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={build}", target],
+    proc = subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={build}", f"PYTHON={sys.executable}",
+                           target],
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 0, f"make {target}:\n{proc.stdout}{proc.stderr}"
     assert proc.stderr.strip() == "", proc.stderr
@@ -92,7 +93,8 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     out = tmp_path_factory.mktemp("firmware_c")
     lib = cimpl.build(out, source_dir=SOURCE)
     log = (out / "build.log")
-    proc = subprocess.run(["make", "-C", str(SOURCE), f"BUILD={out}", "-B", "all"],
+    proc = subprocess.run(["make", "-C", str(SOURCE), f"BUILD={out}", f"PYTHON={sys.executable}",
+                           "-B", "all"],
                           capture_output=True, text=True, check=True)
     log.write_text(proc.stdout + proc.stderr)
     return lib, proc.stderr
@@ -183,7 +185,8 @@ def test_an_installed_copy_builds_the_c_agent(tmp_path: Path) -> None:
     assert shipped == {p.relative_to(ROOT) for p in cimpl.sources(SOURCE)}
     assert all((site / p).is_file() for p in shipped)
     out = tmp_path / "build"
-    subprocess.run(["make", "-s", "-C", str(installed), f"BUILD={out}", "all"], check=True,
+    subprocess.run(["make", "-s", "-C", str(installed), f"BUILD={out}",
+                    f"PYTHON={sys.executable}", "all"], check=True,
                    capture_output=True, env={**os.environ, "PYTHONPATH": ""})
     assert (out / "libbessded.so").is_file() and (out / "bessded-agent").is_file()
     assert "generated" in (out / "gen" / "bd_contract.h").read_text().lower()

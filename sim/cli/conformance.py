@@ -131,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
           f"(Ts = {ts * 1000:g} ms{f', time scale {scale:g}' if scale != 1 else ''}); the "
           f"schedule takes {length:.1f} s")
     print(f"  bus: {bus.resolved()}" + (f" (port {port} private to this run)" if port else ""))
-    rt = ["--rt-priority", str(args.rt_priority)] if args.rt_priority else []
+    # the device at the tester's --rt-priority, else as `up` runs its nodes (SCHED_FIFO)
+    rt = ["--rt-priority", str(args.rt_priority or busrun.RT_PRIORITY)]
     cmd = ["bess-ded", "agent", "--config", str(cfg_path), *key_argv, *bus.argv(), *rt]
     print(f"  start the device with its configuration and key, e.g.: {shlex.join(cmd)}")
     print(f"  waiting up to {args.wait:g} s for its {diag_name(i)} frame ...", flush=True)
