@@ -146,6 +146,25 @@ def test_a_warning_fails_the_build(tmp_path: Path, built: tuple[Path, str]) -> N
         cimpl.build(tmp_path / "out", source_dir=tmp_path)
 
 
+def test_the_build_runs_the_generator_with_this_interpreter(tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch
+                                                            ) -> None:
+    """gen_contract.py imports cantools: the build runs it with sys.executable, not the
+    first `python3` on PATH (an IDE or tox running venv/bin/python without activating the
+    venv finds another one): here a python3 on PATH that fails whenever it runs."""
+    _need("make")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    fake = bin_dir / "python3"
+    fake.write_text("#!/bin/sh\necho 'not the interpreter bess-ded runs under' >&2\nexit 97\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    assert subprocess.run(["python3", "-c", ""], check=False).returncode == 97
+    cimpl.build(tmp_path / "out", source_dir=SOURCE, target="gen")
+    assert "generated" in (tmp_path / "out" / "gen" / "bd_contract.h").read_text().lower()
+    assert f"PYTHON={sys.executable}" in cimpl.make_argv(SOURCE, tmp_path, "all")
+
+
 def test_binding_builds_into_its_cache_on_first_use(tmp_path: Path,
                                                     monkeypatch: pytest.MonkeyPatch,
                                                     built: tuple[Path, str]) -> None:
