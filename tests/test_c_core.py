@@ -78,8 +78,8 @@ def _need(*tools: str) -> None:
 
 
 def _make(build: Path, target: str) -> str:
-    proc = subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={build}", f"PYTHON={sys.executable}",
-                           target],
+    proc = subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={build}",
+                           f"PYTHON={sys.executable}", target],
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 0, f"make {target}:\n{proc.stdout}{proc.stderr}"
     assert proc.stderr.strip() == "", proc.stderr

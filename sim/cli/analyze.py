@@ -22,15 +22,13 @@ from firmware_py.errors import ConfigError
 def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.cliargs import positive_float
 
-    from ._common import one_line_errors
+    from ._common import add_case_option, add_no_plot_argument, one_line_errors
 
     p = one_line_errors(sub.add_parser(
         "analyze", help="metrics, anomalies and plots from a recorded CAN log",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter))
     p.add_argument("log", type=Path, metavar="LOG", help="candump-format log of the fleet")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--case", metavar="CASE", help="a case number (1-7) or a scenario .toml")
-    src.add_argument("--scenario", metavar="FILE", help="a scenario .toml (docs/scenarios.md)")
+    add_case_option(p)
     p.add_argument("--variant", metavar="LABEL", help="the variant that ran (cases 2, 3, 6)")
     p.add_argument("--time-scale", type=positive_float(), default=1.0, metavar="F",
                    help="the --time-scale the run used (default: 1)")
@@ -44,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the run's key set (default: LOG's directory's keys/ if there, as "
                         "`up` writes it): secured frames whose MAC does not verify are left "
                         "out and reported (auth_failed)")
-    p.add_argument("--no-plot", action="store_true", help="skip bus_run.png")
+    add_no_plot_argument(p, "bus_run.png")
     p.set_defaults(func=run)
 
 
@@ -59,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.log.is_file():
         raise ConfigError(str(args.log), "LOG", "expected a readable log file, but there is "
                           "no such file")
-    sc, chosen = pick_variant(resolve_scenario(args.case or args.scenario), args.variant)
+    sc, chosen = pick_variant(resolve_scenario(args.case), args.variant)
     sc = scaled(sc, args.time_scale)
     out = args.out or args.log.parent / f"{args.log.stem}-analysis"
     counters_dir = args.counters or args.log.parent / "logs"

@@ -41,14 +41,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.__main__ import add_bus_arguments, add_rt_argument
     from firmware_py.cliargs import positive_float
 
-    from ._common import one_line_errors
+    from ._common import add_case_option, one_line_errors
 
     p = one_line_errors(sub.add_parser(
         "conformance", help="prove an agent node conformant: the rest of the bus, "
         "firmware_py as the oracle, pass/fail per requirement",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter))
-    p.add_argument("--case", required=True, metavar="CASE",
-                   help="a case number (1-7) or a path to a scenario .toml")
+    add_case_option(p)
     p.add_argument("--variant", metavar="LABEL", help="for a scenario with variants")
     p.add_argument("--dut", required=True, metavar="I", help="the agent the device replaces")
     add_bus_arguments(p)

@@ -63,8 +63,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     output, time scale, keys."""
     from firmware_py.cliargs import positive_float
 
-    p.add_argument("--case", required=True, metavar="CASE",
-                   help="a case number (1-7, the paper's cases) or a path to a scenario .toml")
+    from ._common import add_case_option, add_no_plot_argument
+
+    add_case_option(p)
     p.add_argument("--variant", metavar="LABEL",
                    help="for a scenario with variants (cases 2, 3, 6): which one to run "
                    "(default: the first)")
@@ -77,7 +78,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="stretch the time axis by F (Ts·F, k/F, h/F²: the same discrete "
                    "system) for hosts too slow for Ts = 10 ms, e.g. an emulated guest "
                    f"(default: 1, or {GUEST_TIME_SCALE:g} under tools/vcan-run)")
-    p.add_argument("--no-plot", action="store_true", help="skip bus_run.png")
+    add_no_plot_argument(p, "bus_run.png")
     k = p.add_mutually_exclusive_group()
     k.add_argument("--keys", type=Path, metavar="DIR",
                    help="sign with this key set from `bess-ded keys --fleet` (its boot "
@@ -234,4 +235,7 @@ def pick_variant(sc: Scenario, label: str | None) -> tuple[Scenario, str]:
         print(f"bess-ded up: {sc.name} has variants {', '.join(labels)}; running the first, "
               f"{labels[0]!r} (choose one with --variant)")
         label = labels[0]
-    return sc.variant(label), f" [variant {label}]"
+    run = sc.variant(label)  # ignores case: name the label as the scenario spells it
+    if label not in labels:
+        label = next(x for x in labels if x.casefold() == label.casefold())
+    return run, f" [variant {label}]"
