@@ -181,24 +181,14 @@ def test_binding_builds_into_its_cache_on_first_use(tmp_path: Path,
     assert c.step(c.initial_state(0.5), 1000)[0].nu == 1000 * c.ts_q
 
 
-def test_an_installed_copy_builds_the_c_agent(tmp_path: Path) -> None:
+def test_an_installed_copy_builds_the_c_agent(installed_site: Path) -> None:
     """`pip install .` carries firmware_c/ (sources, Makefile, generator) beside
     firmware_py/ and dbc/ (pyproject package data), so `bess-ded case N --impl c` and
     `up --agent-impl c` build the C agent from site-packages too: the wheel holds every
     file the cache key hashes, and its unpacked copy builds the library and the node
     program under -Werror with no file of this checkout."""
-    import zipfile
-
-    src = tmp_path / "src"   # setuptools writes build/ and *.egg-info into the source tree
-    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
-        ".*", "build", "runs", "*.egg-info", "__pycache__"))
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
-                    "-q", "-w", str(tmp_path / "wheel"), str(src)], check=True,
-                   capture_output=True)
-    (wheel,) = (tmp_path / "wheel").glob("bess_ded-*.whl")
-    site = tmp_path / "site"
-    with zipfile.ZipFile(wheel) as z:
-        z.extractall(site)
+    site = installed_site
+    tmp_path = site.parent
     installed = site / "firmware_c"
     shipped = {p.relative_to(site) for p in cimpl.sources(installed)}
     assert shipped == {p.relative_to(ROOT) for p in cimpl.sources(SOURCE)}
