@@ -186,7 +186,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
                           f"but got {len(bats)}")
     batteries, lambda0 = [], []
     for i, b in enumerate(bats):
-        key = f"battery[{i}]"
+        key = f"battery[{i + 1}]"  # agent i + 1's: numbered from 1 as the agents are
         r.only(b, key, BATTERY_KEYS)
         kw = {k: r.number(b, k, key=f"{key}.{k}") for k in BATTERY_KEYS - {"lambda0"} if k in b}
         for need in ("alpha", "beta", "m", "p_min", "p_max"):
