@@ -1,8 +1,8 @@
 """docs/deployment.md, "One node per host on real CAN", followed step by step with the
 commands it gives (on a private udp_multicast port instead of can0, `bess-ded record`
-instead of candump): configurations from a short `up` at the time scale, the fleet's keys,
-the agents and the plant first, the recorder, the router last, every node under
---rt-priority 10; then `bess-ded analyze` with the key set judges the run.
+instead of candump): configurations and the fleet's keys from `bess-ded deploy` at the
+time scale, the agents and the plant first, the recorder, the router last, every node
+under --rt-priority 10; then `bess-ded analyze` with the key set judges the run.
 """
 
 from __future__ import annotations
@@ -31,16 +31,14 @@ def test_the_by_hand_recipe_converges(tmp_path: Path, udp_port: int) -> None:
     auth_failed), and every node stops cleanly on SIGTERM (exit 0)."""
     bus = ["--interface", "udp_multicast", "--bus-config", json.dumps({"port": udp_port})]
     rt = ["--rt-priority", "10"]
-    # 2. the stretched agent configurations, from a short run
-    subprocess.run(bess_ded("up", "--case", "1", "--time-scale", SCALE, "--duration", "1",
-                            "--no-plot", "--out", str(tmp_path / "cfg")),
-                   check=False, capture_output=True, timeout=300)
-    cfg = tmp_path / "cfg" / "agents"
+    # 2. the stretched agent configurations and the fleet's keys, nothing run (exit 0)
+    subprocess.run(bess_ded("deploy", "--case", "1", "--time-scale", SCALE, "--out",
+                            str(tmp_path / "plan")), check=True, capture_output=True,
+                   timeout=120)
+    cfg = tmp_path / "plan" / "agents"
     assert sorted(p.name for p in cfg.glob("*.toml")) == [f"agent_{i}.toml" for i in range(1, 5)]
-    # 3. the fleet's keys
-    keys = tmp_path / "keys"
-    subprocess.run(bess_ded("keys", "--fleet", "--case", "1", "--out", str(keys)), check=True,
-                   capture_output=True, timeout=120)
+    # 3. each node's own key file, from the key set deploy wrote
+    keys = tmp_path / "plan" / "keys"
     logs = tmp_path / "logs"
     logs.mkdir()
     procs: dict[str, subprocess.Popen[bytes]] = {}
