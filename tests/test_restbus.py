@@ -51,7 +51,7 @@ def test_restbus_without_a_device_gives_up_naming_the_missing_frames(
     # the device's command line has the fleet's real-time priority (busrun.RT_PRIORITY)
     (hint,) = [m.group(1) for m in map(DEVICE_HINT.search, out.splitlines()) if m]
     assert hint.startswith("bess-ded agent --config ") and "--key " in hint
-    assert hint.split()[-2:] == ["--rt-priority", "10"], hint
+    assert " --rt-priority 10 " in hint, hint
 
 
 @pytest.mark.parametrize("dut", ["5", "0", "x", "agent_3"])
