@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.log.is_file():
         raise ConfigError(str(args.log), "LOG", "expected a readable log file, but there is "
                           "no such file")
-    sc, chosen = pick_variant(resolve_scenario(args.case), args.variant)
+    sc, chosen = pick_variant(resolve_scenario(args.case), args.variant, "analyze")
     sc = scaled(sc, args.time_scale)
     out = args.out or args.log.parent / f"{args.log.stem}-analysis"
     counters_dir = args.counters or args.log.parent / "logs"

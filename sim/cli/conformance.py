@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from .keys import load_key_set
     from .up import GUEST_TIME_SCALE, IN_PROCESS_INTERFACES, check_key_set, pick_variant
 
-    sc, chosen = pick_variant(resolve_scenario(args.case), args.variant)
+    sc, chosen = pick_variant(resolve_scenario(args.case), args.variant, "conformance")
     if not (args.dut.isdigit() and 1 <= int(args.dut) <= sc.n):
         raise ParameterError("--dut", f"an agent number in 1..{sc.n}", args.dut)
     i = int(args.dut)

@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from .keys import _prepare_dir, write_key_set
     from .up import check_key_set, pick_variant
 
-    sc, chosen = pick_variant(resolve_scenario(args.case), args.variant)
+    sc, chosen = pick_variant(resolve_scenario(args.case), args.variant, "deploy")
     sc = scaled(sc, args.time_scale)
     out: Path = args.out or Path("runs") / f"deploy-{sc.name}"
     # everything checked before anything is written

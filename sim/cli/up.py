@@ -107,7 +107,7 @@ def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
     from ._common import resolve_scenario
 
     base = resolve_scenario(args.case)
-    sc, chosen = pick_variant(base, args.variant)
+    sc, chosen = pick_variant(base, args.variant, command)
     bus = busrun.BusOptions(args.interface, args.channel, args.bus_config)
     kw = bus.resolved()  # checks the JSON (and the keys) before anything starts
     if kw["interface"] in IN_PROCESS_INTERFACES:
@@ -223,7 +223,8 @@ def check_key_set(keys: Path, n: int) -> str:
     return fleets.pop()
 
 
-def pick_variant(sc: Scenario, label: str | None) -> tuple[Scenario, str]:
+def pick_variant(sc: Scenario, label: str | None, command: str = "up"
+                 ) -> tuple[Scenario, str]:
     """The scenario to run and how to name the choice in the banner."""
     if not sc.variants:
         if label is not None:
@@ -232,7 +233,7 @@ def pick_variant(sc: Scenario, label: str | None) -> tuple[Scenario, str]:
         return sc, ""
     labels = [v.label for v in sc.variants]
     if label is None:
-        print(f"bess-ded up: {sc.name} has variants {', '.join(labels)}; running the first, "
+        print(f"bess-ded {command}: {sc.name} has variants {', '.join(labels)}; running the first, "
               f"{labels[0]!r} (choose one with --variant)")
         label = labels[0]
     run = sc.variant(label)  # ignores case: name the label as the scenario spells it
