@@ -8,13 +8,17 @@ under --rt-priority 10; then `bess-ded analyze` with the key set judges the run.
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import can
 import pytest
+
+from firmware_py.frames import FrameCodec, mc_name, status_name
 
 SCALE = "2"   # the recipe's time scale F: Ts = 20 ms
 RUN_S = 14.0  # wall seconds of the router's schedule (7 s of price time at ×2)
@@ -45,7 +49,28 @@ def test_the_by_hand_recipe_converges(tmp_path: Path, udp_port: int) -> None:
 
     def start(name: str, argv: list[str]) -> None:
         with open(logs / f"{name}.log", "wb") as out:
-            procs[name] = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT)
+            procs[name] = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT,
+                                           env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+    # as an operator watching the bus: each step waits until the nodes it started are
+    # heard, however long a loaded host takes to start them (imports, DBC), not a fixed time
+    codec = FrameCodec()
+    watch = can.Bus(interface="udp_multicast", port=udp_port, receive_own_messages=False)
+
+    def heard(names: list[str], timeout_s: float = 180.0) -> None:
+        want = {codec.frame_id(n) for n in names}
+        end = time.monotonic() + timeout_s
+        while want and time.monotonic() < end:
+            msg = watch.recv(timeout=0.2)
+            if msg is not None:
+                want.discard(msg.arbitration_id)
+        assert not want, f"not heard within {timeout_s:g} s: {[codec.name_of(i) for i in want]}"
+
+    def said(name: str, text: str, timeout_s: float = 180.0) -> None:
+        end = time.monotonic() + timeout_s
+        while text not in (logs / f"{name}.log").read_text() and time.monotonic() < end:
+            time.sleep(0.2)
+        assert text in (logs / f"{name}.log").read_text(), f"{name} never said {text!r}"
 
     try:
         # 4. the agents, and 5. the plant (simulated batteries): first, in any order
@@ -56,11 +81,14 @@ def test_the_by_hand_recipe_converges(tmp_path: Path, udp_port: int) -> None:
                                 str(keys / "plant.key"), *bus, *rt))
         # 6. record everything (before the router: its first price is t = 0)
         start("record", bess_ded("record", "--out", str(tmp_path / "run.log"), *bus))
-        time.sleep(3.0)  # the nodes' start-up (imports, DBC); nothing waits on it
+        heard([mc_name(i) for i in range(1, 5)] + [status_name(i) for i in range(1, 5)])
+        said("record", "bess-ded record: ")  # its bus is open
         start("router", bess_ded("router", "--case", "1", "--time-scale", SCALE, "--key",
                                  str(keys / "router.key"), *bus, *rt))
+        heard(["ER_Price"])
         time.sleep(RUN_S)
     finally:
+        watch.shutdown()
         for p in procs.values():
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)
