@@ -219,7 +219,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
     for role in SIM_NODES:
         if role in exclude:
             continue
-        specs.append(NodeSpec(role, py + ["sim.cli", role, "--scenario", str(scenario_path),
+        specs.append(NodeSpec(role, py + ["sim.cli", role, "--case", str(scenario_path),
                                           "--period", repr(sc.ts), "--counters-json",
                                           str(counters_path(out, role))]
                               + key(role) + bus.argv() + rt + extra.get(role, [])))

@@ -118,7 +118,7 @@ def test_deploy_writes_every_node_file_and_runs_nothing(
     assert not (out / "run.log").exists() and not (out / "logs").exists()
     assert f"bess-ded agent --config {out}/agents/agent_3.toml --key {out}/keys/agent_3.key " \
         "--rt-priority 10" in text
-    assert f"bess-ded router --scenario {out}/scenario.toml" in text
+    assert f"bess-ded router --case {out}/scenario.toml" in text
     # a second deploy keeps the key set unless --force
     before = (out / "keys" / "agent_3.key").read_bytes()
     assert main(["deploy", "--case", "2", "--out", str(out)]) == 2

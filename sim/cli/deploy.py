@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         return ["--insecure"] if key_dir is None else ["--key", str(key_dir / f"{node}.key")]
 
     rt = ["--rt-priority", str(RT_PRIORITY)]
-    scenario = ["--scenario", str(out / "scenario.toml"), "--period", repr(sc.ts)]
+    scenario = ["--case", str(out / "scenario.toml"), "--period", repr(sc.ts)]
     print(f"bess-ded deploy: {sc.title or sc.name}{chosen}: {sc.n} agents + plant + router"
           + (f", time scale {args.time_scale:g}" if args.time_scale != 1 else ""))
     print(f"  wrote {out / 'scenario.toml'}, {out / 'agents'}/agent_1..{sc.n}.toml"

@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
 
     def tell(key_dir: Path | None) -> None:
         if dut == "plant":
-            cmd = ["bess-ded", "plant", "--scenario", str(plan.out / "scenario.toml"),
+            cmd = ["bess-ded", "plant", "--case", str(plan.out / "scenario.toml"),
                    "--period", repr(plan.sc.ts)]
         else:
             cmd = ["bess-ded", "agent", "--config", str(plan.out / "agents" / f"{dut}.toml")]
