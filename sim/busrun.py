@@ -219,7 +219,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
     for role in SIM_NODES:
         if role in exclude:
             continue
-        specs.append(NodeSpec(role, py + ["sim.cli", role, "--scenario", str(scenario_path),
+        specs.append(NodeSpec(role, py + ["sim.cli", role, "--case", str(scenario_path),
                                           "--period", repr(sc.ts), "--counters-json",
                                           str(counters_path(out, role))]
                               + key(role) + bus.argv() + rt + extra.get(role, [])))
@@ -351,6 +351,28 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     written for what was recorded, with the verdict marked interrupted. Every node that
     exits during the run is a ``node_died`` anomaly (fault tests kill nodes on purpose
     and assert it)."""
+    # the bus first: a run that cannot start (a bad --interface, --channel, ...) fails
+    # before it writes anything, so an earlier run's outputs and keys in OUT stay intact
+    watch = open_bus(**{**bus.resolved(), "receive_own_messages": False})
+    try:
+        enlarge_receive_buffer(watch)
+        return _record(sc, out, bus, watch, duration, extra, delays, quiet, rt_priority,
+                       actions, plot, time_scale, keys, insecure, dut, dut_wait_s, on_ready,
+                       c_agents, c_node, tolerance)
+    finally:
+        watch.shutdown()
+
+
+def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
+            duration: float | None,
+            extra: dict[str, list[str]] | None, delays: dict[str, float] | None,
+            quiet: bool, rt_priority: int,
+            actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]],
+            plot: bool, time_scale: float, keys: Path | None, insecure: bool,
+            dut: str | None, dut_wait_s: float,
+            on_ready: Callable[[Path | None], None] | None,
+            c_agents: frozenset[int], c_node: Path | None,
+            tolerance: float) -> Recording:
     out.mkdir(parents=True, exist_ok=True)
     duration = sc.duration if duration is None else duration
     # the nodes read exactly what ran: variants resolved, time scale applied
@@ -378,8 +400,6 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     monitor_keys = (load_key_set(key_dir) if key_dir is not None else
                     {n: secoc.derive_node_key(secoc.INSECURE_MASTER, n)
                      for n in secoc.fleet_nodes(sc.n)})
-    watch = open_bus(**{**bus.resolved(), "receive_own_messages": False})
-    enlarge_receive_buffer(watch)
     writer = _Until(can.Logger(str(out / "run.log")))
     progress = Progress(codec, sc.n)
     notifier = Recorder(watch, [writer, progress])
@@ -402,7 +422,6 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
         _drain(progress)
         notifier.stop()
         writer.stop()
-        watch.shutdown()
     facts = RunFacts(exit_codes=codes, deaths=deaths, node_counters=sim_node_counters(out),
                      interrupted=interrupted, recorder_counters=notifier.counters(),
                      insecure=key_dir is None)

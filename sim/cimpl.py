@@ -18,6 +18,7 @@ import hashlib
 import os
 import shutil
 import subprocess
+import sys
 from collections.abc import Sequence
 from fractions import Fraction
 from pathlib import Path
@@ -85,11 +86,18 @@ def sources(source_dir: Path = SOURCE_DIR) -> list[Path]:
             root / "dbc" / "bess_ded.dbc"]
 
 
+def make_argv(source_dir: Path, build_dir: Path, target: str) -> list[str]:
+    """make's command line: the Makefile runs gen_contract.py (which imports cantools)
+    with PYTHON, so pass this interpreter, not whatever `python3` is first on PATH."""
+    return ["make", "-C", str(source_dir), f"BUILD={build_dir}", f"PYTHON={sys.executable}",
+            target]
+
+
 def build(build_dir: Path, source_dir: Path = SOURCE_DIR, target: str = "all") -> Path:
     """``make -C firmware_c BUILD=build_dir target``; the library's path. Raises
     ``CBuildError`` with the compiler's output (any warning is an error: -Werror)."""
     build_dir = Path(build_dir).resolve()
-    proc = subprocess.run(["make", "-C", str(source_dir), f"BUILD={build_dir}", target],
+    proc = subprocess.run(make_argv(source_dir, build_dir, target),
                           capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise CBuildError(f"make {target} failed ({proc.returncode}):\n"

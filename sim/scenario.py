@@ -126,9 +126,11 @@ class Scenario:
             raise ConfigError(self.source, f"controller.{e.name}", str(e)) from None
 
     def variant(self, label: str) -> Scenario:
-        for v in self.variants:
-            if v.label == label:
-                return replace(self.with_controller(**v.controller), variants=())
+        """The variant named ``label``: exactly, else ignoring case (``pc`` for ``PC``)."""
+        exact = [v for v in self.variants if v.label == label]
+        folded = [v for v in self.variants if v.label.casefold() == label.casefold()]
+        for v in exact or (folded if len(folded) == 1 else []):
+            return replace(self.with_controller(**v.controller), variants=())
         known = ", ".join(v.label for v in self.variants) or "none"
         raise ConfigError(self.source, "variant", f"expected one of {known}, but got {label!r}")
 
@@ -209,7 +211,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
                           f"but got {len(bats)}")
     batteries, lambda0 = [], []
     for i, b in enumerate(bats):
-        key = f"battery[{i}]"
+        key = f"battery[{i + 1}]"  # agent i + 1's: numbered from 1 as the agents are
         r.only(b, key, BATTERY_KEYS)
         for need in ("alpha", "beta", "m", "p_min", "p_max"):
             if need not in b:

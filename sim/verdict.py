@@ -254,9 +254,9 @@ def _lambda_outliers(sc: Scenario, tr: Trajectory, tolerance: float,
     the run's last OUTLIER_WINDOW_S: what a liar that keeps its setpoints consistent with
     its lie still gives away. Off by more than a quarter of ``tolerance`` while no other
     agent is off by even a third as much (one agent apart from a fleet that agrees; a
-    fleet still converging has every agent apart alike, and names nobody). The median of the others, not of its graph neighbours: robust
-    to one liar among ≥ 3 others, where a neighbour of the liar, averaging over two, would
-    look off too."""
+    fleet still converging has every agent apart alike, and names nobody). The median of
+    the others, not of its graph neighbours: robust to one liar among ≥ 3 others, where a
+    neighbour of the liar, averaging over two, would look off too."""
     assert tr.state is not None
     # OUTLIER_WINDOW_S scenario seconds are that many samples at any time scale
     k = min(tr.t.size, max(1, round(OUTLIER_WINDOW_S / MC_CYCLE_S)))

@@ -187,3 +187,28 @@ def settling_ticks(out: Path, m: dict[str, Any], agent: int = 1) -> int:
     t0 = log.t_first_price
     t_settle = t0 + m["settling_time_s"]
     return sum(1 for t, _ in log.series[(f"AGENT_{agent}_MC", "Lambda")] if t0 <= t <= t_settle)
+
+
+@pytest.fixture(scope="session")
+def installed_site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """This checkout as `pip install .` installs it: its wheel built (from a copy:
+    setuptools writes build/ and *.egg-info into the source tree) and unpacked into a
+    site directory of its own. The wheel itself is beside it (``site.parent / "wheel"``)."""
+    import shutil
+    import subprocess
+    import sys
+    import zipfile
+
+    root = Path(__file__).resolve().parent.parent
+    tmp = tmp_path_factory.mktemp("installed")
+    src = tmp / "src"
+    shutil.copytree(root, src, ignore=shutil.ignore_patterns(
+        ".*", "build", "runs", "*.egg-info", "__pycache__"))
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                    "-q", "-w", str(tmp / "wheel"), str(src)], check=True,
+                   capture_output=True)
+    (wheel,) = (tmp / "wheel").glob("bess_ded-*.whl")
+    site = tmp / "site"
+    with zipfile.ZipFile(wheel) as z:
+        z.extractall(site)
+    return site

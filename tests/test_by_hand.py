@@ -1,20 +1,24 @@
 """docs/deployment.md, "One node per host on real CAN", followed step by step with the
 commands it gives (on a private udp_multicast port instead of can0, `bess-ded record`
-instead of candump): configurations from a short `up` at the time scale, the fleet's keys,
-the agents and the plant first, the recorder, the router last, every node under
---rt-priority 10; then `bess-ded analyze` with the key set judges the run.
+instead of candump): configurations and the fleet's keys from `bess-ded deploy` at the
+time scale, the agents and the plant first, the recorder, the router last, every node
+under --rt-priority 10; then `bess-ded analyze` with the key set judges the run.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import can
 import pytest
+
+from firmware_py.frames import FrameCodec, mc_name, status_name
 
 SCALE = "2"   # the recipe's time scale F: Ts = 20 ms
 RUN_S = 14.0  # wall seconds of the router's schedule (7 s of price time at ×2)
@@ -31,23 +35,42 @@ def test_the_by_hand_recipe_converges(tmp_path: Path, udp_port: int) -> None:
     auth_failed), and every node stops cleanly on SIGTERM (exit 0)."""
     bus = ["--interface", "udp_multicast", "--bus-config", json.dumps({"port": udp_port})]
     rt = ["--rt-priority", "10"]
-    # 2. the stretched agent configurations, from a short run
-    subprocess.run(bess_ded("up", "--case", "1", "--time-scale", SCALE, "--duration", "1",
-                            "--no-plot", "--out", str(tmp_path / "cfg")),
-                   check=False, capture_output=True, timeout=300)
-    cfg = tmp_path / "cfg" / "agents"
+    # 2. the stretched agent configurations and the fleet's keys, nothing run (exit 0)
+    subprocess.run(bess_ded("deploy", "--case", "1", "--time-scale", SCALE, "--out",
+                            str(tmp_path / "plan")), check=True, capture_output=True,
+                   timeout=120)
+    cfg = tmp_path / "plan" / "agents"
     assert sorted(p.name for p in cfg.glob("*.toml")) == [f"agent_{i}.toml" for i in range(1, 5)]
-    # 3. the fleet's keys
-    keys = tmp_path / "keys"
-    subprocess.run(bess_ded("keys", "--fleet", "--case", "1", "--out", str(keys)), check=True,
-                   capture_output=True, timeout=120)
+    # 3. each node's own key file, from the key set deploy wrote
+    keys = tmp_path / "plan" / "keys"
     logs = tmp_path / "logs"
     logs.mkdir()
     procs: dict[str, subprocess.Popen[bytes]] = {}
 
     def start(name: str, argv: list[str]) -> None:
         with open(logs / f"{name}.log", "wb") as out:
-            procs[name] = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT)
+            procs[name] = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT,
+                                           env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+    # as an operator watching the bus: each step waits until the nodes it started are
+    # heard, however long a loaded host takes to start them (imports, DBC), not a fixed time
+    codec = FrameCodec()
+    watch = can.Bus(interface="udp_multicast", port=udp_port, receive_own_messages=False)
+
+    def heard(names: list[str], timeout_s: float = 180.0) -> None:
+        want = {codec.frame_id(n) for n in names}
+        end = time.monotonic() + timeout_s
+        while want and time.monotonic() < end:
+            msg = watch.recv(timeout=0.2)
+            if msg is not None:
+                want.discard(msg.arbitration_id)
+        assert not want, f"not heard within {timeout_s:g} s: {[codec.name_of(i) for i in want]}"
+
+    def said(name: str, text: str, timeout_s: float = 180.0) -> None:
+        end = time.monotonic() + timeout_s
+        while text not in (logs / f"{name}.log").read_text() and time.monotonic() < end:
+            time.sleep(0.2)
+        assert text in (logs / f"{name}.log").read_text(), f"{name} never said {text!r}"
 
     try:
         # 4. the agents, and 5. the plant (simulated batteries): first, in any order
@@ -58,11 +81,14 @@ def test_the_by_hand_recipe_converges(tmp_path: Path, udp_port: int) -> None:
                                 str(keys / "plant.key"), *bus, *rt))
         # 6. record everything (before the router: its first price is t = 0)
         start("record", bess_ded("record", "--out", str(tmp_path / "run.log"), *bus))
-        time.sleep(3.0)  # the nodes' start-up (imports, DBC); nothing waits on it
+        heard([mc_name(i) for i in range(1, 5)] + [status_name(i) for i in range(1, 5)])
+        said("record", "bess-ded record: ")  # its bus is open
         start("router", bess_ded("router", "--case", "1", "--time-scale", SCALE, "--key",
                                  str(keys / "router.key"), *bus, *rt))
+        heard(["ER_Price"])
         time.sleep(RUN_S)
     finally:
+        watch.shutdown()
         for p in procs.values():
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import sys
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -392,7 +393,8 @@ def _replay_runner(cmd: list[str], dump: Path, expected: dict[str, list[tuple[in
 def test_node_vectors_through_the_c_runner_natively(tmp_path: Path) -> None:
     """tools/node_runner.c: the configuration through the C loader, then every vector,
     output compared frame by frame (the dump format is the one a port would use)."""
-    subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={tmp_path}", "node-runner"],
+    subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={tmp_path}",
+                    f"PYTHON={sys.executable}", "node-runner"],
                    check=True, capture_output=True)
     dump = tmp_path / "node_vectors.txt"
     _replay_runner([str(tmp_path / "node_runner")], dump, dump_node_vectors(dump))
@@ -410,7 +412,8 @@ def test_node_vectors_cross_built_for_arm_under_qemu(tmp_path: Path) -> None:
         if os.environ.get("CI"):
             pytest.fail("libmbedtls-dev:armhf is missing: tools/install-c-deps installs it")
         pytest.skip("libmbedtls-dev:armhf is not installed (tools/install-c-deps)")
-    subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={tmp_path}", "arm-node-runner"],
+    subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={tmp_path}",
+                    f"PYTHON={sys.executable}", "arm-node-runner"],
                    check=True, capture_output=True)
     dump = tmp_path / "node_vectors.txt"
     _replay_runner(["qemu-arm", str(tmp_path / "node_runner.arm")], dump,

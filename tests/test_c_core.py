@@ -78,7 +78,8 @@ def _need(*tools: str) -> None:
 
 
 def _make(build: Path, target: str) -> str:
-    proc = subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={build}", target],
+    proc = subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={build}",
+                           f"PYTHON={sys.executable}", target],
                           capture_output=True, text=True, check=False)
     assert proc.returncode == 0, f"make {target}:\n{proc.stdout}{proc.stderr}"
     assert proc.stderr.strip() == "", proc.stderr
@@ -92,7 +93,8 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
     out = tmp_path_factory.mktemp("firmware_c")
     lib = cimpl.build(out, source_dir=SOURCE)
     log = (out / "build.log")
-    proc = subprocess.run(["make", "-C", str(SOURCE), f"BUILD={out}", "-B", "all"],
+    proc = subprocess.run(["make", "-C", str(SOURCE), f"BUILD={out}", f"PYTHON={sys.executable}",
+                           "-B", "all"],
                           capture_output=True, text=True, check=True)
     log.write_text(proc.stdout + proc.stderr)
     return lib, proc.stderr
@@ -144,6 +146,25 @@ def test_a_warning_fails_the_build(tmp_path: Path, built: tuple[Path, str]) -> N
         cimpl.build(tmp_path / "out", source_dir=tmp_path)
 
 
+def test_the_build_runs_the_generator_with_this_interpreter(tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch
+                                                            ) -> None:
+    """gen_contract.py imports cantools: the build runs it with sys.executable, not the
+    first `python3` on PATH (an IDE or tox running venv/bin/python without activating the
+    venv finds another one): here a python3 on PATH that fails whenever it runs."""
+    _need("make")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    fake = bin_dir / "python3"
+    fake.write_text("#!/bin/sh\necho 'not the interpreter bess-ded runs under' >&2\nexit 97\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    assert subprocess.run(["python3", "-c", ""], check=False).returncode == 97
+    cimpl.build(tmp_path / "out", source_dir=SOURCE, target="gen")
+    assert "generated" in (tmp_path / "out" / "gen" / "bd_contract.h").read_text().lower()
+    assert f"PYTHON={sys.executable}" in cimpl.make_argv(SOURCE, tmp_path, "all")
+
+
 def test_binding_builds_into_its_cache_on_first_use(tmp_path: Path,
                                                     monkeypatch: pytest.MonkeyPatch,
                                                     built: tuple[Path, str]) -> None:
@@ -160,30 +181,21 @@ def test_binding_builds_into_its_cache_on_first_use(tmp_path: Path,
     assert c.step(c.initial_state(0.5), 1000)[0].nu == 1000 * c.ts_q
 
 
-def test_an_installed_copy_builds_the_c_agent(tmp_path: Path) -> None:
+def test_an_installed_copy_builds_the_c_agent(installed_site: Path) -> None:
     """`pip install .` carries firmware_c/ (sources, Makefile, generator) beside
     firmware_py/ and dbc/ (pyproject package data), so `bess-ded case N --impl c` and
     `up --agent-impl c` build the C agent from site-packages too: the wheel holds every
     file the cache key hashes, and its unpacked copy builds the library and the node
     program under -Werror with no file of this checkout."""
-    import zipfile
-
-    src = tmp_path / "src"   # setuptools writes build/ and *.egg-info into the source tree
-    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
-        ".*", "build", "runs", "*.egg-info", "__pycache__"))
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
-                    "-q", "-w", str(tmp_path / "wheel"), str(src)], check=True,
-                   capture_output=True)
-    (wheel,) = (tmp_path / "wheel").glob("bess_ded-*.whl")
-    site = tmp_path / "site"
-    with zipfile.ZipFile(wheel) as z:
-        z.extractall(site)
+    site = installed_site
+    tmp_path = site.parent
     installed = site / "firmware_c"
     shipped = {p.relative_to(site) for p in cimpl.sources(installed)}
     assert shipped == {p.relative_to(ROOT) for p in cimpl.sources(SOURCE)}
     assert all((site / p).is_file() for p in shipped)
     out = tmp_path / "build"
-    subprocess.run(["make", "-s", "-C", str(installed), f"BUILD={out}", "all"], check=True,
+    subprocess.run(["make", "-s", "-C", str(installed), f"BUILD={out}",
+                    f"PYTHON={sys.executable}", "all"], check=True,
                    capture_output=True, env={**os.environ, "PYTHONPATH": ""})
     assert (out / "libbessded.so").is_file() and (out / "bessded-agent").is_file()
     assert "generated" in (out / "gen" / "bd_contract.h").read_text().lower()

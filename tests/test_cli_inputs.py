@@ -271,7 +271,8 @@ def test_the_bundled_scenarios_still_load() -> None:
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Case 1 for 8 s (converged to the tolerance) on the virtual bus (simulated clock): a run.log, its keys."""
+    """Case 1 for 8 s (converged to the tolerance) on the virtual bus (simulated clock):
+    a run.log, its keys."""
     from dataclasses import replace
 
     from sim import busrun

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from conformance_run import DEVIANT, FIRMWARE_PY, run_conformance
+from conformance_run import DEVIANT, DEVICE_HINT, FIRMWARE_PY, run_conformance
 
 from firmware_py import secoc
 from firmware_py.config import AgentConfig, agent_configs_from_scenario
@@ -189,8 +189,33 @@ def test_no_device_is_a_failure_naming_the_frame(udp_port: int, tmp_path: Path,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["conformance", "--case", "1", "--dut", "2", "--wait", "1", "--out",
                  str(tmp_path), "--bus-config", f'{{"port": {udp_port}}}']) == 1
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert "FAIL: no 0x302 frame of the device under test in 1 s" in err
+    # the device's command: real-time as `up` runs its nodes (busrun.RT_PRIORITY) ...
+    (hint,) = [m.group(1) for m in map(DEVICE_HINT.search, out.splitlines()) if m]
+    assert hint.startswith("bess-ded agent --config ") and hint.endswith("--rt-priority 10")
+
+
+def test_the_device_command_has_the_testers_rt_priority(udp_port: int, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    """... or at the tester's own --rt-priority N."""
+    assert main(["conformance", "--case", "1", "--dut", "2", "--wait", "0.2", "--out",
+                 str(tmp_path), "--bus-config", f'{{"port": {udp_port}}}',
+                 "--rt-priority", "30"]) == 1
+    (hint,) = [m.group(1) for m in map(DEVICE_HINT.search, capsys.readouterr().out
+                                       .splitlines()) if m]
+    assert hint.endswith("--rt-priority 30"), hint
+
+
+def test_the_requirement_list_shipped_with_sim_is_the_specs() -> None:
+    """`bess-ded conformance` reads the requirement IDs from package data
+    (sim/spec_requirements.txt: docs/ is not installed); it must be docs/firmware-spec.md's
+    list, in order (regenerate: python tools/gen_spec_ids.py)."""
+    spec = Path(__file__).resolve().parents[1] / "docs" / "firmware-spec.md"
+    ids = list(dict.fromkeys(re.findall(r"^- \*\*([A-Z]+-\d+)\*\*", spec.read_text(), re.M)))
+    assert list(conf.spec_requirements()) == ids, "stale: run python tools/gen_spec_ids.py"
+    assert conf.REQUIREMENTS_FILE.parent == Path(conf.__file__).parent  # package data
 
 
 @pytest.mark.realtime

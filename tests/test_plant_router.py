@@ -634,7 +634,7 @@ def test_cli_router_and_plant_run_and_print_their_summary(
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["plant", "--case", "9", "--insecure"], "expected one of"),
+    (["plant", "--case", "9", "--insecure"], "expected a case number (1, 2, 3, 4, 5, 6, 7)"),
     (["plant", "--case", "1", "--insecure", "--fault", "1:melt:0:1"], "fault.kind"),
     (["plant", "--case", "1", "--insecure", "--fault", "1:soc"], "AGENT:KIND:T0:T1"),
     (["router", "--case", "1", "--insecure", "--silent", "4:2"], "T0 < T1"),

@@ -46,8 +46,12 @@ def test_restbus_without_a_device_gives_up_naming_the_missing_frames(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["restbus", "--case", "1", "--dut", "2", "--duration", "2", "--no-plot",
                  "--wait", "3", "--out", str(tmp_path / "rb")]) == 2
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert "bess-ded: error: the device under test sent no 0x102, 0x202 within 3 s" in err
+    # the device's command line has the fleet's real-time priority (busrun.RT_PRIORITY)
+    (hint,) = [m.group(1) for m in map(DEVICE_HINT.search, out.splitlines()) if m]
+    assert hint.startswith("bess-ded agent --config ") and "--key " in hint
+    assert " --rt-priority 10 " in hint, hint
 
 
 @pytest.mark.parametrize("dut", ["5", "0", "x", "agent_3"])

@@ -52,7 +52,7 @@ def test_case_contents_match_the_paper() -> None:
 BAD = [
     # (what, edit of case1.toml, key named in the error)
     ("missing key", lambda s: s.replace(TS_LINE, ""), "ts"),
-    ("missing battery key", lambda s: s.replace("alpha = 0.0040 ", "", 1), "battery[0].alpha"),
+    ("missing battery key", lambda s: s.replace("alpha = 0.0040 ", "", 1), "battery[1].alpha"),
     ("missing table", lambda s: s.replace("[controller]", "[controler]"), "controler"),
     ("unknown key", lambda s: "tss = 0.01\n" + s, "tss"),
     ("unknown key in a table", lambda s: s.replace("agents = 4", "agents = 4\nagnets = 4"),
@@ -87,8 +87,8 @@ BAD = [
     ("bad variant kind", lambda s: s + '\n[[variant]]\nlabel = "x"\nkind = "lqr"\n',
      "variant[0].kind"),
     ("price not from 0", lambda s: s.replace("t = 0.0\nrho = 0.8", "t = 1.0\nrho = 0.8"), "price"),
-    ("bad soc", lambda s: s.replace("soc0 = 0.60", "soc0 = 1.5"), "battery[0].soc0"),
-    ("limits reversed", lambda s: s.replace("p_min = -120.0", "p_min = 130.0"), "battery[0].p_max"),
+    ("bad soc", lambda s: s.replace("soc0 = 0.60", "soc0 = 1.5"), "battery[1].soc0"),
+    ("limits reversed", lambda s: s.replace("p_min = -120.0", "p_min = 130.0"), "battery[1].p_max"),
     ("not toml", lambda s: s + "\n[[[", "file"),
 ]
 

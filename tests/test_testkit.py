@@ -96,7 +96,7 @@ def test_forged_frames_are_rejected_by_the_agents_and_by_a_tester(keys: KeySet) 
         tester.expect_none("AGENT_3_MC", 1.0, where={"Lambda": lambda lam: lam > 1.0})
         assert watcher.rejected["auth"] == 2
         with pytest.raises(ExpectationError, match=r"0x010 \(ER_Price\) rejected \(auth: 1\)"):
-            watcher.expect("ER_Price", 0.5, where={"Rho": 3.0})
+            watcher.expect("ER_Price", 0.5, where={"Rho": 3.0}, since="mark")
 
 
 def test_corrupt_and_unsynced_frames_are_counted_not_returned(keys: KeySet) -> None:
@@ -154,6 +154,33 @@ def test_bad_calls_name_what_was_expected_and_given(keys: KeySet, call, message:
         assert message in str(e.value)
 
 
+def test_expect_waits_for_a_frame_after_the_call_unless_asked_for_the_buffer(
+        keys: KeySet) -> None:
+    """Expected: as cantools' Tester, ``expect`` returns a frame received after the call
+    (never one buffered before it); ``since="mark"`` looks back to the last mark, send
+    or sleep; a number to a bus time; a reply to ``send`` counts even when it came before
+    the expect (the next expect after that is back to frames after its call)."""
+    with SimFleet(1, keys=keys) as fleet:
+        tester = fleet.tester()
+        tester.expect("AGENT_3_MC", 1.0, where={"State": "RUNNING"})
+        tester.mark()
+        t_mark = tester.now()
+        fleet.run(0.5)   # frames arrive while nobody expects them (bus time passes)
+        t_call = tester.now()
+        assert tester.expect("AGENT_3_MC", 0.1).t > t_call
+        assert t_mark < tester.expect("AGENT_3_Diag", 1.0, since="mark").t < t_call
+        assert tester.expect("AGENT_3_MC", 0.1, since=t_mark + 0.1).t < t_mark + 0.2
+        tester.send("ER_Command", Command="ISOLATE", Target=3, **NO_GAINS)
+        t_sent = tester.now()
+        fleet.run(0.3)   # the reply comes before the expect
+        isolated = tester.expect("AGENT_3_MC", 0.1, where={"State": "ISOLATED"})
+        assert t_sent <= isolated.t < t_sent + 0.3
+        t_call = tester.now()
+        assert tester.expect("AGENT_3_MC", 0.1).t > t_call
+        with pytest.raises(TesterError, match="since: expected 'call', 'mark' or a bus"):
+            tester.expect("AGENT_3_MC", 0.1, since="now")  # type: ignore[arg-type]
+
+
 def test_unmet_expectations_say_what_came_instead(keys: KeySet) -> None:
     with SimFleet(1, keys=keys) as fleet:
         tester = fleet.tester()
@@ -161,8 +188,8 @@ def test_unmet_expectations_say_what_came_instead(keys: KeySet) -> None:
             tester.expect("AGENT_3_MC", 0.5, where={"State": "SAFE"})
         text = str(e.value)
         assert "expected AGENT_3_MC with State == 'SAFE' within 0.5 s of bus time" in text
-        assert ("AGENT_3_MC frame(s) passed the checks in its window (after the last send, "
-                "mark, sleep or match), the last: {") in text
+        assert ("AGENT_3_MC frame(s) passed the checks in its window (after the call, or "
+                "the send before it), the last: {") in text
         with pytest.raises(ExpectationError, match="expected no AGENT_3_MC for 0.2 s"):
             tester.expect_none("AGENT_3_MC", 0.2)
         with pytest.raises(ExpectationError, match="expected Resets == 1000, but got "):

@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         libs = [str(build / name) for name in ("libbessded.so", "libbessded_core.so",
                                                "libbessded_faulty.so")]
         subprocess.run(["make", "-s", "-C", str(FIRMWARE), f"BUILD={build}",
-                        "CFLAGS=-O0 --coverage", *libs], check=True)
+                        f"PYTHON={sys.executable}", "CFLAGS=-O0 --coverage", *libs], check=True)
         env = {**os.environ, "BESSDED_C_LIB_DIR": str(build)}
         tests = [t for t in TESTS if (ROOT / t).exists()]
         run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",

@@ -27,8 +27,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import re
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from firmware_py.errors import BessDedError
 
@@ -40,6 +42,7 @@ COMMANDS: tuple[str, ...] = (
     "compare",   # every controller on one scenario
     "bench",     # micro-benchmarks of the control core and the simulator
     "up",        # a whole case as processes on a CAN bus
+    "deploy",    # a scenario's node configurations and key files, nothing run
     "restbus",   # the fleet but one node, for a device under test on the bus
     "conformance",  # prove an agent node conformant over the bus
     "analyze",   # metrics, anomalies and plots from any recorded log
@@ -89,6 +92,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the console script; returns the exit code (also when called
     in-process, e.g. from tests: argparse's own exits are turned into return codes)."""
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    _suggest_on_error(parser, argv)
     try:
         args = parser.parse_args(argv)
     except SystemExit as e:  # --help (0) or a usage error (2), already printed
@@ -106,6 +111,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{PROG}: interrupted", file=sys.stderr)
         return 130
     return EXIT_ERROR
+
+
+def _suggest_on_error(parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    """The top-level parser's errors (a mistyped command, an option the command does not
+    have) in one line, with a "did you mean" from difflib (argparse has none before 3.12)."""
+    from ._common import with_suggestion
+
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+
+    def error(message: str) -> NoReturn:
+        command = next((a for a in argv if a in sub.choices), None)
+        options = [] if command is None else [
+            o for a in sub.choices[command]._actions for o in a.option_strings]
+        message = re.sub(r"^argument (\S+): ", r"\1: ", message)
+        message = with_suggestion(message, options)
+        usage = f"bess-ded {command} -h" if command else "bess-ded -h"
+        parser.exit(EXIT_ERROR, f"{PROG}: error: {' '.join(message.split())} (usage: "
+                    f"{usage})\n")
+
+    parser.error = error  # type: ignore[method-assign,assignment]
 
 
 def _error(message: str) -> None:

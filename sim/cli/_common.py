@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, NoReturn, TextIO
 
 from firmware_py.controllers import ControllerConfig
-from firmware_py.errors import ConfigError
+from firmware_py.errors import ConfigError, ParameterError
 
 from ..scenario import SCENARIO_DIR, Scenario, load_case, load_scenario
 
@@ -26,6 +26,7 @@ def one_line_errors(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
     def error(message: str) -> NoReturn:
         message = re.sub(r"^argument (\S+?)(/\S+)?: ", r"\1: ", message)
+        message = with_suggestion(message, [])
         p.exit(2, f"bess-ded: error: {' '.join(message.split())} (usage: bess-ded {command} "
                   "-h)\n")
 
@@ -33,9 +34,60 @@ def one_line_errors(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return p
 
 
+CASE_HELP = "a case number (1-7, the paper's cases) or a path to a scenario .toml"
+
+
+def add_case_option(p: argparse.ArgumentParser, required: bool = True) -> None:
+    """``--case CASE``: how every command names its scenario (``--scenario FILE``, an older
+    spelling, is the same option)."""
+    p.add_argument("--case", "--scenario", dest="case", metavar="CASE", required=required,
+                   help=CASE_HELP + " (--scenario is the same option)")
+
+
+def with_suggestion(message: str, options: Sequence[str]) -> str:
+    """argparse's message plus "did you mean ...?" for a mistyped choice (from the choices
+    it lists) or an unrecognized option (from ``options``, the command's flags)."""
+    import difflib
+
+    m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)$", message)
+    if m:
+        given, choices = m.group(1), re.findall(r"'([^']*)'", m.group(2))
+        near = difflib.get_close_matches(given, choices, n=1, cutoff=0.6)
+        near = near or [c for c in choices if c.casefold() == given.casefold()]
+        return message + (f" (did you mean {near[0]!r}?)" if near else "")
+    m = re.match(r"unrecognized arguments: (.*)$", message)
+    if m:
+        hints = []
+        for word in m.group(1).split():
+            flag = word.split("=", 1)[0]
+            near = difflib.get_close_matches(flag, options, n=1, cutoff=0.6) \
+                if flag.startswith("-") else []
+            if near:
+                hints.append(f"{flag!r}: did you mean {near[0]!r}?")
+        return message + (f" ({'; '.join(hints)})" if hints else "")
+    return message
+
+
 def add_scenario_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument("case", metavar="CASE",
-                   help="a case number (1-7, the paper's cases) or a path to a scenario .toml")
+    """``CASE`` or ``--case CASE`` (`case`, `compare`); read it with ``scenario_spec``."""
+    p.add_argument("case", metavar="CASE", nargs="?", help=CASE_HELP)
+    p.add_argument("--case", "--scenario", dest="case_option", metavar="CASE",
+                   help="the same, as every other command names it")
+
+
+def scenario_spec(args: argparse.Namespace) -> str:
+    """The scenario of ``add_scenario_argument``: given once, as CASE or --case."""
+    given = [x for x in (args.case, args.case_option) if x is not None]
+    if len(given) != 1:
+        raise ParameterError("CASE", "one scenario, as CASE or --case CASE (e.g. `bess-ded "
+                             f"{args.command} 1`)", " and ".join(given) or "none")
+    return given[0]
+
+
+def add_no_plot_argument(p: argparse.ArgumentParser, what: str) -> None:
+    """``--no-plot`` (``--no-plots`` is the same flag) in every command that draws."""
+    p.add_argument("--no-plot", "--no-plots", dest="no_plot", action="store_true",
+                   help=f"skip {what}")
 
 
 def add_arithmetic_arguments(p: argparse.ArgumentParser) -> None:

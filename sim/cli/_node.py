@@ -16,14 +16,13 @@ from firmware_py.__main__ import (
     add_rt_argument,
 )
 from firmware_py.cliargs import MAX_PERIOD_S, duration_s, float_in, time_scale
-from firmware_py.errors import ParameterError
 
 
 def add_node_arguments(p: argparse.ArgumentParser) -> None:
     """--case N | --scenario FILE, the bus flags, --duration, --period."""
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--case", metavar="N", help="a paper case, 1..7 (sim/scenarios/caseN.toml)")
-    src.add_argument("--scenario", metavar="FILE", help="a scenario .toml (docs/scenarios.md)")
+    from ._common import add_case_option
+
+    add_case_option(p)
     add_key_arguments(p)
     add_bus_arguments(p)
     add_filter_argument(p)
@@ -47,14 +46,10 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
 def load_node_scenario(args: argparse.Namespace) -> Any:
     """The scenario the flags name, stretched by --time-scale; sets the default --period
     to its Ts."""
-    from ..scenario import load_case, load_scenario, scaled
+    from ..scenario import scaled
+    from ._common import resolve_scenario
 
-    if args.case is not None:
-        if not args.case.isdigit():
-            raise ParameterError("--case", "a case number (use --scenario for a file)", args.case)
-        sc = load_case(int(args.case))
-    else:
-        sc = load_scenario(args.scenario)
+    sc = resolve_scenario(args.case)
     if args.time_scale != 1.0:
         sc = scaled(sc, args.time_scale)
     if args.period is None:

@@ -30,16 +30,14 @@ from firmware_py.errors import BessDedError, ConfigError
 def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.cliargs import positive_float, time_scale
 
-    from ._common import one_line_errors
+    from ._common import add_case_option, add_no_plot_argument, one_line_errors
 
     p = one_line_errors(sub.add_parser(
         "analyze", help="metrics, anomalies and plots from a recorded CAN log",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter))
     p.add_argument("log", type=Path, metavar="LOG",
                    help="candump-format log of the fleet, or the directory `up` wrote")
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--case", metavar="CASE", help="a case number (1-7) or a scenario .toml")
-    src.add_argument("--scenario", metavar="FILE", help="a scenario .toml (docs/scenarios.md)")
+    add_case_option(p, required=False)
     p.add_argument("--variant", metavar="LABEL", help="the variant that ran (cases 2, 3, 6)")
     p.add_argument("--time-scale", type=time_scale, metavar="F",
                    help="the --time-scale the run used (default: the run's, else 1)")
@@ -56,7 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the run's key set (default: LOG's directory's keys/ if there, as "
                         "`up` writes it): secured frames whose MAC does not verify are left "
                         "out and reported (auth_failed)")
-    p.add_argument("--no-plot", action="store_true", help="skip bus_run.png")
+    add_no_plot_argument(p, "bus_run.png")
     p.set_defaults(func=run)
 
 
@@ -101,16 +99,16 @@ def run(args: argparse.Namespace) -> int:
     if not (time_scale > 0 and tolerance > 0):
         raise ConfigError(str(facts_path), "run facts", "expected a positive time_scale and "
                           f"tolerance, but got {time_scale} and {tolerance}")
-    spec = args.case or args.scenario
+    spec = args.case
     if spec is None:
         if not (run_dir / "scenario.toml").is_file():
-            raise ConfigError(str(args.log), "--case/--scenario", "expected the scenario "
-                              "that ran (--case N or --scenario FILE); LOG is not a run "
+            raise ConfigError(str(args.log), "--case", "expected the scenario "
+                              "that ran (--case N or --case FILE); LOG is not a run "
                               "directory with its scenario.toml")
         # the scenario as it ran: variant resolved, time scale already applied
-        sc, chosen = pick_variant(resolve_scenario(str(run_dir / "scenario.toml")), None)
+        sc, chosen = pick_variant(resolve_scenario(str(run_dir / "scenario.toml")), None, "analyze")
     else:
-        sc, chosen = pick_variant(resolve_scenario(spec), args.variant)
+        sc, chosen = pick_variant(resolve_scenario(spec), args.variant, "analyze")
         sc = scaled(sc, time_scale)
     out = args.out or run_dir / f"{log_path.stem}-analysis"
     keys_dir = args.keys or run_dir / "keys"

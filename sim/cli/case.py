@@ -30,6 +30,7 @@ from ..trajectory import Trajectory
 from ._common import (
     Progress,
     add_arithmetic_arguments,
+    add_no_plot_argument,
     add_scenario_argument,
     controller_desc,
     describe,
@@ -40,6 +41,7 @@ from ._common import (
     fmt_times,
     one_line_errors,
     resolve_scenario,
+    scenario_spec,
     slug,
     table,
     write_json,
@@ -69,7 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "for bit)")
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output directory (default: runs/<scenario name>, e.g. runs/case1)")
-    p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    add_no_plot_argument(p, "the PNG figures")
     one_line_errors(p)
     p.set_defaults(func=run)
 
@@ -117,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     from .. import plots
 
     t0 = time.perf_counter()
-    sc = resolve_scenario(args.case)
+    sc = resolve_scenario(scenario_spec(args))
     runs = plan(sc, args.controller, args.band, args.dwell)
     if args.impl == "c":
         check_c_core(args.fixed)
@@ -140,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
             tr.write_csv(path)
             written.append(path)
 
-    if not args.no_plots:
+    if not args.no_plot:
         title = sc.title or sc.name
         if args.controller:
             title += f" — {args.controller}"

@@ -26,6 +26,7 @@ from ._common import (
     fmt_time,
     one_line_errors,
     resolve_scenario,
+    scenario_spec,
     slug,
     table,
     write_json,
@@ -61,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from .. import plots
 
     t0 = time.perf_counter()
-    sc = resolve_scenario(args.case)
+    sc = resolve_scenario(scenario_spec(args))
     runs = plan(sc)
     out: Path = args.out or Path("runs") / f"compare-{slug(sc.name)}"
     out.mkdir(parents=True, exist_ok=True)

@@ -41,14 +41,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.__main__ import add_bus_arguments, add_rt_argument
     from firmware_py.cliargs import duration_s, time_scale
 
-    from ._common import one_line_errors
+    from ._common import add_case_option, one_line_errors
 
     p = one_line_errors(sub.add_parser(
         "conformance", help="prove an agent node conformant: the rest of the bus, "
         "firmware_py as the oracle, pass/fail per requirement",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter))
-    p.add_argument("--case", required=True, metavar="CASE",
-                   help="a case number (1-7) or a path to a scenario .toml")
+    add_case_option(p)
     p.add_argument("--variant", metavar="LABEL", help="for a scenario with variants")
     p.add_argument("--dut", required=True, metavar="I", help="the agent the device replaces")
     add_bus_arguments(p)
@@ -86,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from .keys import load_key_set
     from .up import GUEST_TIME_SCALE, IN_PROCESS_INTERFACES, check_key_set, pick_variant
 
-    sc, chosen = pick_variant(resolve_scenario(args.case), args.variant)
+    sc, chosen = pick_variant(resolve_scenario(args.case), args.variant, "conformance")
     if not (args.dut.isdigit() and 1 <= int(args.dut) <= sc.n):
         raise ParameterError("--dut", f"an agent number in 1..{sc.n}", args.dut)
     i = int(args.dut)
@@ -131,7 +130,8 @@ def run(args: argparse.Namespace) -> int:
           f"(Ts = {ts * 1000:g} ms{f', time scale {scale:g}' if scale != 1 else ''}); the "
           f"schedule takes {length:.1f} s")
     print(f"  bus: {bus.resolved()}" + (f" (port {port} private to this run)" if port else ""))
-    rt = ["--rt-priority", str(args.rt_priority)] if args.rt_priority else []
+    # the device at the tester's --rt-priority, else as `up` runs its nodes (SCHED_FIFO)
+    rt = ["--rt-priority", str(args.rt_priority or busrun.RT_PRIORITY)]
     cmd = ["bess-ded", "agent", "--config", str(cfg_path), *key_argv, *bus.argv(), *rt]
     print(f"  start the device with its configuration and key, e.g.: {shlex.join(cmd)}")
     print(f"  waiting up to {args.wait:g} s for its {diag_name(i)} frame ...", flush=True)

@@ -7,7 +7,9 @@ key is drawn from the OS's random source and written to DIR/master.key, unless
 --master-key FILE gives one (then it is not copied). Every file is created 0600 and
 DIR 0700. An existing key set is not overwritten without --force; re-provisioning
 from a new master key is how a compromised node is revoked (docs/security.md).
-Nothing uses the keys yet: the frames are not authenticated on the bus so far.
+Every node signs and verifies its secured frames with its key file:
+`bess-ded up --keys DIR`, `bess-ded deploy --keys DIR`, or one node per host with
+`bess-ded agent ... --key DIR/agent_3.key` (docs/security.md).
 """
 
 from __future__ import annotations
@@ -23,16 +25,14 @@ from firmware_py.errors import BessDedError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ._common import one_line_errors
+    from ._common import add_case_option, one_line_errors
 
     p = one_line_errors(sub.add_parser(
         "keys", help="provision SecOC keys for a fleet (one key file per node)",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter))
     p.add_argument("--fleet", action="store_true", required=True,
                    help="provision every node of a fleet (the only mode so far)")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--case", metavar="N", help="a case number (1-7, the paper's cases)")
-    g.add_argument("--scenario", metavar="FILE", help="a scenario .toml")
+    add_case_option(p)
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="the directory for the key files (created 0700)")
     p.add_argument("--master-key", type=Path, metavar="FILE",
@@ -124,13 +124,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ._common import resolve_scenario
 
-    spec = args.case if args.case is not None else args.scenario
-    if args.case is not None and not args.case.isdigit():
-        raise BessDedError(f"--case: expected a case number, but got {args.case!r}")
-    if args.scenario is not None and args.scenario.isdigit():
-        args.scenario = f"./{args.scenario}"  # a file name, never a case number
-        spec = args.scenario
-    sc = resolve_scenario(spec)
+    sc = resolve_scenario(args.case)
     master = (secoc.load_master_key(args.master_key) if args.master_key is not None
               else secrets.token_bytes(secoc.KEY_BYTES))
     out: Path = args.out

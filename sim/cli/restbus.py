@@ -59,11 +59,14 @@ def run(args: argparse.Namespace) -> int:
 
     def tell(key_dir: Path | None) -> None:
         if dut == "plant":
-            cmd = ["bess-ded", "plant", "--scenario", str(plan.out / "scenario.toml"),
+            cmd = ["bess-ded", "plant", "--case", str(plan.out / "scenario.toml"),
                    "--period", repr(plan.sc.ts)]
         else:
             cmd = ["bess-ded", "agent", "--config", str(plan.out / "agents" / f"{dut}.toml")]
         cmd += ["--insecure"] if key_dir is None else ["--key", str(key_dir / f"{dut}.key")]
+        # the fleet's nodes run at this SCHED_FIFO priority; a device without it misses
+        # deadlines on a busy host (needs root or CAP_SYS_NICE, else the node warns)
+        cmd += ["--rt-priority", str(busrun.RT_PRIORITY)]
         print(f"  device under test: {dut}, waited for up to {args.wait:g} s; e.g. "
               f"{shlex.join(cmd + plan.bus.argv())}", flush=True)
 

@@ -68,8 +68,9 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     output, time scale, keys."""
     from firmware_py.cliargs import duration_s, time_scale
 
-    p.add_argument("--case", required=True, metavar="CASE",
-                   help="a case number (1-7, the paper's cases) or a path to a scenario .toml")
+    from ._common import add_case_option, add_no_plot_argument
+
+    add_case_option(p)
     p.add_argument("--variant", metavar="LABEL",
                    help="for a scenario with variants (cases 2, 3, 6): which one to run "
                    "(default: the first)")
@@ -82,7 +83,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="stretch the time axis by F (Ts·F, k/F, h/F²: the same discrete "
                    "system) for hosts too slow for Ts = 10 ms, e.g. an emulated guest "
                    f"(default: 1, or {GUEST_TIME_SCALE:g} under tools/vcan-run)")
-    p.add_argument("--no-plot", action="store_true", help="skip bus_run.png")
+    add_no_plot_argument(p, "bus_run.png")
     add_tolerance_argument(p)
     k = p.add_mutually_exclusive_group()
     k.add_argument("--keys", type=Path, metavar="DIR",
@@ -123,7 +124,7 @@ def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
     from ._common import resolve_scenario
 
     base = resolve_scenario(args.case)
-    sc, chosen = pick_variant(base, args.variant)
+    sc, chosen = pick_variant(base, args.variant, command)
     bus = busrun.BusOptions(args.interface, args.channel, args.bus_config)
     kw = bus.resolved()  # checks the JSON (and the keys) before anything starts
     if kw["interface"] in IN_PROCESS_INTERFACES:
@@ -277,7 +278,8 @@ def check_key_set(keys: Path, n: int, sc: Scenario | None = None) -> str:
     return fleets.pop()
 
 
-def pick_variant(sc: Scenario, label: str | None) -> tuple[Scenario, str]:
+def pick_variant(sc: Scenario, label: str | None, command: str = "up"
+                 ) -> tuple[Scenario, str]:
     """The scenario to run and how to name the choice in the banner."""
     if not sc.variants:
         if label is not None:
@@ -286,7 +288,10 @@ def pick_variant(sc: Scenario, label: str | None) -> tuple[Scenario, str]:
         return sc, ""
     labels = [v.label for v in sc.variants]
     if label is None:
-        print(f"bess-ded up: {sc.name} has variants {', '.join(labels)}; running the first, "
+        print(f"bess-ded {command}: {sc.name} has variants {', '.join(labels)}; running the first, "
               f"{labels[0]!r} (choose one with --variant)")
         label = labels[0]
-    return sc.variant(label), f" [variant {label}]"
+    run = sc.variant(label)  # ignores case: name the label as the scenario spells it
+    if label not in labels:
+        label = next(x for x in labels if x.casefold() == label.casefold())
+    return run, f" [variant {label}]"

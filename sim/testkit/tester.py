@@ -21,7 +21,7 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import can
 
@@ -136,6 +136,7 @@ class Received:
 
 
 Where = Mapping[str, Any] | Callable[[Received], bool] | None
+Since = Literal["call", "mark"] | float   # expect's window
 
 
 def fleet_keys(master: bytes, n: int | None = None) -> dict[str, bytes]:
@@ -269,7 +270,8 @@ class Tester:
         self._cond = threading.Condition()
         self._tx_lock = threading.Lock()
         self._seq = 0
-        self._mark = 0                              # frames after an explicit send()
+        self._mark = 0                              # since="mark": after send/mark/sleep
+        self._reply_from: int | None = None         # a send() no expect has followed yet
         self._consumed: dict[str, int] = {}         # per message: the last one expect returned
         self._inbox: dict[str, deque[Received]] = {}
         self._echo: dict[int, deque[bytes]] = {}
@@ -450,6 +452,8 @@ class Tester:
         if mark:
             with self._cond:
                 self._mark = self._seq
+                if self._reply_from is None:
+                    self._reply_from = self._seq
         return out[-1]
 
     def send(self, message: str, signals: Mapping[str, Any] | None = None, *,
@@ -458,7 +462,8 @@ class Tester:
         choice name: ``Command="ISOLATE"``); every signal but Mac/CRC/Counter, which the
         tester fills in (a secured frame's freshness and MAC with ``as_node``'s key,
         after its ``<message>_Sync`` when due; an E2E frame's counter and CRC).
-        ``expect`` then looks at frames received after this send. Returns the frame."""
+        A frame received after it counts for the next ``expect`` (a reply to this frame
+        is not lost to the time between the two calls). Returns the frame."""
         return self._send(message, {**(signals or {}), **more}, as_node, mark=True)
 
     def send_periodic(self, message: str, signals: Mapping[str, Any] | None = None,
@@ -483,7 +488,8 @@ class Tester:
     # ------------------------------------------------------------ receive
 
     def mark(self) -> None:
-        """From now on, ``expect`` looks only at frames received after this call."""
+        """From now on, ``expect(..., since="mark")`` looks only at frames received after
+        this call."""
         with self._cond:
             self._mark = self._seq
 
@@ -527,16 +533,26 @@ class Tester:
         return None
 
     def expect(self, message: str, timeout_s: float = 1.0, where: Where = None, *,
-               since: float | None = None) -> Received:
-        """The first ``message`` frame that passed every check, was received after the
-        last ``send``, ``mark`` or ``sleep`` (or the frame the previous ``expect`` of
-        this message returned) and matches ``where`` ({signal: value}: a number matches
+               since: Since = "call") -> Received:
+        """The first ``message`` frame that passed every check, was received in the
+        window ``since`` says, and matches ``where`` ({signal: value}: a number matches
         the physical value as encoded, within half a raw step (``Rho=0.8``), a string the
         choice name, a callable is a predicate of the physical value; or a predicate of
-        the ``Received`` frame), within ``timeout_s``
-        of bus time; else ExpectationError (with what was received and rejected).
-        ``since``: a bus time instead (frames received after it)."""
+        the ``Received`` frame), within ``timeout_s`` of bus time; else ExpectationError
+        (with what was received and rejected).
+
+        ``since``: ``"call"`` (default, as cantools' Tester): a frame received after this
+        call, never one buffered before it; or after the tester's last ``send`` if no
+        ``expect`` came between them (the reply to what it just sent).
+        ``"mark"``: after the last ``send``, ``mark`` or ``sleep``, buffered frames
+        included. Both also after the frame the previous ``expect`` of this message
+        returned. A number: any frame received after that bus time."""
         self._message(message)
+        if not (since in ("call", "mark") or (isinstance(since, int | float)
+                                             and not isinstance(since, bool))):
+            raise TesterError("since", "'call', 'mark' or a bus time in s", since)
+        with self._cond:
+            start = self._call_start(since)
         match = self._matcher(message, where)
         t_start = self.now()
         deadline = t_start + timeout_s
@@ -545,13 +561,14 @@ class Tester:
         if fid in contract.SYNC_OF:
             ids.append(contract.SYNC_OF[fid])
         with self._cond:
-            window = self._after(message, since)  # frames and rejections after this one
+            window = self._after(message, since, start)  # frames and rejections after it
         while True:
             with self._cond:
-                after = self._after(message, since)
+                after = self._after(message, since, start)
                 r = self._find(message, after, match)
                 if r is not None:
                     self._consumed[message] = r.seq
+                    self._reply_from = None
                     return r
             if self.now() >= deadline:
                 break
@@ -563,8 +580,10 @@ class Tester:
             last = next((r for r in reversed(self._inbox.get(message, ()))
                          if r.seq > window), None)
         cond = "" if where is None else f" with {_describe(where)}"
-        detail = (f"{seen} {message} frame(s) passed the checks in its window (after the "
-                  "last send, mark, sleep or match)")
+        window_is = {"call": "after the call, or the send before it",
+                     "mark": "after the last send, mark, sleep or match"}.get(
+                         str(since), f"after t = {since}")
+        detail = f"{seen} {message} frame(s) passed the checks in its window ({window_is})"
         if last is not None:
             detail += f", the last: {_signals_text(last)}"
         for i, bad in rejs.items():
@@ -582,11 +601,17 @@ class Tester:
                                f"(t = {t_start:.3f} → {deadline:.3f} s), but got none: "
                                f"{detail}")
 
-    def _after(self, message: str, since: float | None) -> int:
-        if since is not None:
-            return max((r.seq for r in self._inbox.get(message, ()) if r.t <= since),
-                       default=0)
-        return max(self._mark, self._consumed.get(message, 0))
+    def _call_start(self, since: Since) -> int:
+        """The frame count an expect's window starts after, fixed when it is called."""
+        if since == "call":
+            return self._seq if self._reply_from is None else self._reply_from
+        return self._mark
+
+    def _after(self, message: str, since: Since, start: int) -> int:
+        consumed = self._consumed.get(message, 0)
+        if isinstance(since, str):
+            return max(start, consumed)
+        return max((r.seq for r in self._inbox.get(message, ()) if r.t <= since), default=0)
 
     def collect(self, message: str, duration_s: float, where: Where = None) -> list[Received]:
         """Every ``message`` frame (matching ``where``) received during the next
