@@ -264,6 +264,20 @@ class FreshnessVerifier:
         value = high << self.tx_bits | truncated
         return value if value <= self.layout.max_value else None
 
+    def past(self, sender: Hashable, truncated: int, windows: int = 1) -> list[int]:
+        """The values at or below the last accepted one that carry ``truncated`` as
+        their low bits, newest first, at most ``windows`` of them (one per window of
+        2^tx_bits): what a genuine frame that arrived late or out of order verifies
+        with (``NodeIO`` counts such a frame ``stale``, not forged). Empty without
+        state for this sender."""
+        last = self._last.get(sender)
+        mask = (1 << self.tx_bits) - 1
+        if last is None or not 0 <= truncated <= mask:
+            return []
+        newest = last - ((last - truncated) & mask)
+        return [v for v in range(newest, newest - (windows << self.tx_bits), -(mask + 1))
+                if v >= 0]
+
     def accept(self, sender: Hashable, freshness: int) -> bool:
         """Record an authenticated FV; False (and no change) unless it is strictly
         greater than the last accepted one."""

@@ -16,6 +16,7 @@
 #define BOOT_MAX ((1u << BD_FV_BOOT_BITS) - 1u)
 #define FV_MAX ((UINT64_C(1) << (BD_FV_BOOT_BITS + BD_FV_COUNT_BITS)) - 1u)
 #define LOST_WINDOWS 8u     /* windows tried after a sender timed out (AUTH-10) */
+#define STALE_WINDOWS 1u    /* past windows tried before a frame is forged (AUTH-12a) */
 #define DIAG_U16_MAX 65535u
 #define INSECURE_BOOT 1u
 #define ECHO_MC 0
@@ -31,7 +32,7 @@ static const char *const counter_names[BD_C_COUNT] = {
     "untrusted_sources", "untrusted", "implausible_price", "implausible_lambda",
     "implausible_gains", "auth", "unsynced", "resyncs", "deadline_miss", "send_failure",
     "error_frame", "commands", "commands_isolate", "commands_reconnect",
-    "price_steps_accepted", "setpoint_limited"};
+    "price_steps_accepted", "setpoint_limited", "stale"};
 
 const char *bd_counter_name(int counter)
 {
@@ -451,6 +452,25 @@ static int verifies(bd_agent *a, const uint8_t *key, uint32_t id, const uint8_t 
     return v == 1;
 }
 
+/* AUTH-12a: 1 if a frame that failed the window verifies with one of the STALE_WINDOWS
+ * most recent values at or below the last accepted one: its sender's, late. */
+static int stale(bd_agent *a, const bd_rx_slot *s, const bd_frame *f, uint32_t counter)
+{
+    uint64_t fv;
+    if (bd_fv_past(s->fv, counter, BD_FV_TX_BITS, &fv) != 0) {
+        return 0;
+    }
+    for (uint32_t k = 0u; k < STALE_WINDOWS; ++k, fv -= FV_WINDOW) {
+        if (verifies(a, a->key[s->key_index], f->id, f->data, fv)) {
+            return 1;
+        }
+        if (fv < FV_WINDOW) {
+            break;
+        }
+    }
+    return 0;
+}
+
 /* AUTH-9..12: 1 if a decoded secured frame is authentic and fresh (and accepted). */
 static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t counter,
                      int64_t t)
@@ -471,7 +491,9 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
         }
     }
     if (!found) {
-        if ((s->flags & BD_RX_LOST) != 0u) {
+        if (stale(a, s, f, counter)) {
+            reject(a, BD_C_STALE, f->id);   /* genuine but late: not used, not forged */
+        } else if ((s->flags & BD_RX_LOST) != 0u) {
             reject(a, BD_C_UNSYNCED, f->id);
         } else {
             fail(a, s, f->id, BD_C_AUTH, t);
