@@ -157,7 +157,7 @@ def test_c_and_python_agents_agree_on_random_traffic(variant: str, events: list[
 
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_a_genuine_frame_out_of_order_is_stale_not_forged_in_both(variant: str) -> None:
-    """AUTH-12a: neighbour 1's two MC frames swapped on the way: the later one is used,
+    """AUTH-25: neighbour 1's two MC frames swapped on the way: the later one is used,
     the earlier one arrives behind it with a valid MAC under an older freshness value:
     `stale` in both runtimes, never `auth`; a forged MAC stays `auth`."""
     py, c = run_both(variant, PREAMBLE + [("swap", 1, 13_100_000), ("tick", 1),
@@ -486,7 +486,7 @@ def test_c_secoc_against_firmware_py() -> None:
     assert lib.bd_fv_candidate((1 << 40) - 1, 3, 4, (1 << 40) - 1, ctypes.byref(got)) == -1
     assert lib.bd_fv_candidate(5, 16, 4, (1 << 40) - 1, ctypes.byref(got)) == -1   # > mask
     assert lib.bd_fv_candidate(5, 0, 0, (1 << 40) - 1, ctypes.byref(got)) == -1    # 0 bits
-    for _ in range(300):   # AUTH-12a: the newest past value with given low bits
+    for _ in range(300):   # AUTH-25: the newest past value with given low bits
         last, low = rnd.choice((rnd.randrange(1 << 40), rnd.randrange(20))), rnd.randrange(16)
         verifier._last["x"] = last
         want = verifier.past("x", low)

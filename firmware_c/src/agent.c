@@ -16,7 +16,7 @@
 #define BOOT_MAX ((1u << BD_FV_BOOT_BITS) - 1u)
 #define FV_MAX ((UINT64_C(1) << (BD_FV_BOOT_BITS + BD_FV_COUNT_BITS)) - 1u)
 #define LOST_WINDOWS 8u     /* windows tried after a sender timed out (AUTH-10) */
-#define STALE_WINDOWS 1u    /* past windows tried before a frame is forged (AUTH-12a) */
+#define STALE_WINDOWS 1u    /* past windows tried before a frame is forged (AUTH-25) */
 #define DIAG_U16_MAX 65535u
 #define INSECURE_BOOT 1u
 #define ECHO_MC 0
@@ -452,7 +452,7 @@ static int verifies(bd_agent *a, const uint8_t *key, uint32_t id, const uint8_t 
     return v == 1;
 }
 
-/* AUTH-12a: 1 if a frame that failed the window verifies with one of the STALE_WINDOWS
+/* AUTH-25: 1 if a frame that failed the window verifies with one of the STALE_WINDOWS
  * most recent values at or below the last accepted one: its sender's, late. */
 static int stale(bd_agent *a, const bd_rx_slot *s, const bd_frame *f, uint32_t counter)
 {
