@@ -532,3 +532,17 @@ def test_the_recorder_looks_ahead_only_as_far_as_the_elapsed_time_allows() -> No
     mon.t_last[f.frame_id] = 5.0
     assert [mon.windows(f, 5.0 + dt) for dt in (0.002, 0.01, 0.039, 0.045, 0.2, 9.0)] == [
         1, 1, 1, 2, 6, LOST_WINDOWS]
+
+
+def test_a_node_s_stale_frames_are_a_load_anomaly_above_one_percent_never_auth() -> None:
+    """The plant's and router's `stale` counters (late genuine frames, AUTH-25): 5 in
+    1000 ticks is what a loaded host does (nothing); 50 is `stale_frames`, not auth."""
+    from sim import buslog, verdict
+
+    facts = verdict.RunFacts(node_counters={
+        "plant": {"counters": {"stale": 5}, "ticks": 1000},
+        "router": {"counters": {"stale": 50}, "ticks": 1000}})
+    out: list[verdict.Anomaly] = []
+    verdict._counters(load_case(1), buslog.LogContents(), facts, out)
+    assert [(a.kind, a.node) for a in out] == [("stale_frames", "router")]
+    assert out[0].detail.startswith("50 genuine secured frames arrived late")
