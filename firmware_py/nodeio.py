@@ -58,10 +58,11 @@ late or restarted node is heard within one round trip. After a sender timed out
 Late is not forged. A frame that fails the window is tried once more, with the most
 recent freshness value at or below the last accepted one that has its low bits
 (``STALE_WINDOWS`` = 1 window: the 16 values up to the last accepted, one CMAC, spent
-only on frames already rejected). If its MAC verifies there, it is its sender's genuine
-frame delivered late or out of order (a loaded host, a CAN double reception, or a
-replay of a frame just sent): counted ``stale``, never used, not an E2E failure (no
-untrusted streak), not ``auth``. Only a frame that verifies nowhere is ``auth``.
+only on frames already rejected), unless a frame with that value was accepted (then
+it is a replay or a duplicate: ``auth``, no CMAC). If its MAC verifies there, it is its
+sender's genuine frame delivered late or out of order (skipped as lost, then
+delivered): counted ``stale``, never used, not an E2E failure (no untrusted streak), not
+``auth``. Only a frame that verifies nowhere, or repeats an accepted one, is ``auth``.
 """
 
 from __future__ import annotations
@@ -172,7 +173,8 @@ class NodeIO:
         self._peer_boot: dict[int, int] = {}  # sync ID of a frame not used -> its boot
         if keys.insecure:  # every insecure sender starts at boot 1, count 0: no sync needed
             for fid in self._verify_key:
-                self._fv.accept(fid, (INSECURE_BOOT << contract.FV_COUNT_BITS) - 1)
+                self._fv.accept(fid, (INSECURE_BOOT << contract.FV_COUNT_BITS) - 1,
+                                frame=False)
                 self._lost.add(fid)  # a sender already running: its sync, not a forgery
         self._cyclic = frozenset(fid for fid in self.trackers
                                  if contract.is_cyclic(codec.name_of(fid)))
@@ -325,10 +327,14 @@ class NodeIO:
 
     def _stale(self, fid: int, key: bytes, data: bytes | bytearray, counter: int) -> bool:
         """Whether a frame that failed the forward window verifies with one of the
-        STALE_WINDOWS most recent values at or below the last accepted one (its sender's
-        genuine frame, late): one CMAC per window, only for frames already rejected."""
-        return any(frame_verifies(key, fid, data, fv)
-                   for fv in self._fv.past(fid, counter, STALE_WINDOWS))
+        STALE_WINDOWS most recent values at or below the last accepted one that no
+        frame carried yet (its sender's genuine frame, late): at most one CMAC per
+        window, only for frames already rejected."""
+        for fv in self._fv.past(fid, counter, STALE_WINDOWS):
+            if frame_verifies(key, fid, data, fv):
+                self._fv.mark(fid, fv)  # the same frame again is a replay
+                return True
+        return False
 
     def _on_sync(self, msg: can.Message, sync_id: int, t: float) -> None:
         fid = self._synced_by[sync_id]
@@ -362,7 +368,7 @@ class NodeIO:
             # persisted), so its values go back; insecure mode has no replay protection
             self._fv.forget(fid)
             restarted = True
-        self._fv.accept(fid, fv - 1)  # its next frame uses fv
+        self._fv.accept(fid, fv - 1, frame=False)  # its next frame uses fv
         self._lost.discard(fid)
         self.counters["resyncs"] += 1
         if restarted:

@@ -132,7 +132,8 @@ class _Monitor:
       LOST_WINDOWS). A forged frame in a flood (short elapsed time) gets one window,
       one chance in 2^24, as at a node; the recorder missing frames gets more;
     * stale (``_Stale``): its MAC verifies with one of the STALE_WINDOWS windows at or
-      below the last accepted value: its sender's genuine frame, late (a capture that
+      below the last accepted value, at a value no frame carried yet (a frame already
+      seen again is a replay): its sender's genuine frame, late (a capture that
       delivered it behind a newer one, or behind a forgery accepted by chance);
     * forged (``_Forged``): neither.
     """
@@ -161,7 +162,7 @@ class _Monitor:
                                                                          data, fv):
             last = self.fv.last(fid)
             if last is None or fv - 1 > last:
-                self.fv.accept(fid, fv - 1)
+                self.fv.accept(fid, fv - 1, frame=False)
             if last is None or fv - 1 >= last:
                 self.t_last[fid] = t
                 return
@@ -190,9 +191,10 @@ class _Monitor:
                 self.t_last[f.frame_id] = t
                 return True
             fv += 1 << contract.FV_TX_BITS
-        if any(frame_verifies(key, f.frame_id, data, v)
-               for v in self.fv.past(f.frame_id, f.counter, self.STALE_WINDOWS)):
-            raise _Stale
+        for v in self.fv.past(f.frame_id, f.counter, self.STALE_WINDOWS):
+            if frame_verifies(key, f.frame_id, data, v):
+                self.fv.mark(f.frame_id, v)  # the same frame again is a replay
+                raise _Stale
         raise _Forged
 
 

@@ -182,6 +182,7 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     for name in inputs:
         add(0, "start", tx.sync(name), f"sync of {name}")
     genuine: list[can.Message] = []
+    held: list[can.Message] = []   # a genuine frame delivered late (AUTH-25)
     for k in range(30, STEPS[-1].end):
         step = step_at(k)
         silent_nbr = 10 <= k - at["timeouts"] < 20
@@ -223,10 +224,13 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             add(k + 0.6, step, later.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
                                                         "Rho": q(price)}),
                 "frame from another boot")
-        if k == at["authentication"] + 50:  # genuine, one frame behind: stale, not auth
-            fid = codec.frame_id(mc_name(nbrs[0]) if nbrs else "ER_Price")
-            earlier = [p.msg for p in out if p.msg.arbitration_id == fid]
-            add(k + 0.6, step, _copy(earlier[-2]), "a genuine frame delivered late")
+        if k == at["authentication"] + 50:  # a genuine frame held back: lost for now
+            held.append(tx.frame(mc_name(nbrs[0]), {
+                "State": int(State.RUNNING), "Lambda": lam_j(nbrs[0], k), "Resets": 0})
+                if nbrs else tx.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
+                                                   "Rho": q(price)}))
+        if k == at["authentication"] + 53:  # ... delivered 3 ticks late: stale, not auth
+            add(k + 0.6, step, held[0], "a genuine frame delivered 3 ticks late")
         if k == at["content"] + 5:
             add(k + 0.6, step, can.Message(arbitration_id=0x100 + i, is_extended_id=True,
                                            data=bytes(8)), "extended ID")

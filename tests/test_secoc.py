@@ -254,9 +254,8 @@ def test_round_trip_and_replay_rejected() -> None:
     last = rx._fv.last(0x010)
     for m in frames:  # replay of every old frame: its freshness is spent
         assert rx.receive(m, 0.0) is None
-    # the last 16 verify one window back: late or replayed, not used, counted stale
-    # (a genuine late frame looks the same); older ones verify nowhere: auth
-    assert rx.counters["auth"] == 24 and rx.counters["stale"] == 16
+    # every one was accepted before: a replay, not a late frame (AUTH-25)
+    assert rx.counters["auth"] == 40 and rx.counters["stale"] == 0
     assert rx._fv.last(0x010) == last  # state unchanged
     assert rx.receive(_price(sender, 99), 0.0) is not None
 
@@ -271,6 +270,10 @@ def test_a_late_genuine_frame_is_stale_not_forged() -> None:
     assert got == [True, True, True, False, True, False]
     assert rx.counters["stale"] == 2 and rx.counters["auth"] == 0
     assert rx.counters["lost_frames"] == 2 and rx._streak[0x010] == 0
+    for i in (4, 5):  # again: a late frame already seen, an accepted one: replays
+        assert rx.receive(f[i], 0.0) is None
+    assert rx.counters["stale"] == 2 and rx.counters["auth"] == 2
+    rx.counters["auth"] = 0
     bad = bytearray(_price(sender, 6).data)
     bad[0] ^= 0x5A
     assert rx.receive(can.Message(arbitration_id=0x010, data=bad, is_extended_id=False),
@@ -292,7 +295,11 @@ def test_a_frame_later_than_one_window_is_auth() -> None:
 def test_past_values_of_the_verifier() -> None:
     v = FreshnessVerifier(tx_bits=4, initial={"s": 0x123})
     assert v.past("s", 0x3) == [0x123] and v.past("s", 0x4) == [0x114]
-    assert v.past("s", 0x4, windows=3) == [0x114, 0x104, 0x0F4]
+    assert v.past("s", 0x4, windows=3) == [0x114, 0x104]   # beyond SEEN_BITS: spent
+    assert v.accept("s", 0x125) and v.accept("s", 0x127, frame=False)
+    assert v.past("s", 0x5) == [] and v.past("s", 0x7) == [0x127]   # 0x125 was accepted
+    v.mark("s", 0x127)
+    assert v.past("s", 0x7) == [] and v.past("s", 0x6) == [0x126]
     assert FreshnessVerifier(initial={"s": 2}).past("s", 5, windows=4) == []
     assert FreshnessVerifier().past("s", 1) == [] and v.past("s", 16) == []
 

@@ -415,8 +415,9 @@ def _ground_truth_log(path: Path) -> tuple[int, int, int]:
     senders' genuine secured frames (their syncs first), every genuine λ/ρ/power in a
     range no forged frame uses; genuine AGENT_1_MC frames swapped with their successor
     every 7th tick and AGENT_2_MC frames delayed 3.5 cycles every 11th (late: behind newer
-    ones); a flood of 20 forged frames per tick (an attacker's key, every counter) and a
-    replay every tick of a genuine frame 50 ticks old. (genuine, late, attacker) frames."""
+    ones); a flood of 20 forged frames per tick (an attacker's key, every counter) and
+    replays every tick of a genuine frame 2 ticks old (price or status: frames already
+    accepted, so not late) and of one 50 ticks old. (genuine, late, attacker) frames."""
     import random
 
     from firmware_py.nodeio import FleetSender
@@ -468,6 +469,11 @@ def _ground_truth_log(path: Path) -> tuple[int, int, int]:
             f.timestamp = t + rnd.uniform(0, ts)
             frames.append(f)
             attack += 1
+        if k >= 2:         # a replay of a genuine price or status frame of 2 ticks ago
+            old = genuine[4 * (k - 2) + rnd.choice((0, 3))]
+            frames.append(can.Message(arbitration_id=old.arbitration_id, data=old.data,
+                                      is_extended_id=False, timestamp=t + 0.3 * ts))
+            attack += 1
         if k >= 50:        # a replay of one of the genuine frames of 50 ticks ago
             old = genuine[4 * (k - 50) + rnd.randrange(4)]
             frames.append(can.Message(arbitration_id=old.arbitration_id, data=old.data,
@@ -511,7 +517,7 @@ def test_the_recorder_tells_late_genuine_frames_from_a_flood_of_forged_ones(
     out: list[verdict.Anomaly] = []
     verdict._recording(load_case(1), log, out)
     kinds_ = [a.kind for a in out]
-    assert kinds_.count("auth_failed") == 4 and "stale_frames" not in kinds_  # 69 of 7454
+    assert kinds_.count("auth_failed") == 4 and "stale_frames" not in kinds_  # 69 late of 7752
     log.stale["AGENT_1_MC"] += 100                          # many late: a load anomaly
     out.clear()
     verdict._recording(load_case(1), log, out)

@@ -129,6 +129,7 @@ typedef struct {
     uint16_t id;                  /* the input's frame ID */
     uint16_t sync_id;             /* its <name>_Sync */
     uint16_t streak;              /* consecutive E2E failures (RX-12) */
+    uint16_t seen;                /* bit k: the frame of FV fv - k was accepted (AUTH-25) */
     uint8_t key_index;            /* its sender's verification key, in bd_agent.key */
     uint8_t flags;                /* BD_RX_* */
 } bd_rx_slot;
