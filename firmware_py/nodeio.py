@@ -54,6 +54,15 @@ late or restarted node is heard within one round trip. After a sender timed out
 (``sender_lost``), its next frames may lie beyond the window: up to
 ``LOST_WINDOWS`` windows are tried, and frames that still fail count as
 ``unsynced`` until its next sync, not as forgeries.
+
+Late is not forged. A frame that fails the window is tried once more, with the most
+recent freshness value at or below the last accepted one that has its low bits
+(``STALE_WINDOWS`` = 1 window: the 16 values up to the last accepted, one CMAC, spent
+only on frames already rejected), unless a frame with that value was accepted (then
+it is a replay or a duplicate: ``auth``, no CMAC). If its MAC verifies there, it is its
+sender's genuine frame delivered late or out of order (skipped as lost, then
+delivered): counted ``stale``, never used, not an E2E failure (no untrusted streak), not
+``auth``. Only a frame that verifies nowhere, or repeats an accepted one, is ``auth``.
 """
 
 from __future__ import annotations
@@ -96,6 +105,7 @@ STREAK_CAUSES = frozenset({"crc", "dlc", "range", "counter_jump", "counter_clash
 SYNC_S = contract.cycle_ms("ER_Price_Sync") / 1000.0  # a sender's sync cadence (1 s)
 HELLO_FRACTION = 0.1  # re-announce own syncs at most every 0.1 sync_s when a peer (re)starts
 LOST_WINDOWS = 8      # freshness windows tried after a sender timed out (8·16 frames)
+STALE_WINDOWS = 1     # past windows tried before a frame is called forged (16 values)
 _FV_WINDOW = 1 << contract.FV_TX_BITS
 _COUNT_MAX = (1 << contract.FV_COUNT_BITS) - 1
 
@@ -163,7 +173,8 @@ class NodeIO:
         self._peer_boot: dict[int, int] = {}  # sync ID of a frame not used -> its boot
         if keys.insecure:  # every insecure sender starts at boot 1, count 0: no sync needed
             for fid in self._verify_key:
-                self._fv.accept(fid, (INSECURE_BOOT << contract.FV_COUNT_BITS) - 1)
+                self._fv.accept(fid, (INSECURE_BOOT << contract.FV_COUNT_BITS) - 1,
+                                frame=False)
                 self._lost.add(fid)  # a sender already running: its sync, not a forgery
         self._cyclic = frozenset(fid for fid in self.trackers
                                  if contract.is_cyclic(codec.name_of(fid)))
@@ -290,6 +301,11 @@ class NodeIO:
                 break
             fv, tries = fv + _FV_WINDOW, tries - 1
         else:
+            if self._stale(fid, key, msg.data, frame.counter):
+                self.reject("stale", f"{frame.name}: its MAC verifies with a freshness value "
+                            f"at or below the last accepted {last:#x}: a genuine frame that "
+                            "arrived late or out of order (not used)")
+                return None
             if fid in self._lost:
                 self.reject("unsynced", f"{frame.name}: its sender timed out and this frame "
                             "is beyond the freshness window: waiting for its next sync")
@@ -308,6 +324,17 @@ class NodeIO:
         if not defer_trust:
             self._streak[fid] = 0
         return frame
+
+    def _stale(self, fid: int, key: bytes, data: bytes | bytearray, counter: int) -> bool:
+        """Whether a frame that failed the forward window verifies with one of the
+        STALE_WINDOWS most recent values at or below the last accepted one that no
+        frame carried yet (its sender's genuine frame, late): at most one CMAC per
+        window, only for frames already rejected."""
+        for fv in self._fv.past(fid, counter, STALE_WINDOWS):
+            if frame_verifies(key, fid, data, fv):
+                self._fv.mark(fid, fv)  # the same frame again is a replay
+                return True
+        return False
 
     def _on_sync(self, msg: can.Message, sync_id: int, t: float) -> None:
         fid = self._synced_by[sync_id]
@@ -341,7 +368,7 @@ class NodeIO:
             # persisted), so its values go back; insecure mode has no replay protection
             self._fv.forget(fid)
             restarted = True
-        self._fv.accept(fid, fv - 1)  # its next frame uses fv
+        self._fv.accept(fid, fv - 1, frame=False)  # its next frame uses fv
         self._lost.discard(fid)
         self.counters["resyncs"] += 1
         if restarted:

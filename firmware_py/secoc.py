@@ -61,6 +61,7 @@ KEY_BYTES = 16                      # AES-128
 MAC_BITS = 24                       # profile 1: a 24-bit truncated CMAC on the wire
 TX_FRESHNESS_BITS = 4               # the low 4 bits of FV on the wire (the DBC's Counter)
 DATA_ID_BITS = 16                   # SecOCDataId is a uint16
+SEEN_BITS = 32                      # accepted frames remembered below the last (AUTH-25)
 FV_WIRE_BYTES = 8                   # FV in the MAC input: always 8 bytes, big-endian
 NODE_KEY_LABEL = b"bess-ded/secoc/node-key/v1"
 FLEET_ID_LABEL = b"bess-ded/secoc/fleet-id/v1"
@@ -243,6 +244,8 @@ class FreshnessVerifier:
         self.tx_bits = tx_bits
         self.layout = layout
         self._last: dict[Hashable, int] = dict(initial or {})
+        # per sender: bit k set = the frame with FV last − k was accepted (k < SEEN_BITS)
+        self._seen: dict[Hashable, int] = {}
 
     def last(self, sender: Hashable) -> int | None:
         return self._last.get(sender)
@@ -264,13 +267,48 @@ class FreshnessVerifier:
         value = high << self.tx_bits | truncated
         return value if value <= self.layout.max_value else None
 
-    def accept(self, sender: Hashable, freshness: int) -> bool:
+    def past(self, sender: Hashable, truncated: int, windows: int = 1) -> list[int]:
+        """The values at or below the last accepted one that carry ``truncated`` as
+        their low bits and were not accepted themselves, newest first, one per window
+        of 2^tx_bits, ``windows`` windows back: what a genuine frame that arrived late
+        or out of order verifies with (``NodeIO`` counts such a frame ``stale``, not
+        forged). A value already accepted is left out: that frame again is a replay
+        (or a duplicate), not a late one. Empty without state for this sender."""
+        last = self._last.get(sender)
+        mask = (1 << self.tx_bits) - 1
+        if last is None or not 0 <= truncated <= mask:
+            return []
+        newest = last - ((last - truncated) & mask)
+        return [v for v in range(newest, newest - (windows << self.tx_bits), -(mask + 1))
+                if v >= 0 and not self.seen(sender, v)]
+
+    def seen(self, sender: Hashable, freshness: int) -> bool:
+        """Whether a frame with this FV was accepted (known for the SEEN_BITS values up
+        to the last accepted one; older ones count as seen)."""
+        last = self._last.get(sender)
+        if last is None or freshness > last:
+            return False
+        back = last - freshness
+        return back >= SEEN_BITS or bool(self._seen.get(sender, 0) >> back & 1)
+
+    def mark(self, sender: Hashable, freshness: int) -> None:
+        """A late frame with this FV (≤ the last accepted) verified: that value is
+        spent too, so the same frame again is a replay."""
+        last = self._last.get(sender)
+        if last is not None and 0 <= last - freshness < SEEN_BITS:
+            self._seen[sender] = self._seen.get(sender, 0) | 1 << (last - freshness)
+
+    def accept(self, sender: Hashable, freshness: int, frame: bool = True) -> bool:
         """Record an authenticated FV; False (and no change) unless it is strictly
-        greater than the last accepted one."""
+        greater than the last accepted one. ``frame``: a frame with this FV was
+        accepted (False: a sync's FV − 1, which no frame of this receiver carried)."""
         last = self._last.get(sender)
         if not 0 <= freshness <= self.layout.max_value or (last is not None
                                                            and freshness <= last):
             return False
+        shift = freshness - last if last is not None else SEEN_BITS
+        seen = self._seen.get(sender, 0) << shift if shift < SEEN_BITS else 0
+        self._seen[sender] = (seen | int(frame)) & ((1 << SEEN_BITS) - 1)
         self._last[sender] = freshness
         return True
 
@@ -278,11 +316,12 @@ class FreshnessVerifier:
         """Drop a sender's state (``--insecure`` only: a restarted sender there has no
         persisted boot counter, so its values may go back)."""
         self._last.pop(sender, None)
+        self._seen.pop(sender, None)
 
     def resync(self, sender: Hashable, full_freshness: int) -> bool:
         """Set a sender's state from an authenticated sync frame's full FV (see the
         class docstring). False if it is not newer than what is known."""
-        return self.accept(sender, full_freshness)
+        return self.accept(sender, full_freshness, frame=False)
 
 
 # --------------------------------------------------------------------------- key files

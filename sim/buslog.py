@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import re
 from collections import Counter, defaultdict
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from itertools import pairwise
 from pathlib import Path
@@ -86,6 +86,9 @@ class LogContents:
     # and those before their sender's first sync (not checkable), by message name
     forged: Counter[str] = field(default_factory=Counter)
     unverified: Counter[str] = field(default_factory=Counter)
+    # with the run's keys: genuine secured frames that came after a newer one of their
+    # sender (valid MAC under a past freshness value): late, left out, not forged
+    stale: Counter[str] = field(default_factory=Counter)
     syncs: int = 0
     # frames the capture received before an earlier-stamped one (read_log sorts them)
     reordered: int = 0
@@ -249,21 +252,41 @@ def _cycle_s(name: str, ts: float) -> float:
 
 class _Monitor:
     """Checks the MAC and freshness of every secured frame with the run's keys, as a
-    receiver would (syncs included), but with a wide window: a recorder misses frames.
+    receiver would (syncs included), but with a wider window: a recorder misses frames.
     ``boot_floors`` (label → the lowest boot counter the sender may use in this
     recording): a sync of an earlier boot is a replay even before the sender's genuine
-    sync is seen, the receiver-side state a node does not have (docs/security.md)."""
+    sync is seen, the receiver-side state a node does not have (docs/security.md).
+
+    Three outcomes for a secured frame (docs/firmware-spec.md AUTH-25):
+
+    * fresh: its MAC verifies at most ``windows`` freshness windows ahead of the last
+      accepted value, where ``windows`` grows with the time since that value (a sender
+      sends one frame per cycle: 1 + RATE_MARGIN · elapsed / (16 cycles), at most
+      LOST_WINDOWS). A forged frame in a flood (short elapsed time) gets one window,
+      one chance in 2^24, as at a node; the recorder missing frames gets more;
+    * stale (``_Stale``): its MAC verifies with one of the STALE_WINDOWS windows at or
+      below the last accepted value, at a value no frame carried yet (a frame already
+      seen again is a replay): its sender's genuine frame, late (a capture that
+      delivered it behind a newer one, or behind a forgery accepted by chance);
+    * forged (``_Forged``): neither.
+    """
+
+    RATE_MARGIN = 4       # a sender may burst up to 4x its cycle without being called forged
+    STALE_WINDOWS = 2     # past windows tried (32 values): 2 CMACs, only for rejected frames
 
     def __init__(self, keys: Mapping[str, bytes],
-                 boot_floors: Mapping[str, int] | None = None) -> None:
+                 boot_floors: Mapping[str, int] | None = None,
+                 cycle_of: Callable[[str], float] | None = None) -> None:
         self.keys = keys
         self.boot_floors = boot_floors or {}
         self.fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
+        self.cycle_of = cycle_of or (lambda name: _cycle_s(name, MC_CYCLE_S))
+        self.t_last: dict[int, float] = {}   # per secured ID: when its state last moved
 
     def _key(self, name: str) -> bytes | None:
         return self.keys.get(contract.sender_of(name.removesuffix("_Sync")))
 
-    def sync(self, f: DecodedFrame, data: bytes | bytearray) -> None:
+    def sync(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> None:
         key = self._key(f.name)
         fv = f.raw["Boot"] << contract.FV_COUNT_BITS | f.raw["Count"]
         fid = contract.SYNCED_BY[f.frame_id]
@@ -272,28 +295,47 @@ class _Monitor:
                                                                          data, fv):
             last = self.fv.last(fid)
             if last is None or fv - 1 > last:
-                self.fv.accept(fid, fv - 1)
+                self.fv.accept(fid, fv - 1, frame=False)
             if last is None or fv - 1 >= last:
+                self.t_last[fid] = t
                 return
         raise _Forged  # forged, or a replayed sync (a genuine one never goes back)
 
-    def check(self, f: DecodedFrame, data: bytes | bytearray) -> bool:
-        """True: authentic and fresh; False: not checkable yet (no sync seen)."""
+    def windows(self, f: DecodedFrame, t: float) -> int:
+        """Freshness windows a frame at ``t`` may lie ahead (the class docstring)."""
+        t_last, cycle = self.t_last.get(f.frame_id), self.cycle_of(f.name)
+        if t_last is None or not math.isfinite(cycle):
+            return LOST_WINDOWS   # an event frame (ER_Command): no rate to bound it by
+        frames = self.RATE_MARGIN * max(t - t_last, 0.0) / cycle
+        return min(LOST_WINDOWS, 1 + int(frames) // (1 << contract.FV_TX_BITS))
+
+    def check(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> bool:
+        """True: authentic and fresh; False: not checkable yet (no sync seen); raises
+        ``_Stale`` (genuine, late) or ``_Forged``."""
         key = self._key(f.name)
         if key is None or self.fv.last(f.frame_id) is None:
             return False
         fv = self.fv.candidate(f.frame_id, f.counter)
-        for _ in range(LOST_WINDOWS):
+        for _ in range(self.windows(f, t)):
             if fv is None:
                 break
             if frame_verifies(key, f.frame_id, data, fv):
                 self.fv.accept(f.frame_id, fv)
+                self.t_last[f.frame_id] = t
                 return True
             fv += 1 << contract.FV_TX_BITS
+        for v in self.fv.past(f.frame_id, f.counter, self.STALE_WINDOWS):
+            if frame_verifies(key, f.frame_id, data, v):
+                self.fv.mark(f.frame_id, v)  # the same frame again is a replay
+                raise _Stale
         raise _Forged
 
 
 class _Forged(Exception):
+    pass
+
+
+class _Stale(Exception):
     pass
 
 
@@ -321,7 +363,8 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     (``time_outliers``); ``LogContents.warnings`` words both for the report."""
     codec = codec or FrameCodec()
     out = LogContents()
-    monitor = _Monitor(keys, boot_floors) if keys else None
+    monitor = (_Monitor(keys, boot_floors, lambda name: _cycle_s(name, ts or MC_CYCLE_S))
+               if keys else None)
     segment_raw: int | None = None
     segment = 0
     segment_mod = codec.raw_range("ER_Price", "Segment")[1] + 1
@@ -353,10 +396,13 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
         if monitor is not None and kind != "e2e":
             try:
                 if kind == "sync":
-                    monitor.sync(f, msg.data)
-                elif not monitor.check(f, msg.data):
+                    monitor.sync(f, msg.data, t)
+                elif not monitor.check(f, msg.data, t):
                     out.unverified[f.name] += 1
                     continue
+            except _Stale:
+                out.stale[f.name] += 1
+                continue
             except _Forged:
                 out.forged[f.name] += 1
                 continue

@@ -132,6 +132,8 @@ class Runtime:
             ("bd_fv_candidate", ctypes.c_int, [ctypes.c_uint64, u32, ctypes.c_uint,
                                                ctypes.c_uint64,
                                                ctypes.POINTER(ctypes.c_uint64)]),
+            ("bd_fv_past", ctypes.c_int, [ctypes.c_uint64, u32, ctypes.c_uint,
+                                          ctypes.POINTER(ctypes.c_uint64)]),
         ):
             fn = getattr(lib, name)
             fn.restype = res

@@ -85,9 +85,10 @@ STEPS = (
           "BAND-2", "BAND-3", "TX-1", "SP-1", "LAM-2", "DIAG-1", "NUM-1", "NUM-2",
           "NUM-3")),
     Step("authentication", 450, 510, "forged MACs, a replayed frame, a replayed sync, a "
-         "frame from another boot: rejected and counted, λ unmoved by them",
+         "frame from another boot, a genuine frame delivered late (stale, not auth): "
+         "rejected and counted, λ unmoved by them",
          ("RX-8", "AUTH-10", "AUTH-11", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-16",
-          "AUTH-17", "RX-12", "RX-13", "DIAG-4")),
+          "AUTH-17", "AUTH-25", "RX-12", "RX-13", "DIAG-4")),
     Step("content", 510, 580, "an extended ID, an unknown ID, the DUT's own ID, a short "
          "frame, a price out of bounds, a persistent price step, a neighbour λ jump",
          ("RX-1", "RX-3", "RX-6", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
@@ -183,6 +184,7 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     for name in inputs:
         add(0, "start", tx.sync(name), f"sync of {name}")
     genuine: list[can.Message] = []
+    held: list[can.Message] = []   # a genuine frame delivered late (AUTH-25)
     for k in range(30, STEPS[-1].end):
         step = step_at(k)
         silent_nbr = 10 <= k - at["timeouts"] < 20
@@ -224,6 +226,13 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             add(k + 0.6, step, later.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
                                                         "Rho": q(price)}),
                 "frame from another boot")
+        if k == at["authentication"] + 50:  # a genuine frame held back: lost for now
+            held.append(tx.frame(mc_name(nbrs[0]), {
+                "State": int(State.RUNNING), "Lambda": lam_j(nbrs[0], k), "Resets": 0})
+                if nbrs else tx.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
+                                                   "Rho": q(price)}))
+        if k == at["authentication"] + 53:  # ... delivered 3 ticks late: stale, not auth
+            add(k + 0.6, step, held[0], "a genuine frame delivered 3 ticks late")
         if k == at["content"] + 5:
             add(k + 0.6, step, can.Message(arbitration_id=0x100 + i, is_extended_id=True,
                                            data=bytes(8)), "extended ID")

@@ -36,6 +36,10 @@ SILENCE_TS = 3            # a bus silence longer than this many Ts is an anomaly
 SILENCE_CLUSTER_S = 1.0   # (scenario s) silences closer than this are reported as one
 STATE_GRACE_TS = 10       # INIT/ISOLATED/RUNNING may lag the plan by this many Ts
 DEADLINE_MISS_FRACTION = 0.01
+# genuine frames that arrived late or out of order (valid MAC, old freshness: AUTH-25):
+# a few are what a loaded host does; more than this fraction of what was received (the
+# recording's frames; a plant's or router's ticks) is a load anomaly, never auth_failed
+STALE_FRACTION = 0.01
 POWER_LIMIT_HOLD_S = 1.0  # (scenario s) a battery limited over the run's last second
 TOLERANCE = 1e-3          # cu/kWh: the final λ of every dispatching agent within this of ρ
 OUTLIER_WINDOW_S = 1.0    # (scenario s) the λ outlier test looks at the run's last second
@@ -423,6 +427,13 @@ def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
         out.append(Anomaly("auth_failed", "bus", f"{name}: {k} frames whose MAC does not "
                            "verify with its sender's key (forged, or replayed from an earlier "
                            "window or run); the analysis left them out"))
+    stale = sum(log.stale.values())
+    if stale > STALE_FRACTION * max(log.frames, 1):
+        out.append(Anomaly("stale_frames", "bus", f"{stale} genuine secured frames of "
+                           f"{log.frames} recorded arrived late or out of order (valid MAC, "
+                           f"old freshness: {_top(log.stale)}; more than "
+                           f"{100 * STALE_FRACTION:g} %): a loaded host or bus, not a forgery; "
+                           "the analysis left them out"))
     if log.undecodable:
         out.append(Anomaly("malformed_frames", "bus", f"{sum(log.undecodable.values())} frames "
                            f"that fail the DBC's checks ({_top(log.undecodable)})"))
@@ -478,6 +489,13 @@ def _counters(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly
         if recorder.get(key, 0):
             out.append(Anomaly(kind, "recorder", f"{recorder[key]} {what}, heard on the bus "
                                "and left out of the recording"))
+    for node, c in sorted((facts.node_counters or {}).items()):
+        stale, ticks = c.get("counters", {}).get("stale", 0), c.get("ticks", 0)
+        if stale > STALE_FRACTION * max(ticks, 1):
+            out.append(Anomaly("stale_frames", node, f"{stale} genuine secured frames "
+                               f"arrived late or out of order in {ticks} ticks (valid MAC, "
+                               f"old freshness; more than {100 * STALE_FRACTION:g} % of the "
+                               "ticks): a loaded host or bus, not a forgery"))
     for node, (misses, ticks) in node_deadlines(log, facts.node_counters).items():
         if misses and misses > DEADLINE_MISS_FRACTION * max(ticks, 1):
             out.append(Anomaly("deadline_misses", node, f"{misses} deadline misses in {ticks} "

@@ -104,6 +104,7 @@ EVENT = st.one_of(
     st.tuples(st.just("sync"), st.sampled_from(sorted(SENDER_OF))),
     st.tuples(st.just("restart"), st.sampled_from(LABELS)),
     st.tuples(st.just("replay"), st.integers(0, 1000)),
+    st.tuples(st.just("swap"), st.sampled_from((1, 3)), LAMBDA),   # two MC frames reordered
     st.tuples(st.just("forge"), st.sampled_from(sorted(SENDER_OF)),
               st.binary(min_size=8, max_size=8)),
     st.tuples(st.just("junk"), st.integers(0, 0x7FF), st.binary(max_size=8), st.integers(0, 15)),
@@ -153,6 +154,19 @@ def test_c_and_python_agents_agree_on_random_traffic(variant: str, events: list[
     gaps of up to 40 ticks. Every frame either sends, the counters, the state and λ
     agree at every tick."""
     run_both(variant, PREAMBLE + events)
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_a_genuine_frame_out_of_order_is_stale_not_forged_in_both(variant: str) -> None:
+    """AUTH-25: neighbour 1's two MC frames swapped on the way: the later one is used,
+    the earlier one arrives behind it with a valid MAC under an older freshness value:
+    `stale` in both runtimes, never `auth`; a forged MAC stays `auth`."""
+    py, c = run_both(variant, PREAMBLE + [("swap", 1, 13_100_000), ("tick", 1),
+                                          ("swap", 3, 13_900_000), ("tick", 1)])
+    assert py.counters["stale"] == c.counters["stale"] == 2
+    assert py.counters["auth"] == c.counters["auth"] == 0
+    py, c = run_both(variant, PREAMBLE + [("forge", "AGENT_1_MC", bytes(8)), ("tick", 1)])
+    assert py.counters["auth"] == c.counters["auth"] == 1 and py.counters["stale"] == 0
 
 
 def run_both(variant: str, events: list[tuple]) -> tuple[AgentRuntime, CAgent]:
@@ -206,6 +220,13 @@ def run_both(variant: str, events: list[tuple]) -> tuple[AgentRuntime, CAgent]:
             deliver(senders[SENDER_OF[ev[1]]].sync(ev[1]))
         elif kind == "restart":
             senders[ev[1]].restart()
+        elif kind == "swap":   # the later frame arrives first, the earlier one late
+            name = f"AGENT_{ev[1]}_MC"
+            early, late = (senders[SENDER_OF[name]].frame(name, {"State": 1, "Resets": 0,
+                                                                 "Lambda": ev[2]})
+                           for _ in range(2))
+            deliver(late)
+            deliver(early)
         elif kind == "replay" and history:
             deliver(history[ev[1] % len(history)])
         elif kind == "forge":
@@ -468,6 +489,13 @@ def test_c_secoc_against_firmware_py() -> None:
     assert lib.bd_fv_candidate((1 << 40) - 1, 3, 4, (1 << 40) - 1, ctypes.byref(got)) == -1
     assert lib.bd_fv_candidate(5, 16, 4, (1 << 40) - 1, ctypes.byref(got)) == -1   # > mask
     assert lib.bd_fv_candidate(5, 0, 0, (1 << 40) - 1, ctypes.byref(got)) == -1    # 0 bits
+    for _ in range(300):   # AUTH-25: the newest past value with given low bits
+        last, low = rnd.choice((rnd.randrange(1 << 40), rnd.randrange(20))), rnd.randrange(16)
+        verifier._last["x"] = last
+        want = verifier.past("x", low)
+        rc = lib.bd_fv_past(last, low, 4, ctypes.byref(got))
+        assert (rc == 0 and [got.value] == want) or (rc == -1 and want == [])
+    assert lib.bd_fv_past(5, 16, 4, ctypes.byref(got)) == -1   # > mask
 
 
 def test_c_agent_reports_resets_and_names_every_counter() -> None:

@@ -142,6 +142,7 @@ def test_the_schedule_does_what_its_steps_say() -> None:
                       "RUNNING"]
     c = dut.counters
     assert c["auth"] >= 3 and c["dlc"] == 1 and c["impersonation"] == 1
+    assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
     assert c["unknown_id"] == 2 and c["implausible_price"] >= 1 and c["implausible_gains"] == 1
     assert c["implausible_lambda"] >= 1 and c["price_steps_accepted"] >= 1
     assert c["neighbour_timeouts"] >= 1 and c["price_timeouts"] == 1

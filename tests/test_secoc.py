@@ -254,8 +254,54 @@ def test_round_trip_and_replay_rejected() -> None:
     last = rx._fv.last(0x010)
     for m in frames:  # replay of every old frame: its freshness is spent
         assert rx.receive(m, 0.0) is None
-    assert rx.counters["auth"] == 40 and rx._fv.last(0x010) == last  # state unchanged
+    # every one was accepted before: a replay, not a late frame (AUTH-25)
+    assert rx.counters["auth"] == 40 and rx.counters["stale"] == 0
+    assert rx._fv.last(0x010) == last  # state unchanged
     assert rx.receive(_price(sender, 99), 0.0) is not None
+
+
+def test_a_late_genuine_frame_is_stale_not_forged() -> None:
+    """Frames 1..5 arrive as 1, 3, 2, 5, 4 (a loaded host): 2 and 4 carry a valid MAC
+    under a freshness value below the last accepted: counted stale, never used, no auth
+    failure and no untrusted streak; a forged frame in between is still auth."""
+    sender, rx = _synced()
+    f = [_price(sender, i) for i in range(6)]
+    got = [rx.receive(f[i], 0.0) is not None for i in (0, 1, 3, 2, 5, 4)]
+    assert got == [True, True, True, False, True, False]
+    assert rx.counters["stale"] == 2 and rx.counters["auth"] == 0
+    assert rx.counters["lost_frames"] == 2 and rx._streak[0x010] == 0
+    for i in (4, 5):  # again: a late frame already seen, an accepted one: replays
+        assert rx.receive(f[i], 0.0) is None
+    assert rx.counters["stale"] == 2 and rx.counters["auth"] == 2
+    rx.counters["auth"] = 0
+    bad = bytearray(_price(sender, 6).data)
+    bad[0] ^= 0x5A
+    assert rx.receive(can.Message(arbitration_id=0x010, data=bad, is_extended_id=False),
+                      0.0) is None
+    assert rx.counters["auth"] == 1 and rx.counters["stale"] == 2
+
+
+def test_a_frame_later_than_one_window_is_auth() -> None:
+    """STALE_WINDOWS bounds the look back (one CMAC): a frame 16 or more behind the last
+    accepted one verifies in no window tried and counts as auth."""
+    sender, rx = _synced()
+    old = _price(sender, 0)
+    for i in range(1, 17):
+        assert rx.receive(_price(sender, i), 0.0) is not None
+    assert rx.receive(old, 0.0) is None
+    assert rx.counters["auth"] == 1 and rx.counters["stale"] == 0
+
+
+def test_past_values_of_the_verifier() -> None:
+    v = FreshnessVerifier(tx_bits=4, initial={"s": 0x123})
+    assert v.past("s", 0x3) == [0x123] and v.past("s", 0x4) == [0x114]
+    assert v.past("s", 0x4, windows=3) == [0x114, 0x104]   # beyond SEEN_BITS: spent
+    assert v.accept("s", 0x125) and v.accept("s", 0x127, frame=False)
+    assert v.past("s", 0x5) == [] and v.past("s", 0x7) == [0x127]   # 0x125 was accepted
+    v.mark("s", 0x127)
+    assert v.past("s", 0x7) == [] and v.past("s", 0x6) == [0x126]
+    assert FreshnessVerifier(initial={"s": 2}).past("s", 5, windows=4) == []
+    assert FreshnessVerifier().past("s", 1) == [] and v.past("s", 16) == []
 
 
 def test_replay_one_window_later_rejected() -> None:

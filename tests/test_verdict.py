@@ -416,3 +416,147 @@ def test_a_replayed_sync_below_the_run_s_boot_floor_is_forged(tmp_path: Path) ->
     floored = buslog.read_log(path, keys={"router": key}, boot_floors={"router": 4})
     assert floored.forged == {"ER_Price_Sync": 1} and floored.unverified == {"ER_Price": 1}
     assert [v for _, v in floored.series[("price", "Rho")]] == [4.0]
+
+
+def _ground_truth_log(path: Path) -> tuple[int, int, int]:
+    """A recording with a known truth, built with the real SecOC code: 300 ticks of four
+    senders' genuine secured frames (their syncs first), every genuine λ/ρ/power in a
+    range no forged frame uses; genuine AGENT_1_MC frames swapped with their successor
+    every 7th tick and AGENT_2_MC frames delayed 3.5 cycles every 11th (late: behind newer
+    ones); a flood of 20 forged frames per tick (an attacker's key, every counter) and
+    replays every tick of a genuine frame 2 ticks old (price or status: frames already
+    accepted, so not late) and of one 50 ticks old. (genuine, late, attacker) frames."""
+    import random
+
+    from firmware_py.nodeio import FleetSender
+    from firmware_py.secoc import derive_node_key
+
+    rnd = random.Random(19)
+    master = bytes(range(16))
+    labels = ("router", "plant", "agent_1", "agent_2")
+    honest = FleetSender(keys={n: derive_node_key(master, n) for n in labels}, boot=5)
+    attacker = FleetSender(keys={n: bytes(rnd.randrange(256) for _ in range(16))
+                                 for n in labels}, boot=5)
+    ts, frames, genuine, late, attack = 0.01, [], [], 0, 0
+
+    def honest_frames(k: int) -> list[can.Message]:
+        return [honest.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
+                                          "Rho": 13_000_000 + k}),
+                honest.frame("AGENT_1_MC", {"State": 1, "Resets": 0, "Lambda": 13_000_000 + k}),
+                honest.frame("AGENT_2_MC", {"State": 1, "Resets": 0, "Lambda": 13_000_000 + k}),
+                honest.frame("PLANT_1_Status", {"FaultOverCurrent": 0, "FaultVoltage": 0,
+                                                "FaultSoc": 0, "PowerLimited": 0,
+                                                "Power": 100 + k, "Soc": 100})]
+
+    for j, name in enumerate(("ER_Price", "AGENT_1_MC", "AGENT_2_MC", "PLANT_1_Status")):
+        s = honest.sync(name)
+        s.timestamp = 1.0 + j * 1e-4
+        frames.append(s)
+    for k in range(300):
+        t = 1.01 + k * ts
+        batch = honest_frames(k)
+        for j, f in enumerate(batch):
+            f.timestamp = t + j * 1e-4
+        if k % 7 == 6:     # AGENT_1_MC of this tick overtakes the previous one
+            prev = next(f for f in reversed(genuine) if f.arbitration_id == 0x101)
+            prev.timestamp, batch[1].timestamp = batch[1].timestamp, prev.timestamp
+            late += 1
+        if k % 11 == 5:    # AGENT_2_MC delivered after the next three of its sender's
+            batch[2].timestamp += 3.5 * ts
+            late += 1
+        genuine += batch
+        for _ in range(20):
+            name = rnd.choice(("ER_Price", "AGENT_1_MC", "AGENT_2_MC", "PLANT_1_Status"))
+            raw = ({"PriceValid": 1, "Segment": 0, "Rho": 30_000_000 + attack}
+                   if name == "ER_Price" else
+                   {"State": 1, "Resets": 0, "Lambda": 30_000_000 + attack}
+                   if name.endswith("_MC") else
+                   {"FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0,
+                    "PowerLimited": 0, "Power": 5_000 + attack % 1000, "Soc": 100})
+            f = attacker.frame(name, raw, counter=rnd.randrange(16))
+            f.timestamp = t + rnd.uniform(0, ts)
+            frames.append(f)
+            attack += 1
+        if k >= 2:         # a replay of a genuine price or status frame of 2 ticks ago
+            old = genuine[4 * (k - 2) + rnd.choice((0, 3))]
+            frames.append(can.Message(arbitration_id=old.arbitration_id, data=old.data,
+                                      is_extended_id=False, timestamp=t + 0.3 * ts))
+            attack += 1
+        if k >= 50:        # a replay of one of the genuine frames of 50 ticks ago
+            old = genuine[4 * (k - 50) + rnd.randrange(4)]
+            frames.append(can.Message(arbitration_id=old.arbitration_id, data=old.data,
+                                      is_extended_id=False, timestamp=t + 0.5 * ts))
+            attack += 1
+    # candump lines in any order (can.Logger would clamp a timestamp that goes back)
+    path.write_text("".join(f"({f.timestamp:.6f}) vcan0 {f.arbitration_id:03X}#"
+                            f"{bytes(f.data).hex().upper()}\n"
+                            for f in sorted(genuine + frames, key=lambda f: rnd.random())))
+    return len(genuine), late, attack
+
+
+def test_the_recorder_tells_late_genuine_frames_from_a_flood_of_forged_ones(
+        tmp_path: Path) -> None:
+    """Issue 19, "late is not forged": against a known ground truth (``_ground_truth_log``)
+    the recorder accepts no forged frame, calls no genuine frame forged, and counts
+    exactly the reordered genuine frames as stale; the verdict says stale_frames only
+    above its threshold and never auth_failed for them."""
+    from firmware_py.secoc import derive_node_key
+    from sim import buslog, verdict
+
+    path = tmp_path / "truth.log"
+    n_genuine, n_late, n_attack = _ground_truth_log(path)
+    keys = {n: derive_node_key(bytes(range(16)), n)
+            for n in ("router", "plant", "agent_1", "agent_2")}
+    log = buslog.read_log(path, keys=keys, ts=0.01)
+    assert sum(log.forged.values()) == n_attack            # every attacker frame, no more
+    assert sum(log.stale.values()) == n_late > 0           # every late genuine frame
+    assert log.stale == {"AGENT_1_MC": 300 // 7, "AGENT_2_MC": len(range(5, 300, 11))}
+    assert not log.unverified
+    used = {key: [v for _, v in log.series[key]] for key in (
+        ("price", "Rho"), ("AGENT_1_MC", "Lambda"), ("AGENT_2_MC", "Lambda"),
+        ("PLANT_1_Status", "Power"))}
+    assert sum(map(len, used.values())) == n_genuine - n_late   # all the others were used
+    # ... and only genuine values: 13e6 + k (ρ, λ: < 0.8 cu/kWh), 1.00..3.99 kW; forged
+    # ones are ≥ 30e6 (1.79 cu/kWh) and ≥ 50 kW
+    assert all(0.77 < v < 0.8 for key in list(used)[:3] for v in used[key])
+    assert all(1.0 <= v < 4.0 for v in used[("PLANT_1_Status", "Power")])
+    assert used[("price", "Rho")] == sorted(used[("price", "Rho")])  # in the sender's order
+    assert not log.out_of_sequence                         # the late ones never reached it
+    out: list[verdict.Anomaly] = []
+    verdict._recording(load_case(1), log, out)
+    kinds_ = [a.kind for a in out]
+    assert kinds_.count("auth_failed") == 4 and "stale_frames" not in kinds_  # 69 late of 7752
+    log.stale["AGENT_1_MC"] += 100                          # many late: a load anomaly
+    out.clear()
+    verdict._recording(load_case(1), log, out)
+    assert [a.kind for a in out].count("stale_frames") == 1
+
+
+def test_the_recorder_looks_ahead_only_as_far_as_the_elapsed_time_allows() -> None:
+    """A frame right after its sender's last one gets one freshness window (a forgery in
+    a flood: one chance in 2^24, as at a node, not eight); after the recorder missed
+    frames for a while, up to LOST_WINDOWS, as many as 4 frames per cycle would need."""
+    from firmware_py.nodeio import LOST_WINDOWS
+    from sim import buslog
+
+    mon = buslog._Monitor({}, None, lambda name: 0.01)
+    f = FrameCodec().decode(FrameCodec().encode("AGENT_1_MC", {"State": 1, "Resets": 0,
+                                                               "Lambda": 0}, 0))
+    assert mon.windows(f, 5.0) == LOST_WINDOWS              # nothing known yet
+    mon.t_last[f.frame_id] = 5.0
+    assert [mon.windows(f, 5.0 + dt) for dt in (0.002, 0.01, 0.039, 0.045, 0.2, 9.0)] == [
+        1, 1, 1, 2, 6, LOST_WINDOWS]
+
+
+def test_a_node_s_stale_frames_are_a_load_anomaly_above_one_percent_never_auth() -> None:
+    """The plant's and router's `stale` counters (late genuine frames, AUTH-25): 5 in
+    1000 ticks is what a loaded host does (nothing); 50 is `stale_frames`, not auth."""
+    from sim import buslog, verdict
+
+    facts = verdict.RunFacts(node_counters={
+        "plant": {"counters": {"stale": 5}, "ticks": 1000},
+        "router": {"counters": {"stale": 50}, "ticks": 1000}})
+    out: list[verdict.Anomaly] = []
+    verdict._counters(load_case(1), buslog.LogContents(), facts, out)
+    assert [(a.kind, a.node) for a in out] == [("stale_frames", "router")]
+    assert out[0].detail.startswith("50 genuine secured frames arrived late")

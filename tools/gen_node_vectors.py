@@ -561,11 +561,13 @@ def sc_auth() -> Scenario:
         "auth_forgery_replay",
         "Authentication: a price with a forged MAC (auth, last_safety = auth), five in a "
         "row (untrusted verdict; the genuine price keeps being used), a replayed MC of "
-        "agent 1 (auth), a genuine status 20 counts on while not lost (beyond the window: "
+        "agent 1 (auth), agent 1's MC held back and delivered 3 ticks late (valid MAC, "
+        "old freshness, never accepted: stale, not auth), again (now a replay: auth), "
+        "a genuine status 20 counts on while not lost (beyond the window: "
         "auth), a sync in step (nothing), a replayed older sync (auth), a forged sync "
         "(auth on the sync ID), a sync with Boot = 0 (range on the sync ID), a status "
         "sync that moves the plant on (resync).",
-        ["AUTH-7", "AUTH-10", "AUTH-12", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-17",
+        ["AUTH-7", "AUTH-10", "AUTH-12", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-17", "AUTH-25",
          "RX-8", "RX-10", "RX-12", "RX-13", "DIAG-1", "DIAG-4"])
     nb = start(s)
     s.run(20, price=RHO, nbrs=nb)
@@ -583,6 +585,12 @@ def sc_auth() -> Scenario:
     old = s.mc(1, nb[1](s.n - 1)[1] + 1, note="genuine")
     s.run(5, price=RHO, nbrs=nb)
     s.rx(old, note="replay of agent 1's MC 5 ticks ago: auth")
+    s.run(5, price=RHO, nbrs=nb)
+    a1 = s.senders["agent_1"]
+    held = a1.frame(mc_name(1), {"State": 1, "Lambda": nb[1](s.n - 1)[1], "Resets": 0})
+    s.run(3, price=RHO, nbrs=nb)
+    s.rx(held, note="agent 1's MC held back 3 ticks (lost, then late): stale")
+    s.rx(held, note="the same frame again: accepted as stale once, now a replay: auth")
     s.run(10, price=RHO, nbrs=nb)
     s.status(skip=20, note="genuine status 21 counts on, ID not lost: auth")
     s.plant.count[CODEC.frame_id(status_name(AGENT))] -= 21

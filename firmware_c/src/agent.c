@@ -16,6 +16,7 @@
 #define BOOT_MAX ((1u << BD_FV_BOOT_BITS) - 1u)
 #define FV_MAX ((UINT64_C(1) << (BD_FV_BOOT_BITS + BD_FV_COUNT_BITS)) - 1u)
 #define LOST_WINDOWS 8u     /* windows tried after a sender timed out (AUTH-10) */
+#define STALE_WINDOWS 1u    /* past windows tried before a frame is forged (AUTH-25) */
 #define DIAG_U16_MAX 65535u
 #define INSECURE_BOOT 1u
 #define ECHO_MC 0
@@ -31,7 +32,8 @@ static const char *const counter_names[BD_C_COUNT] = {
     "untrusted_sources", "untrusted", "implausible_price", "implausible_lambda",
     "implausible_gains", "auth", "unsynced", "resyncs", "deadline_miss", "send_failure",
     "error_frame", "commands", "commands_isolate", "commands_reconnect",
-    "price_steps_accepted", "setpoint_limited", "not_a_frame", "invalid_frame", "rx_error"};
+    "price_steps_accepted", "setpoint_limited", "not_a_frame", "invalid_frame", "rx_error",
+    "stale"};
 
 const char *bd_counter_name(int counter)
 {
@@ -451,6 +453,43 @@ static int verifies(bd_agent *a, const uint8_t *key, uint32_t id, const uint8_t 
     return v == 1;
 }
 
+/* AUTH-25: whether the frame of FV v <= s->fv was accepted (older than 16: yes). */
+static int seen(const bd_rx_slot *s, uint64_t v)
+{
+    uint64_t back = s->fv - v;
+    return back >= 16u || ((s->seen >> back) & 1u) != 0u;
+}
+
+/* AUTH-25: the accepted-frame bits after `last` moved on to `fv` (frame: 1 if a frame
+ * of FV fv was accepted, 0 for a sync's fv - 1). */
+static uint16_t seen_after(const bd_rx_slot *s, int had_fv, uint64_t fv, unsigned frame)
+{
+    uint64_t shift = had_fv ? fv - s->fv : 16u;
+    uint32_t bits = shift < 16u ? (uint32_t)s->seen << shift : 0u;
+    return (uint16_t)((bits | frame) & 0xFFFFu);
+}
+
+/* AUTH-25: 1 if a frame that failed the window verifies with one of the STALE_WINDOWS
+ * most recent values at or below the last accepted one that no accepted frame carried:
+ * its sender's, late. */
+static int stale(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t counter)
+{
+    uint64_t fv;
+    if (bd_fv_past(s->fv, counter, BD_FV_TX_BITS, &fv) != 0) {
+        return 0;
+    }
+    for (uint32_t k = 0u; k < STALE_WINDOWS; ++k, fv -= FV_WINDOW) {
+        if (!seen(s, fv) && verifies(a, a->key[s->key_index], f->id, f->data, fv)) {
+            s->seen = (uint16_t)(s->seen | (1u << (s->fv - fv)));   /* again: a replay */
+            return 1;
+        }
+        if (fv < FV_WINDOW) {
+            break;
+        }
+    }
+    return 0;
+}
+
 /* AUTH-9..12: 1 if a decoded secured frame is authentic and fresh (and accepted). */
 static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t counter,
                      int64_t t)
@@ -471,7 +510,9 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
         }
     }
     if (!found) {
-        if ((s->flags & BD_RX_LOST) != 0u) {
+        if (stale(a, s, f, counter)) {
+            reject(a, BD_C_STALE, f->id);   /* genuine but late: not used, not forged */
+        } else if ((s->flags & BD_RX_LOST) != 0u) {
             reject(a, BD_C_UNSYNCED, f->id);
         } else {
             fail(a, s, f->id, BD_C_AUTH, t);
@@ -480,6 +521,7 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
     }
     uint64_t last = s->fv;
     if (fv <= FV_MAX) {
+        s->seen = seen_after(s, 1, fv, 1u);
         s->fv = fv;
     }
     s->flags &= (uint8_t)~BD_RX_LOST;
@@ -524,6 +566,7 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
         restarted = 1;
     }
     if (fv - 1u <= FV_MAX) {
+        s->seen = seen_after(s, (s->flags & BD_RX_HAS_FV) != 0u, fv - 1u, 0u);
         s->fv = fv - 1u;
         s->flags |= BD_RX_HAS_FV;
     }

@@ -119,3 +119,17 @@ int bd_fv_candidate(uint64_t last, uint32_t truncated, unsigned tx_bits, uint64_
     *out = value;
     return 0;
 }
+
+int bd_fv_past(uint64_t last, uint32_t truncated, unsigned tx_bits, uint64_t *out)
+{
+    uint64_t mask = (UINT64_C(1) << tx_bits) - 1u;
+    if (tx_bits < 1u || tx_bits > 63u || truncated > mask) {
+        return -1;
+    }
+    uint64_t back = (last - truncated) & mask;   /* mod 2^tx_bits, last >= back below */
+    if (back > last) {
+        return -1;
+    }
+    *out = last - back;
+    return 0;
+}

@@ -106,6 +106,7 @@ enum {
     BD_C_ERROR_FRAME, BD_C_COMMANDS, BD_C_COMMANDS_ISOLATE, BD_C_COMMANDS_RECONNECT,
     BD_C_PRICE_STEPS_ACCEPTED, BD_C_SETPOINT_LIMITED,
     BD_C_NOT_A_FRAME, BD_C_INVALID_FRAME, BD_C_RX_ERROR,   /* the bus's inputs (LOOP-6) */
+    BD_C_STALE,
     BD_C_COUNT
 };
 
@@ -130,6 +131,7 @@ typedef struct {
     uint16_t id;                  /* the input's frame ID */
     uint16_t sync_id;             /* its <name>_Sync */
     uint16_t streak;              /* consecutive E2E failures (RX-12) */
+    uint16_t seen;                /* bit k: the frame of FV fv - k was accepted (AUTH-25) */
     uint8_t key_index;            /* its sender's verification key, in bd_agent.key */
     uint8_t flags;                /* BD_RX_* */
 } bd_rx_slot;

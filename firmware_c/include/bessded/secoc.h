@@ -53,6 +53,11 @@ int bd_frame_verifies(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id,
 int bd_fv_candidate(uint64_t last, uint32_t truncated, unsigned tx_bits, uint64_t max_value,
                     uint64_t *out);
 
+/* AUTH-25: the most recent freshness value at or below `last` whose low tx_bits are
+ * `truncated` (a genuine frame that arrived late verifies with it; earlier windows are
+ * *out - k * 2^tx_bits). Returns 0 and *out, or -1 when there is none (last too small). */
+int bd_fv_past(uint64_t last, uint32_t truncated, unsigned tx_bits, uint64_t *out);
+
 #ifdef __cplusplus
 }
 #endif
