@@ -33,7 +33,7 @@ from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import FrameCodec
 from firmware_py.node import bus_kwargs, open_bus
 
-from .cli.keys import load_boot_floors, load_key_set, write_key_set
+from .cli.keys import load_boot_floors, load_key_set, write_boot_floors, write_key_set
 from .runreport import Recording, report
 from .scenario import Scenario, to_toml
 from .verdict import RunFacts
@@ -368,6 +368,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     started = {s.name for s in specs}
     boot_floors = (None if key_dir is None else
                    {n: b for n, b in load_boot_floors(key_dir).items() if n in started})
+    if key_dir is not None and boot_floors:  # AUTH-21: the nodes take no earlier boot either
+        write_boot_floors(key_dir, sorted(started), boot_floors)
     if on_ready is not None:
         on_ready(key_dir)
     for s in specs:
