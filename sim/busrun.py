@@ -640,6 +640,9 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
             shutil.rmtree(key_dir)
         key_dir.mkdir(mode=0o700)
         write_key_set(sc, key_dir, master)
+    # each node's boot at this start, as `up` reads it from the key files (the recorder's
+    # floors: a sync of an earlier boot is from an earlier run, AUTH-21)
+    boot_floors = None if insecure else {n: r.boot + 1 for n, r in rings.items()}
     factories = in_process_nodes(sc, codec, rings, plant_faults, router_silent)
     names = list(factories)
     nodes: list[Any] = [make() for make in factories.values()]
@@ -691,6 +694,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     counters = {role: {"ticks": node.ticks, "counters": dict(node.counters)}
                 for role, node in zip(SIM_NODES, nodes[-2:], strict=True)}
     m = report(sc, out / "run.log", out, RunFacts(node_counters=counters), plot=False,
-               codec=codec, keys={n: r.key for n, r in rings.items()}).metrics
+               codec=codec, keys={n: r.key for n, r in rings.items()},
+               boot_floors=boot_floors).metrics
     m["node_summaries"] = [n.summary() for n in nodes]
     return m

@@ -256,6 +256,11 @@ def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
         out.append(Anomaly("auth_failed", "bus", f"{name}: {k} frames whose MAC does not "
                            "verify with its sender's key (forged, or replayed from an earlier "
                            "window or run); the analysis left them out"))
+    for label, (boot, floor) in sorted(log.stale_boot.items()):
+        out.append(Anomaly("stale_boot", label, f"syncs of {label} with a valid MAC but boot "
+                           f"{boot}, below its boot {floor} in this run: a replay of an "
+                           f"earlier run or boot, or {label}'s key file rolled back (AUTH-21); "
+                           "the analysis left them out"))
     if log.undecodable:
         out.append(Anomaly("malformed_frames", "bus", f"{sum(log.undecodable.values())} frames "
                            f"that fail the DBC's checks ({_top(log.undecodable)})"))
