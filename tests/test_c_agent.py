@@ -306,7 +306,8 @@ def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
 def test_a_sync_below_the_boot_floor_is_refused_alike_in_c_and_python() -> None:
     """AUTH-21, bit for bit: a router sync of boot 4 (valid MAC) below the floor 5 is
     `auth` on the sync ID and sets no freshness, so the replayed price after it is
-    `unsynced`; the genuine sync of boot 5 is taken, and its price. A peer sync (the plant's of agent 1's status) below its floor is `auth` too."""
+    `unsynced`; the genuine sync of boot 5 is taken, and its price. A peer sync (the
+    plant's, of agent 3's status) below its floor is `auth` too."""
     peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
 
     def ring() -> Keyring:
