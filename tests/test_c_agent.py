@@ -381,7 +381,9 @@ def dump_node_vectors(path: Path) -> dict[str, list[tuple[int, int, str]]]:
             key = derive_node_key(INSECURE_MASTER, k["node"])
             lines.append(f"K {k['node']} 1 {key.hex()} 0 0")
         else:
-            peers = " ".join(f"{label} {h}" for label, h in k["peers"].items())
+            floors = k.get("floors", {})
+            peers = " ".join(f"{label} {h} {floors.get(label, 0)}"
+                             for label, h in k["peers"].items())
             lines.append(f"K {k['node']} 0 {k['key']} {k['boot_counter']} {len(k['peers'])} "
                          f"{peers}")
         if "tx_count" in vec.get("setup", {}):
