@@ -558,7 +558,7 @@ static int peer_sync(bd_agent *a, const bd_frame *f, int64_t t, int k)
     uint64_t fv = ((uint64_t)m.boot << BD_FV_COUNT_BITS) | m.count;
     const uint8_t *kk = (key == -2) ? a->own_key : a->key[key];
     if (!verifies(a, kk, f->id, f->data, fv)
-        || (key >= 0 && m.boot < a->key_floor[key])) {   /* AUTH-21 */
+        || (key != -2 && m.boot < a->key_floor[key])) {   /* AUTH-21 */
         fail(a, NULL, f->id, BD_C_AUTH, t);
         return 1;
     }

@@ -956,8 +956,12 @@ static int persist_boot(void *ctx, uint32_t boot)
     int floors = 0;   /* AUTH-21: the peers' boot floors are kept */
     for (uint32_t p = 0u; p < k->n_peers && ok; ++p) {
         if (k->peer_floor[p] != 0u) {
-            ok = (floors++ != 0 || fprintf(f, "\n[floors]\n") > 0)
-                 && fprintf(f, "%s = %u\n", k->peer_label[p], (unsigned)k->peer_floor[p]) > 0;
+            if (floors == 0) {
+                ok = fprintf(f, "\n[floors]\n") > 0;
+                floors = 1;
+            }
+            ok = ok && fprintf(f, "%s = %u\n", k->peer_label[p],
+                               (unsigned)k->peer_floor[p]) > 0;
         }
     }
     ok = ok && fflush(f) == 0 && fsync(fileno(f)) == 0;
