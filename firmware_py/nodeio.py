@@ -353,6 +353,8 @@ class NodeIO:
                       f"{contract.sender_of(frame.name)}'s key, but it does not (forged or "
                       "corrupted)", t)
             return
+        if self._below_floor(frame.name, boot, sync_id, t):
+            return
         self._streak[sync_id] = 0
         last = self._fv.last(fid)
         restarted = last is None or (last + 1) >> contract.FV_COUNT_BITS != boot
@@ -401,8 +403,23 @@ class NodeIO:
                       f"{contract.sender_of(name)}'s key, but it does not (forged or "
                       "corrupted)", t)
             return True
+        if self._below_floor(name, boot, sync_id, t):
+            return True
         self._peer_boot[sync_id] = boot
         self._hello_due = True
+        return True
+
+    def _below_floor(self, name: str, boot: int, sync_id: int, t: float) -> bool:
+        """AUTH-21: a verified sync of a boot below its sender's persisted floor is from an
+        earlier run or boot (a replay), or its sender's key file was rolled back: rejected
+        under ``auth``, before it can set any freshness state."""
+        sender = contract.sender_of(name.removesuffix("_Sync"))
+        floor = self.keys.floor_of(sender)
+        if boot >= floor:
+            return False
+        self.fail(sync_id, "auth", f"{name}: expected boot {floor} or later of {sender}, but "
+                  f"got boot {boot} (a replay of an earlier run or boot, or {sender}'s key "
+                  "file rolled back)", t)
         return True
 
     def sender_lost(self, fid: int) -> None:

@@ -337,6 +337,7 @@ class NodeKey:
     boot_counter: int
     path: Path
     peers: Mapping[str, bytes] = field(default_factory=dict)  # label -> verification key
+    floors: Mapping[str, int] = field(default_factory=dict)   # label -> lowest boot accepted
 
     def __repr__(self) -> str:  # never print the key
         return (f"NodeKey(node={self.node!r}, fleet_id={self.fleet_id!r}, "
@@ -348,10 +349,12 @@ class NodeKey:
 
 
 def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
-                      peers: Mapping[str, bytes] | None = None) -> dict:
+                      peers: Mapping[str, bytes] | None = None,
+                      floors: Mapping[str, int] | None = None) -> dict:
     """The TOML document of a node key file. ``peers``: the verification keys of the
-    senders this node receives secured frames from (need to know: docs/security.md)."""
-    return {
+    senders this node receives secured frames from (need to know: docs/security.md);
+    ``floors``: the lowest boot counter it accepts from each of them (AUTH-21)."""
+    doc = {
         "format": KEY_FILE_FORMAT,
         "node": check_node_name(node),
         "fleet_id": fleet,
@@ -361,6 +364,9 @@ def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
         "freshness": {"boot_counter": boot_counter},
         "peers": {check_node_name(p): _check_key(k).hex() for p, k in (peers or {}).items()},
     }
+    if floors:
+        doc["floors"] = {check_node_name(p): int(b) for p, b in sorted(floors.items())}
+    return doc
 
 
 def write_private(path: Path, text: str) -> None:
@@ -469,8 +475,15 @@ def load_node_key(path: Path | str) -> NodeKey:
         except SecOCError as e:
             raise KeyFileError(f"{path}: [peers] {e}") from e
         peers[peer] = _hex_key(table, peer, path)
+    floors = doc.get("floors", {})
+    if not isinstance(floors, dict) or any(
+            p not in peers or not isinstance(b, int) or isinstance(b, bool)
+            or not 0 <= b <= DEFAULT_LAYOUT.max_boot for p, b in floors.items()):
+        raise KeyFileError(f"{path}: [floors] expected a table of peer = lowest boot counter "
+                           f"(0..{DEFAULT_LAYOUT.max_boot}), for peers listed in [peers]")
     return NodeKey(node=node, key=_hex_key(doc, "key", path),  # type: ignore[arg-type]
-                   fleet_id=fleet, boot_counter=boot, path=path, peers=peers)
+                   fleet_id=fleet, boot_counter=boot, path=path, peers=peers,
+                   floors=dict(floors))
 
 
 def save_boot_counter(path: Path | str, boot: int) -> None:
@@ -481,7 +494,23 @@ def save_boot_counter(path: Path | str, boot: int) -> None:
     if boot < current.boot_counter:
         raise SecOCError(f"{path}: boot counter must not go back ({current.boot_counter} "
                          f"→ {boot})")
-    doc = node_key_document(current.node, current.key, current.fleet_id, boot, current.peers)
+    doc = node_key_document(current.node, current.key, current.fleet_id, boot, current.peers,
+                            current.floors)
+    write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
+
+
+def save_floors(path: Path | str, floors: Mapping[str, int]) -> None:
+    """Raise a node key file's boot floors (AUTH-21) to ``floors`` (peer -> the lowest
+    boot counter it may use from now on); a floor never goes down."""
+    import tomli_w
+
+    current = load_node_key(path)
+    merged = dict(current.floors)
+    for peer, boot in floors.items():
+        if peer in current.peers:
+            merged[peer] = max(merged.get(peer, 0), boot)
+    doc = node_key_document(current.node, current.key, current.fleet_id,
+                            current.boot_counter, current.peers, merged)
     write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
@@ -542,7 +571,8 @@ class Keyring:
 
     def __init__(self, node: str, key: bytes, boot: int, persist: Callable[[int], None],
                  peers: Mapping[str, bytes] | None = None, master: bytes | None = None,
-                 insecure: bool = False, fleet: str = "") -> None:
+                 insecure: bool = False, fleet: str = "",
+                 floors: Mapping[str, int] | None = None) -> None:
         self.node = check_node_name(node)
         self.key = _check_key(key)
         self.boot = boot
@@ -551,6 +581,13 @@ class Keyring:
         self._master = master
         self.insecure = insecure
         self.fleet_id = fleet
+        # AUTH-21: per peer, the lowest boot counter this node accepts (a sync of an
+        # earlier boot is a replay of an earlier run, or the peer's key file rolled back)
+        self.floors = dict(floors or {})
+
+    def floor_of(self, node: str) -> int:
+        """The lowest boot counter accepted from ``node`` (0: no floor; never insecure)."""
+        return 0 if self.insecure else self.floors.get(node, 0)
 
     def __repr__(self) -> str:  # never print a key
         return (f"Keyring(node={self.node!r}, boot={self.boot}, insecure={self.insecure}, "
@@ -579,7 +616,7 @@ class Keyring:
     def from_file(cls, path: Path | str) -> Keyring:
         k = load_node_key(path)
         return cls(k.node, k.key, k.boot_counter, k.persist(), peers=k.peers,
-                   fleet=k.fleet_id)
+                   fleet=k.fleet_id, floors=k.floors)
 
     @classmethod
     def insecure_for(cls, node: str) -> Keyring:

@@ -89,6 +89,10 @@ class LogContents:
     # with the run's keys: genuine secured frames that came after a newer one of their
     # sender (valid MAC under a past freshness value): late, left out, not forged
     stale: Counter[str] = field(default_factory=Counter)
+    # syncs whose MAC verifies but whose boot is below one the sender already used (or
+    # below its boot at the run's start): a replay of an earlier run or boot, or the
+    # sender's key file rolled back (AUTH-21); label -> (lowest such boot, its floor)
+    stale_boot: dict[str, tuple[int, int]] = field(default_factory=dict)
     syncs: int = 0
     # frames the capture received before an earlier-stamped one (read_log sorts them)
     reordered: int = 0
@@ -282,6 +286,7 @@ class _Monitor:
         self.fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
         self.cycle_of = cycle_of or (lambda name: _cycle_s(name, MC_CYCLE_S))
         self.t_last: dict[int, float] = {}   # per secured ID: when its state last moved
+        self.boots: dict[str, int] = {}  # label -> the highest boot of its verified syncs
 
     def _key(self, name: str) -> bytes | None:
         return self.keys.get(contract.sender_of(name.removesuffix("_Sync")))
@@ -290,9 +295,13 @@ class _Monitor:
         key = self._key(f.name)
         fv = f.raw["Boot"] << contract.FV_COUNT_BITS | f.raw["Count"]
         fid = contract.SYNCED_BY[f.frame_id]
-        floor = self.boot_floors.get(contract.sender_of(f.name.removesuffix("_Sync")), 0)
-        if key is not None and f.raw["Boot"] >= floor and frame_verifies(key, f.frame_id,
-                                                                         data, fv):
+        label = contract.sender_of(f.name.removesuffix("_Sync"))
+        floor = max(self.boot_floors.get(label, 0), self.boots.get(label, 0))
+        verified = key is not None and frame_verifies(key, f.frame_id, data, fv)
+        if verified and f.raw["Boot"] < floor:
+            raise _StaleBoot(label, f.raw["Boot"], floor)
+        if verified:
+            self.boots[label] = f.raw["Boot"]
             last = self.fv.last(fid)
             if last is None or fv - 1 > last:
                 self.fv.accept(fid, fv - 1, frame=False)
@@ -337,6 +346,12 @@ class _Forged(Exception):
 
 class _Stale(Exception):
     pass
+
+
+class _StaleBoot(Exception):
+    def __init__(self, label: str, boot: int, floor: int) -> None:
+        super().__init__(label)
+        self.label, self.boot, self.floor = label, boot, floor
 
 
 def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
@@ -405,6 +420,10 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
                 continue
             except _Forged:
                 out.forged[f.name] += 1
+                continue
+            except _StaleBoot as e:
+                low = out.stale_boot.get(e.label, (e.boot, e.floor))
+                out.stale_boot[e.label] = (min(low[0], e.boot), max(low[1], e.floor))
                 continue
         if kind == "sync":
             continue

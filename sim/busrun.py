@@ -33,7 +33,7 @@ from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import FrameCodec
 from firmware_py.node import GuardedBus, bus_kwargs, open_bus
 
-from .cli.keys import load_boot_floors, load_key_set, write_key_set
+from .cli.keys import load_boot_floors, load_key_set, write_boot_floors, write_key_set
 from .runreport import Recording, report
 from .scenario import Scenario, to_toml
 from .verdict import TOLERANCE, RunFacts
@@ -393,6 +393,8 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
     started = {s.name for s in specs}
     boot_floors = (None if key_dir is None else
                    {n: b for n, b in load_boot_floors(key_dir).items() if n in started})
+    if key_dir is not None and boot_floors:  # AUTH-21: the nodes take no earlier boot either
+        write_boot_floors(key_dir, sorted(started), boot_floors)
     if on_ready is not None:
         on_ready(key_dir)
     for s in specs:
@@ -710,6 +712,9 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
             shutil.rmtree(key_dir)
         key_dir.mkdir(mode=0o700)
         write_key_set(sc, key_dir, master)
+    # each node's boot at this start, as `up` reads it from the key files (the recorder's
+    # floors: a sync of an earlier boot is from an earlier run, AUTH-21)
+    boot_floors = None if insecure else {n: r.boot + 1 for n, r in rings.items()}
     factories = in_process_nodes(sc, codec, rings, plant_faults, router_silent)
     names = list(factories)
     nodes: list[Any] = [make() for make in factories.values()]
@@ -771,8 +776,9 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     for role, c in counters.items():
         counters_path(out, role).write_text(json.dumps(c) + "\n")
     facts = RunFacts(node_counters=counters, recorder_counters=dropped, insecure=insecure)
-    write_run_facts(out, facts, None, 1.0, tolerance)
+    write_run_facts(out, facts, boot_floors, 1.0, tolerance)
     m = report(sc, out / "run.log", out, facts, plot=False, codec=codec,
-               keys={n: r.key for n, r in rings.items()}, tolerance=tolerance).metrics
+               keys={n: r.key for n, r in rings.items()}, tolerance=tolerance,
+               boot_floors=boot_floors).metrics
     m["node_summaries"] = [n.summary() for n in nodes]
     return m

@@ -81,6 +81,7 @@ class KeyringC(ctypes.Structure):
         ("n_peers", ctypes.c_uint32),
         ("peer_label", (ctypes.c_char * (LABEL_MAX + 1)) * MAX_PEERS),
         ("peer_key", (ctypes.c_uint8 * 16) * MAX_PEERS),
+        ("peer_floor", ctypes.c_uint16 * MAX_PEERS),
         ("persist_boot", PERSIST_FN), ("persist_ctx", ctypes.c_void_p),
     ]
 
@@ -304,7 +305,7 @@ def params_of(cfg: AgentConfig) -> Params:
 
 
 def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | None = None,
-               insecure: bool = False) -> KeyringC:
+               insecure: bool = False, floors: Mapping[str, int] | None = None) -> KeyringC:
     k = KeyringC()
     k.node = node.encode()
     k.key[:] = list(key)
@@ -317,6 +318,7 @@ def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | No
     for i, (label, pk) in enumerate(peers.items()):
         k.peer_label[i].value = label.encode()
         k.peer_key[i][:] = list(pk)
+        k.peer_floor[i] = (floors or {}).get(label, 0)
     return k
 
 
@@ -325,7 +327,9 @@ def keyring_from(ring: Keyring) -> KeyringC:
     C agent persists its new boots through the Keyring (``new_boot``'s write-ahead)."""
     if ring.insecure:
         return keyring_of(ring.node, ring.key, ring.boot, insecure=True)
-    k = keyring_of(ring.node, ring.key, ring.boot, ring._peers)
+    for peer in ring.floors:   # a floor needs its peer listed (derived, for a fleet's)
+        ring.key_of(peer)
+    k = keyring_of(ring.node, ring.key, ring.boot, ring._peers, floors=ring.floors)
     if ring._master is not None:   # a simulated fleet: any sender's key on demand
         k.has_master = 1
         k.master[:] = list(ring._master)

@@ -72,7 +72,7 @@ STEPS = (
          "answers the syncs, sends MC/Setpoint/Diag at their cadences",
          ("GEN-2", "STATE-1", "STATE-10", "TICK-1", "TX-1", "TX-2", "TX-3", "TX-4", "TX-5",
           "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-16",
-          "RX-4")),
+          "AUTH-21", "RX-4")),
     Step("price-only", 30, 60, "price and neighbours but no plant status: still INIT",
          ("STATE-2", "STATE-5", "TMO-3", "LIVE-1", "LIVE-2", "PRICE-6", "AUTH-12",
           "AUTH-15")),
@@ -123,12 +123,14 @@ def _tick_of(name: str) -> Callable[[int], bool]:
 
 
 def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
-         codec: FrameCodec | None = None) -> list[Planned]:
+         codec: FrameCodec | None = None, boot: int = secoc.INSECURE_BOOT) -> list[Planned]:
     """The tester's frames for DUT ``cfg`` (times in s from the start), signed with
     ``keys`` (label → key of the router, the plant and the neighbours; None: the
-    insecure keys). ``price``: the ρ to hold (the scenario's first)."""
+    insecure keys). ``price``: the ρ to hold (the scenario's first). ``boot``: the boot
+    every sender the tester plays runs at, at least the DUT's boot floors (AUTH-21);
+    above 1, an earlier run's price sync (boot − 1) comes first."""
     codec = codec or FrameCodec()
-    tx = FleetSender(codec, keys, boot=secoc.INSECURE_BOOT)
+    tx = FleetSender(codec, keys, boot=boot if keys is not None else secoc.INSECURE_BOOT)
     ts, i = cfg.controller.ts, cfg.id
     nbrs = [n.id for n in cfg.neighbours]
     out: list[Planned] = []
@@ -181,8 +183,12 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     status = {"FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
               "Power": 0, "Soc": 100}
     inputs = ["ER_Price", "ER_Command", status_name(i), *map(mc_name, nbrs)]
+    if tx.boot > secoc.INSECURE_BOOT:  # below the DUT's floor: auth, it sets nothing
+        earlier = FleetSender(codec, keys, boot=tx.boot - 1)
+        add(0, "start", earlier.sync("ER_Price"), "an earlier run's price sync (AUTH-21)")
     for name in inputs:
         add(0, "start", tx.sync(name), f"sync of {name}")
+    first_sync = next(p.msg for p in out if p.note == "sync of ER_Price")
     genuine: list[can.Message] = []
     held: list[can.Message] = []   # a genuine frame delivered late (AUTH-25)
     for k in range(30, STEPS[-1].end):
@@ -220,7 +226,7 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k == at["authentication"] + 20:
             add(k + 0.6, step, _copy(genuine[-40]), "replay of a genuine frame")
         if k == at["authentication"] + 30:
-            add(k + 0.6, step, _copy(out[0].msg), "replay of the first price sync")
+            add(k + 0.6, step, _copy(first_sync), "replay of the first price sync")
         if k == at["authentication"] + 40:  # the right key, but a boot never announced
             later = FleetSender(codec, keys, boot=tx.boot + 5)
             add(k + 0.6, step, later.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
@@ -363,9 +369,9 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "MC.Resets": ("STEP-3", "BAND-3", "TX-1"),
     "Setpoint.Enable": ("TX-2", "SP-3"),
     "Setpoint.PowerSetpoint": ("SP-1", "TX-2"),
-    "Diag.RejectedAuth": ("AUTH-14", "AUTH-16", "RX-8"),
+    "Diag.RejectedAuth": ("AUTH-14", "AUTH-16", "AUTH-21", "RX-8"),
     "Diag.Unsynced": ("AUTH-11", "AUTH-14"),
-    "Diag.Resyncs": ("AUTH-16",),
+    "Diag.Resyncs": ("AUTH-16", "AUTH-21"),
     "Diag.LostFrames": ("AUTH-15",),
     "Diag.RejectedDlc": ("RX-7",),
     "Diag.RejectedRange": ("RX-7", "RX-9"),

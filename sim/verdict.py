@@ -434,6 +434,11 @@ def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
                            f"old freshness: {_top(log.stale)}; more than "
                            f"{100 * STALE_FRACTION:g} %): a loaded host or bus, not a forgery; "
                            "the analysis left them out"))
+    for label, (boot, floor) in sorted(log.stale_boot.items()):
+        out.append(Anomaly("stale_boot", label, f"syncs of {label} with a valid MAC but boot "
+                           f"{boot}, below its boot {floor} in this run: a replay of an "
+                           f"earlier run or boot, or {label}'s key file rolled back (AUTH-21); "
+                           "the analysis left them out"))
     if log.undecodable:
         out.append(Anomaly("malformed_frames", "bus", f"{sum(log.undecodable.values())} frames "
                            f"that fail the DBC's checks ({_top(log.undecodable)})"))

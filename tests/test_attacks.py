@@ -283,3 +283,105 @@ def test_messages_no_bus_carries_are_counted_and_the_dispatch_holds(
     named = {(a["kind"], a["node"]) for a in m["anomalies"]}
     assert {("malformed_frames", n) for n in ("recorder", "plant", "router")} <= named
     assert m["verdict"]["converged"] and m["verdict"]["exit_code"] == 3
+
+
+# ---------------------------------------------------------------- AUTH-21: boot floors
+
+ROUTER_LATE_S = 1.5  # the fleet's price source starts this late: the replay comes first
+
+
+def _earlier_run(tmp: Path) -> tuple[dict[str, secoc.Keyring], dict[int, list[can.Message]]]:
+    """Run A at ρ = 0.5 with a key set, its capture by tick (for a replay into run B)."""
+    rings = secoc.Keyring.fleet(bytes(range(16)), secoc.fleet_nodes(CASE.n))
+    _run(tmp / "a", sc=dataclasses.replace(CASE, prices=(PriceStep(0.0, 0.5),)),
+         keyrings=rings)
+    by_tick: dict[int, list[can.Message]] = {}
+    for msg in can.LogReader(str(tmp / "a" / "run.log")):
+        by_tick.setdefault(_tick(msg.timestamp), []).append(msg)
+    return rings, by_tick
+
+
+def _floors_as_up_writes(rings: dict[str, secoc.Keyring]) -> None:
+    """What `up` writes into every key file before the fleet starts: each peer's boot
+    at this start (its file's counter + 1) as the lowest one accepted."""
+    for ring in rings.values():
+        ring.floors = {p: r.boot + 1 for p, r in rings.items() if p != ring.node}
+
+
+def _running_on_replay(tmp: Path, rings: dict[str, secoc.Keyring],
+                       by_tick: dict[int, list[can.Message]],
+                       restarts: Sequence[tuple[str, float, float]]
+                       ) -> tuple[dict[str, Any], list[str]]:
+    """Run B (ρ = 0.8) with the router down until ROUTER_LATE_S and run A's capture
+    replayed meanwhile: the agents seen RUNNING while no genuine price exists yet."""
+    running: set[str] = set()
+
+    def inject(t: float) -> list[can.Message]:
+        return by_tick.get(_tick(t), []) if t < ROUTER_LATE_S else []
+
+    def observe(t: float, nodes: dict[str, Any]) -> None:
+        if t < ROUTER_LATE_S:
+            running.update(n for n, node in nodes.items() if n.startswith("agent_")
+                           and node.state == contract.State.RUNNING)
+
+    m = run_in_process(CASE, tmp, DURATION_S, channel=f"attack-{tmp.name}", inject=inject,
+                       observe=observe, keyrings=rings,
+                       restarts=[("router", 0.0, ROUTER_LATE_S), *restarts])
+    return m, sorted(running)
+
+
+def test_a_replay_of_an_earlier_run_before_the_fleet_starts_is_not_taken(
+        tmp_path: Path) -> None:
+    """An earlier run's capture replayed before the router's first genuine sync: without
+    boot floors the agents go RUNNING on the replayed prices (the attack works); with the
+    floors `up` writes (AUTH-21) no agent does, and the replay is reported."""
+    rings, by_tick = _earlier_run(tmp_path)
+    _, fooled = _running_on_replay(tmp_path / "b", rings, by_tick, ())
+    assert fooled, "without floors the replayed price must have made an agent RUNNING"
+    _floors_as_up_writes(rings)  # the same key set, a third run: A is still earlier
+    m, running = _running_on_replay(tmp_path / "c", rings, by_tick, ())
+    assert running == []
+    assert "auth_failed" in _kinds(m)
+    assert {a["node"] for a in m["anomalies"] if a["kind"] == "stale_boot"} >= {"router"}
+    err, _ = _final(np.genfromtxt(tmp_path / "c" / "trajectory.csv", delimiter=",",
+                                  names=True))
+    assert err < 1e-3
+
+
+def test_a_node_restarted_during_the_replay_takes_no_earlier_run(tmp_path: Path) -> None:
+    """Agent 2 restarts while the earlier run is replayed (before the genuine price): it
+    takes none of the replayed syncs either, as its floors come from its key file."""
+    rings, by_tick = _earlier_run(tmp_path)
+    _floors_as_up_writes(rings)
+    m, running = _running_on_replay(tmp_path / "b", rings, by_tick, [("agent_2", 0.5, 0.8)])
+    assert running == []
+    assert "auth_failed" in _kinds(m)
+
+
+def test_a_key_file_rolled_back_is_reported_not_silent(tmp_path: Path) -> None:
+    """Agent 3 restarts with its key file rolled back three boots: its peers take no
+    frame of it (its boot is below their floors) and the run reports it, naming it;
+    the run is not a success."""
+    rings = secoc.Keyring.fleet(bytes(range(16)), secoc.fleet_nodes(CASE.n))
+    for r in rings.values():
+        r.boot = 5  # a key set used for five runs
+    _floors_as_up_writes(rings)
+    ring3 = rings["agent_3"]
+
+    class RolledBack(secoc.Keyring):
+        def new_boot(self) -> int:
+            if self.boot >= 6:  # the restart: the file restored from three boots ago
+                self.boot -= 3
+            return super().new_boot()
+
+    rolled = RolledBack(ring3.node, ring3.key, ring3.boot, lambda _b: None,
+                        master=ring3._master, fleet=ring3.fleet_id, floors=ring3.floors)
+    rings["agent_3"] = rolled
+    m = run_in_process(CASE, tmp_path, DURATION_S, channel=f"attack-{tmp_path.name}",
+                       keyrings=rings, restarts=[("agent_3", 3.0, 3.5)])
+    assert rolled.boot == 4  # below the floor 6 its peers hold
+    assert m["verdict"]["exit_code"] != 0
+    assert "auth_failed" in _kinds(m), m["anomalies"]
+    stale = [a for a in m["anomalies"] if a["kind"] == "stale_boot"]
+    assert [a["node"] for a in stale] == ["agent_3"], m["anomalies"]
+    assert "boot 4, below its boot 6" in stale[0]["detail"]

@@ -325,6 +325,37 @@ def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
     assert c.tick(TS) == [] and c.fatal == 12
 
 
+def test_a_sync_below_the_boot_floor_is_refused_alike_in_c_and_python() -> None:
+    """AUTH-21, bit for bit: a router sync of boot 4 (valid MAC) below the floor 5 is
+    `auth` on the sync ID and sets no freshness, so the replayed price after it is
+    `unsynced`; the genuine sync of boot 5 is taken, and its price. A peer sync (the
+    plant's, of agent 3's status) below its floor is `auth` too."""
+    peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
+
+    def ring() -> Keyring:
+        return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
+                       peers=peers, floors={"router": 5, "plant": 3})
+    cfg = _cfg()
+    py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
+    old = FleetSender(FrameCodec(), keys={n: derive_node_key(MASTER, n) for n in peers},
+                      boot=4)
+    new = FleetSender(FrameCodec(), keys=old.keys, boot=5)
+    price = {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0}
+    script = [old.sync("ER_Price"), old.frame("ER_Price", price),
+              old.sync("PLANT_1_Status"), old.sync("PLANT_2_Status"),  # plant at boot 4 ok
+              FleetSender(FrameCodec(), keys=old.keys, boot=2).sync("PLANT_3_Status"),
+              new.sync("ER_Price"), new.frame("ER_Price", price)]
+    for k, msg in enumerate(script):
+        t = k * TS
+        py.on_frame(msg, t)
+        c.on_frame(msg, t)
+        assert [bytes(m.data) for m in py.tick(t)] == [bytes(m.data) for m in c.tick(t)]
+        assert py.counters == c.counters, (k, py.counters, c.counters)
+    assert py.counters["auth"] == 2 and py.counters["unsynced"] == 1
+    assert py.io.last_safety == ("auth", 0x683)
+    assert py.price == 1 << 23 and py.state == c.state  # the genuine price only
+
+
 # --------------------------------------------------------------------------- conformance
 
 
@@ -372,7 +403,9 @@ def dump_node_vectors(path: Path) -> dict[str, list[tuple[int, int, str]]]:
             key = derive_node_key(INSECURE_MASTER, k["node"])
             lines.append(f"K {k['node']} 1 {key.hex()} 0 0")
         else:
-            peers = " ".join(f"{label} {h}" for label, h in k["peers"].items())
+            floors = k.get("floors", {})
+            peers = " ".join(f"{label} {h} {floors.get(label, 0)}"
+                             for label, h in k["peers"].items())
             lines.append(f"K {k['node']} 0 {k['key']} {k['boot_counter']} {len(k['peers'])} "
                          f"{peers}")
         if "tx_count" in vec.get("setup", {}):

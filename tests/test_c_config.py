@@ -22,10 +22,12 @@ from firmware_py.config import agent_configs_from_scenario, parse_agent_config
 from firmware_py.errors import ConfigError
 from firmware_py.secoc import (
     KEY_FILE_HEADER,
+    KeyFileError,
     derive_node_key,
     fleet_id,
     load_node_key,
     node_key_document,
+    save_floors,
     write_private,
 )
 from sim.cagent import (
@@ -222,6 +224,29 @@ def test_key_file_loads_and_the_persisted_boot_loads_in_firmware_py(tmp_path: Pa
     assert again.boot_counter == 7 and again.key == ref.key and dict(again.peers) == \
         dict(ref.peers) and again.fleet_id == ref.fleet_id
     assert os.stat(path).st_mode & 0o777 == 0o600
+
+
+def test_key_file_boot_floors_load_and_survive_every_boot_rewrite(tmp_path: Path) -> None:
+    """AUTH-21: [floors] loads in C as in firmware_py, the C persist keeps it, a floor
+    of a peer the file does not list is refused (as firmware_py refuses it)."""
+    import tomli_w
+
+    path = _key_file(tmp_path)
+    save_floors(path, {"router": 9, "agent_3": 4, "agent_4": 7})  # agent_4: not a peer
+    assert dict(load_node_key(path).floors) == {"router": 9, "agent_3": 4}
+    k = load_keyfile(path, "agent_2")
+    floors = {k.peer_label[i].value.decode(): k.peer_floor[i] for i in range(k.n_peers)}
+    assert floors == {"router": 9, "plant": 0, "agent_1": 0, "agent_3": 4}
+    assert k.persist_boot(k.persist_ctx, 7) == 0
+    again = load_node_key(path)
+    assert again.boot_counter == 7 and dict(again.floors) == {"router": 9, "agent_3": 4}
+    doc = tomllib.loads(path.read_text())
+    doc["floors"]["agent_4"] = 1
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    with pytest.raises(CConfigError, match=r"\[floors\] expected .* but got 'agent_4'"):
+        load_keyfile(path, "agent_2")
+    with pytest.raises(KeyFileError, match=r"\[floors\] expected"):
+        load_node_key(path)
 
 
 def test_key_file_refusals(tmp_path: Path) -> None:

@@ -36,10 +36,11 @@ def _setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyring],
     cfg = agent_configs_from_scenario(sc)[dut - 1]
     node = f"agent_{dut}"
 
-    def ring() -> Keyring:
-        return Keyring(node, KEYS[node], 0, lambda _b: None, master=MASTER)
+    def ring() -> Keyring:  # its peers' floors at boot 2, as `up` writes them (AUTH-21)
+        return Keyring(node, KEYS[node], 0, lambda _b: None, master=MASTER,
+                       floors={n: 2 for n in KEYS if n != node})
 
-    return cfg, ring, conf.plan(cfg, KEYS, sc.prices[0].rho)
+    return cfg, ring, conf.plan(cfg, KEYS, sc.prices[0].rho, boot=2)
 
 
 def _judge(cfg: AgentConfig, ring: Callable[[], Keyring], frames: list[conf.Frame]
@@ -108,11 +109,29 @@ def test_an_unknown_deviation_fails_the_requirements_of_its_signal_and_step() ->
 
     frames = conf.simulate(cfg, ring(), planned, no_auth_count)
     outcome, results = _judge(cfg, ring, frames)
-    assert {r.must for r in results if not r.passed} == {"AUTH-14", "AUTH-16", "RX-8"}
-    # page 8 goes out every 90 ticks: at the latest in the step after the forgeries
-    assert outcome.mismatches[0].step in ("authentication", "content")
+    # the earlier run's sync played first (AUTH-21) is an auth failure too
+    assert {r.must for r in results if not r.passed} == {"AUTH-14", "AUTH-16", "AUTH-21",
+                                                          "RX-8"}
+    # page 8 goes out every 90 ticks: the first after the earlier run's sync at the start
+    assert outcome.mismatches[0].step in ("price-only", "running")
     assert outcome.mismatches[0].signal == "RejectedAuth"
     assert not outcome.explained_by
+
+
+def test_a_device_ignoring_its_boot_floors_fails_auth_21() -> None:
+    """Expected: a device that takes the earlier run's price sync played first (AUTH-21:
+    below its floor) counts it as a resync, not as an auth failure: it fails, and the
+    requirements named include AUTH-21."""
+    cfg, ring, planned = _setup(1, 3)
+    assert planned[0].note == "an earlier run's price sync (AUTH-21)"
+
+    def no_floors(rt: AgentRuntime) -> None:
+        rt.io.keys.floors.clear()
+
+    frames = conf.simulate(cfg, ring(), planned, no_floors)
+    _, results = _judge(cfg, ring, frames)
+    failed = {r.must for r in results if not r.passed}
+    assert "AUTH-21" in failed, failed
 
 
 def test_the_schedule_does_what_its_steps_say() -> None:

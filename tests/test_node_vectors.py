@@ -68,7 +68,8 @@ def keyring(vec: dict[str, Any]) -> Keyring | None:
     for label, hexkey in k["peers"].items():
         peers[label] = derive_node_key(master, label)
         assert peers[label].hex() == hexkey, f"{vec['name']}: peer {label}'s key"
-    return Keyring(k["node"], key, k["boot_counter"], lambda _b: None, peers=peers)
+    return Keyring(k["node"], key, k["boot_counter"], lambda _b: None, peers=peers,
+                   floors=k.get("floors"))
 
 
 def agent_of(vec: dict[str, Any]) -> AgentRuntime:

@@ -391,12 +391,13 @@ def test_a_capture_received_out_of_order_is_judged_in_bus_order(
     assert seen["late"] == 18 and buslog.read_log(log).reordered == 18
 
 
-def test_a_replayed_sync_below_the_run_s_boot_floor_is_forged(tmp_path: Path) -> None:
-    """A receiver with no freshness state takes the first sync that verifies
-    (docs/security.md): a sync and a price replayed from the router's previous boot,
-    ahead of its genuine ones, pass a monitor without the run's boot floors. With them
-    (busrun.record reads them from the key files before the nodes start), the old sync
-    is forged and the old price never verifies; the genuine frames after them do."""
+def test_a_replayed_sync_below_the_run_s_boot_floor_is_a_stale_boot(tmp_path: Path) -> None:
+    """A monitor with no freshness state takes the first sync that verifies: a sync and a
+    price replayed from the router's previous boot, ahead of its genuine ones, pass a
+    monitor without the run's boot floors. With them (busrun.record reads them from the
+    key files before the nodes start), the old sync is a stale boot of the router (its MAC
+    verifies: not forged, AUTH-21) and the old price never verifies; the genuine frames
+    after them do."""
     from firmware_py.nodeio import FleetSender
     from sim import buslog
 
@@ -414,7 +415,8 @@ def test_a_replayed_sync_below_the_run_s_boot_floor_is_forged(tmp_path: Path) ->
     blind = buslog.read_log(path, keys={"router": key})
     assert not blind.forged and [v for _, v in blind.series[("price", "Rho")]] == [2.5, 4.0]
     floored = buslog.read_log(path, keys={"router": key}, boot_floors={"router": 4})
-    assert floored.forged == {"ER_Price_Sync": 1} and floored.unverified == {"ER_Price": 1}
+    assert not floored.forged and floored.unverified == {"ER_Price": 1}
+    assert floored.stale_boot == {"router": (3, 4)}
     assert [v for _, v in floored.series[("price", "Rho")]] == [4.0]
 
 

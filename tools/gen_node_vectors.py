@@ -157,7 +157,7 @@ class Scenario:
 
     def __init__(self, name: str, description: str, covers: list[str], extra_toml: str = "",
                  insecure: bool = False, tx_count: int | None = None,
-                 toml: str | None = None) -> None:
+                 toml: str | None = None, floors: dict[str, int] | None = None) -> None:
         self.name, self.description, self.covers = name, description, covers
         self.toml = toml if toml is not None else BASE_TOML.format(extra=extra_toml)
         self.cfg = parse_agent_config(tomllib.loads(self.toml), f"{name}.json")
@@ -175,12 +175,14 @@ class Scenario:
         else:
             peers = {p: derive_node_key(master, p) for p in peer_labels}
             keys = Keyring(node, derive_node_key(master, node), BOOT_COUNTER, lambda _b: None,
-                           peers=peers, fleet=fleet_id(master))
+                           peers=peers, fleet=fleet_id(master), floors=floors)
             self.keys_doc = {"insecure": False, "master_key": master.hex(), "kdf": KDF_NAME,
                              "mac": MAC_NAME, "fleet_id": fleet_id(master), "node": node,
                              "key": derive_node_key(master, node).hex(),
                              "boot_counter": BOOT_COUNTER,
                              "peers": {p: k.hex() for p, k in peers.items()}}
+            if floors:  # AUTH-21: the key file's [floors]
+                self.keys_doc["floors"] = dict(floors)
             boots = dict(SENDER_BOOTS)
         self.agent = AgentRuntime(self.cfg, CODEC, keys=keys)
         self.setup: dict[str, Any] = {}
@@ -830,10 +832,44 @@ def sc_insecure() -> Scenario:
     return s
 
 
+def sc_boot_floors() -> Scenario:
+    floors = {"router": 3, "plant": 5, "agent_1": 2, "agent_3": 4}  # the senders' boots
+    s = Scenario(
+        "boot_floors",
+        "Boot floors (the key file's [floors]: each sender's boot at this start): before the "
+        "genuine syncs, an earlier run's router price sync (boot 2 < floor 3) is auth and "
+        "sets nothing, so its price is unsynced, and agent 1's MC sync of boot 1 is auth; "
+        "the genuine syncs and frames then start the agent as usual; later a peer sync of "
+        "the plant at boot 4 (< 5) is auth and makes no hello, an agent 3 sync of a new "
+        "boot (above its floor) resyncs.",
+        ["AUTH-16", "AUTH-18", "AUTH-21", "CFG-8"], floors=floors)
+    nb = neighbours()
+    s.tick()
+    earlier = Sender("router", s.router.key, 2)
+    earlier.count[CODEC.frame_id("ER_Price")] = 500
+    s.rx(earlier.sync("ER_Price"), note="an earlier run's price sync, boot 2 < 3: auth")
+    s.rx(earlier.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": q24(1.5)}),
+         note="its price: unsynced")
+    old_a1 = Sender("agent_1", s.senders["agent_1"].key, 1)
+    s.rx(old_a1.sync(mc_name(1), count=77), note="agent 1's MC sync of boot 1 < 2: auth")
+    s.sync_all()
+    for j, f in nb.items():
+        s.mc(j, f(0)[1], 1)
+    s.price(RHO)
+    s.status()
+    s.run(40, price=RHO, nbrs=nb)
+    s.rx(s.plant.sync(status_name(1), boot=4), note="peer sync of the plant, boot 4 < 5: auth")
+    s.run(15, price=RHO, nbrs=nb)
+    s.senders["agent_3"].restart()
+    s.sync("agent_3", mc_name(3), note="agent 3 restarted, boot 5 > floor 4: resync")
+    s.run(30, price=RHO, nbrs=nb)
+    return s
+
+
 SCENARIOS: tuple[Callable[[], Scenario], ...] = (
     sc_start_steady, sc_init_wait, sc_neighbour_timeout, sc_price_timeout, sc_status,
     sc_commands, sc_auth, sc_peer_restart, sc_malformed, sc_price_steps, sc_tx_wrap,
-    sc_insecure)
+    sc_insecure, sc_boot_floors)
 
 
 def render_all() -> dict[str, str]:

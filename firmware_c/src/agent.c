@@ -284,6 +284,7 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
             return BD_ERR_PARAMS;
         }
         a->key_label[a->n_keys] = (uint8_t)code;
+        a->key_floor[a->n_keys] = a->insecure ? 0u : keys->peer_floor[k];
         memcpy(a->key[a->n_keys], keys->peer_key[k], BD_KEY_BYTES);
         a->n_keys++;
     }
@@ -543,7 +544,8 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
         return;
     }
     uint64_t fv = ((uint64_t)m.boot << BD_FV_COUNT_BITS) | m.count;
-    if (!verifies(a, a->key[s->key_index], f->id, f->data, fv)) {
+    if (!verifies(a, a->key[s->key_index], f->id, f->data, fv)
+        || m.boot < a->key_floor[s->key_index]) {   /* AUTH-21: an earlier run or boot */
         fail(a, NULL, f->id, BD_C_AUTH, t);
         return;
     }
@@ -598,7 +600,8 @@ static int peer_sync(bd_agent *a, const bd_frame *f, int64_t t, int k)
     }
     uint64_t fv = ((uint64_t)m.boot << BD_FV_COUNT_BITS) | m.count;
     const uint8_t *kk = (key == -2) ? a->own_key : a->key[key];
-    if (!verifies(a, kk, f->id, f->data, fv)) {
+    if (!verifies(a, kk, f->id, f->data, fv)
+        || (key != -2 && m.boot < a->key_floor[key])) {   /* AUTH-21 */
         fail(a, NULL, f->id, BD_C_AUTH, t);
         return 1;
     }

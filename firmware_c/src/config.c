@@ -958,6 +958,17 @@ static int persist_boot(void *ctx, uint32_t boot)
         hex_of(k->peer_key[p], BD_KEY_BYTES, hex);
         ok = fprintf(f, "%s = \"%s\"\n", k->peer_label[p], hex) > 0;
     }
+    int floors = 0;   /* AUTH-21: the peers' boot floors are kept */
+    for (uint32_t p = 0u; p < k->n_peers && ok; ++p) {
+        if (k->peer_floor[p] != 0u) {
+            if (floors == 0) {
+                ok = fprintf(f, "\n[floors]\n") > 0;
+                floors = 1;
+            }
+            ok = ok && fprintf(f, "%s = %u\n", k->peer_label[p],
+                               (unsigned)k->peer_floor[p]) > 0;
+        }
+    }
     ok = ok && fflush(f) == 0 && fsync(fileno(f)) == 0;
     ok = (fclose(f) == 0) && ok;
     if (!ok || rename(tmp, kf->path) != 0) {
@@ -1089,6 +1100,23 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
         }
         memcpy(k->peer_label[k->n_peers], pe->key, strlen(pe->key) + 1u);
         k->n_peers++;
+    }
+    for (int q = 0; q < d.n; ++q) {   /* AUTH-21: each peer's lowest boot accepted */
+        const entry *pe = &d.e[q];
+        if (strcmp(pe->table, "floors") != 0) {
+            continue;
+        }
+        uint32_t p = 0u;
+        while (p < k->n_peers && strcmp(k->peer_label[p], pe->key) != 0) {
+            p++;
+        }
+        if (p == k->n_peers || pe->type != V_INT || pe->i < 0 || pe->i > 65535) {
+            (void)snprintf(err, errlen, "%s: [floors] expected a table of peer = lowest boot "
+                           "counter (0..65535), for peers listed in [peers], but got '%s'",
+                           path, pe->key);
+            return -1;
+        }
+        k->peer_floor[p] = (uint16_t)pe->i;
     }
     (void)snprintf(kf->path, sizeof kf->path, "%s", path);
     kf->ring = k;

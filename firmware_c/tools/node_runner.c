@@ -5,7 +5,7 @@
  * the text dump tests/test_c_agent.py writes, one vector after the other:
  *
  *   V <name> <config TOML as hex>
- *   K <node> <insecure 0/1> <key hex> <boot> <n_peers> [<label> <key hex>]...
+ *   K <node> <insecure 0/1> <key hex> <boot> <n_peers> [<label> <key hex> <floor>]...
  *   S <tx_count>                        (optional: the vector's setup)
  *   R <t_ns> <id> <flags> <data hex or ->
  *   T <t_ns>
@@ -129,11 +129,13 @@ int main(int argc, char **argv)
             }
             keys.insecure = insecure;
             for (uint32_t p = 0u; p < n_peers; ++p) {
-                if (scanf("%32s %63s", keys.peer_label[p], khex) != 2
-                    || unhex(khex, keys.peer_key[p], BD_KEY_BYTES, &n) != 0) {
+                uint32_t floor;
+                if (scanf("%32s %63s %" SCNu32, keys.peer_label[p], khex, &floor) != 3
+                    || floor > 65535u || unhex(khex, keys.peer_key[p], BD_KEY_BYTES, &n) != 0) {
                     printf("BAD INPUT at K peers\n");
                     return 2;
                 }
+                keys.peer_floor[p] = (uint16_t)floor;   /* AUTH-21 */
             }
             keys.n_peers = n_peers;
             int rc = bd_agent_init(&agent, &params, &keys, NULL, NULL);

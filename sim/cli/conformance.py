@@ -119,12 +119,14 @@ def run(args: argparse.Namespace) -> int:
         keys = load_key_set(key_dir)
         own = secoc.load_node_key(key_dir / f"{node}.key")
         ring = secoc.Keyring(node, own.key, own.boot_counter, lambda _b: None,
-                             peers=own.peers, fleet=own.fleet_id)
+                             peers=own.peers, fleet=own.fleet_id, floors=own.floors)
         dut_key = own.key
         key_argv = ["--key", str(key_dir / f"{node}.key")]
     bus, port = busrun.private_port(bus)
     ts = cfg.controller.ts
-    planned = conf.plan(cfg, keys, sc.prices[0].rho)
+    # the tester plays every sender at a boot the DUT's floors accept (AUTH-21)
+    boot = max([secoc.INSECURE_BOOT, *ring.floors.values()])
+    planned = conf.plan(cfg, keys, sc.prices[0].rho, boot=boot)
     length = conf.STEPS[-1].end * ts
     print(f"bess-ded conformance: {sc.title or sc.name}{chosen}, device under test: {node} "
           f"(Ts = {ts * 1000:g} ms{f', time scale {scale:g}' if scale != 1 else ''}); the "

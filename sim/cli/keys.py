@@ -18,6 +18,7 @@ import argparse
 import os
 import secrets
 import stat
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -117,6 +118,17 @@ def load_boot_floors(keys_dir: Path) -> dict[str, int]:
     return {k.node: k.boot_counter + 1
             for k in (secoc.load_node_key(p) for p in _key_files(keys_dir)
                       if p.name != "master.key")}
+
+
+def write_boot_floors(keys_dir: Path, nodes: Iterable[str], floors: Mapping[str, int]) -> None:
+    """Before a fleet starts: raise the boot floors (AUTH-21) in the key files of
+    ``nodes`` to ``floors`` (label -> that node's boot at this start, from
+    ``load_boot_floors``), so that no node takes a sync of an earlier run or boot, not
+    even before a peer's first genuine sync, nor after its own restart."""
+    from firmware_py import secoc
+
+    for node in nodes:
+        secoc.save_floors(keys_dir / f"{node}.key", floors)
 
 
 def run(args: argparse.Namespace) -> int:

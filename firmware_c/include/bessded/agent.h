@@ -89,6 +89,7 @@ typedef struct {
     uint32_t n_peers;
     char peer_label[BD_MAX_PEERS][BD_LABEL_MAX + 1];
     uint8_t peer_key[BD_MAX_PEERS][BD_KEY_BYTES];
+    uint16_t peer_floor[BD_MAX_PEERS];    /* AUTH-21: lowest boot accepted (0: none) */
     /* Persist a new boot counter before it is used (write-ahead, AUTH-3); 0 on
      * success. NULL: nothing persisted (insecure mode, tests). */
     int (*persist_boot)(void *ctx, uint32_t boot);
@@ -172,6 +173,7 @@ typedef struct {
     bd_neighbour nb[BD_MAX_NEIGHBOURS];
     uint8_t key[BD_MAX_PEERS][BD_KEY_BYTES];
     uint8_t key_label[BD_MAX_PEERS];              /* 1..32 agent, 33 plant, 34 router */
+    uint16_t key_floor[BD_MAX_PEERS];             /* AUTH-21: lowest boot of that sender */
     uint16_t sync_streak[BD_N_SYNC_IDS];          /* E2E streak of each sync ID */
     uint16_t peer_boot[BD_N_SYNC_IDS];            /* a peer's known boot (0: none) */
     uint32_t n_rx;
