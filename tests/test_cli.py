@@ -100,6 +100,7 @@ def test_bench_quick(capsys: pytest.CaptureFixture[str]) -> None:
     assert "case1" in stdout and "case7" in stdout
     assert "Controller step, firmware_c against firmware_py" in stdout
     assert "Agent tick, firmware_c against firmware_py" in stdout
+    assert "Input checks (issue 19)" in stdout and "counted stale" in stdout
 
 
 @pytest.mark.parametrize("argv", [
