@@ -22,7 +22,7 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from firmware_py.cliargs import positive_float
+    from firmware_py.cliargs import time_scale
 
     from ._common import add_case_option, one_line_errors
 
@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--variant", metavar="LABEL",
                    help="for a scenario with variants (cases 2, 3, 6): which one "
                    "(default: the first)")
-    p.add_argument("--time-scale", type=positive_float(), default=1.0, metavar="F",
+    p.add_argument("--time-scale", type=time_scale, default=1.0, metavar="F",
                    help="stretch the time axis by F (Ts·F, k/F, h/F²), as `up --time-scale`")
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output directory (default: runs/deploy-<scenario>)")
