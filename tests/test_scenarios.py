@@ -90,6 +90,14 @@ BAD = [
     ("bad soc", lambda s: s.replace("soc0 = 0.60", "soc0 = 1.5"), "battery[1].soc0"),
     ("limits reversed", lambda s: s.replace("p_min = -120.0", "p_min = 130.0"), "battery[1].p_max"),
     ("not toml", lambda s: s + "\n[[[", "file"),
+    ("price below rho_min", lambda s: s.replace("t = 0.0\nrho = 0.8", "t = 0.0\nrho = -6.0"),
+     "price[0].rho"),
+    ("price above a set rho_max", lambda s: s + "\n[limits]\nrho_max = 0.5\n", "price[0].rho"),
+    ("price bounds reversed", lambda s: s + "\n[limits]\nrho_min = 1.0\nrho_max = -1.0\n",
+     "limits.rho_max"),
+    ("price bound beyond the λ range", lambda s: s + "\n[limits]\nrho_max = 11.0\n",
+     "limits.rho_max"),
+    ("unknown limit", lambda s: s + "\n[limits]\nlambda_max = 11.0\n", "limits.lambda_max"),
 ]
 
 
@@ -251,3 +259,25 @@ def test_to_toml_round_trips_any_title(tmp_path: Path, title: str) -> None:
     back = load_scenario(path)
     assert (back.title, back.name) == (title, sc.name)
     assert back.prices == sc.prices and back.batteries == sc.batteries
+
+
+def test_price_limits_reach_every_agent_and_round_trip(tmp_path: Path) -> None:
+    """A scenario's [limits] are every agent's price plausibility limits (what `up` and
+    `deploy` write); absent, the firmware's defaults, which take a negative price."""
+    from firmware_py.config import RHO_MAX, RHO_MIN, agent_configs_from_scenario
+
+    assert RHO_MIN < 0 < RHO_MAX
+    assert all((c.rho_min, c.rho_max) == (RHO_MIN, RHO_MAX)
+               for c in agent_configs_from_scenario(load_case(1)))
+    path = tmp_path / "neg.toml"
+    path.write_text(CASE1.replace("t = 0.0\nrho = 0.8", "t = 0.0\nrho = -1.5")
+                    + "\n[limits]\nrho_min = -2.0\nrho_max = 1.0\nprice_step_max = 2.5\n")
+    sc = load_scenario(path)
+    assert (sc.rho_min, sc.rho_max, sc.price_step_max) == (-2.0, 1.0, 2.5)
+    cfgs = agent_configs_from_scenario(sc)
+    assert [(c.rho_min, c.rho_max, c.price_step_max) for c in cfgs] == [(-2.0, 1.0, 2.5)] * 4
+    again = tmp_path / "again.toml"
+    again.write_text(to_toml(sc))
+    back = load_scenario(again)
+    assert (back.rho_min, back.rho_max, back.price_step_max, back.prices) == \
+        (sc.rho_min, sc.rho_max, sc.price_step_max, sc.prices)

@@ -748,7 +748,7 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
     const double cycles = BD_TIMEOUT_CYCLES;
     const double d_periods = 3.0, d_price = cycles * (every_price * ts),
                  d_status = cycles * (every_status * ts);
-    const double d_lmin = -10.0, d_lmax = 10.0, d_rmin = 0.0, d_rmax = 5.0, d_step = 0.5;
+    const double d_lmin = -10.0, d_lmax = 10.0, d_rmin = -5.0, d_rmax = 5.0, d_step = 0.5;
     const double gain_max = BD_GAIN_RAW_MAX * (1.0 / BD_GAIN_SCALE_DIV);
     double lambda0, periods, price_s, status_s, lmin, lmax, rmin, rmax, step;
     double lstep = (10.0 * k) * ts, kmin = 0.5 * k, kmax = 2.0 * k, hmin = 0.5 * h,
