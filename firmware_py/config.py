@@ -274,7 +274,7 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         raise fail("neighbour", f"expected [[neighbour]] tables, but got {raw_nbrs!r}")
     neighbours = []
     for i, nb in enumerate(raw_nbrs):
-        key = f"neighbour[{i}]"
+        key = f"neighbour[{i + 1}]"  # numbered from 1, as the agents are
         if not isinstance(nb, Mapping) or set(nb) - {"id", "weight"}:
             raise fail(key, f"expected a table with id and weight, but got {nb!r}")
         nid = agent_id(nb.get("id"), f"{key}.id")

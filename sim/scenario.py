@@ -195,10 +195,11 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
     g = r.table(data, "graph")
     r.only(g, "graph", {"agents", "edges", "pinned"})
     n = int(r.number(g, "agents", lo=1, hi=MAX_AGENTS, key="graph.agents", integer=True))
+    # list items and tables are numbered from 1 in messages, as agents and batteries are
     edges = tuple(r.edge(e, n, f"graph.edges[{i}]") for i, e in
-                  enumerate(r.list(g, "edges", "graph.edges")))
+                  enumerate(r.list(g, "edges", "graph.edges"), start=1))
     pinned = tuple(r.agent(p, n, f"graph.pinned[{i}]") for i, p in
-                   enumerate(r.list(g, "pinned", "graph.pinned")))
+                   enumerate(r.list(g, "pinned", "graph.pinned"), start=1))
     if not pinned:
         raise ConfigError(src, "graph.pinned", "expected at least one agent that hears the price")
     if cut := [a for comp in graph.unpinned_components(n, edges, pinned) for a in comp]:
@@ -248,11 +249,12 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
                           f"{rho_min:g} ≥ {rho_max:g}")
 
     prices = []
-    for i, p in enumerate(r.list(data, "price", "price")):
+    for i, p in enumerate(r.list(data, "price", "price"), start=1):
         r.only(p, f"price[{i}]", {"t", "rho"})
         prices.append(PriceStep(r.number(p, "t", lo=0, key=f"price[{i}].t"),
                                 r.number(p, "rho", lo=-100, hi=100, key=f"price[{i}].rho")))
-    if out := [(i, p.rho) for i, p in enumerate(prices) if not rho_min <= p.rho <= rho_max]:
+    if out := [(i, p.rho) for i, p in enumerate(prices, start=1)
+               if not rho_min <= p.rho <= rho_max]:
         i, rho = out[0]
         raise ConfigError(src, f"price[{i}].rho", f"expected a price within the agents' "
                           f"plausibility bounds [limits] rho_min..rho_max = {rho_min:g}.."
@@ -262,7 +264,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         raise ConfigError(src, "price", "expected a schedule whose first step is at t = 0")
     if any(b.t <= a.t for a, b in zip(prices, prices[1:], strict=False)):
         raise ConfigError(src, "price", "expected strictly increasing times")
-    if late := [(i, p.t) for i, p in enumerate(prices) if p.t >= duration]:
+    if late := [(i, p.t) for i, p in enumerate(prices, start=1) if p.t >= duration]:
         i, t = late[0]
         raise ConfigError(src, f"price[{i}].t", f"expected a time before the scenario's end "
                           f"(duration = {duration:g} s), but got {t:g}: the step would never "
@@ -273,7 +275,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
                           f"{duration:g} / {ts:g}), but got {n * duration / ts:.3g}")
 
     events = []
-    for i, e in enumerate(data.get("event", [])):
+    for i, e in enumerate(data.get("event", []), start=1):
         key = f"event[{i}]"
         r.only(e, key, {"t", "agent", "action"})
         action = e.get("action")
@@ -284,7 +286,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
                             r.agent(e.get("agent"), n, f"{key}.agent"), action))
 
     variants = []
-    for i, v in enumerate(data.get("variant", [])):
+    for i, v in enumerate(data.get("variant", []), start=1):
         key = f"variant[{i}]"
         r.only(v, key, CONTROLLER_KEYS | {"label"})
         label = v.get("label")

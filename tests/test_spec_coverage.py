@@ -226,10 +226,10 @@ def test_neighbour_rules() -> None:
         if ok:
             assert parse(doc).neighbours[0].weight == w
         else:
-            refused(doc, "neighbour[0].weight")
+            refused(doc, "neighbour[1].weight")
     doc = base()
     doc["neighbour"] = [{"id": 33}]
-    refused(doc, "neighbour[0].id")
+    refused(doc, "neighbour[1].id")
     doc["neighbour"] = [{"id": 3}]
     assert parse(doc).neighbours[0].weight == 1.0
     doc["neighbour"] = []
