@@ -39,7 +39,7 @@ in the 4-bit E2E counter and read as foreign traffic (firmware_py.nodeio).
     [limits]
     lambda_min = -10.0      # plausibility range for any λ or ρ received
     lambda_max = 10.0
-    rho_min = 0.0           # price plausibility (docs/safety-model.md): bounds, cu/kWh
+    rho_min = -5.0          # price plausibility (docs/safety-model.md): bounds, cu/kWh
     rho_max = 5.0
     price_step_max = 0.5    # largest accepted |Δρ| between accepted price frames ...
     price_persist = 3       # ... unless the same new price comes in this many frames in a row
@@ -87,7 +87,10 @@ PRICE_TIMEOUT_S = timeout_s("ER_Price", MC_CYCLE_S)
 STATUS_TIMEOUT_S = timeout_s(status_name(1), MC_CYCLE_S)
 
 # safety-model defaults (docs/safety-model.md)
-RHO_MIN, RHO_MAX = 0.0, 5.0      # cu/kWh: the paper's prices are 0.6..1.0
+# cu/kWh: the paper's prices are 0.6..1.0; day-ahead and intraday markets clear below
+# zero often enough that a negative price is no sign of a fault (a scenario's [limits]
+# sets its own bounds, sim/scenario.py)
+RHO_MIN, RHO_MAX = -5.0, 5.0
 PRICE_STEP_MAX = 0.5             # cu/kWh per accepted price frame: the paper steps ≤ 0.4
 PRICE_PERSIST = 3                # frames of one new price level that make it accepted
 LAMBDA_STEP_GAIN = 10.0          # lambda_step_max = 10·k·Ts (0.1 cu/kWh at k = 1, Ts = 10 ms;
@@ -271,7 +274,7 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         raise fail("neighbour", f"expected [[neighbour]] tables, but got {raw_nbrs!r}")
     neighbours = []
     for i, nb in enumerate(raw_nbrs):
-        key = f"neighbour[{i}]"
+        key = f"neighbour[{i + 1}]"  # numbered from 1, as the agents are
         if not isinstance(nb, Mapping) or set(nb) - {"id", "weight"}:
             raise fail(key, f"expected a table with id and weight, but got {nb!r}")
         nid = agent_id(nb.get("id"), f"{key}.id")
@@ -375,5 +378,7 @@ def agent_configs_from_scenario(sc: Any) -> list[AgentConfig]:
             # fast variant (case 3's k = 10) writes a file its agent accepts
             k_max=min(GAIN_HI * sc.controller.k, GAIN_MAX),
             h_max=min(GAIN_HI * sc.controller.h, GAIN_MAX),
+            # the scenario's price plausibility limits
+            rho_min=sc.rho_min, rho_max=sc.rho_max, price_step_max=sc.price_step_max,
             fleet_size=sc.n, source=f"{sc.source}#agent{i}"))
     return out

@@ -86,6 +86,10 @@ class LogContents:
     # and those before their sender's first sync (not checkable), by message name
     forged: Counter[str] = field(default_factory=Counter)
     unverified: Counter[str] = field(default_factory=Counter)
+    # with the run's keys: syncs and secured frames whose MAC verifies, by sender (node
+    # label); a sender with none but forged ones signs with another key (a key mismatch)
+    verified: Counter[str] = field(default_factory=Counter)
+    keys_checked: bool = False
     # with the run's keys: genuine secured frames that came after a newer one of their
     # sender (valid MAC under a past freshness value): late, left out, not forged
     stale: Counter[str] = field(default_factory=Counter)
@@ -380,6 +384,7 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     out = LogContents()
     monitor = (_Monitor(keys, boot_floors, lambda name: _cycle_s(name, ts or MC_CYCLE_S))
                if keys else None)
+    out.keys_checked = monitor is not None
     segment_raw: int | None = None
     segment = 0
     segment_mod = codec.raw_range("ER_Price", "Segment")[1] + 1
@@ -415,6 +420,7 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
                 elif not monitor.check(f, msg.data, t):
                     out.unverified[f.name] += 1
                     continue
+                out.verified[contract.sender_of(f.name.removesuffix("_Sync"))] += 1
             except _Stale:
                 out.stale[f.name] += 1
                 continue

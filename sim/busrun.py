@@ -20,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -356,11 +357,42 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     watch = open_bus(**{**bus.resolved(), "receive_own_messages": False})
     try:
         enlarge_receive_buffer(watch)
-        return _record(sc, out, bus, watch, duration, extra, delays, quiet, rt_priority,
-                       actions, plot, time_scale, keys, insecure, dut, dut_wait_s, on_ready,
-                       c_agents, c_node, tolerance)
+        # a device under test may never come: then the earlier run in OUT stays as it was
+        with _previous_kept(out) if dut else contextlib.nullcontext():
+            return _record(sc, out, bus, watch, duration, extra, delays, quiet,
+                           rt_priority, actions, plot, time_scale, keys, insecure, dut,
+                           dut_wait_s, on_ready, c_agents, c_node, tolerance)
     finally:
         watch.shutdown()
+
+
+@contextlib.contextmanager
+def _previous_kept(out: Path) -> Iterator[None]:
+    """Run into ``out`` with an earlier run's outputs there moved beside it (OUT.previous)
+    and put back if the run fails (its own outputs then go to OUT.failed, for their node
+    logs); deleted once it has run. A leftover OUT.previous (a run killed outright) may be
+    the only copy of a run: refused, never overwritten."""
+    if not out.is_dir() or not any(out.iterdir()):
+        yield
+        return
+    aside, failed = out.with_name(out.name + ".previous"), out.with_name(out.name + ".failed")
+    if aside.exists():
+        raise BusRunError(f"{aside} exists (an earlier run's outputs, left by a run that "
+                          f"was killed): move it back to {out} or delete it, then run again")
+    out.rename(aside)
+    out.mkdir()
+    try:
+        yield
+    except BaseException as e:
+        if failed.exists():
+            shutil.rmtree(failed)
+        out.rename(failed)
+        aside.rename(out)
+        if isinstance(e, BusRunError):
+            raise BusRunError(f"{e} ({out} still holds the previous run; this attempt's "
+                              f"logs are in {failed})") from None
+        raise
+    shutil.rmtree(aside)
 
 
 def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
@@ -661,6 +693,18 @@ def in_process_nodes(sc: Scenario, codec: FrameCodec, rings: Mapping[str, secoc.
     return factories
 
 
+def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
+    """The key the recorder verifies each node's frames with: the one most of the other
+    nodes hold for it (the fleet's, as `up`'s recorder reads DIR/keys), not the node's own,
+    so a node given another key is caught as its receivers catch it."""
+    out = {}
+    for n, ring in rings.items():
+        held = Counter(k for m, r in rings.items() if m != n
+                       and (k := r.key_of(n)) is not None)
+        out[n] = held.most_common(1)[0][0] if held else ring.key
+    return out
+
+
 def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bess-ded",
                    plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = (),
                    restarts: Sequence[tuple[str, float, float]] = (),
@@ -778,7 +822,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     facts = RunFacts(node_counters=counters, recorder_counters=dropped, insecure=insecure)
     write_run_facts(out, facts, boot_floors, 1.0, tolerance)
     m = report(sc, out / "run.log", out, facts, plot=False, codec=codec,
-               keys={n: r.key for n, r in rings.items()}, tolerance=tolerance,
+               keys=recorder_keys(rings), tolerance=tolerance,
                boot_floors=boot_floors).metrics
     m["node_summaries"] = [n.summary() for n in nodes]
     return m

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import tomli_w
 
+from firmware_py.config import PRICE_STEP_MAX, RHO_MAX, RHO_MIN, AgentConfig
 from firmware_py.contract import N_AGENTS_MAX
 from firmware_py.controllers import ControllerConfig
 from firmware_py.errors import ConfigError, ParameterError
@@ -47,6 +48,8 @@ BATTERY_RANGES: dict[str, tuple[float, float, bool]] = {
 # the longest run: agents × samples (duration / Ts), what the simulator and the log
 # analysis hold in memory (80 MB per float array): e.g. 4 agents for 6.9 h at Ts = 10 ms
 MAX_AGENT_SAMPLES = 10_000_000
+# a price bound outside the agents' λ range is moot: the range check rejects the price first
+PRICE_BOUND_RANGE = (AgentConfig.lambda_min, AgentConfig.lambda_max)
 
 
 @dataclass(frozen=True)
@@ -85,6 +88,10 @@ class Scenario:
     prices: tuple[PriceStep, ...]
     events: tuple[Event, ...] = ()
     variants: tuple[Variant, ...] = field(default=())
+    # price plausibility bounds every agent gets (limits.rho_min/rho_max of its config)
+    rho_min: float = RHO_MIN
+    rho_max: float = RHO_MAX
+    price_step_max: float = PRICE_STEP_MAX  # a larger step is accepted once it persists
 
     # ---- derived views
 
@@ -181,17 +188,18 @@ def load_scenario(path: str | Path) -> Scenario:
 def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
     r = _Reader(src)
     r.only(data, "", {"name", "title", "ts", "duration", "load_kw", "controller", "graph",
-                      "price", "battery", "event", "variant"})
+                      "price", "battery", "event", "variant", "limits"})
     ts = r.number(data, "ts", lo=1e-4, hi=1.0)
     duration = r.number(data, "duration", lo=ts, hi=1e5)
 
     g = r.table(data, "graph")
     r.only(g, "graph", {"agents", "edges", "pinned"})
     n = int(r.number(g, "agents", lo=1, hi=MAX_AGENTS, key="graph.agents", integer=True))
+    # list items and tables are numbered from 1 in messages, as agents and batteries are
     edges = tuple(r.edge(e, n, f"graph.edges[{i}]") for i, e in
-                  enumerate(r.list(g, "edges", "graph.edges")))
+                  enumerate(r.list(g, "edges", "graph.edges"), start=1))
     pinned = tuple(r.agent(p, n, f"graph.pinned[{i}]") for i, p in
-                   enumerate(r.list(g, "pinned", "graph.pinned")))
+                   enumerate(r.list(g, "pinned", "graph.pinned"), start=1))
     if not pinned:
         raise ConfigError(src, "graph.pinned", "expected at least one agent that hears the price")
     if cut := [a for comp in graph.unpinned_components(n, edges, pinned) for a in comp]:
@@ -227,16 +235,36 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         batteries.append(Battery(**kw))
         lambda0.append(r.number(b, "lambda0", lo=-100, hi=100, key=f"{key}.lambda0"))
 
+    lim = data.get("limits", {})
+    r.only(lim, "limits", {"rho_min", "rho_max", "price_step_max"})
+    lo, hi = PRICE_BOUND_RANGE
+    rho_min = r.number(lim, "rho_min", lo=lo, hi=hi, key="limits.rho_min") \
+        if "rho_min" in lim else RHO_MIN
+    rho_max = r.number(lim, "rho_max", lo=lo, hi=hi, key="limits.rho_max") \
+        if "rho_max" in lim else RHO_MAX
+    step_max = r.number(lim, "price_step_max", lo=1e-6, hi=hi - lo, key="limits.price_step_max")\
+        if "price_step_max" in lim else PRICE_STEP_MAX
+    if not rho_min < rho_max:
+        raise ConfigError(src, "limits.rho_max", f"expected rho_min < rho_max, but got "
+                          f"{rho_min:g} ≥ {rho_max:g}")
+
     prices = []
-    for i, p in enumerate(r.list(data, "price", "price")):
+    for i, p in enumerate(r.list(data, "price", "price"), start=1):
         r.only(p, f"price[{i}]", {"t", "rho"})
         prices.append(PriceStep(r.number(p, "t", lo=0, key=f"price[{i}].t"),
                                 r.number(p, "rho", lo=-100, hi=100, key=f"price[{i}].rho")))
+    if out := [(i, p.rho) for i, p in enumerate(prices, start=1)
+               if not rho_min <= p.rho <= rho_max]:
+        i, rho = out[0]
+        raise ConfigError(src, f"price[{i}].rho", f"expected a price within the agents' "
+                          f"plausibility bounds [limits] rho_min..rho_max = {rho_min:g}.."
+                          f"{rho_max:g} cu/kWh (they reject any other and go SAFE), but got "
+                          f"{rho:g}: widen [limits] in the scenario")
     if not prices or prices[0].t != 0:
         raise ConfigError(src, "price", "expected a schedule whose first step is at t = 0")
     if any(b.t <= a.t for a, b in zip(prices, prices[1:], strict=False)):
         raise ConfigError(src, "price", "expected strictly increasing times")
-    if late := [(i, p.t) for i, p in enumerate(prices) if p.t >= duration]:
+    if late := [(i, p.t) for i, p in enumerate(prices, start=1) if p.t >= duration]:
         i, t = late[0]
         raise ConfigError(src, f"price[{i}].t", f"expected a time before the scenario's end "
                           f"(duration = {duration:g} s), but got {t:g}: the step would never "
@@ -247,7 +275,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
                           f"{duration:g} / {ts:g}), but got {n * duration / ts:.3g}")
 
     events = []
-    for i, e in enumerate(data.get("event", [])):
+    for i, e in enumerate(data.get("event", []), start=1):
         key = f"event[{i}]"
         r.only(e, key, {"t", "agent", "action"})
         action = e.get("action")
@@ -258,7 +286,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
                             r.agent(e.get("agent"), n, f"{key}.agent"), action))
 
     variants = []
-    for i, v in enumerate(data.get("variant", [])):
+    for i, v in enumerate(data.get("variant", []), start=1):
         key = f"variant[{i}]"
         r.only(v, key, CONTROLLER_KEYS | {"label"})
         label = v.get("label")
@@ -274,7 +302,8 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         ts=ts, duration=duration, load_kw=r.number(data, "load_kw", lo=-1e6, hi=1e6),
         controller=controller, n=n, edges=edges, pinned=pinned, batteries=tuple(batteries),
         lambda0=tuple(lambda0), prices=tuple(prices), events=tuple(events),
-        variants=tuple(variants))
+        variants=tuple(variants), rho_min=rho_min, rho_max=rho_max,
+        price_step_max=step_max)
     for label, run in sc.runs():
         check_agents(run, "variant " + label if sc.variants else "")
     return sc
@@ -414,6 +443,8 @@ def to_toml(sc: Scenario) -> str:
                             for e in sc.edges],
                   "pinned": list(sc.pinned)},
         "price": [{"t": p.t, "rho": p.rho} for p in sc.prices],
+        "limits": {"rho_min": sc.rho_min, "rho_max": sc.rho_max,
+                   "price_step_max": sc.price_step_max},
         "battery": [{"lambda0": l0, **{k: float(getattr(b, k)) for k in sorted(BATTERY_KEYS)
                                        if k != "lambda0"}}
                     for b, l0 in zip(sc.batteries, sc.lambda0, strict=True)],

@@ -15,6 +15,7 @@ with anomalies is not a success either.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -47,12 +48,12 @@ HOST_OVERLOAD_SHARE = 0.75  # this share of the nodes (≥ 2) all late: the host
 # timeouts a starved host causes at every node (reported inside host_overloaded)
 _LATE_KINDS = ("deadline_misses", "price_timeout", "status_timeout", "setpoint_timeout")
 # the anomaly kinds most likely to explain a run that did not converge, most likely first
-_CAUSES = ("node_died", "node_not_started", "no_price", "setpoint_inconsistent",
-           "lambda_outlier", "insecure_keys", "auth_failed", "untrusted_source",
-           "foreign_traffic", "host_overloaded", "agent_safe_at_end", "agent_init_at_end",
-           "agent_isolated_at_end", "agent_silent", "node_silent", "plant_fault",
-           "price_timeout", "status_timeout", "setpoint_timeout", "deadline_misses",
-           "bus_silence", "agent_safe", "power_limit")
+_CAUSES = ("wrong_keys", "key_mismatch", "node_died", "node_not_started", "no_price",
+           "setpoint_inconsistent", "lambda_outlier", "insecure_keys", "auth_failed",
+           "untrusted_source", "foreign_traffic", "host_overloaded", "agent_safe_at_end",
+           "agent_init_at_end", "agent_isolated_at_end", "agent_silent", "node_silent",
+           "plant_fault", "price_timeout", "status_timeout", "setpoint_timeout",
+           "deadline_misses", "bus_silence", "agent_safe", "power_limit")
 INIT, RUNNING, ISOLATED, SAFE = State.INIT, State.RUNNING, State.ISOLATED, State.SAFE
 
 # AGENT_i_Diag counters that a healthy run keeps at 0: (signal, anomaly kind, what)
@@ -185,6 +186,8 @@ def judge(sc: Scenario, log: LogContents, tr: Trajectory | None, m: dict[str, An
                            "key (--insecure): anyone on the bus could forge any frame, so "
                            "nothing in this run is authenticated"))
     _node_exits(facts, out, reasons)
+    if _wrong_keys(log, out, reasons):
+        return _verdict(reasons, out, facts)
     if t0 is None or tr is None:
         out.append(Anomaly("no_price", "router", "no ER_Price frame in the recording: the "
                            "router never spoke (or the recorder heard another bus)"))
@@ -196,6 +199,7 @@ def judge(sc: Scenario, log: LogContents, tr: Trajectory | None, m: dict[str, An
     _power_limits(sc, log, tr, out)
     _setpoints(sc, log, facts, out)
     _lambda_outliers(sc, tr, tolerance, out)
+    _key_mismatch(log, facts, out, reasons)
     st = m.get("settling_times_s") or [None]
     err = m.get("final_error", float("nan"))
     if st[-1] is None:
@@ -205,6 +209,61 @@ def judge(sc: Scenario, log: LogContents, tr: Trajectory | None, m: dict[str, An
         reasons.append(f"the final λ is {err:.2e} cu/kWh from ρ, more than the tolerance "
                        f"{tolerance:g} cu/kWh")
     return _verdict(reasons, _host_overload(log, facts, out), facts)
+
+
+def _mac_failures(log: LogContents) -> Counter[str]:
+    """The recorder's MAC failures (forged or replayed syncs and frames) by sender."""
+    failed: Counter[str] = Counter()
+    for name, k in log.forged.items():
+        failed[sender_of(name)] += k
+    return failed
+
+
+def _wrong_keys(log: LogContents, out: list[Anomaly], reasons: list[str]) -> bool:
+    """Keys under which no sender's sync or frame verifies are not this log's keys (an
+    `analyze` given another run's key set): said so, instead of "no price"."""
+    failed = _mac_failures(log)
+    if not log.keys_checked or log.verified or not failed:
+        return False
+    out.append(Anomaly("wrong_keys", "recorder", f"none of the {sum(failed.values())} syncs "
+                       f"and secured frames of {len(failed)} senders ({_top(failed)}) verifies "
+                       "under the keys given: the keys do not belong to this log — analyze "
+                       "it with the key set of the run that recorded it (its DIR/keys)"))
+    reasons.append("the keys do not belong to the log: no sender's frames verify under them")
+    return True
+
+
+def _key_mismatch(log: LogContents, facts: RunFacts, out: list[Anomaly],
+                  reasons: list[str]) -> None:
+    """A sender none of whose syncs and frames verifies at the recorder, while others'
+    do, signs with another key than the fleet's: one key_mismatch anomaly per such node,
+    in place of the MAC failures and untrusted-source alarms its frames cause."""
+    failed = _mac_failures(log)
+    bad = sorted(n for n in failed if not log.verified[n])
+    if not log.keys_checked or not bad:
+        return
+    receivers = {f"agent_{a}" for a, d in log.diag.items() if d.get("RejectedAuth", 0)}
+    receivers |= {n for n, c in (facts.node_counters or {}).items()
+                  if c.get("counters", {}).get("auth", 0)}
+    # every MAC failure on the bus is theirs: the receivers' alarms are these frames (and,
+    # for a node whose whole key file is another key set's, its rejecting everyone else's)
+    explained = set(failed) <= set(bad)
+    out[:] = [a for a in out
+              if not (a.kind == "auth_failed" and a.node == "bus"
+                      and sender_of(a.detail.split(":")[0]) in bad)
+              and not (explained and a.kind in ("auth_failed", "untrusted_source")
+                       and a.node not in ("bus", "recorder"))
+              # its frames are on the bus, only left out: not silent
+              and not (a.kind in ("agent_silent", "node_silent") and a.node in bad)]
+    reasons[:] = [r for r in reasons if r not in {f"{n} was never heard" for n in bad}]
+    for node in bad:
+        at = sorted(receivers - {node})
+        heard = (f"; {len(at)} receivers count MAC failures ({_names(at)})" if at else "")
+        out.append(Anomaly("key_mismatch", node, f"{node}'s frames fail the MAC at every "
+                           f"receiver: it signs with another key than the fleet's key set — "
+                           f"check its key file (none of its {failed[node]} syncs and frames "
+                           f"on the bus verifies{heard})"))
+        reasons.append(f"{node}'s frames fail authentication everywhere (key mismatch)")
 
 
 def _verdict(reasons: list[str], out: list[Anomaly], facts: RunFacts) -> Verdict:

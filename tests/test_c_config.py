@@ -174,6 +174,21 @@ def test_c_loader_refuses_what_firmware_py_refuses_naming_the_key(table: str, ke
     assert str(c.value).startswith("agent.toml: ")
 
 
+@pytest.mark.parametrize(("fourth", "key"), [
+    ("id = 5\nweight = 1000", "neighbour[4].weight"), ("id = 1\nweight = 1", "neighbour[4].id"),
+    ("id = 5\ncolour = 1", "neighbour[4]"), ("weight = 1", "neighbour[4].id"),
+])
+def test_both_loaders_number_neighbours_from_1(fourth: str, key: str) -> None:
+    """BASE's fourth [[neighbour]] table is neighbour[4] in both loaders' messages (it was
+    neighbour[3]), as agents and batteries are numbered from 1 wherever a user reads them."""
+    text = BASE + "\n[[neighbour]]\n" + fourth + "\n"
+    with pytest.raises(ConfigError) as py:
+        parse_agent_config(tomllib.loads(text), "agent.toml")
+    with pytest.raises(CConfigError) as c:
+        parse_config(text, "agent.toml")
+    assert py.value.key == key and f"[{key}]" in str(c.value), (str(py.value), str(c.value))
+
+
 def test_a_dwell_of_2_to_the_32_samples_is_refused_by_both() -> None:
     """CTRL-2: D = ceil(Δ/Ts) is a uint32 in C; Δ = 5e4 s at Ts = 1e-5 s is 5e9 samples
     (the C cast was undefined, firmware_py's D unbounded): both refuse it naming dwell."""

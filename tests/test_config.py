@@ -66,7 +66,7 @@ def test_old_config_without_fleet_size_or_status_s_still_loads(tmp_path: Path) -
     ("p_max = 100.0", "p_max = 1000.0", "battery.p_max"),
     ("[timeouts]", "[timeouts]\nbogus = 1", "timeouts.bogus"),
     ("lambda0 = 0.6", "lambda0 = 50.0", "agent.lambda0"),
-    ("[[neighbour]]\nid = 1", "[[neighbour]]\nid = 2", "neighbour[0].id"),
+    ("[[neighbour]]\nid = 1", "[[neighbour]]\nid = 2", "neighbour[1].id"),
     ("fleet_size = 4", "fleet_size = 1", "agent.fleet_size"),
     ("fleet_size = 4", "fleet_size = 33", "agent.fleet_size"),
     ("status_s = 0.25", "status_s = 0.0", "timeouts.status_s"),

@@ -60,3 +60,31 @@ def test_restbus_rejects_a_device_outside_the_fleet(
     assert main(["restbus", "--case", "1", "--dut", dut, "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert f"--dut: expected an agent number in 1..4 or 'plant', but got '{dut}'" in err
+
+
+def test_restbus_giving_up_leaves_the_previous_run_intact(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A restbus that gives up waiting for the device (exit 2) wrote its keys, configs
+    and log into OUT first: the earlier run there is put back as it was, this attempt's
+    files go beside it (OUT.failed), and a leftover OUT.previous is never overwritten."""
+    out = tmp_path / "rb"
+    (out / "keys").mkdir(parents=True)
+    earlier = {"run.log": "(1.0) vcan0 010#00\n", "metrics.json": '{"earlier": true}\n',
+               "keys/agent_2.key": "earlier key\n"}
+    for name, text in earlier.items():
+        (out / name).write_text(text)
+    argv = ["restbus", "--case", "1", "--dut", "2", "--duration", "2", "--no-plot",
+            "--wait", "1", "--out", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"({out} still holds the previous run; this attempt's logs are in " \
+           f"{out}.failed)" in err, err
+    assert {str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()} == set(earlier)
+    assert all((out / name).read_text() == text for name, text in earlier.items())
+    assert (tmp_path / "rb.failed" / "agents" / "agent_2.toml").is_file()
+    assert not (tmp_path / "rb.previous").exists()
+    (tmp_path / "rb.previous").mkdir()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"bess-ded: error: {out}.previous exists" in err and "delete it" in err, err
+    assert (out / "metrics.json").read_text() == earlier["metrics.json"]

@@ -280,7 +280,7 @@ def test_plant_keeps_following_genuine_setpoints_under_forged_ones() -> None:
 def test_price_outside_bounds_rejected() -> None:
     a = running_agent()
     a.on_frame(price_frame(1, rho=6.0), 0.02)     # inside the DBC and lambda range, > rho_max
-    a.on_frame(price_frame(2, rho=-0.5), 0.03)    # < rho_min
+    a.on_frame(price_frame(2, rho=-5.5), 0.03)    # < rho_min (a negative price is no fault)
     assert a.counters["implausible_price"] == 2 and a.price == fx.to_fixed(0.8)
     assert "rho_min/rho_max" in a.last_error["implausible_price"]
     assert a.counters["range"] == 0

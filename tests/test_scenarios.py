@@ -68,28 +68,36 @@ BAD = [
     ("bad dwell", lambda s: s.replace(K_LINE, 'k = 1.0\nkind = "dwell"\n')
      .replace('kind = "reset"       # pc | pi | reset | dwell | ft\n', ""), "controller.dwell"),
     ("bad edge agent", lambda s: s.replace(EDGES, "edges = [[1, 2], [1, 5]]"),
-     "graph.edges[1]"),
-    ("self loop", lambda s: s.replace(EDGES, "edges = [[1, 1]]"), "graph.edges[0]"),
+     "graph.edges[2]"),
+    ("self loop", lambda s: s.replace(EDGES, "edges = [[1, 1]]"), "graph.edges[1]"),
     ("bad edge shape", lambda s: s.replace(EDGES, "edges = [[1, 2, 1.0, 4]]"),
-     "graph.edges[0]"),
+     "graph.edges[1]"),
     ("nobody pinned", lambda s: s.replace("pinned = [1]", "pinned = []"), "graph.pinned"),
     ("battery count", lambda s: s.replace("agents = 4", "agents = 3")
      .replace(EDGES, "edges = [[1, 2], [1, 3]]"), "battery"),
     ("bad agent in event", lambda s: s + '\n[[event]]\nt = 5.0\nagent = 9\naction = "isolate"\n',
-     "event[0].agent"),
+     "event[1].agent"),
     ("bad event action", lambda s: s + '\n[[event]]\nt = 5.0\nagent = 2\naction = "unplug"\n',
-     "event[0].action"),
+     "event[1].action"),
     ("event after the end", lambda s: s + '\n[[event]]\nt = 50.0\nagent = 2\naction = "isolate"\n',
-     "event[0].t"),
-    ("bad variant gain", lambda s: s + '\n[[variant]]\nlabel = "neg"\nk = -1.0\n', "variant[0].k"),
-    ("bad variant key", lambda s: s + '\n[[variant]]\nlabel = "x"\nkk = 1.0\n', "variant[0].kk"),
-    ("variant without label", lambda s: s + "\n[[variant]]\nk = 2.0\n", "variant[0].label"),
+     "event[1].t"),
+    ("bad variant gain", lambda s: s + '\n[[variant]]\nlabel = "neg"\nk = -1.0\n', "variant[1].k"),
+    ("bad variant key", lambda s: s + '\n[[variant]]\nlabel = "x"\nkk = 1.0\n', "variant[1].kk"),
+    ("variant without label", lambda s: s + "\n[[variant]]\nk = 2.0\n", "variant[1].label"),
     ("bad variant kind", lambda s: s + '\n[[variant]]\nlabel = "x"\nkind = "lqr"\n',
-     "variant[0].kind"),
+     "variant[1].kind"),
     ("price not from 0", lambda s: s.replace("t = 0.0\nrho = 0.8", "t = 1.0\nrho = 0.8"), "price"),
     ("bad soc", lambda s: s.replace("soc0 = 0.60", "soc0 = 1.5"), "battery[1].soc0"),
     ("limits reversed", lambda s: s.replace("p_min = -120.0", "p_min = 130.0"), "battery[1].p_max"),
     ("not toml", lambda s: s + "\n[[[", "file"),
+    ("price below rho_min", lambda s: s.replace("t = 0.0\nrho = 0.8", "t = 0.0\nrho = -6.0"),
+     "price[1].rho"),
+    ("price above a set rho_max", lambda s: s + "\n[limits]\nrho_max = 0.5\n", "price[1].rho"),
+    ("price bounds reversed", lambda s: s + "\n[limits]\nrho_min = 1.0\nrho_max = -1.0\n",
+     "limits.rho_max"),
+    ("price bound beyond the λ range", lambda s: s + "\n[limits]\nrho_max = 11.0\n",
+     "limits.rho_max"),
+    ("unknown limit", lambda s: s + "\n[limits]\nlambda_max = 11.0\n", "limits.lambda_max"),
 ]
 
 
@@ -251,3 +259,25 @@ def test_to_toml_round_trips_any_title(tmp_path: Path, title: str) -> None:
     back = load_scenario(path)
     assert (back.title, back.name) == (title, sc.name)
     assert back.prices == sc.prices and back.batteries == sc.batteries
+
+
+def test_price_limits_reach_every_agent_and_round_trip(tmp_path: Path) -> None:
+    """A scenario's [limits] are every agent's price plausibility limits (what `up` and
+    `deploy` write); absent, the firmware's defaults, which take a negative price."""
+    from firmware_py.config import RHO_MAX, RHO_MIN, agent_configs_from_scenario
+
+    assert RHO_MIN < 0 < RHO_MAX
+    assert all((c.rho_min, c.rho_max) == (RHO_MIN, RHO_MAX)
+               for c in agent_configs_from_scenario(load_case(1)))
+    path = tmp_path / "neg.toml"
+    path.write_text(CASE1.replace("t = 0.0\nrho = 0.8", "t = 0.0\nrho = -1.5")
+                    + "\n[limits]\nrho_min = -2.0\nrho_max = 1.0\nprice_step_max = 2.5\n")
+    sc = load_scenario(path)
+    assert (sc.rho_min, sc.rho_max, sc.price_step_max) == (-2.0, 1.0, 2.5)
+    cfgs = agent_configs_from_scenario(sc)
+    assert [(c.rho_min, c.rho_max, c.price_step_max) for c in cfgs] == [(-2.0, 1.0, 2.5)] * 4
+    again = tmp_path / "again.toml"
+    again.write_text(to_toml(sc))
+    back = load_scenario(again)
+    assert (back.rho_min, back.rho_max, back.price_step_max, back.prices) == \
+        (sc.rho_min, sc.rho_max, sc.price_step_max, sc.prices)

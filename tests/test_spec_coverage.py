@@ -226,10 +226,10 @@ def test_neighbour_rules() -> None:
         if ok:
             assert parse(doc).neighbours[0].weight == w
         else:
-            refused(doc, "neighbour[0].weight")
+            refused(doc, "neighbour[1].weight")
     doc = base()
     doc["neighbour"] = [{"id": 33}]
-    refused(doc, "neighbour[0].id")
+    refused(doc, "neighbour[1].id")
     doc["neighbour"] = [{"id": 3}]
     assert parse(doc).neighbours[0].weight == 1.0
     doc["neighbour"] = []
@@ -331,7 +331,7 @@ def test_each_limit_is_range_checked(key: str, bad: Any) -> None:
 
 def test_limits_order_defaults_and_q24() -> None:
     """CFG-7: rho_min < rho_max, k_min ≤ k_max, h_min ≤ h_max; the defaults (−10, 10,
-    0, 5, 0.5, 3, (10·k)·ts, 0.5·k, 2·k, 0.5·h, 2·h, 5, (1.0·ts)/0.01); h_max·ts must fit
+    −5, 5, 0.5, 3, (10·k)·ts, 0.5·k, 2·k, 0.5·h, 2·h, 5, (1.0·ts)/0.01); h_max·ts must fit
     Q1.30 like k_max·ts; the Q24 limits are q24 of the values."""
     doc = base()
     doc["limits"].update(rho_min=2.0, rho_max=2.0)
@@ -350,7 +350,7 @@ def test_limits_order_defaults_and_q24() -> None:
     doc["controller"].update(h=3.0)     # 2·h·ts = 1.8 fits; 2·k·ts = 1.8 too
     cfg = parse(doc)
     k, h, ts = 3.0, 3.0, 0.3
-    assert (cfg.lambda_min, cfg.lambda_max, cfg.rho_min, cfg.rho_max) == (-10, 10, 0, 5)
+    assert (cfg.lambda_min, cfg.lambda_max, cfg.rho_min, cfg.rho_max) == (-10, 10, -5, 5)
     assert (cfg.price_step_max, cfg.price_persist, cfg.untrusted_after) == (0.5, 3, 5)
     assert cfg.lambda_step_max == (10 * k) * ts
     assert (cfg.k_min, cfg.k_max, cfg.h_min, cfg.h_max) == (0.5 * k, 2 * k, 0.5 * h, 2 * h)

@@ -702,7 +702,7 @@ def sc_malformed() -> Scenario:
     s.price(q24(10.5), note="price 10.5 > lambda_max: range")
     s.mc(1, q24(-10.5), note="lambda -10.5 < lambda_min: range")
     s.run(5, price=RHO, nbrs=nb)
-    s.price(q24(-0.1), note="price -0.1 < rho_min: implausible_price")
+    s.price(q24(-5.5), note="price -5.5 < rho_min: implausible_price")
     s.run(40, price=RHO, nbrs=nb)
     return s
 

@@ -336,7 +336,7 @@ static int num(doc *d, const char *table, int index, const char *name, double lo
     char key[2 * NAME_MAX_ + 16];
     char got[160];
     if (index >= 0) {
-        (void)snprintf(key, sizeof key, "%s[%d].%s", table, index, name);
+        (void)snprintf(key, sizeof key, "%s[%d].%s", table, index + 1, name); /* numbered from 1 */
     } else {
         (void)snprintf(key, sizeof key, "%s.%s", table, name);
     }
@@ -670,7 +670,7 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
     }
     for (int j = 0; j < d.n_neighbours; ++j) {
         char key[32];
-        (void)snprintf(key, sizeof key, "neighbour[%d]", j);
+        (void)snprintf(key, sizeof key, "neighbour[%d]", j + 1); /* from 1, as agents */
         for (int q = 0; q < d.n; ++q) {
             if (d.e[q].index == j && strcmp(d.e[q].key, "id") != 0
                 && strcmp(d.e[q].key, "weight") != 0) {
@@ -692,7 +692,7 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
         if (num(&d, "neighbour", j, "weight", 1e-3, 100.0, &one, &w) != 0) {
             return -1;
         }
-        (void)snprintf(key, sizeof key, "neighbour[%d]", j);
+        (void)snprintf(key, sizeof key, "neighbour[%d]", j + 1);
         p->neighbour_id[j] = nid;
         (void)q24(w, &p->neighbour_weight[j]);
         (void)neighbour_keys;
@@ -748,7 +748,7 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
     const double cycles = BD_TIMEOUT_CYCLES;
     const double d_periods = 3.0, d_price = cycles * (every_price * ts),
                  d_status = cycles * (every_status * ts);
-    const double d_lmin = -10.0, d_lmax = 10.0, d_rmin = 0.0, d_rmax = 5.0, d_step = 0.5;
+    const double d_lmin = -10.0, d_lmax = 10.0, d_rmin = -5.0, d_rmax = 5.0, d_step = 0.5;
     const double gain_max = BD_GAIN_RAW_MAX * (1.0 / BD_GAIN_SCALE_DIV);
     double lambda0, periods, price_s, status_s, lmin, lmax, rmin, rmax, step;
     double lstep = (10.0 * k) * ts, kmin = 0.5 * k, kmax = 2.0 * k, hmin = 0.5 * h,
