@@ -13,7 +13,7 @@ import sys
 from .cliargs import RT_PRIORITY, duration_s, float_in, int_in, probability
 from .config import load_agent_config
 from .errors import BessDedError
-from .faultinject import FaultyBus, RxFaults
+from .faultinject import FaultyBus, RxFaults, neighbour_mc
 from .node import (
     BusConfigError,
     RxTxBus,
@@ -122,7 +122,7 @@ def run_agent(args: argparse.Namespace) -> int:
                                 agent.io.accepted_ids(), args.acceptance_filter)
     bus = open_bus(**kw)
     faults = RxFaults(args.inject_rx_loss, args.inject_rx_delay, args.inject_rx_jitter,
-                      args.inject_seed)
+                      args.inject_seed, match=neighbour_mc(cfg.id))
     node_bus: RxTxBus = behind_filter(bus, kw)
     if faults.active:
         node_bus = FaultyBus(node_bus, faults)

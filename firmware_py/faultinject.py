@@ -3,7 +3,10 @@
 A real bus loses and delays frames between a sender and *one* receiver; a
 broadcast medium cannot be made to do that from outside. So the fault sits
 where a flaky transceiver or a congested gateway would: between the bus and the
-node's receive path. Only frames whose ID matches are affected; every injected
+node's receive path. Only frames whose ID matches are affected (by default the MC
+frames of the node's neighbours: the echo of its own frames is its own loopback, no
+network path, so a delay there would only test how many sent payloads it recalls,
+RX-3, against how long the host starves it); every injected
 loss is counted here, and the firmware must notice it by itself (E2E counter).
 
 Delay and jitter never reorder frames of one ID: CAN delivers one sender's frames
@@ -28,14 +31,20 @@ from .contract import MC_BASE, N_AGENTS_MAX
 from .node import RxTxBus
 
 
+def neighbour_mc(own_agent: int | None) -> Callable[[can.Message], bool]:
+    """Matches every AGENT_i_MC frame but the node's own (None: every one)."""
+    own = None if own_agent is None else MC_BASE + own_agent
+    return lambda m: (MC_BASE < m.arbitration_id <= MC_BASE + N_AGENTS_MAX
+                      and m.arbitration_id != own)
+
+
 @dataclass
 class RxFaults:
     loss: float = 0.0          # probability a matching frame is dropped
     delay: float = 0.0         # s, fixed delay added to matching frames
     jitter: float = 0.0        # s, extra uniform random delay in [0, jitter]
     seed: int = 0
-    match: Callable[[can.Message], bool] = field(
-        default=lambda m: MC_BASE < m.arbitration_id <= MC_BASE + N_AGENTS_MAX)  # AGENT_i_MC
+    match: Callable[[can.Message], bool] = field(default_factory=lambda: neighbour_mc(None))
 
     @property
     def active(self) -> bool:

@@ -270,8 +270,10 @@ class _Monitor:
     * fresh: its MAC verifies at most ``windows`` freshness windows ahead of the last
       accepted value, where ``windows`` grows with the time since that value (a sender
       sends one frame per cycle: 1 + RATE_MARGIN · elapsed / (16 cycles), at most
-      LOST_WINDOWS). A forged frame in a flood (short elapsed time) gets one window,
-      one chance in 2^24, as at a node; the recorder missing frames gets more;
+      MAX_WINDOWS: 4,096 frames, 10 s of a 10 ms sender at RATE_MARGIN). A forged frame
+      in a flood (short elapsed time) gets one window, one chance in 2^24, as at a
+      node; the recorder missing frames gets more (a starved recorder once lost 2.3 s,
+      230 frames of each agent, beyond a node's LOST_WINDOWS);
     * stale (``_Stale``): its MAC verifies with one of the STALE_WINDOWS windows at or
       below the last accepted value, at a value no frame carried yet (a frame already
       seen again is a replay): its sender's genuine frame, late (a capture that
@@ -281,6 +283,7 @@ class _Monitor:
 
     RATE_MARGIN = 4       # a sender may burst up to 4x its cycle without being called forged
     STALE_WINDOWS = 2     # past windows tried (32 values): 2 CMACs, only for rejected frames
+    MAX_WINDOWS = 256     # after a long silence: 256 CMACs at most, offline
 
     def __init__(self, keys: Mapping[str, bytes],
                  boot_floors: Mapping[str, int] | None = None,
@@ -320,7 +323,7 @@ class _Monitor:
         if t_last is None or not math.isfinite(cycle):
             return LOST_WINDOWS   # an event frame (ER_Command): no rate to bound it by
         frames = self.RATE_MARGIN * max(t - t_last, 0.0) / cycle
-        return min(LOST_WINDOWS, 1 + int(frames) // (1 << contract.FV_TX_BITS))
+        return min(self.MAX_WINDOWS, 1 + int(frames) // (1 << contract.FV_TX_BITS))
 
     def check(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> bool:
         """True: authentic and fresh; False: not checkable yet (no sync seen); raises

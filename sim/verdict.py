@@ -93,6 +93,8 @@ _SIM_FAULT_COUNTERS = (
     ("invalid_frame", "malformed_frames", "messages no CAN bus can carry (an ID beyond 11/29 "
      "bits, DLC > 8 on a classic frame, data longer than the DLC, fields of the wrong type)"),
     ("rx_error", "receive_error", "failed receives (socket error, interface down)"),
+    ("rx_overflow", "recorder_missed_frames", "frames the kernel dropped at its full receive "
+     "buffer (a reader the host starved)"),
     ("error_frame", "bus_errors", "CAN error frames"),
     ("repeated_counter", "stale_frames", "frames repeating the last counter (stale data)"),
     ("send_failure", "send_failure", "frames it failed to send"),

@@ -123,12 +123,15 @@ def assert_every_tick_accounted(out: Path, m: dict[str, Any], ts: float) -> dict
       of their recorded frames (+ one cycle of ticks after the last one);
     * the router's price frames and the plant's status frames: recorded + counter gaps
       = the node's own count (± FRAME_SLACK per ID).
+    Frames the kernel dropped at the recorder's full receive buffer (``rx_overflow``, a
+    starved recorder) may hide in a counter's wrap: they count for the missing ones.
     Returns the figures (for the benchmark-style print of the caller)."""
     frames = log_frames(out)
     by_name: dict[str, list[tuple[float, DecodedFrame]]] = {}
     for t, f in frames:
         by_name.setdefault(f.name, []).append((t, f))
     agents = sorted(f.agent for t, f in frames if f.name.endswith("_MC") and f.agent)
+    unrecorded = m.get("recorder_counters", {}).get("rx_overflow", 0)
     report: dict[str, Any] = {}
     for i in sorted(set(agents)):
         mc = by_name[f"AGENT_{i}_MC"]
@@ -141,7 +144,8 @@ def assert_every_tick_accounted(out: Path, m: dict[str, Any], ts: float) -> dict
         n = _sent(upto)
         report[f"agent_{i}"] = (n, misses, expected)
         assert n <= expected + TICK_SLACK, (i, n, expected)
-        assert n + misses >= expected - TICK_SLACK, (i, n, misses, expected)
+        assert n + misses + unrecorded >= expected - TICK_SLACK, (i, n, misses, expected,
+                                                                  unrecorded)
     counters = m["node_counters"]
     for role, ids in (("router", ("ER_Price", "ER_Balance", "ER_Command")),
                       ("plant", tuple(n for n in by_name if n.startswith("PLANT_")))):
@@ -156,12 +160,14 @@ def assert_every_tick_accounted(out: Path, m: dict[str, Any], ts: float) -> dict
         assert ticks <= span + cycle + TICK_SLACK, (role, ticks, span)
         assert ticks + misses >= span - TICK_SLACK, (role, ticks, misses, span)
     price_sent = counters["router"]["counters"].get("price_frames", 0)
-    assert abs(_sent(by_name["ER_Price"]) - price_sent) <= FRAME_SLACK, (
-        _sent(by_name["ER_Price"]), price_sent)
+    price = _sent(by_name["ER_Price"])
+    assert -FRAME_SLACK <= price_sent - price <= FRAME_SLACK + unrecorded, (
+        price, price_sent, unrecorded)
     status = sum(_sent(v) for k, v in by_name.items() if k.startswith("PLANT_"))
     status_sent = counters["plant"]["counters"].get("status_frames", 0)
     n_plant = len([k for k in by_name if k.startswith("PLANT_")])
-    assert abs(status - status_sent) <= FRAME_SLACK * n_plant, (status, status_sent)
+    assert (-FRAME_SLACK * n_plant <= status_sent - status
+            <= FRAME_SLACK * n_plant + unrecorded), (status, status_sent, unrecorded)
     return report
 
 

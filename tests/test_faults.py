@@ -38,8 +38,9 @@ from conftest import assert_every_tick_accounted, lockstep_settling_ticks, settl
 from firmware_py import contract
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.errors import FrameError
-from firmware_py.faultinject import FaultyBus, RxFaults
+from firmware_py.faultinject import FaultyBus, RxFaults, neighbour_mc
 from firmware_py.frames import FrameCodec
+from firmware_py.runtime import DIAG_EVERY, AgentRuntime
 from sim import busrun, inject
 from sim.scenario import load_case
 
@@ -55,6 +56,8 @@ PRICE_PERIOD = contract.cycle_s("ER_Price", TS)      # 50 ms (DBC GenMsgCycleTim
 PRICE_TIMEOUT = contract.timeout_s("ER_Price", TS)   # 0.25 s
 EPS = 1e-9                       # float slack of the simulated clock's k·Ts
 LOAD_TOLERANT_S = 300.0          # waiting for a process: a deadline, not a duration
+# every Diag page once: a count reaches the report on the agents' Diag pages
+DIAG_ROUND_S = len(AgentRuntime.DIAG_PAGES) * DIAG_EVERY * TS
 UDP_LOSS_TOL = 0.10              # udp_multicast on loopback loses at most this share of a burst
 SAFE, RUNNING = contract.State.SAFE, contract.State.RUNNING
 
@@ -216,9 +219,11 @@ def test_delay_and_jitter_up_to_three_samples(tmp_path: Path, udp_port: int,
                                               lossless: dict[str, Any]) -> None:
     """Expected: MC frames delayed by 10 ms plus uniform 0–20 ms jitter (1–3 samples) at
     every agent: still converges (< 1e-3) and settles within 2× the lossless time
-    (counted in agent 1's ticks); no
-    agent mistakes its own delayed echo for an impersonation, and since the delay keeps
-    each sender's order, LostFrames stays at udp's own few (< 2 % of what it hears)."""
+    (counted in agent 1's ticks); no agent counts an impersonation (the injector delays
+    neighbours' frames only: an agent's own echo is its loopback, not a network path, and
+    a delayed echo would only measure the host's starvation against RX-3's 4 payloads),
+    and since the delay keeps each sender's order, LostFrames stays at udp's own few
+    (< 2 % of what it hears)."""
     extra = {f"agent_{i}": ["--inject-rx-delay", "0.01", "--inject-rx-jitter", "0.02",
                             "--inject-seed", str(i)] for i in range(1, N + 1)}
     m = run_case(tmp_path, udp_port, 10.0, extra=extra)
@@ -449,6 +454,9 @@ def test_crafted_frames_counted_by_cause(tmp_path: Path, udp_port: int) -> None:
                                       stderr=subprocess.STDOUT))
         with contextlib.suppress(subprocess.TimeoutExpired):
             procs[0].wait(timeout=LOAD_TOLERANT_S)
+        # let one whole round of Diag pages go out after the last injection, however late
+        # the injectors ended on a loaded host (the run's clock went on meanwhile)
+        time.sleep(DIAG_ROUND_S + 0.5)
 
     out = ""
     try:
@@ -912,3 +920,15 @@ def test_faultybus_rejects_bad_parameters(vbus) -> None:
                    RxFaults(jitter=-0.01)):
         with pytest.raises(ValueError):
             FaultyBus(rx, faults)
+
+
+def test_an_agent_injects_faults_on_its_neighbours_frames_only() -> None:
+    """Expected: the agent's injector (`neighbour_mc`) matches every other agent's MC
+    frame and neither its own (its echo) nor any other frame."""
+    own = neighbour_mc(3)
+    mc = [can.Message(arbitration_id=contract.MC_BASE + i, is_extended_id=False)
+          for i in range(1, contract.N_AGENTS_MAX + 1)]
+    assert [m.arbitration_id - contract.MC_BASE for m in mc if own(m)] == [
+        i for i in range(1, contract.N_AGENTS_MAX + 1) if i != 3]
+    assert all(neighbour_mc(None)(m) for m in mc)
+    assert not own(can.Message(arbitration_id=contract.MC_BASE, is_extended_id=False))

@@ -41,8 +41,10 @@ from sim.scenario import Event, PriceStep, load_case
 pytestmark = pytest.mark.vcan
 
 ISOLATED, RUNNING = State.ISOLATED, State.RUNNING
-# the verdict's anomaly kinds that mean a node rejected frames (sim/verdict.py)
-REJECTIONS = {"rejected_frames", "stale_frames", "foreign_traffic", "implausible_frames",
+# the verdict's anomaly kinds that mean a node rejected frames as bad (sim/verdict.py).
+# Not stale_frames: genuine frames that arrived out of order (AUTH-25), which vcan in a
+# 2-CPU guest does to one sender's frames (docs/vcan.md), are a load anomaly, not bad.
+REJECTIONS = {"rejected_frames", "foreign_traffic", "implausible_frames",
               "untrusted_source", "auth_failed"}
 
 
