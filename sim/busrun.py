@@ -162,18 +162,20 @@ def private_port(bus: BusOptions) -> tuple[BusOptions, int | None]:
                       json.dumps({**extra, "port": port})), port
 
 
-def _bound_udp_ports() -> set[int]:
-    """Local UDP ports with a socket bound on this host (/proc/net/udp{,6}; empty elsewhere)."""
-    ports = set()
+def _udp_sockets() -> Iterator[list[str]]:
+    """The columns of each UDP socket on this host (/proc/net/udp{,6}; none elsewhere):
+    [1] the local address:port (hex), [9] the inode, the last the kernel's drops."""
     for table in ("/proc/net/udp", "/proc/net/udp6"):
         try:
             lines = Path(table).read_text().splitlines()[1:]
         except OSError:
             continue
-        for line in lines:
-            local = line.split()[1]
-            ports.add(int(local.rsplit(":", 1)[1], 16))
-    return ports
+        yield from (line.split() for line in lines)
+
+
+def _bound_udp_ports() -> set[int]:
+    """Local UDP ports with a socket bound on this host (empty where /proc has none)."""
+    return {int(cols[1].rsplit(":", 1)[1], 16) for cols in _udp_sockets()}
 
 
 def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
@@ -505,14 +507,11 @@ class Recorder:
         self.bus = GuardedBus(bus, lambda cause: None, who="recorder")
         self.listeners = list(listeners)
         self.rt_priority = rt_priority
-        # A host that starves the recorder for a few hundred ms would overflow the
-        # default receive buffer (212 KB: ~200 datagrams, 0.15 s of case 7) and lose
-        # frames in runs longer than the 4-bit counters can show; the kernel's drops
-        # are counted all the same (``rx_overflow``).
-        self._socket = _bus_socket(bus)
+        # A recorder the host starves longer than its receive buffer lasts (record()
+        # enlarges it: enlarge_receive_buffer) loses frames, in stretches the 4-bit
+        # counters cannot show; the kernel's drops are counted (``rx_overflow``).
+        self._socket = bus_socket(bus)
         self._overflow = 0
-        if self._socket is not None:
-            _grow_receive_buffer(self._socket)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
@@ -535,7 +534,7 @@ class Recorder:
         """The inputs dropped so far, by cause (only those that occurred), the kernel's
         drops at a full receive buffer (``rx_overflow``) included."""
         out = {k: v for k, v in self.bus.counters.items() if v}
-        if self._socket is not None:
+        if self._socket is not None and self._socket.fileno() >= 0:  # the bus still open
             self._overflow = _udp_drops(self._socket)
         if self._overflow:
             out["rx_overflow"] = self._overflow
@@ -544,54 +543,19 @@ class Recorder:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5.0)
-        if self._socket is not None:
+        if self._socket is not None and self._socket.fileno() >= 0:
             self._overflow = _udp_drops(self._socket)
-            self._socket.close()  # a duplicate descriptor: the bus keeps its own
-            self._socket = None
-
-
-def _bus_socket(bus: can.BusABC) -> socket.socket | None:
-    """A duplicate of the bus's socket (python-can's udp_multicast and socketcan have
-    one; virtual buses have none)."""
-    try:
-        fd = bus.fileno()
-    except (NotImplementedError, AttributeError, OSError):
-        return None
-    if not isinstance(fd, int) or fd < 0:
-        return None
-    try:
-        return socket.socket(fileno=os.dup(fd))
-    except OSError:
-        return None
-
-
-def _grow_receive_buffer(sock: socket.socket) -> None:
-    """Ask for the largest receive buffer the host allows (net.core.rmem_max)."""
-    try:
-        limit = int(Path("/proc/sys/net/core/rmem_max").read_text())
-    except (OSError, ValueError):
-        limit = 4 << 20
-    with contextlib.suppress(OSError):
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, limit)
 
 
 def _udp_drops(sock: socket.socket) -> int:
     """Datagrams the kernel dropped for this UDP socket (its ``drops`` column in
-    /proc/net/udp6 or udp); 0 for other sockets."""
+    /proc/net/udp{,6}); 0 for other sockets."""
     try:
-        inode = os.fstat(sock.fileno()).st_ino
+        inode = str(os.fstat(sock.fileno()).st_ino)
     except OSError:
         return 0
-    for table in ("/proc/net/udp6", "/proc/net/udp"):
-        try:
-            lines = Path(table).read_text().splitlines()[1:]
-        except OSError:
-            continue
-        for line in lines:
-            cols = line.split()
-            if len(cols) > 12 and cols[9] == str(inode):
-                return int(cols[-1])
-    return 0
+    return next((int(cols[-1]) for cols in _udp_sockets()
+                 if len(cols) > 12 and cols[9] == inode), 0)
 
 
 class _Until(can.Listener):
@@ -717,16 +681,24 @@ def _drain(progress: Progress) -> None:
 RECORDER_RCVBUF = 16 << 20  # bytes: ~20k CAN frames (an skb per frame) of slack
 
 
-def enlarge_receive_buffer(bus: can.BusABC) -> None:
-    """The recorder runs at normal priority beside real-time nodes: when they take the
-    CPU, the kernel queues the frames for it here instead of dropping them (a socketcan
-    socket holds only ~200 frames by default, a udp_multicast one ~300). Other interfaces
-    are left as they are. python-can exposes the socketcan socket as ``bus.socket``;
-    udp_multicast keeps its own in ``bus._multicast._socket`` (no public accessor)."""
+def bus_socket(bus: can.BusABC) -> socket.socket | None:
+    """The bus's own socket, None for interfaces without one. python-can exposes the
+    socketcan socket as ``bus.socket``; udp_multicast keeps its own in
+    ``bus._multicast._socket`` (no public accessor)."""
     sock = getattr(bus, "socket", None)
     if sock is None:
         sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
-    if not isinstance(sock, socket.socket):
+    return sock if isinstance(sock, socket.socket) else None
+
+
+def enlarge_receive_buffer(bus: can.BusABC) -> None:
+    """A recorder the nodes starve (on SocketCAN it runs at normal priority beside
+    real-time nodes; on udp_multicast above them, but the host may still starve it):
+    the kernel queues the frames for it here instead of dropping them (a socketcan
+    socket holds only ~200 frames by default, a udp_multicast one ~300). Other
+    interfaces are left as they are."""
+    sock = bus_socket(bus)
+    if sock is None:
         return
     for opt in (getattr(socket, "SO_RCVBUFFORCE", 33), socket.SO_RCVBUF):  # FORCE: root
         try:
