@@ -68,11 +68,15 @@ class BusOptions:
         return bus_kwargs(self.interface, self.channel, self.config)
 
     def argv(self) -> list[str]:
-        """The same bus, as flags for a child node (resolved here so all nodes agree)."""
+        """The same bus, as flags for a child node (resolved here so all nodes agree).
+        Settings every node takes by itself (``bus_kwargs``'s defaults, e.g. socketcan's
+        fd) are left out: firmware_c's node program takes no --bus-config."""
         kw = self.resolved()
+        own = bus_kwargs(kw["interface"], kw.get("channel"), None)
         out = ["--interface", kw.pop("interface")]
         if "channel" in kw:
             out += ["--channel", str(kw.pop("channel"))]
+        kw = {k: v for k, v in kw.items() if k not in own or own[k] != v}
         if kw:
             out += ["--bus-config", json.dumps(kw)]
         return out
@@ -578,15 +582,23 @@ def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration
                actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]],
                deaths: list[tuple[str, float, int]],
                dut_ids: frozenset[int] = frozenset(), dut_wait_s: float = 60.0) -> None:
-    # All at once (the router last): started one after the other, each would start
-    # while the others already run, which in the QEMU guest took ~40 s per node. With a
-    # device under test, the router waits until the device is heard.
-    held = [s for s in specs if dut_ids and s.name == "router"]
+    # All at once, but the router only once the plant's statuses (and a device under
+    # test) are heard: started one after the other, each would start while the others
+    # already run, which in the QEMU guest took ~40 s per node; and a price before the
+    # plant reports leaves every agent in INIT (the QEMU guest's plant, importing numpy
+    # beside four running agents, came up 10-20 s after them: past the price's start).
+    plant = next((s for s in specs if s.name == "plant" and s.delay == 0), None)
+    plant_ids = frozenset(contract.STATUS_BASE + i for i in range(1, progress.n + 1)
+                          if plant is not None)
+    held = [s for s in specs if (dut_ids or plant_ids) and s.name == "router"
+            and s.delay == 0]
     for s in specs:
         if s.delay == 0 and s not in held:
             start(s, logdir)
     if held:
-        _await_device(specs, logdir, progress, dut_ids, dut_wait_s, quiet)
+        if dut_ids:
+            _await_device(specs, logdir, progress, dut_ids, dut_wait_s, quiet)
+        _await_device(specs, logdir, progress, plant_ids, START_TIMEOUT_S, quiet, "the plant")
         start(held[0], logdir)
     t_start = time.monotonic()
     while progress.t_first_price is None:
@@ -636,7 +648,8 @@ def _dut_ids(sc: Scenario, dut: str) -> frozenset[int]:
 
 
 def _await_device(specs: list[NodeSpec], logdir: Path, progress: Progress,
-                  ids: frozenset[int], wait_s: float, quiet: bool) -> None:
+                  ids: frozenset[int], wait_s: float, quiet: bool,
+                  who: str = "the device under test") -> None:
     t_start = time.monotonic()
     last_note = t_start
     while True:
@@ -646,12 +659,12 @@ def _await_device(specs: list[NodeSpec], logdir: Path, progress: Progress,
             return
         now = time.monotonic()
         if now - t_start > wait_s:
-            raise BusRunError(f"the device under test sent no "
+            raise BusRunError(f"{who} sent no "
                               f"{', '.join(f'0x{i:03X}' for i in sorted(missing))} within "
                               f"{wait_s:g} s: is it on this bus, with this run's key file?")
         if not quiet and now - last_note >= 5.0:
             last_note = now
-            print(f"  waiting for the device under test ({now - t_start:.0f} s): no "
+            print(f"  waiting for {who} ({now - t_start:.0f} s): no "
                   f"{', '.join(f'0x{i:03X}' for i in sorted(missing))} yet",
                   file=sys.stderr, flush=True)
         _check_alive(specs, logdir)

@@ -2,21 +2,20 @@
 
 One run serves all three checks (a scenario run costs ~1.5 min in the QEMU guest):
 
-(a) the price comes from can-utils, not from the router: the router runs muted for the
-    whole run (``--silent``), and can-utils speak for it with its key from the run's key
-    set (the frames are signed here with ``FleetSender``, as any tool holding the key
-    would). Once all four agents are heard (``candump -n 1`` each, on 11-bit data frames
-    only), ``cansend`` injects ``ER_Price_Sync`` (the freshness of boot 1000) and the
-    first ER_Price frame (ρ = 0.9, not case 1's 0.8), which takes the agents out of INIT,
-    and ``canplayer`` then plays the next frames at the price cycle (by the file's
-    timestamps), each with its own freshness value (a loop would replay spent values:
-    rejected). (A ``cansend`` per
-    frame would do too on a host, but in the emulated guest each one costs ~0.3-0.6 s of
-    CPU: a stream of them starved the nodes and let the price lapse past the agents'
-    1.25 s timeout.) The agents must converge to ρ = 0.9. Every 50th frame of the file is
-    followed by a tampered copy of a price frame (one payload bit flipped) and a frame of
-    DLC 5: every agent counts them under RejectedAuth / RejectedDlc, at most as many as
-    ``candump`` saw.
+(a) the price comes from can-utils, not from the router: the router runs muted for the whole
+    run (``--silent``), and can-utils speak for it with its key from the run's key set (the
+    frames are signed here with ``FleetSender``, as any tool holding the key would). Once
+    all four agents and the plant are heard (``candump -n 1`` each, on 11-bit data frames
+    only), ``cansend`` injects ``ER_Price_Sync`` (the freshness of boot 1000) and the first
+    ER_Price frame (ρ = 0.9, not case 1's 0.8), which takes the agents out of INIT, and
+    ``canplayer`` then plays the next frames at the price cycle (by the file's timestamps),
+    each with its own freshness value (a loop would replay spent values: rejected). (A
+    ``cansend`` per frame would do too on a host, but in the emulated guest each one costs
+    ~0.3-0.6 s of CPU: a stream of them starved the nodes and let the price lapse past the
+    agents' 1.25 s timeout.) The agents must converge to ρ = 0.9. Every 50th frame of the
+    file is followed by a tampered copy of a price frame (one payload bit flipped) and a
+    frame of DLC 5: every agent counts them under RejectedAuth / RejectedDlc, at most as
+    many as ``candump`` saw.
 (b) ``candump -L`` records the run (kernel filters: standard IDs only, joined with an
     inverse filter that drops the 0x7F0 noise) and every line decodes with
     ``python3 -m cantools decode`` against the DBC.
@@ -129,9 +128,10 @@ def interop(vcan_channel: str, can_utils: None,
             played += [tampered(frame), frame[:4 + 10]]  # + a tampered copy, DLC 5
     play_file(out / "price.log", ch, played, PRICE_CYCLE_S * TIME_SCALE)
     # wait for an AGENT_i_MC frame from every agent: mask C00007FF matches 11-bit data
-    # frames only (7FF alone would also pass cangen's 29-bit IDs that end in 0x10i)
-    wait_agents = " && ".join(f"candump -n 1 {ch},{0x100 + i:03X}:C00007FF >/dev/null"
-                              for i in range(1, 5))
+    # frames only (7FF alone would also pass cangen's 29-bit IDs that end in 0x10i); and
+    # for the plant's status (the agents leave INIT on a price and a status)
+    wait_agents = " && ".join(f"candump -n 1 {ch},{fid:03X}:C00007FF >/dev/null"
+                              for fid in [0x100 + i for i in range(1, 5)] + [0x281])
     feeder = (f"{wait_agents} && cansend {ch} {sync} && cansend {ch} {good[0]} && "
               f"exec canplayer -I {out / 'price.log'}")
     capture = out / "candump.log"
