@@ -582,23 +582,17 @@ def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration
                actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]],
                deaths: list[tuple[str, float, int]],
                dut_ids: frozenset[int] = frozenset(), dut_wait_s: float = 60.0) -> None:
-    # All at once, but the router only once the plant's statuses (and a device under
-    # test) are heard: started one after the other, each would start while the others
-    # already run, which in the QEMU guest took ~40 s per node; and a price before the
-    # plant reports leaves every agent in INIT (the QEMU guest's plant, importing numpy
-    # beside four running agents, came up 10-20 s after them: past the price's start).
-    plant = next((s for s in specs if s.name == "plant" and s.delay == 0), None)
-    plant_ids = frozenset(contract.STATUS_BASE + i for i in range(1, progress.n + 1)
-                          if plant is not None)
-    held = [s for s in specs if (dut_ids or plant_ids) and s.name == "router"
-            and s.delay == 0]
+    # All at once (the router last): started one after the other, each would start
+    # while the others already run, which in the QEMU guest took ~40 s per node (a router
+    # held until the plant was heard came up 41 s after it there, beside the running
+    # real-time nodes). With a device under test, the router waits until the device is
+    # heard.
+    held = [s for s in specs if dut_ids and s.name == "router"]
     for s in specs:
         if s.delay == 0 and s not in held:
             start(s, logdir)
     if held:
-        if dut_ids:
-            _await_device(specs, logdir, progress, dut_ids, dut_wait_s, quiet)
-        _await_device(specs, logdir, progress, plant_ids, START_TIMEOUT_S, quiet, "the plant")
+        _await_device(specs, logdir, progress, dut_ids, dut_wait_s, quiet)
         start(held[0], logdir)
     t_start = time.monotonic()
     while progress.t_first_price is None:
@@ -648,8 +642,7 @@ def _dut_ids(sc: Scenario, dut: str) -> frozenset[int]:
 
 
 def _await_device(specs: list[NodeSpec], logdir: Path, progress: Progress,
-                  ids: frozenset[int], wait_s: float, quiet: bool,
-                  who: str = "the device under test") -> None:
+                  ids: frozenset[int], wait_s: float, quiet: bool) -> None:
     t_start = time.monotonic()
     last_note = t_start
     while True:
@@ -659,12 +652,12 @@ def _await_device(specs: list[NodeSpec], logdir: Path, progress: Progress,
             return
         now = time.monotonic()
         if now - t_start > wait_s:
-            raise BusRunError(f"{who} sent no "
+            raise BusRunError(f"the device under test sent no "
                               f"{', '.join(f'0x{i:03X}' for i in sorted(missing))} within "
                               f"{wait_s:g} s: is it on this bus, with this run's key file?")
         if not quiet and now - last_note >= 5.0:
             last_note = now
-            print(f"  waiting for {who} ({now - t_start:.0f} s): no "
+            print(f"  waiting for the device under test ({now - t_start:.0f} s): no "
                   f"{', '.join(f'0x{i:03X}' for i in sorted(missing))} yet",
                   file=sys.stderr, flush=True)
         _check_alive(specs, logdir)
