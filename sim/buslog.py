@@ -97,6 +97,7 @@ class LogContents:
     # below its boot at the run's start): a replay of an earlier run or boot, or the
     # sender's key file rolled back (AUTH-21); label -> (lowest such boot, its floor)
     stale_boot: dict[str, tuple[int, int]] = field(default_factory=dict)
+    stale_boot_syncs: Counter[str] = field(default_factory=Counter)  # those syncs, by name
     syncs: int = 0
     # frames the capture received before an earlier-stamped one (read_log sorts them)
     reordered: int = 0
@@ -433,6 +434,7 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
             except _StaleBoot as e:
                 low = out.stale_boot.get(e.label, (e.boot, e.floor))
                 out.stale_boot[e.label] = (min(low[0], e.boot), max(low[1], e.floor))
+                out.stale_boot_syncs[f.name] += 1
                 continue
         if kind == "sync":
             continue
