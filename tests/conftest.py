@@ -52,6 +52,15 @@ def no_leaks():
     assert not leaked, f"test left child processes running: {sorted(leaked)}"
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every realtime test belongs to the long tier too (before -m selects): the README's
+    test command (-m "not vcan and not long") stays within 10 minutes on 2 idle cores."""
+    for item in items:
+        if item.get_closest_marker("realtime") and not item.get_closest_marker("long"):
+            item.add_marker(pytest.mark.long)
+
+
 @pytest.fixture
 def udp_port() -> int:
     """A multicast port of its own, so concurrent runs never hear each other."""

@@ -228,6 +228,7 @@ def _sync_all(io: NodeIO, ids: list[int]) -> None:
         io._fv.accept(fid, 1 << contract.FV_COUNT_BITS)
 
 
+@pytest.mark.long  # ~40 s: 100,000 CMACs in Python
 def test_100000_random_forged_frames_on_every_dispatch_id_none_accepted() -> None:
     """100,000 random payloads on each of case 1's 14 dispatch IDs (price, command, the
     four MC, setpoint and status IDs), each into a receiver of that ID whose freshness

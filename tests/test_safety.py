@@ -509,7 +509,7 @@ def test_limits_round_trip_and_bad_values(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- healthy runs
 
 
-@pytest.mark.parametrize("case", [1, 4, 5, 7])
+@pytest.mark.parametrize("case", [1, 4, 5, pytest.param(7, marks=pytest.mark.long)])
 def test_paper_case_bus_run_keeps_safety_counters_at_zero(tmp_path: Path, case: int) -> None:
     from sim.busrun import run_in_process
 
