@@ -128,6 +128,19 @@ def test_known_bus_config_keys_pass() -> None:
     assert bus_kwargs("pcan", None, {"f_clock_mhz": 80})["f_clock_mhz"] == 80  # unchecked
 
 
+def test_child_nodes_get_only_the_bus_settings_they_do_not_take_by_themselves() -> None:
+    """firmware_c's node program takes no --bus-config: a socketcan bus's own fd = True
+    (every node reads FD frames to count them) is not passed on, a setting given is."""
+    from sim.busrun import BusOptions
+
+    assert BusOptions("socketcan", "vcan0").argv() == [
+        "--interface", "socketcan", "--channel", "vcan0"]
+    assert BusOptions("socketcan", "vcan0", '{"fd": false}').argv()[-2:] == [
+        "--bus-config", '{"fd": false}']
+    assert BusOptions("udp_multicast", None, '{"port": 43111}').argv()[-2:] == [
+        "--bus-config", '{"port": 43111}']
+
+
 def test_bus_config_from_the_environment_is_checked(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("CAN_CONFIG", '{"hoplimit": 2}')
     with pytest.raises(BusConfigError, match="unknown key 'hoplimit'"):

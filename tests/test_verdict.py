@@ -419,6 +419,7 @@ def test_a_replayed_sync_below_the_run_s_boot_floor_is_a_stale_boot(tmp_path: Pa
     floored = buslog.read_log(path, keys={"router": key}, boot_floors={"router": 4})
     assert not floored.forged and floored.unverified == {"ER_Price": 1}
     assert floored.stale_boot == {"router": (3, 4)}
+    assert floored.stale_boot_syncs == {"ER_Price_Sync": 1}   # left out, and counted
     assert [v for _, v in floored.series[("price", "Rho")]] == [4.0]
 
 
