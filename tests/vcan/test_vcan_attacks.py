@@ -27,7 +27,7 @@ from pathlib import Path
 
 import can
 import pytest
-from test_vcan_interop import _spawn, _stop, play_file
+from test_vcan_interop import _spawn, _stop, play_file, wait_for_frames
 from vcanrun import FINAL_TOL, TIME_SCALE, Run, assert_clean_exit, at, key_set, run_on_vcan
 
 from firmware_py import contract
@@ -98,9 +98,8 @@ def attacked(vcan_channel: str, can_utils: None,
     # every node heard first (the agents, the plant's status and the router's price): the
     # replay is of a running fleet, not of nodes still starting (in the QEMU guest the
     # plant and router take ~10 s to import, and the attack's load slowed them to ~40 s)
-    heard = [0x100 + i for i in range(1, 5)] + [0x281, 0x010]
-    wait_nodes = " && ".join(f"candump -n 1 {ch},{fid:03X}:C00007FF >/dev/null"
-                             for fid in heard)
+    wait_nodes = wait_for_frames(ch, [contract.MC_BASE + i for i in range(1, honest.n + 1)]
+                                 + [contract.STATUS_BASE + 1, contract.ER_PRICE_ID])
     attacker = _spawn(["sh", "-c", f"{wait_nodes} && sleep {TIME_SCALE:g} && exec "
                        f"canplayer -I {out / 'attack.log'}"],
                       out / "attacker.txt")

@@ -49,8 +49,8 @@ from vcanrun import (
     run_on_vcan,
 )
 
+from firmware_py import contract, secoc
 from firmware_py import fixedpoint as fx
-from firmware_py import secoc
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
 from sim.scenario import load_case
@@ -92,6 +92,14 @@ def play_file(path: Path, channel: str, frames: list[str], gap_s: float) -> None
                             for k, f in enumerate(frames)))
 
 
+def wait_for_frames(channel: str, ids: list[int]) -> str:
+    """A shell command that returns once a frame of each ID was heard (``candump -n 1``
+    each; mask C00007FF matches 11-bit data frames only: 7FF alone would also pass
+    cangen's 29-bit IDs that end in the same bits)."""
+    return " && ".join(f"candump -n 1 {channel},{fid:03X}:C00007FF >/dev/null"
+                       for fid in ids)
+
+
 def _spawn(argv: list[str], out: Path) -> subprocess.Popen[bytes]:
     with out.open("wb") as f:
         return subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT,
@@ -127,12 +135,11 @@ def interop(vcan_channel: str, can_utils: None,
         if k % BAD_EVERY == 0:
             played += [tampered(frame), frame[:4 + 10]]  # + a tampered copy, DLC 5
     play_file(out / "price.log", ch, played, PRICE_CYCLE_S * TIME_SCALE)
-    # wait for an AGENT_i_MC frame from every agent: mask C00007FF matches 11-bit data
-    # frames only (7FF alone would also pass cangen's 29-bit IDs that end in 0x10i); and
-    # for the plant's status (the agents leave INIT on a price and a status)
-    wait_agents = " && ".join(f"candump -n 1 {ch},{fid:03X}:C00007FF >/dev/null"
-                              for fid in [0x100 + i for i in range(1, 5)] + [0x281])
-    feeder = (f"{wait_agents} && cansend {ch} {sync} && cansend {ch} {good[0]} && "
+    # an AGENT_i_MC frame from every agent, and the plant's status (the agents leave INIT
+    # on a price and a status)
+    wait_nodes = wait_for_frames(ch, [contract.MC_BASE + i for i in range(1, sc.n + 1)]
+                                 + [contract.STATUS_BASE + 1])
+    feeder = (f"{wait_nodes} && cansend {ch} {sync} && cansend {ch} {good[0]} && "
               f"exec canplayer -I {out / 'price.log'}")
     capture = out / "candump.log"
     procs = [
