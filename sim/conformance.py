@@ -869,7 +869,10 @@ def drive(bus: can.BusABC, planned: Sequence[Planned], dut_ids: set[int], diag_i
             record.clear()  # from its Diag on: the oracle starts there
         heard.clear()
         heard.wait(wait_s)  # a fresh Diag: the tick count is aligned from it
-        t0 = clock() + ts / 2
+        # t0 is the DUT's tick (its Diag just heard): the schedule's frames at k + 0.25,
+        # 0.5, 0.75 fall between its ticks, not on them, so a tick a few ms late does not
+        # swap a frame with the next one (a one-tick pulse stays one tick for the DUT)
+        t0 = clock()
         last_report = -1
         worst = 0.0
         for p in planned:
