@@ -413,7 +413,12 @@ class _Oracle:
         self.rt = AgentRuntime(cfg, codec, keys=keyring)
         if deviation is not None:
             deviation(self.rt)
-        self._shared = {id(codec): codec, id(keyring): keyring, id(cfg): cfg}
+        # what no tick changes is shared by every clone, not copied (the clones are most
+        # of the check's time): the contract tables, the keys, the configuration
+        rt, io = self.rt, self.rt.io
+        self._shared = {id(x): x for x in (
+            codec, keyring, cfg, rt.setpoint, rt._diag_max, rt._mc_max, io._known,
+            io._cyclic, io._verify_key, io._synced_by)}
 
     def clone(self) -> _Oracle:
         twin = copy.copy(self)
@@ -500,15 +505,23 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                 maybe = sure + sum(1 for f in inputs[sure:] if f.t < t_tick)
                 # each input received when it was sent, or (a starved DUT reads its socket
                 # late and stamps the frames then) just before this tick
-                late = oracle.clone()
+                # late and stamped alike, a frame makes no other state: the late chain
+                # starts at the first frame it stamps otherwise
+                late: _Oracle | None = None
                 for cut in range(sure, maybe + 1):
                     if cut > sure:
                         f = inputs[cut - 1]
+                        if late is None and f.done < t_tick - 1e-6:
+                            late = oracle.clone()
                         oracle.rt.on_frame(f.msg, f.done)
-                        late.rt.on_frame(f.msg, max(f.done, t_tick - 1e-6))
-                    for d, chain in enumerate((oracle, late)):
-                        for g, t_guess in enumerate(_tick_times(chain.rt, prev_t, t_tick)):
-                            twin = chain.clone()
+                        if late is not None:
+                            late.rt.on_frame(f.msg, max(f.done, t_tick - 1e-6))
+                    for d, chain in enumerate((oracle,) if late is None else (oracle, late)):
+                        guesses = _tick_times(chain.rt, prev_t, t_tick)
+                        for g, t_guess in enumerate(guesses):
+                            # a chain's last use ticks the chain itself, not a copy
+                            last = cut == maybe and g == len(guesses) - 1
+                            twin = chain if last else chain.clone()
                             diffs = _compare(codec, twin.rt.tick(t_guess), group,
                                              outcome.ticks, step, t_tick - first_sent)
                             if not diffs:
