@@ -42,8 +42,9 @@ from firmware_py.runtime import AgentRuntime  # noqa: E402
 
 DB_NAME = "bd_dbc"
 # the layouts the agent packs or unpacks: the router's messages and agent 1's templates
+# (AGENT_<i>_Diag is packed from the page table below, not by cantools' code)
 TEMPLATES = ("ER_Price", "ER_Command", "ER_Price_Sync", "ER_Command_Sync", mc_name(1),
-             setpoint_name(1), diag_name(1), status_name(1), mc_name(1) + "_Sync",
+             setpoint_name(1), status_name(1), mc_name(1) + "_Sync",
              setpoint_name(1) + "_Sync", status_name(1) + "_Sync")
 PER_AGENT = {"MC": mc_name, "SETPOINT": setpoint_name, "STATUS": status_name,
              "DIAG": diag_name}
@@ -57,8 +58,8 @@ def _layout(m):
 def check_templates(db: Database) -> None:
     """Every agent's message has agent 1's layout (else one packer cannot serve all)."""
     for i in contract.agent_ids():
-        for make in (*PER_AGENT.values(), lambda j: mc_name(j) + "_Sync",
-                     lambda j: setpoint_name(j) + "_Sync", lambda j: status_name(j) + "_Sync"):
+        for make in (*PER_AGENT.values(), *(lambda j, m=m: m(j) + "_Sync"
+                                             for m in PER_AGENT.values())):
             m, t = db.get_message_by_name(make(i)), db.get_message_by_name(make(1))
             if _layout(m) != _layout(t) or m.length != t.length:
                 sys.exit(f"gen_contract: {m.name} does not have {t.name}'s layout: the C "
@@ -98,9 +99,8 @@ def contract_header(db: Database) -> tuple[str, str]:
     for key, make in PER_AGENT.items():
         pattern = make(1).replace("_1_", "_<i>_")
         define(f"BD_{key}_BASE", _id_base(make), f"{pattern} = base + i")
-        if key != "DIAG":
-            define(f"BD_{key}_SYNC_BASE", _id_base(lambda j, m=make: m(j) + "_Sync"),
-                   f"{pattern}_Sync = base + i")
+        define(f"BD_{key}_SYNC_BASE", _id_base(lambda j, m=make: m(j) + "_Sync"),
+               f"{pattern}_Sync = base + i")
     define("BD_COUNTER_MODULO", contract.COUNTER_MODULO, "E2E counter modulus")
     define("BD_COUNTER_STEP_MAX", contract.COUNTER_MODULO // 2,
            "a larger forward step reads as a step back")
@@ -137,7 +137,20 @@ def contract_header(db: Database) -> tuple[str, str]:
         tag = f"{name.replace('_1_', '_')}_{sig}".upper()
         define(f"BD_{tag}_MIN", lo, f"{name}.{sig} raw range")
         define(f"BD_{tag}_MAX", hi, "")
-    define("BD_DIAG_PAGES", len(AgentRuntime.DIAG_PAGES), "AGENT_<i>_Diag pages")
+    diag = db.get_message_by_name(diag_name(1))
+    pages = codec.pages(diag_name(1))
+    if tuple(pages.values()) != AgentRuntime.DIAG_PAGES:
+        sys.exit("gen_contract: firmware_py's DIAG_PAGES are not the DBC's pages")
+    define("BD_DIAG_PAGES", len(pages), "AGENT_<i>_Diag pages")
+    define("BD_DIAG_PAGE_SIGNALS_MAX", max(len(p) for p in pages.values()),
+           "signals on the fullest page")
+    for sig in ("Counter", "Page"):
+        define(f"BD_AGENT_DIAG_{sig.upper()}_START", diag.get_signal_by_name(sig).start,
+               f"{diag_name(1)}.{sig} start bit")
+    diag_signals = [name for page in pages.values() for name in page]
+    for k, name in enumerate(diag_signals):
+        define(f"BD_DIAG_SIG_{name.upper()}", k, "AGENT_<i>_Diag signal")
+    define("BD_N_DIAG_SIGNALS", len(diag_signals), "")
     define("BD_LAMBDA_Q", 24, "the wire λ and ρ are Q24 (the DBC's factor 2^-24)")
 
     ids = sorted(codec.frame_ids())
@@ -150,7 +163,12 @@ def contract_header(db: Database) -> tuple[str, str]:
     for name, value, why in d:
         text = f"0x{value:03X}" if name.endswith(("_ID", "_BASE")) else str(value)
         h.append(f"#define {name} {text}" + (f"  /* {why} */" if why else ""))
-    h += ["", "/* Every 11-bit ID the DBC defines: bit (id % 8) of bd_dbc_ids[id / 8]. */",
+    h += ["", "/* One signal of an AGENT_<i>_Diag page: which (BD_DIAG_SIG_*), where, and the",
+          " * maximum the agent saturates it at (the DBC's). */",
+          "typedef struct { uint8_t signal, start, length; uint32_t max; } bd_diag_field;",
+          "extern const bd_diag_field bd_diag_pages[BD_DIAG_PAGES][BD_DIAG_PAGE_SIGNALS_MAX];",
+          "extern const uint8_t bd_diag_page_signals[BD_DIAG_PAGES];  /* fields per page */",
+          "", "/* Every 11-bit ID the DBC defines: bit (id % 8) of bd_dbc_ids[id / 8]. */",
           "extern const uint8_t bd_dbc_ids[256];",
           "/* The sync IDs (sorted) and the secured frame ID each carries the freshness of. */",
           "extern const uint16_t bd_sync_ids[BD_N_SYNC_IDS];",
@@ -167,6 +185,17 @@ def contract_header(db: Database) -> tuple[str, str]:
          *(f"    0x{s:03X},  /* {codec.name_of(s)} */" for s in syncs), "};", "",
          "const uint16_t bd_synced_by[BD_N_SYNC_IDS] = {",
          *(f"    0x{contract.SYNCED_BY[s]:03X}," for s in syncs), "};", ""]
+    c += ["/* the pages of AGENT_<i>_Diag as the DBC lays them out */",
+          "const bd_diag_field bd_diag_pages[BD_DIAG_PAGES][BD_DIAG_PAGE_SIGNALS_MAX] = {"]
+    for page, names in pages.items():
+        fields = []
+        for name in names:
+            sig = diag.get_signal_by_name(name)
+            fields.append(f"{{BD_DIAG_SIG_{name.upper()}, {sig.start}u, {sig.length}u, "
+                          f"{codec.raw_range(diag_name(1), name)[1]}u}}")
+        c.append(f"    {{{', '.join(fields)}}},  /* page {page} */")
+    c += ["};", "const uint8_t bd_diag_page_signals[BD_DIAG_PAGES] = {",
+          "    " + ", ".join(f"{len(names)}u" for names in pages.values()) + ",", "};", ""]
     return "\n".join(h), "\n".join(c)
 
 

@@ -91,7 +91,8 @@ DLC = 8
 # The per-agent messages, in the order of the ID plan: name pattern -> its ID base is the
 # DBC's ID of agent 1's frame minus 1 (checked for every agent on load).
 _AGENT_MESSAGES = ("AGENT_{}_MC", "AGENT_{}_Setpoint", "PLANT_{}_Status", "AGENT_{}_Diag",
-                   "AGENT_{}_MC_Sync", "AGENT_{}_Setpoint_Sync", "PLANT_{}_Status_Sync")
+                   "AGENT_{}_MC_Sync", "AGENT_{}_Setpoint_Sync", "PLANT_{}_Status_Sync",
+                   "AGENT_{}_Diag_Sync")
 _AGENT_NAME = re.compile(r"^(?:AGENT|PLANT)_([1-9][0-9]*)_(?:MC|Setpoint|Status|Diag)(?:_Sync)?$")
 _ER_MESSAGES = ("ER_Price", "ER_Command", "ER_Balance")
 _E2E_SIGNALS = ("Mac", "CRC", "Counter")  # filled in by the codec (Mac: by NodeIO)
@@ -588,6 +589,13 @@ class FrameCodec:
             raise UnknownFrameError(f"0x{frame_id:03X}: expected an ID defined in the DBC, "
                                     "but got an unknown ID")
         return f.name
+
+    def pages(self, name: str) -> dict[int, tuple[str, ...]]:
+        """A multiplexed message's pages: page -> its signals' names by start bit (the DBC's
+        layout; AGENT_<i>_Diag's is what the agent fills in). Empty if not multiplexed."""
+        f = self._frame(name)
+        return {p: tuple(s[0] for s in sorted(sigs, key=lambda s: s[1]))
+                for p, sigs in sorted(f.pages.items())}
 
     def scale(self, name: str, signal: str) -> float:
         """The DBC factor of a signal (phys = raw·factor + offset; every offset is 0 here)."""

@@ -40,7 +40,7 @@ def c_agent_of(vec: dict[str, Any]) -> CAgent:
     agent = CAgent(cfg, keyring(vec))  # None: the public --insecure keys
     tx_count = vec.get("setup", {}).get("tx_count")
     if tx_count is not None:
-        agent.set_tx_count(tx_count, tx_count)
+        agent.set_tx_count(tx_count, tx_count, tx_count)
     return agent
 
 
