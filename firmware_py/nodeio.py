@@ -188,7 +188,7 @@ class NodeIO:
         notice a restart, ``_peer_sync``) and, for the impersonation check, what it sends."""
         taken = {contract.sender_of(self.codec.name_of(fid)) for fid in self._verify_key}
         peers = set()
-        for sid, fid in contract.SYNCED_BY.items():
+        for sid, fid in contract.PEER_SYNCED_BY.items():
             sender = contract.sender_of(self.codec.name_of(fid))
             if (sender not in taken and sender != self.keys.node
                     and (self.fleet_size is None or (agent_of(sid) or 0) <= self.fleet_size)
@@ -225,7 +225,7 @@ class NodeIO:
             if fid in self._synced_by:
                 self._on_sync(msg, fid, t)
                 return None
-            if fid in contract.SYNCED_BY and self._peer_sync(msg, fid, t):
+            if fid in contract.PEER_SYNCED_BY and self._peer_sync(msg, fid, t):
                 return None
             if fid not in self._known:
                 self.reject("unknown_id", f"0x{fid:03X}: expected an ID defined in the DBC")

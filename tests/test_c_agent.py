@@ -321,7 +321,7 @@ def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
                    peers=peers)
     c = CAgent(_cfg(), ring)
     c.set_tx_count((1 << 24) - 1, 0)
-    assert len(c.tick(0.0)) == 5          # syncs, the last MC count, setpoint, diag
+    assert len(c.tick(0.0)) == 6          # 3 syncs, the last MC count, setpoint, diag
     assert c.tick(TS) == [] and c.fatal == 12
 
 
