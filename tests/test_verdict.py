@@ -131,7 +131,7 @@ def rewrite(src: Path, dst: Path, edit) -> Path:
 
 def test_foreign_traffic_in_a_log(clean_run: tuple[Path, dict], tmp_path: Path) -> None:
     """A second sender on AGENT_2_MC (its own counter sequence), frames of an agent the
-    4-agent run does not have, and diagnostics frames with a bad CRC: each reported by
+    4-agent run does not have, and diagnostics frames of 5 bytes: each reported by
     cause. Without the run's keys the forged MC frames show as a second counter
     sequence; with them (`analyze --keys`) they fail their MAC, are left out of the
     analysis and reported as auth_failed."""
@@ -149,7 +149,7 @@ def test_foreign_traffic_in_a_log(clean_run: tuple[Path, dict], tmp_path: Path) 
         if msg.arbitration_id == 0x010 and msg.timestamp < 1.0:
             g = codec.encode("AGENT_9_MC", {"State": 1, "Lambda": 0, "Resets": 0}, 0)
             g.timestamp = msg.timestamp
-            bad = can.Message(arbitration_id=0x301, data=bytes(8), is_extended_id=False,
+            bad = can.Message(arbitration_id=0x301, data=bytes(5), is_extended_id=False,
                               timestamp=msg.timestamp)
             out += [g, bad]
         return out
@@ -162,7 +162,7 @@ def test_foreign_traffic_in_a_log(clean_run: tuple[Path, dict], tmp_path: Path) 
     assert any("AGENT_9_MC" in d for d in details), m["anomalies"]
     assert ("malformed_frames", "bus") in kinds(m)
     assert m["frames_outside_run"] == {"AGENT_9_MC": 20}
-    assert m["frames_undecodable"] == {"crc": 20}
+    assert m["frames_undecodable"] == {"dlc": 20}
     rc, m = analyze(log, tmp_path / "b", "--keys", str(clean_run[0].parent / "keys"))
     assert rc == EXIT_ANOMALIES
     forged_mc = [a["detail"] for a in m["anomalies"] if a["kind"] == "auth_failed"]
