@@ -349,7 +349,7 @@ def test_diag_page_carries_only_its_signals(codec: FrameCodec) -> None:
     assert d.agent == 5
     d12 = codec.decode(frame(0x305, bytes.fromhex("00 00 00 CD 00 01 FF FF")))
     assert set(d12.raw) == {"Mac", "Counter", "Page", "Unsynced", "Resyncs"}
-    b1 = codec.decode(frame(0x3F0, bytes.fromhex("00 00 00 17 FF FF 00 00")))
+    b1 = codec.decode(frame(0x3E0, bytes.fromhex("00 00 00 17 FF FF 00 00")))
     assert set(b1.raw) == {"Mac", "Counter", "Page", "OptimalCostRate"}
 
 
@@ -392,8 +392,8 @@ def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
     assert N_AGENTS_MAX == 32
     assert codec.frame_id("ER_Price") == 0x010
     assert codec.frame_id("ER_Command") == 0x020
-    assert codec.frame_id("ER_Balance") == 0x3F0
-    assert codec.frame_id("ER_Balance_Sync") == 0x7F0
+    assert codec.frame_id("ER_Balance") == 0x3E0
+    assert codec.frame_id("ER_Balance_Sync") == 0x7E0
     assert codec.frame_id("ER_Price_Sync") == 0x410
     assert codec.frame_id("ER_Command_Sync") == 0x420
     assert frames.AGENT_BASES == (0x100, 0x200, 0x280, 0x300, 0x500, 0x600, 0x680, 0x700)
@@ -408,8 +408,8 @@ def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
         assert codec.frame_id(diag_name(i) + "_Sync") == 0x700 + i
         for base in (0x100, 0x200, 0x280, 0x300, 0x500, 0x600, 0x680, 0x700):
             assert agent_of(base + i) == i
-    for fid in (0x010, 0x020, 0x3F0, 0x410, 0x420, 0x100, 0x121, 0x2A1, 0x321, 0x500, 0x521,
-                0x600, 0x621, 0x680, 0x6A1, 0x700, 0x721, 0x7F0, 0x7FF):
+    for fid in (0x010, 0x020, 0x3E0, 0x410, 0x420, 0x100, 0x121, 0x2A1, 0x321, 0x500, 0x521,
+                0x600, 0x621, 0x680, 0x6A1, 0x700, 0x721, 0x7E0, 0x7FF):
         assert agent_of(fid) is None
     # 3 ER frames + 4 per agent, and a sync of each (every frame is secured)
     assert len(codec.frame_ids()) == 2 * (3 + 4 * 32) == 262
@@ -433,7 +433,7 @@ def test_frame_kinds(codec: FrameCodec) -> None:
         assert codec.kind(fid) == expected_kind(codec.name_of(fid))
         by_kind[codec.kind(fid)].add(fid)
     agents = range(1, N_AGENTS_MAX + 1)
-    secured = {0x010, 0x020, 0x3F0} | {b + i for b in (0x100, 0x200, 0x280, 0x300)
+    secured = {0x010, 0x020, 0x3E0} | {b + i for b in (0x100, 0x200, 0x280, 0x300)
                                        for i in agents}
     assert by_kind["secured"] == secured == contract.SECURED_IDS
     assert by_kind["sync"] == {fid + SYNC_OFFSET for fid in secured}
@@ -563,7 +563,7 @@ def test_malformed_kinds(codec: FrameCodec, kind: str) -> None:
     (0x305, "00 00 00 F0 00 00 00 00", "Page", 15),
     (0x305, "00 00 00 10 00 0C 00 00", "State", 12),         # diag page 1 State 12
     (0x305, "00 00 00 B0 00 30 00 00", "SafetyCause", 6),    # diag page 11 cause 6
-    (0x3F0, "00 00 00 20 00 00 00 00", "Page", 2),           # balance has pages 0, 1
+    (0x3E0, "00 00 00 20 00 00 00 00", "Page", 2),           # balance has pages 0, 1
     (0x7FF, "-- 00 00 00 0A 00 00 00", "Small", 10),         # e2e_codec()'s E2E frame
 ])
 def test_out_of_range_raw_value(codec: FrameCodec, fid: int, hexdata: str, signal: str,
@@ -1010,7 +1010,7 @@ def test_dbc_loads_strict_with_the_contract() -> None:
             slot = 32 if s.start < 48 else 48
             assert s.start + s.length <= slot + 16, s.name
     balance = db.get_message_by_name("ER_Balance")
-    assert balance.frame_id == 0x3F0 and by_name["ER_Balance_Sync"].frame_id == 0x7F0
+    assert balance.frame_id == 0x3E0 and by_name["ER_Balance_Sync"].frame_id == 0x7E0
     assert {s.name: s.multiplexer_ids for s in balance.signals if s.multiplexer_ids} == {
         "GridPower": [0], "CostRate": [0], "OptimalCostRate": [1]}
     soc = db.get_message_by_name("PLANT_1_Status").get_signal_by_name("Soc")

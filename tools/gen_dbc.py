@@ -60,7 +60,8 @@ MC_BASE = 0x100
 SETPOINT_BASE = 0x200
 STATUS_BASE = 0x280
 DIAG_BASE = 0x300
-ER_BALANCE_ID = 0x3F0  # its sync at + SYNC_OFFSET must fit 11 bits
+ER_BALANCE_ID = 0x3E0  # its sync (+ SYNC_OFFSET) must fit 11 bits and stay out of
+                      # 0x7F0..0x7FF, the tests' noise IDs (tests/vcan: cangen -I 7F0)
 
 MC_CYCLE_MS = 10
 SETPOINT_CYCLE_MS = 50
