@@ -30,7 +30,8 @@ layer) consecutive E2E failures — CRC, DLC, range, ``counter_jump``, ``counter
 ``auth``, and the range checks a node runs after decoding (``fail``) — on one source ID
 make that ID untrusted for ``untrusted_s`` (1 s at Ts = 10 ms): an alarm
 (``untrusted_sources`` counts the verdicts, logged at warning level, ``last_safety``
-names the ID). An E2E-only frame on an untrusted ID is then rejected under
+names the ID). An E2E-only frame on an untrusted ID (none in the project's DBC since
+the reports were signed; a DBC may still define one) is then rejected under
 ``untrusted`` before decoding. A secured frame is not: its MAC proves its sender frame
 by frame, so the genuine sender's frames keep being used while a forger's keep failing
 (else a forger could silence any sender with five bad frames). A frame accepted before

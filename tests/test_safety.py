@@ -3,10 +3,11 @@ sequence built as the real senders build it (``FleetSender``: valid MAC and fres
 unless the rule is about them), does not trigger on healthy sequences, and the paper
 cases' bus runs keep every new counter at 0.
 
-Secured frames (price, command, MC, setpoint, status) that fail their MAC — forged with
-a wrong key, a bit flipped, or replayed — are rejected under ``auth``, which joins the
-untrusted streak; an untrusted secured ID still takes genuine frames (their MAC proves
-them), only the E2E-only IDs (AGENT_i_Diag, ER_Balance) are blocked.
+Secured frames (every frame of the DBC) that fail their MAC — forged with a wrong key,
+a bit flipped, or replayed — are rejected under ``auth``, which joins the untrusted
+streak; an untrusted secured ID still takes genuine frames (their MAC proves them). Only
+an E2E-only ID would be blocked, and the DBC has none left (AGENT_i_Diag and ER_Balance
+were, until the reports were signed).
 
 All clocks are injected (frame times and ticks are arguments): nothing sleeps."""
 
