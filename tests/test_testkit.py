@@ -46,7 +46,7 @@ def test_a_whole_fleet_on_the_simulated_clock_converges_and_reports(keys: KeySet
                                          DeadlineMisses=0, Resets=lambda n: n >= 1)
         db_msg = tester.codec.database.get_message_by_name("AGENT_3_Diag")
         assert set(diag) == {s.name for s in db_msg.signals   # every counter of every page
-                             if s.name not in ("CRC", "Counter", "Page")}
+                             if s.name not in ("Mac", "Counter", "Page")}
         assert tester.rejected == {} and tester.received["ER_Price"] > 150
 
 
