@@ -139,7 +139,8 @@ def lockstep_speed(quick: bool) -> Table:
 
 
 def codec_speed(quick: bool) -> Table:
-    """µs to encode and to decode (E2E checks included) one frame of each kind."""
+    """µs to encode and to decode (length and range checks included) one frame of each
+    kind (the MAC is NodeIO's: secoc_cost)."""
     from firmware_py.contract import State
     from firmware_py.frames import FrameCodec
 
@@ -158,7 +159,7 @@ def codec_speed(quick: bool) -> Table:
         rows.append([name, f"{t_enc:.2f}", f"{t_dec:.2f}"])
         data[name] = {"encode_us": t_enc, "decode_us": t_dec}
     return Table("Frame codec (firmware_py.frames), µs per frame, median",
-                 ["message", "encode", "decode (E2E + range checks)"], rows, data=data)
+                 ["message", "encode", "decode (length + range checks)"], rows, data=data)
 
 
 def _median_us(fn: Callable[[], object], n: int, reps: int = 5) -> float:
