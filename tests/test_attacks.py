@@ -476,6 +476,10 @@ def test_forged_diag_pages_never_enter_the_report(
     assert {k: got["agent_2"][k] for k in honest_2} == honest_2
     assert got["agent_2"]["State"] == int(contract.State.RUNNING)
     assert m["router_ledger"] == honest[0]["router_ledger"]
+    # no false alarm reached the verdict: only the forgery itself, and agent 2's truthful
+    # report of frames on its ID it did not send
+    assert {(a["kind"], a["node"]) for a in m["anomalies"]} == {
+        ("auth_failed", "bus"), ("foreign_traffic", "agent_2")}, m["anomalies"]
 
 
 def test_forged_balance_frames_never_enter_the_ledger(
@@ -493,3 +497,6 @@ def test_forged_balance_frames_never_enter_the_ledger(
     assert ledger == honest_ledger
     assert m["node_diagnostics"] == honest[0]["node_diagnostics"]
     assert _final(tr)[0] < 1e-3 and m["verdict"]["exit_code"] == 3
+    # the router heard frames on its own ID that it did not send, and says so
+    assert {(a["kind"], a["node"]) for a in m["anomalies"]} == {
+        ("auth_failed", "bus"), ("foreign_traffic", "router")}, m["anomalies"]
