@@ -1066,7 +1066,7 @@ static uint64_t diag_value(const bd_agent *a, uint32_t signal)
     case BD_DIAG_SIG_REJECTEDAUTH: return c[BD_C_AUTH];
     case BD_DIAG_SIG_UNSYNCED: return c[BD_C_UNSYNCED];
     case BD_DIAG_SIG_RESYNCS: return c[BD_C_RESYNCS];
-    default: return 0u;   /* a DBC signal without a source: gen_contract.py lists them all */
+    default: return 0u;   /* unreachable: gen_contract.py refuses an unmapped signal */
     }
 }
 
