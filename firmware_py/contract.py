@@ -58,6 +58,8 @@ __all__ = [
     "FV_COUNT_BITS",
     "FV_TX_BITS",
     "MAC_BITS",
+    "PEER_SYNCED_BY",
+    "REPORT_IDS",
     "SECURED_IDS",
     "SETPOINT_BASE",
     "SYNCED_BY",
@@ -208,6 +210,15 @@ SYNC_OF = {fid: _CODEC.frame_id(_CODEC.name_of(fid) + "_Sync") for fid in SECURE
 """Secured frame ID -> the ID of its ``<name>_Sync`` frame (read from the DBC)."""
 SYNCED_BY = {sync: fid for fid, sync in SYNC_OF.items()}
 """``<name>_Sync`` ID -> the secured frame ID whose freshness it carries."""
+REPORT_IDS = frozenset(fid for fid in SECURED_IDS
+                       if {r for s in _DB.get_message_by_frame_id(fid).signals
+                           for r in s.receivers} <= {"ER"})
+"""Secured frames that report or account (AGENT_<i>_Diag, ER_Balance): no agent or plant
+receives them (DBC receivers: the router at most), only the router and the recorder."""
+PEER_SYNCED_BY = {sync: fid for sync, fid in SYNCED_BY.items() if fid not in REPORT_IDS}
+"""The syncs a node may take as a peer's (NodeIO._peer_sync): those of the frames that
+drive the dispatch. A peer's restart shows on them; a report frame's sync adds nothing
+(and the C agent keeps per-sync state for these only)."""
 MAC_BITS = _CODEC.raw_range("ER_Price", "Mac")[1].bit_length()
 """Bits of the truncated CMAC on the wire (the DBC's Mac signal)."""
 FV_TX_BITS = _CODEC.raw_range("ER_Price", "Counter")[1].bit_length()

@@ -10,12 +10,14 @@ range), and the tests check the result byte for byte against cantools.
 Contract (see ``dbc/bess_ded.dbc`` and ``tools/gen_dbc.py``):
 
 * classic CAN, 11-bit IDs, DLC 8, Intel signals, raw integers in the firmware;
-* **secured** frames (price, command, MC, setpoint, status: the frames that can change
-  the dispatch) carry ``Mac`` in bytes 0..2 and the truncated freshness value
+* **secured** frames (in the project's DBC every frame: those that can change the
+  dispatch, and the diagnostics and balance that report and account) carry ``Mac`` in
+  bytes 0..2 and the truncated freshness value
   ``Counter`` in the low nibble of byte 3; the codec only places and reads them, the
   MAC itself is computed and checked by ``firmware_py.nodeio`` with the sender's key
   (docs/security.md). ``<name>_Sync`` frames carry ``Mac``, ``Count`` and ``Boot``;
-* every other frame: byte 0 = CRC-8 SAE J1850 (AUTOSAR E2E profile 1 polynomial, init 0xFF, xorout
+* an **e2e** frame (a DBC frame without ``Mac``; the project's has none left):
+  byte 0 = CRC-8 SAE J1850 (AUTOSAR E2E profile 1 polynomial, init 0xFF, xorout
   0xFF) over the CAN ID as 2 little-endian bytes (the data ID) then payload
   bytes 1..7; the data ID makes a frame replayed under another ID fail the CRC;
 * low nibble of byte 1 = rolling counter 0..15 (checked with ``CounterTracker``);
@@ -91,7 +93,8 @@ DLC = 8
 # The per-agent messages, in the order of the ID plan: name pattern -> its ID base is the
 # DBC's ID of agent 1's frame minus 1 (checked for every agent on load).
 _AGENT_MESSAGES = ("AGENT_{}_MC", "AGENT_{}_Setpoint", "PLANT_{}_Status", "AGENT_{}_Diag",
-                   "AGENT_{}_MC_Sync", "AGENT_{}_Setpoint_Sync", "PLANT_{}_Status_Sync")
+                   "AGENT_{}_MC_Sync", "AGENT_{}_Setpoint_Sync", "PLANT_{}_Status_Sync",
+                   "AGENT_{}_Diag_Sync")
 _AGENT_NAME = re.compile(r"^(?:AGENT|PLANT)_([1-9][0-9]*)_(?:MC|Setpoint|Status|Diag)(?:_Sync)?$")
 _ER_MESSAGES = ("ER_Price", "ER_Command", "ER_Balance")
 _E2E_SIGNALS = ("Mac", "CRC", "Counter")  # filled in by the codec (Mac: by NodeIO)
@@ -562,7 +565,7 @@ class FrameCodec:
         if f is None:
             raise EncodeError("message", "a message name defined in the DBC (ER_Price, "
                               "ER_Command, ER_Balance, AGENT_<i>_MC, AGENT_<i>_Setpoint, "
-                              "PLANT_<i>_Status, AGENT_<i>_Diag)", name)
+                              "PLANT_<i>_Status, AGENT_<i>_Diag, <name>_Sync)", name)
         return f
 
     def frame_id(self, name: str) -> int:
@@ -588,6 +591,13 @@ class FrameCodec:
             raise UnknownFrameError(f"0x{frame_id:03X}: expected an ID defined in the DBC, "
                                     "but got an unknown ID")
         return f.name
+
+    def pages(self, name: str) -> dict[int, tuple[str, ...]]:
+        """A multiplexed message's pages: page -> its signals' names by start bit (the DBC's
+        layout; AGENT_<i>_Diag's is what the agent fills in). Empty if not multiplexed."""
+        f = self._frame(name)
+        return {p: tuple(s[0] for s in sorted(sigs, key=lambda s: s[1]))
+                for p, sigs in sorted(f.pages.items())}
 
     def scale(self, name: str, signal: str) -> float:
         """The DBC factor of a signal (phys = raw·factor + offset; every offset is 0 here)."""

@@ -30,7 +30,8 @@ layer) consecutive E2E failures — CRC, DLC, range, ``counter_jump``, ``counter
 ``auth``, and the range checks a node runs after decoding (``fail``) — on one source ID
 make that ID untrusted for ``untrusted_s`` (1 s at Ts = 10 ms): an alarm
 (``untrusted_sources`` counts the verdicts, logged at warning level, ``last_safety``
-names the ID). An E2E-only frame on an untrusted ID is then rejected under
+names the ID). An E2E-only frame on an untrusted ID (none in the project's DBC since
+the reports were signed; a DBC may still define one) is then rejected under
 ``untrusted`` before decoding. A secured frame is not: its MAC proves its sender frame
 by frame, so the genuine sender's frames keep being used while a forger's keep failing
 (else a forger could silence any sender with five bad frames). A frame accepted before
@@ -188,7 +189,7 @@ class NodeIO:
         notice a restart, ``_peer_sync``) and, for the impersonation check, what it sends."""
         taken = {contract.sender_of(self.codec.name_of(fid)) for fid in self._verify_key}
         peers = set()
-        for sid, fid in contract.SYNCED_BY.items():
+        for sid, fid in contract.PEER_SYNCED_BY.items():
             sender = contract.sender_of(self.codec.name_of(fid))
             if (sender not in taken and sender != self.keys.node
                     and (self.fleet_size is None or (agent_of(sid) or 0) <= self.fleet_size)
@@ -225,7 +226,7 @@ class NodeIO:
             if fid in self._synced_by:
                 self._on_sync(msg, fid, t)
                 return None
-            if fid in contract.SYNCED_BY and self._peer_sync(msg, fid, t):
+            if fid in contract.PEER_SYNCED_BY and self._peer_sync(msg, fid, t):
                 return None
             if fid not in self._known:
                 self.reject("unknown_id", f"0x{fid:03X}: expected an ID defined in the DBC")

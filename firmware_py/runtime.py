@@ -452,16 +452,8 @@ class AgentRuntime:
                 "SafetyCause": SAFETY_CAUSES.index(last[0]) if last else 0,
                 "RejectedAuth": c["auth"], "Unsynced": c["unsynced"], "Resyncs": c["resyncs"]}
 
-    # AGENT_<i>_Diag pages (tools/gen_dbc.py): page k carries DIAG_PAGES[k]
-    DIAG_PAGES = (("Resets", "DeadlineMisses", "NeighboursAlive", "State"),
-                  ("RejectedCrc", "RejectedDlc", "RejectedRange"),
-                  ("RejectedUnknownId", "RejectedImpersonation", "RepeatedCounter"),
-                  ("LostFrames", "Saturations", "NeighbourTimeouts"),
-                  ("PriceTimeouts", "StatusTimeouts", "PlantFaults"),
-                  ("ForeignFrames", "ForeignIds", "InterleavedCounters"),
-                  ("Untrusted", "ImplausiblePrice", "ImplausibleLambda"),
-                  ("ImplausibleGains", "SafetySender", "SafetyCause"),
-                  ("RejectedAuth", "Unsynced", "Resyncs"))
+    # AGENT_<i>_Diag pages as the DBC lays them out: page k carries DIAG_PAGES[k]
+    DIAG_PAGES = tuple(FrameCodec().pages(diag_name(1)).values())
 
     def _diag_frame(self, page: int) -> can.Message:
         values = self.diag_values()

@@ -464,10 +464,11 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
                 out.series[(f.name, sig)].append((t, f.phys(sig)))
         elif f.name.endswith("_Diag"):
             out.diag[f.agent or 0].update({k: v for k, v in f.raw.items()
-                                           if k not in ("CRC", "Counter", "Page")})
-        elif f.name == "ER_Balance":
-            for sig in ("GridPower", "CostRate", "OptimalCostRate"):
-                out.series[("balance", sig)].append((t, f.phys(sig)))
+                                           if k not in ("Mac", "CRC", "Counter", "Page")})
+        elif f.name == "ER_Balance":  # one page's signals
+            for sig in f.raw:
+                if sig not in ("Mac", "CRC", "Counter", "Page"):
+                    out.series[("balance", sig)].append((t, f.phys(sig)))
     _message_silences(out, cycles, NODE_SILENCE_MIN_TS * (ts or MC_CYCLE_S))
     return out
 

@@ -37,7 +37,7 @@ N_AGENTS_MAX = 32
 MAX_NEIGHBOURS = N_AGENTS_MAX - 1
 MAX_PEERS = N_AGENTS_MAX + 2
 LABEL_MAX = 32
-TICK_FRAMES_MAX = 5
+TICK_FRAMES_MAX = 6
 FRAME_EXT, FRAME_RTR, FRAME_FD, FRAME_ERR = 0x01, 0x02, 0x04, 0x08
 EV_STATE = 100
 
@@ -111,7 +111,7 @@ class Runtime:
             ("bd_agent_note", None, [vp, ctypes.c_int, u32]),
             ("bd_agent_accepted_ids", sz, [vp, ctypes.POINTER(u32), sz]),
             ("bd_agent_lambda", ctypes.c_int32, [vp]),
-            ("bd_agent_set_tx_count", None, [vp, u32, u32]),
+            ("bd_agent_set_tx_count", None, [vp, u32, u32, u32]),
             ("bd_agent_counter", u32, [vp, ctypes.c_int]),
             ("bd_agent_state", u32, [vp]),
             ("bd_agent_resets", u32, [vp]),
@@ -377,8 +377,8 @@ class CAgent:
         ev, self._events = self._events, []
         return ev
 
-    def set_tx_count(self, mc: int, setpoint: int) -> None:
-        self.rt.lib.bd_agent_set_tx_count(self._buf, mc, setpoint)
+    def set_tx_count(self, mc: int, setpoint: int, diag: int = 0) -> None:
+        self.rt.lib.bd_agent_set_tx_count(self._buf, mc, setpoint, diag)
 
     # ---------------------------------------------------------------- node seam
 

@@ -458,7 +458,7 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     i = cfg.id
     mc_id, sp_id, diag_id = (codec.frame_id(n(i)) for n in (mc_name, setpoint_name, diag_name))
     own = {mc_id, sp_id, diag_id}
-    syncs = {contract.SYNC_OF[mc_id]: mc_id, contract.SYNC_OF[sp_id]: sp_id}
+    syncs = {contract.SYNC_OF[fid]: fid for fid in (mc_id, sp_id, diag_id)}
     outcome = Outcome()
     dut_groups = _tick_groups(frames, mc_id, own | set(syncs))
     if not dut_groups:

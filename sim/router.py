@@ -10,7 +10,8 @@
   (each with a fresh E2E counter, so none is "repeated data"; the agent treats the
   second and third as idempotent). An event fires at the first tick at or after
   its time. ``send_command`` queues the same for tools and tests.
-* ``ER_Balance`` every balance cycle (100 ms), from the ``PLANT_<i>_Status`` frames it receives:
+* ``ER_Balance`` every balance cycle (100 ms), both its pages (0: P_e and F_c, 1: F_c*) in
+  the same tick, signed like every frame, from the ``PLANT_<i>_Status`` frames it receives:
   P_e = D − ΣP_i (measured powers, each held from its last accepted frame, 0 before
   the first), F_c = Σ(1+m_i)(α_i P_i² + β_i P_i) + ρ P_e (``sim.model.expenditure``)
   and the KKT optimum's F_c* (``sim.model.kkt_optimum`` for the current ρ and D).
@@ -120,7 +121,7 @@ class RouterNode(SimNodeClock):
     ``unknown_id``, ``malformed``, ``impersonation``), ``repeated_counter``,
     ``lost_frames``, ``foreign`` (with ``impersonation``, ``foreign_id``, ``counter_jump``,
     ``counter_clash``), ``status_frames`` (accepted), ``status_timeouts``,
-    ``price_frames``, ``command_frames``, ``balance_frames``, ``silenced_frames``,
+    ``price_frames``, ``command_frames``, ``balance_frames`` (pages), ``silenced_frames``,
     ``events`` (scenario events fired), ``encode_saturations``, and the loop's
     ``deadline_miss`` / ``send_failure``. Ledger: ``cost`` and ``optimal_cost`` (cu),
     ``grid_power`` (last P_e, kW), ``cost_rate`` / ``optimal_cost_rate`` (cu/h).
@@ -234,8 +235,8 @@ class RouterNode(SimNodeClock):
             log.info("router: t = %.3f s: %s agent %d", t_rel, e.action, e.agent)
             self.send_command(EVENT_COMMANDS[e.action], e.agent)
         frames += self._due_commands(t_rel)
-        if self._balance.due(t_rel):
-            frames.append(("ER_Balance", self._balance_raw()))
+        if self._balance.due(t_rel):  # both pages: the ledger pairs rates of one instant
+            frames += [("ER_Balance", raw) for raw in self._balance_raw()]
 
         if silent:
             self.counters["silenced_frames"] += len(frames)
@@ -280,16 +281,21 @@ class RouterNode(SimNodeClock):
             raw = min(self._rho_hi, max(self._rho_lo, raw))
         return {"PriceValid": 1, "Rho": raw, "Segment": self.segment % (self._segment_hi + 1)}
 
-    def _balance_raw(self) -> dict[str, int]:
-        out = {}
-        for sig, v in (("GridPower", self.grid_power), ("CostRate", self.cost_rate),
-                       ("OptimalCostRate", self.optimal_cost_rate)):
-            lo, hi = self.codec.raw_range("ER_Balance", sig)
-            r = round(v / self.codec.scale("ER_Balance", sig))
-            if not lo <= r <= hi:
-                self.counters["encode_saturations"] += 1
-                r = min(hi, max(lo, r))
-            out[sig] = r
+    def _balance_raw(self) -> list[dict[str, int]]:
+        """Every ER_Balance page, in page order, from the ledger's values now."""
+        values = {"GridPower": self.grid_power, "CostRate": self.cost_rate,
+                  "OptimalCostRate": self.optimal_cost_rate}
+        out = []
+        for page, sigs in self.codec.pages("ER_Balance").items():
+            raw = {"Page": page}
+            for sig in sigs:
+                lo, hi = self.codec.raw_range("ER_Balance", sig)
+                r = round(values[sig] / self.codec.scale("ER_Balance", sig))
+                if not lo <= r <= hi:
+                    self.counters["encode_saturations"] += 1
+                    r = min(hi, max(lo, r))
+                raw[sig] = r
+            out.append(raw)
         return out
 
     def _send(self, name: str, raw: dict[str, int]) -> can.Message:

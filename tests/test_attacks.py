@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from firmware_py import contract, secoc
-from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name
+from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from firmware_py.nodeio import NodeIO
 from firmware_py.runtime import AgentRuntime
 from sim.busrun import run_in_process
@@ -388,3 +388,115 @@ def test_a_key_file_rolled_back_is_reported_not_silent(tmp_path: Path) -> None:
     stale = [a for a in m["anomalies"] if a["kind"] == "stale_boot"]
     assert [a["node"] for a in stale] == ["agent_3"], m["anomalies"]
     assert "boot 4, below its boot 6" in stale[0]["detail"]
+
+
+# --------------------------------------------------------------------------- reports, ledger
+
+DIAG_PAGES = AgentRuntime.DIAG_PAGES
+DIAG_EVERY_TICKS = contract.every_ticks(diag_name(2))
+BALANCE_EVERY_TICKS = contract.every_ticks("ER_Balance")
+
+
+def forged_diag(value: Callable[[str], int]) -> Callable[[float], list[can.Message]]:
+    """Every page of AGENT_2_Diag with ``value(signal)`` (saturated to its range), all at
+    once each Diag cycle, each with a counter agent 2 uses next."""
+    rng = random.Random(6)
+    name = diag_name(2)
+
+    def inject(t: float) -> list[can.Message]:
+        k = _tick(t)
+        if t < ATTACK_FROM_S or k % DIAG_EVERY_TICKS:
+            return []
+        return [_forge(name, {"Page": page, **{s: min(value(s), CODEC.raw_range(name, s)[1])
+                                               for s in sigs}},
+                       k // DIAG_EVERY_TICKS + 1, rng)
+                for page, sigs in enumerate(DIAG_PAGES)]
+    return inject
+
+
+def forged_balance(factor: float) -> Callable[[float], list[can.Message]]:
+    """Both ER_Balance pages every balance cycle: grid power and cost rates ``factor``
+    times what an honest case-1 router reports (about 10 kW and 100 cu/h)."""
+    rng = random.Random(7)
+
+    def inject(t: float) -> list[can.Message]:
+        k = _tick(t)
+        if t < ATTACK_FROM_S or k % BALANCE_EVERY_TICKS:
+            return []
+        n = 2 * (k // BALANCE_EVERY_TICKS) + 2
+        return [_forge("ER_Balance", {"Page": 0, "GridPower": round(100 * factor),
+                                      "CostRate": round(1000 * factor)}, n, rng),
+                _forge("ER_Balance", {"Page": 1, "OptimalCostRate": round(1000 * factor)},
+                       n + 1, rng)]
+    return inject
+
+
+def _bus_forgeries(m: dict[str, Any]) -> dict[str, str]:
+    """The recorder's auth_failed anomalies by the message they name."""
+    return {a["detail"].split(":")[0]: a["detail"] for a in m["anomalies"]
+            if a["kind"] == "auth_failed" and a["node"] == "bus"}
+
+
+REPORT_ATTACKS = {
+    # false alarms: every counter high, SAFE, a safety rejection of the router's price
+    "false alarms": forged_diag(lambda s: {"State": int(contract.State.SAFE),
+                                           "SafetySender": contract.ER_PRICE_ID,
+                                           "SafetyCause": 5}.get(s, 999)),
+    # erasing: every page all zero (would hide real alarms)
+    "all-zero pages": forged_diag(lambda s: 0),
+}
+
+
+@pytest.mark.parametrize("attack", list(REPORT_ATTACKS))
+def test_forged_diag_pages_never_enter_the_report(
+        attack: str, honest: tuple[dict[str, Any], np.ndarray], tmp_path: Path) -> None:
+    """Forged AGENT_2_Diag pages (a guessed MAC) are left out by the recorder and named
+    as auth_failed on AGENT_2_Diag: every agent's reported counters are the honest run's,
+    except agent 2's own truthful count of the frames that impersonated it."""
+    m, tr = _run(tmp_path, REPORT_ATTACKS[attack])
+    forged = _bus_forgeries(m)
+    assert set(forged) == {diag_name(2)}, m["anomalies"]
+    n_forged = int(forged[diag_name(2)].split()[1])
+    assert n_forged == len(DIAG_PAGES) * round((DURATION_S - ATTACK_FROM_S) / TS
+                                               / DIAG_EVERY_TICKS)
+    assert _final(tr)[0] < 1e-3 and m["verdict"]["converged"]
+    assert m["verdict"]["exit_code"] == 3
+    got, want = m["node_diagnostics"], honest[0]["node_diagnostics"]
+    assert set(got) == set(want) == {f"agent_{i}" for i in range(1, CASE.n + 1)}
+    for agent in want:
+        if agent != "agent_2":
+            assert got[agent] == want[agent], agent
+    # agent 2 heard the frames on its own ID: impersonation, counted as foreign (on pages
+    # sent at different times: the later one has counted more); the rest as in the
+    # honest run (no forged value reached the report)
+    impersonation = got["agent_2"]["RejectedImpersonation"]
+    assert 0 < impersonation <= got["agent_2"]["ForeignFrames"] <= n_forged
+    honest_2 = {k: v for k, v in want["agent_2"].items()
+                if k not in ("RejectedImpersonation", "ForeignFrames")}
+    assert {k: got["agent_2"][k] for k in honest_2} == honest_2
+    assert got["agent_2"]["State"] == int(contract.State.RUNNING)
+    assert m["router_ledger"] == honest[0]["router_ledger"]
+    # no false alarm reached the verdict: only the forgery itself, and agent 2's truthful
+    # report of frames on its ID it did not send
+    assert {(a["kind"], a["node"]) for a in m["anomalies"]} == {
+        ("auth_failed", "bus"), ("foreign_traffic", "agent_2")}, m["anomalies"]
+
+
+def test_forged_balance_frames_never_enter_the_ledger(
+        honest: tuple[dict[str, Any], np.ndarray], tmp_path: Path) -> None:
+    """Forged ER_Balance pages at ten times the honest values (once inflated the ledger
+    tenfold): rejected by the recorder, named as auth_failed on ER_Balance, and the
+    router's ledger in the report is the honest run's to the last digit."""
+    m, tr = _run(tmp_path, forged_balance(10.0))
+    forged = _bus_forgeries(m)
+    assert set(forged) == {"ER_Balance"}, m["anomalies"]
+    assert int(forged["ER_Balance"].split()[1]) == 2 * round(
+        (DURATION_S - ATTACK_FROM_S) / TS / BALANCE_EVERY_TICKS)
+    ledger, honest_ledger = m["router_ledger"], honest[0]["router_ledger"]
+    assert honest_ledger is not None and honest_ledger["cost"] > 0
+    assert ledger == honest_ledger
+    assert m["node_diagnostics"] == honest[0]["node_diagnostics"]
+    assert _final(tr)[0] < 1e-3 and m["verdict"]["exit_code"] == 3
+    # the router heard frames on its own ID that it did not send, and says so
+    assert {(a["kind"], a["node"]) for a in m["anomalies"]} == {
+        ("auth_failed", "bus"), ("foreign_traffic", "router")}, m["anomalies"]

@@ -40,7 +40,7 @@ def c_agent_of(vec: dict[str, Any]) -> CAgent:
     agent = CAgent(cfg, keyring(vec))  # None: the public --insecure keys
     tx_count = vec.get("setup", {}).get("tx_count")
     if tx_count is not None:
-        agent.set_tx_count(tx_count, tx_count)
+        agent.set_tx_count(tx_count, tx_count, tx_count)
     return agent
 
 
@@ -321,7 +321,7 @@ def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
                    peers=peers)
     c = CAgent(_cfg(), ring)
     c.set_tx_count((1 << 24) - 1, 0)
-    assert len(c.tick(0.0)) == 5          # syncs, the last MC count, setpoint, diag
+    assert len(c.tick(0.0)) == 6          # 3 syncs, the last MC count, setpoint, diag
     assert c.tick(TS) == [] and c.fatal == 12
 
 

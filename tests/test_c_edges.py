@@ -80,7 +80,7 @@ def test_a_failed_key_derivation_for_a_peer_sync_stops_the_agent(faulty: Runtime
     """--insecure with no fleet size: agent 4's MC sync (a peer sync, AUTH-18) makes the
     agent derive agent_4's key; the primitive fails: the agent stops, nothing is sent."""
     c = CAgent(_cfg("insecure"), Keyring.insecure_for("agent_2"), runtime=faulty)
-    assert len(c.tick(0.0)) == 5
+    assert len(c.tick(0.0)) == 6   # 3 syncs, MC, Setpoint, Diag
     faulty.lib.bd_test_cmac_fail_after(0)
     c.on_frame(FleetSender().sync("AGENT_4_MC"), TS / 2)
     assert c.fatal == BD_ERR_CRYPTO
@@ -111,7 +111,7 @@ def test_a_failed_signature_sends_nothing(faulty: Runtime) -> None:
     """AUTH-6: a frame whose MAC could not be computed never leaves the agent; the tick
     sends nothing at all (not the frames signed before it), and no tick after it."""
     c = CAgent(_cfg(), ring(), runtime=faulty)
-    assert len(c.tick(0.0)) == 5
+    assert len(c.tick(0.0)) == 6   # 3 syncs, MC, Setpoint, Diag
     faulty.lib.bd_test_cmac_fail_after(0)
     assert c.tick(TS) == [] and c.fatal == BD_ERR_CRYPTO
     faulty.lib.bd_test_cmac_fail_after(-1)   # a primitive that recovers changes nothing
@@ -121,11 +121,12 @@ def test_a_failed_signature_sends_nothing(faulty: Runtime) -> None:
 # --------------------------------------------------------------------------- boot, buffers
 
 
-def test_a_setpoint_count_wrap_at_the_last_boot_stops_the_agent() -> None:
-    """AUTH-5 on the setpoint's count (the MC's: test_c_agent): no boot left, nothing is
-    sent and the agent reports BD_ERR_BOOT."""
+@pytest.mark.parametrize("which", ["setpoint", "diag"])
+def test_a_setpoint_or_diag_count_wrap_at_the_last_boot_stops_the_agent(which: str) -> None:
+    """AUTH-5 on the setpoint's or the diag's count (the MC's: test_c_agent): no boot
+    left, nothing is sent and the agent reports BD_ERR_BOOT."""
     c = CAgent(_cfg(), ring(boot=65534))
-    c.set_tx_count(0, 1 << 24)
+    c.set_tx_count(0, 1 << 24 if which == "setpoint" else 0, 1 << 24 if which == "diag" else 0)
     assert c.tick(0.0) == [] and c.fatal == BD_ERR_BOOT
 
 
@@ -135,7 +136,7 @@ def test_a_short_output_buffer_gets_the_tick_s_first_frames() -> None:
     whole, short = CAgent(_cfg(), ring()), CAgent(_cfg(), ring())
     want = whole.tick_raw(0)
     out = (Frame * TICK_FRAMES_MAX)()
-    assert len(want) == 5
+    assert len(want) == 6
     n = short.rt.lib.bd_agent_tick(short._buf, 0, out, 2)
     assert n == 2 and [(out[k].id, bytes(out[k].data)) for k in range(2)] == want[:2]
     assert short.tick_raw(int(TS * 1e9)) == whole.tick_raw(int(TS * 1e9))

@@ -21,7 +21,8 @@ def test_agent_limit_ids_and_counter_modulus_are_read_from_the_dbc() -> None:
     for base, pattern in zip(contract.AGENT_BASES, ("AGENT_{}_MC", "AGENT_{}_Setpoint",
                                                    "PLANT_{}_Status", "AGENT_{}_Diag",
                                                    "AGENT_{}_MC_Sync", "AGENT_{}_Setpoint_Sync",
-                                                   "PLANT_{}_Status_Sync"),
+                                                   "PLANT_{}_Status_Sync",
+                                                   "AGENT_{}_Diag_Sync"),
                              strict=True):
         for i in contract.agent_ids():
             assert DB.get_message_by_name(pattern.format(i)).frame_id == base + i
@@ -71,7 +72,7 @@ def test_secoc_constants_are_read_from_the_dbc() -> None:
     secured = {m.frame_id for m in DB.messages
                if any(s.name == "Mac" for s in m.signals) and not m.name.endswith("_Sync")}
     assert contract.SECURED_IDS == secured
-    assert len(secured) == 2 + 3 * contract.N_AGENTS_MAX
+    assert len(secured) == 3 + 4 * contract.N_AGENTS_MAX  # every frame but the syncs
     for fid in secured:
         m, sync = DB.get_message_by_frame_id(fid), DB.get_message_by_frame_id(
             contract.SYNC_OF[fid])

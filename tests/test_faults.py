@@ -39,7 +39,7 @@ from firmware_py import contract
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.errors import FrameError
 from firmware_py.faultinject import FaultyBus, RxFaults, neighbour_mc
-from firmware_py.frames import FrameCodec
+from firmware_py.frames import FrameCodec, agent_of
 from firmware_py.runtime import DIAG_EVERY, AgentRuntime
 from sim import busrun, inject
 from sim.scenario import load_case
@@ -99,7 +99,8 @@ def decode_log(out: Path) -> list[Rec]:
 
 
 def series(recs: list[Rec], name: str, sig: str) -> list[tuple[float, int]]:
-    return [(r.t, r.raw[sig]) for r in recs if r.name == name]
+    """``sig`` from every ``name`` frame that carries it (a multiplexed frame: its page)."""
+    return [(r.t, r.raw[sig]) for r in recs if r.name == name and sig in r.raw]
 
 
 def lam_error_at(recs: list[Rec], t: float, agents: range | list[int]) -> float:
@@ -495,12 +496,16 @@ FLOOD_SEEN_MIN = 1.0 if os.geteuid() == 0 else 0.80
 
 
 def normal_rate() -> float:
-    """Frames/s the nodes send in case 1, from the DBC's cycle times."""
+    """Frames/s the nodes send in case 1, from the DBC's cycle times: every ER_Balance
+    page each balance cycle, and a sync per secured ID every sync cycle."""
     cyc = {name: CODEC.database.get_message_by_name(name).cycle_time / 1000
            for name in ("AGENT_1_Setpoint", "AGENT_1_Diag", "PLANT_1_Status", "ER_Price",
-                        "ER_Balance")}
+                        "ER_Balance", "ER_Price_Sync")}
+    secured = [fid for fid in contract.SECURED_IDS if (agent_of(fid) or 0) <= N]
+    syncs = len(secured) / cyc["ER_Price_Sync"]
     return (N * (1 / TS + 1 / cyc["AGENT_1_Setpoint"] + 1 / cyc["AGENT_1_Diag"]
-                 + 1 / cyc["PLANT_1_Status"]) + 1 / cyc["ER_Price"] + 1 / cyc["ER_Balance"])
+                 + 1 / cyc["PLANT_1_Status"]) + 1 / cyc["ER_Price"]
+            + len(CODEC.pages("ER_Balance")) / cyc["ER_Balance"] + syncs)
 
 
 ALIVE_NAMES = {*(f"AGENT_{i}_MC" for i in range(1, N + 1)), "PLANT_1_Status", "ER_Price"}

@@ -3,9 +3,11 @@ rejections.
 
 Three kinds of frame (``FrameCodec.kind``, tools/gen_dbc.py):
 
-* **e2e** (AGENT_<i>_Diag, ER_Balance): byte 0 = CRC, low nibble of byte 1 = Counter;
-  the codec computes and checks the CRC;
-* **secured** (ER_Price, ER_Command, AGENT_<i>_MC, AGENT_<i>_Setpoint, PLANT_<i>_Status):
+* **e2e**: byte 0 = CRC, low nibble of byte 1 = Counter; the codec computes and checks
+  the CRC. The project's DBC no longer has such a frame (every frame is secured); the
+  codec still reads one from a DBC that defines it, tested on ``e2e_codec()``'s;
+* **secured** (every frame of the project's DBC: ER_Price, ER_Command, ER_Balance,
+  AGENT_<i>_MC, AGENT_<i>_Setpoint, AGENT_<i>_Diag, PLANT_<i>_Status):
   bytes 0..2 = Mac, low nibble of byte 3 = Counter (the truncated freshness value),
   payload from bit 28; the codec leaves Mac = 0 on encode and does not check it on
   decode (NodeIO signs and verifies with the keys, firmware_py.secoc);
@@ -19,12 +21,14 @@ from the bitwise reference CRC in this file, not from the codec under test.
 
 from __future__ import annotations
 
+import functools
 import math
 import pickle
 import runpy
 import shutil
 import subprocess
 import sys
+import tempfile
 import timeit
 from pathlib import Path
 from typing import Any
@@ -73,8 +77,8 @@ ROOT = Path(__file__).resolve().parent.parent
 GEN_DBC = ROOT / "tools" / "gen_dbc.py"
 
 SYNC_OFFSET = 0x400
-SECURED_TYPES = frozenset({"ER_Price", "ER_Command", "MC", "Setpoint", "Status"})
-E2E_TYPES = frozenset({"Diag", "ER_Balance"})
+SECURED_TYPES = frozenset({"ER_Price", "ER_Command", "MC", "Setpoint", "Status", "Diag",
+                           "ER_Balance"})
 KINDS = ("e2e", "secured", "sync")
 
 
@@ -112,8 +116,10 @@ def expected_kind(name: str) -> str:
     if name.endswith("_Sync"):
         return "sync"
     t = msg_type(name)
-    assert t in SECURED_TYPES | E2E_TYPES, name
-    return "secured" if t in SECURED_TYPES else "e2e"
+    if t == E2E_TEST_MESSAGE:
+        return "e2e"
+    assert t in SECURED_TYPES, name
+    return "secured"
 
 
 def protection(kind: str, data: bytes, counter: int) -> dict[str, int]:
@@ -128,6 +134,31 @@ def protection(kind: str, data: bytes, counter: int) -> dict[str, int]:
 @pytest.fixture(scope="module")
 def codec() -> FrameCodec:
     return FrameCodec()
+
+
+E2E_TEST_MESSAGE = "TEST_E2E"
+E2E_TEST_ID = 0x7FF
+
+
+@functools.lru_cache(maxsize=1)
+def e2e_codec() -> FrameCodec:
+    """A codec of the project's DBC plus one E2E frame (CRC 0|8, Counter 8|4, Value 16|16,
+    Small 32|4 in 0..9): every project frame is secured, but a DBC may define E2E ones."""
+    from cantools.database.can import Message as DbcMessage
+    from cantools.database.can import Signal
+    db = cantools.database.load_file(DBC_PATH, strict=True)
+    assert isinstance(db, cantools.database.can.Database)
+
+    def sig(name: str, start: int, length: int, maximum: int | None = None) -> Signal:
+        return Signal(name, start, length, byte_order="little_endian", minimum=0,
+                      maximum=(1 << length) - 1 if maximum is None else maximum)
+
+    db.messages.append(DbcMessage(E2E_TEST_ID, E2E_TEST_MESSAGE, 8, [
+        sig("CRC", 0, 8), sig("Counter", 8, 4), sig("Value", 16, 16), sig("Small", 32, 4, 9)],
+        senders=["ER"], strict=True))
+    path = Path(tempfile.mkdtemp(prefix="bess-ded-e2e-")) / "e2e.dbc"
+    cantools.database.dump_file(db, str(path))
+    return FrameCodec(path)
 
 
 # --------------------------------------------------------------------------- CRC
@@ -186,56 +217,66 @@ GOLDEN = [
      "00 00 00 11 00 00 02 00", {"Count": 17}),
     ("PLANT_1_Status_Sync", 0, {"Count": 0x0A0B0C, "Boot": 0x3000},
      "00 00 00 0C 0B 0A 00 30", {"Count": 0x0A0B0C, "Boot": 0x3000}),
-    # diag page 0: byte1 = 0x01; Resets 300 = 0x012C; DeadlineMisses 2; NeighboursAlive 4;
-    # State SAFE (3) in bits 56..59
-    ("AGENT_5_Diag", 1, {"Page": 0, "Resets": 300, "DeadlineMisses": 2, "NeighboursAlive": 4,
-                         "State": 3},
-     "4C 01 2C 01 02 00 04 03", {"Resets": 300, "State": 3}),
-    # page 1: byte1 = 0x12; RejectedCrc saturated 0xFFFF; RejectedDlc 1; RejectedRange 0x1234
-    ("AGENT_5_Diag", 2, {"Page": 1, "RejectedCrc": 65535, "RejectedDlc": 1,
-                         "RejectedRange": 0x1234},
-     "12 12 FF FF 01 00 34 12", {"RejectedCrc": 65535}),
-    # page 2: byte1 = 0x23; RejectedUnknownId 10; RejectedImpersonation 0; RepeatedCounter 0x0201
-    ("AGENT_5_Diag", 3, {"Page": 2, "RejectedUnknownId": 10, "RejectedImpersonation": 0,
-                         "RepeatedCounter": 513},
-     "09 23 0A 00 00 00 01 02", {"RepeatedCounter": 513}),
-    # page 3: byte1 = 0x34; LostFrames 7; Saturations 0x0100; NeighbourTimeouts 0xFFFE
-    ("AGENT_5_Diag", 4, {"Page": 3, "LostFrames": 7, "Saturations": 256,
-                         "NeighbourTimeouts": 65534},
-     "47 34 07 00 00 01 FE FF", {"Saturations": 256}),
-    # page 4: byte1 = 0x45; PriceTimeouts 1; StatusTimeouts 2; PlantFaults 0x0300
-    ("AGENT_5_Diag", 5, {"Page": 4, "PriceTimeouts": 1, "StatusTimeouts": 2,
-                         "PlantFaults": 0x0300},
-     "DD 45 01 00 02 00 00 03", {"StatusTimeouts": 2}),
-    # page 5: byte1 = 0x56; ForeignFrames saturated 0xFFFF; ForeignIds 0x10; Interleaved 0x0102
-    ("AGENT_5_Diag", 6, {"Page": 5, "ForeignFrames": 65535, "ForeignIds": 16,
-                         "InterleavedCounters": 0x0102},
-     "83 56 FF FF 10 00 02 01", {"ForeignFrames": 65535}),
-    # page 6: byte1 = 0x67; Untrusted 95; ImplausiblePrice 2; ImplausibleLambda 0x0400
-    ("AGENT_5_Diag", 7, {"Page": 6, "Untrusted": 95, "ImplausiblePrice": 2,
-                         "ImplausibleLambda": 0x0400},
-     "9C 67 5F 00 02 00 00 04", {"Untrusted": 95}),
-    # page 7: byte1 = 0x78; ImplausibleGains 1; SafetySender 0x101 (11 bits at 32);
-    # SafetyCause IMPLAUSIBLE_LAMBDA (3) in bits 48..51
-    ("AGENT_5_Diag", 8, {"Page": 7, "ImplausibleGains": 1, "SafetySender": 0x101,
-                         "SafetyCause": 3},
-     "2B 78 01 00 01 01 03 00", {"SafetySender": 257, "SafetyCause": 3}),
-    # page 8: byte1 = 0x89; RejectedAuth 3; Unsynced 0x0100; Resyncs saturated 0xFFFF
-    ("AGENT_5_Diag", 9, {"Page": 8, "RejectedAuth": 3, "Unsynced": 256, "Resyncs": 65535},
-     "9F 89 03 00 00 01 FF FF", {"RejectedAuth": 3, "Unsynced": 256, "Resyncs": 65535}),
-    # byte1 = 0x06; GridPower -123.4 kW → 0xFB2E; CostRate 56.7 → 0x0237; Optimal -0.1 → 0xFFFF
-    ("ER_Balance", 6, {"GridPower": -1234, "CostRate": 567, "OptimalCostRate": -1},
-     "22 06 2E FB 37 02 FF FF",
-     {"GridPower": -123.4, "CostRate": 56.7, "OptimalCostRate": -0.1}),
+    # diag pages: byte3 = counter | Page<<4; two 16-bit slots in bytes 4..5 and 6..7.
+    # page 0: Resets 300 = 0x012C; DeadlineMisses 2
+    ("AGENT_5_Diag", 1, {"Page": 0, "Resets": 300, "DeadlineMisses": 2},
+     "00 00 00 01 2C 01 02 00", {"Resets": 300}),
+    # page 1: NeighboursAlive 4 (byte 4), State SAFE (3) in bits 40..43; RejectedCrc saturated
+    ("AGENT_5_Diag", 2, {"Page": 1, "NeighboursAlive": 4, "State": 3, "RejectedCrc": 65535},
+     "00 00 00 12 04 03 FF FF", {"State": 3, "RejectedCrc": 65535}),
+    # page 2: RejectedDlc 1; RejectedRange 0x1234
+    ("AGENT_5_Diag", 3, {"Page": 2, "RejectedDlc": 1, "RejectedRange": 0x1234},
+     "00 00 00 23 01 00 34 12", {"RejectedRange": 0x1234}),
+    # page 3: RejectedUnknownId 10; RejectedImpersonation 0
+    ("AGENT_5_Diag", 4, {"Page": 3, "RejectedUnknownId": 10, "RejectedImpersonation": 0},
+     "00 00 00 34 0A 00 00 00", {"RejectedUnknownId": 10}),
+    # page 4: RepeatedCounter 0x0201; LostFrames 7
+    ("AGENT_5_Diag", 5, {"Page": 4, "RepeatedCounter": 513, "LostFrames": 7},
+     "00 00 00 45 01 02 07 00", {"RepeatedCounter": 513}),
+    # page 5: Saturations 0x0100; NeighbourTimeouts 0xFFFE
+    ("AGENT_5_Diag", 6, {"Page": 5, "Saturations": 256, "NeighbourTimeouts": 65534},
+     "00 00 00 56 00 01 FE FF", {"Saturations": 256}),
+    # page 6: PriceTimeouts 1; StatusTimeouts 2
+    ("AGENT_5_Diag", 7, {"Page": 6, "PriceTimeouts": 1, "StatusTimeouts": 2},
+     "00 00 00 67 01 00 02 00", {"StatusTimeouts": 2}),
+    # page 7: PlantFaults 0x0300; ForeignFrames saturated 0xFFFF
+    ("AGENT_5_Diag", 8, {"Page": 7, "PlantFaults": 0x0300, "ForeignFrames": 65535},
+     "00 00 00 78 00 03 FF FF", {"ForeignFrames": 65535}),
+    # page 8: ForeignIds 0x10; InterleavedCounters 0x0102
+    ("AGENT_5_Diag", 9, {"Page": 8, "ForeignIds": 16, "InterleavedCounters": 0x0102},
+     "00 00 00 89 10 00 02 01", {"ForeignIds": 16}),
+    # page 9: Untrusted 95; ImplausiblePrice 2
+    ("AGENT_5_Diag", 10, {"Page": 9, "Untrusted": 95, "ImplausiblePrice": 2},
+     "00 00 00 9A 5F 00 02 00", {"Untrusted": 95}),
+    # page 10: ImplausibleLambda 0x0400; ImplausibleGains 1
+    ("AGENT_5_Diag", 11, {"Page": 10, "ImplausibleLambda": 0x0400, "ImplausibleGains": 1},
+     "00 00 00 AB 00 04 01 00", {"ImplausibleGains": 1}),
+    # page 11: SafetySender 0x101 (11 bits at 32) | SafetyCause IMPLAUSIBLE_LAMBDA (3) << 11
+    # = 0x1901 in bytes 4..5; RejectedAuth 3
+    ("AGENT_5_Diag", 12, {"Page": 11, "SafetySender": 0x101, "SafetyCause": 3,
+                          "RejectedAuth": 3},
+     "00 00 00 BC 01 19 03 00", {"SafetySender": 257, "SafetyCause": 3, "RejectedAuth": 3}),
+    # page 12: Unsynced 0x0100; Resyncs saturated 0xFFFF
+    ("AGENT_5_Diag", 13, {"Page": 12, "Unsynced": 256, "Resyncs": 65535},
+     "00 00 00 CD 00 01 FF FF", {"Unsynced": 256, "Resyncs": 65535}),
+    ("AGENT_5_Diag_Sync", 0, {"Count": 0x000102, "Boot": 3},
+     "00 00 00 02 01 00 03 00", {"Count": 258}),
+    # balance page 0: byte3 = 0x06; GridPower -123.4 kW → 0xFB2E; CostRate 56.7 → 0x0237
+    ("ER_Balance", 6, {"Page": 0, "GridPower": -1234, "CostRate": 567},
+     "00 00 00 06 2E FB 37 02", {"GridPower": -123.4, "CostRate": 56.7}),
+    # page 1: byte3 = 0x17; OptimalCostRate -0.1 → 0xFFFF
+    ("ER_Balance", 7, {"Page": 1, "OptimalCostRate": -1},
+     "00 00 00 17 FF FF 00 00", {"OptimalCostRate": -0.1}),
+    ("ER_Balance_Sync", 0, {"Count": 7, "Boot": 1},
+     "00 00 00 07 00 00 01 00", {"Count": 7}),
 ]
-GOLDEN_NOT_E2E = [g for g in GOLDEN if expected_kind(g[0]) != "e2e"]
 
 
 def test_golden_covers_every_message_type(codec: FrameCodec) -> None:
     types = {msg_type(name) for name, *_ in GOLDEN}
-    assert types == SECURED_TYPES | E2E_TYPES | {f"{t}_Sync" for t in SECURED_TYPES}
+    assert types == SECURED_TYPES | {f"{t}_Sync" for t in SECURED_TYPES}
     assert {msg_type(m.name) for m in codec.database.messages} == types
-    assert {expected_kind(name) for name, *_ in GOLDEN} == set(KINDS)
+    assert {expected_kind(name) for name, *_ in GOLDEN} == {"secured", "sync"}
     assert {raw["Page"] for name, _, raw, *_ in GOLDEN if name.endswith("_Diag")} == set(
         range(len(AgentRuntime.DIAG_PAGES)))
 
@@ -303,12 +344,13 @@ def test_golden_lambda_and_rho_are_exact_q24(codec: FrameCodec) -> None:
 
 
 def test_diag_page_carries_only_its_signals(codec: FrameCodec) -> None:
-    d = codec.decode(frame(0x305, bytes.fromhex("12 12 FF FF 01 00 34 12")))
-    assert set(d.raw) == {"CRC", "Counter", "Page", "RejectedCrc", "RejectedDlc",
-                          "RejectedRange"}
+    d = codec.decode(frame(0x305, bytes.fromhex("00 00 00 12 04 03 FF FF")))
+    assert set(d.raw) == {"Mac", "Counter", "Page", "NeighboursAlive", "State", "RejectedCrc"}
     assert d.agent == 5
-    d8 = codec.decode(frame(0x305, bytes.fromhex("9F 89 03 00 00 01 FF FF")))
-    assert set(d8.raw) == {"CRC", "Counter", "Page", "RejectedAuth", "Unsynced", "Resyncs"}
+    d12 = codec.decode(frame(0x305, bytes.fromhex("00 00 00 CD 00 01 FF FF")))
+    assert set(d12.raw) == {"Mac", "Counter", "Page", "Unsynced", "Resyncs"}
+    b1 = codec.decode(frame(0x3E0, bytes.fromhex("00 00 00 17 FF FF 00 00")))
+    assert set(b1.raw) == {"Mac", "Counter", "Page", "OptimalCostRate"}
 
 
 def test_encode_phys_matches_raw_encoding(codec: FrameCodec) -> None:
@@ -321,9 +363,11 @@ def test_encode_phys_matches_raw_encoding(codec: FrameCodec) -> None:
     assert bytes(cmd.data) == bytes.fromhex("00 00 00 7F 94 03 43 1F")
     sync = codec.encode_phys("ER_Price_Sync", {"Count": 0x123456, "Boot": 0x0102}, 0)
     assert bytes(sync.data) == bytes.fromhex("00 00 00 56 34 12 02 01")
-    diag = codec.encode_phys("AGENT_5_Diag", {"Page": 8, "RejectedAuth": 3, "Unsynced": 256,
-                                              "Resyncs": 65535}, 9)
-    assert bytes(diag.data) == bytes.fromhex("9F 89 03 00 00 01 FF FF")  # CRC filled in
+    diag = codec.encode_phys("AGENT_5_Diag", {"Page": 12, "Unsynced": 256, "Resyncs": 65535},
+                             13)
+    assert bytes(diag.data) == bytes.fromhex("00 00 00 CD 00 01 FF FF")  # Mac: NodeIO's
+    e2e = e2e_codec().encode_phys(E2E_TEST_MESSAGE, {"Value": 0x1234, "Small": 5}, 3)
+    assert bytes(e2e.data) == bytes(valid_e2e().data)  # CRC filled in
     mc = codec.encode_phys("AGENT_2_MC", {"State": "RUNNING", "Lambda": 0.8, "Resets": 0}, 1)
     assert bytes(mc.data[0:3]) == bytes(3) and mc.data[3] == 0x11
     assert codec.decode(mc).raw["Lambda"] == round(0.8 * 2**24)
@@ -348,10 +392,11 @@ def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
     assert N_AGENTS_MAX == 32
     assert codec.frame_id("ER_Price") == 0x010
     assert codec.frame_id("ER_Command") == 0x020
-    assert codec.frame_id("ER_Balance") == 0x400
+    assert codec.frame_id("ER_Balance") == 0x3E0
+    assert codec.frame_id("ER_Balance_Sync") == 0x7E0
     assert codec.frame_id("ER_Price_Sync") == 0x410
     assert codec.frame_id("ER_Command_Sync") == 0x420
-    assert frames.AGENT_BASES == (0x100, 0x200, 0x280, 0x300, 0x500, 0x600, 0x680)
+    assert frames.AGENT_BASES == (0x100, 0x200, 0x280, 0x300, 0x500, 0x600, 0x680, 0x700)
     for i in (1, 17, 32):
         assert codec.frame_id(mc_name(i)) == 0x100 + i
         assert codec.frame_id(setpoint_name(i)) == 0x200 + i
@@ -360,14 +405,15 @@ def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
         assert codec.frame_id(mc_name(i) + "_Sync") == 0x500 + i
         assert codec.frame_id(setpoint_name(i) + "_Sync") == 0x600 + i
         assert codec.frame_id(status_name(i) + "_Sync") == 0x680 + i
-        for base in (0x100, 0x200, 0x280, 0x300, 0x500, 0x600, 0x680):
+        assert codec.frame_id(diag_name(i) + "_Sync") == 0x700 + i
+        for base in (0x100, 0x200, 0x280, 0x300, 0x500, 0x600, 0x680, 0x700):
             assert agent_of(base + i) == i
-    for fid in (0x010, 0x020, 0x400, 0x410, 0x420, 0x100, 0x121, 0x2A1, 0x321, 0x500, 0x521,
-                0x600, 0x621, 0x680, 0x6A1, 0x7FF):
+    for fid in (0x010, 0x020, 0x3E0, 0x410, 0x420, 0x100, 0x121, 0x2A1, 0x321, 0x500, 0x521,
+                0x600, 0x621, 0x680, 0x6A1, 0x700, 0x721, 0x7E0, 0x7FF):
         assert agent_of(fid) is None
-    # 3 ER frames + 4 per agent + a sync per secured frame (2 ER + 3 per agent)
-    assert len(codec.frame_ids()) == 3 + 4 * 32 + 2 + 3 * 32 == 229
-    assert len(codec.database.messages) == 229
+    # 3 ER frames + 4 per agent, and a sync of each (every frame is secured)
+    assert len(codec.frame_ids()) == 2 * (3 + 4 * 32) == 262
+    assert len(codec.database.messages) == 262
     assert codec.name_of(0x120) == "AGENT_32_MC"
     assert codec.name_of(0x520) == "AGENT_32_MC_Sync"
     assert codec.name_of(0x6A0) == "PLANT_32_Status_Sync"
@@ -376,8 +422,8 @@ def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
             mc_name(bad)  # type: ignore[arg-type]
     with pytest.raises(EncodeError, match="AGENT_33_MC"):
         codec.frame_id("AGENT_33_MC")
-    with pytest.raises(EncodeError, match="AGENT_1_Diag_Sync"):
-        codec.frame_id("AGENT_1_Diag_Sync")  # e2e frames have no sync
+    with pytest.raises(EncodeError, match="AGENT_1_MC_Sync_Sync"):
+        codec.frame_id("AGENT_1_MC_Sync_Sync")  # a sync has no sync
 
 
 def test_frame_kinds(codec: FrameCodec) -> None:
@@ -387,10 +433,11 @@ def test_frame_kinds(codec: FrameCodec) -> None:
         assert codec.kind(fid) == expected_kind(codec.name_of(fid))
         by_kind[codec.kind(fid)].add(fid)
     agents = range(1, N_AGENTS_MAX + 1)
-    secured = {0x010, 0x020} | {b + i for b in (0x100, 0x200, 0x280) for i in agents}
+    secured = {0x010, 0x020, 0x3E0} | {b + i for b in (0x100, 0x200, 0x280, 0x300)
+                                       for i in agents}
     assert by_kind["secured"] == secured == contract.SECURED_IDS
     assert by_kind["sync"] == {fid + SYNC_OFFSET for fid in secured}
-    assert by_kind["e2e"] == {0x400} | {0x300 + i for i in agents}
+    assert by_kind["e2e"] == set()
     assert contract.SYNC_OF == {fid: fid + SYNC_OFFSET for fid in secured}
     assert contract.SYNCED_BY == {fid + SYNC_OFFSET: fid for fid in secured}
     for fid in secured:
@@ -411,14 +458,18 @@ def valid_mc(codec: FrameCodec, counter: int = 3) -> can.Message:
 
 
 def valid_diag(codec: FrameCodec, counter: int = 3) -> can.Message:
-    """An E2E frame (CRC filled in by the codec)."""
-    return codec.encode(diag_name(2), {"Page": 1, "RejectedCrc": 1, "RejectedDlc": 2,
-                                       "RejectedRange": 3}, counter)
+    """A secured multiplexed frame (Mac left 0 by the codec)."""
+    return codec.encode(diag_name(2), {"Page": 2, "RejectedDlc": 2, "RejectedRange": 3},
+                        counter)
 
 
 def valid_balance(codec: FrameCodec, counter: int = 3) -> can.Message:
-    return codec.encode("ER_Balance", {"GridPower": -5, "CostRate": 100,
-                                       "OptimalCostRate": 90}, counter)
+    return codec.encode("ER_Balance", {"Page": 0, "GridPower": -5, "CostRate": 100}, counter)
+
+
+def valid_e2e(_codec: FrameCodec | None = None, counter: int = 3) -> can.Message:
+    """An E2E frame (CRC filled in by the codec), of ``e2e_codec()``'s DBC."""
+    return e2e_codec().encode(E2E_TEST_MESSAGE, {"Value": 0x1234, "Small": 5}, counter)
 
 
 def valid_sync(codec: FrameCodec) -> can.Message:
@@ -426,13 +477,17 @@ def valid_sync(codec: FrameCodec) -> can.Message:
 
 
 VALID: dict[str, Any] = {"mc": valid_mc, "diag": valid_diag, "balance": valid_balance,
-                         "sync": valid_sync}
+                         "sync": valid_sync, "e2e": valid_e2e}
 
 
-@given(st.sampled_from(["diag", "balance"]), st.integers(0, 63))
-def test_any_single_bit_error_fails_the_crc(which: str, bit: int) -> None:
-    codec = FrameCodec()
-    msg = VALID[which](codec)
+def codec_for(which: str, codec: FrameCodec) -> FrameCodec:
+    return e2e_codec() if which == "e2e" else codec
+
+
+@given(st.integers(0, 63))
+def test_any_single_bit_error_fails_the_crc(bit: int) -> None:
+    codec = e2e_codec()
+    msg = valid_e2e()
     assert codec.kind(msg.arbitration_id) == "e2e"
     msg.data[bit // 8] ^= 1 << (bit % 8)
     with pytest.raises(CrcError) as e:
@@ -441,22 +496,26 @@ def test_any_single_bit_error_fails_the_crc(which: str, bit: int) -> None:
     assert "expected CRC 0x" in str(e.value) and "but got 0x" in str(e.value)
 
 
-def test_frame_under_another_id_fails_the_crc(codec: FrameCodec) -> None:
-    """The data ID is in the CRC: agent 2's diag payload replayed as agent 3's is rejected,
-    and so is the balance payload under a diag ID."""
-    msg = valid_diag(codec)
-    with pytest.raises(CrcError, match="AGENT_3_Diag"):
-        codec.decode(frame(0x303, bytes(msg.data)))
-    with pytest.raises(CrcError, match="AGENT_1_Diag"):
-        codec.decode(frame(0x301, bytes(valid_balance(codec).data)))
+def test_frame_under_another_id_fails_the_crc() -> None:
+    """The data ID is in the CRC: the same bytes under another ID fail it."""
+    codec = e2e_codec()
+    msg = valid_e2e()
+    assert codec.decode(msg).raw["Value"] == 0x1234
+    crc_under = {fid: e2e_crc(fid, msg.data) for fid in (E2E_TEST_ID, 0x7FE, 0x3FF)}
+    assert len(set(crc_under.values())) == 3 and crc_under[E2E_TEST_ID] == msg.data[0]
 
 
-@pytest.mark.parametrize("which", ["mc", "diag", "sync"])
+def test_the_project_dbc_has_no_e2e_frame_left(codec: FrameCodec) -> None:
+    """Every frame that reports or accounts is authenticated: no CRC-only frame."""
+    assert {codec.kind(fid) for fid in codec.frame_ids()} == {"secured", "sync"}
+
+
+@pytest.mark.parametrize("which", ["mc", "diag", "balance", "sync", "e2e"])
 @pytest.mark.parametrize("length", [0, 1, 5, 7])
 def test_wrong_dlc(codec: FrameCodec, length: int, which: str) -> None:
     msg = VALID[which](codec)
     with pytest.raises(FrameLengthError, match=f"expected DLC 8, but got {length}") as e:
-        codec.decode(frame(msg.arbitration_id, bytes(msg.data[:length])))
+        codec_for(which, codec).decode(frame(msg.arbitration_id, bytes(msg.data[:length])))
     assert e.value.cause == "dlc"
 
 
@@ -500,14 +559,17 @@ def test_malformed_kinds(codec: FrameCodec, kind: str) -> None:
     (0x020, "00 00 00 50 08 00 00 00", "Target", 33),        # ISOLATE agent 33 = 0b100001
     (0x410, "12 34 56 01 00 00 00 00", "Boot", 0),           # ER_Price_Sync boot 0
     (0x6A0, "00 00 00 FF FF FF 00 00", "Boot", 0),           # PLANT_32_Status_Sync boot 0
-    (0x305, "-- 90 00 00 00 00 00 00", "Page", 9),           # diag page 9 does not exist
-    (0x305, "-- F0 00 00 00 00 00 00", "Page", 15),
-    (0x305, "-- 00 00 00 00 00 00 0C", "State", 12),         # diag page 0 State 12
-    (0x305, "-- 70 00 00 00 00 06 00", "SafetyCause", 6),    # diag page 7 cause 6
+    (0x305, "00 00 00 D0 00 00 00 00", "Page", 13),          # diag page 13 does not exist
+    (0x305, "00 00 00 F0 00 00 00 00", "Page", 15),
+    (0x305, "00 00 00 10 00 0C 00 00", "State", 12),         # diag page 1 State 12
+    (0x305, "00 00 00 B0 00 30 00 00", "SafetyCause", 6),    # diag page 11 cause 6
+    (0x3E0, "00 00 00 20 00 00 00 00", "Page", 2),           # balance has pages 0, 1
+    (0x7FF, "-- 00 00 00 0A 00 00 00", "Small", 10),         # e2e_codec()'s E2E frame
 ])
 def test_out_of_range_raw_value(codec: FrameCodec, fid: int, hexdata: str, signal: str,
                                 got: int) -> None:
-    if codec.kind(fid) == "e2e":
+    if fid == E2E_TEST_ID:
+        codec = e2e_codec()
         data = with_crc(fid, bytes.fromhex(hexdata[2:]))
     else:
         data = bytes.fromhex(hexdata)
@@ -519,17 +581,18 @@ def test_out_of_range_raw_value(codec: FrameCodec, fid: int, hexdata: str, signa
 
 def test_rejection_order_id_dlc_crc_range(codec: FrameCodec) -> None:
     """Unknown ID before DLC before CRC (E2E frames) before range."""
-    page_9 = bytes.fromhex("90 00 00 00 00 00 00")  # AGENT_2_Diag page 9: out of range
-    good_crc = with_crc(0x302, page_9)
-    bad_range_bad_crc = bytes([good_crc[0] ^ 0x5A]) + page_9
+    e2e = e2e_codec()
+    small_10 = bytes.fromhex("00 00 00 0A 00 00 00")  # Small 10: out of range
+    good_crc = with_crc(E2E_TEST_ID, small_10)
+    bad_range_bad_crc = bytes([good_crc[0] ^ 0x5A]) + small_10
     with pytest.raises(RangeError):
-        codec.decode(frame(0x302, good_crc))
+        e2e.decode(frame(E2E_TEST_ID, good_crc))
     with pytest.raises(CrcError):
-        codec.decode(frame(0x302, bad_range_bad_crc))
+        e2e.decode(frame(E2E_TEST_ID, bad_range_bad_crc))
     with pytest.raises(FrameLengthError):
-        codec.decode(frame(0x302, bad_range_bad_crc[:7]))
+        e2e.decode(frame(E2E_TEST_ID, bad_range_bad_crc[:7]))
     with pytest.raises(UnknownFrameError):
-        codec.decode(frame(0x521, bad_range_bad_crc[:7]))
+        e2e.decode(frame(0x521, bad_range_bad_crc[:7]))
     # a secured frame has no CRC: DLC, then range (the Mac is NodeIO's, after the codec)
     command_0 = bytes.fromhex("FF FF FF 40 00 00 00 00")
     with pytest.raises(RangeError, match="ER_Command.Command"):
@@ -593,14 +656,14 @@ def test_counter_rejects_values_outside_4_bits() -> None:
         CounterTracker().update(16)
 
 
-@pytest.mark.parametrize(("which", "byte"), [("mc", 3), ("diag", 1)])
+@pytest.mark.parametrize(("which", "byte"), [("mc", 3), ("diag", 3), ("e2e", 1)])
 def test_codec_counter_sequence_round_trips(codec: FrameCodec, which: str, byte: int) -> None:
     """The Counter nibble: byte 3 of a secured frame, byte 1 of an E2E frame."""
     t = CounterTracker()
     for n in range(40):
         msg = VALID[which](codec, n % 16)
         assert msg.data[byte] & 0x0F == n % 16
-        d = codec.decode(msg)
+        d = codec_for(which, codec).decode(msg)
         assert d.counter == d.raw["Counter"] == n % 16
         assert t.update(d.counter).lost == 0
 
@@ -645,15 +708,19 @@ def test_encode_errors_name_message_signal_range_and_value(codec: FrameCodec) ->
     with pytest.raises(EncodeError, match="not in this frame Counter"):
         codec.encode("ER_Price_Sync", {"Count": 0, "Boot": 1, "Counter": 0}, 0)
     with pytest.raises(EncodeError, match="not in this frame CRC"):
-        codec.encode("ER_Balance", {"GridPower": 0, "CostRate": 0, "OptimalCostRate": 0,
-                                    "CRC": 0}, 0)
+        codec.encode("ER_Balance", {"Page": 0, "GridPower": 0, "CostRate": 0, "CRC": 0}, 0)
+    with pytest.raises(EncodeError, match="not in this frame OptimalCostRate"):
+        codec.encode("ER_Balance", {"Page": 0, "GridPower": 0, "CostRate": 0,
+                                    "OptimalCostRate": 0}, 0)
+    with pytest.raises(EncodeError, match="not in this frame CRC"):
+        e2e_codec().encode(E2E_TEST_MESSAGE, {"Value": 0, "Small": 0, "CRC": 0}, 0)
     with pytest.raises(EncodeError, match=r"AGENT_1_Diag\.Page"):
-        codec.encode("AGENT_1_Diag", {"Page": 9}, 0)
-    with pytest.raises(EncodeError, match="missing RejectedDlc, RejectedRange"):
-        codec.encode("AGENT_1_Diag", {"Page": 1, "RejectedCrc": 0}, 0)
+        codec.encode("AGENT_1_Diag", {"Page": 13}, 0)
+    with pytest.raises(EncodeError, match="missing RejectedRange"):
+        codec.encode("AGENT_1_Diag", {"Page": 2, "RejectedDlc": 0}, 0)
     with pytest.raises(EncodeError, match="not in this frame Resets"):
-        codec.encode("AGENT_1_Diag", {"Page": 1, "RejectedCrc": 0, "RejectedDlc": 0,
-                                      "RejectedRange": 0, "Resets": 1}, 0)
+        codec.encode("AGENT_1_Diag", {"Page": 2, "RejectedDlc": 0, "RejectedRange": 0,
+                                      "Resets": 1}, 0)
     with pytest.raises(EncodeError, match="Diag16"):
         codec.encode("AGENT_1_Diag16", {}, 0)
     assert issubclass(EncodeError, ValueError)
@@ -708,7 +775,7 @@ def messages_of_kind(codec: FrameCodec, *kinds: str) -> list[Any]:
 
 @st.composite
 def any_frame(draw: st.DrawFn, kind: str) -> tuple[str, dict[str, int], int]:
-    codec = FrameCodec()
+    codec = e2e_codec()
     msg = draw(st.sampled_from(messages_of_kind(codec, kind)))
     return msg.name, draw_raw(draw, codec, msg), draw(st.integers(0, 15))
 
@@ -717,7 +784,7 @@ def any_frame(draw: st.DrawFn, kind: str) -> tuple[str, dict[str, int], int]:
 @settings(max_examples=300)
 @given(data=st.data())
 def test_every_frame_matches_cantools_layout(kind: str, data: st.DataObject) -> None:
-    codec = FrameCodec()
+    codec = e2e_codec()  # the project's frames and one E2E frame
     name, raw, counter = data.draw(any_frame(kind))
     msg = codec.encode(name, raw, counter)
     fid = msg.arbitration_id
@@ -758,7 +825,7 @@ def received_fv(kind: str, frame_id: int, data: bytes | bytearray, last: int) ->
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.sampled_from(GOLDEN_NOT_E2E), st.integers(0, (1 << 24) - 1))
+@given(st.sampled_from(GOLDEN), st.integers(0, (1 << 24) - 1))
 def test_codec_leaves_the_mac_to_nodeio(case: tuple[Any, ...], mac: int) -> None:
     """Secured and sync frames: encode leaves Mac = 0, decode accepts any Mac bytes (the
     MAC is checked by NodeIO with the sender's key, after the codec)."""
@@ -864,8 +931,8 @@ LAYOUTS = {
     "Status": {"Mac": (0, 24), "Counter": (24, 4), "FaultOverCurrent": (28, 1),
                "FaultVoltage": (29, 1), "FaultSoc": (30, 1), "PowerLimited": (31, 1),
                "Power": (32, 16), "Soc": (48, 8)},
-    "ER_Balance": {"CRC": (0, 8), "Counter": (8, 4), "GridPower": (16, 16),
-                   "CostRate": (32, 16), "OptimalCostRate": (48, 16)},
+    "ER_Balance": {"Mac": (0, 24), "Counter": (24, 4), "Page": (28, 4), "GridPower": (32, 16),
+                   "CostRate": (48, 16), "OptimalCostRate": (32, 16)},
     **{f"{t}_Sync": {"Mac": (0, 24), "Count": (24, 24), "Boot": (48, 16)}
        for t in SECURED_TYPES},
 }
@@ -877,11 +944,12 @@ def test_dbc_loads_strict_with_the_contract() -> None:
     assert {n.name for n in db.nodes} == {"ER", "PLANT", *(f"AGENT_{i}" for i in range(1, 33))}
     assert db.buses[0].baudrate == 500_000
     assert db.dbc is not None and db.dbc.attributes["BusType"].value == "CAN"
-    assert len(db.messages) == 229
+    assert len(db.messages) == 262
     cycles = {"ER_Price": 50, "ER_Command": None, "AGENT_7_MC": 10, "AGENT_7_Setpoint": 50,
               "PLANT_7_Status": 50, "AGENT_7_Diag": 100, "ER_Balance": 100,
               "ER_Price_Sync": 1000, "ER_Command_Sync": 1000, "AGENT_7_MC_Sync": 1000,
-              "AGENT_7_Setpoint_Sync": 1000, "PLANT_7_Status_Sync": 1000}
+              "AGENT_7_Setpoint_Sync": 1000, "PLANT_7_Status_Sync": 1000,
+              "AGENT_7_Diag_Sync": 1000, "ER_Balance_Sync": 1000}
     for name, cycle in cycles.items():
         assert db.get_message_by_name(name).cycle_time == cycle
     assert db.get_message_by_name("ER_Command").send_type == "Event"
@@ -932,10 +1000,19 @@ def test_dbc_loads_strict_with_the_contract() -> None:
     diag = db.get_message_by_name("AGENT_1_Diag")
     assert diag.is_multiplexed()
     page = diag.get_signal_by_name("Page")
-    assert (page.start, page.length, page.minimum, page.maximum) == (12, 4, 0, 8)
-    for name in ("RejectedAuth", "Unsynced", "Resyncs"):
-        assert diag.get_signal_by_name(name).multiplexer_ids == [8]
+    assert (page.start, page.length, page.minimum, page.maximum) == (28, 4, 0, 12)
+    for name in ("Unsynced", "Resyncs"):
+        assert diag.get_signal_by_name(name).multiplexer_ids == [12]
     assert "saturat" in str(diag.get_signal_by_name("LostFrames").comment)
+    # two 16-bit slots per page; the small signals share one
+    for s in diag.signals:
+        if s.multiplexer_ids:
+            slot = 32 if s.start < 48 else 48
+            assert s.start + s.length <= slot + 16, s.name
+    balance = db.get_message_by_name("ER_Balance")
+    assert balance.frame_id == 0x3E0 and by_name["ER_Balance_Sync"].frame_id == 0x7E0
+    assert {s.name: s.multiplexer_ids for s in balance.signals if s.multiplexer_ids} == {
+        "GridPower": [0], "CostRate": [0], "OptimalCostRate": [1]}
     soc = db.get_message_by_name("PLANT_1_Status").get_signal_by_name("Soc")
     assert (soc.scale, soc.maximum) == (0.5, 100)
 
@@ -960,9 +1037,9 @@ def test_codec_refuses_a_dbc_with_another_lambda_factor(tmp_path: Path) -> None:
     # ER_Price's Counter (the first secured frame in the file)
     ("SG_ Counter : 24|4@1+ (1,0) [0|15]", "SG_ Counter : 24|3@1+ (1,0) [0|7]",
      r"\[ER_Price\] expected the secured frame signal Counter 24\|4, but got 24\|3"),
-    # the first E2E frame's CRC
-    ("SG_ CRC : 0|8@1+ (1,0) [0|255]", "SG_ CRC : 0|7@1+ (1,0) [0|127]",
-     r"_Diag\] expected the e2e frame signal CRC 0\|8, but got 0\|7"),
+    # the first diag frame's Counter (AGENT_1_Diag: receiver ER)
+    ('SG_ Counter : 24|4@1+ (1,0) [0|15] ""  ER', 'SG_ Counter : 24|3@1+ (1,0) [0|7] ""  ER',
+     r"_Diag\] expected the secured frame signal Counter 24\|4, but got 24\|3"),
     # the first sync frame's Mac (sync receivers are listed sorted: AGENT_1,AGENT_10,...)
     ('SG_ Mac : 0|24@1+ (1,0) [0|16777215] ""  AGENT_1,AGENT_10,',
      'SG_ Mac : 0|16@1+ (1,0) [0|65535] ""  AGENT_1,AGENT_10,',
@@ -1021,13 +1098,14 @@ def test_cantools_decode_cli_reads_a_candump_log(codec: FrameCodec, tmp_path: Pa
 # --------------------------------------------------------------------------- speed
 
 
-@pytest.mark.parametrize("which", ["mc", "diag"])
+@pytest.mark.parametrize("which", ["mc", "diag", "e2e"])
 def test_codec_is_fast_enough_for_the_receive_loop(codec: FrameCodec, which: str) -> None:
     """Guard against falling back to a generic per-frame path (tens of µs), for a secured
-    frame and for an E2E frame (CRC)."""
+    frame, a multiplexed one and an E2E frame (CRC)."""
     msg = VALID[which](codec, 1)
     n = 2000
-    dec = min(timeit.repeat(lambda: codec.decode(msg), number=n, repeat=3)) / n
+    dec = min(timeit.repeat(lambda: codec_for(which, codec).decode(msg), number=n,
+                            repeat=3)) / n
     enc = min(timeit.repeat(lambda: VALID[which](codec, 1), number=n, repeat=3)) / n
     assert dec < 100e-6 and enc < 100e-6, f"decode {dec * 1e6:.1f} µs, encode {enc * 1e6:.1f} µs"
     assert math.isfinite(dec)

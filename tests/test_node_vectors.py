@@ -234,10 +234,10 @@ def _rearm_at_reset(orig: Callable[..., Any]) -> Callable[..., Any]:
     return step
 
 
-def _no_diag_crc(orig: Callable[..., Any]) -> Callable[..., Any]:
+def _no_diag_mac(orig: Callable[..., Any]) -> Callable[..., Any]:
     def diag(self: Any, page: int) -> can.Message:
         msg = orig(self, page)
-        msg.data[0] = 0  # TX-5 broken: no CRC
+        msg.data[0:3] = bytes(3)  # TX-5 broken: the Diag page not signed
         return msg
     return diag
 
@@ -264,8 +264,8 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
     if kind == "band_rearms_at_reset":
         mp.setattr(controllers.PIController, "step",
                    _rearm_at_reset(controllers.PIController.step))
-    elif kind == "diag_without_crc":
-        mp.setattr(AgentRuntime, "_diag_frame", _no_diag_crc(AgentRuntime._diag_frame))
+    elif kind == "diag_without_mac":
+        mp.setattr(AgentRuntime, "_diag_frame", _no_diag_mac(AgentRuntime._diag_frame))
     elif kind == "one_freshness_window_after_a_timeout":
         mp.setattr(nodeio, "LOST_WINDOWS", 1)
     elif kind == "no_lambda_plausibility":
@@ -280,7 +280,7 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
     yield
 
 
-MUTATIONS = ("band_rearms_at_reset", "diag_without_crc", "one_freshness_window_after_a_timeout",
+MUTATIONS = ("band_rearms_at_reset", "diag_without_mac", "one_freshness_window_after_a_timeout",
              "no_lambda_plausibility", "no_dwell", "state_entry_restarts_dwell_and_band")
 
 

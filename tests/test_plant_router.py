@@ -464,15 +464,18 @@ def test_router_balance_matches_the_cost_model() -> None:
     router = RouterNode(sc)
     powers = {1: 60.0, 2: 50.0, 3: 40.0, 4: 55.0}
     frames = [(t, CODEC.decode(m)) for t, m in run_router(router, 1.0, feed=powers)
-              if m.arbitration_id == 0x400]
-    assert [round(t, 2) for t, _ in frames] == [round(0.1 * k, 2) for k in range(10)]
+              if m.arbitration_id == CODEC.frame_id("ER_Balance")]
+    # both pages in the same tick, every balance cycle: rates of the same instant
+    assert [(round(t, 2), f.raw["Page"]) for t, f in frames] == [
+        (round(0.1 * k, 2), page) for k in range(10) for page in (0, 1)]
+    assert router.counters["balance_frames"] == 20
     p = list(powers.values())
     fc = expenditure(sc.batteries, p, 0.8, sc.load_kw)
     _, fc_opt = kkt_optimum(sc.batteries, 0.8, sc.load_kw)
-    f = frames[-1][1]
-    assert f.phys("GridPower") == pytest.approx(sc.load_kw - sum(p), abs=0.05)
-    assert f.phys("CostRate") == pytest.approx(fc, abs=0.05)
-    assert f.phys("OptimalCostRate") == pytest.approx(fc_opt, abs=0.05)
+    page0, page1 = frames[-2][1], frames[-1][1]
+    assert page0.phys("GridPower") == pytest.approx(sc.load_kw - sum(p), abs=0.05)
+    assert page0.phys("CostRate") == pytest.approx(fc, abs=0.05)
+    assert page1.phys("OptimalCostRate") == pytest.approx(fc_opt, abs=0.05)
     assert fc > fc_opt
     assert router.grid_power == pytest.approx(95.0)
     assert router.cost_rate == pytest.approx(fc)
@@ -537,7 +540,7 @@ def test_router_silent_window_sends_nothing() -> None:
     prices = [round(t, 2) for t, m in out if m.arbitration_id == 0x010]
     assert prices[:20] == [round(0.05 * k, 2) for k in range(20)]
     assert prices[20] == 2.0  # the cadence goes on through the silence
-    assert router.counters["silenced_frames"] == 20 + 10  # 20 prices, 10 balances
+    assert router.counters["silenced_frames"] == 20 + 2 * 10  # 20 prices, 10 balances of 2 pages
 
 
 def test_router_silent_window_drops_commands_due_in_it() -> None:
@@ -570,8 +573,8 @@ def test_plant_and_router_on_a_virtual_bus() -> None:
                                 daemon=True)
                for node, bus in ((plant, plant_bus), (router, router_bus))]
     want = {**{f"PLANT_{i}_Status": 20 for i in range(1, 5)}, "ER_Price": 10,
-            "ER_Balance": 5, **{f"PLANT_{i}_Status_Sync": 1 for i in range(1, 5)},
-            "ER_Price_Sync": 1, "ER_Command_Sync": 1}
+            "ER_Balance": 10, **{f"PLANT_{i}_Status_Sync": 1 for i in range(1, 5)},
+            "ER_Price_Sync": 1, "ER_Command_Sync": 1, "ER_Balance_Sync": 1}
     seen: dict[str, list] = {}
     price_msgs: list[can.Message] = []
 

@@ -282,7 +282,7 @@ def test_diag_frames_carry_the_counters() -> None:
                 f = CODEC.decode(m)
                 pages[f.raw["Page"]] = f.raw
     assert pages[0]["DeadlineMisses"] == 2
-    assert pages[2]["RejectedUnknownId"] == 1
+    assert pages[3]["RejectedUnknownId"] == 1
     assert set(pages) == {0, 1, 2, 3}
 
 
@@ -317,7 +317,7 @@ def test_acceptance_filter_passes_exactly_what_the_agent_uses_or_sends() -> None
     fid = CODEC.frame_id
     used = {fid("ER_Price"), fid("ER_Command"), fid(status_name(2)), fid(mc_name(1))}
     sent = {fid(mc_name(2)), fid(setpoint_name(2)), fid("AGENT_2_Diag")}
-    syncs = {fid(f"{CODEC.name_of(i)}_Sync") for i in used | sent if i != fid("AGENT_2_Diag")}
+    syncs = {fid(f"{CODEC.name_of(i)}_Sync") for i in used | sent}
     assert agent.io.accepted_ids() == sorted(used | sent | syncs)
     kw = bus_kwargs("socketcan", "vcan0")
     filters = with_acceptance_filter(kw, agent.io.accepted_ids())["can_filters"]
@@ -492,15 +492,15 @@ def test_diag_counters_page_reports_timeouts_faults_and_foreign_frames() -> None
     a.on_frame(mc_frame(9, 0), 0.01)            # agent 9 in a 4-agent run
     a.on_frame(mc_frame(1, 0), 0.01)            # our own identity
     pages = {}
-    for k in range(1, 80):
+    for k in range(1, 100):
         for m in a.tick(k * TS):
             if m.arbitration_id == CODEC.frame_id("AGENT_1_Diag"):
                 f = CODEC.decode(m)
                 pages[f.raw["Page"]] = f.raw
-    assert pages[4]["PlantFaults"] == 1
-    assert pages[4]["StatusTimeouts"] == 1 and pages[4]["PriceTimeouts"] == 1
-    assert pages[5]["ForeignFrames"] == 2 and pages[5]["ForeignIds"] == 1
-    assert pages[5]["InterleavedCounters"] == 0
+    assert pages[7]["PlantFaults"] == 1
+    assert pages[6]["StatusTimeouts"] == 1 and pages[6]["PriceTimeouts"] == 1
+    assert pages[7]["ForeignFrames"] == 2 and pages[8]["ForeignIds"] == 1
+    assert pages[8]["InterleavedCounters"] == 0
 
 
 # --------------------------------------------------------------------------- foreign traffic

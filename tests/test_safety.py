@@ -3,10 +3,11 @@ sequence built as the real senders build it (``FleetSender``: valid MAC and fres
 unless the rule is about them), does not trigger on healthy sequences, and the paper
 cases' bus runs keep every new counter at 0.
 
-Secured frames (price, command, MC, setpoint, status) that fail their MAC — forged with
-a wrong key, a bit flipped, or replayed — are rejected under ``auth``, which joins the
-untrusted streak; an untrusted secured ID still takes genuine frames (their MAC proves
-them), only the E2E-only IDs (AGENT_i_Diag, ER_Balance) are blocked.
+Secured frames (every frame of the DBC) that fail their MAC — forged with a wrong key,
+a bit flipped, or replayed — are rejected under ``auth``, which joins the untrusted
+streak; an untrusted secured ID still takes genuine frames (their MAC proves them). Only
+an E2E-only ID would be blocked, and the DBC has none left (AGENT_i_Diag and ER_Balance
+were, until the reports were signed).
 
 All clocks are injected (frame times and ticks are arguments): nothing sleeps."""
 
@@ -69,12 +70,6 @@ def tampered(msg: can.Message) -> can.Message:
     data = bytearray(msg.data)
     data[7] ^= 0x01
     return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False, data=data)
-
-
-def bad_crc(msg: can.Message) -> can.Message:
-    """An E2E-only frame with its CRC-8 broken."""
-    return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False,
-                       data=bytes([msg.data[0] ^ 0x5A]) + bytes(msg.data[1:]))
 
 
 def status_frame(agent: int, counter: int) -> can.Message:
@@ -190,8 +185,8 @@ def test_a_genuine_frame_resets_the_streak() -> None:
 def test_untrusted_time_stretches_with_the_time_scale_and_is_configurable() -> None:
     """The untrusted time follows the time scale (10 s at --time-scale 10) and both
     parameters are configurable. Changed with authentication: on a secured ID (ER_Price)
-    the alarm no longer blocks genuine frames; the blocking is shown on an E2E-only ID
-    (AGENT_1_Diag at the router), where it still applies."""
+    the alarm no longer blocks genuine frames; nor on AGENT_1_Diag at the router, an
+    E2E-only ID before the diagnostics were authenticated, where it blocked them."""
     cfg = agent_configs_from_scenario(scaled(load_case(1), 10.0))[0]
     assert cfg.untrusted_s == pytest.approx(10.0)
     a = AgentRuntime(cfg, CODEC)
@@ -215,20 +210,18 @@ def test_untrusted_time_stretches_with_the_time_scale_and_is_configurable() -> N
     assert io.receive(price_frame(2), 0.2) is not None and io.counters["untrusted"] == 0
     assert io.untrusted(PRICE_ID, 0.31) and not io.untrusted(PRICE_ID, 0.33)
 
-    # an E2E-only ID: blocked (genuine or not) until the time is over
+    # AGENT_1_Diag, secured like every frame: forged pages raise the alarm, the genuine
+    # agent's pages still pass
     diag = CODEC.frame_id(diag_name(1))
     router = NodeIO(CODEC, "test router", own=("ER_Price",), wanted=(diag,),
                     untrusted_after=2, untrusted_s=0.3)
-
-    def diag_frame(counter: int) -> can.Message:
-        return CODEC.encode(diag_name(1), {"Page": 0, "Resets": 0, "DeadlineMisses": 0,
-                                           "NeighboursAlive": 3, "State": 1}, counter)
-
-    for t in (0.0, 0.01):
-        assert router.receive(bad_crc(diag_frame(0)), t) is None
-    assert router.counters["crc"] == 2 and router.counters["untrusted_sources"] == 1
-    assert router.receive(diag_frame(0), 0.2) is None and router.counters["untrusted"] == 1
-    assert router.receive(diag_frame(1), 0.31) is not None
+    page_0 = {"Page": 0, "Resets": 0, "DeadlineMisses": 0}
+    assert router.receive(SENDER.frame(diag_name(1), page_0), 0.0) is not None
+    for t in (0.01, 0.02):
+        assert router.receive(bad.frame(diag_name(1), page_0), t) is None
+    assert router.counters["auth"] == 2 and router.counters["untrusted_sources"] == 1
+    assert router.receive(SENDER.frame(diag_name(1), page_0), 0.2) is not None
+    assert router.counters["untrusted"] == 0
 
 
 def test_plant_keeps_following_genuine_setpoints_under_forged_ones() -> None:
@@ -459,26 +452,26 @@ def test_plant_ramp_configurable_and_off() -> None:
 
 
 def test_diag_pages_carry_the_safety_counters() -> None:
-    """Pages 6 and 7 carry the safety counters and the last cause; page 8 (new with
-    authentication) the MAC failures (RejectedAuth), Unsynced and Resyncs."""
+    """Pages 9..11 carry the safety counters and the last cause; pages 11 and 12 the MAC
+    failures (RejectedAuth), Unsynced and Resyncs."""
     a = running_agent()
     a.on_frame(forger().frame("ER_Price", price_raw(0.8)), 0.014)
     a.on_frame(price_frame(1, rho=9.0), 0.015)
     a.on_frame(command(0, 3, k=9000, h=9000), 0.016)
     pages = {}
-    for k in range(2, 2 + 8 * DIAG_EVERY):
+    for k in range(2, 2 + len(a.DIAG_PAGES) * DIAG_EVERY):
         for msg in a.tick(k * TS):
             if msg.arbitration_id == CODEC.frame_id(diag_name(1)):
                 f = CODEC.decode(msg)
                 pages[f.raw["Page"]] = f.raw
-    assert pages[6]["ImplausiblePrice"] == 1 and pages[6]["Untrusted"] == 0
-    assert pages[7]["ImplausibleGains"] == 1
-    assert pages[7]["SafetySender"] == CODEC.frame_id("ER_Command")
-    assert SAFETY_CAUSES[pages[7]["SafetyCause"]] == "implausible_gains"
-    assert pages[8]["RejectedAuth"] == 1 and pages[8]["Unsynced"] == 0
-    assert pages[8]["Resyncs"] == 0
+    assert pages[9]["ImplausiblePrice"] == 1 and pages[9]["Untrusted"] == 0
+    assert pages[10]["ImplausibleGains"] == 1
+    assert pages[11]["SafetySender"] == CODEC.frame_id("ER_Command")
+    assert SAFETY_CAUSES[pages[11]["SafetyCause"]] == "implausible_gains"
+    assert pages[11]["RejectedAuth"] == 1 and pages[12]["Unsynced"] == 0
+    assert pages[12]["Resyncs"] == 0
     decoded = CODEC.database.decode_message(CODEC.frame_id(diag_name(1)), CODEC.encode(
-        diag_name(1), {"Page": 7, **{s: pages[7][s] for s in a.DIAG_PAGES[7]}}, 0).data)
+        diag_name(1), {"Page": 11, **{s: pages[11][s] for s in a.DIAG_PAGES[11]}}, 0).data)
     assert decoded["SafetyCause"] == "IMPLAUSIBLE_GAINS"
     choices = CODEC.database.get_message_by_name(diag_name(1)).get_signal_by_name(
         "SafetyCause").choices

@@ -96,10 +96,12 @@ def running(doc: dict[str, Any], rho: float = 0.8) -> AgentRuntime:
     return a
 
 
-def diag(a: AgentRuntime, page: int) -> dict[str, int]:
+def diag(a: AgentRuntime, signal: str) -> int:
+    """``signal`` as the agent's Diag page that carries it would send it now."""
+    (page,) = [k for k, sigs in enumerate(a.DIAG_PAGES) if signal in sigs]
     raw = CODEC.decode(a._diag_frame(page)).raw
     assert raw["Page"] == page
-    return raw
+    return raw[signal]
 
 
 # --------------------------------------------------------------------------- numbers
@@ -428,14 +430,14 @@ def saturating_agent() -> AgentRuntime:
 
 
 def test_xi_saturation_is_counted_in_saturations_not_in_ctrl_sats() -> None:
-    """XI-3, DIAG-3 (sat_xi part), DIAG-1 page 3: each tick's clamped ξ adds 1 to the
+    """XI-3, DIAG-3 (sat_xi part), DIAG-1 page 5: each tick's clamped ξ adds 1 to the
     runtime count, reported in Saturations; ctrl_sats stays 0."""
     a = saturating_agent()
     for k in range(31):
         a.tick(k * 0.01)
     assert a.state == State.RUNNING and a.neighbours_alive == 1
     assert a.counters["saturations"] == 31 and a.cstate.saturations == 0
-    assert diag(a, 3)["Saturations"] == 31
+    assert diag(a, "Saturations") == 31
 
 
 def test_saturations_is_the_sum_and_isolate_resets_the_controller_counters() -> None:
@@ -448,14 +450,14 @@ def test_saturations_is_the_sum_and_isolate_resets_the_controller_counters() -> 
         a.tick(k * 0.01)
     a.cstate = a.cstate.__class__(lam=a.cstate.lam, nu=12345 << 30, xi_prev=-7, armed=False,
                                   since_reset=9, resets=6, saturations=4)
-    assert diag(a, 3)["Saturations"] == 3 + 4 and diag(a, 0)["Resets"] == 6
+    assert diag(a, "Saturations") == 3 + 4 and diag(a, "Resets") == 6
     a.on_frame(command(1, 2), 0.025)
     assert a.state == State.ISOLATED        # at once, before any tick
     b = a.cfg.battery
     idle = fx.to_fixed(b.beta * (1 + b.m))
     assert a.cstate == a.cstate.__class__(lam=idle << 30, nu=0, xi_prev=0, armed=True,
                                           since_reset=0, resets=0, saturations=0)
-    assert diag(a, 3)["Saturations"] == 3 and diag(a, 0)["Resets"] == 0
+    assert diag(a, "Saturations") == 3 and diag(a, "Resets") == 0
     before = a.cstate
     a.on_frame(command(1, 2), 0.026)
     assert a.cstate is before and a.state == State.ISOLATED
@@ -475,11 +477,11 @@ def test_diag_counters_saturate_on_the_wire_and_keep_counting() -> None:
         a.on_frame(can.Message(arbitration_id=0x7F0, data=bytes(8), is_extended_id=False),
                    0.001)
     assert a.counters["unknown_id"] == 65537
-    assert diag(a, 2)["RejectedUnknownId"] == 65535
+    assert diag(a, "RejectedUnknownId") == 65535
     a.on_frame(can.Message(arbitration_id=0x7F0, data=bytes(8), is_extended_id=False), 0.002)
-    assert a.counters["unknown_id"] == 65538 and diag(a, 2)["RejectedUnknownId"] == 65535
+    assert a.counters["unknown_id"] == 65538 and diag(a, "RejectedUnknownId") == 65535
     a.cstate = a.cstate.__class__(lam=a.cstate.lam, resets=70001)
-    assert diag(a, 0)["Resets"] == 65535
+    assert diag(a, "Resets") == 65535
     mc = next(CODEC.decode(m) for m in a.tick(0.01) if m.arbitration_id == 0x102)
     assert mc.raw["Resets"] == 70001 % 4
 
@@ -895,11 +897,14 @@ def test_acceptance_filters_pass_the_syncs_of_the_keys_held(tmp_path: Path) -> N
                                             ["router", "plant", "agent_1"]))
     a = AgentRuntime(agent_configs_from_scenario(load_case(1))[1], CODEC, keys=ring)
     syncs = {i for i in a.io.accepted_ids() if i >= 0x400}
-    assert syncs == {0x410, 0x420, 0x501, 0x502, 0x602, 0x682}
+    assert syncs == {0x410, 0x420, 0x501, 0x502, 0x602, 0x682, 0x702}  # 0x702: its own
+    # the reports' syncs are nobody's peer syncs (RX-5): not even the router's
+    assert not {0x701, 0x703} & set(a.io.accepted_ids())
     router = RouterNode(load_case(1), keys=Keyring.from_file(
         write_key_file(tmp_path / "r.toml", "router", [*agents, "plant"])))
     assert {0x501, 0x502, 0x503, 0x504, 0x601, 0x602, 0x603, 0x604} <= \
         set(router.io.accepted_ids())
+    assert not {0x701, 0x702, 0x703, 0x704} & set(router.io.accepted_ids())
     plant = PlantNode(load_case(1), keys=Keyring.from_file(
         write_key_file(tmp_path / "p.toml", "plant", [*agents, "router"])))
     assert {0x410, 0x420} <= set(plant.io.accepted_ids())
@@ -992,7 +997,7 @@ def test_safe_and_running_entries_zero_nu_and_xiprev_and_step_at_once() -> None:
     frame; a tick's frames go out syncs, MC, Setpoint, Diag."""
     a = running(pinned_alone())
     first = a.tick(0.0)
-    assert [m.arbitration_id for m in first] == [0x502, 0x602, 0x102, 0x202, 0x302]
+    assert [m.arbitration_id for m in first] == [0x502, 0x602, 0x702, 0x102, 0x202, 0x302]
     for k in range(1, 5):
         a.tick(k * 0.01)
     s = a.cstate
@@ -1082,13 +1087,13 @@ def test_first_price_is_bounds_checked_only_and_a_stale_last_price_still_counts(
     assert a.counters["implausible_price"] == 1 and a.price == fx.to_fixed(4.0)
 
 
-def test_an_agent_sends_only_its_five_frames_classic_standard_dlc8() -> None:
+def test_an_agent_sends_only_its_six_frames_classic_standard_dlc8() -> None:
     """GEN-1, GEN-2: over 250 ticks (syncs twice) every frame an agent sends is one of
-    AGENT_i_MC, _Setpoint, _Diag, _MC_Sync, _Setpoint_Sync: classic CAN, 11-bit, DLC 8,
-    not remote."""
+    AGENT_i_MC, _Setpoint, _Diag, _MC_Sync, _Setpoint_Sync, _Diag_Sync: classic CAN,
+    11-bit, DLC 8, not remote."""
     a = running(pinned_alone(price_s=60.0))
     sent = [m for k in range(250) for m in a.tick(k * 0.01)]
-    assert {m.arbitration_id for m in sent} == {0x102, 0x202, 0x302, 0x502, 0x602}
+    assert {m.arbitration_id for m in sent} == {0x102, 0x202, 0x302, 0x502, 0x602, 0x702}
     assert all(not m.is_extended_id and not m.is_fd and not m.is_remote_frame
                and not m.is_error_frame and m.dlc == 8 and len(m.data) == 8 for m in sent)
     assert sum(m.arbitration_id == 0x502 for m in sent) == 3   # t = 0, 1, 2 s

@@ -46,7 +46,7 @@ def test_a_whole_fleet_on_the_simulated_clock_converges_and_reports(keys: KeySet
                                          DeadlineMisses=0, Resets=lambda n: n >= 1)
         db_msg = tester.codec.database.get_message_by_name("AGENT_3_Diag")
         assert set(diag) == {s.name for s in db_msg.signals   # every counter of every page
-                             if s.name not in ("CRC", "Counter", "Page")}
+                             if s.name not in ("Mac", "Counter", "Page")}
         assert tester.rejected == {} and tester.received["ER_Price"] > 150
 
 
@@ -100,25 +100,24 @@ def test_forged_frames_are_rejected_by_the_agents_and_by_a_tester(keys: KeySet) 
 
 
 def test_corrupt_and_unsynced_frames_are_counted_not_returned(keys: KeySet) -> None:
-    """Expected: a Diag frame with a bad CRC is rejected under ``crc``; a secured frame of
-    a sender whose sync the tester never heard under ``unsynced``; neither is returned."""
+    """Expected: a Diag frame of 7 bytes is rejected under ``dlc``; a secured frame of a
+    sender whose sync the tester never heard under ``unsynced`` (a Diag page too, now
+    that it is signed); none is returned."""
     with SimFleet(1, nodes=[], keys=keys) as fleet:
         tester = fleet.tester()
         raw = fleet.open_bus()
-        diag = {"Page": 0, "State": 1, "NeighboursAlive": 1, "DeadlineMisses": 0,
-                "Resets": 0}
-        good = tester.codec.encode_phys("AGENT_2_Diag", diag, 0)
-        bad = can.Message(arbitration_id=good.arbitration_id, is_extended_id=False,
-                          data=bytes([good.data[0] ^ 1]) + bytes(good.data[1:]))
-        raw.send(bad)
+        diag = {"Page": 0, "DeadlineMisses": 0, "Resets": 0}
+        unsigned = tester.codec.encode_phys("AGENT_2_Diag", diag, 0)
+        short = can.Message(arbitration_id=unsigned.arbitration_id, is_extended_id=False,
+                            data=bytes(unsigned.data[:7]))
+        raw.send(short)
         mc = tester.codec.encode("AGENT_2_MC", {"State": 1, "Resets": 0, "Lambda": 0}, 0)
         raw.send(mc)
+        raw.send(unsigned)
         with pytest.raises(ExpectationError, match="rejected"):
             tester.expect("AGENT_2_Diag", 0.1)
-        raw.send(good)
-        assert tester.expect("AGENT_2_Diag", 0.1, since=-1.0)["Page"] == 0
-        assert tester.rejected["crc"] == 1 and tester.rejected["unsynced"] == 1
-        assert tester.received["AGENT_2_MC"] == 0
+        assert tester.rejected["dlc"] == 1 and tester.rejected["unsynced"] == 2
+        assert tester.received["AGENT_2_MC"] == tester.received["AGENT_2_Diag"] == 0
 
 
 @pytest.mark.parametrize("call, message", [

@@ -129,9 +129,56 @@ def rewrite(src: Path, dst: Path, edit) -> Path:
     return dst
 
 
+def test_forged_reports_in_a_log_are_left_out_with_the_keys(clean_run: tuple[Path, dict],
+                                                            tmp_path: Path) -> None:
+    """`analyze --keys` of a log with forged AGENT_2_Diag pages (every counter 999) and
+    forged ER_Balance pages (ten times the cost) beside the genuine ones: the report's
+    diagnostics and ledger are the clean run's, the forgeries are auth_failed on their
+    messages. Without the keys the same log shows the forged values: only the MAC tells
+    them apart."""
+    codec = FrameCodec()
+    diag_id, balance_id = codec.frame_id("AGENT_2_Diag"), codec.frame_id("ER_Balance")
+    forged = {"diag": 0, "balance": 0}
+
+    def edit(msg: can.Message) -> list[can.Message]:
+        out = [msg]
+        if msg.timestamp - 2.0 < 0 or msg.arbitration_id not in (diag_id, balance_id):
+            return out
+        d = codec.decode(msg)
+        page = d.raw["Page"]
+        if msg.arbitration_id == diag_id:
+            sigs = codec.pages("AGENT_2_Diag")[page]
+            raw = {s: min(999, codec.raw_range("AGENT_2_Diag", s)[1]) for s in sigs}
+            forged["diag"] += 1
+        else:
+            raw = {s: 10 * v for s, v in d.raw.items()
+                   if s not in ("Mac", "Counter", "Page")}
+            forged["balance"] += 1
+        f = codec.encode(d.name, {"Page": page, **raw}, (d.counter + 1) % 16)
+        f.data[0:3] = bytes([0x5A, 0xA5, 0x3C])  # a guessed MAC
+        f.timestamp = msg.timestamp + 1e-4
+        return [*out, f]
+
+    log = rewrite(clean_run[0], tmp_path / "forged.log", edit)
+    keys = str(clean_run[0].parent / "keys")
+    rc, m = analyze(log, tmp_path / "a", "--keys", keys)
+    assert rc == EXIT_ANOMALIES
+    clean = clean_run[1]
+    assert m["node_diagnostics"] == clean["node_diagnostics"]
+    assert m["router_ledger"] == clean["router_ledger"]
+    auth = {a["detail"].split(":")[0]: a["detail"] for a in m["anomalies"]
+            if a["kind"] == "auth_failed" and a["node"] == "bus"}
+    assert set(auth) == {"AGENT_2_Diag", "ER_Balance"}, m["anomalies"]
+    assert auth["AGENT_2_Diag"].startswith(f"AGENT_2_Diag: {forged['diag']} frames")
+    assert auth["ER_Balance"].startswith(f"ER_Balance: {forged['balance']} frames")
+    _, blind = analyze(log, tmp_path / "b")  # no keys: the forgeries read as the run's
+    assert blind["node_diagnostics"]["agent_2"]["RejectedAuth"] == 999
+    assert blind["router_ledger"]["cost"] > 2 * clean["router_ledger"]["cost"]
+
+
 def test_foreign_traffic_in_a_log(clean_run: tuple[Path, dict], tmp_path: Path) -> None:
     """A second sender on AGENT_2_MC (its own counter sequence), frames of an agent the
-    4-agent run does not have, and diagnostics frames with a bad CRC: each reported by
+    4-agent run does not have, and diagnostics frames of 5 bytes: each reported by
     cause. Without the run's keys the forged MC frames show as a second counter
     sequence; with them (`analyze --keys`) they fail their MAC, are left out of the
     analysis and reported as auth_failed."""
@@ -149,7 +196,7 @@ def test_foreign_traffic_in_a_log(clean_run: tuple[Path, dict], tmp_path: Path) 
         if msg.arbitration_id == 0x010 and msg.timestamp < 1.0:
             g = codec.encode("AGENT_9_MC", {"State": 1, "Lambda": 0, "Resets": 0}, 0)
             g.timestamp = msg.timestamp
-            bad = can.Message(arbitration_id=0x301, data=bytes(8), is_extended_id=False,
+            bad = can.Message(arbitration_id=0x301, data=bytes(5), is_extended_id=False,
                               timestamp=msg.timestamp)
             out += [g, bad]
         return out
@@ -162,7 +209,7 @@ def test_foreign_traffic_in_a_log(clean_run: tuple[Path, dict], tmp_path: Path) 
     assert any("AGENT_9_MC" in d for d in details), m["anomalies"]
     assert ("malformed_frames", "bus") in kinds(m)
     assert m["frames_outside_run"] == {"AGENT_9_MC": 20}
-    assert m["frames_undecodable"] == {"crc": 20}
+    assert m["frames_undecodable"] == {"dlc": 20}
     rc, m = analyze(log, tmp_path / "b", "--keys", str(clean_run[0].parent / "keys"))
     assert rc == EXIT_ANOMALIES
     forged_mc = [a["detail"] for a in m["anomalies"] if a["kind"] == "auth_failed"]

@@ -380,7 +380,7 @@ def sc_start_steady() -> Scenario:
         "its first); INIT until both price and status are fresh (agent 3 INIT for 0.2 s: "
         "alive but not in xi); RUNNING with a pinned price and two neighbours rippling "
         "around the price (zero crossings, resets, the band); MC every tick, Setpoint every "
-        "5, Diag every 10 (pages 0..8 three times, E2E counter and CRC), syncs every 1 s.",
+        "5, Diag every 10 (pages 0..12 twice, then 0..3; signed like MC), syncs every 1 s.",
         ["GEN-1", "GEN-2", "GEN-4", "STATE-1", "STATE-2", "STATE-4", "STATE-10", "TICK-1",
          "TX-1", "TX-2", "TX-3", "TX-4", "TX-5", "SP-1", "SP-3", "DIAG-1",
          "XI-1", "XI-2", "CTRL-1", "CTRL-4", "CTRL-5", "STEP-1", "STEP-2", "STEP-3", "STEP-4",

@@ -17,13 +17,14 @@
 #define FV_MAX ((UINT64_C(1) << (BD_FV_BOOT_BITS + BD_FV_COUNT_BITS)) - 1u)
 #define LOST_WINDOWS 8u     /* windows tried after a sender timed out (AUTH-10) */
 #define STALE_WINDOWS 1u    /* past windows tried before a frame is forged (AUTH-25) */
-#define DIAG_U16_MAX 65535u
 #define INSECURE_BOOT 1u
 #define ECHO_MC 0
 #define ECHO_SETPOINT 1
 #define ECHO_DIAG 2
 #define ECHO_MC_SYNC 3
 #define ECHO_SETPOINT_SYNC 4
+#define ECHO_DIAG_SYNC 5
+#define N_SECURED_TX 3          /* own secured IDs: MC, Setpoint, Diag (tx_count index) */
 
 static const char *const counter_names[BD_C_COUNT] = {
     "crc", "dlc", "range", "unknown_id", "malformed", "impersonation", "repeated_counter",
@@ -118,7 +119,7 @@ static uint32_t agent_of(uint32_t id)
 {
     static const uint32_t bases[] = {BD_MC_BASE, BD_SETPOINT_BASE, BD_STATUS_BASE,
                                      BD_DIAG_BASE, BD_MC_SYNC_BASE, BD_SETPOINT_SYNC_BASE,
-                                     BD_STATUS_SYNC_BASE};
+                                     BD_STATUS_SYNC_BASE, BD_DIAG_SYNC_BASE};
     for (size_t k = 0u; k < sizeof bases / sizeof bases[0]; ++k) {
         if (in_block(id, bases[k])) {
             return id - bases[k];
@@ -323,6 +324,7 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     init_echo(&a->echo[ECHO_DIAG], BD_DIAG_BASE + p->id);
     init_echo(&a->echo[ECHO_MC_SYNC], BD_MC_SYNC_BASE + p->id);
     init_echo(&a->echo[ECHO_SETPOINT_SYNC], BD_SETPOINT_SYNC_BASE + p->id);
+    init_echo(&a->echo[ECHO_DIAG_SYNC], BD_DIAG_SYNC_BASE + p->id);
     a->sync_pending = 1;
     a->hello_after = INT64_MIN;
     return new_boot(a);   /* AUTH-3: before the first frame is signed */
@@ -978,14 +980,14 @@ static size_t syncs(bd_agent *a, int64_t t, bd_frame *out)
     a->hello_after = t + a->p.hello_ns;
     a->sync_next = t + a->p.sync_ns;
     a->sync_pending = 0;
-    for (int k = 0; k < 2; ++k) {
+    for (int k = 0; k < N_SECURED_TX; ++k) {
         bd_echo *e = &a->echo[ECHO_MC_SYNC + k];
         frame_init(&out[k], e->id);
         bd_encode_sync(a->tx_count[k], a->boot, out[k].data);
         sign(a, &out[k], ((uint64_t)a->boot << BD_FV_COUNT_BITS) | a->tx_count[k]);
         remember(e, out[k].data);
     }
-    return 2u;
+    return (size_t)N_SECURED_TX;
 }
 
 /* TX-1..4: the next count of a secured frame (a wrap starts a new boot, AUTH-5). */
@@ -997,8 +999,9 @@ static int next_count(bd_agent *a, int k, uint32_t *count)
             a->fatal = err;
             return -1;
         }
-        a->tx_count[0] = 0u;
-        a->tx_count[1] = 0u;
+        for (int j = 0; j < N_SECURED_TX; ++j) {
+            a->tx_count[j] = 0u;
+        }
         a->sync_pending = 1;
     }
     *count = a->tx_count[k]++;
@@ -1024,60 +1027,46 @@ static int64_t setpoint_raw(int32_t lam, int64_t g, int64_t o)
     return ch + ((cl << 32) + r) / (INT64_C(1) << 40) - o;
 }
 
-static void diag_values(const bd_agent *a, uint32_t page, uint32_t v[4])
+/* DIAG-1..3: the value of an AGENT_<i>_Diag signal (BD_DIAG_SIG_*), before saturation */
+static uint64_t diag_value(const bd_agent *a, uint32_t signal)
 {
     const uint32_t *c = a->count;
-    uint32_t alive = 0u;
-    for (uint32_t j = 0u; j < a->p.n_neighbours; ++j) {
-        alive += ((a->nb[j].flags & BD_NB_ALIVE) != 0u && active(a->nb[j].state)) ? 1u : 0u;
-    }
-    switch (page) {
-    case 0:
-        v[0] = sat_u(a->cs.resets, DIAG_U16_MAX);
-        v[1] = sat_u(c[BD_C_DEADLINE_MISS], DIAG_U16_MAX);
-        v[2] = sat_u(alive, BD_AGENT_DIAG_NEIGHBOURSALIVE_MAX);
-        v[3] = a->state;
-        break;
-    case 1:
-        v[0] = sat_u(c[BD_C_CRC], DIAG_U16_MAX);
-        v[1] = sat_u(c[BD_C_DLC], DIAG_U16_MAX);
-        v[2] = sat_u(c[BD_C_RANGE], DIAG_U16_MAX);
-        break;
-    case 2:
-        v[0] = sat_u(c[BD_C_UNKNOWN_ID], DIAG_U16_MAX);
-        v[1] = sat_u(c[BD_C_IMPERSONATION], DIAG_U16_MAX);
-        v[2] = sat_u(c[BD_C_REPEATED_COUNTER], DIAG_U16_MAX);
-        break;
-    case 3:
-        v[0] = sat_u(c[BD_C_LOST_FRAMES], DIAG_U16_MAX);
-        v[1] = sat_u((uint64_t)c[BD_C_SATURATIONS] + a->cs.saturations, DIAG_U16_MAX);
-        v[2] = sat_u(c[BD_C_NEIGHBOUR_TIMEOUTS], DIAG_U16_MAX);
-        break;
-    case 4:
-        v[0] = sat_u(c[BD_C_PRICE_TIMEOUTS], DIAG_U16_MAX);
-        v[1] = sat_u(c[BD_C_STATUS_TIMEOUTS], DIAG_U16_MAX);
-        v[2] = sat_u(c[BD_C_PLANT_FAULTS], DIAG_U16_MAX);
-        break;
-    case 5:
-        v[0] = sat_u(c[BD_C_FOREIGN], DIAG_U16_MAX);
-        v[1] = sat_u(c[BD_C_FOREIGN_ID], DIAG_U16_MAX);
-        v[2] = sat_u((uint64_t)c[BD_C_COUNTER_JUMP] + c[BD_C_COUNTER_CLASH], DIAG_U16_MAX);
-        break;
-    case 6:
-        v[0] = sat_u(c[BD_C_UNTRUSTED_SOURCES], DIAG_U16_MAX);
-        v[1] = sat_u(c[BD_C_IMPLAUSIBLE_PRICE], DIAG_U16_MAX);
-        v[2] = sat_u(c[BD_C_IMPLAUSIBLE_LAMBDA], DIAG_U16_MAX);
-        break;
-    case 7:
-        v[0] = sat_u(c[BD_C_IMPLAUSIBLE_GAINS], DIAG_U16_MAX);
-        v[1] = sat_u(a->last_safety_sender, BD_AGENT_DIAG_SAFETYSENDER_MAX);
-        v[2] = sat_u(a->last_safety_cause, BD_AGENT_DIAG_SAFETYCAUSE_MAX);
-        break;
-    default:
-        v[0] = sat_u(c[BD_C_AUTH], DIAG_U16_MAX);
-        v[1] = sat_u(c[BD_C_UNSYNCED], DIAG_U16_MAX);
-        v[2] = sat_u(c[BD_C_RESYNCS], DIAG_U16_MAX);
-        break;
+    uint64_t alive = 0u;
+    switch (signal) {
+    case BD_DIAG_SIG_RESETS: return a->cs.resets;
+    case BD_DIAG_SIG_DEADLINEMISSES: return c[BD_C_DEADLINE_MISS];
+    case BD_DIAG_SIG_NEIGHBOURSALIVE:
+        for (uint32_t j = 0u; j < a->p.n_neighbours; ++j) {
+            alive += ((a->nb[j].flags & BD_NB_ALIVE) != 0u && active(a->nb[j].state)) ? 1u : 0u;
+        }
+        return alive;
+    case BD_DIAG_SIG_STATE: return a->state;
+    case BD_DIAG_SIG_REJECTEDCRC: return c[BD_C_CRC];
+    case BD_DIAG_SIG_REJECTEDDLC: return c[BD_C_DLC];
+    case BD_DIAG_SIG_REJECTEDRANGE: return c[BD_C_RANGE];
+    case BD_DIAG_SIG_REJECTEDUNKNOWNID: return c[BD_C_UNKNOWN_ID];
+    case BD_DIAG_SIG_REJECTEDIMPERSONATION: return c[BD_C_IMPERSONATION];
+    case BD_DIAG_SIG_REPEATEDCOUNTER: return c[BD_C_REPEATED_COUNTER];
+    case BD_DIAG_SIG_LOSTFRAMES: return c[BD_C_LOST_FRAMES];
+    case BD_DIAG_SIG_SATURATIONS: return (uint64_t)c[BD_C_SATURATIONS] + a->cs.saturations;
+    case BD_DIAG_SIG_NEIGHBOURTIMEOUTS: return c[BD_C_NEIGHBOUR_TIMEOUTS];
+    case BD_DIAG_SIG_PRICETIMEOUTS: return c[BD_C_PRICE_TIMEOUTS];
+    case BD_DIAG_SIG_STATUSTIMEOUTS: return c[BD_C_STATUS_TIMEOUTS];
+    case BD_DIAG_SIG_PLANTFAULTS: return c[BD_C_PLANT_FAULTS];
+    case BD_DIAG_SIG_FOREIGNFRAMES: return c[BD_C_FOREIGN];
+    case BD_DIAG_SIG_FOREIGNIDS: return c[BD_C_FOREIGN_ID];
+    case BD_DIAG_SIG_INTERLEAVEDCOUNTERS:
+        return (uint64_t)c[BD_C_COUNTER_JUMP] + c[BD_C_COUNTER_CLASH];
+    case BD_DIAG_SIG_UNTRUSTED: return c[BD_C_UNTRUSTED_SOURCES];
+    case BD_DIAG_SIG_IMPLAUSIBLEPRICE: return c[BD_C_IMPLAUSIBLE_PRICE];
+    case BD_DIAG_SIG_IMPLAUSIBLELAMBDA: return c[BD_C_IMPLAUSIBLE_LAMBDA];
+    case BD_DIAG_SIG_IMPLAUSIBLEGAINS: return c[BD_C_IMPLAUSIBLE_GAINS];
+    case BD_DIAG_SIG_SAFETYSENDER: return a->last_safety_sender;
+    case BD_DIAG_SIG_SAFETYCAUSE: return a->last_safety_cause;
+    case BD_DIAG_SIG_REJECTEDAUTH: return c[BD_C_AUTH];
+    case BD_DIAG_SIG_UNSYNCED: return c[BD_C_UNSYNCED];
+    case BD_DIAG_SIG_RESYNCS: return c[BD_C_RESYNCS];
+    default: return 0u;   /* unreachable: gen_contract.py refuses an unmapped signal */
     }
 }
 
@@ -1128,12 +1117,19 @@ size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
         n++;
     }
     if (a->ticks % BD_DIAG_EVERY == 0u) {   /* DIAG-1..3 */
-        uint32_t v[4] = {0u, 0u, 0u, 0u};
+        uint32_t v[BD_DIAG_PAGE_SIGNALS_MAX] = {0u};
         uint32_t page = (a->ticks / BD_DIAG_EVERY) % BD_DIAG_PAGES;
-        diag_values(a, page, v);
+        for (uint32_t k = 0u; k < bd_diag_page_signals[page]; ++k) {
+            /* counters saturate at their signal's maximum, they never wrap */
+            const bd_diag_field *f = &bd_diag_pages[page][k];
+            v[k] = sat_u(diag_value(a, f->signal), f->max);
+        }
+        if (next_count(a, 2, &count) != 0) {
+            return 0u;
+        }
         frame_init(&buf[n], a->echo[ECHO_DIAG].id);
-        bd_encode_diag(buf[n].id, a->diag_counter % BD_COUNTER_MODULO, page, v, buf[n].data);
-        a->diag_counter++;
+        bd_encode_diag(count % FV_WINDOW, page, v, buf[n].data);
+        sign(a, &buf[n], ((uint64_t)a->boot << BD_FV_COUNT_BITS) | count);
         remember(&a->echo[ECHO_DIAG], buf[n].data);
         n++;
     }
@@ -1148,10 +1144,11 @@ size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
     return n;
 }
 
-void bd_agent_set_tx_count(bd_agent *a, uint32_t mc, uint32_t setpoint)
+void bd_agent_set_tx_count(bd_agent *a, uint32_t mc, uint32_t setpoint, uint32_t diag)
 {
     a->tx_count[0] = mc;
     a->tx_count[1] = setpoint;
+    a->tx_count[2] = diag;
 }
 
 /* ------------------------------------------------------------------ acceptance filter */

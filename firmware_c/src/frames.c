@@ -104,82 +104,17 @@ void bd_encode_sync(uint32_t count, uint32_t boot, uint8_t d[8])
     (void)bd_dbc_er_price_sync_pack(d, &f, 8u);
 }
 
-void bd_encode_diag(uint32_t frame_id, uint32_t counter, uint32_t page,
-                    const uint32_t *v, uint8_t d[8])
+void bd_encode_diag(uint32_t counter, uint32_t page, const uint32_t *v, uint8_t d[8])
 {
-    struct bd_dbc_agent_1_diag_t f;
-    (void)bd_dbc_agent_1_diag_init(&f);
-    f.counter = (uint8_t)counter;
-    f.page = (uint8_t)page;
-    /* the pages of firmware_py.runtime.AgentRuntime.DIAG_PAGES (tools/gen_dbc.py) */
-    switch (page) {
-    case 0:
-        f.resets = (uint16_t)v[0];
-        f.deadline_misses = (uint16_t)v[1];
-        f.neighbours_alive = (uint8_t)v[2];
-        f.state = (uint8_t)v[3];
-        break;
-    case 1:
-        f.rejected_crc = (uint16_t)v[0];
-        f.rejected_dlc = (uint16_t)v[1];
-        f.rejected_range = (uint16_t)v[2];
-        break;
-    case 2:
-        f.rejected_unknown_id = (uint16_t)v[0];
-        f.rejected_impersonation = (uint16_t)v[1];
-        f.repeated_counter = (uint16_t)v[2];
-        break;
-    case 3:
-        f.lost_frames = (uint16_t)v[0];
-        f.saturations = (uint16_t)v[1];
-        f.neighbour_timeouts = (uint16_t)v[2];
-        break;
-    case 4:
-        f.price_timeouts = (uint16_t)v[0];
-        f.status_timeouts = (uint16_t)v[1];
-        f.plant_faults = (uint16_t)v[2];
-        break;
-    case 5:
-        f.foreign_frames = (uint16_t)v[0];
-        f.foreign_ids = (uint16_t)v[1];
-        f.interleaved_counters = (uint16_t)v[2];
-        break;
-    case 6:
-        f.untrusted = (uint16_t)v[0];
-        f.implausible_price = (uint16_t)v[1];
-        f.implausible_lambda = (uint16_t)v[2];
-        break;
-    case 7:
-        f.implausible_gains = (uint16_t)v[0];
-        f.safety_sender = (uint16_t)v[1];
-        f.safety_cause = (uint8_t)v[2];
-        break;
-    default:
-        f.rejected_auth = (uint16_t)v[0];
-        f.unsynced = (uint16_t)v[1];
-        f.resyncs = (uint16_t)v[2];
-        break;
+    /* the DBC's page layout (bd_diag_pages, firmware_c/gen_contract.py); Mac = 0 */
+    uint64_t x = ((uint64_t)counter << BD_AGENT_DIAG_COUNTER_START)
+                 | ((uint64_t)page << BD_AGENT_DIAG_PAGE_START);
+    for (uint32_t k = 0u; k < bd_diag_page_signals[page]; ++k) {
+        const bd_diag_field *f = &bd_diag_pages[page][k];
+        uint64_t mask = (UINT64_C(1) << f->length) - 1u;
+        x |= ((uint64_t)v[k] & mask) << f->start;
     }
-    (void)bd_dbc_agent_1_diag_pack(d, &f, 8u);
-    d[0] = bd_e2e_crc(frame_id, d);
-}
-
-static uint8_t crc8_byte(uint8_t crc, uint8_t b)
-{
-    unsigned c = (unsigned)(crc ^ b);
-    for (int k = 0; k < 8; k++) {
-        c = (c & 0x80u) != 0u ? ((c << 1) ^ 0x1Du) : (c << 1);
+    for (uint32_t b = 0u; b < 8u; ++b) {
+        d[b] = (uint8_t)((x >> (8u * b)) & 0xFFu);
     }
-    return (uint8_t)(c & 0xFFu);
-}
-
-uint8_t bd_e2e_crc(uint32_t frame_id, const uint8_t d[8])
-{
-    uint8_t c = 0xFFu;
-    c = crc8_byte(c, (uint8_t)(frame_id & 0xFFu));
-    c = crc8_byte(c, (uint8_t)((frame_id >> 8) & 0xFFu));
-    for (int k = 1; k < 8; k++) {
-        c = crc8_byte(c, d[k]);
-    }
-    return (uint8_t)(c ^ 0xFFu);
 }

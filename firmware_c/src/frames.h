@@ -30,11 +30,8 @@ void bd_encode_mc(uint32_t counter, uint32_t state, uint32_t resets, int32_t lam
                   uint8_t d[8]);
 void bd_encode_setpoint(uint32_t counter, uint32_t enable, int32_t power, uint8_t d[8]);
 void bd_encode_sync(uint32_t count, uint32_t boot, uint8_t d[8]);
-/* AGENT_<i>_Diag page `page` with its values in DIAG page order, counter and CRC. */
-void bd_encode_diag(uint32_t frame_id, uint32_t counter, uint32_t page,
-                    const uint32_t *values, uint8_t d[8]);
-
-/* TX-5: CRC-8 SAE J1850 (0x1D, init 0xFF, xorout 0xFF) over the ID (2 bytes LE), d[1..7]. */
-uint8_t bd_e2e_crc(uint32_t frame_id, const uint8_t d[8]);
+/* AGENT_<i>_Diag page `page` with values[k] for the page's field k (bd_diag_pages), Mac =
+ * 0 (the caller signs). */
+void bd_encode_diag(uint32_t counter, uint32_t page, const uint32_t *values, uint8_t d[8]);
 
 #endif /* BESSDED_FRAMES_H */

@@ -149,7 +149,7 @@ int main(int argc, char **argv)
                 printf("BAD INPUT at S\n");
                 return 2;
             }
-            bd_agent_set_tx_count(&agent, count, count);
+            bd_agent_set_tx_count(&agent, count, count, count);
         } else if (tag[0] == 'R') {
             bd_frame f;
             int64_t t;

@@ -140,7 +140,8 @@ def run(args: argparse.Namespace) -> int:
 
     codec = FrameCodec()
     dut_ids = {codec.frame_id(n(i)) for n in (mc_name, setpoint_name, diag_name)}
-    dut_ids |= {contract.SYNC_OF[codec.frame_id(n(i))] for n in (mc_name, setpoint_name)}
+    dut_ids |= {contract.SYNC_OF[codec.frame_id(n(i))] for n in (mc_name, setpoint_name,
+                                                                 diag_name)}
     with open_bus(**{**bus.resolved(), "receive_own_messages": False}) as b:
         busrun.enlarge_receive_buffer(b)
         if args.rt_priority:

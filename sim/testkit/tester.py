@@ -665,7 +665,7 @@ class Tester:
                 for r in self._inbox.get(name, ()):
                     if r.seq > start:
                         got[r.raw[mux]] = {k: v for k, v in r.raw.items()
-                                           if k not in ("CRC", "Counter", mux)}
+                                           if k not in _PROTECTION and k != mux}
             if set(pages) <= set(got):
                 break
             if self.now() >= deadline:

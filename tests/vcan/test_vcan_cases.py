@@ -106,7 +106,7 @@ def test_router_power_balance(run: Run) -> None:
 
 
 def test_log_decodes_against_the_dbc(run: Run) -> None:
-    """Every recorded frame decodes with our codec (built from the DBC, checking CRC, DLC
+    """Every recorded frame decodes with our codec (built from the DBC, checking DLC
     and ranges too); case 1's log also with `python3 -m cantools decode` (the other
     logs hold the same frames, and each CLI pass costs 30-50 s in the guest)."""
     assert run.m["frames_undecodable"] == {}

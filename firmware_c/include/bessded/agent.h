@@ -29,7 +29,7 @@ extern "C" {
 
 #define BD_MAX_NEIGHBOURS (BD_N_AGENTS_MAX - 1)
 #define BD_MAX_PEERS (BD_N_AGENTS_MAX + 2)       /* every agent, the plant, the router */
-#define BD_TICK_FRAMES_MAX 5                      /* 2 syncs, MC, Setpoint, Diag */
+#define BD_TICK_FRAMES_MAX 6                      /* 3 syncs, MC, Setpoint, Diag */
 #define BD_ECHO_DEPTH 4                           /* own frames kept to tell their echo */
 
 /* Errors of bd_agent_init (and of the config loader, which adds its own). */
@@ -158,7 +158,7 @@ typedef struct {
 #define BD_RX_COMMAND 1
 #define BD_RX_STATUS 2
 #define BD_RX_MC0 3               /* neighbour j's MC: slot BD_RX_MC0 + j */
-#define BD_N_ECHO 5               /* MC, Setpoint, Diag, MC_Sync, Setpoint_Sync */
+#define BD_N_ECHO 6               /* MC, Setpoint, Diag, MC_, Setpoint_, Diag_Sync */
 
 typedef struct {
     bd_agent_params p;
@@ -203,8 +203,7 @@ typedef struct {
     int64_t sync_next;
     int64_t hello_after;
     uint32_t boot;
-    uint32_t tx_count[2];         /* MC, Setpoint: message counts under this boot */
-    uint32_t diag_counter;
+    uint32_t tx_count[3];         /* MC, Setpoint, Diag: message counts under this boot */
     int32_t sync_pending;         /* syncs due at the next tick (start, new boot) */
     int32_t hello_due;
     bd_echo echo[BD_N_ECHO];
@@ -238,8 +237,8 @@ size_t bd_agent_accepted_ids(const bd_agent *a, uint32_t *ids, size_t max);
 int32_t bd_agent_lambda(const bd_agent *a);
 
 /* Test hook of the node vectors' `setup` (AUTH-5 in seconds, not 2^24 frames): the own
- * message counts of MC and Setpoint. */
-void bd_agent_set_tx_count(bd_agent *a, uint32_t mc, uint32_t setpoint);
+ * message counts of MC, Setpoint and Diag. */
+void bd_agent_set_tx_count(bd_agent *a, uint32_t mc, uint32_t setpoint, uint32_t diag);
 
 /* For bindings and logs: a counter's value, the state, the resets so far. */
 uint32_t bd_agent_counter(const bd_agent *a, int counter);
