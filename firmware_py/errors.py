@@ -53,12 +53,6 @@ class RangeError(FrameError):
     cause = "range"
 
 
-class ImpersonationError(FrameError):
-    """A frame carrying our own identity that we did not send."""
-
-    cause = "impersonation"
-
-
 class EncodeError(BessDedError, ValueError):
     """A frame could not be built: unknown message or signal name, missing signal, or a
     value outside the DBC's range. Raised on the transmit side, so it is a caller bug,

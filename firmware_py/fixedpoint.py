@@ -42,7 +42,6 @@ from .errors import ParameterError
 
 Q = 24
 ONE = 1 << Q
-HALF = 1 << (Q - 1)
 INT32_MAX = (1 << 31) - 1
 INT32_MIN = -(1 << 31)
 

@@ -229,7 +229,7 @@ class FreshnessVerifier:
     check fails until a resynchronisation. The caller checks the MAC with the
     candidate and calls ``accept`` only if it holds (``NodeIO`` does both).
 
-    ``resync(sender, full)`` is the hook for an authenticated frame that carries a
+    ``accept(sender, full, frame=False)`` takes an authenticated frame that carries a
     sender's full FV (docs/security.md: the sender's ``<name>_Sync`` frame). Call it
     only after that frame's MAC was verified; it moves the state forward only (a
     replayed sync cannot rewind).
@@ -317,11 +317,6 @@ class FreshnessVerifier:
         persisted boot counter, so its values may go back)."""
         self._last.pop(sender, None)
         self._seen.pop(sender, None)
-
-    def resync(self, sender: Hashable, full_freshness: int) -> bool:
-        """Set a sender's state from an authenticated sync frame's full FV (see the
-        class docstring). False if it is not newer than what is known."""
-        return self.accept(sender, full_freshness, frame=False)
 
 
 # --------------------------------------------------------------------------- key files

@@ -17,7 +17,7 @@ import ctypes
 import os
 import shutil
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 
 import can
@@ -39,7 +39,6 @@ MAX_PEERS = N_AGENTS_MAX + 2
 LABEL_MAX = 32
 TICK_FRAMES_MAX = 6
 FRAME_EXT, FRAME_RTR, FRAME_FD, FRAME_ERR = 0x01, 0x02, 0x04, 0x08
-EV_STATE = 100
 
 
 class Params(ctypes.Structure):
@@ -450,7 +449,3 @@ class CAgent:
         c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items())) or "none"
         return (f"agent {self.cfg.id} (C): state={self.state.name} λ={self.lam:.6f} "
                 f"resets={self.resets} ticks={self.ticks} counters: {c}")
-
-
-def frames_of(rows: Iterable[tuple[int, bytes]]) -> list[can.Message]:
-    return [can.Message(arbitration_id=fid, data=d, is_extended_id=False) for fid, d in rows]

@@ -348,7 +348,6 @@ class PlantNode(SimNodeClock):
         self.faults = tuple(as_fault(f).check(scenario.n) for f in faults)
         c = self.codec
         # the DBC's cycles are for Ts = 10 ms; the scenario's Ts stretches them (time scale)
-        self.setpoint_cycle = cycle_s(setpoint_name(1), scenario.ts)
         self.setpoint_timeout = timeout_s(setpoint_name(1), scenario.ts)
         self.status_cycle = cycle_s(status_name(1), scenario.ts)
         self._status = Cyclic(self.status_cycle, period / 2)

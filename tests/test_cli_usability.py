@@ -168,3 +168,20 @@ def test_a_failed_up_leaves_the_earlier_run_intact(own_keys: bool, tmp_path: Pat
                  *keys]) == 2
     assert "cannot open CAN bus" in capsys.readouterr().err
     assert _digest(tmp_path) == before
+
+
+def test_a_command_whose_module_is_missing_is_listed_and_fails_loudly(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Expected: a listed command without its module is not skipped silently: -h lists
+    it as unavailable, using it exits 2 with `bess-ded: error:` naming the import
+    error, and the other commands still parse."""
+    import sim.cli as cli
+
+    monkeypatch.setattr(cli, "COMMANDS", (*cli.COMMANDS, "no_such_command"))
+    assert cli.main(["-h"]) == 0
+    assert "no_such_command" in capsys.readouterr().out
+    assert cli.main(["no_such_command"]) == 2
+    err = capsys.readouterr().err
+    assert "bess-ded: error:" in err and "no_such_command" in err
+    assert "ModuleNotFoundError" in err
+    assert cli.main(["keys", "-h"]) == 0

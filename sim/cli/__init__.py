@@ -17,9 +17,9 @@ Adding a subcommand ``NAME``:
 Keep ``register`` cheap (import heavy modules inside ``run``): every invocation
 registers every subcommand. Raise a ``BessDedError`` for anything the user can fix;
 ``main`` prints it as ``bess-ded: error: <message>`` and exits with 2, no traceback.
-A name listed here whose module does not exist yet is skipped, so a command can be
-listed before it lands; a module that fails to import is listed as unavailable and
-fails when used, without breaking the other commands.
+A listed command whose module is missing or fails to import is never skipped: `bess-ded
+-h` lists it as unavailable, with the import error, and using it exits 2 naming that
+error; the other commands work on.
 """
 
 from __future__ import annotations
@@ -63,12 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name in COMMANDS:
         try:
             module = importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError as e:
-            if e.name == f"{__name__}.{name}":
-                continue  # listed, not written yet
-            _register_broken(sub, name, e)
-            continue
-        except Exception as e:  # a module mid-edit must not take the other commands down
+        except Exception as e:  # a broken module must not take the other commands down
             _register_broken(sub, name, e)
             continue
         module.register(sub)
