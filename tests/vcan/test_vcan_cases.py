@@ -70,8 +70,9 @@ def case4(vcan_channel: str, tmp_path_factory: pytest.TempPathFactory) -> Run:
 @pytest.fixture(scope="module")
 def case5(vcan_channel: str, tmp_path_factory: pytest.TempPathFactory) -> Run:
     """Case 5 (price steps 0.8 → 1.0 → 0.6), compressed: steps at 0/5/10 s instead of
-    0/15/35 s, 15 s instead of 50 s (lockstep settles each segment in ≤ 2.54 s)."""
-    sc = replace(load_case(5), duration=15.0,
+    0/15/35 s, 17 s instead of 50 s (lockstep settles each segment in ≤ 2.54 s; the last
+    segment is 7 s: with 5 s a guest short of CPU once ended at 1.01e-3)."""
+    sc = replace(load_case(5), duration=17.0,
                  prices=(PriceStep(0.0, 0.8), PriceStep(5.0, 1.0), PriceStep(10.0, 0.6)))
     return run_on_vcan(sc, tmp_path_factory.mktemp("case5"), vcan_channel)
 
