@@ -7,7 +7,7 @@
   router's first tick; a bus run's time axis starts at the first price frame.
 * ``ER_Command`` at each scenario event time (ISOLATE / RECONNECT to the event's
   agent), sent ``COMMAND_REPEATS`` = 3 times, ``COMMAND_SPACING_S`` = 10 ms apart
-  (each with a fresh E2E counter, so none is "repeated data"; the agent treats the
+  (each with a fresh freshness value, so none is a replay or "repeated data"; the agent treats the
   second and third as idempotent). An event fires at the first tick at or after
   its time. ``send_command`` queues the same for tools and tests.
 * ``ER_Balance`` every balance cycle (100 ms), both its pages (0: P_e and F_c, 1: F_c*) in
