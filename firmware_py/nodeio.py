@@ -56,6 +56,13 @@ late or restarted node is heard within one round trip. After a sender timed out
 ``LOST_WINDOWS`` windows are tried, and frames that still fail count as
 ``unsynced`` until its next sync, not as forgeries.
 
+Join window (AUTH-26). A sync replayed from earlier in a peer's current boot passes the
+boot floors; so for ``join_s`` (0.2 s: two hello periods) after its first own syncs a node
+keeps each sender's newest verified sync and takes no frame (counted ``joining``: what
+every start does, not an anomaly), then takes
+the newest one with the sender marked lost: every live peer's answer to its hello has
+superseded a replayed sync by then.
+
 Late is not forged. A frame that fails the window is tried once more, with the most
 recent freshness value at or below the last accepted one that has its low bits
 (``STALE_WINDOWS`` = 1 window: the 16 values up to the last accepted, one CMAC, spent
@@ -105,6 +112,9 @@ UNTRUSTED_S = 1.0     # ... make it untrusted this long (s; callers stretch it w
 STREAK_CAUSES = frozenset({"crc", "dlc", "range", "counter_jump", "counter_clash", "auth"})
 SYNC_S = contract.cycle_ms("ER_Price_Sync") / 1000.0  # a sender's sync cadence (1 s)
 HELLO_FRACTION = 0.1  # re-announce own syncs at most every 0.1 sync_s when a peer (re)starts
+# AUTH-26: after its first own syncs (its hello) a node keeps the newest sync of each sender
+# this long before it takes any: two hello periods, so every live peer's answer is in
+JOIN_FRACTION = 2 * HELLO_FRACTION
 LOST_WINDOWS = 8      # freshness windows tried after a sender timed out (8·16 frames)
 STALE_WINDOWS = 1     # past windows tried before a frame is called forged (16 values)
 _FV_WINDOW = 1 << contract.FV_TX_BITS
@@ -116,13 +126,15 @@ class NodeIO:
                  wanted: Iterable[int], fleet_size: int | None = None,
                  untrusted_after: int = UNTRUSTED_AFTER,
                  untrusted_s: float = UNTRUSTED_S, keys: Keyring | None = None,
-                 sync_s: float = SYNC_S) -> None:
+                 sync_s: float = SYNC_S, join_s: float | None = None) -> None:
         """``own``: the messages this node sends; ``wanted``: the frame IDs it uses;
         ``fleet_size``: the agents of the run (None: unknown, per-agent IDs of any agent
         the DBC defines are then not counted as foreign); ``untrusted_after`` consecutive
         E2E failures on one ID make it untrusted for ``untrusted_s``; ``keys``: this
         node's keyring (None: the public ``--insecure`` keys, with a warning); ``sync_s``:
-        its sync cadence (the DBC's, stretched like every cycle in a time-scaled run)."""
+        its sync cadence (the DBC's, stretched like every cycle in a time-scaled run);
+        ``join_s``: its join window (AUTH-26; None: JOIN_FRACTION·sync_s, 0: none, for
+        tests of a receiver alone)."""
         own = list(own)
         label = contract.sender_of(own[0])
         if keys is None:
@@ -157,6 +169,10 @@ class NodeIO:
         self._sync_next: float | None = None      # None: at the first call of syncs()
         self._hello_after = -1.0                   # earliest time of a re-announce
         self._hello_due = False
+        self.join_s = JOIN_FRACTION * sync_s if join_s is None else join_s
+        self._join_until: float | None = None      # None: before its hello
+        # input ID -> the newest sync's FV while joining; None: joined
+        self._joining: dict[int, int] | None = {} if self.join_s > 0 else None
         # SecOC, receive: the verification key and freshness state of each secured ID
         self._verify_key: dict[int, bytes] = {}
         for fid in self.trackers:
@@ -173,6 +189,7 @@ class NodeIO:
         self._lost: set[int] = set()  # secured IDs whose sender timed out
         self._peer_boot: dict[int, int] = {}  # sync ID of a frame not used -> its boot
         if keys.insecure:  # every insecure sender starts at boot 1, count 0: no sync needed
+            self._joining = None  # and no replay protection to join for
             for fid in self._verify_key:
                 self._fv.accept(fid, (INSECURE_BOOT << contract.FV_COUNT_BITS) - 1,
                                 frame=False)
@@ -207,6 +224,8 @@ class NodeIO:
         fid = msg.arbitration_id
         if t is None:
             t = msg.timestamp
+        if self._joining is not None:
+            self._settle(t)
         if msg.is_extended_id:
             self.reject("unknown_id", f"0x{fid:X}: expected an 11-bit ID, but got an "
                         "extended ID")
@@ -292,8 +311,13 @@ class NodeIO:
         fid = frame.frame_id
         last = self._fv.last(fid)
         if last is None:
-            self.reject("unsynced", f"{frame.name}: expected a {frame.name}_Sync first (no "
-                        "freshness value of its sender known yet)")
+            if self._joining is not None:
+                self.reject("joining", f"{frame.name}: joining (for {self.join_s:g} s after "
+                            "its start the node keeps each sender's newest sync and takes "
+                            "no frame, AUTH-26)", expected=True)
+            else:
+                self.reject("unsynced", f"{frame.name}: expected a {frame.name}_Sync first "
+                            "(no freshness value of its sender known yet)")
             return None
         tries = LOST_WINDOWS if fid in self._lost else 1
         fv = self._fv.candidate(fid, frame.counter)
@@ -357,14 +381,49 @@ class NodeIO:
         if self._below_floor(frame.name, boot, sync_id, t):
             return
         self._streak[sync_id] = 0
+        if self._joining is not None:
+            self._join_sync(frame.name, fid, sync_id, fv, t)
+            return
+        self._take_sync(fid, fv, t)
+
+    def _join_sync(self, name: str, fid: int, sync_id: int, fv: int, t: float) -> None:
+        """AUTH-26: a verified sync while joining: kept if it is the sender's newest yet.
+        A replay of an earlier sync of the sender's current boot (above its floor) is
+        then superseded by the sender's answer to this node's hello before any frame is
+        taken; one that comes after a newer sync is a replay (``auth``)."""
+        assert self._joining is not None
+        newest = self._joining.get(fid)
+        if newest is not None and fv < newest:
+            self.fail(sync_id, "auth", f"{name}: expected freshness at or above {newest:#x} "
+                      f"(a newer sync came first), but got {fv:#x} (a replayed sync)", t)
+            return
+        if newest is None:
+            self._hello_due = True  # a first contact: tell the peer our freshness now
+        self._joining[fid] = fv
+
+    def _settle(self, t: float) -> None:
+        """AUTH-26: at the end of the join window, take each sender's newest sync."""
+        if self._join_until is None or t < self._join_until:
+            return
+        joined, self._joining = self._joining or {}, None
+        for fid, fv in sorted(joined.items()):
+            self._take_sync(fid, fv, t, hello=False)  # first contacts were answered
+            self._lost.add(fid)  # its frames of the window were not taken: lost (AUTH-13)
+
+    def _take_sync(self, fid: int, fv: int, t: float, hello: bool = True) -> None:
+        """A verified sync at or above its sender's floor (AUTH-16, AUTH-17); ``hello``:
+        answer a sender that (re)started with this node's own syncs."""
+        sync_id = contract.SYNC_OF[fid]
+        name = self.codec.name_of(sync_id)
         last = self._fv.last(fid)
+        boot = fv >> contract.FV_COUNT_BITS
         restarted = last is None or (last + 1) >> contract.FV_COUNT_BITS != boot
         if last is not None and fv - 1 <= last:
             if fv - 1 == last:
                 self._lost.discard(fid)  # in step with the sender: the normal window
                 return  # nothing new: the sender sent no frame since its last sync
             if not self.keys.insecure:  # a genuine sync never goes back: a replay
-                self.fail(sync_id, "auth", f"{frame.name}: expected freshness above "
+                self.fail(sync_id, "auth", f"{name}: expected freshness above "
                           f"{last:#x}, but got {fv - 1:#x} (a replayed sync)", t)
                 return
             # --insecure: a restarted sender comes back at boot 1, count 0 (nothing is
@@ -374,7 +433,7 @@ class NodeIO:
         self._fv.accept(fid, fv - 1, frame=False)  # its next frame uses fv
         self._lost.discard(fid)
         self.counters["resyncs"] += 1
-        if restarted:
+        if restarted and hello:
             self._hello_due = True  # a peer (re)started: tell it our freshness now
 
     def _peer_sync(self, msg: can.Message, sync_id: int, t: float) -> bool:
@@ -436,6 +495,8 @@ class NodeIO:
         due = self._sync_next is None or t >= self._sync_next
         if self._hello_due and t >= self._hello_after:
             due = True
+        if self._join_until is None:
+            self._join_until = t + self.join_s  # this first call is the node's hello
         if not due:
             return []
         self._hello_due = False
@@ -492,11 +553,15 @@ class NodeIO:
         self.counters["foreign"] += 1
         self.reject(cause, reason)
 
-    def reject(self, cause: str, reason: str) -> None:
+    def reject(self, cause: str, reason: str, expected: bool = False) -> None:
+        """A frame rejected under ``cause``; ``expected``: what every start does (the join
+        window), counted and logged at debug level only."""
         self.counters[cause] += 1
         self.last_error[cause] = reason
         n = self.counters[cause]
-        if n <= LOG_FIRST or n % 1000 == 0:
+        if expected:
+            log.debug("%s rejected a frame (%s #%d): %s", self.who, cause, n, reason)
+        elif n <= LOG_FIRST or n % 1000 == 0:
             log.warning("%s rejected a frame (%s #%d): %s", self.who, cause, n, reason)
 
     def send(self, name: str, raw: Mapping[str, int]) -> can.Message:

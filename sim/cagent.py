@@ -26,7 +26,7 @@ from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig
 from firmware_py.contract import State, cycle_s, raw_range, scale
 from firmware_py.controllers import make_controller
-from firmware_py.nodeio import HELLO_FRACTION
+from firmware_py.nodeio import HELLO_FRACTION, JOIN_FRACTION
 from firmware_py.runtime import SetpointMap
 from firmware_py.secoc import Keyring
 
@@ -55,7 +55,7 @@ class Params(ctypes.Structure):
         ("period_ns", ctypes.c_int64), ("neighbour_timeout_ns", ctypes.c_int64),
         ("price_timeout_ns", ctypes.c_int64), ("status_timeout_ns", ctypes.c_int64),
         ("untrusted_ns", ctypes.c_int64), ("sync_ns", ctypes.c_int64),
-        ("hello_ns", ctypes.c_int64),
+        ("hello_ns", ctypes.c_int64), ("join_ns", ctypes.c_int64),
         ("lambda_min", ctypes.c_int32), ("lambda_max", ctypes.c_int32),
         ("rho_min", ctypes.c_int32), ("rho_max", ctypes.c_int32),
         ("price_step_max", ctypes.c_int32), ("lambda_step_max", ctypes.c_int32),
@@ -293,6 +293,7 @@ def params_of(cfg: AgentConfig) -> Params:
     p.untrusted_ns = ns(float(cfg.untrusted_s))
     p.sync_ns = ns(sync_s)
     p.hello_ns = ns(HELLO_FRACTION * sync_s)
+    p.join_ns = ns(JOIN_FRACTION * sync_s)
     for name in ("lambda_min", "lambda_max", "rho_min", "rho_max", "price_step_max",
                  "lambda_step_max"):
         setattr(p, name, fx.to_fixed(float(getattr(cfg, name)), name))

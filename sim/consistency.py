@@ -11,7 +11,9 @@ firmware's own map (never re-derived here), within the wire's rounding.
 A setpoint that matches none of the last ``MC_WINDOW`` MC frames waits for the next one
 (it may have overtaken the MC frame of its own tick): it is consistent if that one
 explains it, or if it lies between what the MC frames before and after it give (the
-MC frame of its own tick was lost), inconsistent if not. A disabled setpoint (0 kW) is
+MC frame of its own tick was lost), inconsistent if not; if more than one MC frame was
+lost between them (``period`` given: their times more than 2.5 periods apart), λ may
+have turned in the gap (a reset), so the setpoint is left unverified. A disabled setpoint (0 kW) is
 always consistent: it is the safe direction, as a stale setpoint is. A second setpoint
 arriving while one still waits (the MC frames are not getting through) leaves the first
 unverified, not inconsistent.
@@ -49,8 +51,10 @@ class SetpointCheck:
     """One agent's setpoints checked against its own λ (``params``: its DispatchParams)."""
 
     params: DispatchParams
+    period: float | None = None  # the MC cadence (s): tells one lost MC frame from several
     mcs: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=MC_WINDOW))
     pending: Setpoint | None = None
+    last_mc_t: float | None = None
 
     def __post_init__(self) -> None:
         self.map = SetpointMap(self.params)
@@ -74,9 +78,12 @@ class SetpointCheck:
         return (sp.enable and (self.expected(*a)[0] or self.expected(*b)[0])
                 and min(pa, pb) - ROUNDING_RAW <= sp.raw <= max(pa, pb) + ROUNDING_RAW)
 
-    def mc(self, state: int, lam_raw: int) -> tuple[Check, Setpoint] | None:
-        """An MC frame of the agent; the outcome of a setpoint that waited for it."""
+    def mc(self, state: int, lam_raw: int, t: float | None = None
+           ) -> tuple[Check, Setpoint] | None:
+        """An MC frame of the agent (received at ``t``); the outcome of a setpoint that
+        waited for it."""
         prev = self.mcs[-1] if self.mcs else None
+        prev_t, self.last_mc_t = self.last_mc_t, t
         self.mcs.append((state, lam_raw))
         sp, self.pending = self.pending, None
         if sp is None:
@@ -85,6 +92,9 @@ class SetpointCheck:
             return Check.CONSISTENT, sp
         if prev is None:  # the checker started between its tick's MC frame and it
             return Check.UNVERIFIED, sp
+        if (self.period is not None and t is not None and prev_t is not None
+                and t - prev_t > 2.5 * self.period):
+            return Check.UNVERIFIED, sp  # several MC frames lost: λ may have turned
         ok = self._between(sp, prev, (state, lam_raw))
         return (Check.CONSISTENT if ok else Check.INCONSISTENT), sp
 

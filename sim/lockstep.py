@@ -21,10 +21,12 @@ from .trajectory import Trajectory
 
 def run_lockstep(sc: Scenario, fixed: bool = True,
                  progress: Callable[[int, int], None] | None = None,
-                 impl: str = "py") -> Trajectory:
+                 impl: str = "py", start_tick: int = 0) -> Trajectory:
     """``impl``: "py" steps firmware_py's controllers, "c" the C core (firmware_c,
     through sim.cimpl: its controller step and its ξ), fixed point only; the two give
-    the same trajectory bit for bit."""
+    the same trajectory bit for bit. ``start_tick``: the first sample the agents step
+    (before it they hold λ(0), as nodes in INIT: a bus run's start, whose nodes take no
+    frame in their join window, firmware-spec AUTH-26)."""
     ctrl = make_controller(sc.controller, fixed)
     step, initial, wire = ctrl.step, ctrl.initial_state, ctrl.wire_lambda
 
@@ -75,7 +77,7 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
         for i, s in enumerate(states):
             lam[k, i] = real(lams[i])
             act[k, i] = active[i]
-            if not active[i]:
+            if not active[i] or k < start_tick:
                 continue
             nbrs = [(w, lams[j]) for j, w in neighbours[i] if active[j]]
             x, sat = xi_of(lams[i], nbrs, pin[i], rho_q)  # type: ignore[arg-type]

@@ -357,7 +357,7 @@ class PlantNode(SimNodeClock):
         # each agent's MC frames too: its setpoints must be its λ through its dispatch rule
         self._mc_ids = {c.frame_id(mc_name(u.agent)): u for u in self.units}
         self.obey_inconsistent = obey_inconsistent
-        self._checks = {cfg.id: SetpointCheck(cfg.battery)
+        self._checks = {cfg.id: SetpointCheck(cfg.battery, period=scenario.ts)
                         for cfg in agent_configs_from_scenario(scenario)}
         self.io = NodeIO(c, "the plant", own=self._status_names,
                          wanted=[*self._setpoint_ids, *self._mc_ids],
@@ -380,7 +380,7 @@ class PlantNode(SimNodeClock):
             return
         mc_unit = self._mc_ids.get(f.frame_id)
         if mc_unit is not None:
-            done = self._checks[mc_unit.agent].mc(f.raw["State"], f.raw["Lambda"])
+            done = self._checks[mc_unit.agent].mc(f.raw["State"], f.raw["Lambda"], t)
             self._decided(mc_unit, [done] if done else [])
             return
         unit = self._setpoint_ids[f.frame_id]

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from firmware_py.contract import MC_CYCLE_S, State
+from firmware_py.nodeio import JOIN_FRACTION, SYNC_S
 
 from .buslog import LogContents
 from .scenario import Scenario
@@ -36,6 +37,8 @@ EXIT_INTERRUPTED = 130   # SIGINT/SIGTERM: outputs written for what was recorded
 SILENCE_TS = 3            # a bus silence longer than this many Ts is an anomaly
 SILENCE_CLUSTER_S = 1.0   # (scenario s) silences closer than this are reported as one
 STATE_GRACE_TS = 10       # INIT/ISOLATED/RUNNING may lag the plan by this many Ts
+# an agent (re)started takes no frame in its join window (AUTH-26): INIT that much longer
+INIT_GRACE_TS = STATE_GRACE_TS + round(JOIN_FRACTION * SYNC_S / MC_CYCLE_S)
 DEADLINE_MISS_FRACTION = 0.01
 # genuine frames that arrived late or out of order (valid MAC, old freshness: AUTH-25):
 # a few are what a loaded host does; more than this fraction of what was received (the
@@ -287,12 +290,12 @@ def _setpoints(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomal
     t0 = log.t_first_price or 0.0
     plant = ((facts.node_counters or {}).get("plant") or {}).get("counters", {})
     for cfg in agent_configs_from_scenario(sc):
-        check = SetpointCheck(cfg.battery)
+        check = SetpointCheck(cfg.battery, period=sc.ts)
         bad: list[tuple[Setpoint, int]] = []   # (the setpoint, the λ raw it ignored)
         total = 0
         for t, what, a, b in log.dispatch.get(cfg.id, []):
             if what == "mc":
-                done = check.mc(a, b)
+                done = check.mc(a, b, t)
                 decided = [done] if done else []
             else:
                 total += 1
@@ -434,9 +437,9 @@ def _agent_states(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anom
         for t, d in _intervals(state == SAFE, tr.t, ts):
             out.append(Anomaly("agent_safe", name, f"in SAFE for {d:.2f} s (the scenario "
                                "plans none)", t))
-        for s, what in ((ISOLATED, "ISOLATED"), (INIT, "INIT")):
+        for s, what, lag in ((ISOLATED, "ISOLATED", grace), (INIT, "INIT", INIT_GRACE_TS * ts)):
             for t, d in _intervals((state == s) & expected, tr.t, ts):
-                if d > grace:
+                if d > lag:
                     out.append(Anomaly(f"agent_{what.lower()}", name, f"in {what} for {d:.2f} s "
                                        f"where the scenario has it dispatching", t))
         for t, d in _intervals((state == RUNNING) & ~expected, tr.t, ts):

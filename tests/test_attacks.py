@@ -361,6 +361,57 @@ def test_a_node_restarted_during_the_replay_takes_no_earlier_run(tmp_path: Path)
     assert "auth_failed" in _kinds(m)
 
 
+RESTART_S = (3.0, 3.5)  # agent 3 down, then up (its hello at its first tick)
+
+
+@pytest.mark.parametrize("join", [True, False], ids=["join window", "no join window"])
+def test_a_sync_replayed_at_a_restart_is_superseded_before_any_frame(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, join: bool) -> None:
+    """AUTH-26. At agent 3's restart an attacker replays the router's price sync and
+    price frames from earlier in the router's *current* boot (above every floor): ρ = 0.5
+    where the price is now 0.8. With its join window, agent 3 keeps the newest sync until
+    the router's answer to its hello supersedes the replayed one, and takes no replayed
+    frame; without the window (the control: the test can fail) it takes ρ = 0.5."""
+    if not join:
+        monkeypatch.setattr("firmware_py.nodeio.JOIN_FRACTION", 0.0)
+    sc = dataclasses.replace(CASE, prices=(PriceStep(0.0, 0.5), PriceStep(2.0, 0.8)))
+    rings = secoc.Keyring.fleet(bytes(range(16)), secoc.fleet_nodes(CASE.n))
+    _floors_as_up_writes(rings)
+    run_in_process(sc, tmp_path / "a", 2.0, channel=f"attack-{tmp_path.name}-a",
+                   keyrings=rings)
+    for ring in rings.values():
+        ring.boot = 0  # run B is the same boot of every node: A's frames are B's own, earlier
+    price_ids = {CODEC.frame_id("ER_Price"), contract.SYNC_OF[CODEC.frame_id("ER_Price")]}
+    captured = [m for m in can.LogReader(str(tmp_path / "a" / "run.log"))
+                if m.arbitration_id in price_ids and 1.0 <= m.timestamp < 1.9]
+    first_sync = next(i for i, m in enumerate(captured)
+                      if m.arbitration_id != CODEC.frame_id("ER_Price"))
+    captured = captured[first_sync:]
+    assert len(captured) > 10  # a sync and the price frames after it (every 5 Ts)
+    up = _tick(RESTART_S[1])
+    by_tick: dict[int, list[can.Message]] = {}
+    for msg in captured:
+        by_tick.setdefault(up + _tick(msg.timestamp) - _tick(captured[0].timestamp),
+                           []).append(msg)
+    prices: list[int] = []
+
+    def observe(t: float, nodes: dict[str, Any]) -> None:
+        price = getattr(nodes.get("agent_3"), "price", None)
+        if t > RESTART_S[1] and price is not None:
+            prices.append(price)
+
+    m = run_in_process(sc, tmp_path / "b", 5.0, channel=f"attack-{tmp_path.name}-b",
+                       inject=lambda t: by_tick.get(_tick(t), []), observe=observe,
+                       keyrings=rings, restarts=[("agent_3", *RESTART_S)])
+    replayed = round(0.5 * (1 << 24))
+    assert prices and prices[-1] == round(0.8 * (1 << 24))
+    if join:
+        assert replayed not in prices
+        assert "auth_failed" in _kinds(m), m["anomalies"]  # the replayed frames: named
+    else:
+        assert replayed in prices
+
+
 def test_a_key_file_rolled_back_is_reported_not_silent(tmp_path: Path) -> None:
     """Agent 3 restarts with its key file rolled back three boots: its peers take no
     frame of it (its boot is below their floors) and the run reports it, naming it;

@@ -132,9 +132,12 @@ def _both(variant: str) -> tuple[AgentRuntime, CAgent]:
     return AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
 
 
-# the run starts synced and RUNNING: every sender's sync, then price, status and both
+# the run starts synced and RUNNING: its first tick (its hello), every sender's sync, the
+# join window (AUTH-26: 0.2 sync periods, < 30 ticks), then price, status and both
 # neighbours for three ticks; the random events follow
-PREAMBLE = ([("sync", name) for name in sorted(SENDER_OF)]
+JOIN_TICKS = 30
+PREAMBLE = ([("tick", 1)] + [("sync", name) for name in sorted(SENDER_OF)]
+            + [("tick", JOIN_TICKS)]
             + [("price", 13_421_773, True, 0), ("status", 0, 100), ("mc", 1, 13_000_000, 1),
                ("mc", 3, 14_000_000, 1), ("tick", 1)] * 3)
 TRAFFIC = st.one_of(st.tuples(st.just("tick"), st.just(1)),
@@ -345,8 +348,9 @@ def test_a_sync_below_the_boot_floor_is_refused_alike_in_c_and_python() -> None:
               old.sync("PLANT_1_Status"), old.sync("PLANT_2_Status"),  # plant at boot 4 ok
               FleetSender(FrameCodec(), keys=old.keys, boot=2).sync("PLANT_3_Status"),
               new.sync("ER_Price"), new.frame("ER_Price", price)]
-    for k, msg in enumerate(script):
-        t = k * TS
+    assert [bytes(m.data) for m in py.tick(0.0)] == [bytes(m.data) for m in c.tick(0.0)]
+    for k, msg in enumerate(script):  # after the join window (AUTH-26) its hello opened
+        t = (JOIN_TICKS + k) * TS
         py.on_frame(msg, t)
         c.on_frame(msg, t)
         assert [bytes(m.data) for m in py.tick(t)] == [bytes(m.data) for m in c.tick(t)]

@@ -15,7 +15,7 @@ import ctypes
 from collections.abc import Iterator
 
 import pytest
-from test_c_agent import MASTER, PREAMBLE, TS, _cfg, run_both
+from test_c_agent import JOIN_TICKS, MASTER, PREAMBLE, TS, _cfg, run_both
 
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
@@ -39,13 +39,18 @@ def ring(boot: int = 6) -> Keyring:
                    peers={n: derive_node_key(MASTER, n) for n in PEERS})
 
 
+JOINED = JOIN_TICKS * TS  # after the join window the first tick opened (AUTH-26)
+
+
 def synced_agent(rt: Runtime) -> tuple[CAgent, dict[str, FleetSender]]:
-    """A key-file agent that has heard the router's and plant's syncs."""
+    """A key-file agent that started (its first tick at 0), heard the router's and
+    plant's syncs and took them at JOINED."""
     c = CAgent(_cfg(), ring(), runtime=rt)
+    c.tick(0.0)
     senders = {n: FleetSender(keys={n: derive_node_key(MASTER, n)}, boot=3)
                for n in ("router", "plant")}
-    c.on_frame(senders["router"].sync("ER_Price"), TS / 2)
-    c.on_frame(senders["plant"].sync("PLANT_2_Status"), TS / 2)
+    c.on_frame(senders["router"].sync("ER_Price"), JOINED)
+    c.on_frame(senders["plant"].sync("PLANT_2_Status"), JOINED)
     assert c.counters["resyncs"] == 2 and c.fatal == 0
     return c, senders
 
@@ -98,13 +103,13 @@ def test_a_failed_verification_stops_the_agent_and_accuses_no_sender(faulty: Run
     faulty.lib.bd_test_cmac_fail_after(0)
     if what == "price":
         c.on_frame(senders["router"].frame("ER_Price", {"PriceValid": 1, "Segment": 0,
-                                                        "Rho": 13_421_773}), TS)
+                                                        "Rho": 13_421_773}), JOINED + TS)
     else:
         senders["router"].restart()
-        c.on_frame(senders["router"].sync("ER_Price"), TS)
+        c.on_frame(senders["router"].sync("ER_Price"), JOINED + TS)
     assert c.fatal == BD_ERR_CRYPTO
     assert c.counters["auth"] == 0 and c.counters["resyncs"] == 2
-    assert c.tick(2 * TS) == []
+    assert c.tick(JOINED + 2 * TS) == []
 
 
 def test_a_failed_signature_sends_nothing(faulty: Runtime) -> None:

@@ -40,6 +40,7 @@ from firmware_py.config import agent_configs_from_scenario
 from firmware_py.errors import FrameError
 from firmware_py.faultinject import FaultyBus, RxFaults, neighbour_mc
 from firmware_py.frames import FrameCodec, agent_of
+from firmware_py.nodeio import JOIN_FRACTION, SYNC_S
 from firmware_py.runtime import DIAG_EVERY, AgentRuntime
 from sim import busrun, inject
 from sim.scenario import load_case
@@ -291,9 +292,11 @@ def test_agent_killed_and_restarted_simulated_clock(tmp_path: Path) -> None:
     assert restarted[0] == pytest.approx(7.5)  # as INIT: a fresh agent
     assert dict(series(recs, "AGENT_4_MC", "State"))[restarted[0]] == 0
     # RUNNING once it heard a price it can verify: its syncs at 7.5 s make the router
-    # re-announce the price's at 7.51 s (heard at 7.52 s), then the next price frame
+    # re-announce the price's at 7.51 s (heard at 7.52 s); it takes that sync at the end
+    # of its join window (AUTH-26: 0.2 s after its syncs), then the next price frame
     price_cycle = contract.cycle_s("ER_Price", TS)
-    assert 7.5 + 2 * TS < first_after <= 7.5 + 2 * TS + price_cycle + TS + EPS
+    join_s = JOIN_FRACTION * SYNC_S
+    assert 7.5 + join_s < first_after <= 7.5 + join_s + price_cycle + TS + EPS
     assert t_back - first_after == pytest.approx(TS)
     assert lam_error_at(recs, 7.4, [1, 2, 3]) < FINAL_TOL
     assert m["final_error"] < FINAL_TOL

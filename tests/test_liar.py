@@ -36,8 +36,8 @@ from sim.plant import PlantNode
 from sim.scenario import load_case
 from sim.verdict import EXIT_ANOMALIES, EXIT_NOT_CONVERGED, Anomaly, RunFacts, _host_overload
 
-CASE = replace(load_case(1), duration=6.0)
-DURATION_S = 6.0
+CASE = replace(load_case(1), duration=6.5)  # the fleet dispatches from ~0.21 s (join window)
+DURATION_S = 6.5
 CODEC = FrameCodec()
 BATTERY_3 = agent_configs_from_scenario(CASE)[2].battery
 Q24 = 1 << 24
@@ -80,6 +80,14 @@ def test_a_setpoint_ahead_of_its_mc_frame_waits_for_it_and_one_without_is_unveri
     first, second = Setpoint(True, 1, 0.0), Setpoint(True, 2, 0.1)
     assert check.setpoint(first) == []
     assert check.setpoint(second) == [(Check.UNVERIFIED, first)]   # MC frames not getting
+    # more than one MC frame lost around a setpoint: λ may have turned there, unverified
+    timed = SetpointCheck(BATTERY_3, period=0.01)
+    timed.mc(1, round(0.8 * Q24), 0.0)
+    odd = Setpoint(True, SetpointMap(BATTERY_3)(round(0.7 * Q24))[0], 0.01)
+    assert timed.setpoint(odd) == []
+    assert timed.mc(1, round(0.9 * Q24), 0.03) == (Check.UNVERIFIED, odd)   # 2 lost
+    assert timed.setpoint(odd) == []
+    assert timed.mc(1, round(0.95 * Q24), 0.04) == (Check.INCONSISTENT, odd)  # 1 lost
     # the clipping at the battery's limits is the firmware's own
     assert check.expected(1, 10 * Q24) == (True, round(100 * BATTERY_3.p_max))
     assert check.expected(0, 10 * Q24) == (False, 0)                 # INIT: disabled
@@ -91,8 +99,8 @@ def test_the_plant_holds_the_last_consistent_setpoint_unless_told_to_obey(obey: 
     agent = FleetSender(CODEC)   # agent 3, --insecure: boot 1, no sync needed
     lam = round(0.8 * Q24)
     honest = SetpointMap(BATTERY_3)(lam)[0]
-    plant.on_frame(agent.frame(mc_name(3), {"State": 1, "Lambda": lam, "Resets": 0}), 0.0)
-    plant.on_frame(agent.frame(setpoint_name(3), {"Enable": 1, "PowerSetpoint": honest}), 0.0)
+    plant.on_frame(agent.frame(mc_name(3), {"State": 1, "Lambda": lam, "Resets": 0}), 0.04)
+    plant.on_frame(agent.frame(setpoint_name(3), {"Enable": 1, "PowerSetpoint": honest}), 0.04)
     assert plant.unit(3).p_set == pytest.approx(honest / 100)
     lie = round(LIE_SETPOINT_KW * 100)
     plant.on_frame(agent.frame(setpoint_name(3), {"Enable": 1, "PowerSetpoint": lie}), 0.05)
@@ -128,7 +136,7 @@ RUNS: dict[str, Callable[[Path], dict[str, Any]]] = {
     "router-outage": _plain(router_silent=((4.0, 4.6),)),
     "forged-mc": _plain(inject=spoofed_mc(1)),
     "plant-faults": _plain(plant_faults=((2, "overcurrent", 3.0, 3.5),
-                                         (4, "power_limit", 4.5, 6.0))),
+                                         (4, "power_limit", 4.5, 6.5))),
 }
 
 
@@ -198,10 +206,10 @@ def test_an_honest_agent_s_setpoints_stay_consistent_through_loss_and_reordering
             if (events[k][1] == "setpoint" and events[k - 1][1] == "mc"
                     and events[k][0] == events[k - 1][0] and rng.random() < .25):
                 events[k - 1], events[k] = events[k], events[k - 1]
-        check, outcomes = SetpointCheck(cfg.battery), []
+        check, outcomes = SetpointCheck(cfg.battery, period=CASE.ts), []
         for t, what, a, b in events:
             if what == "mc":
-                done = check.mc(a, b)
+                done = check.mc(a, b, t)
                 outcomes += [done[0]] if done else []
             else:
                 outcomes += [c for c, _ in check.setpoint(Setpoint(bool(a), b, t))]

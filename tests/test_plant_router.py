@@ -756,7 +756,7 @@ def test_plant_signs_its_status_frames_and_sends_their_syncs_every_second() -> N
 
 def test_plant_hears_an_agent_after_its_sync_and_answers_its_restart_with_its_own() -> None:
     """Keys from one fleet master (as `bess-ded up` provisions them): the plant drops an
-    agent's setpoints before that agent's first sync (``unsynced``, not a forgery),
+    agent's setpoints before that agent's first sync (``joining``: its join window),
     follows it after; when the agent restarts (a new boot), its sync moves the plant to
     the new freshness and the plant re-announces its own syncs at once (at most every
     0.1 s), so the restarted agent hears it within one round trip."""
@@ -765,20 +765,24 @@ def test_plant_hears_an_agent_after_its_sync_and_answers_its_restart_with_its_ow
     agent = FleetSender(CODEC, keys={"agent_1": derive_node_key(master, "agent_1")}, boot=3)
     assert plant.io.boot == 1 and len([m for m in plant.tick(0.0) if is_sync(m)]) == 4
     plant.on_frame(setpoint(1, 10.0, sender=agent), 0.0)
-    assert plant.counters["unsynced"] == 1 and plant.unit(1).setpoint_rx is None
+    assert plant.counters["joining"] == 1 and plant.unit(1).setpoint_rx is None
     plant.on_frame(agent.sync(setpoint_name(1)), 0.005)
-    assert plant.counters["resyncs"] == 1
     plant.on_frame(setpoint(1, 10.0, sender=agent), 0.005)
-    assert plant.unit(1).p_set == 10.0
+    # its join window (AUTH-26, 0.2 s from its first syncs): the sync kept, no frame taken
+    assert plant.counters["resyncs"] == 0 and plant.counters["joining"] == 2
     hello = [k for k in range(1, 30) if any(is_sync(m) for m in plant.tick(T(k)))]
     assert hello == [10]  # a first contact: the plant's syncs again, 0.1 s after the last
+    plant.on_frame(setpoint(1, 10.0, sender=agent), 0.29)  # after it: the sync is taken
+    assert plant.unit(1).p_set == 10.0 and plant.counters["resyncs"] == 1
+    assert plant.counters["lost_frames"] == 1   # the one of the window
     agent.restart()                                     # boot 4, counts from 0 again
     plant.on_frame(agent.sync(setpoint_name(1)), 0.295)
     plant.on_frame(setpoint(1, 20.0, sender=agent), 0.295)
     assert plant.unit(1).p_set == 20.0 and plant.counters["resyncs"] == 2
     assert [CODEC.decode(m).raw["Boot"] for m in plant.tick(0.3) if is_sync(m)] == [1] * 4
-    assert not any(plant.counters[c] for c in ("auth", "lost_frames", "foreign"))
-    assert plant.counters["unsynced"] == 1
+    assert not any(plant.counters[c] for c in ("auth", "foreign"))
+    assert plant.counters["joining"] == 2 and plant.counters["unsynced"] == 0
+    assert plant.counters["lost_frames"] == 1
 
 
 def _restart_plant_under_a_running_router(keys: dict[str, Keyring]) -> RouterNode:
@@ -802,10 +806,15 @@ def test_a_restarted_plant_is_heard_by_the_router_after_its_sync() -> None:
     lost or rejected."""
     router = _restart_plant_under_a_running_router(
         Keyring.fleet(bytes(range(16)), ["router", "plant"]))
-    assert router.counters["status_frames"] == 4 * 40
+    # the router's join window (AUTH-26: its first 0.2 s) takes the first 4 status frames
+    # of each unit as unsynced, then lost; after the plant's restart not one
+    in_window = 4 * 4
+    assert router.counters["status_frames"] == 4 * 40 - in_window
+    assert router.counters["joining"] == router.counters["lost_frames"] == in_window
+    assert router.counters["unsynced"] == 0
     assert router.counters["resyncs"] == 8  # first contact, then the restart, per status
-    assert not any(router.counters[c] for c in ("auth", "unsynced", "lost_frames",
-                                                 "status_timeouts", "untrusted_sources"))
+    assert not any(router.counters[c] for c in ("auth", "status_timeouts",
+                                                 "untrusted_sources"))
 
 
 def test_a_restarted_insecure_plant_is_heard_by_the_router_after_its_sync() -> None:

@@ -191,12 +191,13 @@ def test_bad_master_key() -> None:
 KEYS = {n: derive_node_key(NIST_KEY, n) for n in ("router", "agent_1", "agent_2")}
 
 
-def _receiver() -> NodeIO:
-    """Agent 1's view of ER_Price (secured), with the real keys of NIST_KEY's fleet."""
+def _receiver(join_s: float | None = 0.0) -> NodeIO:
+    """Agent 1's view of ER_Price (secured), with the real keys of NIST_KEY's fleet;
+    ``join_s``: its join window (AUTH-26; 0: none, it takes the first sync at once)."""
     ring = secoc.Keyring("agent_1", KEYS["agent_1"], 0, lambda _b: None,
                          peers={"router": KEYS["router"]})
     return NodeIO(FrameCodec(), "agent 1", own=["AGENT_1_MC"], wanted=[0x010],
-                  keys=ring, untrusted_after=10**9)
+                  keys=ring, untrusted_after=10**9, join_s=join_s)
 
 
 def _price(sender: FleetSender, i: int) -> can.Message:
@@ -244,6 +245,47 @@ def test_a_node_starts_a_boot_and_a_count_wrap_starts_another() -> None:
     assert frame_verifies(KEYS["agent_1"], 0x101, last.data, 1 << 24 | (1 << 24) - 1)
     assert frame_verifies(KEYS["agent_1"], 0x101, first.data, 2 << 24 | 0)
     assert len(io.syncs(0.6)) == 1  # the new boot is announced at once
+
+
+def test_the_join_window_keeps_the_newest_sync_and_takes_no_frame() -> None:
+    """AUTH-26: a sync replayed from earlier in the sender's current boot, heard first at
+    the receiver's start, is kept only until the sender's newer sync (its answer to the
+    hello) replaces it; no frame is taken in the window; at the first frame after it the
+    newest sync is taken, the ID marked lost (the frames of the window were skipped), so
+    the replayed frames fail and the genuine one is accepted. Without the window (the
+    control) the replayed frame would be taken."""
+    sender = FleetSender(FrameCodec(), keys=KEYS, boot=7)
+    for i in range(3):
+        _price(sender, i)
+    early_sync = sender.sync("ER_Price")                 # count 3: captured by an attacker
+    early = [_price(sender, i) for i in range(3, 6)]
+    for i in range(6, 40):
+        _price(sender, i)
+    genuine_sync = sender.sync("ER_Price")               # count 40: the answer to the hello
+
+    control = _receiver(join_s=0.0)
+    control.receive(early_sync, 0.01)
+    assert control.receive(early[0], 0.02) is not None   # what the window prevents
+
+    rx = _receiver(join_s=None)
+    assert rx.join_s == pytest.approx(0.2)
+    rx.syncs(0.0)                                        # its hello: the window until 0.2 s
+    rx.receive(early_sync, 0.01)
+    assert rx.receive(early[0], 0.02) is None and rx.counters["joining"] == 1
+    rx.receive(genuine_sync, 0.05)
+    rx.receive(early_sync, 0.06)                         # older than one already heard
+    assert rx.counters["auth"] == 1 and rx.counters["resyncs"] == 0
+    assert rx._fv.last(0x010) is None                    # nothing taken yet
+    for i, m in enumerate(early[1:]):  # after the window: below the newest sync, they fail
+        assert rx.receive(m, 0.21 + 0.01 * i) is None
+    # taken at the first frame after the window; lost, so a failure waits for a frame
+    # that verifies (AUTH-14: unsynced, not auth)
+    assert rx.counters["resyncs"] == 1 and rx._fv.last(0x010) == (7 << 24 | 39)
+    assert rx.counters["unsynced"] == 2 and rx.counters["auth"] == 1
+    sender._count[0x010] += 20  # frames the receiver never heard: the wider window (AUTH-13)
+    assert rx.receive(_price(sender, 60), 0.25) is not None
+    assert rx.counters["lost_frames"] == 20
+    assert rx.receive(early[2], 0.26) is None and rx.counters["auth"] == 2  # no longer lost
 
 
 def test_round_trip_and_replay_rejected() -> None:

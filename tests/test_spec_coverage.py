@@ -1192,16 +1192,18 @@ def test_an_old_sync_is_an_auth_failure_with_a_key_file() -> None:
     ring = Keyring.fleet(master, ["agent_2"])["agent_2"]
     a = AgentRuntime(parse(pinned_alone()), CODEC, keys=ring)
     router = FleetSender(CODEC, keys={"router": derive_node_key(master, "router")}, boot=5)
+    a.tick(0.0)  # its hello: the join window (AUTH-26) until 0.2 s
+    t0 = 0.25
     first = router.sync("ER_Price")
-    a.on_frame(first, 0.0)
+    a.on_frame(first, t0)
     assert a.counters["resyncs"] == 1
     for k in range(3):
         a.on_frame(router.frame("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(0.8),
-                                             "Segment": 0}), 0.001 * k)
+                                             "Segment": 0}), t0 + 0.001 * k)
     assert a.counters["auth"] == 0 and a.price == fx.to_fixed(0.8)
-    a.on_frame(first, 0.01)
+    a.on_frame(first, t0 + 0.01)
     assert a.counters["auth"] == 1 and a.io.last_safety == ("auth", 0x410)
     assert a.counters["resyncs"] == 1
     a.on_frame(router.frame("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(0.8),
-                                         "Segment": 0}), 0.02)
+                                         "Segment": 0}), t0 + 0.02)
     assert a.counters["auth"] == 1 and a.counters["lost_frames"] == 0

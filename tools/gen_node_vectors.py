@@ -292,6 +292,14 @@ class Scenario:
         for nb in self.cfg.neighbours:
             self.sync(f"agent_{nb.id}", mc_name(nb.id))
 
+    def join(self) -> None:
+        """Tick through the agent's join window (AUTH-26) with nothing received: it takes
+        each sender's newest sync at the first frame after it (secure keys only)."""
+        if self.insecure:
+            return
+        while self.t_rx(self.n - 1) < self.agent.io.join_s:  # its hello is tick 0, t = 0
+            self.tick()
+
     def run(self, ticks: int, *, price: int | None | Callable[[int], int | None] = None,
             status: bool | Callable[[int], bool] = True,
             nbrs: Mapping[int, Callable[[int], tuple[int, int] | None]] | None = None,
@@ -360,10 +368,12 @@ def neighbours(seed: int = 1, n: int = 4000) -> dict[int, Callable[[int], tuple[
 
 
 def start(s: Scenario, ticks: int = 10) -> dict[int, Callable[[int], tuple[int, int]]]:
-    """Tick 0, the senders' syncs, then ``ticks`` − 1 ticks of traffic: RUNNING after."""
+    """Tick 0, the senders' syncs, the join window (AUTH-26), then ``ticks`` − 1 ticks of
+    traffic: RUNNING after."""
     nb = neighbours()
     s.tick()
     s.sync_all()
+    s.join()
     for j, f in nb.items():
         s.mc(j, f(0)[1], 1)
     s.price(RHO)
@@ -376,7 +386,11 @@ def sc_start_steady() -> Scenario:
     s = Scenario(
         "start_steady",
         "Normal start and steady stepping, secure keys: frames before the senders' syncs are "
-        "unsynced; the syncs (resync, a hello: the agent re-sends its own syncs 0.1 s after "
+        "unsynced; the join window (0.2 s from its first syncs: each sender's newest sync "
+        "kept, so an earlier sync of the router's current boot, replayed first, is replaced "
+        "by the genuine one, and replayed again after it is auth; frames in the window "
+        "unsynced; the syncs taken at the first frame after it, every input lost: a wider "
+        "window); the syncs (resync, a hello: the agent re-sends its own syncs 0.1 s after "
         "its first); INIT until both price and status are fresh (agent 3 INIT for 0.2 s: "
         "alive but not in xi); RUNNING with a pinned price and two neighbours rippling "
         "around the price (zero crossings, resets, the band); MC every tick, Setpoint every "
@@ -387,13 +401,19 @@ def sc_start_steady() -> Scenario:
          "STEP-5", "STEP-6", "STEP-7", "STEP-8", "BAND-1", "BAND-2", "BAND-3", "LIVE-1",
          "LIVE-2", "TMO-1", "TMO-3", "PRICE-6", "RX-8", "RX-10", "RX-11", "AUTH-1", "AUTH-2",
          "AUTH-3", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-10", "AUTH-11",
-         "AUTH-12", "AUTH-15", "AUTH-16", "NUM-1"])
+         "AUTH-12", "AUTH-15", "AUTH-16", "AUTH-26", "NUM-1"])
     nb = neighbours()
     s.tick()                                   # tick 0: INIT, own syncs, Diag page 0
     s.price(RHO, note="before the router's sync: unsynced")
     s.mc(1, nb[1](0)[1], note="before agent 1's sync: unsynced")
-    s.sync_all()
-    s.price(RHO, note="first price: accepted")
+    s.router.count[CODEC.frame_id("ER_Price")] = 40  # the router has run for a while
+    early = s.router.sync("ER_Price", count=3)
+    s.rx(early, note="an earlier sync of the router's current boot (a replay): kept")
+    s.sync_all()  # the genuine ones: newer, they replace it
+    s.rx(early, note="the earlier sync again, after a newer one: auth")
+    s.price(RHO, note="in the join window: unsynced")
+    s.join()
+    s.price(RHO, note="first price after the window: accepted (its newest sync)")
     s.run(1, price=None, nbrs={1: nb[1], 3: lambda k: (0, LAM3)})
     s.run(20, price=RHO, nbrs={1: nb[1], 3: lambda k: (0, LAM3)})  # status from tick 2
     s.run(280, price=RHO, nbrs=nb)
@@ -412,6 +432,7 @@ def sc_init_wait() -> Scenario:
     nb = neighbours()
     s.tick()
     s.sync_all()
+    s.join()
     s.run(40, price=RHO, status=False, nbrs=nb)
     for _ in range(3):
         s.run(4, price=RHO, status=False, nbrs=nb)
@@ -853,6 +874,7 @@ def sc_boot_floors() -> Scenario:
     old_a1 = Sender("agent_1", s.senders["agent_1"].key, 1)
     s.rx(old_a1.sync(mc_name(1), count=77), note="agent 1's MC sync of boot 1 < 2: auth")
     s.sync_all()
+    s.join()
     for j, f in nb.items():
         s.mc(j, f(0)[1], 1)
     s.price(RHO)

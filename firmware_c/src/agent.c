@@ -34,7 +34,7 @@ static const char *const counter_names[BD_C_COUNT] = {
     "implausible_gains", "auth", "unsynced", "resyncs", "deadline_miss", "send_failure",
     "error_frame", "commands", "commands_isolate", "commands_reconnect",
     "price_steps_accepted", "setpoint_limited", "not_a_frame", "invalid_frame", "rx_error",
-    "stale"};
+    "stale", "joining"};
 
 const char *bd_counter_name(int counter)
 {
@@ -327,6 +327,8 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     init_echo(&a->echo[ECHO_DIAG_SYNC], BD_DIAG_SYNC_BASE + p->id);
     a->sync_pending = 1;
     a->hello_after = INT64_MIN;
+    a->join_until = INT64_MAX;
+    a->joining = !a->insecure && p->join_ns > 0;   /* insecure: every state preset */
     return new_boot(a);   /* AUTH-3: before the first frame is signed */
 }
 
@@ -498,7 +500,7 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
                      int64_t t)
 {
     if ((s->flags & BD_RX_HAS_FV) == 0u) {
-        reject(a, BD_C_UNSYNCED, f->id);
+        reject(a, a->joining ? BD_C_JOINING : BD_C_UNSYNCED, f->id);
         return 0;
     }
     uint32_t tries = (s->flags & BD_RX_LOST) != 0u ? LOST_WINDOWS : 1u;
@@ -555,6 +557,18 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
     if (k >= 0) {
         a->sync_streak[k] = 0u;
     }
+    if (a->joining) {   /* AUTH-26: keep the sender's newest sync until the window ends */
+        if ((s->flags & BD_RX_JOIN) != 0u && fv < s->fv) {
+            fail(a, NULL, f->id, BD_C_AUTH, t);   /* older than one already heard */
+            return;
+        }
+        if ((s->flags & BD_RX_JOIN) == 0u) {
+            a->hello_due = 1;   /* a first contact: tell the peer our freshness now */
+        }
+        s->fv = fv;
+        s->flags |= BD_RX_JOIN;
+        return;
+    }
     int has_fv = (s->flags & BD_RX_HAS_FV) != 0u;
     int restarted = !has_fv || ((s->fv + 1u) >> BD_FV_COUNT_BITS) != m.boot;
     if (has_fv && fv - 1u <= s->fv) {
@@ -578,6 +592,31 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
     add(a, BD_C_RESYNCS, 1u, f->id);
     if (restarted) {
         a->hello_due = 1;
+    }
+}
+
+/* AUTH-26: at the end of the join window, each input takes its sender's newest sync;
+ * the frames of the window were not taken, so the input counts as lost (AUTH-13). */
+static void settle(bd_agent *a, int64_t t)
+{
+    if (t < a->join_until) {
+        return;
+    }
+    a->joining = 0;
+    for (uint32_t r = 0u; r < a->n_rx; ++r) {
+        bd_rx_slot *s = &a->rx[r];
+        if ((s->flags & BD_RX_JOIN) == 0u) {
+            continue;
+        }
+        uint64_t fv = s->fv;
+        s->flags &= (uint8_t)~BD_RX_JOIN;
+        if (fv - 1u <= FV_MAX) {
+            s->seen = seen_after(s, 0, fv - 1u, 0u);
+            s->fv = fv - 1u;
+            s->flags |= BD_RX_HAS_FV;
+        }
+        s->flags |= BD_RX_LOST;
+        add(a, BD_C_RESYNCS, 1u, s->sync_id);
     }
 }
 
@@ -837,6 +876,9 @@ static int decode_and_use(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t
 void bd_agent_rx(bd_agent *a, const bd_frame *f, int64_t t)
 {
     uint32_t id = f->id;
+    if (a->joining) {
+        settle(a, t);
+    }
     if ((f->flags & BD_FRAME_EXT) != 0u) {
         reject(a, BD_C_UNKNOWN_ID, id);
         return;
@@ -969,6 +1011,9 @@ static void frame_init(bd_frame *f, uint32_t id)
 /* AUTH-13..15: the syncs due at t. */
 static size_t syncs(bd_agent *a, int64_t t, bd_frame *out)
 {
+    if (a->join_until == INT64_MAX) {
+        a->join_until = t + a->p.join_ns;   /* the first syncs are the node's hello */
+    }
     int due = a->sync_pending || t >= a->sync_next;
     if (a->hello_due && t >= a->hello_after) {
         due = 1;

@@ -830,6 +830,7 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
     p->untrusted_ns = to_ns(untrusted);
     p->sync_ns = to_ns(sync_s);
     p->hello_ns = to_ns(0.1 * sync_s);
+    p->join_ns = to_ns(0.2 * sync_s);
     gain_raw_bounds(kmin, kmax, &p->gain_k_raw_min, &p->gain_k_raw_max);
     gain_raw_bounds(hmin, hmax, &p->gain_h_raw_min, &p->gain_h_raw_max);
     return 0;

@@ -62,6 +62,7 @@ typedef struct {
     int64_t untrusted_ns;         /* RX-12 */
     int64_t sync_ns;              /* AUTH-13: the sync cadence (ER_Price_Sync's cycle at Ts) */
     int64_t hello_ns;             /* AUTH-15: 0.1 * sync */
+    int64_t join_ns;              /* AUTH-26: the join window, 0.2 * sync (0: none) */
     int32_t lambda_min;           /* q24 limits (CFG-7) */
     int32_t lambda_max;
     int32_t rho_min;
@@ -108,6 +109,7 @@ enum {
     BD_C_PRICE_STEPS_ACCEPTED, BD_C_SETPOINT_LIMITED,
     BD_C_NOT_A_FRAME, BD_C_INVALID_FRAME, BD_C_RX_ERROR,   /* the bus's inputs (LOOP-6) */
     BD_C_STALE,
+    BD_C_JOINING,                 /* AUTH-26: frames of the join window */
     BD_C_COUNT
 };
 
@@ -126,6 +128,7 @@ typedef void (*bd_event_fn)(void *ctx, int event, uint32_t frame_id, uint32_t de
 #define BD_RX_UNTRUSTED 0x01u     /* bd_rx_slot.flags: untrusted_until is set */
 #define BD_RX_HAS_FV 0x02u        /* the last accepted freshness value is known */
 #define BD_RX_LOST 0x04u          /* its sender timed out: LOST_WINDOWS windows tried */
+#define BD_RX_JOIN 0x08u          /* joining: fv is the newest sync's FV (AUTH-26) */
 typedef struct {
     int64_t untrusted_until;
     uint64_t fv;                  /* the last accepted freshness value */
@@ -206,6 +209,8 @@ typedef struct {
     uint32_t tx_count[3];         /* MC, Setpoint, Diag: message counts under this boot */
     int32_t sync_pending;         /* syncs due at the next tick (start, new boot) */
     int32_t hello_due;
+    int64_t join_until;           /* AUTH-26: end of the join window (INT64_MAX: not begun) */
+    int32_t joining;              /* AUTH-26: 1 until the join window is over */
     bd_echo echo[BD_N_ECHO];
     bd_event_fn on_event;
     void *event_ctx;
