@@ -9,13 +9,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from firmware_py.__main__ import (
+from firmware_py.cliargs import MAX_PERIOD_S, duration_s, float_in, time_scale
+from firmware_py.nodeargs import (
     add_bus_arguments,
     add_filter_argument,
     add_key_arguments,
     add_rt_argument,
 )
-from firmware_py.cliargs import MAX_PERIOD_S, duration_s, float_in, time_scale
 
 
 def add_node_arguments(p: argparse.ArgumentParser) -> None:
@@ -60,7 +60,6 @@ def load_node_scenario(args: argparse.Namespace) -> Any:
 def serve(node: Any, args: argparse.Namespace) -> int:
     """Run ``node`` on the bus the flags name until --duration or SIGINT/SIGTERM; always
     shut the bus down and print the node's summary to stderr."""
-    from firmware_py.__main__ import set_realtime
     from firmware_py.node import (
         StopFlag,
         behind_filter,
@@ -69,6 +68,7 @@ def serve(node: Any, args: argparse.Namespace) -> int:
         run_node,
         with_acceptance_filter,
     )
+    from firmware_py.nodeargs import set_realtime
 
     if args.rt_priority:
         set_realtime(args.rt_priority)

@@ -38,8 +38,8 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from firmware_py.__main__ import add_bus_arguments, add_rt_argument
     from firmware_py.cliargs import duration_s, time_scale
+    from firmware_py.nodeargs import add_bus_arguments, add_rt_argument
 
     from ._common import add_case_option, one_line_errors
 
@@ -73,10 +73,10 @@ def run(args: argparse.Namespace) -> int:
     import can
 
     from firmware_py import contract, secoc
-    from firmware_py.__main__ import set_realtime
     from firmware_py.config import agent_configs_from_scenario
     from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name
     from firmware_py.node import open_bus
+    from firmware_py.nodeargs import set_realtime
 
     from .. import busrun
     from .. import conformance as conf

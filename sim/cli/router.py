@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from firmware_py.__main__ import keyring_from_args
+    from firmware_py.nodeargs import keyring_from_args
 
     from ..router import RouterNode, SilentWindow
     from ._node import load_node_scenario, serve

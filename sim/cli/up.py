@@ -26,8 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from firmware_py.__main__ import add_bus_arguments
 from firmware_py.errors import ConfigError, ParameterError
+from firmware_py.nodeargs import add_bus_arguments
 
 if TYPE_CHECKING:
     from ..busrun import BusOptions
