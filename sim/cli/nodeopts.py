@@ -1,4 +1,5 @@
-"""Helpers shared by the node subcommands ``plant`` and ``router`` (not a subcommand)."""
+"""Options and serving shared by the node subcommands ``plant`` and ``router`` (not a
+subcommand itself)."""
 
 from __future__ import annotations
 
@@ -47,7 +48,7 @@ def load_node_scenario(args: argparse.Namespace) -> Any:
     """The scenario the flags name, stretched by --time-scale; sets the default --period
     to its Ts."""
     from ..scenario import scaled
-    from ._common import resolve_scenario
+    from ..scenario_select import resolve_scenario
 
     sc = resolve_scenario(args.case)
     if args.time_scale != 1.0:
