@@ -34,7 +34,7 @@ from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import FrameCodec
 from firmware_py.node import GuardedBus, bus_kwargs, open_bus
 
-from .cli.keys import load_boot_floors, load_key_set, write_boot_floors, write_key_set
+from .keyset import load_boot_floors, load_key_set, write_boot_floors, write_key_set
 from .runreport import Recording, report
 from .scenario import Scenario, to_toml
 from .verdict import TOLERANCE, RunFacts

@@ -22,6 +22,7 @@ import sys
 from collections.abc import Sequence
 from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 from firmware_py import fixedpoint as fx
 from firmware_py.controllers import (
@@ -241,6 +242,18 @@ class CController:
         self.core.lib.bd_ctrl_run(ctypes.byref(self._cfg), ctypes.byref(cs), arr, n, rec)
         return [(_to_py(r.state), StepOutput(dlam=r.out.dlam, reset=bool(r.out.reset)))
                 for r in rec[:n]]
+
+    def run_into(self, s: ControllerState, xis: ctypes.Array[ctypes.c_int32],
+                 records: ctypes.Array[Any]) -> None:
+        """len(xis) steps in one bd_ctrl_run call into ``records`` (``record_buffer``),
+        nothing converted per step: the C core's own speed, for benchmarks."""
+        self.core.lib.bd_ctrl_run(ctypes.byref(self._cfg), ctypes.byref(_to_c(s)), xis,
+                                  len(xis), records)
+
+
+def record_buffer(n: int) -> ctypes.Array[Any]:
+    """A buffer for ``n`` steps' records of ``CController.run_into``."""
+    return (_Record * max(n, 1))()
 
 
 def _to_c(s: ControllerState) -> _State:

@@ -14,7 +14,7 @@ import pytest
 from firmware_py import secoc
 from sim import busrun
 from sim.cli import main
-from sim.cli.keys import write_key_set
+from sim.keyset import write_key_set
 from sim.scenario import load_case
 
 pytestmark = pytest.mark.slow

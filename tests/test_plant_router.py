@@ -828,16 +828,14 @@ def test_a_restarted_insecure_plant_is_heard_by_the_router_after_its_sync() -> N
 def test_node_cli_time_scale_stretches_the_scenario_and_the_period() -> None:
     """`bess-ded router|plant --time-scale F` run the scenario as `up --time-scale F`
     does (Ts·F, k/F, h/F²), ticking at the stretched Ts unless --period says otherwise."""
-    import argparse
-
-    from sim.cli._node import add_node_arguments, load_node_scenario
+    from sim.cli import build_parser
+    from sim.cli.nodeopts import load_node_scenario
     from sim.scenario import scaled
 
-    p = argparse.ArgumentParser()
-    add_node_arguments(p)
-    args = p.parse_args(["--case", "1", "--insecure", "--time-scale", "4"])
+    p = build_parser()
+    args = p.parse_args(["router", "--case", "1", "--insecure", "--time-scale", "4"])
     sc = load_node_scenario(args)
     assert sc == scaled(load_case(1), 4.0)
     assert args.period == pytest.approx(0.04) == sc.ts
-    args = p.parse_args(["--case", "1", "--insecure", "--period", "0.02"])
+    args = p.parse_args(["plant", "--case", "1", "--insecure", "--period", "0.02"])
     assert load_node_scenario(args).ts == 0.01 and args.period == 0.02

@@ -14,9 +14,12 @@ Adding a subcommand ``NAME``:
 
 2. add ``"NAME"`` to ``COMMANDS`` below (the order is the order of ``bess-ded -h``).
 
-Keep ``register`` cheap (import heavy modules inside ``run``): every invocation
-registers every subcommand. Raise a ``BessDedError`` for anything the user can fix;
-``main`` prints it as ``bess-ded: error: <message>`` and exits with 2, no traceback.
+Keep a subcommand thin: parsing and printing over a function of the library in
+``sim/`` that does the work and returns a result (docs/api.md); nothing outside
+``sim/cli`` imports from it. Keep ``register`` cheap (import heavy modules inside
+``run``): every invocation registers every subcommand. Raise a ``BessDedError`` for
+anything the user can fix; ``main`` prints it as ``bess-ded: error: <message>`` and
+exits with 2, no traceback.
 A listed command whose module is missing or fails to import is never skipped: `bess-ded
 -h` lists it as unavailable, with the import error, and using it exits 2 naming that
 error; the other commands work on.

@@ -15,23 +15,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ..lockstep_case import simulate
 from ..scenario import Scenario
-from ._common import (
-    add_arithmetic_arguments,
-    add_scenario_argument,
-    describe,
-    fmt_pct,
-    fmt_resets,
-    fmt_sci,
-    fmt_time,
-    one_line_errors,
-    resolve_scenario,
-    scenario_spec,
-    slug,
-    table,
-    write_json,
-)
-from .case import simulate
+from ..scenario_select import resolve_scenario
+from ..textfmt import describe, fmt_pct, fmt_resets, fmt_sci, fmt_time, slug, table, write_json
+from ._common import add_arithmetic_arguments, add_scenario_argument, one_line_errors, scenario_spec
 
 # (label, controller overrides): the paper's method first, then its baselines
 CONTROLLERS: tuple[tuple[str, dict[str, Any]], ...] = (

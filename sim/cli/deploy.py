@@ -55,10 +55,9 @@ def run(args: argparse.Namespace) -> int:
     from firmware_py.config import agent_configs_from_scenario
 
     from ..busrun import RT_PRIORITY
+    from ..keyset import check_key_set, prepare_key_dir, write_key_set
     from ..scenario import scaled, to_toml
-    from ._common import resolve_scenario
-    from .keys import _prepare_dir, write_key_set
-    from .up import check_key_set, pick_variant
+    from ..scenario_select import pick_variant, resolve_scenario
 
     sc, chosen = pick_variant(resolve_scenario(args.case), args.variant, "deploy")
     sc = scaled(sc, args.time_scale)
@@ -73,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         key_dir = None
     else:
         key_dir = out / "keys"
-        _prepare_dir(key_dir, args.force)
+        prepare_key_dir(key_dir, args.force)
         write_key_set(sc, key_dir, secrets.token_bytes(secoc.KEY_BYTES))
     (out / "agents").mkdir(parents=True, exist_ok=True)
     (out / "scenario.toml").write_text(to_toml(sc))

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from firmware_py.__main__ import add_bus_arguments
 from firmware_py.cliargs import float_in, int_in, positive_int
+from firmware_py.nodeargs import add_bus_arguments
 
 from ..scenario import MAX_AGENTS
 from ._common import one_line_errors

@@ -15,14 +15,7 @@ Every node signs and verifies its secured frames with its key file:
 from __future__ import annotations
 
 import argparse
-import os
-import secrets
-import stat
-from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
-
-from firmware_py.errors import BessDedError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -44,116 +37,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _key_files(out: Path) -> list[Path]:
-    return sorted(p for p in out.iterdir() if p.suffix == ".key" and p.is_file())
-
-
-def _prepare_dir(out: Path, force: bool) -> None:
-    if out.exists() and not out.is_dir():
-        raise BessDedError(f"--out: expected a directory, but {out} is a file")
-    if not out.exists():
-        out.parent.mkdir(parents=True, exist_ok=True)
-        os.mkdir(out, 0o700)
-        os.chmod(out, 0o700)  # the umask may have removed bits; make it exact
-        return
-    mode = stat.S_IMODE(os.stat(out).st_mode)
-    if mode & 0o077:
-        raise BessDedError(f"--out: {out} is accessible by group or others (mode {mode:04o}): "
-                           "give a new directory, or chmod 700 it first")
-    existing = _key_files(out)
-    if existing and not force:
-        raise BessDedError(f"--out: {out} already holds a key set ({len(existing)} .key "
-                           "files, e.g. " + existing[0].name + "): not overwriting it "
-                           "without --force")
-
-
-def peers_of(sc: Any) -> dict[str, list[str]]:
-    """Need to know: the senders whose secured frames each node receives, i.e. whose
-    verification keys its key file holds (agent i: the router, the plant and its
-    neighbours; the plant: every agent and the router; the router: the plant and every
-    agent). The router and the plant use the keys of the nodes whose frames they do not
-    take only to notice a restart from its sync and re-announce their own at once."""
-    from firmware_py import secoc
-    from firmware_py.config import agent_configs_from_scenario
-
-    out = {f"agent_{c.id}": ["router", "plant", *(f"agent_{n.id}" for n in c.neighbours)]
-           for c in agent_configs_from_scenario(sc)}
-    agents = [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
-    out["plant"] = [*agents, "router"]
-    out["router"] = ["plant", *agents]
-    return out
-
-
-def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -> None:
-    """Write DIR/<node>.key for every node of ``sc`` (and DIR/master.key), 0600."""
-    import tomli_w
-
-    from firmware_py import secoc
-
-    if with_master:
-        secoc.write_private(out / "master.key", secoc.MASTER_FILE_HEADER
-                            + tomli_w.dumps(secoc.master_key_document(master)))
-    fleet = secoc.fleet_id(master)
-    for node, peers in peers_of(sc).items():
-        doc = secoc.node_key_document(node, secoc.derive_node_key(master, node), fleet, 0,
-                                      {p: secoc.derive_node_key(master, p) for p in peers})
-        secoc.write_private(out / f"{node}.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
-
-
-def load_key_set(keys_dir: Path) -> dict[str, bytes]:
-    """Every node's own key from a key set (label -> key): what a monitor of the run
-    (the recorder's analysis) needs to tell forged frames from the fleet's."""
-    from firmware_py import secoc
-
-    return {k.node: k.key for k in (secoc.load_node_key(p) for p in _key_files(keys_dir)
-                                    if p.name != "master.key")}
-
-
-def load_boot_floors(keys_dir: Path) -> dict[str, int]:
-    """Every node's lowest boot counter at its next start (label -> the key file's
-    counter + 1: a start uses a new one, AUTH-3). Read before a run, it tells the
-    run's monitor that a sync of a lower boot is from an earlier start: a replay."""
-    from firmware_py import secoc
-
-    return {k.node: k.boot_counter + 1
-            for k in (secoc.load_node_key(p) for p in _key_files(keys_dir)
-                      if p.name != "master.key")}
-
-
-def write_boot_floors(keys_dir: Path, nodes: Iterable[str], floors: Mapping[str, int]) -> None:
-    """Before a fleet starts: raise the boot floors (AUTH-21) in the key files of
-    ``nodes`` to ``floors`` (label -> that node's boot at this start, from
-    ``load_boot_floors``), so that no node takes a sync of an earlier run or boot, not
-    even before a peer's first genuine sync, nor after its own restart."""
-    from firmware_py import secoc
-
-    for node in nodes:
-        secoc.save_floors(keys_dir / f"{node}.key", floors)
-
-
 def run(args: argparse.Namespace) -> int:
-    from firmware_py import secoc
-
-    from ._common import resolve_scenario
+    from ..keyset import provision_fleet_keys
+    from ..scenario_select import resolve_scenario
 
     sc = resolve_scenario(args.case)
-    master = (secoc.load_master_key(args.master_key) if args.master_key is not None
-              else secrets.token_bytes(secoc.KEY_BYTES))
     out: Path = args.out
-    _prepare_dir(out, args.force)
-
-    nodes = secoc.fleet_nodes(sc.n)
-    fleet = secoc.fleet_id(master)
-    keep = {f"{n}.key" for n in nodes} | {"master.key"}
-    if args.master_key is not None and args.master_key.resolve().parent == out.resolve():
-        keep.add(args.master_key.name)
-    stale = [p for p in _key_files(out) if p.name not in keep]
-    for p in stale:  # --force only: a smaller fleet's leftovers would be confusing
-        p.unlink()
-    write_key_set(sc, out, master, with_master=args.master_key is None)
+    ks = provision_fleet_keys(sc, out, args.master_key, args.force)
+    nodes, stale = ks.nodes, ks.removed
 
     print(f"bess-ded keys: {len(nodes)} node keys for {sc.name} ({sc.n} agents, plant, "
-          f"router), fleet id {fleet}, in {out}/")
+          f"router), fleet id {ks.fleet_id}, in {out}/")
     print(f"  {', '.join(f'{n}.key' for n in nodes)} (0600, directory 0700)")
     if stale:
         print(f"  removed {len(stale)} key file(s) of the previous set: "

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 
 from ._common import one_line_errors
-from ._node import add_node_arguments
+from .nodeopts import add_node_arguments
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,10 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from firmware_py.__main__ import keyring_from_args
+    from firmware_py.nodeargs import keyring_from_args
 
     from ..plant import PlantFault, PlantNode
-    from ._node import load_node_scenario, serve
+    from .nodeopts import load_node_scenario, serve
 
     sc = load_node_scenario(args)
     faults = [PlantFault.parse(f).check(sc.n) for f in args.fault]

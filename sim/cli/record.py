@@ -17,8 +17,8 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from firmware_py.__main__ import add_bus_arguments
     from firmware_py.cliargs import duration_s
+    from firmware_py.nodeargs import add_bus_arguments
 
     from ._common import one_line_errors
 

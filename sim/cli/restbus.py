@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.cliargs import duration_s
 
     from ._common import one_line_errors
-    from .up import add_run_arguments
+    from .fleetopts import add_run_arguments
 
     p = one_line_errors(sub.add_parser(
         "restbus", help="run the fleet but one node, for a device under test on the bus",
@@ -52,7 +52,7 @@ def dut_node(spec: str, n: int) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from .. import busrun
-    from .up import plan_run, print_report
+    from .fleetopts import plan_run, print_report
 
     plan = plan_run(args, "restbus", "{n} agents + plant + router, but the device under test")
     dut = dut_node(args.dut, plan.sc.n)

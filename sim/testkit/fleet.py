@@ -43,8 +43,7 @@ def fleet_scenario(case: int | str | Path | Scenario, variant: str | None = None
                    time_scale: float = 1.0) -> Scenario:
     """A paper case (1..7), a scenario .toml or a ``Scenario``; its variant (for cases
     with variants); stretched by ``time_scale`` (Ts·F, as ``bess-ded up --time-scale``)."""
-    from ..cli._common import resolve_scenario
-    from ..cli.up import pick_variant
+    from ..scenario_select import pick_variant, resolve_scenario
 
     if isinstance(case, Scenario):
         sc = case
@@ -103,12 +102,12 @@ class KeySet:
         key the first time, or checked: an existing set must cover the fleet)."""
         if self.master is not None:
             if self._written_for != sc.name:
-                from ..cli.keys import write_key_set
+                from ..keyset import write_key_set
 
                 write_key_set(sc, self.directory, self.master)
                 self._written_for = sc.name
             return self.directory
-        from ..cli.up import check_key_set
+        from ..keyset import check_key_set
 
         check_key_set(self.directory, sc.n)
         return self.directory
@@ -117,7 +116,7 @@ class KeySet:
         """Every node's key (label → key), for a ``Tester``."""
         if self.master is not None:
             return fleet_keys(self.master)
-        from ..cli.keys import load_key_set
+        from ..keyset import load_key_set
 
         keys = load_key_set(self.directory)
         if not keys:
@@ -149,7 +148,7 @@ class ProcessFleet:
     def __init__(self, case: int | str | Path | Scenario, out: Path, bus: busrun.BusOptions,
                  keys: KeySet | None, *, variant: str | None = None, time_scale: float = 1.0,
                  rt_priority: int = 0) -> None:
-        from ..cli.up import IN_PROCESS_INTERFACES
+        from ..fleet_plan import IN_PROCESS_INTERFACES
 
         interface = bus.resolved()["interface"]
         if interface in IN_PROCESS_INTERFACES:

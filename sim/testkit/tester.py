@@ -155,7 +155,7 @@ def _resolve_keys(keys: Any) -> dict[str, bytes] | None:
     if hasattr(keys, "node_keys"):
         return dict(keys.node_keys())
     if isinstance(keys, str | Path):
-        from ..cli.keys import load_key_set
+        from ..keyset import load_key_set
 
         path = Path(keys)
         if not path.is_dir():

@@ -18,7 +18,7 @@ from typing import Any
 
 from sim import busrun
 from sim.buslog import LogContents
-from sim.cli.up import GUEST_TIME_SCALE
+from sim.fleet_plan import GUEST_TIME_SCALE
 from sim.model import kkt_optimum
 from sim.scenario import Scenario, scaled
 from sim.trajectory import Trajectory
@@ -64,7 +64,7 @@ def run_on_vcan(sc: Scenario, out: Path, channel: str, scale: float = TIME_SCALE
 def key_set(out: Path, sc: Scenario, master: bytes) -> Path:
     """OUT/keys: the fleet's key files from ``master`` (as `bess-ded keys --fleet`), for
     runs that share a key set (`bess-ded up --keys DIR`) or tools that sign with it."""
-    from sim.cli.keys import write_key_set
+    from sim.keyset import write_key_set
 
     keys = out / "keys"
     keys.mkdir(mode=0o700)

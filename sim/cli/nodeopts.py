@@ -1,4 +1,5 @@
-"""Helpers shared by the node subcommands ``plant`` and ``router`` (not a subcommand)."""
+"""Options and serving shared by the node subcommands ``plant`` and ``router`` (not a
+subcommand itself)."""
 
 from __future__ import annotations
 
@@ -9,13 +10,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from firmware_py.__main__ import (
+from firmware_py.cliargs import MAX_PERIOD_S, duration_s, float_in, time_scale
+from firmware_py.nodeargs import (
     add_bus_arguments,
     add_filter_argument,
     add_key_arguments,
     add_rt_argument,
 )
-from firmware_py.cliargs import MAX_PERIOD_S, duration_s, float_in, time_scale
 
 
 def add_node_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,7 +48,7 @@ def load_node_scenario(args: argparse.Namespace) -> Any:
     """The scenario the flags name, stretched by --time-scale; sets the default --period
     to its Ts."""
     from ..scenario import scaled
-    from ._common import resolve_scenario
+    from ..scenario_select import resolve_scenario
 
     sc = resolve_scenario(args.case)
     if args.time_scale != 1.0:
@@ -60,7 +61,6 @@ def load_node_scenario(args: argparse.Namespace) -> Any:
 def serve(node: Any, args: argparse.Namespace) -> int:
     """Run ``node`` on the bus the flags name until --duration or SIGINT/SIGTERM; always
     shut the bus down and print the node's summary to stderr."""
-    from firmware_py.__main__ import set_realtime
     from firmware_py.node import (
         StopFlag,
         behind_filter,
@@ -69,6 +69,7 @@ def serve(node: Any, args: argparse.Namespace) -> int:
         run_node,
         with_acceptance_filter,
     )
+    from firmware_py.nodeargs import set_realtime
 
     if args.rt_priority:
         set_realtime(args.rt_priority)

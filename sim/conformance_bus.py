@@ -1,0 +1,215 @@
+"""A conformance check of an agent node on the bus: what ``bess-ded conformance`` runs
+(docs/api.md, docs/conformance.md). The device under test (DUT) takes agent I's place;
+the tester plays the rest of the bus for it along sim.conformance's schedule, and
+firmware_py's agent runtime, fed the same frames, is the oracle.
+
+Three steps, so that a caller can start the device in between and show progress:
+
+* ``prepare_conformance``: the DUT's configuration and key file in ``out``, the
+  tester's frames; announces the run and the command that starts the device;
+* ``ConformanceSetup.drive``: waits for the device's Diag frame, plays the schedule
+  (a TimeoutError when the device is not heard);
+* ``ConformanceSetup.judge``: writes out/conformance.log, checks the device's frames
+  against the oracle; ``write_report`` writes out/conformance.json (and JUnit XML).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from firmware_py.errors import ParameterError
+
+if TYPE_CHECKING:
+    from firmware_py.config import AgentConfig
+    from firmware_py.secoc import Keyring
+
+    from .busrun import BusOptions
+    from .conformance import Frame, Outcome, Planned, Result
+    from .scenario import Scenario
+
+
+@dataclass
+class ConformanceSetup:
+    """A conformance run ready to start: the DUT's configuration, keys and bus."""
+
+    sc: Scenario          # variant chosen, time scale applied
+    dut: int              # the agent the device replaces
+    cfg: AgentConfig      # its configuration (written to out/agents/agent_I.toml)
+    ring: Keyring         # its keyring, as the oracle's
+    dut_key: bytes
+    bus: BusOptions
+    out: Path
+    planned: list[Planned]
+
+    @property
+    def node(self) -> str:
+        """The DUT's node label, e.g. "agent_2"."""
+        return f"agent_{self.dut}"
+
+    def drive(self, wait: float, rt_priority: int = 0,
+              progress: Callable[[str], None] | None = None) -> tuple[list[Frame], float]:
+        """Wait up to ``wait`` s for the device's Diag frame, then play the schedule (under
+        SCHED_FIFO ``rt_priority``, if given): the frames on the bus and how late the
+        tester sent any of its own (s). A TimeoutError if the device is not heard."""
+        from firmware_py import contract
+        from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name
+        from firmware_py.node import open_bus
+        from firmware_py.nodeargs import set_realtime
+
+        from . import busrun
+        from . import conformance as conf
+
+        codec = FrameCodec()
+        i = self.dut
+        dut_ids = {codec.frame_id(n(i)) for n in (mc_name, setpoint_name, diag_name)}
+        dut_ids |= {contract.SYNC_OF[codec.frame_id(n(i))] for n in (mc_name, setpoint_name,
+                                                                     diag_name)}
+        with open_bus(**{**self.bus.resolved(), "receive_own_messages": False}) as b:
+            busrun.enlarge_receive_buffer(b)
+            if rt_priority:
+                set_realtime(rt_priority)
+            try:
+                return conf.drive(b, self.planned, dut_ids, codec.frame_id(diag_name(i)),
+                                  wait, self.cfg.controller.ts, progress=progress)
+            finally:
+                if rt_priority:  # the verdict is no real-time work
+                    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+    def judge(self, frames: Sequence[Frame], late: float,
+              say: Callable[[str], None] = print) -> tuple[Outcome, list[Result]]:
+        """Write out/conformance.log and check the device's ``frames`` against firmware_py
+        (``say`` announces the check): the outcome and the verdict per requirement."""
+        import can
+
+        from firmware_py.frames import FrameCodec
+
+        from . import conformance as conf
+
+        with can.Logger(str(self.out / "conformance.log")) as log:
+            for f in frames:
+                log.on_message_received(can.Message(
+                    timestamp=f.t, arbitration_id=f.msg.arbitration_id,
+                    is_extended_id=f.msg.is_extended_id, data=bytes(f.msg.data),
+                    dlc=len(f.msg.data)))
+        say(f"  the tester sent each frame at most {late * 1000:.1f} ms late; checking the "
+            f"device's frames against firmware_py ...")
+        codec = FrameCodec()
+        ts = self.cfg.controller.ts
+        # firmware_py's agent filters on SocketCAN (GEN-5): model that first there
+        outcome = conf.check(self.cfg, self.ring, self.dut_key, frames, codec,
+                             filtered_first=self.bus.resolved()["interface"] == "socketcan")
+        conf.explain(self.cfg, self.ring, self.dut_key, frames, outcome, codec)
+        if outcome.mismatches and late > ts:
+            outcome.problems.append(
+                f"the tester was up to {late * 1000:.0f} ms late (Ts = {ts * 1000:g} ms): on "
+                "a host this busy the device may have timed out on frames the tester thought "
+                "in time; rerun with --rt-priority N (and the device too) or --time-scale F")
+        return outcome, conf.verdict(outcome)
+
+
+def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
+                        bus: BusOptions | None = None, time_scale: float | None = None,
+                        out: Path | None = None, keys: Path | None = None,
+                        insecure: bool = False, rt_priority: int = 0,
+                        wait: float = 60.0, say: Callable[[str], None] = print
+                        ) -> ConformanceSetup:
+    """Set up a conformance run of scenario ``case`` with the device in agent ``dut``'s
+    place ("1".."N") on ``bus`` (one that connects processes): its configuration and
+    key file (from ``keys``, a fresh set in ``out``/keys, or ``insecure``) in ``out``
+    (default runs/conformance-<scenario>-agent<I>). ``say`` announces the run and the
+    command that starts the device (at ``rt_priority``, and the ``wait`` it has)."""
+    from firmware_py import secoc
+    from firmware_py.config import agent_configs_from_scenario
+    from firmware_py.frames import diag_name
+
+    from . import busrun
+    from . import conformance as conf
+    from .fleet_plan import GUEST_TIME_SCALE, IN_PROCESS_INTERFACES
+    from .keyset import check_key_set, load_key_set
+    from .scenario import scaled
+    from .scenario_select import pick_variant, resolve_scenario
+
+    sc, chosen = pick_variant(resolve_scenario(case), variant, "conformance", say)
+    if not (dut.isdigit() and 1 <= int(dut) <= sc.n):
+        raise ParameterError("--dut", f"an agent number in 1..{sc.n}", dut)
+    i = int(dut)
+    bus = bus or busrun.BusOptions()
+    kw = bus.resolved()
+    if kw["interface"] in IN_PROCESS_INTERFACES:
+        raise ParameterError("--interface", "a bus that connects processes (udp_multicast, "
+                             "socketcan, ...): the device under test is another process",
+                             kw["interface"])
+    scale = time_scale
+    if scale is None:
+        scale = GUEST_TIME_SCALE if os.environ.get("VCAN_RUN_GUEST") == "1" else 1.0
+    sc = scaled(sc, scale)
+    cfg = agent_configs_from_scenario(sc)[i - 1]
+    out = out or Path("runs") / f"conformance-{sc.name}-agent{i}"
+    node = f"agent_{i}"
+    (out / "agents").mkdir(parents=True, exist_ok=True)
+    cfg_path = out / "agents" / f"{node}.toml"
+    cfg_path.write_text(cfg.to_toml())
+    tester_keys: dict[str, bytes] | None
+    if insecure:
+        tester_keys = None
+        ring = secoc.Keyring.insecure_for(node)
+        dut_key = ring.key
+        key_argv = ["--insecure"]
+    else:
+        key_dir = keys
+        if key_dir is None:
+            key_dir = busrun.provision_keys(sc, out / "keys")
+        else:
+            check_key_set(key_dir, sc.n, sc)
+        tester_keys = load_key_set(key_dir)
+        own = secoc.load_node_key(key_dir / f"{node}.key")
+        ring = secoc.Keyring(node, own.key, own.boot_counter, lambda _b: None,
+                             peers=own.peers, fleet=own.fleet_id, floors=own.floors)
+        dut_key = own.key
+        key_argv = ["--key", str(key_dir / f"{node}.key")]
+    bus, port = busrun.private_port(bus)
+    ts = cfg.controller.ts
+    # the tester plays every sender at a boot the DUT's floors accept (AUTH-21)
+    boot = max([secoc.INSECURE_BOOT, *ring.floors.values()])
+    planned = conf.plan(cfg, tester_keys, sc.prices[0].rho, boot=boot)
+    length = conf.STEPS[-1].end * ts
+    say(f"bess-ded conformance: {sc.title or sc.name}{chosen}, device under test: {node} "
+        f"(Ts = {ts * 1000:g} ms{f', time scale {scale:g}' if scale != 1 else ''}); the "
+        f"schedule takes {length:.1f} s")
+    say(f"  bus: {bus.resolved()}" + (f" (port {port} private to this run)" if port else ""))
+    # the device at the tester's --rt-priority, else as `up` runs its nodes (SCHED_FIFO)
+    rt = ["--rt-priority", str(rt_priority or busrun.RT_PRIORITY)]
+    cmd = ["bess-ded", "agent", "--config", str(cfg_path), *key_argv, *bus.argv(), *rt]
+    say(f"  start the device with its configuration and key, e.g.: {shlex.join(cmd)}")
+    say(f"  waiting up to {wait:g} s for its {diag_name(i)} frame ...")
+    return ConformanceSetup(sc, i, cfg, ring, dut_key, bus, out, planned)
+
+
+def write_report(outcome: Outcome, results: Sequence[Result], out: Path,
+                 junit_path: Path | None, name: str) -> tuple[bool, list[Path]]:
+    """Write out/conformance.json (and JUnit XML to ``junit_path``): whether the device
+    passed (every requirement, no problem with the run) and the files written."""
+    from . import conformance as conf
+
+    failed = [r.must for r in results if not r.passed]
+    ok = not failed and not outcome.problems
+    doc: dict[str, Any] = {
+        "passed": ok, "ticks": outcome.ticks, "problems": outcome.problems,
+        "filtered": outcome.filtered,
+        "explained_by": outcome.explained_by,
+        "results": [{"requirement": r.must, "passed": r.passed, "detail": r.detail}
+                    for r in results],
+        "mismatches": [str(m) for m in outcome.mismatches],
+        "auth_errors": outcome.auth_errors}
+    (out / "conformance.json").write_text(json.dumps(doc, indent=1, ensure_ascii=False))
+    written = [out / "conformance.log", out / "conformance.json"]
+    if junit_path is not None:
+        conf.junit(results, junit_path, name)
+        written.append(junit_path)
+    return ok, written

@@ -1,0 +1,187 @@
+"""SecOC key sets of a fleet: provisioning, loading, checking (docs/security.md).
+
+A key set is a directory (0700) with one key file per node of a scenario's fleet
+(agent_1..agent_N, plant, router: ``<node>.key``, 0600), each holding that node's key,
+derived from a fleet master key with NIST SP 800-108 (CMAC-AES-128), the keys of the
+peers it receives from, and its freshness state; and usually the master key
+(``master.key``). ``provision_fleet_keys`` is what ``bess-ded keys --fleet`` runs (docs/api.md).
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import stat
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from firmware_py.errors import BessDedError, ParameterError
+
+
+def key_files(directory: Path) -> list[Path]:
+    """The ``*.key`` files in ``directory`` (the master key's too), sorted."""
+    return sorted(p for p in directory.iterdir() if p.suffix == ".key" and p.is_file())
+
+
+def prepare_key_dir(out: Path, force: bool) -> None:
+    """Create ``out`` owner-only (0700), or check that an existing one is owner-only and,
+    unless ``force``, holds no key set yet (a BessDedError naming --out otherwise)."""
+    if out.exists() and not out.is_dir():
+        raise BessDedError(f"--out: expected a directory, but {out} is a file")
+    if not out.exists():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        os.mkdir(out, 0o700)
+        os.chmod(out, 0o700)  # the umask may have removed bits; make it exact
+        return
+    mode = stat.S_IMODE(os.stat(out).st_mode)
+    if mode & 0o077:
+        raise BessDedError(f"--out: {out} is accessible by group or others (mode {mode:04o}): "
+                           "give a new directory, or chmod 700 it first")
+    existing = key_files(out)
+    if existing and not force:
+        raise BessDedError(f"--out: {out} already holds a key set ({len(existing)} .key "
+                           "files, e.g. " + existing[0].name + "): not overwriting it "
+                           "without --force")
+
+
+def peers_of(sc: Any) -> dict[str, list[str]]:
+    """Need to know: the senders whose secured frames each node receives, i.e. whose
+    verification keys its key file holds (agent i: the router, the plant and its
+    neighbours; the plant: every agent and the router; the router: the plant and every
+    agent). The router and the plant use the keys of the nodes whose frames they do not
+    take only to notice a restart from its sync and re-announce their own at once."""
+    from firmware_py import secoc
+    from firmware_py.config import agent_configs_from_scenario
+
+    out = {f"agent_{c.id}": ["router", "plant", *(f"agent_{n.id}" for n in c.neighbours)]
+           for c in agent_configs_from_scenario(sc)}
+    agents = [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
+    out["plant"] = [*agents, "router"]
+    out["router"] = ["plant", *agents]
+    return out
+
+
+def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -> None:
+    """Write DIR/<node>.key for every node of ``sc`` (and DIR/master.key), 0600."""
+    import tomli_w
+
+    from firmware_py import secoc
+
+    if with_master:
+        secoc.write_private(out / "master.key", secoc.MASTER_FILE_HEADER
+                            + tomli_w.dumps(secoc.master_key_document(master)))
+    fleet = secoc.fleet_id(master)
+    for node, peers in peers_of(sc).items():
+        doc = secoc.node_key_document(node, secoc.derive_node_key(master, node), fleet, 0,
+                                      {p: secoc.derive_node_key(master, p) for p in peers})
+        secoc.write_private(out / f"{node}.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
+
+
+def load_key_set(keys_dir: Path) -> dict[str, bytes]:
+    """Every node's own key from a key set (label -> key): what a monitor of the run
+    (the recorder's analysis) needs to tell forged frames from the fleet's."""
+    from firmware_py import secoc
+
+    return {k.node: k.key for k in (secoc.load_node_key(p) for p in key_files(keys_dir)
+                                    if p.name != "master.key")}
+
+
+def load_boot_floors(keys_dir: Path) -> dict[str, int]:
+    """Every node's lowest boot counter at its next start (label -> the key file's
+    counter + 1: a start uses a new one, AUTH-3). Read before a run, it tells the
+    run's monitor that a sync of a lower boot is from an earlier start: a replay."""
+    from firmware_py import secoc
+
+    return {k.node: k.boot_counter + 1
+            for k in (secoc.load_node_key(p) for p in key_files(keys_dir)
+                      if p.name != "master.key")}
+
+
+def write_boot_floors(keys_dir: Path, nodes: Iterable[str], floors: Mapping[str, int]) -> None:
+    """Before a fleet starts: raise the boot floors (AUTH-21) in the key files of
+    ``nodes`` to ``floors`` (label -> that node's boot at this start, from
+    ``load_boot_floors``), so that no node takes a sync of an earlier run or boot, not
+    even before a peer's first genuine sync, nor after its own restart."""
+    from firmware_py import secoc
+
+    for node in nodes:
+        secoc.save_floors(keys_dir / f"{node}.key", floors)
+
+
+@dataclass
+class ProvisionedKeys:
+    """What ``provision_fleet_keys`` wrote."""
+
+    directory: Path
+    nodes: list[str]          # the fleet's node labels, one <node>.key each
+    fleet_id: str
+    removed: list[Path]       # a previous set's key files of nodes this fleet has not
+    master_written: bool      # DIR/master.key written (no master key given)
+
+
+def provision_fleet_keys(sc: Any, out: Path, master_key: Path | None = None,
+                         force: bool = False) -> ProvisionedKeys:
+    """Provision a key set for the fleet of scenario ``sc`` in ``out`` (created 0700):
+    from the master key file ``master_key`` (not copied), else from a new random master
+    key written to ``out/master.key``. An existing key set is replaced only with
+    ``force``; a previous set's files of nodes this fleet lacks are removed."""
+    from firmware_py import secoc
+
+    master = (secoc.load_master_key(master_key) if master_key is not None
+              else secrets.token_bytes(secoc.KEY_BYTES))
+    prepare_key_dir(out, force)
+    nodes = secoc.fleet_nodes(sc.n)
+    keep = {f"{n}.key" for n in nodes} | {"master.key"}
+    if master_key is not None and master_key.resolve().parent == out.resolve():
+        keep.add(master_key.name)
+    stale = [p for p in key_files(out) if p.name not in keep]
+    for p in stale:  # --force only: a smaller fleet's leftovers would be confusing
+        p.unlink()
+    write_key_set(sc, out, master, with_master=master_key is None)
+    return ProvisionedKeys(out, list(nodes), secoc.fleet_id(master), stale,
+                           master_key is None)
+
+
+def check_key_set(keys: Path, n: int, sc: Any | None = None) -> str:
+    """Load every key file a fleet of ``n`` agents needs from ``keys`` before anything
+    starts, and check what a node would refuse at its start: permissions (the directory's
+    too), format, one fleet, a boot counter left to start with, and the keys of the peers
+    it receives from (with ``sc``, whose graph says who that is), so a bad set is a
+    ParameterError (--keys) here, never a node refusing its file mid-start; the fleet id."""
+    from firmware_py import secoc
+
+    if not keys.is_dir():
+        raise ParameterError("--keys", "a key set directory (bess-ded keys --fleet ... --out "
+                             "DIR)", str(keys))
+    mode = stat.S_IMODE(keys.stat().st_mode)
+    if mode & 0o077:
+        raise ParameterError("--keys", f"a directory only its owner may access (chmod 700 "
+                             f"{keys})", f"{keys} with mode {mode:04o}")
+    fleets = set()
+    loaded = {}
+    for node in secoc.fleet_nodes(n):
+        path = keys / f"{node}.key"
+        if not path.exists() and not path.is_symlink():
+            raise ParameterError("--keys", f"a key set with {node}.key (bess-ded keys --fleet "
+                                 f"... --out {keys})", str(keys))
+        k = loaded[node] = secoc.load_node_key(path)
+        if k.node != node:
+            raise ParameterError("--keys", f"{node}.key to hold the key of {node}",
+                                 f"the key of {k.node}")
+        if k.boot_counter >= secoc.DEFAULT_LAYOUT.max_boot:
+            raise ParameterError("--keys", f"{node}.key with a boot counter below "
+                                 f"{secoc.DEFAULT_LAYOUT.max_boot} (each start uses the next; "
+                                 "re-provision with bess-ded keys --fleet ... --force)",
+                                 f"{k.boot_counter}, exhausted")
+        fleets.add(k.fleet_id)
+    if len(fleets) != 1:
+        raise ParameterError("--keys", "key files of one fleet", f"fleet ids {sorted(fleets)}")
+    sc_peers = peers_of(sc) if sc is not None else {}
+    for node, k in loaded.items():
+        if missing := [p for p in sc_peers.get(node, []) if p not in k.peers]:
+            raise ParameterError("--keys", f"{node}.key with the keys of the nodes it receives "
+                                 f"from ({', '.join(sc_peers[node])})",
+                                 f"none for {', '.join(missing)}")
+    return fleets.pop()

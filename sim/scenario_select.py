@@ -1,0 +1,46 @@
+"""Naming a scenario to run: a case number or a scenario file (``resolve_scenario``), and
+which of its variants (``pick_variant``), as every ``bess-ded`` command and the test kit
+name them (docs/api.md)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from firmware_py.errors import ConfigError
+
+from .scenario import SCENARIO_DIR, Scenario, load_case, load_scenario
+
+
+def resolve_scenario(spec: str) -> Scenario:
+    """A case number → the bundled sim/scenarios/caseN.toml; anything else → a path."""
+    path = Path(spec)
+    if spec.isdigit() and (SCENARIO_DIR / f"case{int(spec)}.toml").exists():
+        return load_case(int(spec))
+    if not spec.isdigit() and (path.suffix == ".toml" or path.exists() or "/" in spec):
+        return load_scenario(path)
+    known = sorted((p.stem.removeprefix("case") for p in SCENARIO_DIR.glob("case*.toml")),
+                   key=lambda k: (len(k), k))
+    raise ConfigError(spec, "case", f"expected a case number ({', '.join(known)}) or a path to "
+                      f"a scenario .toml, but got {spec!r}")
+
+
+def pick_variant(sc: Scenario, label: str | None, command: str = "up",
+                 say: Callable[[str], None] = print) -> tuple[Scenario, str]:
+    """The scenario to run and how to name the choice in a banner (" [variant LABEL]", or
+    "" for a scenario without variants). No ``label`` picks the first variant and says so
+    through ``say`` (a line naming ``command``)."""
+    if not sc.variants:
+        if label is not None:
+            raise ConfigError(sc.source, "variant", f"expected no --variant: {sc.name} has "
+                              f"no variants, but got {label!r}")
+        return sc, ""
+    labels = [v.label for v in sc.variants]
+    if label is None:
+        say(f"bess-ded {command}: {sc.name} has variants {', '.join(labels)}; running the first, "
+            f"{labels[0]!r} (choose one with --variant)")
+        label = labels[0]
+    run = sc.variant(label)  # ignores case: name the label as the scenario spells it
+    if label not in labels:
+        label = next(x for x in labels if x.casefold() == label.casefold())
+    return run, f" [variant {label}]"
