@@ -482,6 +482,17 @@ class NodeIO:
                   "file rolled back)", t)
         return True
 
+    def last_freshness(self, fid: int) -> int | None:
+        """The last freshness value accepted on secured input ``fid`` (None: none yet)."""
+        return self._fv.last(fid)
+
+    def assume_synced(self, fid: int, boot: int, count: int = 0) -> None:
+        """Set secured input ``fid``'s freshness state as a sync announcing (``boot``,
+        ``count``) would, without a sync frame and without counting a resync: for
+        benchmarks and tests that drive one receiver alone (AUTH-16's state only)."""
+        self._fv.accept(fid, (boot << contract.FV_COUNT_BITS | count) - 1, frame=False)
+        self._lost.discard(fid)
+
     def sender_lost(self, fid: int) -> None:
         """``fid``'s sender timed out: its counter gap aliases, and a secured ID may need
         a wider freshness window or its next sync."""

@@ -241,7 +241,7 @@ def secoc_cost(quick: bool) -> Table:
             rx = NodeIO(codec, receiver[0], own=receiver[1], wanted=[codec.frame_id(name)],
                         keys=rings[receiver[0]], untrusted_after=10**9)
             # the freshness state a sync would give
-            rx._fv.accept(codec.frame_id(name), (tx.boot << 24) - 1)
+            rx.assume_synced(codec.frame_id(name), tx.boot)
             t0 = time.perf_counter()
             for msg in frames:
                 rx.receive(msg, 0.0)
@@ -488,7 +488,7 @@ def input_checks(quick: bool) -> Table:
     def receiver() -> NodeIO:
         rx = NodeIO(codec, "agent_1", own=[mc_name(1)], wanted=[fid], keys=rings["agent_1"],
                     untrusted_after=10**9)
-        rx._fv.accept(fid, (tx.boot << 24) - 1)  # the freshness state a sync would give
+        rx.assume_synced(fid, tx.boot)  # the freshness state a sync would give
         return rx
 
     def per_frame(frames: list[can.Message], cause: str | None) -> float:

@@ -275,12 +275,12 @@ def test_the_join_window_keeps_the_newest_sync_and_takes_no_frame() -> None:
     rx.receive(genuine_sync, 0.05)
     rx.receive(early_sync, 0.06)                         # older than one already heard
     assert rx.counters["auth"] == 1 and rx.counters["resyncs"] == 0
-    assert rx._fv.last(0x010) is None                    # nothing taken yet
+    assert rx.last_freshness(0x010) is None                    # nothing taken yet
     for i, m in enumerate(early[1:]):  # after the window: below the newest sync, they fail
         assert rx.receive(m, 0.21 + 0.01 * i) is None
     # taken at the first frame after the window; lost, so a failure waits for a frame
     # that verifies (AUTH-14: unsynced, not auth)
-    assert rx.counters["resyncs"] == 1 and rx._fv.last(0x010) == (7 << 24 | 39)
+    assert rx.counters["resyncs"] == 1 and rx.last_freshness(0x010) == (7 << 24 | 39)
     assert rx.counters["unsynced"] == 2 and rx.counters["auth"] == 1
     sender._count[0x010] += 20  # frames the receiver never heard: the wider window (AUTH-13)
     assert rx.receive(_price(sender, 60), 0.25) is not None
@@ -293,12 +293,12 @@ def test_round_trip_and_replay_rejected() -> None:
     frames = [_price(sender, i) for i in range(40)]
     for m in frames:
         assert rx.receive(m, 0.0) is not None
-    last = rx._fv.last(0x010)
+    last = rx.last_freshness(0x010)
     for m in frames:  # replay of every old frame: its freshness is spent
         assert rx.receive(m, 0.0) is None
     # every one was accepted before: a replay, not a late frame (AUTH-25)
     assert rx.counters["auth"] == 40 and rx.counters["stale"] == 0
-    assert rx._fv.last(0x010) == last  # state unchanged
+    assert rx.last_freshness(0x010) == last  # state unchanged
     assert rx.receive(_price(sender, 99), 0.0) is not None
 
 
