@@ -1,0 +1,72 @@
+"""The import rules of docs/architecture.md, checked on the source (ast, no import run)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CORE = ("fixedpoint.py", "controllers.py", "errors.py")
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module ``path`` imports, relative imports resolved to absolute names."""
+    package = ".".join(path.relative_to(ROOT).with_suffix("").parts[:-1])
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package.split(".")[:len(package.split(".")) - node.level + 1] \
+                if node.level else []
+            mod = ".".join([*base, node.module] if node.module else base)
+            if node.module:  # `from . import x` imports x, not the package's own code
+                out.add(mod)
+            out.update(f"{mod}.{a.name}" for a in node.names)
+    return out
+
+
+def _py(folder: str) -> list[Path]:
+    return sorted((ROOT / folder).rglob("*.py"))
+
+
+def test_the_relative_imports_resolve_as_python_does() -> None:
+    """The resolver the rules below rely on, on a file with both kinds."""
+    names = _imports(ROOT / "sim" / "cli" / "up.py")
+    assert "sim.cli._common" in names or "sim.cli.fleetopts" in names
+    assert any(n.startswith("sim.busrun") or n.startswith("sim.fleet_plan") for n in names)
+
+
+@pytest.mark.parametrize("name", CORE)
+def test_the_control_core_imports_only_the_standard_library_and_itself(name: str) -> None:
+    allowed = {"__future__", "collections", "dataclasses", "fractions", "typing", "copy",
+               "math", "enum", "functools"}
+    for mod in _imports(ROOT / "firmware_py" / name):
+        top = mod.split(".")[0]
+        assert top in allowed or mod.startswith("firmware_py.") and \
+            mod.split(".")[1] in {c.removesuffix(".py") for c in CORE}, (name, mod)
+
+
+def test_firmware_py_never_imports_sim() -> None:
+    bad = [(p.name, m) for p in _py("firmware_py") for m in _imports(p)
+           if m == "sim" or m.startswith("sim.")]
+    assert bad == []
+
+
+def test_nothing_outside_sim_cli_imports_the_cli() -> None:
+    """The library, the test kit and the tools never import the command line (the
+    dependency runs the other way); the CLI's own tests may call it."""
+    files = [p for p in _py("sim") if "cli" not in p.relative_to(ROOT / "sim").parts]
+    files += _py("tools")
+    bad = [(str(p.relative_to(ROOT)), m) for p in files for m in _imports(p)
+           if m == "sim.cli" or m.startswith("sim.cli.")]
+    assert bad == []
+    assert len(files) > 30  # the walk found the library (a moved tree would find nothing)
+
+
+def test_no_cli_module_is_over_150_lines() -> None:
+    long = {p.name: n for p in _py("sim/cli")
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > 150}
+    assert long == {}
