@@ -27,7 +27,6 @@ from vcanrun import (
     TIME_SCALE,
     Run,
     assert_clean_exit,
-    assert_decodes_with_cantools,
     assert_power_balance,
     run_on_vcan,
 )
@@ -108,16 +107,15 @@ def test_router_power_balance(run: Run) -> None:
 
 def test_log_decodes_against_the_dbc(run: Run) -> None:
     """Every recorded frame decodes with our codec (built from the DBC, checking DLC
-    and ranges too); case 1's log also with `python3 -m cantools decode` (the other
-    logs hold the same frames, and each CLI pass costs 30-50 s in the guest)."""
+    and ranges too). The `python3 -m cantools decode` pass over a whole log runs once,
+    on test_vcan_interop.py's candump capture of a case-1 fleet (the logs hold the same
+    frames, and each CLI pass costs 40-50 s in the guest)."""
     assert run.m["frames_undecodable"] == {}
     assert run.m["frames_recorded"] > 0
     # the recorder kept up (16 MiB socket buffer, drained after the stop): a run once
     # lost 16 frames of one agent at a neighbour too; without the buffer case 7 lost 75 %
     assert run.m["frames_missed_by_recorder"] <= 0.005 * run.m["frames_recorded"], \
         run.m["frames_missed_by_recorder"]
-    if run.sc.name.startswith("case1"):
-        assert_decodes_with_cantools(run.out / "run.log", run.m["frames_recorded"])
 
 
 def test_nodes_exit_cleanly(run: Run) -> None:
