@@ -43,6 +43,7 @@ from .frames import (
     setpoint_name,
     status_name,
 )
+from .secoc import FreshnessLayout
 
 __all__ = [
     "AGENT_BASES",
@@ -56,6 +57,7 @@ __all__ = [
     "N_AGENTS_MAX",
     "FV_BOOT_BITS",
     "FV_COUNT_BITS",
+    "FRESHNESS",
     "FV_TX_BITS",
     "MAC_BITS",
     "PEER_SYNCED_BY",
@@ -226,6 +228,8 @@ FV_TX_BITS = _CODEC.raw_range("ER_Price", "Counter")[1].bit_length()
 FV_COUNT_BITS = _CODEC.raw_range("ER_Price_Sync", "Count")[1].bit_length()
 FV_BOOT_BITS = _CODEC.raw_range("ER_Price_Sync", "Boot")[1].bit_length()
 """The full freshness value is Boot (FV_BOOT_BITS) ‖ Count (FV_COUNT_BITS)."""
+FRESHNESS = FreshnessLayout(FV_BOOT_BITS, FV_COUNT_BITS)
+"""The one join and split of a freshness value (Boot ‖ Count), sized by the DBC."""
 
 
 def sender_of(name: str) -> str:

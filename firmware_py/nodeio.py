@@ -118,7 +118,7 @@ JOIN_FRACTION = 2 * HELLO_FRACTION
 LOST_WINDOWS = 8      # freshness windows tried after a sender timed out (8·16 frames)
 STALE_WINDOWS = 1     # past windows tried before a frame is called forged (16 values)
 _FV_WINDOW = 1 << contract.FV_TX_BITS
-_COUNT_MAX = (1 << contract.FV_COUNT_BITS) - 1
+_COUNT_MAX = contract.FRESHNESS.max_counter
 
 
 class NodeIO:
@@ -191,7 +191,7 @@ class NodeIO:
         if keys.insecure:  # every insecure sender starts at boot 1, count 0: no sync needed
             self._joining = None  # and no replay protection to join for
             for fid in self._verify_key:
-                self._fv.accept(fid, (INSECURE_BOOT << contract.FV_COUNT_BITS) - 1,
+                self._fv.accept(fid, contract.FRESHNESS.join(INSECURE_BOOT, 0) - 1,
                                 frame=False)
                 self._lost.add(fid)  # a sender already running: its sync, not a forgery
         self._cyclic = frozenset(fid for fid in self.trackers
@@ -372,7 +372,7 @@ class NodeIO:
             self.fail(sync_id, cause, str(e), t)
             return
         boot, count = frame.raw["Boot"], frame.raw["Count"]
-        fv = boot << contract.FV_COUNT_BITS | count
+        fv = contract.FRESHNESS.join(boot, count)
         if not frame_verifies(self._verify_key[fid], sync_id, msg.data, fv):
             self.fail(sync_id, "auth", f"{frame.name}: expected a MAC that verifies with "
                       f"{contract.sender_of(frame.name)}'s key, but it does not (forged or "
@@ -416,8 +416,8 @@ class NodeIO:
         sync_id = contract.SYNC_OF[fid]
         name = self.codec.name_of(sync_id)
         last = self._fv.last(fid)
-        boot = fv >> contract.FV_COUNT_BITS
-        restarted = last is None or (last + 1) >> contract.FV_COUNT_BITS != boot
+        boot = contract.FRESHNESS.split(fv)[0]
+        restarted = last is None or contract.FRESHNESS.split(last + 1)[0] != boot
         if last is not None and fv - 1 <= last:
             if fv - 1 == last:
                 self._lost.discard(fid)  # in step with the sender: the normal window
@@ -455,7 +455,7 @@ class NodeIO:
                 raise
             return True  # not a usable sync; not this node's input either
         boot = frame.raw["Boot"]
-        fv = boot << contract.FV_COUNT_BITS | frame.raw["Count"]
+        fv = contract.FRESHNESS.join(boot, frame.raw["Count"])
         if self._peer_boot.get(sync_id) == boot:
             return True  # that boot is known: nothing to check or do
         if not frame_verifies(key, sync_id, msg.data, fv):
@@ -490,7 +490,7 @@ class NodeIO:
         """Set secured input ``fid``'s freshness state as a sync announcing (``boot``,
         ``count``) would, without a sync frame and without counting a resync: for
         benchmarks and tests that drive one receiver alone (AUTH-16's state only)."""
-        self._fv.accept(fid, (boot << contract.FV_COUNT_BITS | count) - 1, frame=False)
+        self._fv.accept(fid, contract.FRESHNESS.join(boot, count) - 1, frame=False)
         self._lost.discard(fid)
 
     def sender_lost(self, fid: int) -> None:
@@ -519,7 +519,7 @@ class NodeIO:
             msg = self.codec.encode(self.codec.name_of(sync_id),
                                     {"Count": count, "Boot": self.boot}, 0)
             sign_frame(self.keys.key, sync_id, msg.data,
-                       self.boot << contract.FV_COUNT_BITS | count)
+                       contract.FRESHNESS.join(self.boot, count))
             self._sent[sync_id].append(bytes(msg.data))
             out.append(msg)
         return out
@@ -590,7 +590,7 @@ class NodeIO:
                 self._sync_next, count = None, 0
             msg = self.codec.encode(name, raw, count % _FV_WINDOW)
             sign_frame(self.keys.key, fid, msg.data,
-                       self.boot << contract.FV_COUNT_BITS | count)
+                       contract.FRESHNESS.join(self.boot, count))
             self._tx_count[fid] = count + 1
         self._sent[fid].append(bytes(msg.data))
         return msg
@@ -634,7 +634,7 @@ class FleetSender:
         msg = enc(name, raw, count % _FV_WINDOW)
         if fid in contract.SECURED_IDS:
             sign_frame(self._key(name), fid, msg.data,
-                       self.boot << contract.FV_COUNT_BITS | count)
+                       contract.FRESHNESS.join(self.boot, count))
         return msg
 
     def sync(self, name: str) -> can.Message:
@@ -644,8 +644,7 @@ class FleetSender:
         sync_id = contract.SYNC_OF[fid]
         msg = self.codec.encode(self.codec.name_of(sync_id), {"Count": count,
                                                               "Boot": self.boot}, 0)
-        sign_frame(self._key(name), sync_id, msg.data, self.boot << contract.FV_COUNT_BITS
-                   | count)
+        sign_frame(self._key(name), sync_id, msg.data, contract.FRESHNESS.join(self.boot, count))
         return msg
 
     def restart(self) -> None:

@@ -301,7 +301,7 @@ class _Monitor:
 
     def sync(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> None:
         key = self._key(f.name)
-        fv = f.raw["Boot"] << contract.FV_COUNT_BITS | f.raw["Count"]
+        fv = contract.FRESHNESS.join(f.raw["Boot"], f.raw["Count"])
         fid = contract.SYNCED_BY[f.frame_id]
         label = contract.sender_of(f.name.removesuffix("_Sync"))
         floor = max(self.boot_floors.get(label, 0), self.boots.get(label, 0))

@@ -670,7 +670,7 @@ def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
             except BessDedError as e:
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {e}")
                 continue
-            fv = s["Boot"] << contract.FV_COUNT_BITS | s["Count"]
+            fv = contract.FRESHNESS.join(s["Boot"], s["Count"])
             if not secoc.frame_verifies(key, fid, f.msg.data, fv):
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} MAC does "
                                            f"not verify at Boot {s['Boot']} Count {s['Count']}")

@@ -129,7 +129,7 @@ class Sender:
         msg = CODEC.encode(name, raw, c % (1 << contract.FV_TX_BITS))
         if patch is not None:
             set_bits(msg.data, *patch)
-        sign_frame(self.key, fid, msg.data, self.boot << contract.FV_COUNT_BITS | c)
+        sign_frame(self.key, fid, msg.data, contract.FRESHNESS.join(self.boot, c))
         self.count[fid] = c + 1
         return msg
 
@@ -140,7 +140,7 @@ class Sender:
         boot = self.boot if boot is None else boot
         sync_id = contract.SYNC_OF[fid]
         msg = CODEC.encode(CODEC.name_of(sync_id), {"Count": count, "Boot": boot}, 0)
-        sign_frame(self.key, sync_id, msg.data, boot << contract.FV_COUNT_BITS | count)
+        sign_frame(self.key, sync_id, msg.data, contract.FRESHNESS.join(boot, count))
         return msg
 
     def restart(self) -> None:
@@ -778,7 +778,7 @@ def sc_tx_wrap() -> Scenario:
         "the MC count reaches 2**24 after 12 frames: a new boot (persisted), every count "
         "back to 0, the frame sent under the new boot and the syncs at the next tick.",
         ["AUTH-3", "AUTH-4", "AUTH-5", "AUTH-9"],
-        tx_count=(1 << contract.FV_COUNT_BITS) - 12)
+        tx_count=contract.FRESHNESS.max_counter - 11)
     nb = start(s)
     s.run(40, price=RHO, nbrs=nb)
     return s

@@ -26,6 +26,17 @@
 #define ECHO_DIAG_SYNC 5
 #define N_SECURED_TX 3          /* own secured IDs: MC, Setpoint, Diag (tx_count index) */
 
+/* AUTH-7: the one join and split of a freshness value, Boot ‖ Count (the DBC's sizes). */
+static uint64_t fv_join(uint32_t boot, uint32_t count)
+{
+    return ((uint64_t)boot << BD_FV_COUNT_BITS) | count;
+}
+
+static uint32_t fv_boot(uint64_t fv)
+{
+    return (uint32_t)(fv >> BD_FV_COUNT_BITS);
+}
+
 static const char *const counter_names[BD_C_COUNT] = {
     "crc", "dlc", "range", "unknown_id", "malformed", "impersonation", "repeated_counter",
     "lost_frames", "saturations", "neighbour_timeouts", "price_timeouts", "status_timeouts",
@@ -314,7 +325,7 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
         s->key_index = (uint8_t)k;
         if (a->insecure) {  /* every insecure sender runs at boot 1 from count 0 */
             s->flags = BD_RX_HAS_FV | BD_RX_LOST;
-            s->fv = ((uint64_t)INSECURE_BOOT << BD_FV_COUNT_BITS) - 1u;
+            s->fv = fv_join(INSECURE_BOOT, 0u) - 1u;
         }
     }
     /* the peer syncs the acceptance filter passes: keys held beyond the inputs' senders */
@@ -547,7 +558,7 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
         fail(a, NULL, f->id, BD_C_RANGE, t);
         return;
     }
-    uint64_t fv = ((uint64_t)m.boot << BD_FV_COUNT_BITS) | m.count;
+    uint64_t fv = fv_join(m.boot, m.count);
     if (!verifies(a, a->key[s->key_index], f->id, f->data, fv)
         || m.boot < a->key_floor[s->key_index]) {   /* AUTH-21: an earlier run or boot */
         fail(a, NULL, f->id, BD_C_AUTH, t);
@@ -570,7 +581,7 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
         return;
     }
     int has_fv = (s->flags & BD_RX_HAS_FV) != 0u;
-    int restarted = !has_fv || ((s->fv + 1u) >> BD_FV_COUNT_BITS) != m.boot;
+    int restarted = !has_fv || fv_boot(s->fv + 1u) != m.boot;
     if (has_fv && fv - 1u <= s->fv) {
         if (fv - 1u == s->fv) {
             s->flags &= (uint8_t)~BD_RX_LOST;   /* in step with the sender */
@@ -639,7 +650,7 @@ static int peer_sync(bd_agent *a, const bd_frame *f, int64_t t, int k)
     if (a->peer_boot[k] == m.boot) {
         return 1;
     }
-    uint64_t fv = ((uint64_t)m.boot << BD_FV_COUNT_BITS) | m.count;
+    uint64_t fv = fv_join(m.boot, m.count);
     const uint8_t *kk = (key == -2) ? a->own_key : a->key[key];
     if (!verifies(a, kk, f->id, f->data, fv)
         || (key != -2 && m.boot < a->key_floor[key])) {   /* AUTH-21 */
@@ -1029,7 +1040,7 @@ static size_t syncs(bd_agent *a, int64_t t, bd_frame *out)
         bd_echo *e = &a->echo[ECHO_MC_SYNC + k];
         frame_init(&out[k], e->id);
         bd_encode_sync(a->tx_count[k], a->boot, out[k].data);
-        sign(a, &out[k], ((uint64_t)a->boot << BD_FV_COUNT_BITS) | a->tx_count[k]);
+        sign(a, &out[k], fv_join(a->boot, a->tx_count[k]));
         remember(e, out[k].data);
     }
     return (size_t)N_SECURED_TX;
@@ -1138,7 +1149,7 @@ size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
     frame_init(&buf[n], a->echo[ECHO_MC].id);
     bd_encode_mc(count % FV_WINDOW, a->state,
                  a->cs.resets % (BD_AGENT_MC_RESETS_MAX + 1u), lam, buf[n].data);
-    sign(a, &buf[n], ((uint64_t)a->boot << BD_FV_COUNT_BITS) | count);
+    sign(a, &buf[n], fv_join(a->boot, count));
     remember(&a->echo[ECHO_MC], buf[n].data);
     n++;
     if (a->ticks % BD_SETPOINT_EVERY == 0u) {   /* SP-1..3 */
@@ -1157,7 +1168,7 @@ size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
         }
         frame_init(&buf[n], a->echo[ECHO_SETPOINT].id);
         bd_encode_setpoint(count % FV_WINDOW, enable, p, buf[n].data);
-        sign(a, &buf[n], ((uint64_t)a->boot << BD_FV_COUNT_BITS) | count);
+        sign(a, &buf[n], fv_join(a->boot, count));
         remember(&a->echo[ECHO_SETPOINT], buf[n].data);
         n++;
     }
@@ -1174,7 +1185,7 @@ size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
         }
         frame_init(&buf[n], a->echo[ECHO_DIAG].id);
         bd_encode_diag(count % FV_WINDOW, page, v, buf[n].data);
-        sign(a, &buf[n], ((uint64_t)a->boot << BD_FV_COUNT_BITS) | count);
+        sign(a, &buf[n], fv_join(a->boot, count));
         remember(&a->echo[ECHO_DIAG], buf[n].data);
         n++;
     }
