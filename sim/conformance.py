@@ -680,10 +680,16 @@ def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
             nxt[syncs[fid]] = fv
         elif fid in nxt:
             fv = nxt[fid]
-            if f.msg.data[3] & 0x0F != fv & 0x0F:
+            want = secoc.truncate(fv, contract.FV_TX_BITS)  # AUTH-6: the Counter on the wire
+            try:
+                counter = _signals(codec, f.msg)["Counter"]
+            except BessDedError as e:
+                counter = None
+                outcome.auth_errors.append(f"t = {f.t:.3f} s: {e}")
+            if counter is not None and counter != want:
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} Counter "
-                                           f"{f.msg.data[3] & 0x0F}, expected {fv & 0x0F}")
-            elif not secoc.frame_verifies(key, fid, f.msg.data, fv):
+                                           f"{counter}, expected {want}")
+            elif counter is not None and not secoc.frame_verifies(key, fid, f.msg.data, fv):
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} MAC does "
                                            f"not verify at freshness {fv:#x}")
             nxt[fid] = fv + 1
