@@ -5,15 +5,18 @@ guest, stretched by vcanrun.TIME_SCALE (Ts = 50 ms instead of 10 ms: the same di
 system per sample, see docs/vcan.md); case 7, with 14 node processes, by
 vcanrun.HEAVY_TIME_SCALE (Ts = 100 ms) when its agents are Python. Case 1 runs a mixed
 fleet (agent 3 on firmware_c) and case 7 every agent on firmware_c (issue 11). Each
-scenario runs once per session (module fixtures); the tests then check its recording:
+scenario runs once per session (module fixtures); the tests then check its recording.
+Case 5 (price steps) is not here: its segments are exact on the virtual bus
+(tests/test_bus.py::test_virtual_bus_follows_lockstep_through_events[5]) and the tier
+must fit CI's 35 min (it cost 154 s of the guest, and once ended at 1.01e-3):
 
-* convergence: max|λ−ρ| < 1e-3 at the end (case 5: every price segment settles);
+* convergence: max|λ−ρ| < 1e-3 at the end;
 * plug-and-play (case 4): AGENT_2_MC.State is ISOLATED during the isolation window and
   RUNNING again after the reconnect;
 * the router's power balance: ER_Balance.GridPower = load − Σ PLANT_i_Status.Power
   within 1 kW at the end;
-* the whole candump log decodes against the DBC, with our codec (frames_undecodable)
-  and, for case 1, with `python3 -m cantools decode` (exit 0, no "Unknown" frame);
+* the whole candump log decodes against the DBC with our codec (frames_undecodable);
+  the cantools CLI pass runs on test_vcan_interop.py's candump capture;
 * every node exits with code 0 on SIGTERM.
 """
 
@@ -35,7 +38,7 @@ from firmware_py.contract import State
 from sim.cagent import node_program
 from sim.lockstep import run_lockstep
 from sim.metrics import worst_error
-from sim.scenario import Event, PriceStep, load_case
+from sim.scenario import Event, load_case
 
 pytestmark = pytest.mark.vcan
 
@@ -67,16 +70,6 @@ def case4(vcan_channel: str, tmp_path_factory: pytest.TempPathFactory) -> Run:
 
 
 @pytest.fixture(scope="module")
-def case5(vcan_channel: str, tmp_path_factory: pytest.TempPathFactory) -> Run:
-    """Case 5 (price steps 0.8 → 1.0 → 0.6), compressed: steps at 0/5/10 s instead of
-    0/15/35 s, 17 s instead of 50 s (lockstep settles each segment in ≤ 2.54 s; the last
-    segment is 7 s: with 5 s a guest short of CPU once ended at 1.01e-3)."""
-    sc = replace(load_case(5), duration=17.0,
-                 prices=(PriceStep(0.0, 0.8), PriceStep(5.0, 1.0), PriceStep(10.0, 0.6)))
-    return run_on_vcan(sc, tmp_path_factory.mktemp("case5"), vcan_channel)
-
-
-@pytest.fixture(scope="module")
 def case7(vcan_channel: str, tmp_path_factory: pytest.TempPathFactory) -> Run:
     """Case 7 (12 agents on a ring: 14 processes), 12 s instead of 30 s (lockstep settles
     in 4.3 s and is at 2.7e-4 at 12 s), every agent on firmware_c's node program: a
@@ -87,7 +80,7 @@ def case7(vcan_channel: str, tmp_path_factory: pytest.TempPathFactory) -> Run:
                        c_agents=frozenset(range(1, 13)), c_node=node_program())
 
 
-CASES = ["case1", "case4", "case5", "case7"]
+CASES = ["case1", "case4", "case7"]
 
 
 @pytest.fixture(params=CASES)
@@ -138,13 +131,6 @@ def test_c_agents_run_clean_like_the_lockstep(name: str, request: pytest.Fixture
     for i in c_ids:
         log = (run.out / "logs" / f"agent_{i}.log").read_text()
         assert f"agent {i} (C): state=RUNNING" in log, log[-500:]
-
-
-def test_case5_settles_in_every_price_segment(case5: Run) -> None:
-    st = case5.m["settling_times_s"]
-    assert len(st) == 3 and all(s is not None for s in st), st
-    # lockstep: 2.54 / 2.35 / 2.36 s; allow the bus's latency and start-up skew
-    assert all(s < 4.0 * TIME_SCALE for s in st), st
 
 
 def test_case4_agent2_leaves_and_rejoins(case4: Run) -> None:
