@@ -394,6 +394,10 @@ class NodeIO:
         assert self._joining is not None
         newest = self._joining.get(fid)
         if newest is not None and fv < newest:
+            if newest - fv < _FV_WINDOW:  # as AUTH-16: late, not a replay (AUTH-25)
+                self.reject("stale", f"{name}: {fv:#x}, at most one window behind the "
+                            f"newest {newest:#x}: late (AUTH-25)")
+                return
             self.fail(sync_id, "auth", f"{name}: expected freshness at or above {newest:#x} "
                       f"(a newer sync came first), but got {fv:#x} (a replayed sync)", t)
             return
@@ -422,7 +426,11 @@ class NodeIO:
             if fv - 1 == last:
                 self._lost.discard(fid)  # in step with the sender: the normal window
                 return  # nothing new: the sender sent no frame since its last sync
-            if not self.keys.insecure:  # a genuine sync never goes back: a replay
+            if not self.keys.insecure:  # a genuine sync never goes back: a replay ...
+                if last - (fv - 1) < _FV_WINDOW:  # ... or its tick's frame overtook it
+                    self.reject("stale", f"{name}: announces {fv:#x}, at most one window "
+                                f"behind the last accepted {last:#x}: late (AUTH-25)")
+                    return
                 self.fail(sync_id, "auth", f"{name}: expected freshness above "
                           f"{last:#x}, but got {fv - 1:#x} (a replayed sync)", t)
                 return

@@ -316,6 +316,8 @@ class _Monitor:
             if last is None or fv - 1 >= last:
                 self.t_last[fid] = t
                 return
+            if last - (fv - 1) < 1 << contract.FV_TX_BITS:
+                raise _Stale  # its tick's frame overtook it (AUTH-16, AUTH-25)
         raise _Forged  # forged, or a replayed sync (a genuine one never goes back)
 
     def windows(self, f: DecodedFrame, t: float) -> int:

@@ -288,6 +288,25 @@ def test_the_join_window_keeps_the_newest_sync_and_takes_no_frame() -> None:
     assert rx.receive(early[2], 0.26) is None and rx.counters["auth"] == 2  # no longer lost
 
 
+def test_a_sync_overtaken_by_its_tick_s_frame_is_stale_not_forged() -> None:
+    """AUTH-16/AUTH-25: a sender's sync and the frame of the same tick swapped on the way
+    (a loaded vcan host does this): the frame is taken, the sync then announces a value
+    one behind what was taken: `stale`, not a replayed sync; one from 16 or more frames
+    ago still is `auth`."""
+    sender, rx = _synced()
+    for i in range(20):
+        rx.receive(_price(sender, i), 0.0)
+    old = sender.sync("ER_Price")                        # announces count 20 ...
+    for i in range(20):
+        rx.receive(_price(sender, i), 0.0)
+    sync = sender.sync("ER_Price")                       # ... and count 40
+    assert rx.receive(_price(sender, 40), 0.0) is not None   # the tick's frame first
+    rx.receive(sync, 0.0)
+    assert rx.counters["stale"] == 1 and rx.counters["auth"] == 0
+    rx.receive(old, 0.0)
+    assert rx.counters["auth"] == 1 and rx.counters["stale"] == 1
+
+
 def test_round_trip_and_replay_rejected() -> None:
     sender, rx = _synced()
     frames = [_price(sender, i) for i in range(40)]

@@ -1186,8 +1186,9 @@ def test_only_accepted_mc_frames_refresh_a_slot() -> None:
 
 
 def test_an_old_sync_is_an_auth_failure_with_a_key_file() -> None:
-    """AUTH-16, AUTH-17: with real keys a sync whose FV − 1 is below `last` is a replay:
-    `auth` on the sync ID, `last_safety` = (auth, sync ID), `last` does not move back."""
+    """AUTH-16, AUTH-17: with real keys a sync whose FV − 1 is 16 or more below `last` is
+    a replay: `auth` on the sync ID, `last_safety` = (auth, sync ID), `last` does not move
+    back (less than 16 below: `stale`, tests/test_secoc.py)."""
     master = bytes(range(16))
     ring = Keyring.fleet(master, ["agent_2"])["agent_2"]
     a = AgentRuntime(parse(pinned_alone()), CODEC, keys=ring)
@@ -1197,9 +1198,9 @@ def test_an_old_sync_is_an_auth_failure_with_a_key_file() -> None:
     first = router.sync("ER_Price")
     a.on_frame(first, t0)
     assert a.counters["resyncs"] == 1
-    for k in range(3):
+    for k in range(20):
         a.on_frame(router.frame("ER_Price", {"PriceValid": 1, "Rho": fx.to_fixed(0.8),
-                                             "Segment": 0}), t0 + 0.001 * k)
+                                             "Segment": 0}), t0 + 0.0004 * k)
     assert a.counters["auth"] == 0 and a.price == fx.to_fixed(0.8)
     a.on_frame(first, t0 + 0.01)
     assert a.counters["auth"] == 1 and a.io.last_safety == ("auth", 0x410)

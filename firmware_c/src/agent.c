@@ -570,7 +570,11 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
     }
     if (a->joining) {   /* AUTH-26: keep the sender's newest sync until the window ends */
         if ((s->flags & BD_RX_JOIN) != 0u && fv < s->fv) {
-            fail(a, NULL, f->id, BD_C_AUTH, t);   /* older than one already heard */
+            if (s->fv - fv < FV_WINDOW) {
+                reject(a, BD_C_STALE, f->id);     /* late, as in AUTH-16 */
+            } else {
+                fail(a, NULL, f->id, BD_C_AUTH, t);   /* older than one already heard */
+            }
             return;
         }
         if ((s->flags & BD_RX_JOIN) == 0u) {
@@ -587,8 +591,12 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
             s->flags &= (uint8_t)~BD_RX_LOST;   /* in step with the sender */
             return;
         }
-        if (!a->insecure) {   /* a genuine sync never goes back: a replay */
-            fail(a, NULL, f->id, BD_C_AUTH, t);
+        if (!a->insecure) {   /* a genuine sync never goes back: a replay ... */
+            if (s->fv - (fv - 1u) < FV_WINDOW) {
+                reject(a, BD_C_STALE, f->id);   /* ... or its tick's frame overtook it */
+            } else {
+                fail(a, NULL, f->id, BD_C_AUTH, t);
+            }
             return;
         }
         s->flags &= (uint8_t)~BD_RX_HAS_FV;   /* --insecure: a restarted sender is at boot 1 */
