@@ -89,7 +89,7 @@ STATUS_TIMEOUT_S = timeout_s(status_name(1), MC_CYCLE_S)
 # safety-model defaults (docs/safety-model.md)
 # cu/kWh: the paper's prices are 0.6..1.0; day-ahead and intraday markets clear below
 # zero often enough that a negative price is no sign of a fault (a scenario's [limits]
-# sets its own bounds, sim/scenario.py)
+# sets its own bounds, sim/model/scenario.py)
 RHO_MIN, RHO_MAX = -5.0, 5.0
 PRICE_STEP_MAX = 0.5             # cu/kWh per accepted price frame: the paper steps ≤ 0.4
 PRICE_PERSIST = 3                # frames of one new price level that make it accepted
@@ -285,7 +285,7 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         raise fail("neighbour", "expected each neighbour once, but got duplicates")
 
     b = table("battery", {"alpha", "beta", "m", "p_min", "p_max"})
-    # the ranges of sim.scenario.BATTERY_RANGES: α > 0 (λ(P) invertible), m ≥ 0 (1 + m
+    # the ranges of sim.model.scenario.BATTERY_RANGES: α > 0 (λ(P) invertible), m ≥ 0 (1 + m
     # divides), β within the λ range
     battery = DispatchParams(alpha=num(b, "battery", "alpha", 1e-9, 100),
                              beta=num(b, "battery", "beta", -100, 100),
@@ -363,7 +363,7 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
 
 
 def agent_configs_from_scenario(sc: Any) -> list[AgentConfig]:
-    """One AgentConfig per agent of a sim.scenario.Scenario (used by `bess-ded up`)."""
+    """One AgentConfig per agent of a sim.model.scenario.Scenario (used by `bess-ded up`)."""
     out = []
     for i in range(1, sc.n + 1):
         b = sc.batteries[i - 1]

@@ -107,7 +107,7 @@ class ControllerConfig:
         return math.ceil(self.dwell / self.ts - 1e-9) if self.kind == "dwell" else 0
 
 
-DWELL_MAX_S = 1e5  # the longest run (sim.scenario's duration bound), 27.8 h
+DWELL_MAX_S = 1e5  # the longest run (sim.model.scenario's duration bound), 27.8 h
 
 
 def _finite(x: object) -> bool:

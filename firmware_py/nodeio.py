@@ -319,14 +319,13 @@ class NodeIO:
                 self.reject("unsynced", f"{frame.name}: expected a {frame.name}_Sync first "
                             "(no freshness value of its sender known yet)")
             return None
-        tries = LOST_WINDOWS if fid in self._lost else 1
-        fv = self._fv.candidate(fid, frame.counter)
-        while fv is not None and tries > 0:
-            if frame_verifies(key, fid, msg.data, fv):
-                break
-            fv, tries = fv + _FV_WINDOW, tries - 1
-        else:
-            if self._stale(fid, key, msg.data, frame.counter):
+        def verifies(v: int) -> bool:
+            return frame_verifies(key, fid, msg.data, v)
+
+        fv = self._fv.search(fid, frame.counter, LOST_WINDOWS if fid in self._lost else 1,
+                             verifies)
+        if fv is None:
+            if self._fv.search_late(fid, frame.counter, STALE_WINDOWS, verifies):
                 self.reject("stale", f"{frame.name}: its MAC verifies with a freshness value "
                             f"at or below the last accepted {last:#x}: a genuine frame that "
                             "arrived late or out of order (not used)")
@@ -349,17 +348,6 @@ class NodeIO:
         if not defer_trust:
             self._streak[fid] = 0
         return frame
-
-    def _stale(self, fid: int, key: bytes, data: bytes | bytearray, counter: int) -> bool:
-        """Whether a frame that failed the forward window verifies with one of the
-        STALE_WINDOWS most recent values at or below the last accepted one that no
-        frame carried yet (its sender's genuine frame, late): at most one CMAC per
-        window, only for frames already rejected."""
-        for fv in self._fv.past(fid, counter, STALE_WINDOWS):
-            if frame_verifies(key, fid, data, fv):
-                self._fv.mark(fid, fv)  # the same frame again is a replay
-                return True
-        return False
 
     def _on_sync(self, msg: can.Message, sync_id: int, t: float) -> None:
         fid = self._synced_by[sync_id]
@@ -394,7 +382,7 @@ class NodeIO:
         assert self._joining is not None
         newest = self._joining.get(fid)
         if newest is not None and fv < newest:
-            if newest - fv < _FV_WINDOW:  # as AUTH-16: late, not a replay (AUTH-25)
+            if self._fv.late_sync(newest - fv):  # late, not a replay (AUTH-25)
                 self.reject("stale", f"{name}: {fv:#x}, at most one window behind the "
                             f"newest {newest:#x}: late (AUTH-25)")
                 return
@@ -427,7 +415,7 @@ class NodeIO:
                 self._lost.discard(fid)  # in step with the sender: the normal window
                 return  # nothing new: the sender sent no frame since its last sync
             if not self.keys.insecure:  # a genuine sync never goes back: a replay ...
-                if last - (fv - 1) < _FV_WINDOW:  # ... or its tick's frame overtook it
+                if self._fv.late_sync(last - (fv - 1)):  # ... or it came late
                     self.reject("stale", f"{name}: announces {fv:#x}, at most one window "
                                 f"behind the last accepted {last:#x}: late (AUTH-25)")
                     return

@@ -282,6 +282,38 @@ class FreshnessVerifier:
         return [v for v in range(newest, newest - (windows << self.tx_bits), -(mask + 1))
                 if v >= 0 and not self.seen(sender, v)]
 
+    def search(self, sender: Hashable, truncated: int, windows: int,
+               verifies: Callable[[int], bool]) -> int | None:
+        """AUTH-13: the first FV from the candidate on, one per window of 2^tx_bits,
+        ``windows`` windows forward, for which ``verifies`` (the frame's MAC check)
+        holds; None if none does (or the sender has no state). The one search every
+        receiver uses: the nodes' ``NodeIO`` and the recorder alike."""
+        fv = self.candidate(sender, truncated)
+        for _ in range(windows):
+            if fv is None:
+                return None
+            if verifies(fv):
+                return fv
+            fv += 1 << self.tx_bits
+        return None
+
+    def search_late(self, sender: Hashable, truncated: int, windows: int,
+                    verifies: Callable[[int], bool]) -> bool:
+        """AUTH-25: whether a frame that failed ``search`` verifies with one of
+        ``past(sender, truncated, windows)`` (its sender's genuine frame, late); that
+        value is then spent (``mark``), so the same frame again is a replay."""
+        for fv in self.past(sender, truncated, windows):
+            if verifies(fv):
+                self.mark(sender, fv)
+                return True
+        return False
+
+    def late_sync(self, behind: int) -> bool:
+        """AUTH-16, AUTH-25: a verified sync ``behind`` values below the newest one
+        known of its sender is that sender's genuine sync delivered late (its tick's
+        frame overtook it) when less than one window behind, else a replayed sync."""
+        return behind < 1 << self.tx_bits
+
     def seen(self, sender: Hashable, freshness: int) -> bool:
         """Whether a frame with this FV was accepted (known for the SEEN_BITS values up
         to the last accepted one; older ones count as seen)."""

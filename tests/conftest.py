@@ -182,8 +182,8 @@ def assert_every_tick_accounted(out: Path, m: dict[str, Any], ts: float) -> dict
 
 def lockstep_settling_ticks(sc: Any) -> int:
     """Lockstep's settling time of the first price segment, in ticks."""
-    from sim.lockstep import run_lockstep
-    from sim.metrics import settling_times
+    from sim.model.lockstep import run_lockstep
+    from sim.model.metrics import settling_times
 
     ref_st = settling_times(run_lockstep(sc))[0]
     assert ref_st is not None
@@ -194,7 +194,7 @@ def settling_ticks(out: Path, m: dict[str, Any], agent: int = 1) -> int:
     """A run's settling time counted in agent ``agent``'s own ticks (MC frames sent from
     t = 0, the first price, to the settling instant): what the control law needed,
     whatever the wall clock did meanwhile (a starved agent ticks less, not slower)."""
-    from sim.buslog import read_log
+    from sim.run.buslog import read_log
 
     log = read_log(out / "run.log")
     assert m["settling_time_s"] is not None, "never settled"

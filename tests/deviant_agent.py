@@ -85,7 +85,7 @@ def deviate(requirement: str, agent: int | None = None) -> None:
 @contextmanager
 def lying(requirement: str, agent: int) -> Iterator[None]:
     """``deviate(requirement, agent)`` for the agents built inside the block (in-process
-    runs: sim.busrun.run_in_process); every AgentRuntime after it is honest again."""
+    runs: sim.run.busrun.run_in_process); every AgentRuntime after it is honest again."""
     init = runtime.AgentRuntime.__init__
     deviate(requirement, agent)
     try:

@@ -36,7 +36,7 @@ def test_the_relative_imports_resolve_as_python_does() -> None:
     """The resolver the rules below rely on, on a file with both kinds."""
     names = _imports(ROOT / "sim" / "cli" / "up.py")
     assert "sim.cli._common" in names or "sim.cli.fleetopts" in names
-    assert any(n.startswith("sim.busrun") or n.startswith("sim.fleet_plan") for n in names)
+    assert any(n.startswith(("sim.run.busrun", "sim.run.fleet_plan")) for n in names)
 
 
 @pytest.mark.parametrize("name", CORE)
@@ -70,3 +70,31 @@ def test_no_cli_module_is_over_150_lines() -> None:
     long = {p.name: n for p in _py("sim/cli")
             if (n := len(p.read_text(encoding="utf-8").splitlines())) > 150}
     assert long == {}
+
+
+# sim's floors (docs/architecture.md): a subpackage imports only those below it
+SIM_FLOORS = {"cbind": 1, "model": 2, "nodes": 3, "report": 3, "run": 4, "conformance": 5,
+              "bench": 5, "testkit": 5, "cli": 6}
+
+
+def test_each_sim_subpackage_imports_only_the_floors_below_it() -> None:
+    """No import runs sideways or up between sim's subpackages (cli may import all)."""
+    bad = []
+    for path in _py("sim"):
+        rel = path.relative_to(ROOT / "sim").parts
+        if len(rel) < 2:
+            continue
+        floor = SIM_FLOORS[rel[0]]
+        for mod in _imports(path):
+            parts = mod.split(".")
+            if parts[0] == "sim" and len(parts) > 1 and parts[1] in SIM_FLOORS \
+                    and parts[1] != rel[0] and SIM_FLOORS[parts[1]] >= floor:
+                bad.append(("/".join(rel), mod))
+    assert bad == []
+
+
+def test_sim_has_no_module_outside_its_subpackages() -> None:
+    """Every module lives in a subpackage named for its concern (sim/__init__ aside)."""
+    assert sorted(p.name for p in (ROOT / "sim").glob("*.py")) == ["__init__.py"]
+    assert sorted(p.name for p in (ROOT / "sim").iterdir() if p.is_dir()
+                  and (p / "__init__.py").exists()) == sorted(SIM_FLOORS)

@@ -26,8 +26,8 @@ from firmware_py import contract, secoc
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from firmware_py.nodeio import NodeIO
 from firmware_py.runtime import AgentRuntime
-from sim.busrun import run_in_process
-from sim.scenario import PriceStep, load_case
+from sim.model.scenario import PriceStep, load_case
+from sim.run.busrun import run_in_process
 
 CASE = load_case(1)
 DURATION_S = 10.0
@@ -208,7 +208,7 @@ def _receivers() -> list[tuple[Any, list[int]]]:
     MC of its neighbours; the plant: setpoints), built as `up` builds them, with the
     untrusted-source rule off so that every forged frame reaches the MAC check."""
     from firmware_py.config import agent_configs_from_scenario
-    from sim.plant import PlantNode
+    from sim.nodes.plant import PlantNode
 
     rings = secoc.Keyring.fleet(bytes(16), secoc.fleet_nodes(CASE.n))
     out: list[tuple[Any, list[int]]] = []

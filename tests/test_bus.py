@@ -22,12 +22,12 @@ from conftest import (
 )
 
 from firmware_py.contract import State
-from sim import busrun
-from sim.buslog import read_log, trajectory_from_log
-from sim.lockstep import run_lockstep
-from sim.metrics import settling_times
-from sim.scenario import Scenario, load_case
-from sim.trajectory import Trajectory
+from sim.model.lockstep import run_lockstep
+from sim.model.metrics import settling_times
+from sim.model.scenario import Scenario, load_case
+from sim.model.trajectory import Trajectory
+from sim.run import busrun
+from sim.run.buslog import read_log, trajectory_from_log
 
 pytestmark = pytest.mark.slow
 
@@ -117,7 +117,7 @@ def shortened(case: int):
     (docs/performance.md has those numbers)."""
     from dataclasses import replace
 
-    from sim.scenario import Event, PriceStep
+    from sim.model.scenario import Event, PriceStep
 
     sc = load_case(case)
     if case == 4:
@@ -147,7 +147,7 @@ def test_virtual_bus_follows_lockstep_through_events(tmp_path: Path, case: int) 
             i = round(e.t / sc.ts)
             diff[i - 3:i + 4] = 0.0
     assert diff.max() <= 0.03
-    from sim.metrics import settling_times
+    from sim.model.metrics import settling_times
 
     for bus_st, ref_st in zip(m["settling_times_s"], settling_times(ref), strict=True):
         assert bus_st is not None and abs(bus_st - ref_st) <= 0.2

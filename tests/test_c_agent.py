@@ -29,8 +29,8 @@ from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import INSECURE_MASTER, Keyring, derive_node_key, fleet_nodes
-from sim.cagent import CAgent, keyring_from, ns, params_of
-from sim.cimpl import SOURCE_DIR as SOURCE
+from sim.cbind.cagent import CAgent, keyring_from, ns, params_of
+from sim.cbind.cimpl import SOURCE_DIR as SOURCE
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -371,7 +371,7 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     requirements) played against the C agent on a simulated clock, with late ticks and
     frames, and behind its acceptance filter: every requirement passes."""
     from sim import conformance as conf
-    from sim.scenario import load_case
+    from sim.model.scenario import load_case
 
     sc = load_case(case)
     cfg = agent_configs_from_scenario(sc)[dut - 1]
@@ -488,7 +488,7 @@ def test_c_secoc_against_firmware_py() -> None:
     import random
 
     from firmware_py import secoc
-    from sim.cagent import load
+    from sim.cbind.cagent import load
 
     lib = load().lib
     rnd = random.Random(11)

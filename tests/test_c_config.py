@@ -1,7 +1,7 @@
 """The C node's configuration and key-file loader (firmware_c/src/config.c).
 
 Every paper case's agent configurations and every node vector's, written as `bess-ded up`
-writes them, load in C to exactly the integers firmware_py computes (sim.cagent.params_of:
+writes them, load in C to exactly the integers firmware_py computes (sim.cbind.cagent.params_of:
 q24, q30, the setpoint map, the timeouts in ns, the SET_GAINS raw bounds). Bad files are
 refused naming the key firmware_py names. Key files written by firmware_py load in C, and
 the boot counter C persists loads back in firmware_py.
@@ -30,7 +30,7 @@ from firmware_py.secoc import (
     save_floors,
     write_private,
 )
-from sim.cagent import (
+from sim.cbind.cagent import (
     CConfigError,
     load_keyfile,
     node_program,
@@ -38,7 +38,7 @@ from sim.cagent import (
     params_of,
     parse_config,
 )
-from sim.scenario import load_case
+from sim.model.scenario import load_case
 
 MASTER = bytes(range(16))
 

@@ -48,7 +48,7 @@ from firmware_py.controllers import (
     consensus_error,
     make_controller,
 )
-from sim import cimpl
+from sim.cbind import cimpl
 
 ROOT = Path(__file__).resolve().parent.parent
 SOURCE = ROOT / "firmware_c"   # this checkout's, whichever sim/ is imported

@@ -20,7 +20,7 @@ from test_c_agent import JOIN_TICKS, MASTER, PREAMBLE, TS, _cfg, run_both
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
 from firmware_py.secoc import Keyring, derive_node_key
-from sim.cagent import TICK_FRAMES_MAX, CAgent, Frame, Runtime, load_faulty
+from sim.cbind.cagent import TICK_FRAMES_MAX, CAgent, Frame, Runtime, load_faulty
 
 BD_ERR_PARAMS, BD_ERR_BOOT, BD_ERR_CRYPTO = 10, 12, 13   # agent.h
 PEERS = ("router", "plant", "agent_1", "agent_3")
@@ -163,7 +163,7 @@ def test_a_short_id_buffer_gets_some_of_the_accepted_ids_sorted() -> None:
 def test_a_key_file_peer_that_names_no_node_refuses_the_start(label: bytes) -> None:
     """CFG-8: a peer label is plant, router or agent_1..agent_32 (digits, no leading 0);
     anything else refuses the start (the long one would overflow a naive parser)."""
-    from sim.cagent import keyring_from
+    from sim.cbind.cagent import keyring_from
 
     bad = keyring_from(ring())
     bad.peer_label[0].value = label

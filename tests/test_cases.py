@@ -1,5 +1,5 @@
 """The paper's seven cases, run on the discrete fixed-point firmware (run_lockstep) and judged
-with sim.metrics.compute: every case behaves as the paper says, and the fixed-point
+with sim.model.metrics.compute: every case behaves as the paper says, and the fixed-point
 core agrees with its float twin."""
 
 from __future__ import annotations
@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from firmware_py.controllers import DEFAULT_BAND
-from sim.graph import unpinned_components
-from sim.lockstep import run_lockstep
-from sim.metrics import compute
-from sim.scenario import Scenario, load_case
-from sim.trajectory import Trajectory
+from sim.model.graph import unpinned_components
+from sim.model.lockstep import run_lockstep
+from sim.model.metrics import compute
+from sim.model.scenario import Scenario, load_case
+from sim.model.trajectory import Trajectory
 
 
 @cache

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from sim.cli import main
-from sim.scenario import SCENARIO_DIR
+from sim.model.scenario import SCENARIO_DIR
 
 REQUIRED_KEYS = {"settling_time_s", "settling_times_s", "overshoot", "control_total_variation",
                  "peak_control", "resets", "final_error", "eta_max", "regular", "cost",

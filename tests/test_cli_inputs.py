@@ -131,7 +131,7 @@ def test_known_bus_config_keys_pass() -> None:
 def test_child_nodes_get_only_the_bus_settings_they_do_not_take_by_themselves() -> None:
     """firmware_c's node program takes no --bus-config: a socketcan bus's own fd = True
     (every node reads FD frames to count them) is not passed on, a setting given is."""
-    from sim.busrun import BusOptions
+    from sim.run.busrun import BusOptions
 
     assert BusOptions("socketcan", "vcan0").argv() == [
         "--interface", "socketcan", "--channel", "vcan0"]
@@ -274,7 +274,7 @@ def test_binary_bytes_in_an_agent_config_are_exit_2(tmp_path: Path,
 
 
 def test_the_bundled_scenarios_still_load() -> None:
-    from sim.scenario import SCENARIO_DIR, load_scenario
+    from sim.model.scenario import SCENARIO_DIR, load_scenario
 
     for path in sorted(SCENARIO_DIR.glob("case*.toml")):
         assert load_scenario(path).n >= 1
@@ -288,8 +288,8 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     a run.log, its keys."""
     from dataclasses import replace
 
-    from sim import busrun
-    from sim.scenario import load_case
+    from sim.model.scenario import load_case
+    from sim.run import busrun
 
     out = tmp_path_factory.mktemp("run")
     busrun.run_in_process(replace(load_case(1), duration=8.0), out, duration=8.0,
@@ -483,7 +483,7 @@ def test_a_key_file_through_a_symlink_is_refused(tmp_path: Path,
     assert "a symbolic link" in capsys.readouterr().err
     cfg = tmp_path / "agent_1.toml"
     from firmware_py.config import agent_configs_from_scenario
-    from sim.scenario import load_case
+    from sim.model.scenario import load_case
 
     cfg.write_text(agent_configs_from_scenario(load_case(1))[0].to_toml())
     assert agent_main.main(["--config", str(cfg), "--key", str(keys / "agent_1.key"),
@@ -511,7 +511,7 @@ def test_every_bundled_variant_writes_configs_its_agents_accept() -> None:
     import tomllib
 
     from firmware_py.config import GAIN_MAX, agent_configs_from_scenario, parse_agent_config
-    from sim.scenario import load_case
+    from sim.model.scenario import load_case
 
     for label, sc in load_case(3).runs():
         for cfg in agent_configs_from_scenario(sc):

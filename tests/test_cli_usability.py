@@ -75,8 +75,8 @@ def test_a_mistype_gets_a_suggestion_on_one_line(argv: list[str], hint: str,
 
 
 def test_variant_names_ignore_case(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from sim.scenario import load_case
-    from sim.scenario_select import pick_variant
+    from sim.model.scenario import load_case
+    from sim.model.scenario_select import pick_variant
 
     sc = load_case(2)
     labels = [v.label for v in sc.variants]

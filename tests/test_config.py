@@ -12,7 +12,7 @@ import pytest
 
 from firmware_py.config import agent_configs_from_scenario, load_agent_config
 from firmware_py.errors import ConfigError
-from sim.scenario import load_case, scaled
+from sim.model.scenario import load_case, scaled
 
 
 def write(tmp_path: Path, text: str) -> Path:

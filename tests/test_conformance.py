@@ -24,7 +24,7 @@ from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
 from sim import conformance as conf
 from sim.cli import main
-from sim.scenario import load_case
+from sim.model.scenario import load_case
 
 MASTER = bytes(range(16))
 KEYS = {n: secoc.derive_node_key(MASTER, n) for n in secoc.fleet_nodes(12)}
@@ -230,8 +230,8 @@ def test_the_device_command_has_the_testers_rt_priority(udp_port: int, tmp_path:
 
 def test_the_requirement_list_shipped_with_sim_is_the_specs() -> None:
     """`bess-ded conformance` reads the requirement IDs from package data
-    (sim/spec_requirements.txt: docs/ is not installed); it must be docs/firmware-spec.md's
-    list, in order (regenerate: python tools/gen_spec_ids.py)."""
+    (sim/conformance/spec_requirements.txt: docs/ is not installed); it must be
+    docs/firmware-spec.md's list, in order (regenerate: python tools/gen_spec_ids.py)."""
     spec = Path(__file__).resolve().parents[1] / "docs" / "firmware-spec.md"
     ids = list(dict.fromkeys(re.findall(r"^- \*\*([A-Z]+-\d+)\*\*", spec.read_text(), re.M)))
     assert list(conf.spec_requirements()) == ids, "stale: run python tools/gen_spec_ids.py"

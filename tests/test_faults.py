@@ -42,8 +42,9 @@ from firmware_py.faultinject import FaultyBus, RxFaults, neighbour_mc
 from firmware_py.frames import FrameCodec, agent_of
 from firmware_py.nodeio import JOIN_FRACTION, SYNC_S
 from firmware_py.runtime import DIAG_EVERY, AgentRuntime
-from sim import busrun, inject
-from sim.scenario import load_case
+from sim.model.scenario import load_case
+from sim.nodes import inject
+from sim.run import busrun
 
 pytestmark = pytest.mark.slow
 

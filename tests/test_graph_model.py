@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from sim import graph
-from sim.model import Battery, expenditure, kkt_optimum
-from sim.scenario import load_case
+from sim.model import graph
+from sim.model.cost import Battery, expenditure, kkt_optimum
+from sim.model.scenario import load_case
 
 STAR = [(1, 2), (1, 3), (1, 4)]
 

@@ -27,9 +27,7 @@ from hypothesis import strategies as st
 from firmware_py import secoc
 from firmware_py.config import agent_configs_from_scenario, parse_agent_config
 from firmware_py.errors import ConfigError
-from sim import buslog
-from sim.plant import BessUnit
-from sim.scenario import (
+from sim.model.scenario import (
     BATTERY_KEYS,
     CONTROLLER_KEYS,
     MAX_AGENT_SAMPLES,
@@ -39,6 +37,8 @@ from sim.scenario import (
     load_scenario,
     parse_scenario,
 )
+from sim.nodes.plant import BessUnit
+from sim.run import buslog
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE1 = (SCENARIO_DIR / "case1.toml").read_text()
@@ -159,7 +159,7 @@ AGENT_PATHS = ([("agent", k) for k in ("id", "lambda0", "pinned", "fleet_size")]
 @given(st.lists(st.tuples(st.sampled_from(AGENT_PATHS), st.one_of(VALUE, st.just(DELETE))),
                 min_size=1, max_size=4))
 def test_generated_agent_configs_are_refused_or_sane(mutations: list[tuple[Any, Any]]) -> None:
-    from sim.scenario import load_case
+    from sim.model.scenario import load_case
 
     doc = tomllib.loads(agent_configs_from_scenario(load_case(1))[1].to_toml())
     for path, value in mutations:
@@ -243,7 +243,7 @@ def test_generated_logs_are_read_with_every_line_accounted(
         tmp_path_factory: pytest.TempPathFactory) -> None:
     """Every non-empty line is a frame, a skipped line counted by cause, or a frame left
     out as a timestamp outlier; the trajectory is built within its bound or refused."""
-    from sim.scenario import load_case
+    from sim.model.scenario import load_case
 
     raw = b"\n".join(x if isinstance(x, bytes) else x.encode() for x in lines)
     if newline_at_end and raw:

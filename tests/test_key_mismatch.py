@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 
 from firmware_py import secoc
-from sim import busrun
 from sim.cli import main
-from sim.keyset import write_key_set
-from sim.scenario import load_case
+from sim.model.scenario import load_case
+from sim.run import busrun
+from sim.run.keyset import write_key_set
 
 pytestmark = pytest.mark.slow
 

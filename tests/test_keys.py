@@ -11,7 +11,7 @@ import pytest
 
 from firmware_py import secoc
 from sim.cli import main
-from sim.scenario import SCENARIO_DIR
+from sim.model.scenario import SCENARIO_DIR
 
 
 def _mode(p: Path) -> int:

@@ -3,7 +3,7 @@ deliverables 3, 6, 7; issue 20: host overload).
 
 The liar signs what it sends, so no MAC gives it away: only what it says does. The plant
 and the verdict check each setpoint against the agent's own dispatch rule at the λ it
-publishes (sim/consistency.py: ``setpoint_inconsistent``); the verdict wants every final λ
+publishes (sim/nodes/consistency.py: ``setpoint_inconsistent``); the verdict wants every final λ
 within the tolerance of ρ and names an agent whose told λ stays off the others'
 (``lambda_outlier``). Runs are case 1 on the deterministic in-process bus
 (``run_in_process``, ~2 s each); every run's directory is then judged again by
@@ -28,13 +28,13 @@ from firmware_py.config import agent_configs_from_scenario
 from firmware_py.frames import FrameCodec, mc_name, setpoint_name
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import SetpointMap
-from sim import busrun
-from sim.buslog import LogContents, SequenceStats
 from sim.cli import main
-from sim.consistency import Check, Setpoint, SetpointCheck
-from sim.plant import PlantNode
-from sim.scenario import load_case
-from sim.verdict import EXIT_ANOMALIES, EXIT_NOT_CONVERGED, Anomaly, RunFacts, _host_overload
+from sim.model.scenario import load_case
+from sim.nodes.consistency import Check, Setpoint, SetpointCheck
+from sim.nodes.plant import PlantNode
+from sim.run import busrun
+from sim.run.buslog import LogContents, SequenceStats
+from sim.run.verdict import EXIT_ANOMALIES, EXIT_NOT_CONVERGED, Anomaly, RunFacts, _host_overload
 
 CASE = replace(load_case(1), duration=6.5)  # the fleet dispatches from ~0.21 s (join window)
 DURATION_S = 6.5
@@ -195,7 +195,7 @@ def test_an_honest_agent_s_setpoints_stay_consistent_through_loss_and_reordering
     setpoint is called inconsistent (the plant would hold a genuine one)."""
     import random
 
-    from sim.buslog import read_log
+    from sim.run.buslog import read_log
 
     out, _ = runs("honest")
     log = read_log(out / "run.log", n=CASE.n, ts=CASE.ts)

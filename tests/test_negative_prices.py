@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim import busrun
 from sim.cli import main
-from sim.scenario import case_path, load_scenario
+from sim.model.scenario import case_path, load_scenario
+from sim.run import busrun
 
 # case 1 on a shorter axis: 0.8 cu/kWh, then -0.3 from t = 4 s (a 1.1 cu/kWh step, above
 # the default price_step_max: the scenario raises it, so no frame is rejected)

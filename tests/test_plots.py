@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim import plots
-from sim.metrics import settling_times
-from sim.model import Battery
-from sim.trajectory import Trajectory
+from sim.model.cost import Battery
+from sim.model.metrics import settling_times
+from sim.model.trajectory import Trajectory
+from sim.report import plots
 
 
 def synthetic(scale: float = 1.0, settle_second: bool = False) -> Trajectory:

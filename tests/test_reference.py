@@ -1,4 +1,4 @@
-"""The continuous-time hybrid reference (sim/reference.py): checked against closed forms
+"""The continuous-time hybrid reference (sim/model/reference.py): checked against closed forms
 and an ODE solver, then used to measure the discrete firmware's error.
 
 Measured at Ts = 10 ms (fixed-point firmware vs reference, max over the run of max_i
@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from sim.lockstep import run_lockstep
-from sim.metrics import compute
-from sim.reference import base_system, run_reference
-from sim.scenario import Scenario, load_case, parse_scenario
-from sim.trajectory import Trajectory
+from sim.model.lockstep import run_lockstep
+from sim.model.metrics import compute
+from sim.model.reference import base_system, run_reference
+from sim.model.scenario import Scenario, load_case, parse_scenario
+from sim.model.trajectory import Trajectory
 
 # Euler error bound used below: 1.0·Ts cu/kWh at Ts = 10 ms (measured 0.57·Ts).
 EULER_TOL = 1e-2

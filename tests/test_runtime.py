@@ -16,8 +16,8 @@ from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name
 from firmware_py.node import bus_kwargs, run_node, with_acceptance_filter
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import DIAG_EVERY, AgentRuntime, SetpointMap, State
-from sim.lockstep import run_lockstep
-from sim.scenario import load_case, scaled
+from sim.model.lockstep import run_lockstep
+from sim.model.scenario import load_case, scaled
 
 CODEC = FrameCodec()
 TS = 0.01

@@ -32,8 +32,8 @@ from firmware_py.errors import ConfigError
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from firmware_py.nodeio import FleetSender, NodeIO
 from firmware_py.runtime import DIAG_EVERY, SAFETY_CAUSES, AgentRuntime, State
-from sim import plant as plant_module
-from sim.scenario import load_case, scaled
+from sim.model.scenario import load_case, scaled
+from sim.nodes import plant as plant_module
 
 # These drive the plant's physics with setpoints alone, no agent's MC frames to check
 # them against: the plant obeys them, as told to (the check itself: tests/test_liar.py).
@@ -504,7 +504,7 @@ def test_limits_round_trip_and_bad_values(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("case", [1, 4, 5, pytest.param(7, marks=pytest.mark.long)])
 def test_paper_case_bus_run_keeps_safety_counters_at_zero(tmp_path: Path, case: int) -> None:
-    from sim.busrun import run_in_process
+    from sim.run.busrun import run_in_process
 
     sc = load_case(case)
     m = run_in_process(sc, tmp_path, sc.duration)
@@ -527,8 +527,8 @@ def test_implausible_prices_on_the_bus_are_alarms_and_the_dispatch_holds(
     cannot stop it): every agent rejects each as implausible (the genuine frames in
     between keep the new level from persisting), the dispatch holds at ρ = 0.8, and the
     rejections are anomalies in the metrics."""
-    from sim.busrun import run_in_process
-    from sim.router import RouterNode
+    from sim.nodes.router import RouterNode
+    from sim.run.busrun import run_in_process
 
     real = RouterNode._price_raw
     sent = [0]

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 from firmware_py.errors import ConfigError
-from sim.lockstep import run_lockstep
-from sim.metrics import compute
-from sim.scenario import SCENARIO_DIR, case_path, load_case, load_scenario, to_toml
+from sim.model.lockstep import run_lockstep
+from sim.model.metrics import compute
+from sim.model.scenario import SCENARIO_DIR, case_path, load_case, load_scenario, to_toml
 
 CASE1 = case_path(1).read_text()
 TS_LINE = "ts = 0.01            # firmware sample time Ts, s\n"

@@ -40,7 +40,7 @@ from firmware_py.secoc import (
     node_key_document,
     write_private,
 )
-from sim.scenario import load_case, scaled
+from sim.model.scenario import load_case, scaled
 
 CODEC = FrameCodec()
 SENDER = FleetSender(CODEC)  # the other nodes, --insecure: boot 1, no sync needed
@@ -839,7 +839,7 @@ def test_insecure_and_in_memory_keyrings_take_every_fleet_sync_as_a_peer_sync(
 
 @pytest.mark.parametrize("kind", ["pi", "reset", "dwell", "pc", "ft"])
 def test_a_scaled_agent_steps_as_the_unscaled_one_up_to_quantisation(kind: str) -> None:
-    """SCALE-1: sim.scenario.scaled gives ts·F, k/F, h/F², dwell·F; per sample the fixed
+    """SCALE-1: sim.model.scenario.scaled gives ts·F, k/F, h/F², dwell·F; per sample the fixed
     controller of the scaled config follows the unscaled one within quantisation (a few
     Q24 LSB over 300 samples of the same ξ), not bit for bit."""
     F = 4
@@ -889,8 +889,8 @@ def test_acceptance_filters_pass_the_syncs_of_the_keys_held(tmp_path: Path) -> N
     """AUTH-19, GEN-5 (key files, case 1): the agent's filter passes the syncs of what it
     takes (not its peer syncs); the router's also passes every agent's syncs, the plant's
     the router's (ER_Price_Sync, ER_Command_Sync)."""
-    from sim.plant import PlantNode
-    from sim.router import RouterNode
+    from sim.nodes.plant import PlantNode
+    from sim.nodes.router import RouterNode
 
     agents = [f"agent_{j}" for j in range(1, 5)]
     ring = Keyring.from_file(write_key_file(tmp_path / "a2.toml", "agent_2",
@@ -909,7 +909,7 @@ def test_acceptance_filters_pass_the_syncs_of_the_keys_held(tmp_path: Path) -> N
         write_key_file(tmp_path / "p.toml", "plant", [*agents, "router"])))
     assert {0x410, 0x420} <= set(plant.io.accepted_ids())
     # the plant takes every agent's MC frames too (each setpoint is checked against the λ
-    # its agent publishes, sim/consistency.py), so their syncs are its own, not peer syncs
+    # its agent publishes, sim/nodes/consistency.py), so their syncs are its own, not peer syncs
     assert {0x501, 0x502, 0x503, 0x504} <= set(plant.io.accepted_ids())
     assert not {0x500, 0x505} & set(plant.io.accepted_ids())
 

@@ -277,7 +277,7 @@ def test_bad_plugin_options_are_one_line_usage_errors(tmp_path: Path, args: list
 
 
 def test_a_process_fleet_refuses_an_in_process_bus(tmp_path: Path, keys: KeySet) -> None:
-    from sim.busrun import BusOptions
+    from sim.run.busrun import BusOptions
     from sim.testkit.fleet import ProcessFleet
 
     with pytest.raises(TesterError, match="bus: expected a bus that connects processes"):

@@ -1,7 +1,7 @@
 """No input the bus can deliver kills a node (issue 19, deliverable 1), on udp_multicast.
 
 A case-1 fleet runs as `bess-ded up` runs it (every node a process, the recorder in this
-one) while, from FUZZ_FROM_S, 10,000 seeded fuzz inputs (sim.inject.fuzz_inputs) go to
+one) while, from FUZZ_FROM_S, 10,000 seeded fuzz inputs (sim.nodes.inject.fuzz_inputs) go to
 the run's multicast group in bursts: random datagrams that are not python-can messages,
 messages with an impossible field (the issue's ID 0x800 on a standard frame, IDs beyond
 29 bits, DLC > 8, wrong types, ...), exotic CAN frames (extended, remote, FD, error,
@@ -27,9 +27,9 @@ import pytest
 
 from firmware_py.errors import FrameError
 from firmware_py.frames import FrameCodec
-from sim import busrun
-from sim.inject import FuzzInput, fuzz_inputs
-from sim.scenario import load_case
+from sim.model.scenario import load_case
+from sim.nodes.inject import FuzzInput, fuzz_inputs
+from sim.run import busrun
 
 pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 

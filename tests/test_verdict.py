@@ -1,4 +1,4 @@
-"""The verdict of a bus run and the anomalies behind it (sim/verdict.py, docs/runs.md).
+"""The verdict of a bus run and the anomalies behind it (sim/run/verdict.py, docs/runs.md).
 
 Most cases are deterministic: a fleet on the in-process virtual bus stepped on a
 simulated clock (``busrun.run_in_process``), or a recorded log edited frame by frame
@@ -18,10 +18,10 @@ import can
 import pytest
 
 from firmware_py.frames import FrameCodec
-from sim import busrun
 from sim.cli import main
-from sim.scenario import load_case
-from sim.verdict import EXIT_ANOMALIES, EXIT_NOT_CONVERGED, EXIT_OK
+from sim.model.scenario import load_case
+from sim.run import busrun
+from sim.run.verdict import EXIT_ANOMALIES, EXIT_NOT_CONVERGED, EXIT_OK
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -415,7 +415,7 @@ def test_a_capture_received_out_of_order_is_judged_in_bus_order(
     frames late, timestamp kept. The analysis takes frames in timestamp order, so with
     the run's keys nothing is forged, nothing is out of sequence, and the run is judged
     as recorded in order; ``reordered`` says how many came late."""
-    from sim import buslog
+    from sim.run import buslog
 
     held: list[can.Message] = []
     seen = {"n": 0, "late": 0}
@@ -448,7 +448,7 @@ def test_a_replayed_sync_below_the_run_s_boot_floor_is_a_stale_boot(tmp_path: Pa
     verifies: not forged, AUTH-21) and the old price never verifies; the genuine frames
     after them do."""
     from firmware_py.nodeio import FleetSender
-    from sim import buslog
+    from sim.run import buslog
 
     key = bytes(range(16))
     old, new = (FleetSender(keys={"router": key}, boot=b) for b in (3, 4))
@@ -553,7 +553,7 @@ def test_the_recorder_tells_late_genuine_frames_from_a_flood_of_forged_ones(
     exactly the reordered genuine frames as stale; the verdict says stale_frames only
     above its threshold and never auth_failed for them."""
     from firmware_py.secoc import derive_node_key
-    from sim import buslog, verdict
+    from sim.run import buslog, verdict
 
     path = tmp_path / "truth.log"
     n_genuine, n_late, n_attack = _ground_truth_log(path)
@@ -590,7 +590,7 @@ def test_the_recorder_looks_ahead_only_as_far_as_the_elapsed_time_allows() -> No
     frames for a while, as many as 4 frames per cycle would need, up to MAX_WINDOWS
     (2.3 s of silence: 58 windows, beyond a node's LOST_WINDOWS)."""
     from firmware_py.nodeio import LOST_WINDOWS
-    from sim import buslog
+    from sim.run import buslog
 
     mon = buslog._Monitor({}, None, lambda name: 0.01)
     f = FrameCodec().decode(FrameCodec().encode("AGENT_1_MC", {"State": 1, "Resets": 0,
@@ -605,7 +605,7 @@ def test_the_recorder_looks_ahead_only_as_far_as_the_elapsed_time_allows() -> No
 def test_a_node_s_stale_frames_are_a_load_anomaly_above_one_percent_never_auth() -> None:
     """The plant's and router's `stale` counters (late genuine frames, AUTH-25): 5 in
     1000 ticks is what a loaded host does (nothing); 50 is `stale_frames`, not auth."""
-    from sim import buslog, verdict
+    from sim.run import buslog, verdict
 
     facts = verdict.RunFacts(node_counters={
         "plant": {"counters": {"stale": 5}, "ticks": 1000},

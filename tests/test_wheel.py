@@ -25,7 +25,7 @@ def _run(site: Path, cwd: Path, *argv: str) -> subprocess.CompletedProcess[str]:
 def test_the_wheel_holds_no_file_of_docs_or_tests(installed_site: Path) -> None:
     (wheel,) = (installed_site.parent / "wheel").glob("bess_ded-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
-    assert "sim/spec_requirements.txt" in names and "dbc/bess_ded.dbc" in names
+    assert "sim/conformance/spec_requirements.txt" in names and "dbc/bess_ded.dbc" in names
     assert not [n for n in names if n.startswith(("docs/", "tests/", "tools/"))]
 
 

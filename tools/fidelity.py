@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Fixed point against float: how far the firmware's λ strays from its float twin.
 
-Runs the lockstep simulator (sim/lockstep.py) twice per scenario, once with the
+Runs the lockstep simulator (sim/model/lockstep.py) twice per scenario, once with the
 fixed-point core (``fixed=True``, what the firmware runs) and once with its float twin
 (``fixed=False``, same algorithm in binary64), and reports, per scenario and Ts:
 
@@ -18,7 +18,7 @@ fixed-point core (``fixed=True``, what the firmware runs) and once with its floa
   of the first reset that differs (a reset is a sign test on ξ, so two runs whose ξ
   differ by an LSB can reset a sample apart and then follow different transients);
 * ``stable`` whether forward Euler at this Ts is stable for the case's gains
-  (sim.graph.analyse); an unstable combination is reported but not judged.
+  (sim.model.graph.analyse); an unstable combination is reported but not judged.
 
 Scenarios: every paper case (sim/scenarios/case1..7.toml, every variant) at
 Ts = 1, 2.5, 5, 10, 50 ms (the case's duration, events and prices unchanged; only Ts),
@@ -48,8 +48,8 @@ from typing import Any
 
 import numpy as np
 
-from sim.lockstep import run_lockstep
-from sim.scenario import PriceStep, Scenario, load_case
+from sim.model.lockstep import run_lockstep
+from sim.model.scenario import PriceStep, Scenario, load_case
 
 CASE_TS = (0.001, 0.0025, 0.005, 0.01, 0.05)
 GRAPH_SIZES = (4, 8, 16, 31, 32)

@@ -785,7 +785,7 @@ def sc_tx_wrap() -> Scenario:
 
 
 INSECURE_TOML = """\
-# time scale 2 (sim.scenario.scaled): ts = 0.02, k = 1/2, h = 2/4
+# time scale 2 (sim.model.scenario.scaled): ts = 0.02, k = 1/2, h = 2/4
 [agent]
 id = 2
 lambda0 = 0.8033

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Write ``sim/spec_requirements.txt``: every requirement ID of docs/firmware-spec.md,
+"""Write ``sim/conformance/spec_requirements.txt``: every requirement ID of docs/firmware-spec.md,
 in the spec's order, one a line.
 
 `bess-ded conformance` orders and checks its verdict by these IDs; docs/ is not part of
@@ -8,7 +8,7 @@ the installed package, so the list ships as package data of sim. A test
 
 Usage::
 
-    python tools/gen_spec_ids.py            # (re)write sim/spec_requirements.txt
+    python tools/gen_spec_ids.py            # (re)write sim/conformance/spec_requirements.txt
     python tools/gen_spec_ids.py --check    # exit 1 if it is stale
 """
 
@@ -21,7 +21,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 SPEC = ROOT / "docs" / "firmware-spec.md"
-OUT = ROOT / "sim" / "spec_requirements.txt"
+OUT = ROOT / "sim" / "conformance" / "spec_requirements.txt"
 
 
 def ids(text: str) -> list[str]:

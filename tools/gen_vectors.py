@@ -368,8 +368,8 @@ CASE_KINDS: tuple[tuple[str, dict[str, float]], ...] = (
 
 
 def case_specs() -> list[Spec]:
-    from sim.lockstep import run_lockstep
-    from sim.scenario import load_case
+    from sim.model.lockstep import run_lockstep
+    from sim.model.scenario import load_case
 
     base = load_case(CASE)
     specs = []
@@ -385,7 +385,7 @@ def case_specs() -> list[Spec]:
         spec = Spec(f"case{CASE}_{kind}", f"Realistic closed-loop xi: agent {CASE_AGENT} of "
                     f"case {CASE} under the {kind} controller, the first {CASE_STEPS} samples "
                     f"({CASE_STEPS * sc.ts:g} s).", sc.controller, lam0, xis,
-                    source=f"sim.lockstep.run_lockstep(sim.scenario.load_case({CASE})"
+                    source=f"sim.model.lockstep.run_lockstep(sim.model.scenario.load_case({CASE})"
                            f".with_controller({args})).xi[:{CASE_STEPS}, {i}]")
         # the replay must be the lockstep run's own agent, bit for bit
         lam = [row[FIELDS.index("lam_q24")] for row in run(spec)["steps"]]

@@ -1,5 +1,5 @@
 """Argument parsing shared by the subcommands (not a subcommand itself); the formatting
-of results is the library's: sim/textfmt.py."""
+of results is the library's: sim/report/textfmt.py."""
 
 from __future__ import annotations
 

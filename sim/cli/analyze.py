@@ -55,8 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..analysis import prepare_analysis
-    from ..runreport import summary_lines
+    from sim.run.analysis import prepare_analysis
+    from sim.run.runreport import summary_lines
 
     analysis = prepare_analysis(args.log, args.case, args.variant, args.time_scale,
                                 args.tolerance, args.out, args.counters, args.keys)

@@ -1,7 +1,7 @@
 """`bess-ded bench [--quick]`: how fast the control core and the simulator run.
 
 Not a test (nothing passes or fails): numbers for docs/performance.md, with the
-machine they were measured on. The benchmarks are the library's: sim/bench.py.
+machine they were measured on. The benchmarks are the library's: sim/bench/micro.py.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 from ._common import one_line_errors
 
 if TYPE_CHECKING:
-    from ..bench import Table
+    from sim.bench.micro import Table
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,8 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..bench import machine_info, run_benches
-    from ..textfmt import table, write_json
+    from sim.bench.micro import machine_info, run_benches
+    from sim.report.textfmt import table, write_json
 
     t0 = time.perf_counter()
     info = machine_info()

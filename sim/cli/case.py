@@ -19,8 +19,8 @@ from pathlib import Path
 
 from firmware_py.cliargs import nonnegative_float, positive_float
 from firmware_py.controllers import KINDS
+from sim.run.lockstep_case import DEFAULT_DWELL_S
 
-from ..lockstep_case import DEFAULT_DWELL_S
 from ._common import (
     add_arithmetic_arguments,
     add_no_plot_argument,
@@ -57,10 +57,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..lockstep_case import run_case, summary_table
-    from ..metrics import SETTLING_BAND
-    from ..scenario_select import resolve_scenario
-    from ..textfmt import controller_desc, describe, fmt_settling
+    from sim.model.metrics import SETTLING_BAND
+    from sim.model.scenario_select import resolve_scenario
+    from sim.report.textfmt import controller_desc, describe, fmt_settling
+    from sim.run.lockstep_case import run_case, summary_table
 
     t0 = time.perf_counter()
     sc = resolve_scenario(scenario_spec(args))

@@ -15,10 +15,20 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..lockstep_case import simulate
-from ..scenario import Scenario
-from ..scenario_select import resolve_scenario
-from ..textfmt import describe, fmt_pct, fmt_resets, fmt_sci, fmt_time, slug, table, write_json
+from sim.model.scenario import Scenario
+from sim.model.scenario_select import resolve_scenario
+from sim.report.textfmt import (
+    describe,
+    fmt_pct,
+    fmt_resets,
+    fmt_sci,
+    fmt_time,
+    slug,
+    table,
+    write_json,
+)
+from sim.run.lockstep_case import simulate
+
 from ._common import add_arithmetic_arguments, add_scenario_argument, one_line_errors, scenario_spec
 
 # (label, controller overrides): the paper's method first, then its baselines
@@ -47,7 +57,7 @@ def plan(sc: Scenario) -> list[tuple[str, Scenario]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import plots
+    from sim.report import plots
 
     t0 = time.perf_counter()
     sc = resolve_scenario(scenario_spec(args))

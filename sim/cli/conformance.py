@@ -7,7 +7,7 @@ same bus; this command waits for its Diag frame (--wait S), then plays the rest 
 bus for it: the router's price and commands, its plant's status and its neighbours' MC
 frames, along a fixed schedule of about 9 s at Ts = 10 ms (stretched by --time-scale):
 start-up, control with moving neighbours, forged and replayed frames, malformed and
-implausible content, every command, and every timeout (sim/conformance.py).
+implausible content, every command, and every timeout (sim/conformance/).
 
 firmware_py's agent runtime, fed the same frames at the times they were sent, is the
 oracle: every frame of the device must carry the same signals (MC, Setpoint, Diag) and
@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from ..conformance import Outcome, Result
+    from sim.conformance import Outcome, Result
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -65,8 +65,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import busrun
-    from ..conformance_bus import prepare_conformance
+    from sim.conformance.bus import prepare_conformance
+    from sim.run import busrun
 
     setup = prepare_conformance(
         args.case, args.dut, variant=args.variant,
@@ -100,7 +100,7 @@ def _progress(line: str) -> None:
 def report(outcome: Outcome, results: list[Result], out: Path, junit_path: Path | None,
            name: str) -> int:
     """Print the verdict per requirement, write OUT/conformance.json (and --junit)."""
-    from ..conformance_bus import write_report
+    from sim.conformance.bus import write_report
 
     for problem in outcome.problems:
         print(f"  problem with the run: {problem}")

@@ -1,5 +1,5 @@
 """Options and output shared by the fleet-run subcommands ``up`` and ``restbus`` (not a
-subcommand itself): the options, the plan (sim.fleet_plan) and the report."""
+subcommand itself): the options, the plan (sim.run.fleet_plan) and the report."""
 
 from __future__ import annotations
 
@@ -8,12 +8,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from firmware_py.nodeargs import add_bus_arguments
-
-from ..fleet_plan import GUEST_TIME_SCALE
+from sim.run.fleet_plan import GUEST_TIME_SCALE
 
 if TYPE_CHECKING:
-    from ..fleet_plan import RunPlan
-    from ..runreport import Recording
+    from sim.run.fleet_plan import RunPlan
+    from sim.run.runreport import Recording
 
 
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
@@ -50,8 +49,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_tolerance_argument(p: argparse.ArgumentParser) -> None:
     from firmware_py.cliargs import positive_float
-
-    from ..verdict import TOLERANCE
+    from sim.run.verdict import TOLERANCE
 
     p.add_argument("--tolerance", type=positive_float(), default=TOLERANCE, metavar="CU",
                    help="converged only if every dispatching agent's final λ is within CU "
@@ -61,8 +59,8 @@ def add_tolerance_argument(p: argparse.ArgumentParser) -> None:
 
 def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
     """Check the options of a fleet run and print its banner (``nodes``: what runs)."""
-    from .. import busrun
-    from ..fleet_plan import plan_fleet_run
+    from sim.run import busrun
+    from sim.run.fleet_plan import plan_fleet_run
 
     return plan_fleet_run(args.case, variant=args.variant,
                           bus=busrun.BusOptions(args.interface, args.channel, args.bus_config),
@@ -72,7 +70,7 @@ def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
 
 def print_report(plan: RunPlan, rec: Recording) -> int:
     """The summary, the files written; the exit code of the verdict."""
-    from ..runreport import summary_lines
+    from sim.run.runreport import summary_lines
 
     for line in summary_lines(rec.metrics, rec.verdict, plan.scale):
         print(line)

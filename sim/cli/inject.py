@@ -6,13 +6,13 @@ import argparse
 
 from firmware_py.cliargs import float_in, int_in, positive_int
 from firmware_py.nodeargs import add_bus_arguments
+from sim.model.scenario import MAX_AGENTS
 
-from ..scenario import MAX_AGENTS
 from ._common import one_line_errors
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from ..inject import KINDS
+    from sim.nodes.inject import KINDS
 
     p = sub.add_parser("inject", help="send crafted bad frames to test the firmware's rejection",
                        description=__doc__ + "\n\nkinds:\n" + "\n".join(
@@ -33,8 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from firmware_py.node import bus_kwargs, open_bus
-
-    from ..inject import send
+    from sim.nodes.inject import send
 
     bus = open_bus(**bus_kwargs(args.interface, args.channel, args.bus_config))
     try:

@@ -38,8 +38,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..keyset import provision_fleet_keys
-    from ..scenario_select import resolve_scenario
+    from sim.model.scenario_select import resolve_scenario
+    from sim.run.keyset import provision_fleet_keys
 
     sc = resolve_scenario(args.case)
     out: Path = args.out

@@ -47,8 +47,8 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
 def load_node_scenario(args: argparse.Namespace) -> Any:
     """The scenario the flags name, stretched by --time-scale; sets the default --period
     to its Ts."""
-    from ..scenario import scaled
-    from ..scenario_select import resolve_scenario
+    from sim.model.scenario import scaled
+    from sim.model.scenario_select import resolve_scenario
 
     sc = resolve_scenario(args.case)
     if args.time_scale != 1.0:

@@ -2,7 +2,7 @@
 
 Follows AGENT_<i>_Setpoint frames and publishes PLANT_<i>_Status at the DBC's cycle
 (50 ms at Ts = 10 ms, stretched with the scenario's Ts; model and constants:
-sim/plant.py). Prints its counters to stderr at exit.
+sim/nodes/plant.py). Prints its counters to stderr at exit.
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from firmware_py.nodeargs import keyring_from_args
+    from sim.nodes.plant import PlantFault, PlantNode
 
-    from ..plant import PlantFault, PlantNode
     from .nodeopts import load_node_scenario, serve
 
     sc = load_node_scenario(args)

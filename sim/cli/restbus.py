@@ -51,7 +51,8 @@ def dut_node(spec: str, n: int) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import busrun
+    from sim.run import busrun
+
     from .fleetopts import plan_run, print_report
 
     plan = plan_run(args, "restbus", "{n} agents + plant + router, but the device under test")

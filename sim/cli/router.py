@@ -2,7 +2,7 @@
 
 Broadcasts ER_Price every 50 ms (t = 0 of the schedule is its first tick), sends
 the scenario's ISOLATE/RECONNECT commands at their times, and ER_Balance every
-100 ms (sim/router.py). Prints the cost ledger and counters to stderr at exit.
+100 ms (sim/nodes/router.py). Prints the cost ledger and counters to stderr at exit.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from firmware_py.nodeargs import keyring_from_args
+    from sim.nodes.router import RouterNode, SilentWindow
 
-    from ..router import RouterNode, SilentWindow
     from .nodeopts import load_node_scenario, serve
 
     sc = load_node_scenario(args)

@@ -49,8 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import busrun
-    from ..fleet_plan import c_node_program
+    from sim.run import busrun
+    from sim.run.fleet_plan import c_node_program
 
     c_flag, c_ids = c_agent_choice(args)
     if c_flag:

@@ -26,9 +26,9 @@ from firmware_py import secoc
 from firmware_py.errors import BessDedError
 from firmware_py.frames import FrameCodec
 from firmware_py.node import GuardedBus
+from sim.model.scenario import Scenario, load_scenario, scaled, to_toml
+from sim.run import busrun
 
-from .. import busrun
-from ..scenario import Scenario, load_scenario, scaled, to_toml
 from .tester import Tester, TesterError, fleet_keys, node_label
 
 __all__ = ["FleetError", "KeySet", "ProcessFleet", "SimFleet", "fleet_scenario",
@@ -43,7 +43,7 @@ def fleet_scenario(case: int | str | Path | Scenario, variant: str | None = None
                    time_scale: float = 1.0) -> Scenario:
     """A paper case (1..7), a scenario .toml or a ``Scenario``; its variant (for cases
     with variants); stretched by ``time_scale`` (Ts·F, as ``bess-ded up --time-scale``)."""
-    from ..scenario_select import pick_variant, resolve_scenario
+    from sim.model.scenario_select import pick_variant, resolve_scenario
 
     if isinstance(case, Scenario):
         sc = case
@@ -102,12 +102,12 @@ class KeySet:
         key the first time, or checked: an existing set must cover the fleet)."""
         if self.master is not None:
             if self._written_for != sc.name:
-                from ..keyset import write_key_set
+                from sim.run.keyset import write_key_set
 
                 write_key_set(sc, self.directory, self.master)
                 self._written_for = sc.name
             return self.directory
-        from ..keyset import check_key_set
+        from sim.run.keyset import check_key_set
 
         check_key_set(self.directory, sc.n)
         return self.directory
@@ -116,7 +116,7 @@ class KeySet:
         """Every node's key (label → key), for a ``Tester``."""
         if self.master is not None:
             return fleet_keys(self.master)
-        from ..keyset import load_key_set
+        from sim.run.keyset import load_key_set
 
         keys = load_key_set(self.directory)
         if not keys:
@@ -148,7 +148,7 @@ class ProcessFleet:
     def __init__(self, case: int | str | Path | Scenario, out: Path, bus: busrun.BusOptions,
                  keys: KeySet | None, *, variant: str | None = None, time_scale: float = 1.0,
                  rt_priority: int = 0) -> None:
-        from ..fleet_plan import IN_PROCESS_INTERFACES
+        from sim.run.fleet_plan import IN_PROCESS_INTERFACES
 
         interface = bus.resolved()["interface"]
         if interface in IN_PROCESS_INTERFACES:

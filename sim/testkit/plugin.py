@@ -75,7 +75,7 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def _bus_options(interface: str | None, channel: str | None, config: str | None) -> Any:
-    from sim import busrun
+    from sim.run import busrun
 
     bus = busrun.BusOptions(interface, channel, config)
     try:

@@ -3,13 +3,16 @@
 Transmit goes through ``firmware_py.nodeio.FleetSender`` (the codec's layout, the E2E
 counter and CRC, or the SecOC freshness and MAC with the node's key, and the
 ``<name>_Sync`` frames a receiver needs first); receive through ``FrameCodec.decode``
-(DLC, CRC, ranges) and the recorder's SecOC monitor (``sim.buslog``: MAC and freshness
+(DLC, CRC, ranges) and the recorder's SecOC monitor (``sim.run.buslog``: MAC and freshness
 with the fleet's keys). A frame that fails a check is never returned, but counted in
 ``Tester.rejected`` by cause (and by ID), and named in the timeout error of ``expect``.
 
 Bus time: ``Tester.now()``. On a real bus (any python-can interface) it is the wall
 clock, in seconds since the tester was made; on a fleet run in-process on a simulated
 clock (``SimFleet``) it is the simulated time, and waiting steps the fleet.
+
+Over 500 lines: the Tester is one public class (send, expect, wait, bus time),
+documented as a unit in docs/testing.md; its helpers are private to it.
 """
 
 from __future__ import annotations
@@ -30,8 +33,7 @@ from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import DecodedFrame, FrameCodec, diag_name
 from firmware_py.node import RX_CAUSES, GuardedBus, frame_fault, rx_cause
 from firmware_py.nodeio import SYNC_S, FleetSender
-
-from ..buslog import _Forged, _Monitor
+from sim.run.buslog import _Forged, _Monitor
 
 __all__ = ["ExpectationError", "Periodic", "Received", "Tester", "TesterError",
            "WallClock", "fleet_keys"]
@@ -155,7 +157,7 @@ def _resolve_keys(keys: Any) -> dict[str, bytes] | None:
     if hasattr(keys, "node_keys"):
         return dict(keys.node_keys())
     if isinstance(keys, str | Path):
-        from ..keyset import load_key_set
+        from sim.run.keyset import load_key_set
 
         path = Path(keys)
         if not path.is_dir():
@@ -289,7 +291,7 @@ class Tester:
         if attach is not None:
             attach(self)  # a simulated clock delivers the frames itself
         else:
-            from ..busrun import enlarge_receive_buffer
+            from sim.run.busrun import enlarge_receive_buffer
 
             # as the recorder's: a starved reader finds the frames queued, not dropped (a
             # gap of 8 freshness windows on one ID would read as a forgery until its sync)

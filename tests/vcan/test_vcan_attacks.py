@@ -34,8 +34,8 @@ from firmware_py import contract
 from firmware_py import fixedpoint as fx
 from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name
 from firmware_py.nodeio import FleetSender
-from sim.model import kkt_optimum
-from sim.scenario import PriceStep, load_case
+from sim.model.cost import kkt_optimum
+from sim.model.scenario import PriceStep, load_case
 
 pytestmark = pytest.mark.vcan
 

@@ -35,15 +35,15 @@ from vcanrun import (
 )
 
 from firmware_py.contract import State
-from sim.cagent import node_program
-from sim.lockstep import run_lockstep
-from sim.metrics import worst_error
-from sim.scenario import Event, load_case
+from sim.cbind.cagent import node_program
+from sim.model.lockstep import run_lockstep
+from sim.model.metrics import worst_error
+from sim.model.scenario import Event, load_case
 
 pytestmark = pytest.mark.vcan
 
 ISOLATED, RUNNING = State.ISOLATED, State.RUNNING
-# the verdict's anomaly kinds that mean a node rejected frames as bad (sim/verdict.py).
+# the verdict's anomaly kinds that mean a node rejected frames as bad (sim/run/verdict.py).
 # Not stale_frames: genuine frames that arrived out of order (AUTH-25), which vcan in a
 # 2-CPU guest does to one sender's frames (docs/vcan.md), are a load anomaly, not bad.
 REJECTIONS = {"rejected_frames", "foreign_traffic", "implausible_frames",

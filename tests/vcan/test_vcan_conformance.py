@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from conformance_run import run_conformance
 
-from sim.cagent import node_program
+from sim.cbind.cagent import node_program
 
 pytestmark = pytest.mark.vcan
 

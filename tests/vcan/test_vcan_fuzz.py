@@ -32,9 +32,9 @@ import pytest
 from vcanrun import FINAL_TOL, TIME_SCALE, Run, assert_clean_exit, run_on_vcan
 
 from firmware_py.frames import FrameCodec
-from sim import busrun
-from sim.cagent import node_program
-from sim.scenario import load_case
+from sim.cbind.cagent import node_program
+from sim.model.scenario import load_case
+from sim.run import busrun
 
 pytestmark = pytest.mark.vcan
 

@@ -53,7 +53,7 @@ from firmware_py import contract, secoc
 from firmware_py import fixedpoint as fx
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
-from sim.scenario import load_case
+from sim.model.scenario import load_case
 
 pytestmark = pytest.mark.vcan
 

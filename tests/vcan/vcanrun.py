@@ -3,7 +3,7 @@
 Every node is a separate OS process on the kernel's vcan0 (``busrun.run`` with
 ``BusOptions("socketcan", "vcan0")``). In tools/vcan-run's QEMU TCG guest Python runs
 ~20x slower than on a host, so the scenarios run on a time axis stretched by
-``TIME_SCALE`` (``sim.scenario.scaled``: Ts·F, k/F, h/F², the same discrete system per
+``TIME_SCALE`` (``sim.model.scenario.scaled``: Ts·F, k/F, h/F², the same discrete system per
 sample); see docs/vcan.md, "The vcan tier".
 """
 
@@ -16,12 +16,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sim import busrun
-from sim.buslog import LogContents
-from sim.fleet_plan import GUEST_TIME_SCALE
-from sim.model import kkt_optimum
-from sim.scenario import Scenario, scaled
-from sim.trajectory import Trajectory
+from sim.model.cost import kkt_optimum
+from sim.model.scenario import Scenario, scaled
+from sim.model.trajectory import Trajectory
+from sim.run import busrun
+from sim.run.buslog import LogContents
+from sim.run.fleet_plan import GUEST_TIME_SCALE
 
 ROOT = Path(__file__).resolve().parents[2]
 DBC = ROOT / "dbc" / "bess_ded.dbc"
@@ -64,7 +64,7 @@ def run_on_vcan(sc: Scenario, out: Path, channel: str, scale: float = TIME_SCALE
 def key_set(out: Path, sc: Scenario, master: bytes) -> Path:
     """OUT/keys: the fleet's key files from ``master`` (as `bess-ded keys --fleet`), for
     runs that share a key set (`bess-ded up --keys DIR`) or tools that sign with it."""
-    from sim.keyset import write_key_set
+    from sim.run.keyset import write_key_set
 
     keys = out / "keys"
     keys.mkdir(mode=0o700)

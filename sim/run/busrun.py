@@ -3,6 +3,10 @@
 This process only watches: it records every frame to DIR/run.log (candump
 format), shows live progress, stops the nodes with SIGTERM at the end and
 computes the metrics from the recording alone.
+
+Over 500 lines: one run's life (specs, start, record, stop, in-process variant)
+shares the Progress listener and the node specs; a split by process vs in-process is
+the next step (docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -33,11 +37,10 @@ from firmware_py.config import agent_configs_from_scenario
 from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import FrameCodec
 from firmware_py.node import GuardedBus, bus_kwargs, open_bus
-
-from .keyset import load_boot_floors, load_key_set, write_boot_floors, write_key_set
-from .runreport import Recording, report
-from .scenario import Scenario, to_toml
-from .verdict import TOLERANCE, RunFacts
+from sim.model.scenario import Scenario, to_toml
+from sim.run.keyset import load_boot_floors, load_key_set, write_boot_floors, write_key_set
+from sim.run.runreport import Recording, report
+from sim.run.verdict import TOLERANCE, RunFacts
 
 __all__ = ["BusOptions", "NodeSpec", "Recording", "in_process_nodes", "record", "run",
            "run_in_process"]
@@ -733,9 +736,8 @@ def in_process_nodes(sc: Scenario, codec: FrameCodec, rings: Mapping[str, secoc.
     t)``, ``tick(t)`` → frames), agents first, then the plant and the router: what
     ``run_in_process`` steps, and ``sim.testkit.SimFleet`` for any subset of them."""
     from firmware_py.runtime import AgentRuntime
-
-    from .plant import PlantNode
-    from .router import RouterNode
+    from sim.nodes.plant import PlantNode
+    from sim.nodes.router import RouterNode
 
     factories: dict[str, Callable[[], Any]] = {
         f"agent_{c.id}": functools.partial(AgentRuntime, c, codec, rings[f"agent_{c.id}"])

@@ -40,10 +40,10 @@ def _source_dir() -> Path:
     env = os.environ.get("BESSDED_FIRMWARE_C")
     if env:
         return Path(env)
-    for base in (Path(__file__).resolve().parent.parent, Path.cwd()):
+    for base in (Path(__file__).resolve().parents[2], Path.cwd()):
         if (base / "firmware_c" / "Makefile").is_file():
             return base / "firmware_c"
-    return Path(__file__).resolve().parent.parent / "firmware_c"
+    return Path(__file__).resolve().parents[2] / "firmware_c"
 
 
 SOURCE_DIR = _source_dir()

@@ -1,7 +1,7 @@
 """Planning a fleet run on a bus (``bess-ded up``, ``bess-ded restbus``): the scenario,
 its variant and time scale, the bus, the duration, the output directory and the keys,
 checked before anything starts and announced (docs/api.md, docs/runs.md). The run
-itself is ``sim.busrun.record(plan.sc, plan.out, plan.bus, duration=plan.duration,
+itself is ``sim.run.busrun.record(plan.sc, plan.out, plan.bus, duration=plan.duration,
 time_scale=plan.scale, ...)``.
 """
 
@@ -15,9 +15,9 @@ from typing import TYPE_CHECKING
 
 from firmware_py.errors import ParameterError
 
-if TYPE_CHECKING:  # sim.busrun imports numpy and python-can: only where a run starts
-    from .busrun import BusOptions
-    from .scenario import Scenario
+if TYPE_CHECKING:  # sim.run.busrun imports numpy and python-can: only where a run starts
+    from sim.model.scenario import Scenario
+    from sim.run.busrun import BusOptions
 
 # In tools/vcan-run's QEMU TCG guest (VCAN_RUN_GUEST=1) Python runs ~20x slower: at
 # Ts = 10 ms the agents miss most deadlines and starve the router, which then never
@@ -51,10 +51,10 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
     scenario's); ``time_scale``: default 1, or GUEST_TIME_SCALE under tools/vcan-run;
     ``keys``: a key set directory (checked), else ``insecure`` or a fresh set in
     ``out``/keys at the run; ``out``: default runs/<command>-<scenario>."""
-    from . import busrun
-    from .keyset import check_key_set
-    from .scenario import MAX_AGENT_SAMPLES, scaled
-    from .scenario_select import pick_variant, resolve_scenario
+    from sim.model.scenario import MAX_AGENT_SAMPLES, scaled
+    from sim.model.scenario_select import pick_variant, resolve_scenario
+    from sim.run import busrun
+    from sim.run.keyset import check_key_set
 
     base = resolve_scenario(case)
     sc, chosen = pick_variant(base, variant, command, say)
@@ -101,8 +101,8 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
 def c_node_program(flag: str) -> Path:
     """firmware_c's bessded-agent, built on first use (a ParameterError naming ``flag``
     and the cause when it does not build)."""
-    from .cagent import node_program
-    from .cimpl import CBuildError
+    from sim.cbind.cagent import node_program
+    from sim.cbind.cimpl import CBuildError
 
     try:
         return node_program()

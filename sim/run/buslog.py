@@ -31,9 +31,8 @@ from firmware_py.errors import ConfigError, FrameError
 from firmware_py.frames import COUNTER_STEP_MAX, DecodedFrame, FrameCodec
 from firmware_py.nodeio import LOST_WINDOWS
 from firmware_py.secoc import FreshnessVerifier, frame_verifies
-
-from .scenario import MAX_AGENT_SAMPLES, Scenario
-from .trajectory import Trajectory
+from sim.model.scenario import MAX_AGENT_SAMPLES, Scenario
+from sim.model.trajectory import Trajectory
 
 # a message silent this long restarts its counter sequence, as the nodes' trackers do
 SEQUENCE_TIMEOUT_CYCLES = TIMEOUT_CYCLES
@@ -102,7 +101,7 @@ class LogContents:
     # frames the capture received before an earlier-stamped one (read_log sorts them)
     reordered: int = 0
     # per agent, in bus order: (t, "mc", State, Lambda raw) and (t, "setpoint", Enable,
-    # PowerSetpoint raw), for the setpoint-consistency check (sim.consistency)
+    # PowerSetpoint raw), for the setpoint-consistency check (sim.nodes.consistency)
     dispatch: dict[int, list[tuple[float, str, int, int]]] = field(
         default_factory=lambda: defaultdict(list))
     # log lines that hold no frame, by cause (LINE_CAUSES): skipped, never silently
@@ -316,7 +315,7 @@ class _Monitor:
             if last is None or fv - 1 >= last:
                 self.t_last[fid] = t
                 return
-            if last - (fv - 1) < 1 << contract.FV_TX_BITS:
+            if self.fv.late_sync(last - (fv - 1)):
                 raise _Stale  # its tick's frame overtook it (AUTH-16, AUTH-25)
         raise _Forged  # forged, or a replayed sync (a genuine one never goes back)
 
@@ -334,19 +333,16 @@ class _Monitor:
         key = self._key(f.name)
         if key is None or self.fv.last(f.frame_id) is None:
             return False
-        fv = self.fv.candidate(f.frame_id, f.counter)
-        for _ in range(self.windows(f, t)):
-            if fv is None:
-                break
-            if frame_verifies(key, f.frame_id, data, fv):
-                self.fv.accept(f.frame_id, fv)
-                self.t_last[f.frame_id] = t
-                return True
-            fv += 1 << contract.FV_TX_BITS
-        for v in self.fv.past(f.frame_id, f.counter, self.STALE_WINDOWS):
-            if frame_verifies(key, f.frame_id, data, v):
-                self.fv.mark(f.frame_id, v)  # the same frame again is a replay
-                raise _Stale
+        def verifies(v: int) -> bool:
+            return frame_verifies(key, f.frame_id, data, v)
+
+        fv = self.fv.search(f.frame_id, f.counter, self.windows(f, t), verifies)
+        if fv is not None:
+            self.fv.accept(f.frame_id, fv)
+            self.t_last[f.frame_id] = t
+            return True
+        if self.fv.search_late(f.frame_id, f.counter, self.STALE_WINDOWS, verifies):
+            raise _Stale
         raise _Forged
 
 

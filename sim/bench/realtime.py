@@ -14,8 +14,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from . import busrun
-from .scenario import load_case
+from sim.model.scenario import load_case
+from sim.run import busrun
 
 
 def realtime_run(case: int, seconds: float, bus: busrun.BusOptions | None = None

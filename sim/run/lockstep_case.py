@@ -17,11 +17,19 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from firmware_py.errors import ParameterError
-
-from .graph import GraphReport
-from .scenario import Scenario
-from .textfmt import Progress, fmt_pct, fmt_resets, fmt_sci, fmt_times, slug, table, write_json
-from .trajectory import Trajectory
+from sim.model.graph import GraphReport
+from sim.model.scenario import Scenario
+from sim.model.trajectory import Trajectory
+from sim.report.textfmt import (
+    Progress,
+    fmt_pct,
+    fmt_resets,
+    fmt_sci,
+    fmt_times,
+    slug,
+    table,
+    write_json,
+)
 
 DEFAULT_DWELL_S = 1.0  # Δ for `--controller dwell` on a scenario that sets none (paper case 6)
 
@@ -65,8 +73,8 @@ def simulate(runs: list[tuple[str, Scenario]], fixed: bool, impl: str = "py"
              ) -> list[CaseRun]:
     """Run each (label, scenario) in lockstep: (label, scenario, trajectory, metrics);
     a progress line on a terminal's stderr for the long ones."""
-    from .lockstep import run_lockstep
-    from .metrics import compute
+    from sim.model.lockstep import run_lockstep
+    from sim.model.metrics import compute
 
     out: list[CaseRun] = []
     for label, s in runs:
@@ -86,7 +94,7 @@ def simulate(runs: list[tuple[str, Scenario]], fixed: bool, impl: str = "py"
 def check_c_core(fixed: bool) -> None:
     """impl "c": fixed point, and the C core builds (else a ParameterError naming
     --impl c)."""
-    from .cimpl import CBuildError, load
+    from sim.cbind.cimpl import CBuildError, load
 
     if not fixed:
         raise ParameterError("--impl c", "--fixed (the C core is fixed point only)", "--float")
@@ -106,7 +114,7 @@ def run_case(sc: Scenario, *, controller: str | None = None, band: float | None 
     run's; in fixed point (``fixed``) or float; on firmware_py's controllers or the C
     core (``impl="c"``). Writes metrics.json, the trajectories and (``plot``) the figures
     into ``out`` (default runs/<scenario name>)."""
-    from . import plots
+    from sim.report import plots
 
     runs = plan(sc, controller, band, dwell)
     if impl == "c":

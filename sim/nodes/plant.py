@@ -68,7 +68,7 @@ engages after a tick it did not counts one ``setpoint_ramp_limited`` (an episode
 every tick); it does not set PowerLimited. The healthy start transient of the paper
 cases engages it once per BESS (see docs/safety-model.md for what it changes).
 
-Setpoint consistency (sim.consistency): the plant also hears every agent's MC frame
+Setpoint consistency (sim.nodes.consistency): the plant also hears every agent's MC frame
 (its key file holds every agent's key) and takes a setpoint only when it is the agent's
 own dispatch rule applied to the λ it publishes; otherwise it counts
 ``setpoint_inconsistent`` (and ``setpoint_inconsistent_agent_<i>``) and holds the last
@@ -100,11 +100,10 @@ from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import NodeIO
 from firmware_py.secoc import Keyring
-
-from .consistency import Check, Setpoint, SetpointCheck
-from .model import Battery
-from .nodeclock import SimNodeClock, TimeWindow
-from .scenario import Scenario
+from sim.model.cost import Battery
+from sim.model.scenario import Scenario
+from sim.nodes.consistency import Check, Setpoint, SetpointCheck
+from sim.nodes.nodeclock import SimNodeClock, TimeWindow
 
 log = logging.getLogger(__name__)
 
@@ -330,7 +329,7 @@ class PlantNode(SimNodeClock):
         """``ramp_full_s``: the setpoint ramp limit as the time to go from 0 to p_max
         (None: RAMP_FULL_S stretched with the scenario's Ts; 0: no ramp limit).
         ``obey_inconsistent``: follow a setpoint that is not the agent's dispatch rule
-        applied to the λ it publishes (sim.consistency) instead of holding the last
+        applied to the λ it publishes (sim.nodes.consistency) instead of holding the last
         consistent one; it is counted either way."""
         if not (math.isfinite(period) and period > 0):
             raise ParameterError("period", "a positive number of seconds", period)

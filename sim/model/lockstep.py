@@ -14,16 +14,15 @@ from dataclasses import replace
 import numpy as np
 
 from firmware_py.controllers import consensus_error, make_controller
-
-from .scenario import Event, Scenario
-from .trajectory import Trajectory
+from sim.model.scenario import Event, Scenario
+from sim.model.trajectory import Trajectory
 
 
 def run_lockstep(sc: Scenario, fixed: bool = True,
                  progress: Callable[[int, int], None] | None = None,
                  impl: str = "py", start_tick: int = 0) -> Trajectory:
     """``impl``: "py" steps firmware_py's controllers, "c" the C core (firmware_c,
-    through sim.cimpl: its controller step and its ξ), fixed point only; the two give
+    through sim.cbind.cimpl: its controller step and its ξ), fixed point only; the two give
     the same trajectory bit for bit. ``start_tick``: the first sample the agents step
     (before it they hold λ(0), as nodes in INIT: a bus run's start, whose nodes take no
     frame in their join window, firmware-spec AUTH-26)."""
@@ -34,7 +33,7 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
         return consensus_error(ctrl.ar, lam, nbrs, pin, rho)  # type: ignore[return-value]
 
     if impl == "c":
-        from .cimpl import CController
+        from sim.cbind.cimpl import CController
 
         if not fixed:
             raise ValueError("the C core is fixed point only (impl='c' with fixed=False)")

@@ -11,6 +11,9 @@ is RUNNING there, the last price segment settled into its 2 % band, every such a
 final λ is within ``tolerance`` of ρ, and no node died.
 Anything else that should not happen in a healthy run is an *anomaly*; a converged run
 with anomalies is not a success either.
+
+Over 500 lines: every rule of docs/runs.md in one place, in the order the
+document lists them, so that a rule and its anomaly are read together.
 """
 
 from __future__ import annotations
@@ -23,10 +26,9 @@ import numpy as np
 
 from firmware_py.contract import MC_CYCLE_S, State
 from firmware_py.nodeio import JOIN_FRACTION, SYNC_S
-
-from .buslog import LogContents
-from .scenario import Scenario
-from .trajectory import Trajectory
+from sim.model.scenario import Scenario
+from sim.model.trajectory import Trajectory
+from sim.run.buslog import LogContents
 
 EXIT_OK = 0              # converged, no anomaly
 EXIT_NOT_CONVERGED = 1   # the fleet did not converge (reasons in the verdict)
@@ -282,10 +284,9 @@ def _verdict(reasons: list[str], out: list[Anomaly], facts: RunFacts) -> Verdict
 
 def _setpoints(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly]) -> None:
     """Each agent's setpoints against its own dispatch rule at the λ it publishes (the
-    check the plant makes, sim.consistency), from the recording."""
+    check the plant makes, sim.nodes.consistency), from the recording."""
     from firmware_py.config import agent_configs_from_scenario
-
-    from .consistency import Check, Setpoint, SetpointCheck
+    from sim.nodes.consistency import Check, Setpoint, SetpointCheck
 
     t0 = log.t_first_price or 0.0
     plant = ((facts.node_counters or {}).get("plant") or {}).get("counters", {})

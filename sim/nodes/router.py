@@ -13,8 +13,8 @@
 * ``ER_Balance`` every balance cycle (100 ms), both its pages (0: P_e and F_c, 1: F_c*) in
   the same tick, signed like every frame, from the ``PLANT_<i>_Status`` frames it receives:
   P_e = D − ΣP_i (measured powers, each held from its last accepted frame, 0 before
-  the first), F_c = Σ(1+m_i)(α_i P_i² + β_i P_i) + ρ P_e (``sim.model.expenditure``)
-  and the KKT optimum's F_c* (``sim.model.kkt_optimum`` for the current ρ and D).
+  the first), F_c = Σ(1+m_i)(α_i P_i² + β_i P_i) + ρ P_e (``sim.model.cost.expenditure``)
+  and the KKT optimum's F_c* (``sim.model.cost.kkt_optimum`` for the current ρ and D).
   Both rates (cu/h) are integrated over the router's own tick intervals into
   ``cost`` and ``optimal_cost`` (cu), rectangle rule with the values at each tick.
 * Silent windows (fault tests): between t_start and t_end (s from the first tick)
@@ -44,11 +44,10 @@ from firmware_py.errors import ParameterError
 from firmware_py.frames import LAMBDA_Q, FrameCodec
 from firmware_py.nodeio import NodeIO
 from firmware_py.secoc import Keyring
-
-from .model import expenditure, kkt_optimum
-from .nodeclock import SimNodeClock, TimeWindow
-from .plant import Cyclic
-from .scenario import Scenario
+from sim.model.cost import expenditure, kkt_optimum
+from sim.model.scenario import Scenario
+from sim.nodes.nodeclock import SimNodeClock, TimeWindow
+from sim.nodes.plant import Cyclic
 
 log = logging.getLogger(__name__)
 

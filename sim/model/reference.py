@@ -1,6 +1,6 @@
 """Continuous-time hybrid reference: the paper's consensus integrated exactly, resets located.
 
-The discrete firmware (sim/lockstep.py) runs forward Euler at Ts in Q24; this module
+The discrete firmware (sim/model/lockstep.py) runs forward Euler at Ts in Q24; this module
 is the continuous-time system it approximates, so the two can be compared and the
 discretisation error measured (tests/test_reference.py).
 
@@ -49,9 +49,9 @@ import numpy as np
 from scipy.linalg import expm  # type: ignore[import-untyped]
 from scipy.optimize import brentq  # type: ignore[import-untyped]
 
-from . import graph
-from .scenario import Scenario
-from .trajectory import Trajectory
+from sim.model import graph
+from sim.model.scenario import Scenario
+from sim.model.trajectory import Trajectory
 
 SUPPORTED = ("pc", "pi", "reset", "dwell")
 

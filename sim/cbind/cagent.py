@@ -29,8 +29,7 @@ from firmware_py.controllers import make_controller
 from firmware_py.nodeio import HELLO_FRACTION, JOIN_FRACTION
 from firmware_py.runtime import SetpointMap
 from firmware_py.secoc import Keyring
-
-from . import cimpl
+from sim.cbind import cimpl
 
 LIB_NAME = "libbessded.so"
 N_AGENTS_MAX = 32
@@ -140,10 +139,10 @@ class Runtime:
             fn.argtypes = args
         if lib.bd_agent_params_size() != ctypes.sizeof(Params):
             raise cimpl.CBuildError(f"bd_agent_params is {lib.bd_agent_params_size()} bytes "
-                                    f"in C but {ctypes.sizeof(Params)} in sim/cagent.py")
+                                    f"in C but {ctypes.sizeof(Params)} in sim/cbind/cagent.py")
         if lib.bd_keyring_size() != ctypes.sizeof(KeyringC):
             raise cimpl.CBuildError(f"bd_keyring is {lib.bd_keyring_size()} bytes in C but "
-                                    f"{ctypes.sizeof(KeyringC)} in sim/cagent.py")
+                                    f"{ctypes.sizeof(KeyringC)} in sim/cbind/cagent.py")
         self.lib = lib
         names: list[str] = []
         while (name := lib.bd_counter_name(len(names))) is not None:
@@ -193,7 +192,7 @@ _RUNTIME: Runtime | None = None
 
 
 def load() -> Runtime:
-    """The runtime library from the cache (built on first use, like sim.cimpl.load)."""
+    """The runtime library from the cache (built on first use, like sim.cbind.cimpl.load)."""
     global _RUNTIME
     if _RUNTIME is None and os.environ.get(cimpl.LIB_DIR_ENV):
         _RUNTIME = Runtime(Path(os.environ[cimpl.LIB_DIR_ENV]) / LIB_NAME)

@@ -28,10 +28,9 @@ from firmware_py.errors import ParameterError
 if TYPE_CHECKING:
     from firmware_py.config import AgentConfig
     from firmware_py.secoc import Keyring
-
-    from .busrun import BusOptions
-    from .conformance import Frame, Outcome, Planned, Result
-    from .scenario import Scenario
+    from sim.conformance import Frame, Outcome, Planned, Result
+    from sim.model.scenario import Scenario
+    from sim.run.busrun import BusOptions
 
 
 @dataclass
@@ -61,9 +60,8 @@ class ConformanceSetup:
         from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name
         from firmware_py.node import open_bus
         from firmware_py.nodeargs import set_realtime
-
-        from . import busrun
-        from . import conformance as conf
+        from sim import conformance as conf
+        from sim.run import busrun
 
         codec = FrameCodec()
         i = self.dut
@@ -88,8 +86,7 @@ class ConformanceSetup:
         import can
 
         from firmware_py.frames import FrameCodec
-
-        from . import conformance as conf
+        from sim import conformance as conf
 
         with can.Logger(str(self.out / "conformance.log")) as log:
             for f in frames:
@@ -127,13 +124,12 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
     from firmware_py.frames import diag_name
-
-    from . import busrun
-    from . import conformance as conf
-    from .fleet_plan import GUEST_TIME_SCALE, IN_PROCESS_INTERFACES
-    from .keyset import check_key_set, load_key_set
-    from .scenario import scaled
-    from .scenario_select import pick_variant, resolve_scenario
+    from sim import conformance as conf
+    from sim.model.scenario import scaled
+    from sim.model.scenario_select import pick_variant, resolve_scenario
+    from sim.run import busrun
+    from sim.run.fleet_plan import GUEST_TIME_SCALE, IN_PROCESS_INTERFACES
+    from sim.run.keyset import check_key_set, load_key_set
 
     sc, chosen = pick_variant(resolve_scenario(case), variant, "conformance", say)
     if not (dut.isdigit() and 1 <= int(dut) <= sc.n):
@@ -195,7 +191,7 @@ def write_report(outcome: Outcome, results: Sequence[Result], out: Path,
                  junit_path: Path | None, name: str) -> tuple[bool, list[Path]]:
     """Write out/conformance.json (and JUnit XML to ``junit_path``): whether the device
     passed (every requirement, no problem with the run) and the files written."""
-    from . import conformance as conf
+    from sim import conformance as conf
 
     failed = [r.must for r in results if not r.passed]
     ok = not failed and not outcome.problems

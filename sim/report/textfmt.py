@@ -13,8 +13,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from firmware_py.controllers import ControllerConfig
-
-from .scenario import Scenario
+from sim.model.scenario import Scenario
 
 
 def slug(label: str) -> str:

@@ -8,8 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from firmware_py.errors import ConfigError
-
-from .scenario import SCENARIO_DIR, Scenario, load_case, load_scenario
+from sim.model.scenario import SCENARIO_DIR, Scenario, load_case, load_scenario
 
 
 def resolve_scenario(spec: str) -> Scenario:

@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Any
 
 from firmware_py.frames import FrameCodec
-
-from . import buslog, metrics
-from .scenario import Scenario
-from .trajectory import Trajectory
-from .verdict import TOLERANCE, RunFacts, Verdict, anomalies_json, judge, node_deadlines
+from sim.model import metrics
+from sim.model.scenario import Scenario
+from sim.model.trajectory import Trajectory
+from sim.run import buslog
+from sim.run.verdict import TOLERANCE, RunFacts, Verdict, anomalies_json, judge, node_deadlines
 
 
 @dataclass
@@ -90,7 +90,7 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
         written.append(out / "trajectory.csv")
         tr.write_csv(written[-1])
         if plot:
-            from . import plots
+            from sim.report import plots
 
             written.append(out / "bus_run.png")
             plots.figure([("over the CAN bus", tr)], ("lam", "p", "grid"), written[-1],

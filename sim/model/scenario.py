@@ -22,16 +22,15 @@ from firmware_py.config import PRICE_STEP_MAX, RHO_MAX, RHO_MIN, AgentConfig
 from firmware_py.contract import N_AGENTS_MAX
 from firmware_py.controllers import ControllerConfig
 from firmware_py.errors import ConfigError, ParameterError
+from sim.model import graph
+from sim.model.cost import Battery
 
-from . import graph
-from .model import Battery
-
-SCENARIO_DIR = Path(__file__).with_name("scenarios")
+SCENARIO_DIR = Path(__file__).resolve().parents[1] / "scenarios"
 MAX_AGENTS = N_AGENTS_MAX  # the DBC's AGENT_1..AGENT_N frames
 CONTROLLER_KEYS = {"kind", "k", "h", "dwell", "band", "ft_exponent"}
 BATTERY_KEYS = {"alpha", "beta", "m", "p_min", "p_max", "capacity_kwh", "soc0", "v_nom",
                 "r_internal", "lambda0"}
-# physically possible ranges of a battery's parameters (units as in sim.model.Battery);
+# physically possible ranges of a battery's parameters (units as in sim.model.cost.Battery);
 # (lo, hi, lo excluded). Limits: the setpoint frame's range (AGENT_i_Setpoint, ±327.67 kW)
 P_LIMIT_KW = 327.67
 BATTERY_RANGES: dict[str, tuple[float, float, bool]] = {

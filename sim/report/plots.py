@@ -17,12 +17,15 @@ through pyplot: no global backend state, no screen needed, safe from threads.
 ``runs`` is a sequence of (column label, Trajectory), or a single Trajectory.
 
 Every λ_i row shows, per price segment, the settling band ρ ± SETTLING_BAND × (the
-segment's initial worst error) shaded and the settling instant (sim.metrics.settling_times)
+segment's initial worst error) shaded and the settling instant (sim.model.metrics.settling_times)
 as a vertical line, labelled "never" when the run did not settle; it is followed by a
 log-scale row of the worst error max_i|λ_i − ρ| over the agents on the network with the
 band level drawn. ``batteries=`` draws each BESS's p_min/p_max on the P_i row, and
 ``time_scale=F`` puts a time-scaled run (``bess-ded up --time-scale``) back on the
 scenario's time axis.
+
+About 500 lines: one figure layout shared by every plot; the panels differ only
+in the quantity drawn.
 """
 
 from __future__ import annotations
@@ -43,9 +46,9 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import LogLocator, MaxNLocator
 
-from .metrics import SETTLING_BAND, settling_times, worst_error
-from .model import Battery
-from .trajectory import Trajectory
+from sim.model.cost import Battery
+from sim.model.metrics import SETTLING_BAND, settling_times, worst_error
+from sim.model.trajectory import Trajectory
 
 DPI = 120
 COL_WIDTH = 4.2      # inches per run column

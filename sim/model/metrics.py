@@ -6,9 +6,9 @@ from typing import Any
 
 import numpy as np
 
-from .model import expenditure, kkt_optimum
-from .scenario import Scenario
-from .trajectory import Trajectory
+from sim.model.cost import expenditure, kkt_optimum
+from sim.model.scenario import Scenario
+from sim.model.trajectory import Trajectory
 
 SETTLING_BAND = 0.02  # 2 % of the initial worst error
 

@@ -4,7 +4,7 @@ the verdict, what ``bess-ded analyze`` runs (docs/api.md, docs/runs.md).
 ``prepare_analysis`` reads what the log's run left beside it (a directory ``bess-ded up``
 wrote: its keys, node counters, run facts and scenario) and checks the inputs;
 ``LogAnalysis.run`` decodes and judges the log through the code ``up`` judges its own
-runs with (sim.runreport.report). ``analyze_log`` does both.
+runs with (sim.run.runreport.report). ``analyze_log`` does both.
 """
 
 from __future__ import annotations
@@ -16,10 +16,9 @@ from pathlib import Path
 from typing import Any
 
 from firmware_py.errors import BessDedError, ConfigError
-
-from .runreport import Recording
-from .scenario import Scenario
-from .verdict import RunFacts
+from sim.model.scenario import Scenario
+from sim.run.runreport import Recording
+from sim.run.verdict import RunFacts
 
 
 @dataclass
@@ -55,7 +54,7 @@ class LogAnalysis:
     def run(self, plot: bool = True) -> Recording:
         """Decode and judge the log; write metrics.json, trajectory.csv and (``plot``)
         bus_run.png into ``out``. The verdict's exit code is ``up``'s."""
-        from .runreport import report
+        from sim.run.runreport import report
 
         try:
             return report(self.scenario, self.log_path, self.out, self.facts, plot=plot,
@@ -81,11 +80,10 @@ def prepare_analysis(log: Path, case: str | None = None, variant: str | None = N
     ``counters``, ``keys``: directories (default: the run directory's logs/ and keys/).
     ``say`` gets the note that names a variant chosen by default."""
     from firmware_py import secoc
-
-    from .keyset import load_key_set
-    from .scenario import scaled
-    from .scenario_select import pick_variant, resolve_scenario
-    from .verdict import TOLERANCE
+    from sim.model.scenario import scaled
+    from sim.model.scenario_select import pick_variant, resolve_scenario
+    from sim.run.keyset import load_key_set
+    from sim.run.verdict import TOLERANCE
 
     log_path = log
     if log_path.is_dir():
@@ -182,7 +180,7 @@ def _json(path: Path) -> Any:
 
 def _demo_signed(log_path: Path, sc: Any, demo: dict[str, bytes]) -> bool:
     """Do the log's secured frames verify with the public demo keys (an --insecure run)?"""
-    from .buslog import read_log
+    from sim.run.buslog import read_log
 
     try:
         log = read_log(log_path, n=sc.n, ts=sc.ts, keys=demo)

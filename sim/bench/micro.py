@@ -3,6 +3,9 @@ the bus: what ``bess-ded bench`` prints (docs/performance.md). Not a test (nothi
 or fails): numbers, with the machine they were measured on (``machine_info``). Each
 section is one function in BENCHES (``quick`` → ``Table``); ``run_benches`` runs them
 with the garbage collector off while timing; the timings are medians over repetitions.
+
+Over 500 lines: one function per bench section (BENCHES), independent of each
+other; one file keeps the table of sections next to what they measure.
 """
 
 from __future__ import annotations
@@ -48,9 +51,8 @@ def controller_step(quick: bool) -> Table:
     settled tail, so branches are taken as in a real run.
     """
     from firmware_py.controllers import KINDS, ControllerConfig, make_controller
-
-    from .lockstep import run_lockstep
-    from .scenario import load_case
+    from sim.model.lockstep import run_lockstep
+    from sim.model.scenario import load_case
 
     sc = load_case(1)
     tr = run_lockstep(sc, fixed=False)
@@ -108,8 +110,8 @@ def _time_steps(ctrl: Controller, inputs: list[tuple[Any, list[tuple[Any, Any]]]
 
 def lockstep_speed(quick: bool) -> Table:
     """Simulated seconds per wall-clock second of the lockstep runner (fixed point)."""
-    from .lockstep import run_lockstep
-    from .scenario import load_case
+    from sim.model.lockstep import run_lockstep
+    from sim.model.scenario import load_case
 
     reps = 1 if quick else 5
     rows, data = [], {}
@@ -262,10 +264,10 @@ def secoc_settling(quick: bool) -> Table:
     verifying, the syncs and the start-up change in the dispatch."""
     import tempfile
 
-    from .busrun import run_in_process
-    from .lockstep import run_lockstep
-    from .metrics import compute
-    from .scenario import load_case
+    from sim.model.lockstep import run_lockstep
+    from sim.model.metrics import compute
+    from sim.model.scenario import load_case
+    from sim.run.busrun import run_in_process
 
     rows, data = [], {}
     for case in (1,) if quick else (1, 7):
@@ -291,7 +293,7 @@ def realtime_bus(quick: bool) -> Table:
     """Cases 1 and 7 as node processes on udp_multicast (``bess-ded up``'s path): what only
     a wall clock can tell, and what the tests therefore never assert: frame and price
     rates, the worst node's deadline misses, bus silences, recorder misses, settling."""
-    from .benchrt import realtime_run
+    from sim.bench.realtime import realtime_run
 
     rows, data = [], {}
     for case in (1, 7):
@@ -318,10 +320,9 @@ def c_controller_step(quick: bool) -> Table:
     import ctypes
 
     from firmware_py.controllers import KINDS, ControllerConfig, make_controller
-
-    from .cimpl import CController, record_buffer
-    from .lockstep import run_lockstep
-    from .scenario import load_case
+    from sim.cbind.cimpl import CController, record_buffer
+    from sim.model.lockstep import run_lockstep
+    from sim.model.scenario import load_case
 
     sc = load_case(1)
     tr = run_lockstep(sc)
@@ -404,8 +405,7 @@ def agent_tick(quick: bool) -> Table:
     from firmware_py.config import parse_agent_config
     from firmware_py.runtime import AgentRuntime
     from firmware_py.secoc import Keyring
-
-    from .cagent import RUNNER_NAME, built, ns
+    from sim.cbind.cagent import RUNNER_NAME, built, ns
 
     runner = built(RUNNER_NAME)
     ticks = 300 if quick else 2000
@@ -471,9 +471,8 @@ def input_checks(quick: bool) -> Table:
     from firmware_py.frames import FrameCodec, mc_name
     from firmware_py.node import frame_fault
     from firmware_py.nodeio import NodeIO
-
-    from .consistency import Setpoint, SetpointCheck
-    from .scenario import load_case
+    from sim.model.scenario import load_case
+    from sim.nodes.consistency import Setpoint, SetpointCheck
 
     n = 2000 if quick else 20000
     codec = FrameCodec()

@@ -1,0 +1,2 @@
+"""The C firmware (firmware_c/) from Python through ctypes: the controller core
+(``cimpl``) and the agent runtime (``cagent``), built on first use."""

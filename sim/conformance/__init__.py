@@ -1,0 +1,72 @@
+"""Conformance of an agent node on the bus (`bess-ded conformance`).
+
+The tester is the rest of the bus for one device under test (DUT), agent I: it plays
+the router (price, commands), the plant (agent I's status) and I's neighbours (their MC
+frames), all signed with the run's keys, along a fixed schedule of steps (``plan``):
+start-up, control with moving neighbours, forged and replayed frames, malformed and
+implausible content, every command, and every timeout. It records what the DUT sends.
+
+Verdict (``check``): firmware_py's own agent runtime is the oracle. It receives the same
+frames at the times the tester sent them and ticks when the DUT ticked (the receive time
+of each DUT MC frame); every DUT frame must then equal the oracle's at the signal level
+(MC: State, Lambda, Resets; Setpoint: Enable, PowerSetpoint; Diag: every page value but
+DeadlineMisses, which depends on the DUT's host), and every secured DUT frame must carry
+a MAC that verifies with the DUT's key at consecutive freshness values. Where the bus
+leaves the order open (a frame sent while the DUT was ticking), the oracle tries each
+order and keeps the one that explains the DUT, so a conformant DUT passes at any load.
+
+A mismatch fails the requirement IDs of docs/firmware-spec.md that the step exercises and
+the mismatching signal belongs to. When a known deviation (``MUTANTS``: e.g. the band
+re-armed at the reset sample) explains the DUT's frames from the start, the report names
+that requirement.
+
+The package: ``schedule`` (the steps and the frames), ``oracle`` (the record and its check),
+``results`` (per requirement, JUnit), ``mutants`` (known deviations), ``drive`` (running
+it in process or on a bus) and ``bus`` (the check of a device, what ``bess-ded conformance``
+runs). The names below are its API (docs/api.md).
+"""
+
+from sim.conformance.drive import drive, simulate
+from sim.conformance.mutants import MUTANTS
+from sim.conformance.oracle import (
+    LATE_TICKS,
+    MAX_HYPOTHESES,
+    SIGNAL_MUSTS,
+    Frame,
+    Mismatch,
+    Outcome,
+    check,
+)
+from sim.conformance.results import (
+    REQUIREMENTS_FILE,
+    Result,
+    explain,
+    junit,
+    spec_requirements,
+    verdict,
+)
+from sim.conformance.schedule import PULSE, STEPS, Planned, Step, plan
+
+__all__ = [
+    "Frame",
+    "LATE_TICKS",
+    "MAX_HYPOTHESES",
+    "MUTANTS",
+    "Mismatch",
+    "Outcome",
+    "PULSE",
+    "Planned",
+    "REQUIREMENTS_FILE",
+    "Result",
+    "SIGNAL_MUSTS",
+    "STEPS",
+    "Step",
+    "check",
+    "drive",
+    "explain",
+    "junit",
+    "plan",
+    "simulate",
+    "spec_requirements",
+    "verdict",
+]

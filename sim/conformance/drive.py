@@ -1,0 +1,131 @@
+"""Running the schedule: in process against an agent runtime (``simulate``) or
+against a device on a bus (``drive``)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import can
+
+from firmware_py.config import AgentConfig
+from firmware_py.frames import FrameCodec
+from firmware_py.runtime import AgentRuntime
+from firmware_py.secoc import Keyring
+from sim.conformance.oracle import Frame, _quiet_firmware
+from sim.conformance.schedule import STEPS, Planned
+
+
+def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
+             deviation: Callable[[AgentRuntime], None] | None = None,
+             codec: FrameCodec | None = None, lead_ticks: int = 12,
+             phase: float = 0.37, latency: float = 2e-4, jitter: float = 0.0,
+             seed: int = 0, filtered: bool = False,
+             make_dut: Callable[[AgentConfig, FrameCodec, Keyring], Any] | None = None
+             ) -> list[Frame]:
+    """The schedule played against firmware_py's agent (with ``deviation``), or the
+    agent ``make_dut`` builds (any object with the node seam: the C agent, sim.cbind.cagent),
+    on a simulated clock: the record a bus run of a DUT would give, without the bus. The DUT
+    ticks ``lead_ticks`` times before the schedule starts (as a device already running
+    when the tester starts) at the phase ``phase`` of Ts; ``jitter``: each tick and each
+    tester frame up to that fraction of Ts late (seeded), as on a loaded host;
+    ``filtered``: the DUT's CAN controller passes only its acceptance IDs (GEN-5)."""
+    import random
+
+    rnd = random.Random(seed)
+    codec = codec or FrameCodec()
+    ts = cfg.controller.ts
+    dut: Any = (make_dut or AgentRuntime)(cfg, codec, keyring)
+    if deviation is not None:
+        deviation(dut)
+    t0 = (lead_ticks + 0.5) * ts  # the schedule's start, after the DUT's first Diag
+    inputs = sorted((Frame(t0 + p.at + rnd.uniform(0, jitter * ts), p.msg, True, p.step,
+                           p.note) for p in planned), key=lambda f: f.t)
+    end = t0 + STEPS[-1].end * ts + 3 * ts
+    passed = set(getattr(dut, "io", dut).accepted_ids())
+    record: list[Frame] = []
+    nxt = 0
+    k = 0
+    with _quiet_firmware():
+        while (tick := (k + phase + rnd.uniform(0, jitter)) * ts) < end:
+            while nxt < len(inputs) and inputs[nxt].t + latency < tick:
+                msg = inputs[nxt].msg
+                if not filtered or (not msg.is_extended_id
+                                    and msg.arbitration_id in passed):
+                    dut.on_frame(msg, inputs[nxt].t + latency)
+                record.append(inputs[nxt])
+                nxt += 1
+            for msg in dut.tick(tick):
+                record.append(Frame(tick + latency, msg, False))
+            k += 1
+    return record
+
+
+def drive(bus: can.BusABC, planned: Sequence[Planned], dut_ids: set[int], diag_id: int,
+          wait_s: float, ts: float, progress: Callable[[str], None] | None = None,
+          clock: Callable[[], float] | None = None) -> tuple[list[Frame], float]:
+    """Play the schedule on ``bus`` once the DUT is heard (its Diag frame, within
+    ``wait_s``), recording the DUT's frames and the tester's own (send times). Also
+    returns how late the tester sent its latest frame (s): a loaded tester plays a
+    schedule the DUT may time out on, which the oracle then has to explain."""
+    import threading
+    import time
+
+    clock = clock or time.time
+    record: list[Frame] = []
+    lock = threading.Lock()
+    heard = threading.Event()
+    # the tester's own frames on the DUT's IDs (impersonation tests), should the
+    # interface echo them
+    ours = {(p.msg.arbitration_id, bytes(p.msg.data)) for p in planned}
+
+    class Rec(can.Listener):
+        def on_message_received(self, msg: can.Message) -> None:
+            if (msg.arbitration_id in dut_ids and not msg.is_error_frame
+                    and not msg.is_extended_id
+                    and (msg.arbitration_id, bytes(msg.data)) not in ours):
+                with lock:
+                    record.append(Frame(msg.timestamp, msg, False))
+                if msg.arbitration_id == diag_id:
+                    heard.set()
+
+        def on_error(self, exc: Exception) -> None:
+            """An input that is no frame (node.RX_CAUSES): not the DUT's, reading goes on."""
+            from firmware_py.node import rx_cause
+
+            logging.getLogger(__name__).warning("conformance tester: dropped a bus input "
+                                                "(%s): %s", rx_cause(exc), exc)
+
+    notifier = can.Notifier(bus, [Rec()], timeout=0.05)
+    try:
+        if not heard.wait(wait_s):
+            raise TimeoutError(f"no {diag_id:#x} frame of the device under test in "
+                               f"{wait_s:g} s")
+        with lock:
+            record.clear()  # from its Diag on: the oracle starts there
+        heard.clear()
+        heard.wait(wait_s)  # a fresh Diag: the tick count is aligned from it
+        # t0 is the DUT's tick (its Diag just heard): the schedule's frames at k + 0.25,
+        # 0.5, 0.75 fall between its ticks, not on them, so a tick a few ms late does not
+        # swap a frame with the next one (a one-tick pulse stays one tick for the DUT)
+        t0 = clock()
+        last_report = -1
+        worst = 0.0
+        for p in planned:
+            delay = t0 + p.at - clock()
+            if delay > 0:
+                time.sleep(delay)
+            before = clock()
+            worst = max(worst, before - t0 - p.at)
+            bus.send(p.msg)
+            with lock:
+                record.append(Frame(before, p.msg, True, p.step, p.note, clock()))
+            if progress is not None and int(p.at) != last_report:
+                last_report = int(p.at)
+                progress(f"t = {p.at:5.1f} s  step {p.step}")
+        time.sleep(3 * ts)
+    finally:
+        notifier.stop()
+    record.sort(key=lambda f: f.t)
+    return record, worst

@@ -1,0 +1,406 @@
+"""The record of a conformance run (``Frame``, ``Outcome``) and its check against
+the oracle, firmware_py's own agent runtime fed the same frames (``check``)."""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import can
+
+from firmware_py import contract, secoc
+from firmware_py import fixedpoint as fx
+from firmware_py.config import AgentConfig
+from firmware_py.contract import State
+from firmware_py.errors import BessDedError
+from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name
+from firmware_py.runtime import AgentRuntime
+from firmware_py.secoc import Keyring
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A frame on the bus: ``t`` in the tester's clock (s); ``sent``: by the tester,
+    who sent it between ``t`` and ``t_end`` (the clock read before and after the send)."""
+
+    t: float
+    msg: can.Message
+    sent: bool
+    step: str = ""
+    note: str = ""
+    t_end: float | None = None
+
+    @property
+    def done(self) -> float:
+        return self.t if self.t_end is None else self.t_end
+
+
+@dataclass
+class Mismatch:
+    t: float
+    tick: int
+    step: str
+    message: str
+    signal: str
+    expected: Any
+    got: Any
+
+    def __str__(self) -> str:
+        return (f"t = {self.t:.3f} s (the device's tick {self.tick}, step {self.step}): "
+                f"{self.message}."
+                f"{self.signal} = {self.got!r}, expected {self.expected!r}")
+
+
+@dataclass
+class Outcome:
+    """What ``check`` found."""
+
+    ticks: int = 0
+    mismatches: list[Mismatch] = field(default_factory=list)
+    auth_errors: list[str] = field(default_factory=list)
+    explained_by: dict[str, str] = field(default_factory=dict)  # MUST → deviation
+    steps_seen: set[str] = field(default_factory=set)
+    problems: list[str] = field(default_factory=list)  # the run itself (not the DUT)
+    filtered: bool = False  # the DUT filters foreign IDs in its CAN controller (GEN-5)
+
+
+# Which requirements a mismatch on a signal violates (besides the step's)
+SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
+    "MC.Lambda": ("XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1"),
+    "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9"),
+    "MC.Resets": ("STEP-3", "BAND-3", "TX-1"),
+    "Setpoint.Enable": ("TX-2", "SP-3"),
+    "Setpoint.PowerSetpoint": ("SP-1", "TX-2"),
+    "Diag.RejectedAuth": ("AUTH-14", "AUTH-16", "AUTH-21", "RX-8"),
+    "Diag.Unsynced": ("AUTH-11", "AUTH-14"),
+    "Diag.Resyncs": ("AUTH-16", "AUTH-21"),
+    "Diag.LostFrames": ("AUTH-15",),
+    "Diag.RejectedDlc": ("RX-7",),
+    "Diag.RejectedRange": ("RX-7", "RX-9"),
+    "Diag.RejectedUnknownId": ("RX-1", "RX-6"),
+    "Diag.RejectedImpersonation": ("RX-3",),
+    "Diag.ImplausiblePrice": ("PRICE-2", "PRICE-4"),
+    "Diag.ImplausibleLambda": ("LAM-1",),
+    "Diag.ImplausibleGains": ("CMD-5",),
+    "Diag.NeighbourTimeouts": ("LIVE-3",),
+    "Diag.PriceTimeouts": ("TMO-2",),
+    "Diag.StatusTimeouts": ("TMO-2",),
+    "Diag.PlantFaults": ("RX-11",),
+    "Diag.SafetySender": ("DIAG-4",),
+    "Diag.SafetyCause": ("DIAG-4",),
+    "Diag.Untrusted": ("RX-13",),
+    "Diag.Resets": ("DIAG-1", "STEP-1"),
+    "Diag.NeighboursAlive": ("DIAG-1", "LIVE-2"),
+    "Diag.Saturations": ("DIAG-3", "STEP-9"),
+}
+
+
+@contextmanager
+def _quiet_firmware() -> Iterator[None]:
+    """The oracle logs what the DUT does (commands, SAFE): not the tester's output."""
+    logger = logging.getLogger("firmware_py")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+class _Oracle:
+    """firmware_py's agent, cloned per hypothesis of the order of events."""
+
+    def __init__(self, cfg: AgentConfig, keyring: Keyring, codec: FrameCodec,
+                 deviation: Callable[[AgentRuntime], None] | None = None) -> None:
+        self.rt = AgentRuntime(cfg, codec, keys=keyring)
+        if deviation is not None:
+            deviation(self.rt)
+        # what no tick changes is shared by every clone, not copied (the clones are most
+        # of the check's time): the contract tables, the keys, the configuration
+        rt, io = self.rt, self.rt.io
+        self._shared = {id(x): x for x in (
+            codec, keyring, cfg, rt.setpoint, rt._diag_max, rt._mc_max, io._known,
+            io._cyclic, io._verify_key, io._synced_by)}
+
+    def clone(self) -> _Oracle:
+        twin = copy.copy(self)
+        twin.rt = copy.deepcopy(self.rt, dict(self._shared))
+        return twin
+
+
+def _signals(codec: FrameCodec, msg: can.Message) -> dict[str, int]:
+    return dict(codec.decode(msg).raw)
+
+
+def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
+          codec: FrameCodec | None = None,
+          deviation: Callable[[AgentRuntime], None] | None = None,
+          max_mismatches: int = 20, filtered_first: bool = False) -> Outcome:
+    """Compare the DUT's frames in ``frames`` (time order) with the oracle's. A DUT may
+    filter in its CAN controller what it neither uses nor sends (GEN-5), and then never
+    counts the frames of foreign IDs: when the oracle without (``filtered_first``: with)
+    a filter does not explain the DUT, the other is tried, and the one that explains
+    more is the verdict."""
+    first = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
+                   filtered_first)
+    if not first.mismatches:
+        return first
+    other = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
+                   not filtered_first)
+    if not other.mismatches or ((other.mismatches[0].tick, other.ticks)
+                                > (first.mismatches[0].tick, first.ticks)):
+        return other
+    return first
+
+
+def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
+           codec: FrameCodec | None, deviation: Callable[[AgentRuntime], None] | None,
+           max_mismatches: int, filtered: bool) -> Outcome:
+    codec = codec or FrameCodec()
+    i = cfg.id
+    mc_id, sp_id, diag_id = (codec.frame_id(n(i)) for n in (mc_name, setpoint_name, diag_name))
+    own = {mc_id, sp_id, diag_id}
+    syncs = {contract.SYNC_OF[fid]: fid for fid in (mc_id, sp_id, diag_id)}
+    outcome = Outcome()
+    dut_groups = _tick_groups(frames, mc_id, own | set(syncs))
+    if not dut_groups:
+        outcome.problems.append("no MC frame of the DUT was recorded")
+        return outcome
+    _check_auth(codec, dut_key, frames, syncs, outcome)
+    inputs = [f for f in frames if f.sent]
+    outcome.filtered = filtered
+    if filtered:
+        passed = set(AgentRuntime(cfg, codec, keys=keyring).io.accepted_ids())
+        inputs = [f for f in inputs
+                  if not f.msg.is_extended_id and f.msg.arbitration_id in passed]
+    first_sent = inputs[0].t if inputs else math.inf
+    # align the oracle's tick count with the DUT's: the first Diag page before any input
+    align = next(((g, f) for g in dut_groups for f in g if f.msg.arbitration_id == diag_id
+                  and f.t < first_sent), None)
+    if align is None:
+        outcome.problems.append("the DUT sent no Diag frame before the tester's first frame "
+                                "(start the schedule only once the DUT is heard)")
+        return outcome
+    page = _signals(codec, align[1].msg)["Page"]
+    first = _Oracle(cfg, keyring, codec, deviation)
+    first.rt.ticks = 10 * page  # the aligned group is this tick
+    # the hypotheses: (oracle, index of the first input it has not received yet)
+    hyps: list[tuple[_Oracle, int]] = [(first, 0)]
+    start = dut_groups.index(align[0])
+    prev_t = align[0][0].t
+    with _quiet_firmware():
+        # the last group may be cut short by the end of the recording
+        for group in dut_groups[start:-1]:
+            t_tick = group[0].t
+            step = _step_name(inputs, t_tick)
+            if step:
+                outcome.steps_seen.add(step)
+            found: list[tuple[tuple[int, int, int, int], _Oracle, int]] = []
+            failure: tuple[_Oracle, int, list[Mismatch]] | None = None
+            for h, (oracle, pending) in enumerate(hyps):
+                # inputs sent before the DUT's previous frames reached it before this tick;
+                # those sent since may or may not have (each order is a hypothesis)
+                sure = pending
+                while sure < len(inputs) and inputs[sure].done < prev_t - 0.001:
+                    oracle.rt.on_frame(inputs[sure].msg, inputs[sure].done)
+                    sure += 1
+                maybe = sure + sum(1 for f in inputs[sure:] if f.t < t_tick)
+                # each input received when it was sent, or (a starved DUT reads its socket
+                # late and stamps the frames then) just before this tick
+                # late and stamped alike, a frame makes no other state: the late chain
+                # starts at the first frame it stamps otherwise
+                late: _Oracle | None = None
+                for cut in range(sure, maybe + 1):
+                    if cut > sure:
+                        f = inputs[cut - 1]
+                        if late is None and f.done < t_tick - 1e-6:
+                            late = oracle.clone()
+                        oracle.rt.on_frame(f.msg, f.done)
+                        if late is not None:
+                            late.rt.on_frame(f.msg, max(f.done, t_tick - 1e-6))
+                    for d, chain in enumerate((oracle,) if late is None else (oracle, late)):
+                        guesses = _tick_times(chain.rt, prev_t, t_tick)
+                        for g, t_guess in enumerate(guesses):
+                            # a chain's last use ticks the chain itself, not a copy
+                            last = cut == maybe and g == len(guesses) - 1
+                            twin = chain if last else chain.clone()
+                            diffs = _compare(codec, twin.rt.tick(t_guess), group,
+                                             outcome.ticks, step, t_tick - first_sent)
+                            if not diffs:
+                                found.append(((h, d, g, maybe - cut), twin, cut))
+                            elif failure is None or cut == maybe and d + g + h == 0:
+                                failure = (twin, cut, diffs)
+            # the likeliest first: the previous likeliest, the DUT ticking when it sent,
+            # every frame sent before that received
+            matching: dict[tuple[int, tuple], tuple[_Oracle, int]] = {}
+            for _, twin, cut in sorted(found, key=lambda m: m[0]):
+                matching.setdefault((cut, _fingerprint(twin.rt)), (twin, cut))
+            if matching:
+                hyps = list(matching.values())[:MAX_HYPOTHESES]
+            else:
+                assert failure is not None
+                outcome.mismatches.extend(failure[2])
+                if len(outcome.mismatches) >= max_mismatches:
+                    break
+                _adopt(failure[0].rt, codec, group, mc_id)
+                hyps = [(failure[0], failure[1])]
+            outcome.ticks += 1
+            prev_t = t_tick
+    return outcome
+
+
+MAX_HYPOTHESES = 16
+
+
+def _fingerprint(rt: AgentRuntime) -> tuple:
+    """What a hypothesis remembers that the DUT's frames can show, receive times aside:
+    hypotheses that differ only in when frames arrived are one (the likeliest kept);
+    whether an input was late matters at the tick it is late for, and each tick tries
+    that again."""
+    return (rt.state, rt.cstate, rt.price, rt._price_fresh, rt._status_fresh,
+            rt.plant_fault, rt._price_candidate, rt._price_candidate_n, rt.ctrl.kts,
+            rt.ctrl.hts, tuple((s.lam, s.state, s.alive) for s in rt.neighbours.values()),
+            tuple(sorted(rt.counters.items())))
+
+
+def _tick_times(rt: AgentRuntime, prev_t: float, t_tick: float) -> list[float]:
+    """When the DUT may have ticked, as far as timeouts can tell: at the receive time of
+    its frame, or just before or after any instant where an input goes stale (the
+    DUT's receive times are not ours: frames reach its loop later on a busy host)."""
+    cfg = rt.cfg
+    stale = [s.last_rx + cfg.neighbour_timeout_periods * rt.period
+             for s in rt.neighbours.values() if s.last_rx is not None]
+    stale += [t + dt for t, dt in ((rt.price_rx, cfg.price_timeout_s),
+                                   (rt.status_rx, cfg.status_timeout_s)) if t is not None]
+    # the DUT's clock never goes back: not before this hypothesis's previous tick
+    earliest = max(prev_t - LATE_TICKS * rt.period, rt._now)
+    near = sorted(b for b in stale if earliest < b - 1e-6 and b < t_tick)
+    return [t_tick, *(b - 1e-6 for b in near)]
+
+
+LATE_TICKS = 10
+"""How late (in ticks) a DUT's loop may take a frame that the tester has sent, as far as
+its timeouts are concerned: on a starved host frames wait in the socket, and the DUT
+stamps them when it reads them (LOOP-1)."""
+
+
+def _step_name(inputs: Sequence[Frame], t: float) -> str:
+    last = ""
+    for f in inputs:
+        if f.t > t:
+            break
+        last = f.step
+    return last
+
+
+def _tick_groups(frames: Sequence[Frame], mc_id: int, dut_ids: set[int]) -> list[list[Frame]]:
+    """The DUT's frames grouped by tick (TICK-1: syncs, MC, Setpoint, Diag), the MC
+    first in each group (its receive time is the group's time)."""
+    groups: list[list[Frame]] = []
+    current: list[Frame] = []
+    for f in frames:
+        fid = f.msg.arbitration_id
+        if f.sent or fid not in dut_ids:
+            continue
+        if (fid == mc_id or fid in contract.SYNCED_BY) and any(
+                g.msg.arbitration_id == mc_id for g in current):
+            groups.append(current)
+            current = []
+        current.append(f)
+    groups.append(current)
+    return [sorted(g, key=lambda f: f.msg.arbitration_id != mc_id) for g in groups
+            if any(f.msg.arbitration_id == mc_id for f in g)]
+
+
+def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence[Frame],
+             tick: int, step: str, t: float) -> list[Mismatch]:
+    """The DUT's frames of one tick against the oracle's (``t``: from the schedule's
+    start, for the report)."""
+    got = [f.msg for f in group if f.msg.arbitration_id not in contract.SYNCED_BY]
+    exp = [m for m in expected if m.arbitration_id not in contract.SYNCED_BY]
+    diffs: list[Mismatch] = []
+    names_got = [codec.name_of(m.arbitration_id) for m in got]
+    names_exp = [codec.name_of(m.arbitration_id) for m in exp]
+    if names_got != names_exp:
+        return [Mismatch(t, tick, step, "frames of the tick", "", names_exp, names_got)]
+    for e, g in zip(exp, got, strict=True):
+        kind = codec.name_of(e.arbitration_id).split("_")[-1]
+        se = _signals(codec, e)
+        try:
+            sg = _signals(codec, g)
+        except BessDedError as err:
+            diffs.append(Mismatch(t, tick, step, kind, "frame", "a frame of the DBC", str(err)))
+            continue
+        for name, value in se.items():
+            if name in ("Mac", "Counter", "CRC", "DeadlineMisses"):
+                continue
+            if sg.get(name) != value:
+                diffs.append(Mismatch(t, tick, step, kind, name, _show(name, value),
+                                      _show(name, sg.get(name))))
+    return diffs
+
+
+def _show(name: str, raw: Any) -> Any:
+    if name == "Lambda" and isinstance(raw, int):
+        return f"{raw} ({raw / (1 << 24):.9f})"
+    if name == "State" and isinstance(raw, int):
+        return State(raw).name
+    return raw
+
+
+def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: int) -> None:
+    """After a mismatch, go on from what the DUT says (λ, state) to check the rest."""
+    mc = next(f.msg for f in group if f.msg.arbitration_id == mc_id)
+    s = _signals(codec, mc)
+    rt.state = State(s["State"])
+    if rt.lambda_q24 != s["Lambda"]:  # its guard bits are unknown: take the wire value's
+        rt.cstate = replace(rt.cstate, lam=fx.widen(s["Lambda"]))
+
+
+def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
+                syncs: Mapping[int, int], outcome: Outcome) -> None:
+    """Every secured DUT frame verifies at the freshness its syncs announce, +1 per
+    frame (AUTH-4, AUTH-6..8)."""
+    nxt: dict[int, int] = {}
+    for f in frames:
+        fid = f.msg.arbitration_id
+        if f.sent:
+            continue
+        if fid in syncs:
+            try:
+                s = _signals(codec, f.msg)
+            except BessDedError as e:
+                outcome.auth_errors.append(f"t = {f.t:.3f} s: {e}")
+                continue
+            fv = contract.FRESHNESS.join(s["Boot"], s["Count"])
+            if not secoc.frame_verifies(key, fid, f.msg.data, fv):
+                outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} MAC does "
+                                           f"not verify at Boot {s['Boot']} Count {s['Count']}")
+            elif syncs[fid] in nxt and fv != nxt[syncs[fid]]:
+                outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} announces "
+                                           f"{fv:#x}, the frames reached {nxt[syncs[fid]]:#x}")
+            nxt[syncs[fid]] = fv
+        elif fid in nxt:
+            fv = nxt[fid]
+            want = secoc.truncate(fv, contract.FV_TX_BITS)  # AUTH-6: the Counter on the wire
+            try:
+                counter = _signals(codec, f.msg)["Counter"]
+            except BessDedError as e:
+                counter = None
+                outcome.auth_errors.append(f"t = {f.t:.3f} s: {e}")
+            if counter is not None and counter != want:
+                outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} Counter "
+                                           f"{counter}, expected {want}")
+            elif counter is not None and not secoc.frame_verifies(key, fid, f.msg.data, fv):
+                outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} MAC does "
+                                           f"not verify at freshness {fv:#x}")
+            nxt[fid] = fv + 1
+    if not nxt:
+        outcome.auth_errors.append("the DUT sent no sync frame: its freshness is unknown "
+                                   "(AUTH-9: syncs at start, every 100 Ts, and after a "
+                                   "peer's restart)")

@@ -1,0 +1,240 @@
+"""The conformance schedule: the steps (``STEPS``, each with the requirements it
+exercises) and the frames the tester sends along them (``plan``)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import can
+
+from firmware_py import contract, secoc
+from firmware_py.config import AgentConfig
+from firmware_py.contract import Command, State
+from firmware_py.frames import FrameCodec, mc_name, status_name
+from firmware_py.nodeio import FleetSender
+
+
+@dataclass(frozen=True)
+class Step:
+    """One part of the schedule, in ticks of the DUT's Ts: what it does and the
+    requirements (docs/firmware-spec.md IDs) its frames exercise."""
+
+    name: str
+    start: int
+    end: int
+    what: str
+    musts: tuple[str, ...]
+
+
+STEPS = (
+    Step("start", 0, 30, "syncs of every input, then silence: the DUT stays INIT with λ(0), "
+         "answers the syncs, sends MC/Setpoint/Diag at their cadences",
+         ("GEN-2", "STATE-1", "STATE-10", "TICK-1", "TX-1", "TX-2", "TX-3", "TX-4", "TX-5",
+          "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-16",
+          "AUTH-21", "RX-4")),
+    Step("price-only", 30, 60, "price and neighbours but no plant status: still INIT",
+         ("STATE-2", "STATE-5", "TMO-3", "LIVE-1", "LIVE-2", "PRICE-6", "AUTH-12",
+          "AUTH-15")),
+    Step("running", 60, 100, "plant status too: INIT → RUNNING, the setpoint follows λ",
+         ("STATE-4", "STATE-6", "SP-1", "TX-2", "RX-11", "XI-1", "XI-2")),
+    Step("control", 100, 450, "neighbours' λ moving (steps and a slow sine): every step "
+         "of the reset-PI, bit for bit",
+         ("CTRL-1", "CTRL-4", "CTRL-5", "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-2",
+          "STEP-3", "STEP-4", "STEP-5", "STEP-6", "STEP-7", "STEP-8", "STEP-9", "BAND-1",
+          "BAND-2", "BAND-3", "TX-1", "SP-1", "LAM-2", "DIAG-1", "NUM-1", "NUM-2",
+          "NUM-3")),
+    Step("authentication", 450, 510, "forged MACs, a replayed frame, a replayed sync, a "
+         "frame from another boot, a genuine frame delivered late (stale, not auth): "
+         "rejected and counted, λ unmoved by them",
+         ("RX-8", "AUTH-10", "AUTH-11", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-16",
+          "AUTH-17", "AUTH-25", "RX-12", "RX-13", "DIAG-4")),
+    Step("content", 510, 580, "an extended ID, an unknown ID, the DUT's own ID, a short "
+         "frame, a price out of bounds, a persistent price step, a neighbour λ jump",
+         ("RX-1", "RX-3", "RX-6", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
+          "LAM-1", "DIAG-1", "DIAG-4")),
+    Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
+         "agent, ISOLATE, RECONNECT",
+         ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "STATE-7", "STATE-8", "STATE-9",
+          "STATE-10")),
+    Step("timeouts", 710, 910, "a neighbour silent, the price silent (SAFE), a plant "
+         "fault (SAFE), each followed by recovery",
+         ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
+          "RX-11", "AUTH-13")),
+)
+
+
+PULSE = 0.05  # cu/kWh: well above the reset band, below lambda_step_max (10·k·Ts)
+
+
+@dataclass(frozen=True)
+class Planned:
+    """A frame the tester sends ``at`` s after the start of the schedule."""
+
+    at: float
+    step: str
+    msg: can.Message
+    note: str = ""
+
+
+def _tick_of(name: str) -> Callable[[int], bool]:
+    every = contract.every_ticks(name)
+    return lambda k: k % every == 0
+
+
+def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
+         codec: FrameCodec | None = None, boot: int = secoc.INSECURE_BOOT) -> list[Planned]:
+    """The tester's frames for DUT ``cfg`` (times in s from the start), signed with
+    ``keys`` (label → key of the router, the plant and the neighbours; None: the
+    insecure keys). ``price``: the ρ to hold (the scenario's first). ``boot``: the boot
+    every sender the tester plays runs at, at least the DUT's boot floors (AUTH-21);
+    above 1, an earlier run's price sync (boot − 1) comes first."""
+    codec = codec or FrameCodec()
+    tx = FleetSender(codec, keys, boot=boot if keys is not None else secoc.INSECURE_BOOT)
+    ts, i = cfg.controller.ts, cfg.id
+    nbrs = [n.id for n in cfg.neighbours]
+    out: list[Planned] = []
+    price_every, status_every = _tick_of("ER_Price"), _tick_of(status_name(i))
+    k_gain, h_gain = cfg.controller.k, cfg.controller.h
+    other = i % contract.N_AGENTS_MAX + 1
+    at = {s.name: s.start for s in STEPS}
+
+    def add(k: float, step: str, msg: can.Message, note: str = "") -> None:
+        out.append(Planned(k * ts, step, msg, note))
+
+    def step_at(k: int) -> str:
+        return next(s.name for s in STEPS if s.start <= k < s.end)
+
+    def q(x: float) -> int:
+        return round(x * (1 << 24))
+
+    # Until the control step every input sits just off the DUT's λ(0), so that |ξ| stays
+    # inside the reset band; at tick 80 the inputs move to the other side: a zero
+    # crossing that only an agent armed from the start resets on (BAND-1).
+    lam0 = cfg.lambda0
+    weights = sum(n.weight for n in cfg.neighbours) + (1.0 if cfg.pinned else 0.0)
+    offset = cfg.controller.band / (2 * weights) if weights else 0.0
+    if cfg.pinned and not cfg.rho_min + offset <= lam0 <= cfg.rho_max - offset:
+        lam0, offset = price, 0.0  # a price at λ(0) would be implausible: no BAND-1 test
+
+    def start_value(k: int) -> float:
+        return lam0 - offset if k < 80 else lam0 + offset
+
+    def ramp(k: int, target: float) -> float:
+        """From the start value to ``target`` over the first 60 ticks of control."""
+        w = min(1.0, max(0.0, (k - at["control"]) / 60))
+        return start_value(k) + (target - start_value(k)) * w
+
+    def lam_j(j: int, k: int) -> int:
+        """Neighbour j's λ at tick k: from the control step on, a slow sine (per j) with
+        steps below the plausibility limit and one-tick pulses of either sign: a pulse
+        against the sign of ξ is a zero crossing at once followed by another (a reset
+        sample followed by a crossing: BAND-2, STEP-2..5)."""
+        base = price + 0.05 * (nbrs.index(j) + 1) * (-1) ** j
+        if k < at["control"]:
+            return q(start_value(k))
+        c = k - at["control"]
+        square = 0.04 if (c // 70) % 2 else -0.04
+        pulse = PULSE if c % 20 == 10 and c < 340 else 0.0
+        pulse *= -1 if c % 40 == 10 else 1
+        return q(ramp(k, base + square + pulse + 0.2 * math.sin(2 * math.pi * c /
+                                                                  (230 + 17 * j))))
+
+    status = {"FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+              "Power": 0, "Soc": 100}
+    inputs = ["ER_Price", "ER_Command", status_name(i), *map(mc_name, nbrs)]
+    if tx.boot > secoc.INSECURE_BOOT:  # below the DUT's floor: auth, it sets nothing
+        earlier = FleetSender(codec, keys, boot=tx.boot - 1)
+        add(0, "start", earlier.sync("ER_Price"), "an earlier run's price sync (AUTH-21)")
+    for name in inputs:
+        add(0, "start", tx.sync(name), f"sync of {name}")
+    first_sync = next(p.msg for p in out if p.note == "sync of ER_Price")
+    genuine: list[can.Message] = []
+    held: list[can.Message] = []   # a genuine frame delivered late (AUTH-25)
+    for k in range(30, STEPS[-1].end):
+        step = step_at(k)
+        silent_nbr = 10 <= k - at["timeouts"] < 20
+        silent_price = 40 <= k - at["timeouts"] < 80
+        fault = 120 <= k - at["timeouts"] < 140
+        for j in nbrs:
+            if silent_nbr and j == nbrs[0]:
+                continue
+            lam = lam_j(j, k)
+            if k == at["content"] + 30 and j == nbrs[0]:
+                lam += q(0.5)  # a jump above lambda_step_max per sample: implausible
+            msg = tx.frame(mc_name(j), {"State": int(State.RUNNING), "Lambda": lam,
+                                        "Resets": 0})
+            add(k + 0.5, step, msg)
+            genuine.append(msg)
+        if price_every(k) and not silent_price:
+            r = q(ramp(k, price))
+            if 20 <= k - at["content"] < 25:
+                r = q(6.0)  # above rho_max: implausible
+            elif 40 <= k - at["content"] < 70:
+                r = q(price + 0.6)  # a step above price_step_max, persistent
+            add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
+                                                      "Rho": r}))
+        if k >= 60 and status_every(k):
+            add(k + 0.75, step, tx.frame(status_name(i), {**status,
+                                                          "FaultOverCurrent": int(fault)}))
+        if k == at["authentication"] + 10:  # a forged MAC on a neighbour's frame with a wild λ
+            forged = tx.frame(mc_name(nbrs[0]) if nbrs else "ER_Price", {
+                "State": int(State.RUNNING), "Lambda": q(3.0), "Resets": 0} if nbrs else {
+                "PriceValid": 1, "Segment": 0, "Rho": q(3.0)})
+            forged.data[0] ^= 0x5A
+            add(k + 0.6, step, forged, "forged MAC")
+        if k == at["authentication"] + 20:
+            add(k + 0.6, step, _copy(genuine[-40]), "replay of a genuine frame")
+        if k == at["authentication"] + 30:
+            add(k + 0.6, step, _copy(first_sync), "replay of the first price sync")
+        if k == at["authentication"] + 40:  # the right key, but a boot never announced
+            later = FleetSender(codec, keys, boot=tx.boot + 5)
+            add(k + 0.6, step, later.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
+                                                        "Rho": q(price)}),
+                "frame from another boot")
+        if k == at["authentication"] + 50:  # a genuine frame held back: lost for now
+            held.append(tx.frame(mc_name(nbrs[0]), {
+                "State": int(State.RUNNING), "Lambda": lam_j(nbrs[0], k), "Resets": 0})
+                if nbrs else tx.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
+                                                   "Rho": q(price)}))
+        if k == at["authentication"] + 53:  # ... delivered 3 ticks late: stale, not auth
+            add(k + 0.6, step, held[0], "a genuine frame delivered 3 ticks late")
+        if k == at["content"] + 5:
+            add(k + 0.6, step, can.Message(arbitration_id=0x100 + i, is_extended_id=True,
+                                           data=bytes(8)), "extended ID")
+        if k == at["content"] + 7:
+            add(k + 0.6, step, can.Message(arbitration_id=_unknown_id(codec),
+                                           is_extended_id=False, data=bytes(8)), "unknown ID")
+        if k == at["content"] + 9:
+            add(k + 0.6, step, can.Message(arbitration_id=codec.frame_id(mc_name(i)),
+                                           is_extended_id=False, data=bytes(range(8))),
+                "the DUT's own MC ID")
+        if k == at["content"] + 11 and nbrs:
+            short = tx.frame(mc_name(nbrs[0]), {"State": int(State.RUNNING),
+                                                 "Lambda": lam_j(nbrs[0], k), "Resets": 0})
+            add(k + 0.6, step, can.Message(arbitration_id=short.arbitration_id,
+                                           is_extended_id=False, data=short.data[:7]),
+                "DLC 7")
+        for tick, cmd, target, kk, hh, note in (
+                (10, Command.SET_GAINS, i, 1.5 * k_gain, 1.5 * h_gain, "SET_GAINS in bounds"),
+                (20, Command.SET_GAINS, i, 3 * k_gain, h_gain, "SET_GAINS out of bounds"),
+                (30, Command.ISOLATE, other, 0, 0, "ISOLATE for another agent"),
+                (40, Command.ISOLATE, i, 0, 0, "ISOLATE"),
+                (50, Command.ISOLATE, i, 0, 0, "ISOLATE while ISOLATED"),
+                (70, Command.RECONNECT, i, 0, 0, "RECONNECT")):
+            if k == at["commands"] + tick:
+                add(k + 0.6, step, tx.frame("ER_Command", {
+                    "Command": int(cmd), "Target": target, "GainK": round(kk * 1000),
+                    "GainH": round(hh * 1000)}), note)
+    out.sort(key=lambda p: p.at)
+    return out
+
+
+def _copy(msg: can.Message) -> can.Message:
+    return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False,
+                       data=bytes(msg.data))
+
+
+def _unknown_id(codec: FrameCodec) -> int:
+    return next(fid for fid in range(0x7FF, 0, -1) if fid not in codec.frame_ids())

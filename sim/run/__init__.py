@@ -1,0 +1,3 @@
+"""Runs of a scenario: in the lockstep (``lockstep_case``) and on a bus (``fleet_plan``,
+``busrun``), with the recorder's log read back (``buslog``), the verdict, the report
+(``runreport``), the analysis of a recorded log and the fleet's key sets (``keyset``)."""
