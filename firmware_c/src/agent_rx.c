@@ -226,6 +226,18 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
     return 1;
 }
 
+/* AUTH-16, AUTH-26: a verified sync of value v below `last`, the last one accepted:
+ * less than one window behind, its tick's frame overtook it (`stale`, no streak);
+ * further, a replay (`auth`). */
+static void old_sync(bd_agent *a, uint64_t last, uint64_t v, uint32_t id, int64_t t)
+{
+    if (last - v < FV_WINDOW) {
+        reject(a, BD_C_STALE, id);
+    } else {
+        fail(a, NULL, id, BD_C_AUTH, t);
+    }
+}
+
 /* AUTH-13..17: a sync of one of the agent's inputs. */
 static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
 {
@@ -250,11 +262,7 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
     }
     if (a->joining) {   /* AUTH-26: keep the sender's newest sync until the window ends */
         if ((s->flags & BD_RX_JOIN) != 0u && fv < s->fv) {
-            if (s->fv - fv < FV_WINDOW) {
-                reject(a, BD_C_STALE, f->id);     /* late, as in AUTH-16 */
-            } else {
-                fail(a, NULL, f->id, BD_C_AUTH, t);   /* older than one already heard */
-            }
+            old_sync(a, s->fv, fv, f->id, t);   /* older than one already heard */
             return;
         }
         if ((s->flags & BD_RX_JOIN) == 0u) {
@@ -271,12 +279,8 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
             s->flags &= (uint8_t)~BD_RX_LOST;   /* in step with the sender */
             return;
         }
-        if (!a->insecure) {   /* a genuine sync never goes back: a replay ... */
-            if (s->fv - (fv - 1u) < FV_WINDOW) {
-                reject(a, BD_C_STALE, f->id);   /* ... or its tick's frame overtook it */
-            } else {
-                fail(a, NULL, f->id, BD_C_AUTH, t);
-            }
+        if (!a->insecure) {   /* a genuine sync never goes back */
+            old_sync(a, s->fv, fv - 1u, f->id, t);
             return;
         }
         s->flags &= (uint8_t)~BD_RX_HAS_FV;   /* --insecure: a restarted sender is at boot 1 */
