@@ -148,12 +148,12 @@ def contract_header(db: Database) -> tuple[str, str]:
         define(f"BD_AGENT_DIAG_{sig.upper()}_START", diag.get_signal_by_name(sig).start,
                f"{diag_name(1)}.{sig} start bit")
     diag_signals = [name for page in pages.values() for name in page]
-    # src/agent.c maps each signal to its counter: a DBC signal it does not know would be
-    # sent as 0 without a word, so the build stops instead
-    agent_c = (Path(__file__).resolve().parent / "src" / "agent.c").read_text()
-    unmapped = [n for n in diag_signals if f"case BD_DIAG_SIG_{n.upper()}:" not in agent_c]
+    # src/agent_diag.c maps each signal to its counter: a DBC signal it does not know would
+    # be sent as 0 without a word, so the build stops instead
+    diag_c = (Path(__file__).resolve().parent / "src" / "agent_diag.c").read_text()
+    unmapped = [n for n in diag_signals if f"case BD_DIAG_SIG_{n.upper()}:" not in diag_c]
     if unmapped:
-        sys.exit(f"gen_contract: src/agent.c (diag_value) has no source for the DBC's "
+        sys.exit(f"gen_contract: src/agent_diag.c (diag_value) has no source for the DBC's "
                  f"{diag_name(1)} signals {', '.join(unmapped)}")
     for k, name in enumerate(diag_signals):
         define(f"BD_DIAG_SIG_{name.upper()}", k, "AGENT_<i>_Diag signal")

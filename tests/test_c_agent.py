@@ -1,4 +1,4 @@
-"""The C agent runtime (firmware_c/src/agent.c) against firmware_py, bit for bit.
+"""The C agent runtime (firmware_c/src/agent*.c) against firmware_py, bit for bit.
 
 Every node vector (tests/vectors/node) replays through the C runtime exactly as through
 firmware_py's (tests/test_node_vectors.py ``replay``): same configuration, keys, frames

@@ -1,4 +1,4 @@
-"""The C node's configuration and key-file loader (firmware_c/src/config.c).
+"""The C node's configuration and key-file loader (firmware_c/src/config.c, keyfile.c).
 
 Every paper case's agent configurations and every node vector's, written as `bess-ded up`
 writes them, load in C to exactly the integers firmware_py computes (sim.cbind.cagent.params_of:

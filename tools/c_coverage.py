@@ -25,7 +25,8 @@ ROOT = Path(__file__).resolve().parent.parent
 FIRMWARE = ROOT / "firmware_c"
 TESTS = ["tests/test_c_core.py", "tests/test_c_agent.py", "tests/test_c_edges.py",
          "tests/test_c_config.py"]
-MEASURED = ("controller.c", "agent.c", "frames.c", "secoc.c", "config.c")
+MEASURED = ("controller.c", "agent.c", "agent_rx.c", "agent_rules.c", "agent_diag.c", "frames.c",
+            "secoc.c", "toml.c", "config.c", "keyfile.c")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,4 +1,4 @@
-"""The C agent runtime (firmware_c/src/agent.c) from Python, through ctypes.
+"""The C agent runtime (firmware_c/src/agent*.c) from Python, through ctypes.
 
 ``CAgent`` has the node seam of firmware_py's ``AgentRuntime`` (``on_frame(msg, t)``,
 ``tick(t) -> frames``, ``note``, ``counters``, ``state``, ``lam``), so tests replay the

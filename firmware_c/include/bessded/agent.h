@@ -123,8 +123,8 @@ const char *bd_counter_name(int counter);
 #define BD_EV_STATE 100
 typedef void (*bd_event_fn)(void *ctx, int event, uint32_t frame_id, uint32_t detail);
 
-/* ---- the agent's state: private to src/agent.c, public only for static allocation.
- * Laid out for a small MCU: about 3 KB with 31 neighbours (firmware_c/README.md). */
+/* ---- the agent's state: private to the runtime (src/agent*.c), public only for static
+ * allocation. Laid out for a small MCU: about 3 KB with 31 neighbours (firmware_c/README.md). */
 #define BD_RX_UNTRUSTED 0x01u     /* bd_rx_slot.flags: untrusted_until is set */
 #define BD_RX_HAS_FV 0x02u        /* the last accepted freshness value is known */
 #define BD_RX_LOST 0x04u          /* its sender timed out: LOST_WINDOWS windows tried */

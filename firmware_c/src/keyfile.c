@@ -1,0 +1,286 @@
+/*
+ * The node key file (config.h; docs/firmware-spec.md CFG-8, section 12): an owner-only
+ * TOML file (toml.c) of format bess-ded-secoc-node-key/1 into a bd_keyring, with
+ * firmware_py's checks and wording; the boot counter rewritten before it is used
+ * (AUTH-3's write-ahead, keeping the peers' boot floors, AUTH-21); and the public
+ * --insecure keyring (AUTH-20). Host side only (POSIX).
+ */
+#define _POSIX_C_SOURCE 200809L
+#include "bessded/config.h"
+
+#include <ctype.h>
+#include <errno.h>
+#include <fcntl.h>
+#include <stdio.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include "toml.h"
+
+#define KEY_FILE_FORMAT "bess-ded-secoc-node-key/1"
+#define KEY_FILE_HEADER \
+    "# bess-ded SecOC node key (docs/security.md). Secret: keep it owner-only (0600).\n" \
+    "# freshness.boot_counter is rewritten at every start; losing it means " \
+    "re-provisioning.\n"
+
+typedef struct {
+    char path[4096];
+    char fleet_id[17];
+    char kdf[STR_MAX];
+    char mac[STR_MAX];
+    bd_keyring *ring;
+} key_file;
+
+static key_file key_file_state;   /* the persist callback's context (one node per process) */
+
+static int hex_key(const char *s, uint8_t out[BD_KEY_BYTES])
+{
+    if (strlen(s) != 2u * BD_KEY_BYTES) {
+        return -1;
+    }
+    for (int k = 0; k < BD_KEY_BYTES; ++k) {
+        unsigned v = 0u;
+        for (int j = 0; j < 2; ++j) {
+            char c = (char)tolower((unsigned char)s[2 * k + j]);
+            if (!isxdigit((unsigned char)c)) {
+                return -1;
+            }
+            v = v * 16u + (unsigned)(isdigit((unsigned char)c) ? c - '0' : c - 'a' + 10);
+        }
+        out[k] = (uint8_t)v;
+    }
+    return 0;
+}
+
+static int node_label_ok(const char *s)
+{
+    size_t n = strlen(s);
+    if (n < 1u || n > BD_LABEL_MAX || !(s[0] >= 'a' && s[0] <= 'z')) {
+        return 0;
+    }
+    for (size_t k = 0u; k < n; ++k) {
+        if (!((s[k] >= 'a' && s[k] <= 'z') || isdigit((unsigned char)s[k]) || s[k] == '_')) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+static void hex_of(const uint8_t *b, size_t n, char *out)
+{
+    static const char digits[] = "0123456789abcdef";
+    for (size_t k = 0u; k < n; ++k) {
+        out[2u * k] = digits[b[k] >> 4];
+        out[2u * k + 1u] = digits[b[k] & 15u];
+    }
+    out[2u * n] = '\0';
+}
+
+/* Rewrite the key file with a new boot counter: a 0600 temporary file (O_EXCL,
+ * O_NOFOLLOW), fsynced, renamed over, the directory fsynced (AUTH-3's write-ahead). */
+static int persist_boot(void *ctx, uint32_t boot)
+{
+    const key_file *kf = ctx;
+    const bd_keyring *k = kf->ring;
+    char tmp[4200];
+    char hex[2 * BD_KEY_BYTES + 1];
+    (void)snprintf(tmp, sizeof tmp, "%s.%ld.tmp", kf->path, (long)getpid());
+    int fd = open(tmp, O_WRONLY | O_CREAT | O_EXCL | O_NOFOLLOW, 0600);
+    if (fd < 0) {
+        return -1;
+    }
+    FILE *f = fdopen(fd, "w");
+    if (f == NULL) {
+        (void)close(fd);
+        (void)unlink(tmp);
+        return -1;
+    }
+    hex_of(k->key, BD_KEY_BYTES, hex);
+    int ok = fprintf(f, "%sformat = \"%s\"\nnode = \"%s\"\nfleet_id = \"%s\"\nkdf = \"%s\"\n"
+                     "mac = \"%s\"\nkey = \"%s\"\n\n[freshness]\nboot_counter = %u\n\n[peers]\n",
+                     KEY_FILE_HEADER, KEY_FILE_FORMAT, k->node, kf->fleet_id, kf->kdf, kf->mac,
+                     hex, boot) > 0;
+    for (uint32_t p = 0u; p < k->n_peers && ok; ++p) {
+        hex_of(k->peer_key[p], BD_KEY_BYTES, hex);
+        ok = fprintf(f, "%s = \"%s\"\n", k->peer_label[p], hex) > 0;
+    }
+    int floors = 0;   /* AUTH-21: the peers' boot floors are kept */
+    for (uint32_t p = 0u; p < k->n_peers && ok; ++p) {
+        if (k->peer_floor[p] != 0u) {
+            if (floors == 0) {
+                ok = fprintf(f, "\n[floors]\n") > 0;
+                floors = 1;
+            }
+            ok = ok && fprintf(f, "%s = %u\n", k->peer_label[p],
+                               (unsigned)k->peer_floor[p]) > 0;
+        }
+    }
+    ok = ok && fflush(f) == 0 && fsync(fileno(f)) == 0;
+    ok = (fclose(f) == 0) && ok;
+    if (!ok || rename(tmp, kf->path) != 0) {
+        (void)unlink(tmp);
+        return -1;
+    }
+    char dir[4096];
+    memcpy(dir, kf->path, strlen(kf->path) + 1u);
+    char *slash = strrchr(dir, '/');
+    if (slash != NULL) {
+        *slash = '\0';
+    } else {
+        memcpy(dir, ".", 2u);
+    }
+    int dfd = open(dir[0] != '\0' ? dir : "/", O_RDONLY);
+    if (dfd >= 0) {
+        (void)fsync(dfd);
+        (void)close(dfd);
+    }
+    return 0;
+}
+
+int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err,
+                    size_t errlen)
+{
+    static toml_doc d;
+    static char text[TEXT_MAX];
+    struct stat st;
+    key_file *kf = &key_file_state;
+    memset(k, 0, sizeof *k);
+    if (lstat(path, &st) != 0) {
+        (void)snprintf(err, errlen, "%s: cannot read the node key file: %s", path,
+                       strerror(errno));
+        return -1;
+    }
+    /* a symbolic link is refused, not followed, as firmware_py does: a boot counter saved
+     * through it would replace the link by a copy and leave the target's behind */
+    if (S_ISLNK(st.st_mode)) {
+        (void)snprintf(err, errlen, "%s: expected the node key file itself, but got a "
+                       "symbolic link: give the file's own path", path);
+        return -1;
+    }
+    if (!S_ISREG(st.st_mode)) {
+        (void)snprintf(err, errlen, "%s: expected a regular file for the node key file", path);
+        return -1;
+    }
+    if ((st.st_mode & 077) != 0u) {
+        (void)snprintf(err, errlen, "%s: permissions %04o are too open: the node key file "
+                       "must not be accessible by group or others (chmod 600 %s)", path,
+                       (unsigned)(st.st_mode & 07777), path);
+        return -1;
+    }
+    if (st.st_uid != getuid()) {
+        (void)snprintf(err, errlen, "%s: the node key file is owned by uid %u, not by this "
+                       "user (%u)", path, (unsigned)st.st_uid, (unsigned)getuid());
+        return -1;
+    }
+    if (bd_toml_read_file(path, text, sizeof text, err, errlen, "node key file") != 0) {
+        return -1;
+    }
+    memset(&d, 0, sizeof d);
+    d.src = path;
+    d.err = err;
+    d.errlen = errlen;
+    if (bd_toml_parse(&d, text) != 0) {
+        (void)snprintf(err, errlen, "%s: not a readable TOML node key file", path);
+        return -1;
+    }
+    const toml_entry *e = bd_toml_find(&d, "", -1, "format");
+    if (e == NULL || e->type != TOML_STRING || strcmp(e->s, KEY_FILE_FORMAT) != 0) {
+        (void)snprintf(err, errlen, "%s: [format] expected '%s'", path, KEY_FILE_FORMAT);
+        return -1;
+    }
+    e = bd_toml_find(&d, "", -1, "node");
+    if (e == NULL || e->type != TOML_STRING || !node_label_ok(e->s)) {
+        (void)snprintf(err, errlen, "%s: [node] expected a name like 'agent_3', 'plant' or "
+                       "'router'", path);
+        return -1;
+    }
+    if (strcmp(e->s, node) != 0) {
+        (void)snprintf(err, errlen, "--key %s: expected the key file of %s, but got the one "
+                       "of %s", path, node, e->s);
+        return -1;
+    }
+    memcpy(k->node, e->s, strlen(e->s) + 1u);
+    e = bd_toml_find(&d, "", -1, "fleet_id");
+    if (e == NULL || e->type != TOML_STRING || strlen(e->s) != 16u) {
+        (void)snprintf(err, errlen, "%s: [fleet_id] expected 16 hex digits", path);
+        return -1;
+    }
+    memcpy(kf->fleet_id, e->s, 17u);
+    e = bd_toml_find(&d, "", -1, "kdf");
+    (void)snprintf(kf->kdf, sizeof kf->kdf, "%s", e != NULL && e->type == TOML_STRING ? e->s
+                   : "NIST SP 800-108 counter mode, CMAC-AES-128");
+    e = bd_toml_find(&d, "", -1, "mac");
+    (void)snprintf(kf->mac, sizeof kf->mac, "%s", e != NULL && e->type == TOML_STRING ? e->s
+                   : "CMAC-AES-128");
+    e = bd_toml_find(&d, "", -1, "key");
+    if (e == NULL || e->type != TOML_STRING || hex_key(e->s, k->key) != 0) {
+        (void)snprintf(err, errlen, "%s: [key] expected %d hex digits", path, 2 * BD_KEY_BYTES);
+        return -1;
+    }
+    e = bd_toml_find(&d, "freshness", -1, "boot_counter");
+    if (e == NULL || e->type != TOML_INT || e->i < 0 || e->i > 65535) {
+        (void)snprintf(err, errlen, "%s: [freshness.boot_counter] expected an integer "
+                       "0..65535", path);
+        return -1;
+    }
+    k->boot = (uint32_t)e->i;
+    for (int q = 0; q < d.n; ++q) {
+        const toml_entry *pe = &d.e[q];
+        if (strcmp(pe->table, "peers") != 0) {
+            continue;
+        }
+        if (!node_label_ok(pe->key)) {
+            (void)snprintf(err, errlen, "%s: [peers] expected a name like 'agent_3', 'plant' "
+                           "or 'router', but got '%s'", path, pe->key);
+            return -1;
+        }
+        if (k->n_peers >= BD_MAX_PEERS) {
+            (void)snprintf(err, errlen, "%s: [peers] expected at most %d keys", path,
+                           BD_MAX_PEERS);
+            return -1;
+        }
+        if (pe->type != TOML_STRING || hex_key(pe->s, k->peer_key[k->n_peers]) != 0) {
+            (void)snprintf(err, errlen, "%s: [%s] expected %d hex digits", path, pe->key,
+                           2 * BD_KEY_BYTES);
+            return -1;
+        }
+        memcpy(k->peer_label[k->n_peers], pe->key, strlen(pe->key) + 1u);
+        k->n_peers++;
+    }
+    for (int q = 0; q < d.n; ++q) {   /* AUTH-21: each peer's lowest boot accepted */
+        const toml_entry *pe = &d.e[q];
+        if (strcmp(pe->table, "floors") != 0) {
+            continue;
+        }
+        uint32_t p = 0u;
+        while (p < k->n_peers && strcmp(k->peer_label[p], pe->key) != 0) {
+            p++;
+        }
+        if (p == k->n_peers || pe->type != TOML_INT || pe->i < 0 || pe->i > 65535) {
+            (void)snprintf(err, errlen, "%s: [floors] expected a table of peer = lowest boot "
+                           "counter (0..65535), for peers listed in [peers], but got '%s'",
+                           path, pe->key);
+            return -1;
+        }
+        k->peer_floor[p] = (uint16_t)pe->i;
+    }
+    (void)snprintf(kf->path, sizeof kf->path, "%s", path);
+    kf->ring = k;
+    k->persist_boot = persist_boot;
+    k->persist_ctx = kf;
+    return 0;
+}
+
+int bd_keyring_insecure(const char *node, bd_keyring *k)
+{
+    static const uint8_t zero[BD_KEY_BYTES] = {0};
+    memset(k, 0, sizeof *k);
+    if (!node_label_ok(node)) {
+        return -1;
+    }
+    memcpy(k->node, node, strlen(node) + 1u);
+    k->insecure = 1;
+    k->boot = 0u;   /* the runtime starts at boot 1 (AUTH-20) */
+    return bd_derive_node_key(zero, node, k->key);
+}
