@@ -166,7 +166,6 @@ class AgentRuntime:
                         for name in ("Resets",)}
 
         self.price: int | None = None      # ρ, Q24
-        self.price_segment = 0
         self.price_rx: float | None = None
         self.status_rx: float | None = None
         self._price_fresh = False          # for the fresh→stale edges (timeouts)
@@ -234,7 +233,6 @@ class AgentRuntime:
                         fx.to_float(self.price), fx.to_float(rho), n)
         self._candidate(None)
         self.price = rho
-        self.price_segment = f.raw["Segment"]
         self.price_rx = t
 
     def _candidate(self, rho: int | None) -> int:

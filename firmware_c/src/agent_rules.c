@@ -65,7 +65,6 @@ int bd_on_price(bd_agent *a, const bd_price_msg *m, uint32_t id, int64_t t)
     (void)candidate(a, 0, 0);
     a->price = m->rho;
     a->has_price = 1;
-    a->price_segment = m->segment;
     a->price_rx = t;
     a->has_price_rx = 1;
     return 0;

@@ -196,7 +196,6 @@ typedef struct {
     int32_t price;
     int32_t candidate;
     uint32_t candidate_n;
-    uint32_t price_segment;
     uint8_t has_price, has_price_rx, has_status_rx, price_fresh, status_fresh, plant_fault,
         power_limited, has_candidate;
     /* transmit side */
