@@ -12,7 +12,8 @@ script changes); nothing it writes is committed. Into OUT_DIR:
   this keeps the generated code at 11 messages instead of 229.
 * ``bd_contract.h`` / ``bd_contract.c``: every constant of the contract the firmware
   needs (IDs and per-agent ID bases, the agent limit, cadences, the E2E counter, the
-  SecOC bit widths, State/Command/SafetyCause values, raw ranges, the Diag pages), and
+  SecOC bit widths, State/Command/SafetyCause values, raw ranges, the Diag pages, the
+  agent's counters from firmware_py's ``contract.AGENT_COUNTERS``), and
   tables of every DBC ID (kind, cycle) and of the sync IDs. Read from the DBC through
   firmware_py's contract module, which checks the ID plan on load.
 
@@ -181,6 +182,10 @@ def contract_header(db: Database) -> tuple[str, str]:
           " * contract.PEER_SYNCED_BY) and the secured frame ID each carries the freshness of. */",
           "extern const uint16_t bd_sync_ids[BD_N_SYNC_IDS];",
           "extern const uint16_t bd_synced_by[BD_N_SYNC_IDS];",
+          "", "/* An agent's counters (spec section 13), indexed by BD_C_*; the names are",
+          " * firmware_py's (contract.AGENT_COUNTERS, the one list). */", "enum {",
+          *(f"    BD_C_{n.upper()}," for n in contract.AGENT_COUNTERS), "    BD_C_COUNT", "};",
+          "extern const char *const bd_counter_names[BD_C_COUNT];",
           "", "#endif /* BD_CONTRACT_H */", ""]
     bitmap = [0] * 256
     for fid in ids:
@@ -203,7 +208,9 @@ def contract_header(db: Database) -> tuple[str, str]:
                           f"{codec.raw_range(diag_name(1), name)[1]}u}}")
         c.append(f"    {{{', '.join(fields)}}},  /* page {page} */")
     c += ["};", "const uint8_t bd_diag_page_signals[BD_DIAG_PAGES] = {",
-          "    " + ", ".join(f"{len(names)}u" for names in pages.values()) + ",", "};", ""]
+          "    " + ", ".join(f"{len(names)}u" for names in pages.values()) + ",", "};", "",
+          "const char *const bd_counter_names[BD_C_COUNT] = {",
+          *(f'    "{n}",' for n in contract.AGENT_COUNTERS), "};", ""]
     return "\n".join(h), "\n".join(c)
 
 

@@ -231,6 +231,22 @@ FV_BOOT_BITS = _CODEC.raw_range("ER_Price_Sync", "Boot")[1].bit_length()
 FRESHNESS = FreshnessLayout(FV_BOOT_BITS, FV_COUNT_BITS)
 """The one join and split of a freshness value (Boot ‖ Count), sized by the DBC."""
 
+# An agent's counters (docs/firmware-spec.md section 13) by the names firmware_py counts
+# them under, in the order firmware_c indexes them (BD_C_*, generated from this tuple by
+# firmware_c/gen_contract.py): the one list of both agents and of the node vectors.
+AGENT_COUNTERS: tuple[str, ...] = (
+    "crc", "dlc", "range", "unknown_id", "malformed", "impersonation", "repeated_counter",
+    "lost_frames", "saturations", "neighbour_timeouts", "price_timeouts", "status_timeouts",
+    "plant_faults", "foreign", "foreign_id", "counter_jump", "counter_clash",
+    "untrusted_sources", "untrusted", "implausible_price", "implausible_lambda",
+    "implausible_gains", "auth", "unsynced", "resyncs", "deadline_miss", "send_failure",
+    "error_frame", "commands", "commands_isolate", "commands_reconnect",
+    "price_steps_accepted", "setpoint_limited",
+    "not_a_frame", "invalid_frame", "rx_error",  # the bus's inputs (LOOP-6)
+    "stale",
+    "joining",  # AUTH-26: frames of the join window
+)
+
 
 def sender_of(name: str) -> str:
     """The key label of a message's transmitter in the DBC: ``router`` (ER), ``plant``

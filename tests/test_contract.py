@@ -87,3 +87,28 @@ def test_secoc_constants_are_read_from_the_dbc() -> None:
     assert [contract.sender_of(n) for n in ("ER_Command", "PLANT_3_Status",
                                             "AGENT_7_Setpoint")] == ["router", "plant",
                                                                      "agent_7"]
+
+
+def test_every_counter_the_python_agent_counts_is_in_the_one_list() -> None:
+    """The counter names firmware_py's agent uses (``counters["…"]``, ``reject("…")``,
+    ``fail(id, "…")``) are contract.AGENT_COUNTERS', the list firmware_c's BD_C_* are
+    generated from: a name typed differently in one place fails here."""
+    import ast
+    from pathlib import Path
+
+    from firmware_py import contract
+
+    root = Path(contract.__file__).parent
+    used: set[str] = set()
+    for name in ("nodeio.py", "runtime.py", "node.py"):
+        for n in ast.walk(ast.parse((root / name).read_text(encoding="utf-8"))):
+            if isinstance(n, ast.Subscript) and isinstance(n.value, ast.Attribute) \
+                    and n.value.attr == "counters" and isinstance(n.slice, ast.Constant):
+                used.add(n.slice.value)
+            elif isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute):
+                pos = {"reject": 0, "fail": 1}.get(n.func.attr)
+                if pos is not None and len(n.args) > pos \
+                        and isinstance(n.args[pos], ast.Constant):
+                    used.add(n.args[pos].value)
+    assert len(used) >= 15  # the walk found the agent's counting
+    assert used - set(contract.AGENT_COUNTERS) == set()

@@ -11,19 +11,9 @@
 
 #include "agent_internal.h"
 
-static const char *const counter_names[BD_C_COUNT] = {
-    "crc", "dlc", "range", "unknown_id", "malformed", "impersonation", "repeated_counter",
-    "lost_frames", "saturations", "neighbour_timeouts", "price_timeouts", "status_timeouts",
-    "plant_faults", "foreign", "foreign_id", "counter_jump", "counter_clash",
-    "untrusted_sources", "untrusted", "implausible_price", "implausible_lambda",
-    "implausible_gains", "auth", "unsynced", "resyncs", "deadline_miss", "send_failure",
-    "error_frame", "commands", "commands_isolate", "commands_reconnect",
-    "price_steps_accepted", "setpoint_limited", "not_a_frame", "invalid_frame", "rx_error",
-    "stale", "joining"};
-
 const char *bd_counter_name(int counter)
 {
-    return (counter >= 0 && counter < BD_C_COUNT) ? counter_names[counter] : NULL;
+    return (counter >= 0 && counter < BD_C_COUNT) ? bd_counter_names[counter] : NULL;
 }
 
 size_t bd_agent_size(void)

@@ -97,21 +97,8 @@ typedef struct {
     void *persist_ctx;
 } bd_keyring;
 
-/* Counters (spec section 13), indexed by BD_C_*; the names are firmware_py's. */
-enum {
-    BD_C_CRC, BD_C_DLC, BD_C_RANGE, BD_C_UNKNOWN_ID, BD_C_MALFORMED, BD_C_IMPERSONATION,
-    BD_C_REPEATED_COUNTER, BD_C_LOST_FRAMES, BD_C_SATURATIONS, BD_C_NEIGHBOUR_TIMEOUTS,
-    BD_C_PRICE_TIMEOUTS, BD_C_STATUS_TIMEOUTS, BD_C_PLANT_FAULTS, BD_C_FOREIGN,
-    BD_C_FOREIGN_ID, BD_C_COUNTER_JUMP, BD_C_COUNTER_CLASH, BD_C_UNTRUSTED_SOURCES,
-    BD_C_UNTRUSTED, BD_C_IMPLAUSIBLE_PRICE, BD_C_IMPLAUSIBLE_LAMBDA, BD_C_IMPLAUSIBLE_GAINS,
-    BD_C_AUTH, BD_C_UNSYNCED, BD_C_RESYNCS, BD_C_DEADLINE_MISS, BD_C_SEND_FAILURE,
-    BD_C_ERROR_FRAME, BD_C_COMMANDS, BD_C_COMMANDS_ISOLATE, BD_C_COMMANDS_RECONNECT,
-    BD_C_PRICE_STEPS_ACCEPTED, BD_C_SETPOINT_LIMITED,
-    BD_C_NOT_A_FRAME, BD_C_INVALID_FRAME, BD_C_RX_ERROR,   /* the bus's inputs (LOOP-6) */
-    BD_C_STALE,
-    BD_C_JOINING,                 /* AUTH-26: frames of the join window */
-    BD_C_COUNT
-};
+/* The counters' indices BD_C_* and BD_C_COUNT: bd_contract.h, generated from
+ * firmware_py's contract.AGENT_COUNTERS. */
 
 /* The counter's name as firmware_py counts it ("crc", "deadline_miss", ...); NULL if
  * out of range. */
