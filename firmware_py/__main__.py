@@ -33,6 +33,8 @@ from .nodeargs import (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The agent program's flags: --config, the key, bus and filter flags,
+    --duration, --rt-priority and the fault-injection flags."""
     p.add_argument("--config", required=True, help="agent TOML file (firmware_py/config.py)")
     add_key_arguments(p)
     add_bus_arguments(p)
@@ -52,6 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_agent(args: argparse.Namespace) -> int:
+    """Run one agent node from parsed flags until --duration or SIGINT/SIGTERM;
+    prints its summary (and injected faults) to stderr at exit. Returns the exit code."""
     from .runtime import AgentRuntime
 
     cfg = load_agent_config(args.config)
@@ -80,6 +84,8 @@ def run_agent(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m firmware_py``: parse ``argv`` and run the agent; the exit code
+    (2 on a usage, configuration, key or bus error, reported on one line)."""
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     p = argparse.ArgumentParser(prog="python -m firmware_py", description=__doc__)
     add_arguments(p)

@@ -76,6 +76,7 @@ def nonnegative_float(what: str = "a finite number") -> Callable[[str], float]:
 
 
 def probability(text: str) -> float:
+    """An argparse type: a float in [0, 1]."""
     return float_in(0.0, 1.0, what="a probability")(text)
 
 

@@ -107,6 +107,8 @@ def untrusted_s(ts: float) -> float:
 
 @dataclass(frozen=True)
 class Neighbour:
+    """One neighbour of an agent: its id and the edge weight a_ij."""
+
     id: int
     weight: float = 1.0
 
@@ -124,6 +126,9 @@ class DispatchParams:
 
 @dataclass(frozen=True)
 class AgentConfig:
+    """Everything one agent node is configured with (its agent TOML, validated):
+    identity, controller, neighbours, dispatch parameters, timeouts and limits."""
+
     id: int
     lambda0: float
     pinned: bool
@@ -192,6 +197,8 @@ class AgentConfig:
 
 
 def load_agent_config(path: str | Path) -> AgentConfig:
+    """An agent TOML file, parsed and validated; ConfigError naming the file
+    and key on any problem."""
     path = Path(path)
     try:
         data = tomllib.loads(path.read_bytes().decode("utf-8"))
@@ -213,6 +220,8 @@ def load_agent_config(path: str | Path) -> AgentConfig:
 
 
 def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
+    """An agent configuration from parsed TOML ``data`` (``src`` names it in
+    errors); ConfigError on an unknown, missing or out-of-range key."""
     def fail(key: str, problem: str) -> ConfigError:
         return ConfigError(src, key, problem)
 

@@ -182,33 +182,43 @@ class FixedArithmetic:
         self._pow_sqrts = f.denominator.bit_length() - 1  # denominator is 2**n
 
     def quantise(self, x: float, name: str) -> int:
+        """A real value as a Q-format word (round to nearest); refuses one that does not fit."""
         return fx.to_fixed(x, name, self.q)
 
     def quantise_gain(self, x: float, name: str) -> int:
+        """A controller constant as an int32 Q1.30 gain (fixedpoint.to_q30)."""
         return fx.to_q30(x, name)
 
     def real(self, v: float | int) -> float:
+        """A word's real value."""
         return fx.to_float(int(v), self.q)
 
     def real_state(self, v: float | int) -> float:
+        """A state word's real value (q + GUARD fractional bits)."""
         return fx.to_float(int(v), self.q + fx.GUARD)
 
     def mul(self, a: float | int, b: float | int) -> int:
+        """word · word → word, rounded to nearest (not yet saturated)."""
         return fx.mul(int(a), int(b), self.q)
 
     def gain_mul(self, c: float | int, v: float | int) -> int:
+        """gain · word → state word, exact (int32 × int32 → int64)."""
         return int(c) * int(v)          # int32 × int32 → int64, exact (SMULL)
 
     def sat(self, v: float | int) -> tuple[int, bool]:
+        """A word clamped to int32: (value, clamped?)."""
         return fx.saturate(int(v))
 
     def sat_state(self, v: float | int) -> tuple[int, bool]:
+        """A state word clamped to the Q54 image of int32: (value, clamped?)."""
         return fx.saturate_state(int(v))
 
     def narrow(self, v: float | int) -> int:
+        """A state word rounded to a word (the λ on the wire)."""
         return fx.narrow(int(v))
 
     def widen(self, v: float | int) -> int:
+        """A word as a state word (exact)."""
         return fx.widen(int(v))
 
     def frac_pow(self, v: float | int) -> int:
@@ -229,36 +239,47 @@ class FloatArithmetic:
         self.exponent = exponent
 
     def quantise(self, x: float, name: str) -> float:
+        """The value itself, as a float (no quantisation in the twin)."""
         return float(x)
 
     def quantise_gain(self, x: float, name: str) -> float:
+        """The constant itself, as a float."""
         return float(x)
 
     def real(self, v: float | int) -> float:
+        """The value itself, as a float."""
         return float(v)
 
     def real_state(self, v: float | int) -> float:
+        """The value itself, as a float."""
         return float(v)
 
     def mul(self, a: float | int, b: float | int) -> float:
+        """The plain product a · b."""
         return a * b
 
     def gain_mul(self, c: float | int, v: float | int) -> float:
+        """The plain product c · v."""
         return c * v
 
     def sat(self, v: float | int) -> tuple[float, bool]:
+        """(v, False): the float twin never saturates."""
         return float(v), False
 
     def sat_state(self, v: float | int) -> tuple[float, bool]:
+        """(v, False): the float twin never saturates."""
         return float(v), False
 
     def narrow(self, v: float | int) -> float:
+        """The value itself: the twin's state and wire λ are one float."""
         return float(v)
 
     def widen(self, v: float | int) -> float:
+        """The value itself: the twin's state and wire λ are one float."""
         return float(v)
 
     def frac_pow(self, v: float | int) -> float:
+        """|v|**exponent in double precision."""
         return abs(v) ** self.exponent
 
 
@@ -283,6 +304,8 @@ class ControllerState:
 
 @dataclass(frozen=True, slots=True)
 class StepOutput:
+    """What one controller step did besides the new state: Δλ and whether ν was reset."""
+
     dlam: float | int   # λ increment applied this sample (= Ts·u), a state word (Q54)
     reset: bool         # ν was reset at this sample
 
@@ -340,6 +363,7 @@ class Controller:
         return self.ar.real_state(v)
 
     def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
+        """One sample: the state after consensus error ``xi``, and what the step did."""
         raise NotImplementedError
 
     def _advance(self, s: ControllerState, xi: float | int, dlam: float | int, sats: int,
@@ -353,13 +377,19 @@ class Controller:
 
 
 class ProportionalController(Controller):
+    """Proportional consensus (PC): Δλ = −k·Ts·ξ, no integral state."""
+
     def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
+        """Δλ = −k·Ts·ξ (saturated and counted); ν stays 0."""
         dlam, sat = self.ar.sat_state(-self.ar.gain_mul(self.kts, xi))
         return self._advance(s, xi, dlam, sat, 0, False, s.armed)
 
 
 class FiniteTimeController(Controller):
+    """Finite-time consensus: Δλ = −k·Ts·sign(ξ)·|ξ|**a."""
+
     def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
+        """Δλ = −k·Ts·sign(ξ)·|ξ|**a (saturated and counted); ν stays 0."""
         mag = self.ar.gain_mul(self.kts, self.ar.frac_pow(xi))
         dlam, sat = self.ar.sat_state(-mag if xi > 0 else mag if xi < 0 else 0)
         return self._advance(s, xi, dlam, sat, 0, False, s.armed)
@@ -372,6 +402,8 @@ class PIController(Controller):
         return False
 
     def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
+        """Δλ = −(k·Ts·ξ + h·Ts·ν), ν += Ts·ξ; ν zeroed first when the
+        variant's ``_reset_now`` says so, and the reset band re-armed once |ξ| leaves it."""
         reset = self._reset_now(s, xi)
         nu = 0 if reset else s.nu
         # re-arm once |ξ| has left the band *after* the last reset (not at the reset

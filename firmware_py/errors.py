@@ -38,18 +38,26 @@ class FrameError(BessDedError):
 
 
 class UnknownFrameError(FrameError):
+    """A received frame on an ID the DBC does not define (counted as unknown_id)."""
+
     cause = "unknown_id"
 
 
 class FrameLengthError(FrameError):
+    """A received frame whose DLC is not its message's (counted as dlc)."""
+
     cause = "dlc"
 
 
 class CrcError(FrameError):
+    """A received E2E frame whose CRC does not match (counted as crc)."""
+
     cause = "crc"
 
 
 class RangeError(FrameError):
+    """A received signal outside its DBC range (counted as range)."""
+
     cause = "range"
 
 

@@ -40,6 +40,9 @@ def neighbour_mc(own_agent: int | None) -> Callable[[can.Message], bool]:
 
 @dataclass
 class RxFaults:
+    """What FaultyBus does to the frames ``match`` selects: lose each with
+    probability ``loss``, hold it ``delay`` plus up to ``jitter`` s; seeded."""
+
     loss: float = 0.0          # probability a matching frame is dropped
     delay: float = 0.0         # s, fixed delay added to matching frames
     jitter: float = 0.0        # s, extra uniform random delay in [0, jitter]
@@ -48,6 +51,7 @@ class RxFaults:
 
     @property
     def active(self) -> bool:
+        """True when any fault is set (else the node reads its bus unwrapped)."""
         return self.loss > 0 or self.delay > 0 or self.jitter > 0
 
 
@@ -69,9 +73,13 @@ class FaultyBus:
         self.delayed = 0
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Pass the frame on to the wrapped bus (faults are on the receive side only)."""
         self.bus.send(msg, timeout=timeout)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
+        """The next frame the faults let through within ``timeout`` (None: none):
+        dropped frames are counted in ``dropped``, held ones in ``delayed`` and
+        released in their ID's order."""
         end = None if timeout is None else self.clock() + timeout
         while True:
             now = self.clock()
@@ -102,6 +110,7 @@ class FaultyBus:
                 return None
 
     def shutdown(self) -> None:
+        """Shut the wrapped bus down, if it has a shutdown."""
         shutdown = getattr(self.bus, "shutdown", None)  # a python-can bus, or a wrapper
         if shutdown is not None:
             shutdown()

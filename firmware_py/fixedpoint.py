@@ -82,6 +82,7 @@ def to_q30(x: float, name: str = "value") -> int:
 
 
 def to_float(raw: int, q: int = Q) -> float:
+    """The real value of a Q``q`` raw word (exact: the factor is a power of 2)."""
     return raw / (1 << q)
 
 

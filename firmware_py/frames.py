@@ -492,9 +492,12 @@ class CounterTracker:
         return self._last
 
     def reset(self) -> None:
+        """Forget the last counter: the next one is taken as a first."""
         self._last = None
 
     def update(self, counter: int) -> CounterStatus:
+        """Check E2E ``counter`` against the last accepted one: new data or a repeat,
+        and how many frames were lost in between; remembers it."""
         if not 0 <= counter < COUNTER_MODULO:
             raise EncodeError("counter", f"an E2E counter in 0..{COUNTER_MODULO - 1}", counter)
         last = self._last
@@ -586,6 +589,7 @@ class FrameCodec:
         return f.kind
 
     def name_of(self, frame_id: int) -> str:
+        """The DBC message name of ``frame_id``; UnknownFrameError if it has none."""
         f = self._by_id.get(frame_id)
         if f is None:
             raise UnknownFrameError(f"0x{frame_id:03X}: expected an ID defined in the DBC, "

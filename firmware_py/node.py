@@ -34,10 +34,17 @@ DEFAULT_INTERFACE = "udp_multicast"  # works everywhere python-can runs, no kern
 
 
 class Node(Protocol):
+    """What run_node drives: a node with a tick ``period`` that takes frames and
+    sends frames on each tick."""
+
     period: float
 
-    def on_frame(self, msg: can.Message, t: float) -> None: ...
-    def tick(self, t: float) -> Iterable[can.Message]: ...
+    def on_frame(self, msg: can.Message, t: float) -> None:
+        """Take one received frame at time ``t``."""
+
+    def tick(self, t: float) -> Iterable[can.Message]:
+        """Run one tick at time ``t``; the frames to send."""
+
     def note(self, event: str, count: int = 1) -> None:
         """Count a runtime event: "deadline_miss", "send_failure", "error_frame" or a
         bus input that is not a frame (RX_CAUSES)."""
@@ -46,12 +53,15 @@ class Node(Protocol):
 class RxTxBus(Protocol):
     """What the loop uses of a bus: a python-can bus, or a wrapper such as FaultyBus."""
 
-    def recv(self, timeout: float | None = None) -> can.Message | None: ...
-    def send(self, msg: can.Message, timeout: float | None = None) -> None: ...
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        """The next frame within ``timeout`` s (None: wait), or None."""
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Put ``msg`` on the bus."""
 
 
 class BusConfigError(BessDedError, ValueError):
-    pass
+    """The bus flags or CAN_* environment name no usable bus (a usage error)."""
 
 
 def bus_kwargs(interface: str | None = None, channel: str | None = None,
@@ -190,9 +200,12 @@ class AcceptanceBus:
         self.ids = frozenset(f["can_id"] for f in filters)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Pass the frame on to the bus (the filter is on the receive side)."""
         self.bus.send(msg, timeout=timeout)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
+        """The next frame within ``timeout`` that the filter passes (error frames
+        always do), or None."""
         end = None if timeout is None else self.clock() + timeout
         while True:
             msg = self.bus.recv(timeout=None if end is None else max(0.0, end - self.clock()))
@@ -213,12 +226,15 @@ class StopFlag:
         self._event = threading.Event()
 
     def set(self, *_: object) -> None:
+        """Ask the loop to stop (also the SIGINT/SIGTERM handler: extra args ignored)."""
         self._event.set()
 
     def is_set(self) -> bool:
+        """True once stop was asked for."""
         return self._event.is_set()
 
     def install_signal_handlers(self) -> None:
+        """Make SIGINT and SIGTERM set this flag (a clean stop, not an exception)."""
         signal.signal(signal.SIGINT, self.set)
         signal.signal(signal.SIGTERM, self.set)
 
@@ -295,6 +311,7 @@ class GuardedBus:
         self.counters: dict[str, int] = dict.fromkeys(RX_CAUSES, 0)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Pass the frame on to the bus (send failures are the loop's to count)."""
         self.bus.send(msg, timeout=timeout)
 
     def _count(self, cause: str, reason: str) -> None:
@@ -305,6 +322,8 @@ class GuardedBus:
             log.warning("%s dropped a bus input (%s #%d): %s", self.who, cause, n, reason)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
+        """The next valid frame within ``timeout``, or None; what the bus raises or
+        delivers instead of a frame is counted by cause and skipped."""
         end = None if timeout is None else self.clock() + timeout
         for _ in range(self.BURST_MAX):
             left = None if end is None else max(0.0, end - self.clock())

@@ -122,6 +122,10 @@ _COUNT_MAX = contract.FRESHNESS.max_counter
 
 
 class NodeIO:
+    """A node's secured receive and transmit path: decode and E2E-check every frame,
+    verify its MAC and freshness, recognise its own echo, count every rejection by
+    cause, and sign what it sends (docs/firmware-spec.md, RX and AUTH)."""
+
     def __init__(self, codec: FrameCodec, who: str, own: Iterable[str],
                  wanted: Iterable[int], fleet_size: int | None = None,
                  untrusted_after: int = UNTRUSTED_AFTER,

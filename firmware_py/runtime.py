@@ -84,6 +84,9 @@ SAFETY_CAUSES = ("none", "untrusted", "implausible_price", "implausible_lambda",
 
 @dataclass
 class NeighbourSlot:
+    """What an agent knows of one neighbour: its weight, last λ and state, when it
+    was last heard, and whether it is alive (heard within the neighbour timeout)."""
+
     id: int
     weight: int              # a_ij in Q24
     lam: int | None = None   # last λ_j received (Q24)
@@ -178,6 +181,8 @@ class AgentRuntime:
     # ------------------------------------------------------------------ receive
 
     def on_frame(self, msg: can.Message, t: float) -> None:
+        """Take one received frame at time ``t``: verified by NodeIO, then handled
+        as a price, a command, the plant status or a neighbour's MC frame."""
         frame = self.io.receive(msg, t, defer_trust=True)
         if frame is None:
             return
@@ -336,10 +341,12 @@ class AgentRuntime:
     # ------------------------------------------------------------------ periodic
 
     def note(self, event: str, count: int = 1) -> None:
+        """Count a runtime event (deadline_miss, send_failure, ...) reported by run_node."""
         self.counters[event] += count
 
     @property
     def price_ok(self) -> bool:
+        """A valid ER_Price accepted within ``price_timeout_s``."""
         return self.price_rx is not None and self._now - self.price_rx <= self.cfg.price_timeout_s
 
     @property
@@ -349,6 +356,8 @@ class AgentRuntime:
                 and self._now - self.status_rx <= self.cfg.status_timeout_s)
 
     def tick(self, t: float) -> list[can.Message]:
+        """One control period at time ``t``: neighbour timeouts, state machine, a
+        controller step when active; the frames to send (MC, setpoint, diag, syncs)."""
         self._now = t
         self._update_neighbours(t)
         self._update_state()
@@ -416,6 +425,7 @@ class AgentRuntime:
 
     @property
     def neighbours_alive(self) -> int:
+        """How many neighbours are alive and active (their λ enters ξ)."""
         return sum(s.alive and is_active(s.state) for s in self.neighbours.values())
 
     def _mc_frame(self) -> can.Message:
@@ -430,6 +440,7 @@ class AgentRuntime:
         return self.io.send(setpoint_name(self.cfg.id), {"Enable": int(enable), "PowerSetpoint": p})
 
     def diag_values(self) -> dict[str, int]:
+        """Every AGENT_<id>_Diag signal's raw value, from the counters and the state."""
         c = self.counters
         last = self.io.last_safety
         return {"Resets": self.cstate.resets, "DeadlineMisses": c["deadline_miss"],
@@ -468,9 +479,12 @@ class AgentRuntime:
 
     @property
     def lam(self) -> float:
+        """The agent's λ on the wire, as a real value (cu/kWh)."""
         return fx.to_float(self.lambda_q24)
 
     def summary(self) -> str:
+        """The one-line summary the agent prints at exit: state, λ, resets, ticks
+        and every non-zero counter."""
         c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items()) if v) or "none"
         return (f"agent {self.cfg.id}: state={self.state.name} λ={self.lam:.6f} "
                 f"resets={self.cstate.resets} ticks={self.ticks} counters: {c}")

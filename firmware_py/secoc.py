@@ -186,26 +186,33 @@ class FreshnessLayout:
 
     @property
     def bits(self) -> int:
+        """Bits of a whole freshness value (boot + counter)."""
         return self.boot_bits + self.counter_bits
 
     @property
     def max_boot(self) -> int:
+        """The largest boot counter the layout holds."""
         return (1 << self.boot_bits) - 1
 
     @property
     def max_counter(self) -> int:
+        """The largest message counter the layout holds."""
         return (1 << self.counter_bits) - 1
 
     @property
     def max_value(self) -> int:
+        """The largest freshness value the layout holds."""
         return (1 << self.bits) - 1
 
     def join(self, boot: int, counter: int) -> int:
+        """The freshness value of (``boot``, ``counter``); SecOCError if either is
+        out of range."""
         if not 0 <= boot <= self.max_boot or not 0 <= counter <= self.max_counter:
             raise SecOCError(f"freshness: boot {boot} or counter {counter} out of range")
         return boot << self.counter_bits | counter
 
     def split(self, freshness: int) -> tuple[int, int]:
+        """(boot, counter) of a freshness value."""
         return freshness >> self.counter_bits, freshness & self.max_counter
 
 
@@ -248,6 +255,7 @@ class FreshnessVerifier:
         self._seen: dict[Hashable, int] = {}
 
     def last(self, sender: Hashable) -> int | None:
+        """The last freshness value accepted from ``sender``, None before the first."""
         return self._last.get(sender)
 
     def state(self) -> dict[Hashable, int]:
@@ -542,6 +550,7 @@ def save_floors(path: Path | str, floors: Mapping[str, int]) -> None:
 
 
 def master_key_document(master_key: bytes) -> dict:
+    """The TOML document of a master key file: format, fleet id and the key in hex."""
     return {"format": MASTER_FILE_FORMAT, "fleet_id": fleet_id(master_key),
             "master_key": _check_key(master_key, "master key").hex()}
 
@@ -641,12 +650,15 @@ class Keyring:
 
     @classmethod
     def from_file(cls, path: Path | str) -> Keyring:
+        """The keyring of a node key file (its boots persisted back to the file)."""
         k = load_node_key(path)
         return cls(k.node, k.key, k.boot_counter, k.persist(), peers=k.peers,
                    fleet=k.fleet_id, floors=k.floors)
 
     @classmethod
     def insecure_for(cls, node: str) -> Keyring:
+        """``node``'s keyring from the public demo master key (--insecure): anyone can
+        forge its frames; boots are not persisted."""
         return cls(node, derive_node_key(INSECURE_MASTER, node), INSECURE_BOOT - 1,
                    lambda _b: None,
                    master=INSECURE_MASTER, insecure=True, fleet=fleet_id(INSECURE_MASTER))
@@ -677,4 +689,6 @@ def sign_frame(key: bytes, frame_id: int, data: bytearray, freshness: int) -> No
 
 
 def frame_verifies(key: bytes, frame_id: int, data: bytes | bytearray, freshness: int) -> bool:
+    """True when the MAC in ``data`` verifies for ``frame_id`` with ``key`` at
+    ``freshness``."""
     return verify(key, frame_id, frame_payload(data), freshness, frame_mac(data), MAC_BITS)

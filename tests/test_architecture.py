@@ -98,3 +98,60 @@ def test_sim_has_no_module_outside_its_subpackages() -> None:
     assert sorted(p.name for p in (ROOT / "sim").glob("*.py")) == ["__init__.py"]
     assert sorted(p.name for p in (ROOT / "sim").iterdir() if p.is_dir()
                   and (p / "__init__.py").exists()) == sorted(SIM_FLOORS)
+
+
+# --------------------------------------------------------------------------- docstrings
+
+def _is_command_hook(path: Path, node: ast.FunctionDef) -> bool:
+    """A sim/cli command module's ``register(sub)`` or ``run(args)``: the uniform hooks
+    sim/cli/__init__.py documents once for every command."""
+    args = [a.arg for a in node.args.args]
+    return path.parent == ROOT / "sim" / "cli" and (node.name, args) in (
+        ("register", ["sub"]), ("run", ["args"]))
+
+
+def _undocumented(methods: bool) -> list[str]:
+    """Public definitions of sim/ and firmware_py/ without a docstring, as path:line name:
+    module-level functions and classes (``methods``: the public methods of public classes
+    instead). Names starting with ``_`` are private; a class inside a function is not API."""
+    out = []
+    for path in _py("sim") + _py("firmware_py"):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        rel = path.relative_to(ROOT)
+        for node in tree.body:
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) \
+                    or node.name.startswith("_"):
+                continue
+            if isinstance(node, ast.ClassDef) and methods:
+                out += [f"{rel}:{m.lineno} {node.name}.{m.name}" for m in node.body
+                        if isinstance(m, (ast.FunctionDef, ast.AsyncFunctionDef))
+                        and not m.name.startswith("_") and ast.get_docstring(m) is None]
+            elif not methods and ast.get_docstring(node) is None and not (
+                    isinstance(node, ast.FunctionDef) and _is_command_hook(path, node)):
+                out.append(f"{rel}:{node.lineno} {node.name}")
+    return out
+
+
+def test_every_public_function_and_class_has_a_docstring() -> None:
+    """One line at least of what it returns or does (issue 21, item 5)."""
+    assert _undocumented(methods=False) == []
+
+
+def test_every_public_method_of_a_public_class_has_a_docstring() -> None:
+    assert _undocumented(methods=True) == []
+
+
+def test_the_docstring_check_finds_what_it_looks_for() -> None:
+    """The walk sees the definitions it judges: the hooks exempt are exactly the
+    ``register`` of every command sim/cli/__init__.py lists and the ``run`` of those
+    that have one (agent's is firmware_py's), and the library's classes are walked."""
+    init = ast.parse((ROOT / "sim" / "cli" / "__init__.py").read_text(encoding="utf-8"))
+    listed = next(ast.literal_eval(n.value) for n in init.body if isinstance(n, ast.AnnAssign)
+                  and ast.unparse(n.target) == "COMMANDS" and n.value is not None)
+    hooks = {(p.stem, n.name) for p in _py("sim/cli")
+             for n in ast.parse(p.read_text(encoding="utf-8")).body
+             if isinstance(n, ast.FunctionDef) and _is_command_hook(p, n)}
+    assert hooks == {(c, h) for c in listed for h in ("register", "run")} - {("agent", "run")}
+    assert sum(1 for p in _py("firmware_py")
+               for n in ast.parse(p.read_text(encoding="utf-8")).body
+               if isinstance(n, ast.ClassDef)) > 30

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import dataclasses
 import random
+import re
+from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -166,21 +168,30 @@ def test_a_replay_of_an_earlier_run_with_the_same_keys_is_rejected(
     by_tick: dict[int, list[can.Message]] = {}
     for msg in can.LogReader(str(tmp_path / "a" / "run.log")):
         by_tick.setdefault(_tick(msg.timestamp), []).append(msg)
-    replayed = 0
+    replayed: Counter[str] = Counter()
 
     def inject(t: float) -> list[can.Message]:
-        nonlocal replayed
         frames = by_tick.get(_tick(t), [])
-        replayed += len(frames)
+        replayed.update(CODEC.name_of(f.arbitration_id) for f in frames)
         return frames
 
     m, tr = _run(tmp_path / "b", inject, keyrings=rings)
-    assert replayed > 5000
+    # every frame of run A's capture, each at its own time (the runs are as long)
+    assert replayed == Counter(CODEC.name_of(f.arbitration_id)
+                               for frames in by_tick.values() for f in frames)
     err, p = _final(tr)
     assert err < 1e-3 and np.max(np.abs(p - _final(honest[1])[1])) < 1.0
     assert "auth_failed" in _kinds(m)
-    forged = sum(a["kind"] == "auth_failed" and a["node"] == "bus" for a in m["anomalies"])
-    assert forged, "the recorder's analysis must have left the replayed frames out"
+    left_out = {}
+    for a in m["anomalies"]:
+        if a["kind"] == "auth_failed" and a["node"] == "bus":
+            hit = re.fullmatch(r"(\w+): (\d+) frames whose MAC does not verify .*", a["detail"])
+            assert hit is not None, a["detail"]
+            left_out[hit[1]] = int(hit[2])
+    # the recorder's analysis left out every replayed frame, by message; the replayed
+    # syncs, of an earlier boot of every sender, are reported as stale_boot instead
+    assert left_out == {n: k for n, k in replayed.items() if not n.endswith("_Sync")}
+    assert {a["node"] for a in m["anomalies"] if a["kind"] == "stale_boot"} == set(rings)
 
 
 def test_a_restarted_node_resumes_its_freshness_and_rejoins(tmp_path: Path) -> None:
@@ -340,12 +351,14 @@ def test_a_replay_of_an_earlier_run_before_the_fleet_starts_is_not_taken(
     floors `up` writes (AUTH-21) no agent does, and the replay is reported."""
     rings, by_tick = _earlier_run(tmp_path)
     _, fooled = _running_on_replay(tmp_path / "b", rings, by_tick, ())
-    assert fooled, "without floors the replayed price must have made an agent RUNNING"
+    # without floors the replayed price makes every agent RUNNING: the attack works
+    assert fooled == [f"agent_{i}" for i in range(1, CASE.n + 1)]
     _floors_as_up_writes(rings)  # the same key set, a third run: A is still earlier
     m, running = _running_on_replay(tmp_path / "c", rings, by_tick, ())
     assert running == []
     assert "auth_failed" in _kinds(m)
-    assert {a["node"] for a in m["anomalies"] if a["kind"] == "stale_boot"} >= {"router"}
+    # every sender's replayed syncs (boot 1, below this run's) are named
+    assert {a["node"] for a in m["anomalies"] if a["kind"] == "stale_boot"} == set(rings)
     err, _ = _final(np.genfromtxt(tmp_path / "c" / "trajectory.csv", delimiter=",",
                                   names=True))
     assert err < 1e-3
@@ -434,11 +447,13 @@ def test_a_key_file_rolled_back_is_reported_not_silent(tmp_path: Path) -> None:
     m = run_in_process(CASE, tmp_path, DURATION_S, channel=f"attack-{tmp_path.name}",
                        keyrings=rings, restarts=[("agent_3", 3.0, 3.5)])
     assert rolled.boot == 4  # below the floor 6 its peers hold
-    assert m["verdict"]["exit_code"] != 0
+    assert m["verdict"]["exit_code"] == 1  # not converged: agent 3 is left out
     assert "auth_failed" in _kinds(m), m["anomalies"]
     stale = [a for a in m["anomalies"] if a["kind"] == "stale_boot"]
-    assert [a["node"] for a in stale] == ["agent_3"], m["anomalies"]
-    assert "boot 4, below its boot 6" in stale[0]["detail"]
+    assert [(a["node"], a["detail"]) for a in stale] == [(
+        "agent_3", "syncs of agent_3 with a valid MAC but boot 4, below its boot 6 in this "
+        "run: a replay of an earlier run or boot, or agent_3's key file rolled back "
+        "(AUTH-21); the analysis left them out")], m["anomalies"]
 
 
 # --------------------------------------------------------------------------- reports, ledger

@@ -80,7 +80,7 @@ def test_variant_names_ignore_case(tmp_path: Path, capsys: pytest.CaptureFixture
 
     sc = load_case(2)
     labels = [v.label for v in sc.variants]
-    assert "PC" in labels
+    assert labels == ["reset-PI", "PC", "finite-time"]
     lower, name = pick_variant(sc, "pc")
     assert name == " [variant PC]" and lower == sc.variant("PC")
     with pytest.raises(Exception, match="expected one of"):

@@ -157,6 +157,17 @@ def injected_losses(out: Path, agent: int) -> int:
     raise AssertionError(f"agent {agent} printed no injection summary")
 
 
+def others_mc_while_running(out: Path, agent: int) -> int:
+    """The other agents' MC frames in DIR/run.log (from the recorder's start, not t = 0)
+    between ``agent``'s own first and last MC frame: what its receive path, and its
+    injector, could see, however far apart a loaded host started the nodes."""
+    own = contract.MC_BASE + agent
+    others = {contract.MC_BASE + j for j in range(1, N + 1) if j != agent}
+    frames = [(m.arbitration_id, m.timestamp) for m in can.LogReader(str(out / "run.log"))]
+    t_own = [t for fid, t in frames if fid == own]
+    return sum(1 for fid, t in frames if fid in others and t_own[0] <= t <= t_own[-1])
+
+
 NEIGHBOURS = {1: [2, 3, 4], 2: [1], 3: [1], 4: [1]}   # case 1's star
 
 
@@ -193,7 +204,11 @@ def test_random_mc_loss(tmp_path: Path, udp_port: int, loss: float,
     (final max|λ−ρ| < 1e-3) and settles within 2× the lossless settling time (both
     counted in agent 1's ticks); each agent's
     LostFrames (diag) is within ±50 % of P × the neighbour MC frames recorded (the rest
-    of the difference is udp's own loss and the diag's last page being ≤ 0.4 s old)."""
+    of the difference is udp's own loss and the diag's last page being ≤ 0.4 s old), and
+    FaultyBus's own count of dropped frames within ±50 % of P × the MC frames of every
+    other agent recorded while it ran (on udp_multicast the agent has no acceptance filter:
+    its injector sees them all). The counts depend on how many frames the host let
+    through, hence the bounds (the binomial spread alone is under 10 % of the mean)."""
     extra = {f"agent_{i}": ["--inject-rx-loss", str(loss), "--inject-seed", str(i)]
              for i in range(1, N + 1)}
     m = run_case(tmp_path, udp_port, 10.0, extra=extra)
@@ -209,9 +224,9 @@ def test_random_mc_loss(tmp_path: Path, udp_port: int, loss: float,
         lost = m["node_diagnostics"][f"agent_{i}"]["LostFrames"]
         heard = sum(mc_count[f"AGENT_{j}_MC"] for j in NEIGHBOURS[i])
         assert 0.5 * loss * heard <= lost <= 1.5 * loss * heard, (i, lost, heard)
-        # every injected loss of a neighbour frame is noticed: the firmware's count
-        # cannot be far below what FaultyBus dropped on the neighbours' IDs
-        assert injected_losses(tmp_path, i) > 0
+        others = others_mc_while_running(tmp_path, i)
+        injected = injected_losses(tmp_path, i)
+        assert 0.5 * loss * others <= injected <= 1.5 * loss * others, (i, injected, others)
 
 
 # --------------------------------------------------------------------------- 2. delay/jitter
@@ -547,7 +562,9 @@ def test_flood_of_random_frames(tmp_path: Path, udp_port: int) -> None:
                 p.kill()
             out = p.communicate()[0].decode()
     wall = time.monotonic() - t_start - waited[0]
-    assert "sent 10000 flood frames" in out, out
+    # the injector ran to its end (not killed at the deadline) and said so, once
+    assert len(procs) == 1 and procs[0].returncode == 0, out
+    assert out.splitlines().count("bess-ded inject: sent 10000 flood frames") == 1, out
     flood = Counter((f.arbitration_id, bytes(f.data)) for f in inject.frames("flood", 10_000))
     seen: Counter[tuple[int, bytes]] = Counter()
     t_first = t_last = None
@@ -564,7 +581,8 @@ def test_flood_of_random_frames(tmp_path: Path, udp_port: int) -> None:
     print(f"flood: recorded {flood_seen}/10000 flood frames at {rate:.0f} frames/s, "
           f"{normal} normal frames, total {m['frames_recorded']}, wall {wall:.1f} s, "
           f"final {m['final_error']:.1e}, diag {m['node_diagnostics']}")
-    assert flood_seen >= FLOOD_SEEN_MIN * 10_000
+    # a bound, not a count: without root how much udp_multicast drops depends on the load
+    assert FLOOD_SEEN_MIN * 10_000 <= flood_seen <= 10_000
     print(f"normal traffic {normal / (normal_rate() * 12.0):.0%} of nominal")
     after = {CODEC.decode(msg).name for msg in can.LogReader(str(tmp_path / "run.log"))
              if msg.timestamp > t_last and msg.arbitration_id in ALIVE_IDS
@@ -792,6 +810,8 @@ def test_up_interrupted_stops_every_node(tmp_path: Path, udp_port: int) -> None:
     try:
         _wait_for_frames(udp_port, [*(f"AGENT_{i}_MC" for i in range(1, N + 1)), "ER_Price"],
                          keys=tmp_path / "keys")
+        # the recording's receive times are wall-clock ones (the processes' own clocks,
+        # nothing to inject): a second of them before the interrupt, for recs[-1].t > 0.5
         time.sleep(1.0)
         assert len(_procs_with(port_text)) == 1 + N + 2, _procs_with(port_text)
         p.send_signal(signal.SIGINT)

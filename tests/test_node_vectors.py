@@ -6,7 +6,7 @@ vector's configuration and keys alone, every received frame is handed to ``on_fr
 its time, every tick to ``tick``, and each frame the agent sends must equal the vector's,
 byte for byte and in order. Further tests: the committed files are what the generator
 writes; together they cover every requirement of the spec's sections 7, 8, 11 and 12;
-and a mutated agent fails at least one of them (the vectors can fail).
+and each mutated agent fails exactly the vectors listed for it (the vectors can fail).
 """
 
 from __future__ import annotations
@@ -143,8 +143,12 @@ def vectors() -> dict[str, dict[str, Any]]:
     return {p.stem: load(p) for p in VECTORS}
 
 
-def test_the_set_exists_and_is_compact() -> None:
-    assert len(VECTORS) >= 12
+def test_the_set_is_the_generators_and_is_compact() -> None:
+    """One file per scenario of tools/gen_node_vectors.py (their names are checked with
+    the contents by test_committed_node_vectors_are_what_the_generator_writes), and the
+    whole set stays under SIZE_LIMIT."""
+    scenarios = runpy.run_path(str(GEN_NODE_VECTORS))["SCENARIOS"]
+    assert len(VECTORS) == len(scenarios)
     assert sum(p.stat().st_size for p in VECTORS) < SIZE_LIMIT
 
 
@@ -280,13 +284,28 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
     yield
 
 
-MUTATIONS = ("band_rearms_at_reset", "diag_without_mac", "one_freshness_window_after_a_timeout",
-             "no_lambda_plausibility", "no_dwell", "state_entry_restarts_dwell_and_band")
+# every mutation and the vectors that notice it (the replay is deterministic: a vector
+# that stops noticing one, or starts to, is a change to look at)
+MUTATIONS: dict[str, list[str]] = {
+    # the reset-PI vectors but price_steps and tx_count_wrap (insecure_scaled runs the
+    # dwell controller)
+    "band_rearms_at_reset": [
+        "auth_forgery_replay", "boot_floors", "commands", "init_wait_status",
+        "malformed_foreign", "neighbour_timeout", "peer_restart", "price_timeout_safe",
+        "start_steady", "status_fault_timeout"],
+    # every vector: each sends Diag pages
+    "diag_without_mac": [p.stem for p in VECTORS],
+    "one_freshness_window_after_a_timeout": ["price_timeout_safe"],
+    "no_lambda_plausibility": ["neighbour_timeout"],
+    "no_dwell": ["insecure_scaled"],
+    "state_entry_restarts_dwell_and_band": ["insecure_scaled"],
+}
 
 
 @pytest.mark.parametrize("kind", MUTATIONS)
-def test_a_mutated_agent_fails_some_vector(kind: str, vectors: dict[str, dict[str, Any]],
-                                           monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_mutated_agent_fails_exactly_its_vectors(kind: str,
+                                                   vectors: dict[str, dict[str, Any]],
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     failed = []
     with mutated(kind, monkeypatch):
         for name, vec in vectors.items():
@@ -294,7 +313,7 @@ def test_a_mutated_agent_fails_some_vector(kind: str, vectors: dict[str, dict[st
                 replay(vec)
             except NodeVectorMismatch:
                 failed.append(name)
-    assert failed, f"no node vector notices the mutation {kind}"
+    assert sorted(failed) == MUTATIONS[kind], f"the vectors that notice the mutation {kind}"
 
 
 # --------------------------------------------------------------------------- generator
@@ -324,5 +343,5 @@ def test_gen_vectors_check_names_a_stale_node_vector(
     path.write_text(text.replace('"output":[\n[0.0,1282,"', '"output":[\n[0.0,1282,"0', 1))
     capsys.readouterr()
     assert main(["--check", "-o", str(ctrl), "--node-output", str(out)]) == 1
-    err = capsys.readouterr().err
-    assert "commands.json is stale" in err and "run python tools/gen_vectors.py" in err
+    assert capsys.readouterr().err == (f"{out / 'commands.json'} is stale or missing\n"
+                                       "run python tools/gen_vectors.py\n")

@@ -163,7 +163,7 @@ def test_chopper_step_response_is_first_order_with_tau() -> None:
     # after exactly τ: 63 %
     assert TAU_S == 0.05
     p_at_tau = [d["Power"] for t, d in drv.status if d["agent"] == 1 and abs(t - 0.05) < 1e-9]
-    assert p_at_tau  # the status at 50 ms reports the state after 50 ms = τ
+    assert len(p_at_tau) == 1  # the one status at 50 ms reports the state after 50 ms = τ
     assert p_at_tau[0] == pytest.approx((1 - math.exp(-1)) * 50.0, abs=0.02)
     plant2 = PlantNode(sc, ramp_full_s=0)
     plant2.on_frame(setpoint(1, 50.0, sender=FleetSender(CODEC)), 0.0)  # a fresh agent

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 
 import can
@@ -346,19 +345,27 @@ def test_run_node_counts_error_frames_and_keeps_running() -> None:
 
 
 class _Overrunning:
-    """A node whose every tick takes 1.5 periods (an overloaded host): it is always late."""
+    """A node whose every tick takes two periods of its simulated clock (an overloaded
+    host): every tick after the first starts a whole period late. Periods are powers of 2,
+    so the clock's sums are exact."""
 
-    period = 0.01
+    period = 2.0 ** -6
 
     def __init__(self) -> None:
         self.frames = 0
+        self.ticks = 0
         self.counters: dict[str, int] = {}
+        self.t = 0.0
+
+    def clock(self) -> float:
+        return self.t
 
     def on_frame(self, msg: can.Message, t: float) -> None:
         self.frames += 1
 
     def tick(self, t: float) -> list[can.Message]:
-        time.sleep(1.5 * self.period)
+        self.ticks += 1
+        self.t += 2 * self.period
         return []
 
     def note(self, event: str, count: int = 1) -> None:
@@ -366,18 +373,23 @@ class _Overrunning:
 
 
 def test_run_node_still_reads_its_inputs_when_every_tick_overruns() -> None:
+    """Expected (exact, simulated clock): over 20 periods the node ticks at 0, 2, ..., 18
+    periods (10 ticks); each tick after the first is one period late: a deadline miss for
+    it and one for the period it skipped (18 in all); the 40 frames queued before the
+    start are all read, the late ticks never starving the input."""
     node = _Overrunning()
     node_bus = can.Bus(interface="virtual", channel="overrun", receive_own_messages=False)
     peer = can.Bus(interface="virtual", channel="overrun", receive_own_messages=False)
     try:
         for k in range(40):
             peer.send(price_frame(k % 16))
-        run_node(node, node_bus, duration=0.3)
+        run_node(node, node_bus, duration=20 * node.period, clock=node.clock)
     finally:
         node_bus.shutdown()
         peer.shutdown()
     assert node.frames == 40
-    assert node.counters.get("deadline_miss", 0) > 0
+    assert node.ticks == 10
+    assert node.counters == {"deadline_miss": 2 * (10 - 1)}
 
 
 # --------------------------------------------------------------------------- plant status

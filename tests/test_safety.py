@@ -29,7 +29,14 @@ from firmware_py.config import (
     parse_agent_config,
 )
 from firmware_py.errors import ConfigError
-from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
+from firmware_py.frames import (
+    DecodedFrame,
+    FrameCodec,
+    diag_name,
+    mc_name,
+    setpoint_name,
+    status_name,
+)
 from firmware_py.nodeio import FleetSender, NodeIO
 from firmware_py.runtime import DIAG_EVERY, SAFETY_CAUSES, AgentRuntime, State
 from sim.model.scenario import load_case, scaled
@@ -84,6 +91,14 @@ def price_raw(rho: float) -> dict[str, int]:
 
 def price_frame(counter: int, rho: float = 0.8) -> can.Message:
     return SENDER.frame("ER_Price", price_raw(rho), counter % 16)
+
+
+RHO_08 = {"Rho": fx.to_fixed(0.8)}
+
+
+def taken(f: DecodedFrame | None, *signals: str) -> tuple[str, dict[str, int]] | None:
+    """What a receiver took: the frame's name and the raw ``signals``; None if rejected."""
+    return None if f is None else (f.name, {k: f.raw[k] for k in signals})
 
 
 def mc_frame(agent: int, counter: int, lam: float, state: State = State.RUNNING) -> can.Message:
@@ -202,12 +217,13 @@ def test_untrusted_time_stretches_with_the_time_scale_and_is_configurable() -> N
     # a secured ID, untrusted_after = 2 and untrusted_s = 0.3
     io = NodeIO(CODEC, "test", own=(mc_name(1),), wanted=(PRICE_ID,),
                 untrusted_after=2, untrusted_s=0.3)
-    assert io.receive(price_frame(1), 0.0) is not None
+    assert taken(io.receive(price_frame(1), 0.0), "Rho") == ("ER_Price", RHO_08)
     for t in (0.01, 0.02):
         assert io.receive(bad.frame("ER_Price", price_raw(0.8)), t) is None
     assert io.counters["auth"] == 2 and io.counters["untrusted_sources"] == 1
     assert io._untrusted_until[PRICE_ID] == pytest.approx(0.32)
-    assert io.receive(price_frame(2), 0.2) is not None and io.counters["untrusted"] == 0
+    assert taken(io.receive(price_frame(2), 0.2), "Rho") == ("ER_Price", RHO_08)
+    assert io.counters["untrusted"] == 0
     assert io.untrusted(PRICE_ID, 0.31) and not io.untrusted(PRICE_ID, 0.33)
 
     # AGENT_1_Diag, secured like every frame: forged pages raise the alarm, the genuine
@@ -216,11 +232,13 @@ def test_untrusted_time_stretches_with_the_time_scale_and_is_configurable() -> N
     router = NodeIO(CODEC, "test router", own=("ER_Price",), wanted=(diag,),
                     untrusted_after=2, untrusted_s=0.3)
     page_0 = {"Page": 0, "Resets": 0, "DeadlineMisses": 0}
-    assert router.receive(SENDER.frame(diag_name(1), page_0), 0.0) is not None
+    assert taken(router.receive(SENDER.frame(diag_name(1), page_0), 0.0),
+                 *page_0) == (diag_name(1), page_0)
     for t in (0.01, 0.02):
         assert router.receive(bad.frame(diag_name(1), page_0), t) is None
     assert router.counters["auth"] == 2 and router.counters["untrusted_sources"] == 1
-    assert router.receive(SENDER.frame(diag_name(1), page_0), 0.2) is not None
+    assert taken(router.receive(SENDER.frame(diag_name(1), page_0), 0.2),
+                 *page_0) == (diag_name(1), page_0)
     assert router.counters["untrusted"] == 0
 
 

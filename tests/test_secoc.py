@@ -204,6 +204,13 @@ def _price(sender: FleetSender, i: int) -> can.Message:
     return sender.frame("ER_Price", {"PriceValid": 1, "Rho": i, "Segment": 0})
 
 
+def _rho(rx: NodeIO, msg: can.Message, t: float) -> int | None:
+    """The raw Rho of ``msg`` as ``rx`` took it (its own price sequence number in these
+    tests), None when rejected."""
+    f = rx.receive(msg, t)
+    return None if f is None else f.raw["Rho"]
+
+
 def _synced() -> tuple[FleetSender, NodeIO]:
     sender, rx = FleetSender(FrameCodec(), keys=KEYS, boot=7), _receiver()
     rx.receive(sender.sync("ER_Price"), 0.0)
@@ -265,7 +272,7 @@ def test_the_join_window_keeps_the_newest_sync_and_takes_no_frame() -> None:
 
     control = _receiver(join_s=0.0)
     control.receive(early_sync, 0.01)
-    assert control.receive(early[0], 0.02) is not None   # what the window prevents
+    assert _rho(control, early[0], 0.02) == 3           # what the window prevents
 
     rx = _receiver(join_s=None)
     assert rx.join_s == pytest.approx(0.2)
@@ -283,7 +290,7 @@ def test_the_join_window_keeps_the_newest_sync_and_takes_no_frame() -> None:
     assert rx.counters["resyncs"] == 1 and rx.last_freshness(0x010) == (7 << 24 | 39)
     assert rx.counters["unsynced"] == 2 and rx.counters["auth"] == 1
     sender._count[0x010] += 20  # frames the receiver never heard: the wider window (AUTH-13)
-    assert rx.receive(_price(sender, 60), 0.25) is not None
+    assert _rho(rx, _price(sender, 60), 0.25) == 60
     assert rx.counters["lost_frames"] == 20
     assert rx.receive(early[2], 0.26) is None and rx.counters["auth"] == 2  # no longer lost
 
@@ -300,7 +307,7 @@ def test_a_sync_overtaken_by_its_tick_s_frame_is_stale_not_forged() -> None:
     for i in range(20):
         rx.receive(_price(sender, i), 0.0)
     sync = sender.sync("ER_Price")                       # ... and count 40
-    assert rx.receive(_price(sender, 40), 0.0) is not None   # the tick's frame first
+    assert _rho(rx, _price(sender, 40), 0.0) == 40   # the tick's frame first
     rx.receive(sync, 0.0)
     assert rx.counters["stale"] == 1 and rx.counters["auth"] == 0
     rx.receive(old, 0.0)
@@ -310,15 +317,15 @@ def test_a_sync_overtaken_by_its_tick_s_frame_is_stale_not_forged() -> None:
 def test_round_trip_and_replay_rejected() -> None:
     sender, rx = _synced()
     frames = [_price(sender, i) for i in range(40)]
-    for m in frames:
-        assert rx.receive(m, 0.0) is not None
+    for i, m in enumerate(frames):
+        assert _rho(rx, m, 0.0) == i
     last = rx.last_freshness(0x010)
     for m in frames:  # replay of every old frame: its freshness is spent
         assert rx.receive(m, 0.0) is None
     # every one was accepted before: a replay, not a late frame (AUTH-25)
     assert rx.counters["auth"] == 40 and rx.counters["stale"] == 0
     assert rx.last_freshness(0x010) == last  # state unchanged
-    assert rx.receive(_price(sender, 99), 0.0) is not None
+    assert _rho(rx, _price(sender, 99), 0.0) == 99
 
 
 def test_a_late_genuine_frame_is_stale_not_forged() -> None:
@@ -327,8 +334,8 @@ def test_a_late_genuine_frame_is_stale_not_forged() -> None:
     failure and no untrusted streak; a forged frame in between is still auth."""
     sender, rx = _synced()
     f = [_price(sender, i) for i in range(6)]
-    got = [rx.receive(f[i], 0.0) is not None for i in (0, 1, 3, 2, 5, 4)]
-    assert got == [True, True, True, False, True, False]
+    got = [_rho(rx, f[i], 0.0) for i in (0, 1, 3, 2, 5, 4)]
+    assert got == [0, 1, 3, None, 5, None]
     assert rx.counters["stale"] == 2 and rx.counters["auth"] == 0
     assert rx.counters["lost_frames"] == 2 and rx._streak[0x010] == 0
     for i in (4, 5):  # again: a late frame already seen, an accepted one: replays
@@ -348,7 +355,7 @@ def test_a_frame_later_than_one_window_is_auth() -> None:
     sender, rx = _synced()
     old = _price(sender, 0)
     for i in range(1, 17):
-        assert rx.receive(_price(sender, i), 0.0) is not None
+        assert _rho(rx, _price(sender, i), 0.0) == i
     assert rx.receive(old, 0.0) is None
     assert rx.counters["auth"] == 1 and rx.counters["stale"] == 0
 
@@ -368,10 +375,10 @@ def test_past_values_of_the_verifier() -> None:
 def test_replay_one_window_later_rejected() -> None:
     sender, rx = _synced()
     old = _price(sender, 1)
-    assert rx.receive(old, 0.0) is not None
+    assert _rho(rx, old, 0.0) == 1
     for i in range(16):  # exactly one window later the truncated value repeats
         f = _price(sender, 2 + i)
-        assert rx.receive(f, 0.0) is not None
+        assert _rho(rx, f, 0.0) == 2 + i
     assert f.data[3] & 0x0F == old.data[3] & 0x0F
     assert rx.receive(old, 0.0) is None and rx.counters["auth"] == 1
 
@@ -382,25 +389,25 @@ def test_truncated_freshness_wraps_and_lost_frames_are_counted() -> None:
         f = _price(sender, i)
         if i % 7 == 3:
             continue  # lost on the bus
-        assert rx.receive(f, 0.0) is not None
+        assert _rho(rx, f, 0.0) == i
     assert rx.counters["lost_frames"] == len([i for i in range(100) if i % 7 == 3])
     for i in range(15):  # 15 lost frames: the edge of the window
         _price(sender, i)
-    assert rx.receive(_price(sender, 0), 0.0) is not None
+    assert _rho(rx, _price(sender, 0), 0.0) == 0
     for i in range(16):  # 16 lost: outside the window → fails until a sync
         _price(sender, i)
     assert rx.receive(_price(sender, 0), 0.0) is None and rx.counters["auth"] == 1
     assert rx.receive(sender.sync("ER_Price"), 0.0) is None and rx.counters["resyncs"] == 2
-    assert rx.receive(_price(sender, 0), 0.0) is not None
+    assert _rho(rx, _price(sender, 0), 0.0) == 0
 
 
 def test_a_timed_out_sender_gets_a_wider_window_then_waits_for_its_sync() -> None:
     sender, rx = _synced()
-    assert rx.receive(_price(sender, 0), 0.0) is not None
+    assert _rho(rx, _price(sender, 0), 0.0) == 0
     rx.sender_lost(0x010)  # the receiver's timeout fired
     for i in range(100):  # 100 frames lost: within LOST_WINDOWS · 16
         _price(sender, i)
-    assert rx.receive(_price(sender, 1), 1.0) is not None
+    assert _rho(rx, _price(sender, 1), 1.0) == 1
     assert rx.counters["auth"] == 0 and rx.counters["lost_frames"] == 100
     rx.sender_lost(0x010)
     for i in range(200):  # beyond the wider window: unsynced, not a forgery
@@ -415,21 +422,21 @@ def test_restarted_sender_needs_its_sync_and_an_old_sync_cannot_rewind() -> None
     first_sync = sender.sync("ER_Price")
     rx.receive(first_sync, 0.0)
     for i in range(20):
-        assert rx.receive(_price(sender, i), 0.0) is not None
+        assert _rho(rx, _price(sender, i), 0.0) == i
     sender.restart()  # boot 8
     assert rx.receive(_price(sender, 0), 0.0) is None and rx.counters["auth"] == 1
     rx.receive(first_sync, 0.0)  # a replayed old sync: refused, the state stays
     assert rx.counters["resyncs"] == 1
     rx.receive(sender.sync("ER_Price"), 0.0)
     assert rx.counters["resyncs"] == 2
-    assert rx.receive(_price(sender, 1), 0.0) is not None
+    assert _rho(rx, _price(sender, 1), 0.0) == 1
 
 
 def test_wrong_key_and_other_sender_rejected() -> None:
     sender, rx = _synced()
     forger = FleetSender(FrameCodec(), keys={"router": KEYS["agent_2"]}, boot=7)
     assert rx.receive(_price(forger, 0), 0.0) is None and rx.counters["auth"] == 1
-    assert rx.receive(_price(sender, 0), 0.0) is not None
+    assert _rho(rx, _price(sender, 0), 0.0) == 0
 
 
 def test_candidate_at_the_end_of_the_layout() -> None:

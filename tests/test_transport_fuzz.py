@@ -92,7 +92,7 @@ def fuzzed(tmp_path_factory: pytest.TempPathFactory, udp_ports: Any
             for k in range(0, len(inputs), BURST):
                 for x in inputs[k:k + BURST]:
                     bus._multicast.send(x.datagram)  # the raw datagram, as any sender can
-                time.sleep(BURST_GAP_S)
+                time.sleep(BURST_GAP_S)  # paces the sender on the real bus, waits for nothing
         sent.extend(inputs)
 
     m = busrun.run(CASE, out, busrun.BusOptions("udp_multicast", None, f'{{"port": {port}}}'),
@@ -103,7 +103,7 @@ def fuzzed(tmp_path_factory: pytest.TempPathFactory, udp_ports: Any
 def test_every_node_lives_and_the_dispatch_holds(
         fuzzed: tuple[dict[str, Any], list[FuzzInput], Path, Path]) -> None:
     m, sent, out, honest = fuzzed
-    assert len(sent) >= 10_000
+    assert len(sent) == FUZZ_COUNT  # FUZZ_SHARES' rounded shares of it add up to it
     assert m["exit_codes"] and all(c == 0 for c in m["exit_codes"].values()), m["exit_codes"]
     assert "node_died" not in {a["kind"] for a in m["anomalies"]}, m["anomalies"]
     lam, p = _final(out)

@@ -305,6 +305,8 @@ def params_of(cfg: AgentConfig) -> Params:
 
 def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | None = None,
                insecure: bool = False, floors: Mapping[str, int] | None = None) -> KeyringC:
+    """A bd_keyring for the C agent: ``node``'s key and boot, its peers' keys
+    (at most MAX_PEERS) with their boot floors; not persisted (see keyring_from)."""
     k = KeyringC()
     k.node = node.encode()
     k.key[:] = list(key)
@@ -377,11 +379,14 @@ class CAgent:
         return ev
 
     def set_tx_count(self, mc: int, setpoint: int, diag: int = 0) -> None:
+        """Set the agent's own message counts of MC, Setpoint and Diag (the node
+        vectors' ``setup`` test hook: AUTH-5's wrap in seconds, not 2**24 frames)."""
         self.rt.lib.bd_agent_set_tx_count(self._buf, mc, setpoint, diag)
 
     # ---------------------------------------------------------------- node seam
 
     def on_frame(self, msg: can.Message, t: float) -> None:
+        """Take one received frame at time ``t`` (bd_agent_rx, its flags from the message)."""
         self.rx(msg.arbitration_id, bytes(msg.data),
                 (FRAME_EXT if msg.is_extended_id else 0)
                 | (FRAME_RTR if msg.is_remote_frame else 0)
@@ -389,24 +394,29 @@ class CAgent:
                 ns(t))
 
     def rx(self, frame_id: int, data: bytes, flags: int, t_ns: int) -> None:
+        """Hand a raw frame to bd_agent_rx at ``t_ns`` (data beyond 8 bytes is cut)."""
         f = Frame(frame_id, len(data), flags)
         f.data[:len(data)] = list(data[:8])
         self.rt.lib.bd_agent_rx(self._buf, ctypes.byref(f), t_ns)
 
     def tick_raw(self, t_ns: int) -> list[tuple[int, bytes]]:
+        """One bd_agent_tick at ``t_ns``: the (ID, payload) of every frame to send."""
         n = self.rt.lib.bd_agent_tick(self._buf, t_ns, self._out, TICK_FRAMES_MAX)
         self.ticks += 1
         return [(self._out[k].id, bytes(self._out[k].data)[:self._out[k].len])
                 for k in range(n)]
 
     def tick(self, t: float) -> list[can.Message]:
+        """One tick at ``t`` s: the frames to send, as python-can messages."""
         return [can.Message(arbitration_id=fid, data=data, is_extended_id=False)
                 for fid, data in self.tick_raw(ns(t))]
 
     def note(self, event: str, count: int = 1) -> None:
+        """Count a runtime event reported by run_node (bd_agent_note)."""
         self.rt.lib.bd_agent_note(self._buf, self.rt.counter_names.index(event), count)
 
     def accepted_ids(self) -> list[int]:
+        """The frame IDs the C agent's acceptance filter must pass."""
         ids = (ctypes.c_uint32 * 512)()
         n = self.rt.lib.bd_agent_accepted_ids(self._buf, ids, 512)
         return list(ids[:n])
@@ -415,24 +425,29 @@ class CAgent:
 
     @property
     def counters(self) -> Counter[str]:
+        """The C agent's non-zero counters, by name."""
         lib = self.rt.lib
         return Counter({name: v for i, name in enumerate(self.rt.counter_names)
                         if (v := lib.bd_agent_counter(self._buf, i))})
 
     @property
     def state(self) -> State:
+        """The C agent's state (INIT, RUNNING, ISOLATED, SAFE)."""
         return State(self.rt.lib.bd_agent_state(self._buf))
 
     @property
     def lambda_q24(self) -> int:
+        """The λ the C agent sends, Q24 raw."""
         return int(self.rt.lib.bd_agent_lambda(self._buf))
 
     @property
     def lam(self) -> float:
+        """The λ the C agent sends, as a real value (cu/kWh)."""
         return fx.to_float(self.lambda_q24)
 
     @property
     def resets(self) -> int:
+        """The C controller's reset count."""
         return int(self.rt.lib.bd_agent_resets(self._buf))
 
     @property
@@ -446,6 +461,7 @@ class CAgent:
         return int(self.rt.lib.bd_agent_boot(self._buf))
 
     def summary(self) -> str:
+        """The one-line summary at exit, as firmware_py's agent prints it."""
         c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items())) or "none"
         return (f"agent {self.cfg.id} (C): state={self.state.name} λ={self.lam:.6f} "
                 f"resets={self.resets} ticks={self.ticks} counters: {c}")

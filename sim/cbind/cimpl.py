@@ -107,6 +107,8 @@ def build(build_dir: Path, source_dir: Path = SOURCE_DIR, target: str = "all") -
 
 
 def cache_dir(source_dir: Path = SOURCE_DIR) -> Path:
+    """Where the library built from ``source_dir`` is cached: BESSDED_C_CACHE (or
+    ~/.cache/bess-ded/cimpl) / a hash of the sources, so an edit rebuilds."""
     digest = hashlib.sha256()
     for path in sources(source_dir):
         digest.update(path.name.encode() + b"\0" + path.read_bytes())
@@ -219,14 +221,17 @@ class CController:
     # ---------------------------------------------------------------- Controller interface
 
     def initial_state(self, lam0: float) -> ControllerState:
+        """bd_ctrl_init: the state at λ = q24(lam0), as firmware_py's ControllerState."""
         s = _State()
         self.core.lib.bd_ctrl_init(ctypes.byref(s), fx.to_fixed(lam0, "lambda0"))
         return _to_py(s)
 
     def wire_lambda(self, s: ControllerState) -> int:
+        """bd_ctrl_wire_lambda: the state's λ rounded to Q24."""
         return int(self.core.lib.bd_ctrl_wire_lambda(ctypes.byref(_to_c(s))))
 
     def step(self, s: ControllerState, xi: float | int) -> tuple[ControllerState, StepOutput]:
+        """bd_ctrl_step: one sample with consensus error ``xi``."""
         cs, out = _to_c(s), _Out()
         self.core.lib.bd_ctrl_step(ctypes.byref(self._cfg), ctypes.byref(cs), int(xi),
                                    ctypes.byref(out))

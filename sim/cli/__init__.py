@@ -59,6 +59,8 @@ COMMANDS: tuple[str, ...] = (
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The `bess-ded` parser with every command's subparser (a command whose
+    module fails to import is registered as broken and reports why when run)."""
     parser = argparse.ArgumentParser(
         prog=PROG, description="Distributed economic dispatch for batteries: reset-PI "
         "marginal-cost consensus, simulated or as CAN nodes.")

@@ -53,6 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def plan(sc: Scenario) -> list[tuple[str, Scenario]]:
+    """(label, scenario) for every controller of CONTROLLERS, on ``sc``."""
     return [(label, sc.with_controller(**over)) for label, over in CONTROLLERS]
 
 
@@ -92,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def compare_table(rows: list[tuple[str, dict[str, Any]]]) -> str:
+    """The comparison table: one row per controller's metrics."""
     headers = ["controller", "settling [s]", "overshoot", "TV(u)", "peak |u|", "resets/agent",
                "final error"]
     body = [[label, "/".join(fmt_time(x) for x in m["settling_times_s"]),

@@ -100,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def raise_out(out: Path) -> None:
+    """Refuse --out ``out``: it is a file, not a directory."""
     from firmware_py.errors import ParameterError
 
     raise ParameterError("--out", "a directory", f"{out} (a file)")

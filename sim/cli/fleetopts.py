@@ -48,6 +48,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_tolerance_argument(p: argparse.ArgumentParser) -> None:
+    """--tolerance CU: the final max|λ−ρ| a converged run must be within."""
     from firmware_py.cliargs import positive_float
     from sim.run.verdict import TOLERANCE
 

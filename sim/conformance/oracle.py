@@ -37,11 +37,15 @@ class Frame:
 
     @property
     def done(self) -> float:
+        """When the frame's step is over: its end, else its own time."""
         return self.t if self.t_end is None else self.t_end
 
 
 @dataclass
 class Mismatch:
+    """One signal of the device under test that differs from the oracle's:
+    when, in which step and message, what was expected and what came."""
+
     t: float
     tick: int
     step: str

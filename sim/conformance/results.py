@@ -23,6 +23,8 @@ REQUIREMENTS_FILE = Path(__file__).resolve().parent / "spec_requirements.txt"
 
 @dataclass(frozen=True)
 class Result:
+    """The verdict on one requirement (``must``): passed or not, and why."""
+
     must: str
     passed: bool
     detail: str

@@ -37,6 +37,7 @@ class Battery:
         return float(out) if np.ndim(out) == 0 else out
 
     def marginal_cost(self, p: float | np.ndarray) -> float | np.ndarray:
+        """(1+m)(2αP + β): the marginal cost at power ``p``, cu/kWh."""
         return (1 + self.m) * (2 * self.alpha * np.asarray(p) + self.beta)
 
     def cost_rate(self, p: float | np.ndarray) -> float | np.ndarray:

@@ -51,6 +51,8 @@ def overshoot(tr: Trajectory) -> float:
 
 
 def compute(sc: Scenario, tr: Trajectory) -> dict[str, Any]:
+    """The metrics of trajectory ``tr`` of ``sc``: settling times, overshoot,
+    resets, cost against the KKT optimum, final error and the graph's analysis."""
     rep = sc.analysis()
     st = settling_times(tr)
     final_p = tr.p[-1]

@@ -65,6 +65,7 @@ class BaseSystem:
     cd: np.ndarray   # (N, 2N+1) ξ̇ = cd @ z
 
     def flow(self, tau: float) -> np.ndarray:
+        """exp(G·tau): the mode's state transition over ``tau`` s."""
         return expm(self.g * tau)
 
 

@@ -53,12 +53,16 @@ PRICE_BOUND_RANGE = (AgentConfig.lambda_min, AgentConfig.lambda_max)
 
 @dataclass(frozen=True)
 class PriceStep:
+    """The price ρ in force from time ``t`` on."""
+
     t: float
     rho: float
 
 
 @dataclass(frozen=True)
 class Event:
+    """A scheduled plug-and-play event: ``agent`` isolated or reconnected at ``t``."""
+
     t: float
     agent: int
     action: str  # "isolate" | "reconnect"
@@ -66,12 +70,17 @@ class Event:
 
 @dataclass(frozen=True)
 class Variant:
+    """A named controller override of a case (``--variant``)."""
+
     label: str
     controller: Mapping[str, Any]
 
 
 @dataclass(frozen=True)
 class Scenario:
+    """One case: graph, batteries, controller, price schedule, events and limits
+    (a scenario TOML, validated)."""
+
     name: str
     title: str
     source: str
@@ -96,10 +105,12 @@ class Scenario:
 
     @property
     def adjacency(self) -> np.ndarray:
+        """The weighted adjacency matrix A of the graph."""
         return graph.adjacency(self.n, self.edges)
 
     @property
     def h(self) -> np.ndarray:
+        """H = L + B of the graph and its pinned agents."""
         return graph.h_matrix(self.adjacency, graph.pinning(self.n, self.pinned))
 
     def neighbours(self, agent: int) -> list[tuple[int, float]]:
@@ -108,6 +119,7 @@ class Scenario:
         return [(j + 1, float(a[agent - 1, j])) for j in range(self.n) if a[agent - 1, j]]
 
     def analysis(self) -> graph.GraphReport:
+        """The graph's analysis for this controller (regular, discrete-stable)."""
         c = self.controller
         return graph.analyse(self.h, c.k, c.h, c.ts, c.kind)
 
@@ -121,11 +133,14 @@ class Scenario:
 
     @property
     def steps(self) -> int:
+        """Samples in the run: duration / Ts, rounded."""
         return round(self.duration / self.ts)
 
     # ---- variants
 
     def with_controller(self, **overrides: Any) -> Scenario:
+        """The scenario with controller fields replaced; ConfigError (naming the
+        source) for a bad value."""
         try:
             return replace(self, controller=replace(self.controller, **overrides))
         except ParameterError as e:
@@ -151,6 +166,8 @@ class Scenario:
 
 
 def case_path(case: int | str) -> Path:
+    """The scenario file of paper case ``case``; ConfigError listing the known
+    cases if there is none."""
     path = SCENARIO_DIR / f"case{case}.toml"
     if not path.exists():
         known = sorted(p.stem.removeprefix("case") for p in SCENARIO_DIR.glob("case*.toml"))
@@ -160,10 +177,13 @@ def case_path(case: int | str) -> Path:
 
 
 def load_case(case: int | str) -> Scenario:
+    """Paper case ``case`` (1..7) as a Scenario."""
     return load_scenario(case_path(case))
 
 
 def load_scenario(path: str | Path) -> Scenario:
+    """A scenario TOML file, parsed and validated; ConfigError naming the file
+    and key on any problem."""
     path = Path(path)
     src = str(path)
     try:
@@ -185,6 +205,8 @@ def load_scenario(path: str | Path) -> Scenario:
 
 
 def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
+    """A Scenario from parsed TOML ``data`` (``src`` names it in errors);
+    ConfigError on an unknown, missing or out-of-range key."""
     r = _Reader(src)
     r.only(data, "", {"name", "title", "ts", "duration", "load_kw", "controller", "graph",
                       "price", "battery", "event", "variant", "limits"})

@@ -12,6 +12,9 @@ import numpy as np
 
 @dataclass
 class Trajectory:
+    """A run sampled at Ts: time, λ, price and segment, participation and power,
+    and (where the runner records them) u, ξ and ν, and the resets."""
+
     t: np.ndarray          # (K,) s
     lam: np.ndarray        # (K, N) λ_i at t_k
     rho: np.ndarray        # (K,) price in force at t_k
@@ -36,6 +39,7 @@ class Trajectory:
 
     @property
     def n(self) -> int:
+        """The number of agents."""
         return int(self.lam.shape[1])
 
     @property
@@ -47,6 +51,8 @@ class Trajectory:
             return np.where(np.abs(self.xi) > 1e-6, self.nu / self.xi, np.nan)
 
     def write_csv(self, path: Path) -> None:
+        """Write the trajectory as CSV: t, rho, segment, then one column per agent
+        of each recorded series (lam_1, ..., p_N, active_N)."""
         cols: list[tuple[str, np.ndarray]] = [("t", self.t), ("rho", self.rho),
                                               ("segment", self.segment)]
         for name in ("lam", "u", "xi", "nu", "p", "active"):

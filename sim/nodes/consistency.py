@@ -34,6 +34,8 @@ ROUNDING_RAW = 1       # setpoint raw units (0.01 kW) the wire's rounding may ac
 
 
 class Check(Enum):
+    """The outcome of checking a setpoint against its agent's λ."""
+
     CONSISTENT = "consistent"
     INCONSISTENT = "inconsistent"
     UNVERIFIED = "unverified"   # no MC frame came to check it against
@@ -41,6 +43,8 @@ class Check(Enum):
 
 @dataclass
 class Setpoint:
+    """One setpoint the plant received: enable, raw power and its time."""
+
     enable: bool
     raw: int                    # PowerSetpoint, 0.01 kW
     t: float

@@ -35,6 +35,8 @@ KINDS = {
 
 def frames(kind: str, count: int, target: int = 1, seed: int = 0,
            codec: FrameCodec | None = None) -> Iterator[can.Message]:
+    """``count`` crafted frames of ``kind`` (KINDS), seeded: what `bess-ded inject`
+    sends (``target``: the agent an impersonation claims to be)."""
     codec = codec or FrameCodec()
     rng = random.Random(seed)
     rho = fx.to_fixed(0.8)

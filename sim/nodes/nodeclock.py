@@ -16,12 +16,14 @@ class TimeWindow:
     t_end: float
 
     def check_window(self, what: str, node: str) -> None:
+        """Refuse a window that is not 0 ≤ T0 < T1 (ParameterError naming ``what``)."""
         if not (math.isfinite(self.t_start) and self.t_start >= 0
                 and self.t_end > self.t_start):  # also refuses a NaN end
             raise ParameterError(what, f"0 ≤ T0 < T1 (seconds from the {node}'s start)",
                                  f"{self.t_start}:{self.t_end}")
 
     def active(self, t_rel: float) -> bool:
+        """True when ``t_rel`` (s from the node's first tick) is in [T0, T1)."""
         return self.t_start <= t_rel < self.t_end
 
 
@@ -36,6 +38,7 @@ class SimNodeClock:
         self.ticks = 0
 
     def note(self, event: str, count: int = 1) -> None:
+        """Count a runtime event reported by run_node."""
         self.counters[event] += count
 
     def _advance(self, t: float) -> tuple[float, float]:

@@ -171,6 +171,8 @@ class PlantFault(TimeWindow):
                                  "in seconds", spec) from None
 
     def check(self, n: int) -> PlantFault:
+        """The fault itself if its BESS is in 1..``n``, its kind known and its window
+        valid; else ParameterError."""
         if isinstance(self.agent, bool) or not isinstance(self.agent, int) \
                 or not 1 <= self.agent <= n:
             raise ParameterError("fault.agent", f"a BESS in 1..{n}", self.agent)
@@ -223,6 +225,8 @@ class BessUnit:
 
     @classmethod
     def create(cls, agent: int, b: Battery) -> BessUnit:
+        """BESS ``agent`` at rest: battery ``b`` at its initial SoC and open-circuit
+        voltage."""
         return cls(agent=agent, battery=b, i_max=current_limit(b), soc=b.soc0,
                    voltage=open_circuit_voltage(b, b.soc0))
 
@@ -281,6 +285,7 @@ class BessUnit:
         return edge
 
     def flags(self) -> str:
+        """The active fault and limit flags as text (e.g. "OC|LIM"), "ok" if none."""
         names = [n for n, on in (("OC", self.fault_overcurrent), ("V", self.fault_voltage),
                                  ("SOC", self.fault_soc), ("LIM", self.power_limited)) if on]
         return "|".join(names) or "ok"
@@ -299,6 +304,7 @@ class Cyclic:
         self.next: float | None = None
 
     def due(self, t: float) -> bool:
+        """True when a transmission is due at ``t`` (and schedules the next)."""
         if self.next is not None and t < self.next - self.tol:
             return False
         self.next = (t if self.next is None else self.next) + self.cycle
@@ -374,6 +380,8 @@ class PlantNode(SimNodeClock):
     # ------------------------------------------------------------------ receive
 
     def on_frame(self, msg: can.Message, t: float) -> None:
+        """Take one received frame at time ``t``: a setpoint for a BESS, or an MC
+        frame its setpoint is checked against."""
         f = self.io.receive(msg, t)
         if f is None:
             return
@@ -418,6 +426,8 @@ class PlantNode(SimNodeClock):
     # ------------------------------------------------------------------ periodic
 
     def tick(self, t: float) -> list[can.Message]:
+        """One plant period at ``t``: every BESS's current loop, SoC and protection
+        advanced; the syncs and status frames due."""
         dt, t_rel = self._advance(t)
         forced = self._forced(t_rel)
         for u in self.units:
@@ -488,6 +498,8 @@ class PlantNode(SimNodeClock):
         return self.units[agent - 1]
 
     def summary(self) -> str:
+        """The plant's summary at exit: counters, and per BESS its power, current,
+        voltage, SoC and flags."""
         t = self.elapsed
         c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items()) if v) or "none"
         lines = [f"plant: {len(self.units)} BESS, t={t:.2f} s, ticks={self.ticks}, counters: {c}"]

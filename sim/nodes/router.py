@@ -82,11 +82,13 @@ class SilentWindow(TimeWindow):
         return window.check()
 
     def check(self) -> SilentWindow:
+        """The window itself, if valid (ParameterError otherwise)."""
         self.check_window("silent window", "router")
         return self
 
 
 def as_window(w: SilentWindow | Sequence[float] | str) -> SilentWindow:
+    """A SilentWindow from a window, a (T0, T1) pair or "T0:T1"; validated."""
     if isinstance(w, SilentWindow):
         return w.check()
     if isinstance(w, str):
@@ -205,6 +207,8 @@ class RouterNode(SimNodeClock):
     # ------------------------------------------------------------------ receive
 
     def on_frame(self, msg: can.Message, t: float) -> None:
+        """Take one received frame at time ``t``: a plant status, for the grid
+        balance and the cost ledger."""
         f = self.io.receive(msg, t)
         if f is None:
             return
@@ -218,6 +222,8 @@ class RouterNode(SimNodeClock):
     # ------------------------------------------------------------------ periodic
 
     def tick(self, t: float) -> list[can.Message]:
+        """One router period at ``t``: the price schedule, the scheduled commands
+        and the ledger advanced; the frames due (none inside a silent window)."""
         dt, t_rel = self._advance(t)
         self.rho, self.segment = self.scenario.price_at(t_rel + SCHEDULE_EPS_S)
         self._update_ledger(t, dt)
@@ -311,6 +317,8 @@ class RouterNode(SimNodeClock):
         return [s.power for s in self._slots]
 
     def summary(self) -> str:
+        """The router's summary at exit: ρ, grid power, cost against the optimum
+        and counters."""
         t = self.elapsed
         c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items()) if v) or "none"
         extra = (f" ({100 * (self.cost / self.optimal_cost - 1):+.2f} % vs optimal)"

@@ -79,6 +79,7 @@ class Segment:
 
     @property
     def settled_at(self) -> float | None:
+        """When the segment settled (s of the run), None if it never did."""
         return None if self.settling is None else self.start + self.settling
 
 

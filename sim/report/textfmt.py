@@ -82,6 +82,7 @@ class Progress:
         self.shown = True
 
     def done(self) -> None:
+        """Erase the progress line, if one is shown."""
         if self.shown:
             self.stream.write("\r" + " " * 60 + "\r")
             self.stream.flush()

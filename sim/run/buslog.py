@@ -62,6 +62,10 @@ class SequenceStats:
 
 @dataclass
 class LogContents:
+    """What one pass over a CAN log found: every decoded series, the counters'
+    sequences and gaps, diag pages, and (with the run's keys) the frames
+    that failed or could not be verified."""
+
     frames: int = 0
     undecodable: Counter[str] = field(default_factory=Counter)
     series: dict[tuple[str, str], list[tuple[float, float]]] = field(
@@ -128,6 +132,8 @@ class LogContents:
 
     @property
     def start_recorded(self) -> bool:
+        """True when every agent's first recorded MC frame is in INIT: the
+        recording saw the run's start."""
         return all(s == State.INIT for s in self.first_mc_state.values())
 
     @property
@@ -142,6 +148,7 @@ class LogContents:
                         if s.out_of_sequence})
 
     def mc_frames(self, agent: int) -> int:
+        """How many AGENT_<agent>_MC frames the log holds."""
         s = self.sequences.get(f"AGENT_{agent}_MC")
         return 0 if s is None else s.frames
 
@@ -518,6 +525,8 @@ def planned_participation(sc: Scenario, t: np.ndarray) -> np.ndarray:
 
 
 def trajectory_from_log(sc: Scenario, log: LogContents, label: str = "bus") -> Trajectory:
+    """The run recorded in ``log`` as a Trajectory sampled at Ts from the first
+    ER_Price frame (t = 0); ValueError if the log holds no price."""
     if log.t_first_price is None:
         raise ValueError("the log holds no ER_Price frame: the router never spoke")
     t0, ts = log.t_first_price, sc.ts

@@ -58,16 +58,20 @@ RT_PRIORITY = 10
 
 
 class BusRunError(BessDedError):
-    pass
+    """A bus run could not start or went wrong (no price frame, a node that
+    cannot start, ...)."""
 
 
 @dataclass
 class BusOptions:
+    """The bus a run uses: python-can interface, channel and extra config (JSON)."""
+
     interface: str | None = None
     channel: str | None = None
     config: str | None = None   # JSON of extra python-can arguments
 
     def resolved(self) -> dict[str, Any]:
+        """The python-can arguments of this bus (flags, then CAN_* environment)."""
         return bus_kwargs(self.interface, self.channel, self.config)
 
     def argv(self) -> list[str]:
@@ -87,6 +91,8 @@ class BusOptions:
 
 @dataclass
 class NodeSpec:
+    """One node process of a run: its name, argv, start delay and process."""
+
     name: str
     argv: list[str]
     delay: float = 0.0            # start this long after `up` starts it (fault tests)
@@ -117,6 +123,7 @@ class Progress(can.Listener):
         self.lock = threading.Lock()
 
     def on_message_received(self, msg: can.Message) -> None:
+        """Count a recorded frame; keep ρ and each agent's λ for the live view."""
         fid = msg.arbitration_id
         with self.lock:
             self.frames += 1
@@ -249,6 +256,8 @@ def sim_node_counters(out: Path) -> dict[str, Any]:
 
 
 def start(spec: NodeSpec, logdir: Path) -> None:
+    """Start ``spec``'s process (its own session, stdout and stderr appended to
+    ``logdir``/NAME.log), dying with its parent."""
     # append: a node restarted mid-run (fault tests) keeps its first life's log
     logfile = (logdir / f"{spec.name}.log").open("ab")
     # a session of its own: a terminal's Ctrl-C reaches `up` alone, which then stops the
@@ -488,6 +497,8 @@ def run_facts_path(out: Path) -> Path:
 
 def write_run_facts(out: Path, facts: RunFacts, boot_floors: Mapping[str, int] | None,
                     time_scale: float, tolerance: float) -> None:
+    """Write ``out``'s run_facts.json: what ``analyze`` needs of a run beyond its
+    log (exit codes, deaths, boot floors, time scale, tolerance)."""
     doc = {**facts.as_json(), "boot_floors": dict(boot_floors or {}),
            "time_scale": time_scale, "tolerance": tolerance}
     run_facts_path(out).write_text(json.dumps(doc, indent=2) + "\n")
@@ -548,6 +559,7 @@ class Recorder:
         return out
 
     def stop(self) -> None:
+        """Stop the receive thread (within 5 s) and read the socket's drop count."""
         self._stop.set()
         self._thread.join(timeout=5.0)
         if self._socket is not None and self._socket.fileno() >= 0:

@@ -114,18 +114,24 @@ _SIM_FAULT_COUNTERS = (
 
 @dataclass(frozen=True)
 class Anomaly:
+    """One thing a run did wrong: its kind, the node, what happened and when."""
+
     kind: str            # e.g. "node_died", "agent_safe", "bus_silence" (docs/runs.md)
     node: str            # "agent_3", "plant", "router", "bus", "recorder", "run"
     detail: str
     t: float | None = None  # s from the first price frame (run time), where it has one
 
     def text(self, time_scale: float = 1.0) -> str:
+        """The anomaly as a report line, times shown in unstretched seconds."""
         at = "" if self.t is None else f" at t = {self.t / time_scale:.2f} s"
         return f"{self.kind} [{self.node}]{at}: {self.detail}"
 
 
 @dataclass
 class Verdict:
+    """A run's outcome: converged or not and why, its anomalies, interrupted,
+    and the most likely cause of a failure."""
+
     converged: bool
     reasons: list[str]           # why not converged (empty when it did)
     anomalies: list[Anomaly]
@@ -134,6 +140,7 @@ class Verdict:
 
     @property
     def exit_code(self) -> int:
+        """The command's exit code: interrupted, not converged, anomalies, or OK."""
         if self.interrupted:
             return EXIT_INTERRUPTED
         if not self.converged:
@@ -142,9 +149,11 @@ class Verdict:
 
     @property
     def ok(self) -> bool:
+        """True when the run converged without anomalies and was not interrupted."""
         return self.exit_code == EXIT_OK
 
     def as_json(self) -> dict[str, Any]:
+        """The verdict as metrics.json holds it."""
         return {"converged": self.converged, "reasons": self.reasons,
                 "interrupted": self.interrupted, "exit_code": self.exit_code,
                 "ok": self.ok, "cause": self.cause}
@@ -171,6 +180,7 @@ class RunFacts:
     @classmethod
     def from_json(cls, d: dict[str, Any], node_counters: dict[str, Any] | None
                   ) -> RunFacts:
+        """The facts ``as_json`` wrote, with the plant's and router's counters."""
         return cls(exit_codes=d.get("exit_codes"),
                    deaths=[tuple(x) for x in d["deaths"]] if d.get("deaths") else None,
                    node_counters=node_counters, interrupted=bool(d.get("interrupted")),
@@ -617,4 +627,5 @@ def _power_limits(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anom
 
 
 def anomalies_json(v: Verdict) -> list[dict[str, Any]]:
+    """The verdict's anomalies as metrics.json holds them."""
     return [asdict(a) for a in v.anomalies]

@@ -36,7 +36,7 @@ __all__ = ["FleetError", "KeySet", "ProcessFleet", "SimFleet", "fleet_scenario",
 
 
 class FleetError(BessDedError):
-    pass
+    """A fleet could not start or a node of it died (the test kit's error)."""
 
 
 def fleet_scenario(case: int | str | Path | Scenario, variant: str | None = None,
@@ -92,6 +92,7 @@ class KeySet:
 
     @classmethod
     def fresh(cls, directory: Path | str) -> KeySet:
+        """A new key set in ``directory`` (made 0700) with a random master key."""
         d = Path(directory)
         d.mkdir(mode=0o700, parents=True, exist_ok=True)
         os.chmod(d, 0o700)
@@ -203,6 +204,7 @@ class ProcessFleet:
         return codes
 
     def alive(self) -> dict[str, bool]:
+        """Each started node: True while its process runs."""
         return {n: (p := self._specs[n].proc) is not None and p.poll() is None
                 for n in self.started}
 
@@ -286,6 +288,7 @@ class SimFleet:
 
     @property
     def ts(self) -> float:
+        """The fleet's sample period Ts (s)."""
         return self.scenario.ts
 
     # the Clock protocol of sim.testkit.tester
@@ -294,9 +297,12 @@ class SimFleet:
         return self._t
 
     def wait(self, tester: Tester, dt: float) -> None:
+        """Step the fleet once (the Clock protocol: bus time passes by one Ts)."""
         self.step()
 
     def every(self, period: float, fn: Callable[[float], None]) -> Callable[[], None]:
+        """Call ``fn(t)`` every ``period`` of simulated time from now; returns a stop
+        function."""
         task = [self._t, period, fn]
         self._tasks.append(task)
 
@@ -307,9 +313,11 @@ class SimFleet:
         return halt
 
     def attach(self, tester: Tester) -> None:
+        """Deliver the fleet's frames to ``tester`` from now on."""
         self._testers.append(tester)
 
     def detach(self, tester: Tester) -> None:
+        """Stop delivering frames to ``tester``."""
         if tester in self._testers:
             self._testers.remove(tester)
 
@@ -390,6 +398,7 @@ class SimFleet:
             self.step()
 
     def close(self) -> None:
+        """Close every attached tester and shut every bus down (once)."""
         if self.closed:
             return
         self.closed = True

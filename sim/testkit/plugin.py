@@ -30,6 +30,8 @@ HEARD_TIMEOUT_S = 60.0  # a node process imports python-can, cantools and the DB
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
+    """The test kit's command-line options (--bess-interface, --bess-channel,
+    --bess-bus-config, --bess-time-scale, --bess-keys)."""
     g = parser.getgroup("bess-ded", "bess-ded test kit (docs/testing.md)")
     g.addoption("--bess-interface", metavar="NAME", default=None,
                 help="python-can interface of the bess_bus fixture (socketcan, pcan, ...; "
@@ -57,6 +59,8 @@ MARKERS = {
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    """Register the kit's markers and refuse bad --bess-* options once, before
+    any test runs."""
     defined = {line.split(":")[0].split("(")[0].strip() for line in config.getini("markers")}
     for name, text in MARKERS.items():
         if name not in defined:

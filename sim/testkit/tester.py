@@ -62,7 +62,10 @@ class ExpectationError(AssertionError):
 
 
 class Clock(Protocol):
-    def now(self) -> float: ...
+    """The bus time a Tester runs on: a simulated fleet's, or the wall clock."""
+
+    def now(self) -> float:
+        """The bus time now (s)."""
 
     def wait(self, tester: Tester, dt: float) -> None:
         """Let up to ``dt`` of bus time pass (at least a little), delivering frames."""
@@ -78,13 +81,16 @@ class WallClock:
         self._t0 = time.monotonic()
 
     def now(self) -> float:
+        """Seconds since this clock was made (monotonic)."""
         return time.monotonic() - self._t0
 
     def wait(self, tester: Tester, dt: float) -> None:
+        """Wait up to ``dt`` (at most POLL_S) or until the tester hears a frame."""
         with tester._cond:
             tester._cond.wait(max(0.0, min(dt, POLL_S)))
 
     def every(self, period: float, fn: Callable[[float], None]) -> Callable[[], None]:
+        """Call ``fn(t)`` every ``period`` s from a thread; returns a stop function."""
         stop = threading.Event()
 
         def loop() -> None:
@@ -222,6 +228,7 @@ class Periodic:
             self.error = e
 
     def update(self, signals: Mapping[str, Any] | None = None, **more: Any) -> None:
+        """Change some of the signals sent from the next frame on (checked now)."""
         new = {**(signals or {}), **more}
         with self._lock:
             merged = {**self._signals, **new}
@@ -231,6 +238,7 @@ class Periodic:
             self._signals = merged
 
     def stop(self) -> None:
+        """Stop sending; raises TesterError if a send failed meanwhile."""
         if not self._stopped:
             self._stopped = True
             self._halt()
