@@ -76,6 +76,7 @@ def _score_tool():  # type: ignore[no-untyped-def]
 
 
 @pytest.mark.long
+@pytest.mark.mutation
 def test_the_fault_score_of_the_schedule_does_not_regress(
         capsys: pytest.CaptureFixture[str]) -> None:
     """Expected (case 1, agent 3, jitter 0.3, seed 0): the faultless agent passes, and at
