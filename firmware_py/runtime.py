@@ -362,9 +362,7 @@ class AgentRuntime:
         self._update_neighbours(t)
         self._update_state()
         if is_active(self.state):
-            nbrs = [(s.weight, s.lam) for s in self.neighbours.values()
-                    if s.alive and is_active(s.state) and s.lam is not None]
-            xi, sat = consensus_error(self.ctrl.ar, self.lambda_q24, nbrs,
+            xi, sat = consensus_error(self.ctrl.ar, self.lambda_q24, self._xi_neighbours(),
                                       self.pin if self.price is not None else 0,
                                       self.price or 0)
             self.cstate, _ = self.ctrl.step(self.cstate, xi)
@@ -377,6 +375,11 @@ class AgentRuntime:
             frames.append(self._diag_frame(self.ticks // DIAG_EVERY % len(self.DIAG_PAGES)))
         self.ticks += 1
         return frames
+
+    def _xi_neighbours(self) -> list[tuple[int, int]]:
+        """XI-1: (weight, λ) in Q24 of every neighbour alive and RUNNING: the terms of ξ."""
+        return [(s.weight, s.lam) for s in self.neighbours.values()
+                if s.alive and is_active(s.state) and s.lam is not None]
 
     def _update_neighbours(self, t: float) -> None:
         timeout = self.cfg.neighbour_timeout_periods * self.period

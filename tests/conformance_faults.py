@@ -32,11 +32,11 @@ from firmware_py import contract
 from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig, Neighbour, agent_configs_from_scenario
 from firmware_py.contract import Command, State, is_active
-from firmware_py.controllers import DwellResetPIController, ResetPIController, consensus_error
+from firmware_py.controllers import DwellResetPIController, ResetPIController
 from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from firmware_py.nodeio import FleetSender
-from firmware_py.runtime import DIAG_EVERY, GAIN_DIV, SETPOINT_EVERY, AgentRuntime
+from firmware_py.runtime import GAIN_DIV, AgentRuntime
 from firmware_py.secoc import Keyring, derive_node_key, fleet_nodes
 from sim.model.scenario import load_case
 
@@ -387,27 +387,11 @@ def _diag_frame(self: Any, page: int) -> can.Message:
     return self.io.send(diag_name(self.cfg.id), {"Page": page, **raw})
 
 
-def _tick_any_state(self: Any, t: float) -> list[can.Message]:
-    """AgentRuntime.tick with ξ taken over every alive neighbour, whatever its State
-    (XI-1: alive and RUNNING)."""
-    self._now = t
-    self._update_neighbours(t)
-    self._update_state()
-    if is_active(self.state):
-        nbrs = [(s.weight, s.lam) for s in self.neighbours.values()
-                if s.alive and s.lam is not None]
-        xi, sat = consensus_error(self.ctrl.ar, self.lambda_q24, nbrs,
-                                  self.pin if self.price is not None else 0, self.price or 0)
-        self.cstate, _ = self.ctrl.step(self.cstate, xi)
-        self.counters["saturations"] += sat
-    frames = self.io.syncs(t)
-    frames.append(self._mc_frame())
-    if self.ticks % SETPOINT_EVERY == 0:
-        frames.append(self._setpoint_frame())
-    if self.ticks % DIAG_EVERY == 0:
-        frames.append(self._diag_frame(self.ticks // DIAG_EVERY % len(self.DIAG_PAGES)))
-    self.ticks += 1
-    return frames
+def _xi_any_state(self: Any) -> list[tuple[int, int]]:
+    """ξ's terms taken over every alive neighbour, whatever its State (XI-1: alive and
+    RUNNING)."""
+    return [(s.weight, s.lam) for s in self.neighbours.values()
+            if s.alive and s.lam is not None]
 
 
 # ------------------------------------------------------------------ runtime (wrappers)
@@ -1059,7 +1043,7 @@ FAULTS: list[Fault] = [
           "still stored", lambda rt: _bind(rt, "_on_mc", _on_mc, keep_rejected=True), DIAG,
           drive(_seq(lambda r: r.run(3, lam=1.0), lambda r: r.run(3, lam=1.5)))),
     Fault("xi_any_state", "XI-1", "ξ takes every alive neighbour, whatever the State its "
-          "frames carry", lambda rt: _bind(rt, "tick", _tick_any_state), DIAG,
+          "frames carry", lambda rt: _bind(rt, "_xi_neighbours", _xi_any_state), DIAG,
           drive(lambda r: r.run(5, lam=1.0, state=State.SAFE))),
 ]
 
