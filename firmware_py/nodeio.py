@@ -386,16 +386,22 @@ class NodeIO:
         assert self._joining is not None
         newest = self._joining.get(fid)
         if newest is not None and fv < newest:
-            if self._fv.late_sync(newest - fv):  # late, not a replay (AUTH-25)
-                self.reject("stale", f"{name}: {fv:#x}, at most one window behind the "
-                            f"newest {newest:#x}: late (AUTH-25)")
-                return
-            self.fail(sync_id, "auth", f"{name}: expected freshness at or above {newest:#x} "
-                      f"(a newer sync came first), but got {fv:#x} (a replayed sync)", t)
+            self._old_sync(name, sync_id, newest, fv, t)  # older than one already heard
             return
         if newest is None:
             self._hello_due = True  # a first contact: tell the peer our freshness now
         self._joining[fid] = fv
+
+    def _old_sync(self, name: str, sync_id: int, newest: int, value: int, t: float) -> None:
+        """A verified sync whose ``value`` is below the ``newest`` known of its sender
+        (AUTH-16, AUTH-25; firmware_c's old_sync): less than one window behind, its tick's
+        frame overtook it (``stale``, no streak); further, a replayed sync (``auth``)."""
+        if self._fv.late_sync(newest - value):
+            self.reject("stale", f"{name}: {value:#x}, at most one window behind the newest "
+                        f"known {newest:#x}: late (AUTH-25)")
+        else:
+            self.fail(sync_id, "auth", f"{name}: expected freshness no older than "
+                      f"{newest:#x}, but got {value:#x} (a replayed sync)", t)
 
     def _settle(self, t: float) -> None:
         """AUTH-26: at the end of the join window, take each sender's newest sync."""
@@ -418,13 +424,8 @@ class NodeIO:
             if fv - 1 == last:
                 self._lost.discard(fid)  # in step with the sender: the normal window
                 return  # nothing new: the sender sent no frame since its last sync
-            if not self.keys.insecure:  # a genuine sync never goes back: a replay ...
-                if self._fv.late_sync(last - (fv - 1)):  # ... or it came late
-                    self.reject("stale", f"{name}: announces {fv:#x}, at most one window "
-                                f"behind the last accepted {last:#x}: late (AUTH-25)")
-                    return
-                self.fail(sync_id, "auth", f"{name}: expected freshness above "
-                          f"{last:#x}, but got {fv - 1:#x} (a replayed sync)", t)
+            if not self.keys.insecure:  # a genuine sync never goes back
+                self._old_sync(name, sync_id, last, fv - 1, t)
                 return
             # --insecure: a restarted sender comes back at boot 1, count 0 (nothing is
             # persisted), so its values go back; insecure mode has no replay protection
