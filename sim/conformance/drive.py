@@ -13,7 +13,7 @@ from firmware_py.config import AgentConfig
 from firmware_py.frames import FrameCodec
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
-from sim.conformance.oracle import Frame, _quiet_firmware
+from sim.conformance.oracle import Frame, quiet_firmware
 from sim.conformance.schedule import STEPS, Planned
 
 
@@ -47,7 +47,7 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
     record: list[Frame] = []
     nxt = 0
     k = 0
-    with _quiet_firmware():
+    with quiet_firmware():
         while (tick := (k + phase + rnd.uniform(0, jitter)) * ts) < end:
             while nxt < len(inputs) and inputs[nxt].t + latency < tick:
                 msg = inputs[nxt].msg

@@ -105,7 +105,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
 
 
 @contextmanager
-def _quiet_firmware() -> Iterator[None]:
+def quiet_firmware() -> Iterator[None]:
     """The oracle logs what the DUT does (commands, SAFE): not the tester's output."""
     logger = logging.getLogger("firmware_py")
     level = logger.level
@@ -197,7 +197,7 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     hyps: list[tuple[_Oracle, int]] = [(first, 0)]
     start = dut_groups.index(align[0])
     prev_t = align[0][0].t
-    with _quiet_firmware():
+    with quiet_firmware():
         # the last group may be cut short by the end of the recording
         for group in dut_groups[start:-1]:
             t_tick = group[0].t
