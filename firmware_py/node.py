@@ -19,6 +19,7 @@ import json
 import logging
 import os
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -161,12 +162,50 @@ def check_bus_keys(interface: str, extra: dict[str, Any]) -> None:
                              f"unknown key {key!r}{hint}")
 
 
-def open_bus(**kw: Any) -> can.BusABC:
-    """Open a python-can bus from ``bus_kwargs`` output, with a clear error if it fails."""
+# A node's kernel receive queue: ~1,000 frames, a second of a 64-node fleet's traffic.
+# The default (~200 frames on SocketCAN) overflows while a starved node sleeps, and the
+# kernel drops the overflow silently; a frame behind a gap of more than one freshness
+# window (AUTH-12) then fails authentication although it is genuine.
+NODE_RCVBUF = 1 << 20  # bytes
+
+
+def open_bus(receive_buffer: int | None = None, **kw: Any) -> can.BusABC:
+    """Open a python-can bus from ``bus_kwargs`` output, with a clear error if it fails;
+    ``receive_buffer``: its socket's kernel receive queue in bytes, where it has one."""
     try:
-        return can.Bus(**kw)
+        bus = can.Bus(**kw)
     except (OSError, can.CanError, ValueError, ImportError) as e:
         raise BusConfigError(f"cannot open CAN bus {kw}: {e}") from None
+    if receive_buffer is not None:
+        enlarge_receive_buffer(bus, receive_buffer)
+    return bus
+
+
+def bus_socket(bus: can.BusABC) -> socket.socket | None:
+    """The bus's own socket, None for interfaces without one. python-can exposes the
+    socketcan socket as ``bus.socket``; udp_multicast keeps its own in
+    ``bus._multicast._socket`` (no public accessor)."""
+    sock = getattr(bus, "socket", None)
+    if sock is None:
+        sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
+    return sock if isinstance(sock, socket.socket) else None
+
+
+def enlarge_receive_buffer(bus: can.BusABC, size: int) -> bool:
+    """Let the kernel queue ``size`` bytes of frames for ``bus`` (a socketcan socket holds
+    ~200 frames by default, a udp_multicast one ~300) instead of dropping them while
+    the process is starved. SO_RCVBUFFORCE (root) passes net.core.rmem_max, SO_RCVBUF
+    is capped by it. False where the bus has no socket or neither option is allowed."""
+    sock = bus_socket(bus)
+    if sock is None:
+        return False
+    for opt in (getattr(socket, "SO_RCVBUFFORCE", 33), socket.SO_RCVBUF):
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, opt, size)
+            return True
+        except OSError:
+            continue
+    return False
 
 
 # Interfaces whose can_filters run below the process (kernel or CAN controller), like an
