@@ -372,7 +372,12 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
 
 
 def agent_configs_from_scenario(sc: Any) -> list[AgentConfig]:
-    """One AgentConfig per agent of a sim.model.scenario.Scenario (used by `bess-ded up`)."""
+    """One AgentConfig per agent of a sim.model.scenario.Scenario (used by `bess-ded up`);
+    ConfigError for a fleet larger than the DBC has frames for (the simulator's are)."""
+    if sc.n > N_AGENTS_MAX:
+        raise ConfigError(sc.source, "graph.agents", f"expected at most {N_AGENTS_MAX} agents "
+                          f"on a bus (the DBC's AGENT_1..AGENT_{N_AGENTS_MAX} frames), but got "
+                          f"{sc.n}: a larger fleet runs in the simulator only (bess-ded case)")
     out = []
     for i in range(1, sc.n + 1):
         b = sc.batteries[i - 1]

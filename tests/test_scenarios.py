@@ -63,7 +63,7 @@ BAD = [
     ("wrong controller type", lambda s: s.replace(K_LINE, 'k = "one"\n'), "controller.k"),
     ("wrong table type", lambda s: s.replace(EDGES, "edges = 3"), "graph.edges"),
     ("out of range", lambda s: s.replace("duration = 20.0", "duration = 1e9"), "duration"),
-    ("out of range agents", lambda s: s.replace("agents = 4", "agents = 40"), "graph.agents"),
+    ("out of range agents", lambda s: s.replace("agents = 4", "agents = 1001"), "graph.agents"),
     ("bad gain", lambda s: s.replace(K_LINE, "k = -1.0\n"), "controller.k"),
     ("bad dwell", lambda s: s.replace(K_LINE, 'k = 1.0\nkind = "dwell"\n')
      .replace('kind = "reset"       # pc | pi | reset | dwell | ft\n', ""), "controller.dwell"),

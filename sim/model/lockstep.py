@@ -16,16 +16,30 @@ import numpy as np
 from firmware_py.controllers import consensus_error, make_controller
 from sim.model.scenario import Event, Scenario
 from sim.model.trajectory import Trajectory
+from sim.model.vlockstep import run_vectorised, vectorisable
+
+# below this many agents numpy's per-call cost outweighs the loop it replaces (bess-ded bench)
+VEC_MIN_AGENTS = 8
 
 
 def run_lockstep(sc: Scenario, fixed: bool = True,
                  progress: Callable[[int, int], None] | None = None,
-                 impl: str = "py", start_tick: int = 0) -> Trajectory:
-    """``impl``: "py" steps firmware_py's controllers, "c" the C core (firmware_c,
-    through sim.cbind.cimpl: its controller step and its ξ), fixed point only; the two give
-    the same trajectory bit for bit. ``start_tick``: the first sample the agents step
-    (before it they hold λ(0), as nodes in INIT: a bus run's start, whose nodes take no
-    frame in their join window, firmware-spec AUTH-26)."""
+                 impl: str = "auto", start_tick: int = 0) -> Trajectory:
+    """``impl``: "py" steps firmware_py's controllers agent by agent, "vec" the same
+    fixed-point step over numpy arrays (sim.model.vlockstep: all agents at once), "c" the
+    C core (firmware_c, through sim.cbind.cimpl: its controller step and its ξ), fixed
+    point only; "auto" (the default) is "vec" where it applies (``vectorisable``) and
+    pays (``VEC_MIN_AGENTS``), else "py". All give the same trajectory bit for bit.
+    ``start_tick``: the first sample the agents step (before it they hold λ(0), as nodes
+    in INIT: a bus run's start, whose nodes take no frame in their join window,
+    firmware-spec AUTH-26)."""
+    if impl == "auto":
+        impl = "vec" if fixed and sc.n >= VEC_MIN_AGENTS and vectorisable(sc) else "py"
+    if impl == "vec":
+        if not fixed:
+            raise ValueError("the vectorised step is fixed point only (impl='vec' with "
+                             "fixed=False)")
+        return run_vectorised(sc, progress, start_tick)
     ctrl = make_controller(sc.controller, fixed)
     step, initial, wire = ctrl.step, ctrl.initial_state, ctrl.wire_lambda
 
@@ -44,7 +58,7 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
                   ) -> tuple[int, bool]:
             return c.core.xi(lam, pin, rho, nbrs)
     elif impl != "py":
-        raise ValueError(f"impl: expected 'py' or 'c', but got {impl!r}")
+        raise ValueError(f"impl: expected 'auto', 'py', 'vec' or 'c', but got {impl!r}")
     q = ctrl.quantise
     n, steps, ts = sc.n, sc.steps + 1, sc.ts
     neighbours = [[(j - 1, q(w, "weight")) for j, w in sc.neighbours(i)] for i in range(1, n + 1)]

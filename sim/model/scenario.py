@@ -26,7 +26,8 @@ from sim.model import graph
 from sim.model.cost import Battery
 
 SCENARIO_DIR = Path(__file__).resolve().parents[1] / "scenarios"
-MAX_AGENTS = N_AGENTS_MAX  # the DBC's AGENT_1..AGENT_N frames
+MAX_AGENTS = N_AGENTS_MAX  # on a bus: the DBC's AGENT_1..AGENT_N frames
+SIM_MAX_AGENTS = 1000      # in the simulator (lockstep, references): no frame IDs to run out of
 CONTROLLER_KEYS = {"kind", "k", "h", "dwell", "band", "ft_exponent"}
 BATTERY_KEYS = {"alpha", "beta", "m", "p_min", "p_max", "capacity_kwh", "soc0", "v_nom",
                 "r_internal", "lambda0"}
@@ -215,7 +216,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
 
     g = r.table(data, "graph")
     r.only(g, "graph", {"agents", "edges", "pinned"})
-    n = int(r.number(g, "agents", lo=1, hi=MAX_AGENTS, key="graph.agents", integer=True))
+    n = int(r.number(g, "agents", lo=1, hi=SIM_MAX_AGENTS, key="graph.agents", integer=True))
     # list items and tables are numbered from 1 in messages, as agents and batteries are
     edges = tuple(r.edge(e, n, f"graph.edges[{i}]") for i, e in
                   enumerate(r.list(g, "edges", "graph.edges"), start=1))
@@ -325,8 +326,9 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         lambda0=tuple(lambda0), prices=tuple(prices), events=tuple(events),
         variants=tuple(variants), rho_min=rho_min, rho_max=rho_max,
         price_step_max=step_max)
-    for label, run in sc.runs():
-        check_agents(run, "variant " + label if sc.variants else "")
+    if n <= MAX_AGENTS:  # a fleet a bus can carry: its agents' configurations load too
+        for label, run in sc.runs():
+            check_agents(run, "variant " + label if sc.variants else "")
     return sc
 
 
