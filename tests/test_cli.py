@@ -101,6 +101,7 @@ def test_bench_quick(capsys: pytest.CaptureFixture[str]) -> None:
     assert "Controller step, firmware_c against firmware_py" in stdout
     assert "Agent tick, firmware_c against firmware_py" in stdout
     assert "Input checks (issue 19)" in stdout and "counted stale" in stdout
+    assert "Lockstep scaling: ms per tick" in stdout and "\n1000 " in stdout
 
 
 @pytest.mark.parametrize("argv", [

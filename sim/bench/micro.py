@@ -136,6 +136,41 @@ def lockstep_speed(quick: bool) -> Table:
                  data=data)
 
 
+def lockstep_scaling(quick: bool) -> Table:
+    """ms of wall time per lockstep tick against the fleet size, on random 3-regular graphs
+    (sim.model.generate), for the per-agent loop and the arrays (sim.model.vlockstep);
+    and the issue's yardstick: 1,000 agents, 60 s of case time at Ts = 10 ms."""
+    from sim.model.generate import random_scenario
+    from sim.model.lockstep import run_lockstep
+
+    sizes = (4, 32, 256, 1000) if quick else (4, 8, 16, 32, 64, 128, 256, 512, 1000)
+    case_s = 0.5 if quick else 2.0
+    rows, data = [], {}
+    for n in sizes:
+        sc = random_scenario(n, 3, seed=0, duration=case_s)
+        per_tick: dict[str, float] = {}
+        # --quick leaves out the loop's 1,000 agents (100 ms a tick)
+        for impl in ("py", "vec") if not quick or n <= 256 else ("vec",):
+            t0 = time.perf_counter()
+            run_lockstep(sc, impl=impl)
+            per_tick[impl] = (time.perf_counter() - t0) / (sc.steps + 1) * 1e3
+        loop = per_tick.get("py")
+        rows.append([str(n), "–" if loop is None else f"{loop:.3f}", f"{per_tick['vec']:.3f}",
+                     "–" if loop is None else f"{loop / per_tick['vec']:.1f}"])
+        data[str(n)] = {"ms_per_tick_py": loop, "ms_per_tick_vec": per_tick["vec"]}
+    note = f"{case_s:g} s of case time per run (set-up included), one run each"
+    if not quick:
+        sc = random_scenario(1000, 3, seed=0, duration=60.0)
+        t0 = time.perf_counter()
+        run_lockstep(sc, impl="vec")
+        wall = time.perf_counter() - t0
+        data["1000_agents_60s_wall_s"] = wall
+        note += f"; 1,000 agents × 60 s of case time (6,001 ticks), arrays: {wall:.1f} s"
+    return Table("Lockstep scaling: ms per tick, fixed point, random 3-regular graphs",
+                 ["agents", "per-agent loop", "arrays", "speed-up"], rows, note=note,
+                 data=data)
+
+
 def codec_speed(quick: bool) -> Table:
     """µs to encode and to decode (length and range checks included) one frame of each
     kind (the MAC is NodeIO's: secoc_cost)."""
@@ -550,6 +585,7 @@ BENCHES: list[Bench] = [
     c_controller_step,
     agent_tick,
     lockstep_speed,
+    lockstep_scaling,
     codec_speed,
     secoc_cost,
     input_checks,
