@@ -145,7 +145,8 @@ def lockstep_scaling(quick: bool) -> Table:
 
     sizes = (4, 32, 256, 1000) if quick else (4, 8, 16, 32, 64, 128, 256, 512, 1000)
     case_s = 0.5 if quick else 2.0
-    rows, data = [], {}
+    rows: list[list[str]] = []
+    data: dict[str, Any] = {}
     for n in sizes:
         sc = random_scenario(n, 3, seed=0, duration=case_s)
         per_tick: dict[str, float] = {}

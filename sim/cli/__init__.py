@@ -44,6 +44,7 @@ COMMANDS: tuple[str, ...] = (
     "case",      # one scenario in the lockstep simulator: metrics, trajectory, figures
     "compare",   # every controller on one scenario
     "bench",     # micro-benchmarks of the control core and the simulator
+    "sweep",     # many lockstep runs over graphs, gains and seeds: one table
     "up",        # a whole case as processes on a CAN bus
     "deploy",    # a scenario's node configurations and key files, nothing run
     "restbus",   # the fleet but one node, for a device under test on the bus
