@@ -183,7 +183,10 @@ def test_ray_local_mode_and_parquet_give_the_same_table(tmp_path: Path,
 def test_the_example_study_is_a_valid_spec_of_a_thousand_paired_graphs() -> None:
     """examples/sweep_reset_vs_pc.toml: 1,000 random 4-regular graphs of 5–64 agents, each
     under reset-PI and PC (2,000 points), all with valid sizes."""
-    spec = load_spec(Path(__file__).parents[1] / "examples" / "sweep_reset_vs_pc.toml")
+    spec = load_spec("reset-vs-pc")  # bundled; examples/sweep_reset_vs_pc.toml links to it
+    assert load_spec(Path(__file__).parents[1] / "examples" / "sweep_reset_vs_pc.toml") == \
+        replace(spec, source=str(Path(__file__).parents[1] / "examples" /
+                                  "sweep_reset_vs_pc.toml"))
     drawn = list(points(spec))
     assert len(drawn) == 2000 and spec.samples == 1000
     assert {p["controller"] for p in drawn} == {"reset", "pc"}

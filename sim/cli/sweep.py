@@ -22,7 +22,11 @@ from ._common import add_no_plot_argument, one_line_errors
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sweep", help="many lockstep runs over graphs, gains, seeds: one table",
                        description=__doc__)
-    p.add_argument("spec", type=Path, metavar="SPEC.toml", help="the sweep spec")
+    p.add_argument("spec", metavar="SPEC", help="the sweep spec: a TOML file, or the name "
+                   "of one that ships with bess-ded (reset-vs-pc)")
+    p.add_argument("--limit", type=positive_int("a number of points"), default=None,
+                   metavar="N", help="run only the sweep's first N points (a rerun adds "
+                   "the rest)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="where results.csv and sweep.png go (default: runs/sweep-NAME)")
     p.add_argument("--jobs", type=positive_int("a number of processes"),
@@ -44,6 +48,9 @@ def run(args: argparse.Namespace) -> int:
 
     spec = load_spec(args.spec)
     out = args.out or Path("runs") / f"sweep-{spec.name}"
+    if args.ray is not None and args.jobs != (os.cpu_count() or 1):
+        print("bess-ded sweep: --jobs is ignored with --ray (the cluster schedules)",
+              file=sys.stderr)
     executor = None
     if args.ray is not None:
         from sim.study.rayrun import ray_executor
@@ -63,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
                   f"{now:.0f} s, ~{eta:.0f} s to go", end="" if tty and done < total else "\n",
                   file=sys.stderr, flush=True)
 
-    res = run_sweep(spec, out, jobs=args.jobs, progress=progress, executor=executor)
+    res = run_sweep(spec, out, jobs=args.jobs, limit=args.limit, progress=progress,
+                    executor=executor)
     rows = read_results(res.results)
     print(f"sweep {spec.name}: {res.run} points run, {res.skipped} done before, "
           f"{res.failed} of the new not converged or invalid, {res.wall_s:.1f} s")

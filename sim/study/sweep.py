@@ -75,13 +75,25 @@ class SweepSpec:
         return [a for a in AXES if a in names]
 
 
+SPEC_DIR = Path(__file__).resolve().parent / "specs"  # bundled specs, package data
+
+
+def bundled_specs() -> list[str]:
+    """The names of the sweep specs that ship with bess-ded (``bess-ded sweep NAME``)."""
+    return sorted(p.stem for p in SPEC_DIR.glob("*.toml"))
+
+
 def load_spec(path: str | Path) -> SweepSpec:
-    """A sweep spec file, checked; ConfigError naming the file and key on a problem."""
+    """A sweep spec file, or a bundled spec by name; ConfigError naming the file and key
+    on a problem."""
     src = str(path)
+    if not Path(path).exists() and str(path) in bundled_specs():
+        path = SPEC_DIR / f"{path}.toml"
     try:
         data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise ConfigError(src, "file", "expected a sweep spec (TOML), but there is no such "
+        raise ConfigError(src, "file", "expected a sweep spec (TOML) or one of the bundled "
+                          f"specs ({', '.join(bundled_specs())}), but there is no such "
                           "file") from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
         raise ConfigError(src, "file", f"expected a readable TOML file, but got: {e}") from None
@@ -223,12 +235,13 @@ class SweepResult:
     wall_s: float = 0.0
 
 
-def run_sweep(spec: SweepSpec, out: Path, jobs: int = 1,
+def run_sweep(spec: SweepSpec, out: Path, jobs: int = 1, limit: int | None = None,
               progress: Callable[[int, int, int], None] | None = None,
               executor: Callable[[list[dict[str, Any]]], Iterable[tuple[dict[str, Any],
                                                                        dict[str, Any]]]]
               | None = None) -> SweepResult:
     """Run every point of ``spec`` not yet in ``out``/results.csv, appending a row each;
+    only the first ``limit`` points of the sweep (a trial; a later run adds the rest);
     ``jobs`` local processes (1: in this process), or ``executor`` (params list →
     (params, row) as they finish, e.g. Ray's). ``progress(done, total, failed)``."""
     out.mkdir(parents=True, exist_ok=True)
@@ -236,7 +249,7 @@ def run_sweep(spec: SweepSpec, out: Path, jobs: int = 1,
     header = ["point", *spec.columns, *METRIC_COLUMNS]
     done = _done_points(path, header)
     todo, seen = [], set(done)
-    for p in points(spec):
+    for p in itertools.islice(points(spec), limit):
         pid = point_id(p)
         if pid not in seen:
             seen.add(pid)
