@@ -14,6 +14,7 @@ from dataclasses import replace
 import numpy as np
 
 from firmware_py.controllers import consensus_error, make_controller
+from sim.model.links import Links
 from sim.model.scenario import Event, Scenario
 from sim.model.trajectory import Trajectory
 from sim.model.vlockstep import run_vectorised, vectorisable
@@ -24,7 +25,8 @@ VEC_MIN_AGENTS = 8
 
 def run_lockstep(sc: Scenario, fixed: bool = True,
                  progress: Callable[[int, int], None] | None = None,
-                 impl: str = "auto", start_tick: int = 0) -> Trajectory:
+                 impl: str = "auto", start_tick: int = 0, loss: float = 0.0,
+                 loss_seed: int = 0) -> Trajectory:
     """``impl``: "py" steps firmware_py's controllers agent by agent, "vec" the same
     fixed-point step over numpy arrays (sim.model.vlockstep: all agents at once), "c" the
     C core (firmware_c, through sim.cbind.cimpl: its controller step and its ξ), fixed
@@ -32,14 +34,16 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
     pays (``VEC_MIN_AGENTS``), else "py". All give the same trajectory bit for bit.
     ``start_tick``: the first sample the agents step (before it they hold λ(0), as nodes
     in INIT: a bus run's start, whose nodes take no frame in their join window,
-    firmware-spec AUTH-26)."""
+    firmware-spec AUTH-26). ``loss``: each neighbour's MC frame lost with this probability
+    (seeded by ``loss_seed``; sim.model.links: the receiver holds the last λ and times
+    the neighbour out), the same frames on every ``impl``."""
     if impl == "auto":
         impl = "vec" if fixed and sc.n >= VEC_MIN_AGENTS and vectorisable(sc) else "py"
     if impl == "vec":
         if not fixed:
             raise ValueError("the vectorised step is fixed point only (impl='vec' with "
                              "fixed=False)")
-        return run_vectorised(sc, progress, start_tick)
+        return run_vectorised(sc, progress, start_tick, loss, loss_seed)
     ctrl = make_controller(sc.controller, fixed)
     step, initial, wire = ctrl.step, ctrl.initial_state, ctrl.wire_lambda
 
@@ -62,6 +66,9 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
     q = ctrl.quantise
     n, steps, ts = sc.n, sc.steps + 1, sc.ts
     neighbours = [[(j - 1, q(w, "weight")) for j, w in sc.neighbours(i)] for i in range(1, n + 1)]
+    senders = np.array([j for nb in neighbours for j, _ in nb], dtype=np.int64)
+    first_link = np.cumsum([0] + [len(nb) for nb in neighbours])  # agent i's links from here
+    links = Links(len(senders), loss, loss_seed)
     pin = [q(1.0, "pin") if i in sc.pinned else 0 for i in range(1, n + 1)]
     states = [initial(l0) for l0 in sc.lambda0]
     active = [True] * n
@@ -87,12 +94,15 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
         rho_q = q(rho, "rho")
         rho_arr[k], seg_arr[k] = rho, seg
         lams = [wire(s) for s in states]     # the λ each agent sends at this sample
+        if k >= start_tick:
+            held, alive = links.exchange(np.array(lams, dtype=np.int64)[senders])
         for i, s in enumerate(states):
             lam[k, i] = real(lams[i])
             act[k, i] = active[i]
             if not active[i] or k < start_tick:
                 continue
-            nbrs = [(w, lams[j]) for j, w in neighbours[i] if active[j]]
+            nbrs = [(w, int(held[e])) for e, (j, w) in enumerate(neighbours[i], first_link[i])
+                    if active[j] and alive[e]]
             x, sat = xi_of(lams[i], nbrs, pin[i], rho_q)  # type: ignore[arg-type]
             new, out = step(s, x)
             if sat:

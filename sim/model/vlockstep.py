@@ -25,6 +25,7 @@ import numpy as np
 
 from firmware_py import fixedpoint as fx
 from firmware_py.controllers import Controller, make_controller
+from sim.model.links import Links
 from sim.model.scenario import Event, Scenario
 from sim.model.trajectory import Trajectory
 
@@ -116,9 +117,9 @@ def _keep(off: np.ndarray, old: FleetState, new: FleetState) -> FleetState:
 
 
 def run_vectorised(sc: Scenario, progress: Callable[[int, int], None] | None = None,
-                   start_tick: int = 0) -> Trajectory:
-    """``sim.model.lockstep.run_lockstep(sc, fixed=True)`` on arrays (see the module doc);
-    ValueError if ``sc`` is not ``vectorisable``."""
+                   start_tick: int = 0, loss: float = 0.0, loss_seed: int = 0) -> Trajectory:
+    """``sim.model.lockstep.run_lockstep(sc, fixed=True, ...)`` on arrays (see the module
+    doc); ValueError if ``sc`` is not ``vectorisable``."""
     if not vectorisable(sc):
         raise ValueError(f"the vectorised lockstep runs {', '.join(KINDS)} in Q24 with "
                          f"weights below 64, but got {sc.controller.kind!r} (q = "
@@ -133,6 +134,7 @@ def run_vectorised(sc: Scenario, progress: Callable[[int, int], None] | None = N
     bounds = np.searchsorted(rows, np.arange(n + 1))  # agent i's edges: bounds[i]:bounds[i+1]
     starts, lonely = bounds[:-1], bounds[:-1] == bounds[1:]  # lonely: agents without an edge
     prod = np.zeros(len(rows) + 1, dtype=np.int64)   # one product per edge, then a 0 to end on
+    links = Links(len(rows), loss, loss_seed)
     pinned = np.zeros(n, dtype=bool)
     pinned[[p - 1 for p in sc.pinned]] = True
     pin = np.where(pinned, np.int64(q(1.0, "pin")), np.int64(0))
@@ -171,9 +173,10 @@ def run_vectorised(sc: Scenario, progress: Callable[[int, int], None] | None = N
         if k < start_tick:
             continue
         # ξ: one rounded product per edge from an active neighbour, summed per agent
-        prod[:-1] = (weights * (wire[rows] - wire[cols]) + _HALF) >> fx.Q
-        if not all_active:
-            prod[:-1][~active[cols]] = 0
+        held, alive = links.exchange(wire[cols])
+        prod[:-1] = (weights * (wire[rows] - held) + _HALF) >> fx.Q
+        if not all_active or loss:
+            prod[:-1][~(active[cols] & alive)] = 0
         acc = np.add.reduceat(prod, starts)
         acc[lonely] = 0                         # reduceat gives them the next edge's product
         acc += (pin * (wire - rho_q) + _HALF) >> fx.Q

@@ -2,7 +2,8 @@
 
 A sweep spec (TOML, docs/sweeps.md) names the axes: the graph (a paper case, a scenario
 file, or ``random``: a random regular fleet of ``agents`` agents of ``degree`` from
-``graph_seed``), the controller's kind, gains, band and dwell, the run's duration.
+``graph_seed``), the controller's kind, gains, band and dwell, the run's duration, the
+rate and seed of lost neighbour frames.
 ``mode = "grid"`` runs every combination; ``mode = "random"`` draws ``samples`` points
 (lists are sampled uniformly, ``{min, max}`` ranges uniformly or log-uniformly, integer
 when both ends are) and crosses each with the ``[cross]`` axes (e.g. the same random graph
@@ -48,6 +49,8 @@ AXES: dict[str, str] = {
     "band": "the reset band, cu/kWh",
     "dwell": "the dwell time, s",
     "duration": "the run's length, s",
+    "loss": "the probability that a neighbour's MC frame is lost (sim.model.links)",
+    "loss_seed": "the seed of the frame losses",
 }
 CONTROLLER_AXES = {"controller": "kind", "k": "k", "h": "h", "band": "band", "dwell": "dwell"}
 METRIC_COLUMNS = ["agents_n", "settling_time_s", "final_error", "converged", "peak_control",
@@ -184,7 +187,8 @@ def run_point(params: Mapping[str, Any]) -> dict[str, Any]:
     row: dict[str, Any] = dict.fromkeys(METRIC_COLUMNS, "")
     try:
         sc = scenario_of(params)
-        tr = run_lockstep(sc)
+        tr = run_lockstep(sc, loss=float(params.get("loss", 0.0)),
+                          loss_seed=int(params.get("loss_seed", 0)))
         m = compute(sc, tr)
     except (BessDedError, ValueError) as e:
         row.update(error=str(e), wall_s=time.perf_counter() - t0)
