@@ -419,10 +419,10 @@ FAULTS: list[CFault] = [
              "/* in step with the sender */"),), FRESH,
            drive(_lost_then_in_step_sync_then_forged, secure=True)),
     # the diagnostics and the receive path
-    CFault("c_diag_wraps", "DIAG-2", "Diag values wrap at their width (v & max), not "
-           "saturate",
+    CFault("c_diag_wraps", "DIAG-2", "Diag values wrap past their maximum (v mod (max + "
+           "1)), not saturate",
            (("agent_diag.c", "return v > max ? max : (uint32_t)v;",
-             "return (uint32_t)(v & max);"),), DIAG, drive(_many_unknown)),
+             "return (uint32_t)(v % ((uint64_t)max + 1u));"),), DIAG, drive(_many_unknown)),
     CFault("c_plant_fault_level", "RX-11", "plant_faults counts every faulty status",
            (("agent_rules.c", "if (fault && !a->plant_fault) {", "if (fault) {"),), DIAG,
            drive(_seq(lambda r: r.run(3), lambda r: r.run(11, FaultOverCurrent=1)))),

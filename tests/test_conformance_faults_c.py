@@ -87,7 +87,7 @@ def test_a_sample_of_c_faults_is_genuine_and_fails_conformance_naming_it(name: s
 
 
 # measured on this commit (docs/conformance.md): a floor, not a target
-FLOOR = {"caught": 11, "named": 4, "named_first": 2, "named_by_first_diff": 4}
+FLOOR = {"caught": 10, "named": 4, "named_first": 2, "named_by_first_diff": 4}
 
 
 def _score_tool():  # type: ignore[no-untyped-def]
