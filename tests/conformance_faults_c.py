@@ -172,6 +172,7 @@ class CRig(cf.Rig):
 
 
 def drive(script: Callable[[CRig], Any], **rig: Any) -> Callable[[Runtime | None], Any]:
+    """A witness: ``script`` run on a CRig (``rig``: its arguments); what it observed."""
     def witness(rt: Runtime | None) -> Any:
         r = CRig(rt, **rig)
         script(r)
