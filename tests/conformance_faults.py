@@ -1111,18 +1111,21 @@ class Score:
         return self.requirement in self.first_diff
 
 
-def score(fault: Fault | None, case: int = 1, dut: int = 3, jitter: float = 0.3,
-          seed: int = 0) -> Score:
+def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
+          seed: int = 0, make_dut: Callable[..., Any] | None = None) -> Score:
     """Play the schedule in process against the agent with ``fault`` (None: none) and
-    judge it as `bess-ded conformance` does (check, explain, verdict)."""
+    judge it as `bess-ded conformance` does (check, explain, verdict). ``make_dut``: the
+    device, as ``simulate`` takes it (tests/conformance_faults_c.py: the C agent on a
+    library with the fault built in; then ``fault`` only names it, nothing is planted)."""
     import time
 
     from sim import conformance as conf
 
     start = time.perf_counter()
     cfg, ring, planned = schedule_setup(case, dut)
-    frames = conf.simulate(cfg, ring(), planned, None if fault is None else fault.apply,
-                           jitter=jitter, seed=seed)
+    frames = conf.simulate(cfg, ring(), planned,
+                           None if fault is None or make_dut is not None else fault.apply,
+                           jitter=jitter, seed=seed, make_dut=make_dut)
     key = SCHEDULE_KEYS[f"agent_{dut}"]
     outcome = conf.check(cfg, ring(), key, frames)
     conf.explain(cfg, ring(), key, frames, outcome)

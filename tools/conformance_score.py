@@ -2,7 +2,9 @@
 """How good is the conformance schedule: its score on single faults nobody wrote for it.
 
 Plants each fault of tests/conformance_faults.py (one slip against one requirement of
-docs/firmware-spec.md) in firmware_py's agent, plays the conformance schedule against it
+docs/firmware-spec.md) in firmware_py's agent (``--device c``: each fault of
+tests/conformance_faults_c.py built into a firmware_c library of its own, the C agent on
+it as the device), plays the conformance schedule against it
 in process (``sim.conformance.simulate``: no bus, a simulated clock, each tick and
 tester frame up to ``--jitter``·Ts late, seeded), judges it as `bess-ded conformance`
 does (``check``, ``explain``, ``verdict``) and prints, per fault: whether it was caught
@@ -15,6 +17,7 @@ Usage::
     python tools/conformance_score.py                   # case 1, agent 3
     python tools/conformance_score.py --case 1:3 --case 7:5 --json score.json
     python tools/conformance_score.py --only wire_truncates lam_step_ge
+    python tools/conformance_score.py --device c --jobs 2   # firmware_c's faults
 
 Deterministic: the same code gives the same table on any machine (seed 0, jitter 0.3).
 The faultless agent is scored first and must pass, or the score means nothing.
@@ -36,6 +39,16 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import conformance_faults as cf  # noqa: E402
 
+DEVICES = ("py", "c")
+
+
+def _set(device: str):  # type: ignore[no-untyped-def]
+    """The fault set and its scorer: firmware_py's (``py``) or firmware_c's (``c``)."""
+    if device == "c":
+        import conformance_faults_c as cfc
+        return cfc
+    return cf
+
 
 def _case(text: str) -> tuple[int, int]:
     case, _, dut = text.partition(":")
@@ -46,17 +59,18 @@ def _case(text: str) -> tuple[int, int]:
                                          f"{text!r}") from None
 
 
-def _job(args: tuple[str, int, int, float, int]) -> cf.Score:
-    name, case, dut, jitter, seed = args
+def _job(args: tuple[str, int, int, float, int, str]) -> cf.Score:
+    name, case, dut, jitter, seed, device = args
     logging.disable(logging.CRITICAL)  # the faulty agents log what they do
-    return cf.score(cf.BY_NAME[name], case, dut, jitter, seed)
+    fs = _set(device)
+    return fs.score(fs.BY_NAME[name], case, dut, jitter, seed)
 
 
 def table(scores: list[cf.Score]) -> str:
     """One line per fault: caught, the own requirement first / at all / among those of
     the first difference, then the requirements failed (those failed only as "not
     exercised" counted, not listed)."""
-    lines = [f"{'fault':24s} {'requirement':11s} {'class':11s} {'caught':6s} {'1st':3s} "
+    lines = [f"{'fault':26s} {'requirement':11s} {'class':11s} {'caught':6s} {'1st':3s} "
              f"{'any':3s} {'dif':3s} failed (verdict order; +N not exercised)"]
     for s in scores:
         shown = [m for m in s.failed if m not in s.unexercised]
@@ -65,7 +79,7 @@ def table(scores: list[cf.Score]) -> str:
             failed += f" +{len(s.unexercised)}"
         if s.problems and not s.failed:
             failed = "problem: " + s.problems[0][:60]
-        lines.append(f"{s.fault:24s} {s.requirement:11s} {s.group:11s} "
+        lines.append(f"{s.fault:26s} {s.requirement:11s} {s.group:11s} "
                      f"{'yes' if s.caught else 'NO':6s} {'yes' if s.named_first else '-':3s} "
                      f"{'yes' if s.named else '-':3s} "
                      f"{'yes' if s.named_by_first_diff else '-':3s} {failed}")
@@ -95,29 +109,35 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", nargs="+", metavar="FAULT", help="these faults only")
     p.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
     p.add_argument("--json", type=Path, metavar="OUT", help="write the scores here")
+    p.add_argument("--device", choices=DEVICES, default="py",
+                   help="py: firmware_py's agent and faults (default); c: the C agent, "
+                        "each fault built into a library of its own (cached)")
     a = p.parse_args(argv)
     cases = a.case or [(1, 3)]
-    names = a.only or [f.name for f in cf.FAULTS]
-    unknown = sorted(set(names) - set(cf.BY_NAME))
+    fs = _set(a.device)
+    names = a.only or [f.name for f in fs.FAULTS]
+    unknown = sorted(set(names) - set(fs.BY_NAME))
     if unknown:
         p.error(f"--only: unknown faults {', '.join(unknown)}")
     logging.disable(logging.CRITICAL)
     start = time.perf_counter()
-    doc: dict[str, object] = {"jitter": a.jitter, "seed": a.seed, "cases": {}}
+    doc: dict[str, object] = {"device": a.device, "jitter": a.jitter, "seed": a.seed,
+                              "cases": {}}
     for case, dut in cases:
-        base = cf.score(None, case, dut, a.jitter, a.seed)
+        base = fs.score(None, case, dut, a.jitter, a.seed)
         if base.caught:
             print(f"case {case} agent {dut}: the faultless agent fails ({base.failed}, "
                   f"{base.problems}): no score", file=sys.stderr)
             return 1
-        jobs = [(n, case, dut, a.jitter, a.seed) for n in names]
+        jobs = [(n, case, dut, a.jitter, a.seed, a.device) for n in names]
         if a.jobs > 1:
             from multiprocessing import Pool
             with Pool(a.jobs) as pool:
                 scores = pool.map(_job, jobs, chunksize=1)
         else:
             scores = [_job(j) for j in jobs]
-        print(f"case {case}, agent {dut} (jitter {a.jitter}, seed {a.seed}):")
+        print(f"case {case}, agent {dut}, device {a.device} (jitter {a.jitter}, "
+              f"seed {a.seed}):")
         print(table(scores))
         s = summary(scores)
         n = s["faults"]
