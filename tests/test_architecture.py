@@ -100,6 +100,33 @@ def test_sim_has_no_module_outside_its_subpackages() -> None:
                   and (p / "__init__.py").exists()) == sorted(SIM_FLOORS)
 
 
+# sim/run's bus run by concern (docs/architecture.md): each imports only those before it
+BUS_RUN_ORDER = ("busopts", "keyset", "buslog", "verdict", "runreport", "nodeprocs",
+                 "recorder", "inprocess", "busrun")
+
+
+def test_the_bus_run_modules_import_only_those_before_them() -> None:
+    """busrun.py's split (options, node processes, recorder, in-process run, the run of
+    `up`) has no cycle and no import running back up the documented order."""
+    bad = []
+    for i, name in enumerate(BUS_RUN_ORDER):
+        for mod in _imports(ROOT / "sim" / "run" / f"{name}.py"):
+            parts = mod.split(".")
+            if parts[:2] == ["sim", "run"] and len(parts) > 2 and parts[2] in BUS_RUN_ORDER \
+                    and BUS_RUN_ORDER.index(parts[2]) >= i:
+                bad.append((name, mod))
+    assert bad == []
+
+
+def test_no_module_of_the_split_bus_run_is_over_500_lines() -> None:
+    """What was busrun.py (896 lines): options, node processes, recorder, in-process run
+    and `up`'s run each stay under ~500 lines."""
+    long = {n: k for n in ("busopts", "nodeprocs", "recorder", "inprocess", "busrun")
+            if (k := len((ROOT / "sim" / "run" / f"{n}.py").read_text(
+                encoding="utf-8").splitlines())) > 500}
+    assert long == {}
+
+
 # --------------------------------------------------------------------------- docstrings
 
 def _is_command_hook(path: Path, node: ast.FunctionDef) -> bool:

@@ -294,7 +294,7 @@ def test_private_port_only_where_needed() -> None:
     bus, port = busrun.private_port(busrun.BusOptions("udp_multicast", None, None))
     assert port is not None and busrun.PRIVATE_PORTS[0] <= port < busrun.PRIVATE_PORTS[1]
     assert bus.resolved()["port"] == port
-    assert port not in busrun._bound_udp_ports()
+    assert port not in busrun.bound_udp_ports()
     named = busrun.BusOptions("udp_multicast", None, '{"port": 43999}')
     assert busrun.private_port(named) == (named, None)
     vcan = busrun.BusOptions("socketcan", "vcan0", None)

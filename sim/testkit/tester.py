@@ -299,7 +299,7 @@ class Tester:
         if attach is not None:
             attach(self)  # a simulated clock delivers the frames itself
         else:
-            from sim.run.busrun import enlarge_receive_buffer
+            from sim.run.busopts import enlarge_receive_buffer
 
             # as the recorder's: a starved reader finds the frames queued, not dropped (a
             # gap of 8 freshness windows on one ID would read as a forgery until its sync)
