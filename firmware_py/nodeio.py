@@ -494,6 +494,12 @@ class NodeIO:
         self._fv.accept(fid, contract.FRESHNESS.join(boot, count) - 1, frame=False)
         self._lost.discard(fid)
 
+    def start_tx_counts(self, count: int) -> None:
+        """Start every own secured message counter of this boot at ``count``: a test hook
+        (the node vectors' ``setup.tx_count``: AUTH-5's rollover within seconds)."""
+        for fid in self._tx_count:
+            self._tx_count[fid] = count
+
     def sender_lost(self, fid: int) -> None:
         """``fid``'s sender timed out: its counter gap aliases, and a secured ID may need
         a wider freshness window or its next sync."""

@@ -594,7 +594,7 @@ def test_the_recorder_looks_ahead_only_as_far_as_the_elapsed_time_allows() -> No
     from firmware_py.nodeio import LOST_WINDOWS
     from sim.run import buslog
 
-    mon = buslog._Monitor({}, None, lambda name: 0.01)
+    mon = buslog.Monitor({}, None, lambda name: 0.01)
     f = FrameCodec().decode(FrameCodec().encode("AGENT_1_MC", {"State": 1, "Resets": 0,
                                                                "Lambda": 0}, 0))
     assert mon.windows(f, 5.0) == LOST_WINDOWS              # nothing known yet
