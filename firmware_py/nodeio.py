@@ -658,3 +658,14 @@ class FleetSender:
         """A new boot: counts from 0 again (send the syncs before the frames)."""
         self.boot += 1
         self._count.clear()
+
+    def reset_counts(self) -> None:
+        """Count from 0 again under the same boot: a sender that has just booted (a test's
+        fresh start)."""
+        self._count.clear()
+
+    def skip(self, name: str, frames: int) -> None:
+        """Let ``frames`` of ``name``'s counts go by unsent: frames its receivers never
+        heard (they count them lost)."""
+        fid = self.codec.frame_id(name)
+        self._count[fid] = self._count.get(fid, -1) + frames
