@@ -181,6 +181,16 @@ class FixedArithmetic:
         self._pow_num = f.numerator
         self._pow_sqrts = f.denominator.bit_length() - 1  # denominator is 2**n
 
+    @property
+    def pow_num(self) -> int:
+        """The exponent a = pow_num / 2**pow_sqrts: its numerator (firmware_c's pow_num)."""
+        return self._pow_num
+
+    @property
+    def pow_sqrts(self) -> int:
+        """The exponent's square roots: a's denominator is 2**pow_sqrts."""
+        return self._pow_sqrts
+
     def quantise(self, x: float, name: str) -> int:
         """A real value as a Q-format word (round to nearest); refuses one that does not fit."""
         return fx.to_fixed(x, name, self.q)

@@ -494,6 +494,12 @@ class NodeIO:
         self._fv.accept(fid, contract.FRESHNESS.join(boot, count) - 1, frame=False)
         self._lost.discard(fid)
 
+    def start_tx_counts(self, count: int) -> None:
+        """Start every own secured message counter of this boot at ``count``: a test hook
+        (the node vectors' ``setup.tx_count``: AUTH-5's rollover within seconds)."""
+        for fid in self._tx_count:
+            self._tx_count[fid] = count
+
     def sender_lost(self, fid: int) -> None:
         """``fid``'s sender timed out: its counter gap aliases, and a secured ID may need
         a wider freshness window or its next sync."""
@@ -652,3 +658,14 @@ class FleetSender:
         """A new boot: counts from 0 again (send the syncs before the frames)."""
         self.boot += 1
         self._count.clear()
+
+    def reset_counts(self) -> None:
+        """Count from 0 again under the same boot: a sender that has just booted (a test's
+        fresh start)."""
+        self._count.clear()
+
+    def skip(self, name: str, frames: int) -> None:
+        """Let ``frames`` of ``name``'s counts go by unsent: frames its receivers never
+        heard (they count them lost)."""
+        fid = self.codec.frame_id(name)
+        self._count[fid] = self._count.get(fid, -1) + frames

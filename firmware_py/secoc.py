@@ -639,6 +639,24 @@ class Keyring:
             k = self._peers[node] = derive_node_key(self._master, node)
         return k
 
+    def listed_keys(self) -> dict[str, bytes]:
+        """The peer keys listed or derived so far (label → key), a copy: what a key file
+        lists, without the ones a fleet master key would derive later."""
+        return dict(self._peers)
+
+    @property
+    def master(self) -> bytes | None:
+        """The fleet master key every peer key is derived from on demand (``fleet``,
+        ``insecure_for``); None for a key file's keyring (its peers are listed)."""
+        return self._master
+
+    def adopt_boot(self, boot: int) -> None:
+        """Persist ``boot`` (write-ahead), then take it as this node's boot counter: for a
+        runtime that counts its boots itself (the C agent's persist_boot). Raises what the
+        persistence raises, the boot counter then unchanged."""
+        self._persist(boot)
+        self.boot = boot
+
     def new_boot(self) -> int:
         """Start a boot: the next boot counter, persisted before it is returned."""
         if self.boot >= DEFAULT_LAYOUT.max_boot:

@@ -442,7 +442,7 @@ def test_a_key_file_rolled_back_is_reported_not_silent(tmp_path: Path) -> None:
             return super().new_boot()
 
     rolled = RolledBack(ring3.node, ring3.key, ring3.boot, lambda _b: None,
-                        master=ring3._master, fleet=ring3.fleet_id, floors=ring3.floors)
+                        master=ring3.master, fleet=ring3.fleet_id, floors=ring3.floors)
     rings["agent_3"] = rolled
     m = run_in_process(CASE, tmp_path, DURATION_S, channel=f"attack-{tmp_path.name}",
                        keyrings=rings, restarts=[("agent_3", 3.0, 3.5)])

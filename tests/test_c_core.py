@@ -528,7 +528,7 @@ def test_config_check_names_each_refusal(core: cimpl.CCore) -> None:
                 pow_num=1, pow_sqrts=1)
 
     def check(**over: int) -> int:
-        cfg = cimpl._Config(**{**good, **over})
+        cfg = cimpl.CtrlConfig(**{**good, **over})
         return int(core.lib.bd_ctrl_config_check(ctypes.byref(cfg)))
 
     assert check() == 0

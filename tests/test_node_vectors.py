@@ -77,8 +77,7 @@ def agent_of(vec: dict[str, Any]) -> AgentRuntime:
     agent = AgentRuntime(cfg, CODEC, keys=keyring(vec))
     tx_count = vec.get("setup", {}).get("tx_count")
     if tx_count is not None:  # the test hook: own message counts start here
-        for fid in agent.io._tx_count:
-            agent.io._tx_count[fid] = tx_count
+        agent.io.start_tx_counts(tx_count)
     return agent
 
 

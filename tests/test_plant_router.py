@@ -58,7 +58,7 @@ WRONG_KEY = bytes(16 * [9])                              # a forger's: right lay
 @pytest.fixture(autouse=True)
 def _fresh_senders() -> None:
     """Every test starts with senders that just booted, as its fresh nodes expect."""
-    SENDER._count.clear()
+    SENDER.reset_counts()
     SENDER.boot = 1
 
 

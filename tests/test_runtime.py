@@ -28,7 +28,7 @@ SENDER = FleetSender(CODEC)  # the other nodes, --insecure: boot 1, no sync need
 @pytest.fixture(autouse=True)
 def _fresh_senders() -> None:
     """Every test starts with senders that just booted, as its fresh agents expect."""
-    SENDER._count.clear()
+    SENDER.reset_counts()
     SENDER.boot = 1
 
 

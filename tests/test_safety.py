@@ -62,7 +62,7 @@ WRONG_KEY = bytes(16 * [9])
 @pytest.fixture(autouse=True)
 def _fresh_senders() -> None:
     """Every test starts with senders that just booted, as its fresh nodes expect."""
-    SENDER._count.clear()
+    SENDER.reset_counts()
     SENDER.boot = 1
 
 

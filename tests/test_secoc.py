@@ -289,7 +289,7 @@ def test_the_join_window_keeps_the_newest_sync_and_takes_no_frame() -> None:
     # that verifies (AUTH-14: unsynced, not auth)
     assert rx.counters["resyncs"] == 1 and rx.last_freshness(0x010) == (7 << 24 | 39)
     assert rx.counters["unsynced"] == 2 and rx.counters["auth"] == 1
-    sender._count[0x010] += 20  # frames the receiver never heard: the wider window (AUTH-13)
+    sender.skip("ER_Price", 20)  # frames the receiver never heard: the wider window (AUTH-13)
     assert _rho(rx, _price(sender, 60), 0.25) == 60
     assert rx.counters["lost_frames"] == 20
     assert rx.receive(early[2], 0.26) is None and rx.counters["auth"] == 2  # no longer lost

@@ -48,7 +48,7 @@ SENDER = FleetSender(CODEC)  # the other nodes, --insecure: boot 1, no sync need
 
 @pytest.fixture(autouse=True)
 def _fresh_senders() -> None:
-    SENDER._count.clear()
+    SENDER.reset_counts()
     SENDER.boot = 1
 
 

@@ -59,7 +59,7 @@ def constants(c: Controller) -> dict[str, int]:
     return {"q": c.ar.q, "qc": fx.QC, "guard": fx.GUARD, "kts": int(c.kts),
             "hts": int(c.hts), "ts": int(c.ts_q), "band": int(c.band),
             "dwell_samples": c.dwell_samples,
-            "pow_num": c.ar._pow_num, "pow_sqrts": c.ar._pow_sqrts}
+            "pow_num": c.ar.pow_num, "pow_sqrts": c.ar.pow_sqrts}
 
 
 def state_fields(c: Controller, s: ControllerState) -> dict[str, Any]:

@@ -294,7 +294,7 @@ def test_private_port_only_where_needed() -> None:
     bus, port = busrun.private_port(busrun.BusOptions("udp_multicast", None, None))
     assert port is not None and busrun.PRIVATE_PORTS[0] <= port < busrun.PRIVATE_PORTS[1]
     assert bus.resolved()["port"] == port
-    assert port not in busrun._bound_udp_ports()
+    assert port not in busrun.bound_udp_ports()
     named = busrun.BusOptions("udp_multicast", None, '{"port": 43999}')
     assert busrun.private_port(named) == (named, None)
     vcan = busrun.BusOptions("socketcan", "vcan0", None)
@@ -594,7 +594,7 @@ def test_the_recorder_looks_ahead_only_as_far_as_the_elapsed_time_allows() -> No
     from firmware_py.nodeio import LOST_WINDOWS
     from sim.run import buslog
 
-    mon = buslog._Monitor({}, None, lambda name: 0.01)
+    mon = buslog.Monitor({}, None, lambda name: 0.01)
     f = FrameCodec().decode(FrameCodec().encode("AGENT_1_MC", {"State": 1, "Resets": 0,
                                                                "Lambda": 0}, 0))
     assert mon.windows(f, 5.0) == LOST_WINDOWS              # nothing known yet

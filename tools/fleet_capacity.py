@@ -32,9 +32,9 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from fidelity import graph_scenario  # noqa: E402
 
-from sim import busrun  # noqa: E402
 from sim.cbind.cagent import node_program  # noqa: E402
 from sim.model.scenario import PriceStep  # noqa: E402
+from sim.run import busrun  # noqa: E402
 
 MISS_LIMIT_PCT = 0.1
 WARMUP_S = 2.0   # the first seconds after the first price: the guest still starts processes

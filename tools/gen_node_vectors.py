@@ -188,8 +188,7 @@ class Scenario:
         self.setup: dict[str, Any] = {}
         if tx_count is not None:
             # a test hook: start the agent's own message counts high (AUTH-5 in seconds)
-            for fid in self.agent.io._tx_count:
-                self.agent.io._tx_count[fid] = tx_count
+            self.agent.io.start_tx_counts(tx_count)
             self.setup["tx_count"] = tx_count
         self.senders = {lbl: Sender(lbl, derive_node_key(master, lbl), boots[lbl])
                         for lbl in SENDER_BOOTS}

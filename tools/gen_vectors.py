@@ -99,8 +99,8 @@ def fixed_constants(c: Controller) -> dict[str, int]:
         "ts": _int(c.ts_q, "ts"),
         "band": _int(c.band, "band"),
         "dwell_samples": c.dwell_samples,
-        "pow_num": ar._pow_num,
-        "pow_sqrts": ar._pow_sqrts,
+        "pow_num": ar.pow_num,
+        "pow_sqrts": ar.pow_sqrts,
     }
 
 

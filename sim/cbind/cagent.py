@@ -45,7 +45,7 @@ class Params(ctypes.Structure):
 
     _fields_ = [
         ("id", ctypes.c_uint32), ("fleet_size", ctypes.c_uint32), ("pinned", ctypes.c_int32),
-        ("lambda0", ctypes.c_int32), ("ctrl", cimpl._Config),
+        ("lambda0", ctypes.c_int32), ("ctrl", cimpl.CtrlConfig),
         ("n_neighbours", ctypes.c_uint32),
         ("neighbour_id", ctypes.c_uint32 * MAX_NEIGHBOURS),
         ("neighbour_weight", ctypes.c_int32 * MAX_NEIGHBOURS),
@@ -181,7 +181,7 @@ def params_dict(p: Params) -> dict[str, object]:
     for name, *_ in Params._fields_:
         v = getattr(p, name)
         if name == "ctrl":
-            v = tuple(getattr(v, f) for f, *_ in cimpl._Config._fields_)
+            v = tuple(getattr(v, f) for f, *_ in cimpl.CtrlConfig._fields_)
         elif name in ("neighbour_id", "neighbour_weight"):
             v = tuple(v[:p.n_neighbours])
         out[name] = v
@@ -277,7 +277,7 @@ def params_of(cfg: AgentConfig) -> Params:
     p.fleet_size = cfg.fleet_size or 0
     p.pinned = int(cfg.pinned)
     p.lambda0 = fx.to_fixed(cfg.lambda0)
-    p.ctrl = cimpl._Config(cimpl.KIND_CODES[c.kind], int(ref.kts), int(ref.hts),
+    p.ctrl = cimpl.CtrlConfig(cimpl.KIND_CODES[c.kind], int(ref.kts), int(ref.hts),
                            int(ref.ts_q), int(ref.band), ref.dwell_samples, p_num, p_sqrts)
     p.n_neighbours = len(cfg.neighbours)
     for j, nb in enumerate(cfg.neighbours):
@@ -330,17 +330,16 @@ def keyring_from(ring: Keyring) -> KeyringC:
         return keyring_of(ring.node, ring.key, ring.boot, insecure=True)
     for peer in ring.floors:   # a floor needs its peer listed (derived, for a fleet's)
         ring.key_of(peer)
-    k = keyring_of(ring.node, ring.key, ring.boot, ring._peers, floors=ring.floors)
-    if ring._master is not None:   # a simulated fleet: any sender's key on demand
+    k = keyring_of(ring.node, ring.key, ring.boot, ring.listed_keys(), floors=ring.floors)
+    if ring.master is not None:   # a simulated fleet: any sender's key on demand
         k.has_master = 1
-        k.master[:] = list(ring._master)
+        k.master[:] = list(ring.master)
 
     def persist(_ctx: int | None, boot: int) -> int:
         try:
-            ring._persist(boot)
+            ring.adopt_boot(boot)
         except Exception:  # noqa: BLE001 - any failure refuses the boot (C: nonzero)
             return 1
-        ring.boot = boot
         return 0
 
     k.persist_boot = PERSIST_FN(persist)

@@ -58,7 +58,9 @@ class CBuildError(RuntimeError):
     """The C core did not build (the compiler's output is the message)."""
 
 
-class _Config(ctypes.Structure):
+class CtrlConfig(ctypes.Structure):
+    """firmware_c's bd_ctrl_config (the controller's parameters), as ctypes lays it out."""
+
     _fields_ = [("kind", ctypes.c_int32), ("kts", ctypes.c_int32), ("hts", ctypes.c_int32),
                 ("tsq", ctypes.c_int32), ("band", ctypes.c_int32), ("dwell", ctypes.c_uint32),
                 ("pow_num", ctypes.c_uint32), ("pow_sqrts", ctypes.c_uint32)]
@@ -133,12 +135,12 @@ class CCore:
             ("bd_wire", i32, [i64]),
             ("bd_isqrt_u64", u64, [u64]),
             ("bd_fpow", i64, [i32, u32, u32]),
-            ("bd_ctrl_config_check", ctypes.c_int, [ctypes.POINTER(_Config)]),
+            ("bd_ctrl_config_check", ctypes.c_int, [ctypes.POINTER(CtrlConfig)]),
             ("bd_ctrl_init", None, [ctypes.POINTER(_State), i32]),
             ("bd_ctrl_wire_lambda", i32, [ctypes.POINTER(_State)]),
-            ("bd_ctrl_step", None, [ctypes.POINTER(_Config), ctypes.POINTER(_State), i32,
+            ("bd_ctrl_step", None, [ctypes.POINTER(CtrlConfig), ctypes.POINTER(_State), i32,
                                     ctypes.POINTER(_Out)]),
-            ("bd_ctrl_run", None, [ctypes.POINTER(_Config), ctypes.POINTER(_State),
+            ("bd_ctrl_run", None, [ctypes.POINTER(CtrlConfig), ctypes.POINTER(_State),
                                    ctypes.POINTER(i32), ctypes.c_size_t,
                                    ctypes.POINTER(_Record)]),
             ("bd_xi", i32, [i32, i32, i32, ctypes.POINTER(i32), ctypes.POINTER(i32),
@@ -201,7 +203,7 @@ class CController:
         self.kind = kind
         self.kts, self.hts, self.ts_q, self.band = kts, hts, ts, band
         self.dwell_samples = dwell_samples
-        self._cfg = _Config(KIND_CODES[kind], kts, hts, ts, band, dwell_samples, pow_num,
+        self._cfg = CtrlConfig(KIND_CODES[kind], kts, hts, ts, band, dwell_samples, pow_num,
                             pow_sqrts)
         err = self.core.lib.bd_ctrl_config_check(ctypes.byref(self._cfg))
         if err:

@@ -55,8 +55,8 @@ def run(args: argparse.Namespace) -> int:
     from firmware_py.config import agent_configs_from_scenario
     from sim.model.scenario import scaled, to_toml
     from sim.model.scenario_select import pick_variant, resolve_scenario
-    from sim.run.busrun import RT_PRIORITY
     from sim.run.keyset import check_key_set, prepare_key_dir, write_key_set
+    from sim.run.nodeprocs import RT_PRIORITY
 
     sc, chosen = pick_variant(resolve_scenario(args.case), args.variant, "deploy")
     sc = scaled(sc, args.time_scale)

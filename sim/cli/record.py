@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     import can
 
     from firmware_py.node import GuardedBus, StopFlag, bus_kwargs, open_bus
-    from sim.run.busrun import enlarge_receive_buffer
+    from sim.run.busopts import enlarge_receive_buffer
 
     kw = {**bus_kwargs(args.interface, args.channel, args.bus_config),
           "receive_own_messages": False}

@@ -141,6 +141,27 @@ def _signals(codec: FrameCodec, msg: can.Message) -> dict[str, int]:
     return dict(codec.decode(msg).raw)
 
 
+class _DutFrames:
+    """The DUT's frames' raw signals, each frame decoded once per ``check`` however many
+    hypotheses and passes read it (a decode error is kept, and raised again)."""
+
+    def __init__(self, codec: FrameCodec) -> None:
+        self.codec = codec
+        self._memo: dict[int, tuple[can.Message, dict[str, int] | BessDedError]] = {}
+
+    def __call__(self, msg: can.Message) -> dict[str, int]:
+        hit = self._memo.get(id(msg))
+        if hit is None or hit[0] is not msg:
+            try:
+                hit = (msg, _signals(self.codec, msg))
+            except BessDedError as e:
+                hit = (msg, e)
+            self._memo[id(msg)] = hit
+        if isinstance(hit[1], BessDedError):
+            raise hit[1]
+        return hit[1]
+
+
 def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
           codec: FrameCodec | None = None,
           deviation: Callable[[AgentRuntime], None] | None = None,
@@ -150,12 +171,14 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
     counts the frames of foreign IDs: when the oracle without (``filtered_first``: with)
     a filter does not explain the DUT, the other is tried, and the one that explains
     more is the verdict."""
+    codec = codec or FrameCodec()
+    dut = _DutFrames(codec)
     first = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
-                   filtered_first)
+                   filtered_first, dut)
     if not first.mismatches:
         return first
     other = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
-                   not filtered_first)
+                   not filtered_first, dut)
     if not other.mismatches or ((other.mismatches[0].tick, other.ticks)
                                 > (first.mismatches[0].tick, first.ticks)):
         return other
@@ -164,7 +187,7 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
 
 def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
            codec: FrameCodec | None, deviation: Callable[[AgentRuntime], None] | None,
-           max_mismatches: int, filtered: bool) -> Outcome:
+           max_mismatches: int, filtered: bool, dut: _DutFrames) -> Outcome:
     codec = codec or FrameCodec()
     i = cfg.id
     mc_id, sp_id, diag_id = (codec.frame_id(n(i)) for n in (mc_name, setpoint_name, diag_name))
@@ -175,7 +198,7 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     if not dut_groups:
         outcome.problems.append("no MC frame of the DUT was recorded")
         return outcome
-    _check_auth(codec, dut_key, frames, syncs, outcome)
+    _check_auth(codec, dut_key, frames, syncs, outcome, dut)
     inputs = [f for f in frames if f.sent]
     outcome.filtered = filtered
     if filtered:
@@ -190,7 +213,7 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
         outcome.problems.append("the DUT sent no Diag frame before the tester's first frame "
                                 "(start the schedule only once the DUT is heard)")
         return outcome
-    page = _signals(codec, align[1].msg)["Page"]
+    page = dut(align[1].msg)["Page"]
     first = _Oracle(cfg, keyring, codec, deviation)
     first.rt.ticks = 10 * page  # the aligned group is this tick
     # the hypotheses: (oracle, index of the first input it has not received yet)
@@ -234,7 +257,7 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                             last = cut == maybe and g == len(guesses) - 1
                             twin = chain if last else chain.clone()
                             diffs = _compare(codec, twin.rt.tick(t_guess), group,
-                                             outcome.ticks, step, t_tick - first_sent)
+                                             outcome.ticks, step, t_tick - first_sent, dut)
                             if not diffs:
                                 found.append(((h, d, g, maybe - cut), twin, cut))
                             elif failure is None or cut == maybe and d + g + h == 0:
@@ -251,7 +274,7 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                 outcome.mismatches.extend(failure[2])
                 if len(outcome.mismatches) >= max_mismatches:
                     break
-                _adopt(failure[0].rt, codec, group, mc_id)
+                _adopt(failure[0].rt, dut, group, mc_id)
                 hyps = [(failure[0], failure[1])]
             outcome.ticks += 1
             prev_t = t_tick
@@ -322,7 +345,7 @@ def _tick_groups(frames: Sequence[Frame], mc_id: int, dut_ids: set[int]) -> list
 
 
 def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence[Frame],
-             tick: int, step: str, t: float) -> list[Mismatch]:
+             tick: int, step: str, t: float, dut: _DutFrames) -> list[Mismatch]:
     """The DUT's frames of one tick against the oracle's (``t``: from the schedule's
     start, for the report)."""
     got = [f.msg for f in group if f.msg.arbitration_id not in contract.SYNCED_BY]
@@ -336,7 +359,7 @@ def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence
         kind = codec.name_of(e.arbitration_id).split("_")[-1]
         se = _signals(codec, e)
         try:
-            sg = _signals(codec, g)
+            sg = dut(g)
         except BessDedError as err:
             diffs.append(Mismatch(t, tick, step, kind, "frame", "a frame of the DBC", str(err)))
             continue
@@ -357,17 +380,17 @@ def _show(name: str, raw: Any) -> Any:
     return raw
 
 
-def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: int) -> None:
+def _adopt(rt: AgentRuntime, dut: _DutFrames, group: Sequence[Frame], mc_id: int) -> None:
     """After a mismatch, go on from what the DUT says (λ, state) to check the rest."""
     mc = next(f.msg for f in group if f.msg.arbitration_id == mc_id)
-    s = _signals(codec, mc)
+    s = dut(mc)
     rt.state = State(s["State"])
     if rt.lambda_q24 != s["Lambda"]:  # its guard bits are unknown: take the wire value's
         rt.cstate = replace(rt.cstate, lam=fx.widen(s["Lambda"]))
 
 
 def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
-                syncs: Mapping[int, int], outcome: Outcome) -> None:
+                syncs: Mapping[int, int], outcome: Outcome, dut: _DutFrames) -> None:
     """Every secured DUT frame verifies at the freshness its syncs announce, +1 per
     frame (AUTH-4, AUTH-6..8)."""
     nxt: dict[int, int] = {}
@@ -377,7 +400,7 @@ def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
             continue
         if fid in syncs:
             try:
-                s = _signals(codec, f.msg)
+                s = dut(f.msg)
             except BessDedError as e:
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {e}")
                 continue
@@ -393,7 +416,7 @@ def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
             fv = nxt[fid]
             want = secoc.truncate(fv, contract.FV_TX_BITS)  # AUTH-6: the Counter on the wire
             try:
-                counter = _signals(codec, f.msg)["Counter"]
+                counter = dut(f.msg)["Counter"]
             except BessDedError as e:
                 counter = None
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {e}")

@@ -265,7 +265,7 @@ def _cycle_s(name: str, ts: float) -> float:
     return contract.cycle_s(name, ts) if contract.is_cyclic(name) else math.inf
 
 
-class _Monitor:
+class Monitor:
     """Checks the MAC and freshness of every secured frame with the run's keys, as a
     receiver would (syncs included), but with a wider window: a recorder misses frames.
     ``boot_floors`` (label → the lowest boot counter the sender may use in this
@@ -281,11 +281,11 @@ class _Monitor:
       in a flood (short elapsed time) gets one window, one chance in 2^24, as at a
       node; the recorder missing frames gets more (a starved recorder once lost 2.3 s,
       230 frames of each agent, beyond a node's LOST_WINDOWS);
-    * stale (``_Stale``): its MAC verifies with one of the STALE_WINDOWS windows at or
+    * stale (``Stale``): its MAC verifies with one of the STALE_WINDOWS windows at or
       below the last accepted value, at a value no frame carried yet (a frame already
       seen again is a replay): its sender's genuine frame, late (a capture that
       delivered it behind a newer one, or behind a forgery accepted by chance);
-    * forged (``_Forged``): neither.
+    * forged (``Forged``): neither.
     """
 
     RATE_MARGIN = 4       # a sender may burst up to 4x its cycle without being called forged
@@ -306,6 +306,8 @@ class _Monitor:
         return self.keys.get(contract.sender_of(name.removesuffix("_Sync")))
 
     def sync(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> None:
+        """Take a sync frame: its freshness becomes the sender's (raises ``StaleBoot``,
+        ``Stale`` or ``Forged`` when it does not verify as the newest)."""
         key = self._key(f.name)
         fv = contract.FRESHNESS.join(f.raw["Boot"], f.raw["Count"])
         fid = contract.SYNCED_BY[f.frame_id]
@@ -313,7 +315,7 @@ class _Monitor:
         floor = max(self.boot_floors.get(label, 0), self.boots.get(label, 0))
         verified = key is not None and frame_verifies(key, f.frame_id, data, fv)
         if verified and f.raw["Boot"] < floor:
-            raise _StaleBoot(label, f.raw["Boot"], floor)
+            raise StaleBoot(label, f.raw["Boot"], floor)
         if verified:
             self.boots[label] = f.raw["Boot"]
             last = self.fv.last(fid)
@@ -323,8 +325,8 @@ class _Monitor:
                 self.t_last[fid] = t
                 return
             if self.fv.late_sync(last - (fv - 1)):
-                raise _Stale  # its tick's frame overtook it (AUTH-16, AUTH-25)
-        raise _Forged  # forged, or a replayed sync (a genuine one never goes back)
+                raise Stale  # its tick's frame overtook it (AUTH-16, AUTH-25)
+        raise Forged  # forged, or a replayed sync (a genuine one never goes back)
 
     def windows(self, f: DecodedFrame, t: float) -> int:
         """Freshness windows a frame at ``t`` may lie ahead (the class docstring)."""
@@ -336,7 +338,7 @@ class _Monitor:
 
     def check(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> bool:
         """True: authentic and fresh; False: not checkable yet (no sync seen); raises
-        ``_Stale`` (genuine, late) or ``_Forged``."""
+        ``Stale`` (genuine, late) or ``Forged``."""
         key = self._key(f.name)
         if key is None or self.fv.last(f.frame_id) is None:
             return False
@@ -349,19 +351,21 @@ class _Monitor:
             self.t_last[f.frame_id] = t
             return True
         if self.fv.search_late(f.frame_id, f.counter, self.STALE_WINDOWS, verifies):
-            raise _Stale
-        raise _Forged
+            raise Stale
+        raise Forged
 
 
-class _Forged(Exception):
-    pass
+class Forged(Exception):
+    """``Monitor``: a frame whose MAC verifies in no window (forged, or a replayed sync)."""
 
 
-class _Stale(Exception):
-    pass
+class Stale(Exception):
+    """``Monitor``: a genuine frame, late (its MAC verifies at or below the last value)."""
 
 
-class _StaleBoot(Exception):
+class StaleBoot(Exception):
+    """``Monitor``: a verified sync of a boot below the sender's floor (AUTH-21)."""
+
     def __init__(self, label: str, boot: int, floor: int) -> None:
         super().__init__(label)
         self.label, self.boot, self.floor = label, boot, floor
@@ -378,7 +382,7 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     run's node keys (label → key), to leave out forged and replayed secured frames
     (``forged``) as every receiver does. Without them, secured frames are taken as
     they are: a forgery on the bus then reads as the run's own data. ``boot_floors``:
-    each node's lowest boot counter in this recording (``_Monitor``).
+    each node's lowest boot counter in this recording (``Monitor``).
 
     Frames are taken in the order of their timestamps, not of the file: a capture
     socket can receive one sender's frames out of order (vcan on a multi-core host
@@ -391,7 +395,7 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     (``time_outliers``); ``LogContents.warnings`` words both for the report."""
     codec = codec or FrameCodec()
     out = LogContents()
-    monitor = (_Monitor(keys, boot_floors, lambda name: _cycle_s(name, ts or MC_CYCLE_S))
+    monitor = (Monitor(keys, boot_floors, lambda name: _cycle_s(name, ts or MC_CYCLE_S))
                if keys else None)
     out.keys_checked = monitor is not None
     segment_raw: int | None = None
@@ -430,13 +434,13 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
                     out.unverified[f.name] += 1
                     continue
                 out.verified[contract.sender_of(f.name.removesuffix("_Sync"))] += 1
-            except _Stale:
+            except Stale:
                 out.stale[f.name] += 1
                 continue
-            except _Forged:
+            except Forged:
                 out.forged[f.name] += 1
                 continue
-            except _StaleBoot as e:
+            except StaleBoot as e:
                 low = out.stale_boot.get(e.label, (e.boot, e.floor))
                 out.stale_boot[e.label] = (min(low[0], e.boot), max(low[1], e.floor))
                 out.stale_boot_syncs[f.name] += 1

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import secrets
+import shutil
 import stat
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -185,3 +186,15 @@ def check_key_set(keys: Path, n: int, sc: Any | None = None) -> str:
                                  f"from ({', '.join(sc_peers[node])})",
                                  f"none for {', '.join(missing)}")
     return fleets.pop()
+
+
+def provision_keys(sc: Any, key_dir: Path) -> Path:
+    """A fresh key set for one run in ``key_dir`` (0700; a previous run's is replaced):
+    every run signs with keys no other run holds, so nothing recorded elsewhere replays."""
+    from firmware_py import secoc
+
+    if key_dir.exists():
+        shutil.rmtree(key_dir)
+    key_dir.mkdir(mode=0o700, parents=True)
+    write_key_set(sc, key_dir, secrets.token_bytes(secoc.KEY_BYTES))
+    return key_dir

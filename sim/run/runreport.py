@@ -147,3 +147,18 @@ def summary_lines(m: dict[str, Any], verdict: Verdict, time_scale: float = 1.0) 
     lines.append(f"  verdict: {head} (exit code {verdict.exit_code})")
     return lines
 
+
+def run_facts_path(out: Path) -> Path:
+    """What `up` knew beyond the recording (exit codes, deaths, --insecure, the boot
+    floors its monitor used, time scale, tolerance): `analyze DIR` reads it back, so the
+    same run gets the same verdict from both."""
+    return out / "logs" / "run_facts.json"
+
+
+def write_run_facts(out: Path, facts: RunFacts, boot_floors: Mapping[str, int] | None,
+                    time_scale: float, tolerance: float) -> None:
+    """Write ``out``'s run_facts.json: what ``analyze`` needs of a run beyond its
+    log (exit codes, deaths, boot floors, time scale, tolerance)."""
+    doc = {**facts.as_json(), "boot_floors": dict(boot_floors or {}),
+           "time_scale": time_scale, "tolerance": tolerance}
+    run_facts_path(out).write_text(json.dumps(doc, indent=2) + "\n")

@@ -33,7 +33,7 @@ from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import DecodedFrame, FrameCodec, diag_name
 from firmware_py.node import RX_CAUSES, GuardedBus, frame_fault, rx_cause
 from firmware_py.nodeio import SYNC_S, FleetSender
-from sim.run.buslog import _Forged, _Monitor
+from sim.run.buslog import Forged, Monitor
 
 __all__ = ["ExpectationError", "Periodic", "Received", "Tester", "TesterError",
            "WallClock", "fleet_keys"]
@@ -86,8 +86,7 @@ class WallClock:
 
     def wait(self, tester: Tester, dt: float) -> None:
         """Wait up to ``dt`` (at most POLL_S) or until the tester hears a frame."""
-        with tester._cond:
-            tester._cond.wait(max(0.0, min(dt, POLL_S)))
+        tester.wait_for_input(min(dt, POLL_S))
 
     def every(self, period: float, fn: Callable[[float], None]) -> Callable[[], None]:
         """Call ``fn(t)`` every ``period`` s from a thread; returns a stop function."""
@@ -274,7 +273,7 @@ class Tester:
         self.as_node = None if as_node is None else node_label(as_node)
         self._boot = boot
         self._senders: dict[str, FleetSender] = {}  # signing identity -> its sequences
-        self._monitor = _Monitor(node_keys)
+        self._monitor = Monitor(node_keys)
         self._clock: Clock = clock or WallClock()
         self.sync_s = sync_s
         self._cond = threading.Condition()
@@ -299,7 +298,7 @@ class Tester:
         if attach is not None:
             attach(self)  # a simulated clock delivers the frames itself
         else:
-            from sim.run.busrun import enlarge_receive_buffer
+            from sim.run.busopts import enlarge_receive_buffer
 
             # as the recorder's: a starved reader finds the frames queued, not dropped (a
             # gap of 8 freshness windows on one ID would read as a forgery until its sync)
@@ -320,9 +319,20 @@ class Tester:
                 tester.on_frame(msg)
 
             def on_error(self, exc: Exception) -> None:  # keep reading: count it by cause
-                tester._bus_input(rx_cause(exc), f"{exc}: {exc.__cause__}")
+                tester.on_error(exc)
 
         return _L()
+
+    def on_error(self, exc: Exception) -> None:
+        """Count a receive error of the bus (python-can's, a listener's ``on_error``) by
+        its cause (node.RX_CAUSES), as a node counts it, and go on reading."""
+        self._bus_input(rx_cause(exc), f"{exc}: {exc.__cause__}")
+
+    def wait_for_input(self, timeout: float) -> None:
+        """Block up to ``timeout`` s or until the tester hears a frame or another bus
+        input (a real-time Clock's ``wait``)."""
+        with self._cond:
+            self._cond.wait(max(0.0, timeout))
 
     def _bus_input(self, cause: str, reason: str) -> None:
         """Something the bus delivered that is not a frame (node.RX_CAUSES): counted."""
@@ -367,7 +377,7 @@ class Tester:
                     self._reject(fid, "unsynced", f"{f.name}: no verified "
                                  f"{f.name}_Sync of {contract.sender_of(f.name)} heard yet")
                     return
-            except _Forged:
+            except Forged:
                 self._reject(fid, "auth", f"{f.name}: expected a MAC that verifies with "
                              f"{contract.sender_of(f.name.removesuffix('_Sync'))}'s key "
                              "and a fresh freshness value, but it does not (forged, "

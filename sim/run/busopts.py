@@ -1,0 +1,137 @@
+"""The bus a run uses: its python-can options (``BusOptions``), a private udp_multicast
+port per run (``private_port``), and the receive socket of a bus (``bus_socket``,
+``enlarge_receive_buffer``, ``udp_drops``: the recorder's and the Tester's).
+
+Part of `bess-ded up` (``sim.run.busrun``), apart from the node processes
+(``sim.run.nodeprocs``) and the recorder (``sim.run.recorder``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import socket
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+from firmware_py.errors import BessDedError
+from firmware_py.node import bus_kwargs
+
+
+class BusRunError(BessDedError):
+    """A bus run could not start or went wrong (no price frame, a node that
+    cannot start, ...)."""
+
+
+@dataclass
+class BusOptions:
+    """The bus a run uses: python-can interface, channel and extra config (JSON)."""
+
+    interface: str | None = None
+    channel: str | None = None
+    config: str | None = None   # JSON of extra python-can arguments
+
+    def resolved(self) -> dict[str, Any]:
+        """The python-can arguments of this bus (flags, then CAN_* environment)."""
+        return bus_kwargs(self.interface, self.channel, self.config)
+
+    def argv(self) -> list[str]:
+        """The same bus, as flags for a child node (resolved here so all nodes agree).
+        Settings every node takes by itself (``bus_kwargs``'s defaults, e.g. socketcan's
+        fd) are left out: firmware_c's node program takes no --bus-config."""
+        kw = self.resolved()
+        own = bus_kwargs(kw["interface"], kw.get("channel"), None)
+        out = ["--interface", kw.pop("interface")]
+        if "channel" in kw:
+            out += ["--channel", str(kw.pop("channel"))]
+        kw = {k: v for k, v in kw.items() if k not in own or own[k] != v}
+        if kw:
+            out += ["--bus-config", json.dumps(kw)]
+        return out
+
+
+
+PRIVATE_PORTS = (30000, 43000)  # below the test sessions' blocks (tests/conftest.py: 43200+)
+
+
+def private_port(bus: BusOptions) -> tuple[BusOptions, int | None]:
+    """On udp_multicast without a port named (flag or CAN_CONFIG), the same bus on a port
+    of its own: every run on python-can's default port hears every other one (seen: ~900
+    resets per agent and identical diagnostics in two concurrent runs). A different
+    multicast group is not enough: Linux delivers a port's datagrams for every group
+    joined on the host to every socket bound to that port. Returns (bus, chosen port)."""
+    kw = bus.resolved()
+    if kw["interface"] != "udp_multicast" or "port" in kw:
+        return bus, None
+    free = sorted(set(range(*PRIVATE_PORTS)) - bound_udp_ports())
+    if not free:
+        raise BusRunError(f"no free UDP port in {PRIVATE_PORTS[0]}..{PRIVATE_PORTS[1] - 1} for "
+                          "a private udp_multicast bus: name one with --bus-config "
+                          "'{\"port\": N}'")
+    port = random.SystemRandom().choice(free)
+    extra = {k: v for k, v in kw.items() if k not in ("interface", "channel")}
+    return BusOptions(kw["interface"], kw.get("channel"),
+                      json.dumps({**extra, "port": port})), port
+
+
+def _udp_sockets() -> Iterator[list[str]]:
+    """The columns of each UDP socket on this host (/proc/net/udp{,6}; none elsewhere):
+    [1] the local address:port (hex), [9] the inode, the last the kernel's drops."""
+    for table in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        yield from (line.split() for line in lines)
+
+
+def bound_udp_ports() -> set[int]:
+    """Local UDP ports with a socket bound on this host (empty where /proc has none)."""
+    return {int(cols[1].rsplit(":", 1)[1], 16) for cols in _udp_sockets()}
+
+
+def udp_drops(sock: socket.socket) -> int:
+    """Datagrams the kernel dropped for this UDP socket (its ``drops`` column in
+    /proc/net/udp{,6}); 0 for other sockets."""
+    try:
+        inode = str(os.fstat(sock.fileno()).st_ino)
+    except OSError:
+        return 0
+    return next((int(cols[-1]) for cols in _udp_sockets()
+                 if len(cols) > 12 and cols[9] == inode), 0)
+
+
+
+RECORDER_RCVBUF = 16 << 20  # bytes: ~20k CAN frames (an skb per frame) of slack
+
+
+def bus_socket(bus: can.BusABC) -> socket.socket | None:
+    """The bus's own socket, None for interfaces without one. python-can exposes the
+    socketcan socket as ``bus.socket``; udp_multicast keeps its own in
+    ``bus._multicast._socket`` (no public accessor)."""
+    sock = getattr(bus, "socket", None)
+    if sock is None:
+        sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
+    return sock if isinstance(sock, socket.socket) else None
+
+
+def enlarge_receive_buffer(bus: can.BusABC) -> None:
+    """A recorder the nodes starve (on SocketCAN it runs at normal priority beside
+    real-time nodes; on udp_multicast above them, but the host may still starve it):
+    the kernel queues the frames for it here instead of dropping them (a socketcan
+    socket holds only ~200 frames by default, a udp_multicast one ~300). Other
+    interfaces are left as they are."""
+    sock = bus_socket(bus)
+    if sock is None:
+        return
+    for opt in (getattr(socket, "SO_RCVBUFFORCE", 33), socket.SO_RCVBUF):  # FORCE: root
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, opt, RECORDER_RCVBUF)
+            return
+        except OSError:
+            continue

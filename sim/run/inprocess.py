@@ -1,0 +1,187 @@
+"""The nodes of `bess-ded up` in this process, on python-can's ``virtual`` bus, stepped
+on a simulated clock (``run_in_process``), and the node objects it steps
+(``in_process_nodes``, also the test kit's ``SimFleet``'s).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import secrets
+import shutil
+from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import can
+
+from firmware_py import secoc
+from firmware_py.config import agent_configs_from_scenario
+from firmware_py.frames import FrameCodec
+from firmware_py.node import GuardedBus
+from sim.model.scenario import Scenario, to_toml
+from sim.run.busopts import BusRunError
+from sim.run.keyset import write_key_set
+from sim.run.nodeprocs import SIM_NODES, counters_path
+from sim.run.runreport import report, write_run_facts
+from sim.run.verdict import TOLERANCE, RunFacts
+
+
+def _note(nodes: list[Any], i: int, cause: str) -> None:
+    nodes[i].note(cause)
+
+
+def in_process_nodes(sc: Scenario, codec: FrameCodec, rings: Mapping[str, secoc.Keyring],
+                     plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = ()
+                     ) -> dict[str, Callable[[], Any]]:
+    """Node name (as in `up`) → a factory of that node as an in-process object (``on_frame(msg,
+    t)``, ``tick(t)`` → frames), agents first, then the plant and the router: what
+    ``run_in_process`` steps, and ``sim.testkit.SimFleet`` for any subset of them."""
+    from firmware_py.runtime import AgentRuntime
+    from sim.nodes.plant import PlantNode
+    from sim.nodes.router import RouterNode
+
+    factories: dict[str, Callable[[], Any]] = {
+        f"agent_{c.id}": functools.partial(AgentRuntime, c, codec, rings[f"agent_{c.id}"])
+        for c in agent_configs_from_scenario(sc)}
+    factories["plant"] = lambda: PlantNode(sc, period=sc.ts, faults=plant_faults,
+                                           keys=rings["plant"])
+    factories["router"] = lambda: RouterNode(sc, period=sc.ts, silent=router_silent,
+                                             keys=rings["router"])
+    return factories
+
+
+def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
+    """The key the recorder verifies each node's frames with: the one most of the other
+    nodes hold for it (the fleet's, as `up`'s recorder reads DIR/keys), not the node's own,
+    so a node given another key is caught as its receivers catch it."""
+    out = {}
+    for n, ring in rings.items():
+        held = Counter(k for m, r in rings.items() if m != n
+                       and (k := r.key_of(n)) is not None)
+        out[n] = held.most_common(1)[0][0] if held else ring.key
+    return out
+
+
+def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bess-ded",
+                   plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = (),
+                   restarts: Sequence[tuple[str, float, float]] = (),
+                   keyrings: Mapping[str, secoc.Keyring] | None = None,
+                   insecure: bool = False,
+                   inject: Callable[[float], Sequence[can.Message]] | None = None,
+                   observe: Callable[[float, dict[str, Any]], None] | None = None,
+                   tolerance: float = TOLERANCE) -> dict[str, Any]:
+    """The same nodes as `up` on python-can's in-process ``virtual`` bus, stepped on a
+    simulated clock.
+
+    Every node has its own bus instance, so each frame really crosses the bus (encode,
+    CRC, bus, decode, E2E and range checks), but no thread races the wall clock: one
+    loop advances t by Ts, hands every node what its bus holds, then ticks every node.
+    A frame sent at sample k is read at sample k + 1 (one sample of transport delay, as
+    on a bus cycled at Ts), so the run is deterministic and faster than real time; the
+    multi-process runs (``run``) cover real-time scheduling. Frames are stamped with the
+    simulated time (t = 0: the router's first price frame). Records DIR/run.log and
+    returns the metrics.
+
+    ``restarts``: (node name as in `up`, e.g. ``"agent_4"``; t_down; t_up), a node killed
+    and restarted: from the first sample at or after t_down it neither reads nor sends
+    (what reaches its bus meanwhile is lost, as with a dead process), and from the first
+    sample at or after t_up a fresh node (new state, the same configuration) runs in its
+    place, as a restarted process would (its keyring keeps its boot counter, as its
+    key file would). t_up = inf: never restarted.
+
+    Keys: each node's keyring from ``keyrings`` (node name → Keyring, e.g.
+    ``Keyring.fleet(master, ...)``: passing the same ones to two runs is a key set
+    reused, its boot counters moving on), else from a fresh master key per run whose
+    key files go to DIR/keys (as `up` writes them); ``insecure``: the public demo keys.
+    ``inject(t)``: frames an attacker sends at sample t (after the nodes' own), on a
+    bus instance of its own; the recording and the analysis see them as any frame.
+    ``observe(t, nodes)``: called after every sample with the live nodes by name (a
+    test's window on state the bus does not carry, e.g. an agent's neighbours alive).
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    codec = FrameCodec()
+    nodes_ = secoc.fleet_nodes(sc.n)
+    if insecure:
+        rings = {n: secoc.Keyring.insecure_for(n) for n in nodes_}
+    elif keyrings is not None:
+        rings = dict(keyrings)
+    else:  # a fresh key set, written to DIR/keys as `up` does (for `analyze` later)
+        master = secrets.token_bytes(secoc.KEY_BYTES)
+        rings = secoc.Keyring.fleet(master, nodes_)
+        key_dir = out / "keys"
+        if key_dir.exists():
+            shutil.rmtree(key_dir)
+        key_dir.mkdir(mode=0o700)
+        write_key_set(sc, key_dir, master)
+    # each node's boot at this start, as `up` reads it from the key files (the recorder's
+    # floors: a sync of an earlier boot is from an earlier run, AUTH-21)
+    boot_floors = None if insecure else {n: r.boot + 1 for n, r in rings.items()}
+    factories = in_process_nodes(sc, codec, rings, plant_faults, router_silent)
+    names = list(factories)
+    nodes: list[Any] = [make() for make in factories.values()]
+    down = {name: (t_down, t_up) for name, t_down, t_up in restarts}
+    if unknown := set(down) - set(names):
+        raise BusRunError(f"restarts: expected node names among {names}, but got "
+                          f"{sorted(unknown)}")
+    if any(abs(n.period - sc.ts) > 1e-12 for n in nodes):
+        raise BusRunError(f"every node must tick at Ts = {sc.ts} s to be stepped together")
+    kw: dict[str, Any] = {"interface": "virtual", "channel": channel,
+                          "receive_own_messages": False, "preserve_timestamps": True}
+    buses = [can.Bus(**kw) for _ in nodes]
+    watch = can.Bus(**kw)
+    recorder = GuardedBus(watch, lambda cause: None, who="recorder")
+    # what each node reads, as run_node reads it (the node at index i, restarts included)
+    guards = [GuardedBus(bus, functools.partial(_note, nodes, i), who=name)
+              for i, (bus, name) in enumerate(zip(buses, names, strict=True))]
+    attacker = can.Bus(**kw) if inject is not None else None
+    writer = can.Logger(str(out / "run.log"))
+    try:
+        eps = 1e-9 * sc.ts
+        for k in range(round(duration / sc.ts)):
+            t = k * sc.ts
+            alive = [True] * len(nodes)
+            for i, name in enumerate(names):
+                if name in down:
+                    t_down, t_up = down[name]
+                    if t_down - eps <= t < t_up - eps:
+                        alive[i] = False
+                    elif t >= t_up - eps and t - sc.ts < t_up - eps:
+                        nodes[i] = factories[name]()  # restarted: a fresh process
+            for node, guarded, up in zip(nodes, guards, alive, strict=True):
+                while (msg := guarded.recv(timeout=0)) is not None:  # as run_node reads
+                    if up:
+                        node.on_frame(msg, t)
+            for node, bus, up in zip(nodes, buses, alive, strict=True):
+                for frame in node.tick(t) if up else ():
+                    frame.timestamp = t
+                    bus.send(frame)
+            if observe is not None:
+                observe(t, {n: node for n, node, up in zip(names, nodes, alive, strict=True)
+                            if up})
+            if attacker is not None and inject is not None:
+                for frame in inject(t):
+                    frame.timestamp = t
+                    attacker.send(frame)
+            while (msg := recorder.recv(timeout=0)) is not None:
+                writer.on_message_received(msg)
+    finally:
+        writer.stop()
+        for bus in [*buses, watch, *([attacker] if attacker else [])]:
+            bus.shutdown()
+    counters = {role: {"ticks": node.ticks, "counters": dict(node.counters)}
+                for role, node in zip(SIM_NODES, nodes[-2:], strict=True)}
+    dropped = {k: v for k, v in recorder.counters.items() if v}
+    # left as `up` leaves them, so `analyze DIR` judges this run as it is judged here
+    (out / "scenario.toml").write_text(to_toml(sc))
+    (out / "logs").mkdir(exist_ok=True)
+    for role, c in counters.items():
+        counters_path(out, role).write_text(json.dumps(c) + "\n")
+    facts = RunFacts(node_counters=counters, recorder_counters=dropped, insecure=insecure)
+    write_run_facts(out, facts, boot_floors, 1.0, tolerance)
+    m = report(sc, out / "run.log", out, facts, plot=False, codec=codec,
+               keys=recorder_keys(rings), tolerance=tolerance,
+               boot_floors=boot_floors).metrics
+    m["node_summaries"] = [n.summary() for n in nodes]
+    return m
