@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     import can
 
     from firmware_py.node import GuardedBus, StopFlag, bus_kwargs, open_bus
-    from sim.run.busopts import enlarge_receive_buffer
+    from sim.run.busopts import RECORDER_RCVBUF, enlarge_receive_buffer
 
     kw = {**bus_kwargs(args.interface, args.channel, args.bus_config),
           "receive_own_messages": False}
@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     raw = open_bus(**kw)
     stop = StopFlag()
     stop.install_signal_handlers()
-    enlarge_receive_buffer(raw)
+    enlarge_receive_buffer(raw, RECORDER_RCVBUF)
     # what the bus delivers that is not a frame is counted and left out, never the end
     bus = GuardedBus(raw, lambda cause: None, who="bess-ded record")
     writer = can.Logger(str(args.out))

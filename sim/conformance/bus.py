@@ -68,8 +68,8 @@ class ConformanceSetup:
         dut_ids = {codec.frame_id(n(i)) for n in (mc_name, setpoint_name, diag_name)}
         dut_ids |= {contract.SYNC_OF[codec.frame_id(n(i))] for n in (mc_name, setpoint_name,
                                                                      diag_name)}
-        with open_bus(**{**self.bus.resolved(), "receive_own_messages": False}) as b:
-            busrun.enlarge_receive_buffer(b)
+        with open_bus(busrun.RECORDER_RCVBUF,  # the tester reads while the DUT may starve it
+                      **{**self.bus.resolved(), "receive_own_messages": False}) as b:
             if rt_priority:
                 set_realtime(rt_priority)
             try:

@@ -1,6 +1,7 @@
 """The bus a run uses: its python-can options (``BusOptions``), a private udp_multicast
-port per run (``private_port``), and the receive socket of a bus (``bus_socket``,
-``enlarge_receive_buffer``, ``udp_drops``: the recorder's and the Tester's).
+port per run (``private_port``), and what the recorder and the Tester need of a bus's
+receive socket (``RECORDER_RCVBUF``, ``udp_drops``; ``bus_socket`` and
+``enlarge_receive_buffer`` are firmware_py.node's, the nodes' own).
 
 Part of `bess-ded up` (``sim.run.busrun``), apart from the node processes
 (``sim.run.nodeprocs``) and the recorder (``sim.run.recorder``).
@@ -17,10 +18,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import can
-
 from firmware_py.errors import BessDedError
 from firmware_py.node import bus_kwargs
+from firmware_py.node import bus_socket as bus_socket  # re-exported: the run's helpers
+from firmware_py.node import enlarge_receive_buffer as enlarge_receive_buffer
 
 
 class BusRunError(BessDedError):
@@ -107,31 +108,6 @@ def udp_drops(sock: socket.socket) -> int:
 
 
 
-RECORDER_RCVBUF = 16 << 20  # bytes: ~20k CAN frames (an skb per frame) of slack
-
-
-def bus_socket(bus: can.BusABC) -> socket.socket | None:
-    """The bus's own socket, None for interfaces without one. python-can exposes the
-    socketcan socket as ``bus.socket``; udp_multicast keeps its own in
-    ``bus._multicast._socket`` (no public accessor)."""
-    sock = getattr(bus, "socket", None)
-    if sock is None:
-        sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
-    return sock if isinstance(sock, socket.socket) else None
-
-
-def enlarge_receive_buffer(bus: can.BusABC) -> None:
-    """A recorder the nodes starve (on SocketCAN it runs at normal priority beside
-    real-time nodes; on udp_multicast above them, but the host may still starve it):
-    the kernel queues the frames for it here instead of dropping them (a socketcan
-    socket holds only ~200 frames by default, a udp_multicast one ~300). Other
-    interfaces are left as they are."""
-    sock = bus_socket(bus)
-    if sock is None:
-        return
-    for opt in (getattr(socket, "SO_RCVBUFFORCE", 33), socket.SO_RCVBUF):  # FORCE: root
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, opt, RECORDER_RCVBUF)
-            return
-        except OSError:
-            continue
+# the recorder's kernel receive queue: ~20k CAN frames (an skb per frame) of slack while
+# the real-time nodes starve it (firmware_py.node.enlarge_receive_buffer)
+RECORDER_RCVBUF = 16 << 20  # bytes

@@ -128,7 +128,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     # before it writes anything, so an earlier run's outputs and keys in OUT stay intact
     watch = open_bus(**{**bus.resolved(), "receive_own_messages": False})
     try:
-        enlarge_receive_buffer(watch)
+        enlarge_receive_buffer(watch, RECORDER_RCVBUF)
         # a device under test may never come: then the earlier run in OUT stays as it was
         with _previous_kept(out) if dut else contextlib.nullcontext():
             return _record(sc, out, bus, watch, duration, extra, delays, quiet,

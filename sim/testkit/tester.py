@@ -298,11 +298,11 @@ class Tester:
         if attach is not None:
             attach(self)  # a simulated clock delivers the frames itself
         else:
-            from sim.run.busopts import enlarge_receive_buffer
+            from sim.run.busopts import RECORDER_RCVBUF, enlarge_receive_buffer
 
             # as the recorder's: a starved reader finds the frames queued, not dropped (a
             # gap of 8 freshness windows on one ID would read as a forgery until its sync)
-            enlarge_receive_buffer(bus)
+            enlarge_receive_buffer(bus, RECORDER_RCVBUF)
             self._notifier = can.Notifier(bus, [self._listener()], timeout=0.05)
 
     # ------------------------------------------------------------ plumbing
