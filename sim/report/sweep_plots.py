@@ -20,7 +20,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 CATEGORICAL = ("controller", "graph")
-REPLICATES = ("graph_seed",)  # which graph of a kind: repeats a point, not an axis to plot over
+REPLICATES = ("graph_seed", "loss_seed")  # repeat a point: not axes to plot over
 HEAT_MAP_MAX = 25             # distinct values per axis for a heat map (a grid), else a histogram
 
 
