@@ -116,8 +116,7 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
         if progress is not None and k % 500 == 0:
             progress(k, steps)
 
-    p = np.column_stack([np.where(act[:, i], b.power(lam[:, i]), 0.0)
-                         for i, b in enumerate(sc.batteries)])
-    return Trajectory(t=np.arange(steps) * ts, lam=lam, rho=rho_arr, segment=seg_arr, active=act,
-                      p=p, u=u, xi=xi, nu=nu, resets=resets,
-                      saturations=sum(s.saturations for s in states), label=sc.controller.kind)
+    return Trajectory.sampled(sc.batteries, ts, lam, act, rho=rho_arr, segment=seg_arr, u=u,
+                              xi=xi, nu=nu, resets=resets,
+                              saturations=sum(s.saturations for s in states),
+                              label=sc.controller.kind)

@@ -4,8 +4,10 @@ continuous reference or a bus log, so metrics and plots treat them alike."""
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -31,6 +33,15 @@ class Trajectory:
     # error is judged over, whatever state they are in. None: the same as ``active``.
     expected: np.ndarray | None = None
     state: np.ndarray | None = None  # (K, N) AGENT_i_MC.State (bus runs only)
+
+    @classmethod
+    def sampled(cls, batteries: Sequence[Any], ts: float, lam: np.ndarray, active: np.ndarray,
+                **kw: Any) -> Trajectory:
+        """A run sampled every ``ts`` from sample 0: its times, and each battery's power
+        where its agent took part (0 kW where it was isolated) from λ (Battery.power)."""
+        p = np.column_stack([np.where(active[:, i], b.power(lam[:, i]), 0.0)
+                             for i, b in enumerate(batteries)])
+        return cls(t=np.arange(len(lam)) * ts, lam=lam, active=active, p=p, **kw)
 
     @property
     def judged(self) -> np.ndarray:

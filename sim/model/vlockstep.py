@@ -197,8 +197,6 @@ def run_vectorised(sc: Scenario, progress: Callable[[int, int], None] | None = N
         if progress is not None and k % 500 == 0:
             progress(k, steps)
 
-    p = np.column_stack([np.where(act[:, i], b.power(lam[:, i]), 0.0)
-                         for i, b in enumerate(sc.batteries)])
-    return Trajectory(t=np.arange(steps) * ts, lam=lam, rho=rho_arr, segment=seg_arr, active=act,
-                      p=p, u=u, xi=xi_rec, nu=nu_rec, resets=reset_at,
-                      saturations=int(state.saturations.sum()), label=sc.controller.kind)
+    return Trajectory.sampled(sc.batteries, ts, lam, act, rho=rho_arr, segment=seg_arr, u=u,
+                              xi=xi_rec, nu=nu_rec, resets=reset_at,
+                              saturations=int(state.saturations.sum()), label=sc.controller.kind)
