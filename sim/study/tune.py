@@ -29,7 +29,7 @@ The rule (docs/tuning.md):
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -41,6 +41,7 @@ from sim.model.scenario import Scenario
 PEAK_RATIO = 1.2   # the issue's bound: reset-PI's peak |u| ≤ 1.2 × PC's
 MARGIN = 0.95      # the predicted peak must fit 95 % of the budget
 _H_STEPS = 60      # geometric h grid, from Theorem 1's bound to 400× it
+_T_POINTS = 4000   # the model's time grid
 _K_STEPS = 9       # k grid, from 0.5·k_ref to peak_ratio·k_ref
 
 
@@ -72,15 +73,20 @@ def predict(sc: Scenario, kind: str, k: float, h: float) -> Prediction:
     k, h on ``sc``'s graph, from λ(0) to the first price (module docstring)."""
     eta, vecs = np.linalg.eigh(sc.h)
     c = vecs.T @ _error0(sc)
-    t = np.arange(0.0, sc.prices[1].t if len(sc.prices) > 1 else sc.duration, sc.ts)
+    horizon = sc.prices[1].t if len(sc.prices) > 1 else sc.duration
+    sigma = k * eta / 2
+    omega = np.sqrt(np.maximum(h * eta - sigma ** 2, 1e-300))
+    t1 = np.arctan2(omega, sigma) / omega
+    if kind != "pc":  # every mode is at rest after its t₁
+        horizon = min(horizon, float(t1.max()) + 2 * sc.ts)
+    # at most _T_POINTS samples, a whole number of Ts apart
+    dt = sc.ts * max(1, math.ceil(horizon / sc.ts / _T_POINTS))
+    t = np.arange(0.0, horizon, dt)
     tt = t[:, None]
     if kind == "pc":
         em = c * np.exp(-k * eta * tt)
         um = -k * eta * em
     else:
-        sigma = k * eta / 2
-        omega = np.sqrt(np.maximum(h * eta - sigma ** 2, 1e-300))
-        t1 = np.arctan2(omega, sigma) / omega
         env = np.exp(-sigma * tt)
         cos, sin = np.cos(omega * tt), np.sin(omega * tt)
         live = tt < t1
@@ -94,11 +100,11 @@ def predict(sc: Scenario, kind: str, k: float, h: float) -> Prediction:
 
 def reset_band(sc: Scenario) -> float:
     """The reset re-arm band on |ξ| (module docstring)."""
-    hm = sc.h
-    lsb = 2.0 ** -sc.controller.q
-    floor = 16 * float(np.max(np.count_nonzero(hm, axis=1) - 1 + (np.diag(hm) > 0) * 0)) * lsb
-    floor = max(floor, 16 * lsb)
-    eta_min = float(np.linalg.eigvalsh(hm)[0])
+    terms = np.count_nonzero(sc.adjacency, axis=1)
+    for i in sc.pinned:
+        terms[i - 1] += 1
+    floor = 16 * max(int(terms.max()), 1) * 2.0 ** -sc.controller.q
+    eta_min = float(np.linalg.eigvalsh(sc.h)[0])
     settled = eta_min * SETTLING_BAND * float(np.abs(_error0(sc)).max())
     return max(0.01 * settled, floor)
 
@@ -154,3 +160,89 @@ def simulate(sc: Scenario, kind: str, k: float, h: float,
     m = compute(s, run_lockstep(s))
     return {"settling_s": m["settling_time_s"], "peak_u": m["peak_control"],
             "resets": int(sum(m["resets"]))}
+
+
+@dataclass(frozen=True)
+class TuneResult:
+    """Everything `bess-ded tune` prints and writes to tune.json."""
+
+    scenario: str
+    agents: int
+    eta_min: float
+    eta_max: float
+    ts: float
+    peak_ratio: float
+    k: float
+    h: float
+    band: float
+    k_ref: float          # PC's reference gain: the scenario's k
+    peak_budget: float    # peak_ratio × PC's simulated peak |u| at k_ref
+    steps_down: int       # 10 % steps of h below the prediction's pick (0: none needed)
+    spectral_radius: float  # max|1 + Ts·μ| of the chosen gains (discrete-time margin)
+    predicted: dict[str, Any]  # the modal model: reset-PI and PC settling, peak |u|
+    simulated: dict[str, Any]  # the lockstep: reset, pc (at k_ref), pc_same_peak
+    ratios: dict[str, float | None]
+    target_met: bool
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def long_enough(sc: Scenario, limit_s: float = 1200.0) -> Scenario:
+    """``sc`` with its duration doubled until PC at the scenario's k is predicted to
+    settle within 2/3 of it (a single-price scenario only; up to ``limit_s``): else
+    there is no PC settling to compare with."""
+    if len(sc.prices) > 1:
+        return sc
+    while sc.duration < limit_s:
+        p = predict(sc, "pc", sc.controller.k, 0.0)
+        if p.settling_s is not None and p.settling_s < sc.duration * 2 / 3:
+            break
+        sc = replace(sc, duration=min(2 * sc.duration, limit_s))
+    return sc
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None or b == 0 else a / b
+
+
+def tune(sc: Scenario, peak_ratio: float = PEAK_RATIO, margin: float = MARGIN,
+         max_steps_down: int = 20) -> TuneResult:
+    """Pick k, h and the band for ``sc`` (``choose``), then verify in the lockstep against PC
+    at the scenario's k and against PC with the same peak |u|; lower h by 10 % steps while
+    the simulated peak exceeds the budget (module docstring)."""
+    sc = long_enough(sc)
+    c = choose(sc, peak_ratio, margin)
+    k_ref = sc.controller.k
+    pc = simulate(sc, "pc", k_ref, 0.0)
+    budget = peak_ratio * pc["peak_u"]
+    h = c.h
+    steps = 0
+    reset = simulate(sc, "reset", c.k, h, c.band)
+    while reset["peak_u"] > budget and steps < max_steps_down:
+        steps += 1
+        h_next = round(h * 0.9, 6)
+        if not graph.analyse(sc.h, c.k, h_next, sc.ts).regular:
+            break
+        h = h_next
+        reset = simulate(sc, "reset", c.k, h, c.band)
+    # PC whose (t = 0) peak k·max|ξ(0)| equals the reset-PI's simulated peak
+    k_same = k_ref * reset["peak_u"] / pc["peak_u"]
+    pc_same = simulate(sc, "pc", k_same, 0.0)
+    pc_same["k"] = k_same
+    rep = graph.analyse(sc.h, c.k, h, sc.ts)
+    pred = predict(sc, "reset", c.k, h)
+    ratios = {"settling_vs_pc": _ratio(reset["settling_s"], pc["settling_s"]),
+              "settling_vs_pc_same_peak": _ratio(reset["settling_s"], pc_same["settling_s"]),
+              "peak_vs_pc": _ratio(reset["peak_u"], pc["peak_u"]),
+              "predicted_settling_vs_pc": _ratio(pred.settling_s, c.pc_predicted.settling_s)}
+    s_ratio, p_ratio = ratios["settling_vs_pc"], ratios["peak_vs_pc"]
+    met = (s_ratio is not None and s_ratio <= 0.5 and p_ratio is not None
+           and p_ratio <= peak_ratio)
+    return TuneResult(
+        scenario=sc.name, agents=sc.n, eta_min=rep.eta_min, eta_max=rep.eta_max, ts=sc.ts,
+        peak_ratio=peak_ratio, k=c.k, h=h, band=c.band, k_ref=k_ref, peak_budget=budget,
+        steps_down=steps, spectral_radius=rep.spectral_radius,
+        predicted={"reset": asdict(pred), "pc": asdict(c.pc_predicted)},
+        simulated={"reset": reset, "pc": pc, "pc_same_peak": pc_same},
+        ratios=ratios, target_met=bool(met))
