@@ -185,6 +185,7 @@ class TuneResult:
     target_met: bool
 
     def to_json(self) -> dict[str, Any]:
+        """The result as the JSON object tune.json holds."""
         return asdict(self)
 
 
