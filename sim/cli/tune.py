@@ -77,8 +77,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"  {res.agents} agents, η_min(H) = {res.eta_min:.4f}, η_max(H) = {res.eta_max:.4f}, "
           f"Ts = {res.ts * 1e3:g} ms")
     print(f"  gains: k = {res.k:g}, h = {res.h:g}, band = {res.band:.3g}  (4h = "
-          f"{4 * res.h:.4g} > η_max·k² = {res.eta_max * res.k ** 2:.4g}; max|1 + Ts·μ| = "
-          f"{res.spectral_radius:.4f})")
+          f"{4 * res.h:.4g} > η_max·k² = {res.eta_max * res.k ** 2:.4g}; stable at Ts: "
+          f"1 − max|1 + Ts·μ| = {1 - res.spectral_radius:.2g})")
     print(f"  peak |u| budget: {res.peak_ratio:g} × PC's {sim['pc']['peak_u']:.4g} at "
           f"k = {res.k_ref:g} = {res.peak_budget:.4g}"
           + (f"; h lowered {res.steps_down} × 10 % after simulation" if res.steps_down else ""))
