@@ -45,6 +45,7 @@ COMMANDS: tuple[str, ...] = (
     "compare",   # every controller on one scenario
     "bench",     # micro-benchmarks of the control core and the simulator
     "sweep",     # many lockstep runs over graphs, gains and seeds: one table
+    "tune",      # reset-PI gains from the graph's spectrum and a peak-|u| bound
     "up",        # a whole case as processes on a CAN bus
     "deploy",    # a scenario's node configurations and key files, nothing run
     "restbus",   # the fleet but one node, for a device under test on the bus
