@@ -27,7 +27,7 @@ class Links:
             raise ValueError(f"loss: expected a probability in [0, 1), but got {loss!r}")
         self.loss, self.periods = loss, neighbour_periods
         self.rng = np.random.default_rng(seed)
-        self.held = np.zeros(n_links, dtype=np.int64)
+        self.held: np.ndarray | None = None  # the sent values' dtype: Q24 words or floats
         self.age = np.full(n_links, NEVER, dtype=np.int64)
         self.lost = 0  # frames lost so far
 
@@ -38,6 +38,6 @@ class Links:
             return sent, np.ones(len(sent), dtype=bool)
         got = self.rng.random(len(sent)) >= self.loss
         self.lost += int(len(sent) - got.sum())
-        self.held = np.where(got, sent, self.held)
+        self.held = np.where(got, sent, sent if self.held is None else self.held)
         self.age = np.where(got, 0, self.age + 1)
         return self.held, self.age <= self.periods

@@ -95,13 +95,13 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
         rho_arr[k], seg_arr[k] = rho, seg
         lams = [wire(s) for s in states]     # the λ each agent sends at this sample
         if k >= start_tick:
-            held, alive = links.exchange(np.array(lams, dtype=np.int64)[senders])
+            held, alive = links.exchange(np.array(lams)[senders])  # Q24 ints or floats
         for i, s in enumerate(states):
             lam[k, i] = real(lams[i])
             act[k, i] = active[i]
             if not active[i] or k < start_tick:
                 continue
-            nbrs = [(w, int(held[e])) for e, (j, w) in enumerate(neighbours[i], first_link[i])
+            nbrs = [(w, held[e].item()) for e, (j, w) in enumerate(neighbours[i], first_link[i])
                     if active[j] and alive[e]]
             x, sat = xi_of(lams[i], nbrs, pin[i], rho_q)  # type: ignore[arg-type]
             new, out = step(s, x)
