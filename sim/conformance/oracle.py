@@ -53,9 +53,18 @@ class Mismatch:
     signal: str
     expected: Any
     got: Any
+    # what the schedule was exercising at that tick: the notes of the tester's frames of
+    # the last MOMENT_TICKS ticks (latest first) and the oracle's state transitions there
+    moment: tuple[str, ...] = ()
+    transition: tuple[str, ...] = ()
+    # the tick of the first divergence of the episode this one follows (a difference in
+    # the ticks right after another, the oracle re-synchronised each time), or None
+    follows: int | None = None
+    raw: tuple[Any, Any] = (None, None)  # the raw expected and observed values
 
     def __str__(self) -> str:
-        return (f"t = {self.t:.3f} s (the device's tick {self.tick}, step {self.step}): "
+        at = f", after {self.moment[0]!r}" if self.moment else ""
+        return (f"t = {self.t:.3f} s (the device's tick {self.tick}, step {self.step}{at}): "
                 f"{self.message}."
                 f"{self.signal} = {self.got!r}, expected {self.expected!r}")
 
@@ -71,6 +80,9 @@ class Outcome:
     steps_seen: set[str] = field(default_factory=set)
     problems: list[str] = field(default_factory=list)  # the run itself (not the DUT)
     filtered: bool = False  # the DUT filters foreign IDs in its CAN controller (GEN-5)
+    auth_times: list[float] = field(default_factory=list)  # of auth_errors, from the start
+    stopped: str = ""  # why the check stopped before the end of the record, if it did
+    differing_ticks: int = 0  # ticks with a difference (mismatches keeps the first ones)
 
 
 # Which requirements a mismatch on a signal violates (besides the step's)
@@ -101,6 +113,9 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.Resets": ("DIAG-1", "STEP-1"),
     "Diag.NeighboursAlive": ("DIAG-1", "LIVE-2"),
     "Diag.Saturations": ("DIAG-3", "STEP-9"),
+    "Sync.frames": ("AUTH-9",),
+    "Sync.Boot": ("AUTH-9", "AUTH-4"),
+    "Sync.Count": ("AUTH-9", "AUTH-4"),
 }
 
 
@@ -144,27 +159,46 @@ def _signals(codec: FrameCodec, msg: can.Message) -> dict[str, int]:
 def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
           codec: FrameCodec | None = None,
           deviation: Callable[[AgentRuntime], None] | None = None,
-          max_mismatches: int = 20, filtered_first: bool = False) -> Outcome:
+          max_mismatches: int | None = None, filtered_first: bool = False) -> Outcome:
     """Compare the DUT's frames in ``frames`` (time order) with the oracle's. A DUT may
     filter in its CAN controller what it neither uses nor sends (GEN-5), and then never
     counts the frames of foreign IDs: when the oracle without (``filtered_first``: with)
     a filter does not explain the DUT, the other is tried, and the one that explains
-    more is the verdict."""
+    more is the verdict. After a difference the oracle takes what the DUT's frames show
+    (λ, state, counters) and checks on to the end of the record; ``max_mismatches``:
+    stop after that many ticks with a difference (``Outcome.stopped`` says so)."""
     first = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
                    filtered_first)
     if not first.mismatches:
         return first
-    other = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
-                   not filtered_first)
-    if not other.mismatches or ((other.mismatches[0].tick, other.ticks)
-                                > (first.mismatches[0].tick, first.ticks)):
+    # the other model, as far as its first difference: checked in full only if it
+    # explains more
+    other = _check(cfg, keyring, dut_key, frames, codec, deviation, 1, not filtered_first)
+    if not other.mismatches:
         return other
+    if (other.mismatches[0].tick, other.ticks) > (first.mismatches[0].tick, first.ticks):
+        if max_mismatches == 1:
+            return other
+        return _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
+                      not filtered_first)
     return first
+
+
+MOMENT_TICKS = 10
+"""How long (in ticks) a tester's noted frame (a command, a forged MAC, ...) is what the
+schedule exercises: a difference within that many ticks after it is attributed to it."""
+
+EPISODE_GAP = 2
+"""A difference within this many ticks of the previous one continues its episode (the
+oracle re-synchronised in between, and the DUT diverged again: the same cause)."""
+
+MAX_KEPT = 400
+"""Mismatches kept in an outcome (every episode's first ones are kept)."""
 
 
 def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
            codec: FrameCodec | None, deviation: Callable[[AgentRuntime], None] | None,
-           max_mismatches: int, filtered: bool) -> Outcome:
+           max_mismatches: int | None, filtered: bool) -> Outcome:
     codec = codec or FrameCodec()
     i = cfg.id
     mc_id, sp_id, diag_id = (codec.frame_id(n(i)) for n in (mc_name, setpoint_name, diag_name))
@@ -175,14 +209,15 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     if not dut_groups:
         outcome.problems.append("no MC frame of the DUT was recorded")
         return outcome
-    _check_auth(codec, dut_key, frames, syncs, outcome)
     inputs = [f for f in frames if f.sent]
+    first_sent = inputs[0].t if inputs else math.inf
+    _check_auth(codec, dut_key, frames, syncs, outcome,
+                0.0 if math.isinf(first_sent) else first_sent)
     outcome.filtered = filtered
     if filtered:
         passed = set(AgentRuntime(cfg, codec, keys=keyring).io.accepted_ids())
         inputs = [f for f in inputs
                   if not f.msg.is_extended_id and f.msg.arbitration_id in passed]
-    first_sent = inputs[0].t if inputs else math.inf
     # align the oracle's tick count with the DUT's: the first Diag page before any input
     align = next(((g, f) for g in dut_groups for f in g if f.msg.arbitration_id == diag_id
                   and f.t < first_sent), None)
@@ -197,6 +232,10 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     hyps: list[tuple[_Oracle, int]] = [(first, 0)]
     start = dut_groups.index(align[0])
     prev_t = align[0][0].t
+    noted = [f for f in inputs if f.note]
+    transitions: list[tuple[float, str]] = []  # the oracle's state changes (t, "A → B")
+    state = first.rt.state
+    episode: tuple[int, int] | None = None  # (its first tick, its last tick)
     with quiet_firmware():
         # the last group may be cut short by the end of the recording
         for group in dut_groups[start:-1]:
@@ -248,14 +287,41 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                 hyps = list(matching.values())[:MAX_HYPOTHESES]
             else:
                 assert failure is not None
-                outcome.mismatches.extend(failure[2])
-                if len(outcome.mismatches) >= max_mismatches:
+                tick = outcome.ticks
+                if episode is not None and tick - episode[1] <= EPISODE_GAP:
+                    episode = (episode[0], tick)
+                    follows: int | None = episode[0]
+                else:
+                    episode, follows = (tick, tick), None
+                moment = tuple(f.note for f in reversed(noted)
+                               if t_tick - MOMENT_TICKS * cfg.controller.ts <= f.t < t_tick)
+                went = _state_change(state, failure[0].rt.state)
+                trans = tuple(w for t, w in reversed(transitions)
+                              if t >= t_tick - MOMENT_TICKS * cfg.controller.ts)
+                for mm in failure[2]:
+                    mm.moment, mm.follows = moment, follows
+                    mm.transition = ((went,) if went else ()) + trans
+                outcome.differing_ticks += 1
+                if follows is None or len(outcome.mismatches) < MAX_KEPT:
+                    outcome.mismatches.extend(failure[2])
+                if max_mismatches is not None and outcome.differing_ticks >= max_mismatches:
+                    outcome.stopped = (f"the check stopped at the device's tick {tick} after "
+                                       f"{outcome.differing_ticks} ticks with differences")
                     break
-                _adopt(failure[0].rt, codec, group, mc_id)
+                _adopt(failure[0].rt, codec, group, mc_id, diag_id)
                 hyps = [(failure[0], failure[1])]
+            now = hyps[0][0].rt.state
+            went = _state_change(state, now)
+            if went:
+                transitions.append((t_tick, went))
+            state = now
             outcome.ticks += 1
             prev_t = t_tick
     return outcome
+
+
+def _state_change(before: State, after: State) -> str:
+    return f"{before.name} → {after.name}" if before != after else ""
 
 
 MAX_HYPOTHESES = 16
@@ -324,29 +390,44 @@ def _tick_groups(frames: Sequence[Frame], mc_id: int, dut_ids: set[int]) -> list
 def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence[Frame],
              tick: int, step: str, t: float) -> list[Mismatch]:
     """The DUT's frames of one tick against the oracle's (``t``: from the schedule's
-    start, for the report)."""
+    start, for the report): its sync frames first (AUTH-9: which are due, and their Boot
+    and Count), then MC, Setpoint and Diag."""
+    diffs: list[Mismatch] = []
+    got_syncs = [f.msg for f in group if f.msg.arbitration_id in contract.SYNCED_BY]
+    exp_syncs = [m for m in expected if m.arbitration_id in contract.SYNCED_BY]
+    names = [codec.name_of(m.arbitration_id) for m in got_syncs]
+    names_exp = [codec.name_of(m.arbitration_id) for m in exp_syncs]
+    if names != names_exp:
+        diffs.append(Mismatch(t, tick, step, "Sync", "frames", names_exp or "no sync",
+                              names or "no sync", raw=(names_exp, names)))
+    else:
+        for e, g in zip(exp_syncs, got_syncs, strict=True):
+            diffs += _compare_signals(codec, e, g, "Sync", tick, step, t)
     got = [f.msg for f in group if f.msg.arbitration_id not in contract.SYNCED_BY]
     exp = [m for m in expected if m.arbitration_id not in contract.SYNCED_BY]
-    diffs: list[Mismatch] = []
     names_got = [codec.name_of(m.arbitration_id) for m in got]
     names_exp = [codec.name_of(m.arbitration_id) for m in exp]
     if names_got != names_exp:
-        return [Mismatch(t, tick, step, "frames of the tick", "", names_exp, names_got)]
+        return diffs + [Mismatch(t, tick, step, "frames of the tick", "", names_exp,
+                                 names_got)]
     for e, g in zip(exp, got, strict=True):
         kind = codec.name_of(e.arbitration_id).split("_")[-1]
-        se = _signals(codec, e)
-        try:
-            sg = _signals(codec, g)
-        except BessDedError as err:
-            diffs.append(Mismatch(t, tick, step, kind, "frame", "a frame of the DBC", str(err)))
-            continue
-        for name, value in se.items():
-            if name in ("Mac", "Counter", "CRC", "DeadlineMisses"):
-                continue
-            if sg.get(name) != value:
-                diffs.append(Mismatch(t, tick, step, kind, name, _show(name, value),
-                                      _show(name, sg.get(name))))
+        diffs += _compare_signals(codec, e, g, kind, tick, step, t)
     return diffs
+
+
+def _compare_signals(codec: FrameCodec, e: can.Message, g: can.Message, kind: str,
+                     tick: int, step: str, t: float) -> list[Mismatch]:
+    se = _signals(codec, e)
+    try:
+        sg = _signals(codec, g)
+    except BessDedError as err:
+        return [Mismatch(t, tick, step, kind, "frame", "a frame of the DBC", str(err))]
+    return [Mismatch(t, tick, step, kind, name, _show(name, value), _show(name, sg.get(name)),
+                     raw=(value, sg.get(name)))
+            for name, value in se.items()
+            if name not in ("Mac", "Counter", "CRC", "DeadlineMisses")
+            and sg.get(name) != value]
 
 
 def _show(name: str, raw: Any) -> Any:
@@ -357,21 +438,61 @@ def _show(name: str, raw: Any) -> Any:
     return raw
 
 
-def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: int) -> None:
-    """After a mismatch, go on from what the DUT says (λ, state) to check the rest."""
-    mc = next(f.msg for f in group if f.msg.arbitration_id == mc_id)
-    s = _signals(codec, mc)
-    rt.state = State(s["State"])
-    if rt.lambda_q24 != s["Lambda"]:  # its guard bits are unknown: take the wire value's
-        rt.cstate = replace(rt.cstate, lam=fx.widen(s["Lambda"]))
+# Diag signal → the counter of AgentRuntime.counters it shows (the others are derived)
+_DIAG_COUNTERS = {
+    "RejectedCrc": "crc", "RejectedDlc": "dlc", "RejectedRange": "range",
+    "RejectedUnknownId": "unknown_id", "RejectedImpersonation": "impersonation",
+    "RepeatedCounter": "repeated_counter", "LostFrames": "lost_frames",
+    "NeighbourTimeouts": "neighbour_timeouts", "PriceTimeouts": "price_timeouts",
+    "StatusTimeouts": "status_timeouts", "PlantFaults": "plant_faults",
+    "ForeignFrames": "foreign", "ForeignIds": "foreign_id",
+    "InterleavedCounters": "counter_jump", "Untrusted": "untrusted_sources",
+    "ImplausiblePrice": "implausible_price", "ImplausibleLambda": "implausible_lambda",
+    "ImplausibleGains": "implausible_gains", "RejectedAuth": "auth",
+    "Unsynced": "unsynced", "Resyncs": "resyncs", "Saturations": "saturations"}
+
+
+def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: int,
+           diag_id: int) -> None:
+    """After a difference, re-synchronise the oracle to what the DUT's frames show (λ,
+    state, the reset count, the Diag counters of the page) and check the rest from
+    there: one fault then fails where it shows, not every frame after it."""
+    for f in group:
+        fid = f.msg.arbitration_id
+        try:
+            s = _signals(codec, f.msg)
+        except BessDedError:
+            continue
+        if fid == mc_id:
+            rt.state = State(s["State"])
+            if rt.lambda_q24 != s["Lambda"]:  # its guard bits are unknown: the wire value's
+                rt.cstate = replace(rt.cstate, lam=fx.widen(s["Lambda"]))
+            mod = rt._mc_max["Resets"] + 1
+            if rt.cstate.resets % mod != s["Resets"]:
+                rt.cstate = replace(rt.cstate, resets=rt.cstate.resets
+                                    + (s["Resets"] - rt.cstate.resets) % mod)
+        elif fid == diag_id:
+            values = rt.diag_values()
+            for name, got in s.items():
+                want = min(values.get(name, got), rt._diag_max.get(name, got))
+                if name not in values or got == want or got >= rt._diag_max.get(name, 1 << 62):
+                    continue
+                if name == "Resets":
+                    rt.cstate = replace(rt.cstate, resets=got)
+                elif name in _DIAG_COUNTERS:
+                    rt.counters[_DIAG_COUNTERS[name]] += got - values[name]
 
 
 def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
-                syncs: Mapping[int, int], outcome: Outcome) -> None:
+                syncs: Mapping[int, int], outcome: Outcome, t0: float = 0.0) -> None:
     """Every secured DUT frame verifies at the freshness its syncs announce, +1 per
-    frame (AUTH-4, AUTH-6..8)."""
+    frame (AUTH-4, AUTH-6..8). ``t0``: the schedule's start (``auth_times``)."""
     nxt: dict[int, int] = {}
+    prev_t = t0
     for f in frames:
+        while len(outcome.auth_times) < len(outcome.auth_errors):
+            outcome.auth_times.append(prev_t - t0)
+        prev_t = f.t
         fid = f.msg.arbitration_id
         if f.sent:
             continue
@@ -404,7 +525,10 @@ def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} MAC does "
                                            f"not verify at freshness {fv:#x}")
             nxt[fid] = fv + 1
+    while len(outcome.auth_times) < len(outcome.auth_errors):
+        outcome.auth_times.append(frames[-1].t - t0 if frames else 0.0)
     if not nxt:
+        outcome.auth_times.append(0.0)
         outcome.auth_errors.append("the DUT sent no sync frame: its freshness is unknown "
                                    "(AUTH-9: syncs at start, every 100 Ts, and after a "
                                    "peer's restart)")
