@@ -19,6 +19,7 @@ from firmware_py.config import AgentConfig
 from firmware_py.contract import State
 from firmware_py.errors import BessDedError
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name
+from firmware_py.nodeio import HELLO_FRACTION
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
 
@@ -92,7 +93,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "MC.Resets": ("STEP-3", "BAND-3", "TX-1"),
     "Setpoint.Enable": ("TX-2", "SP-3"),
     "Setpoint.PowerSetpoint": ("SP-1", "TX-2"),
-    "Diag.RejectedAuth": ("AUTH-14", "AUTH-16", "AUTH-21", "RX-8"),
+    "Diag.RejectedAuth": ("AUTH-14", "AUTH-16", "AUTH-21", "RX-8", "AUTH-25"),
     "Diag.Unsynced": ("AUTH-11", "AUTH-14"),
     "Diag.Resyncs": ("AUTH-16", "AUTH-21"),
     "Diag.LostFrames": ("AUTH-15",),
@@ -104,8 +105,8 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.ImplausibleLambda": ("LAM-1",),
     "Diag.ImplausibleGains": ("CMD-5",),
     "Diag.NeighbourTimeouts": ("LIVE-3",),
-    "Diag.PriceTimeouts": ("TMO-2",),
-    "Diag.StatusTimeouts": ("TMO-2",),
+    "Diag.PriceTimeouts": ("TMO-2", "TMO-3"),
+    "Diag.StatusTimeouts": ("TMO-2", "TMO-3"),
     "Diag.PlantFaults": ("RX-11",),
     "Diag.SafetySender": ("DIAG-4",),
     "Diag.SafetyCause": ("DIAG-4",),
@@ -234,7 +235,8 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     prev_t = align[0][0].t
     noted = [f for f in inputs if f.note]
     transitions: list[tuple[float, str]] = []  # the oracle's state changes (t, "A → B")
-    state = first.rt.state
+    state, xi_prev = first.rt.state, first.rt.cstate.xi_prev
+    page_t: dict[int | None, float] = {}  # when the DUT last sent each Diag page
     episode: tuple[int, int] | None = None  # (its first tick, its last tick)
     with quiet_firmware():
         # the last group may be cut short by the end of the recording
@@ -293,14 +295,22 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                     follows: int | None = episode[0]
                 else:
                     episode, follows = (tick, tick), None
-                moment = tuple(f.note for f in reversed(noted)
-                               if t_tick - MOMENT_TICKS * cfg.controller.ts <= f.t < t_tick)
-                went = _state_change(state, failure[0].rt.state)
-                trans = tuple(w for t, w in reversed(transitions)
-                              if t >= t_tick - MOMENT_TICKS * cfg.controller.ts)
+                since = t_tick - MOMENT_TICKS * cfg.controller.ts
+                # a Diag value shows what happened since its page was last sent
+                since_page = min(since, page_t.get(_page(codec, group, diag_id), since))
+                rt = failure[0].rt
+                went = _state_change(state, rt.state)
+                trans = tuple(w for t, w in reversed(transitions) if t >= since)
+                edges = tuple(e for e, hit in (
+                    ("ξ = 0 after ξprev ≠ 0", rt.cstate.xi_prev == 0 and xi_prev != 0),
+                    ("|ξ| = BAND", abs(rt.cstate.xi_prev) == getattr(rt.ctrl, "band", None)))
+                    if hit and rt.state == State.RUNNING)
                 for mm in failure[2]:
-                    mm.moment, mm.follows = moment, follows
-                    mm.transition = ((went,) if went else ()) + trans
+                    mm.moment = tuple(f.note for f in reversed(noted)
+                                      if (since_page if mm.message == "Diag" else since)
+                                      <= f.t < t_tick)
+                    mm.follows = follows
+                    mm.transition = edges + ((went,) if went else ()) + trans
                 outcome.differing_ticks += 1
                 if follows is None or len(outcome.mismatches) < MAX_KEPT:
                     outcome.mismatches.extend(failure[2])
@@ -314,10 +324,21 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
             went = _state_change(state, now)
             if went:
                 transitions.append((t_tick, went))
-            state = now
+            state, xi_prev = now, hyps[0][0].rt.cstate.xi_prev
+            page_t[_page(codec, group, diag_id)] = t_tick
             outcome.ticks += 1
             prev_t = t_tick
     return outcome
+
+
+def _page(codec: FrameCodec, group: Sequence[Frame], diag_id: int) -> int | None:
+    for f in group:
+        if f.msg.arbitration_id == diag_id:
+            try:
+                return _signals(codec, f.msg)["Page"]
+            except (BessDedError, KeyError):
+                return None
+    return None
 
 
 def _state_change(before: State, after: State) -> str:
@@ -457,13 +478,22 @@ def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: i
     """After a difference, re-synchronise the oracle to what the DUT's frames show (λ,
     state, the reset count, the Diag counters of the page) and check the rest from
     there: one fault then fails where it shows, not every frame after it."""
+    io = rt.io
+    if any(f.msg.arbitration_id in contract.SYNCED_BY for f in group):
+        # the DUT sent its syncs at this tick: the oracle's sync schedule goes from here
+        t = group[0].t
+        io._hello_due = False
+        io._hello_after = t + HELLO_FRACTION * io.sync_s
+        io._sync_next = t + io.sync_s
     for f in group:
         fid = f.msg.arbitration_id
         try:
             s = _signals(codec, f.msg)
         except BessDedError:
             continue
-        if fid == mc_id:
+        if fid in contract.SYNCED_BY and contract.SYNCED_BY[fid] in io._tx_count:
+            io._tx_count[contract.SYNCED_BY[fid]] = s["Count"]
+        elif fid == mc_id:
             rt.state = State(s["State"])
             if rt.lambda_q24 != s["Lambda"]:  # its guard bits are unknown: the wire value's
                 rt.cstate = replace(rt.cstate, lam=fx.widen(s["Lambda"]))

@@ -122,20 +122,31 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS) -> tuple[str, ...]:
         sig = _ordered(STATE_RULES.get((str(mm.expected), str(mm.got)), ()), sig)
     step = next((s for s in steps if s.name == mm.step), None)
     step_musts = step.musts if step else ()
-    for context in ([_moment_musts(n, steps) for n in mm.moment]
-                    + [TRANSITIONS.get(w, ()) for w in mm.transition]):
-        if not context:
-            continue
+    contexts = [c for c in ([EDGES.get(e, ()) for e in mm.transition]
+                            + [_moment_musts(n, steps) for n in mm.moment]
+                            + [TRANSITIONS.get(w, ()) for w in mm.transition]) if c]
+    for context in contexts:  # the latest that the signal can show
         meet = tuple(m for m in context if m in sig)
         if meet:
-            return _ordered(meet, ())
-        if mm.message == "Diag" and sig:  # a counter names its own cause first
-            return _ordered(sig, context)
-        return context
+            return meet
+    if contexts:
+        if mm.message == "Diag" and sig and mm.signal not in _DERIVED:
+            return sig  # a counter names its own cause
+        return contexts[0]
     meet = tuple(m for m in sig if m in step_musts)
     if meet:
         return meet
     return sig or step_musts or ("TICK-1",)
+
+
+# Diag values that show the consequence of a classification, not a cause of their own
+_DERIVED = {"SafetySender", "SafetyCause", "NeighboursAlive", "State"}
+
+# What the oracle's controller met exactly at the divergent tick (``Mismatch.transition``)
+EDGES: dict[str, tuple[str, ...]] = {
+    "ξ = 0 after ξprev ≠ 0": ("STEP-2",),
+    "|ξ| = BAND": ("BAND-3",),
+}
 
 
 def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS) -> list[Result]:
