@@ -296,7 +296,7 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                     episode, follows = (tick, tick), None
                 since = t_tick - MOMENT_TICKS * cfg.controller.ts
                 # a Diag value shows what happened since its page was last sent
-                since_page = min(since, page_t.get(_page(codec, group, diag_id), since))
+                since_page = min(since, page_t.get(_page(codec, group, diag_id), -math.inf))
                 rt = failure[0].rt
                 went = _state_change(state, rt.state)
                 trans = tuple(w for t, w in reversed(transitions) if t >= since)

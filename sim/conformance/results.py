@@ -43,7 +43,7 @@ def spec_requirements() -> tuple[str, ...]:
 # meet). A step may declare more (``Step.moments``); a note ending in "…" is a prefix.
 MOMENTS: dict[str, tuple[str, ...]] = {
     "an earlier run's price sync (AUTH-21)": ("AUTH-21",),
-    "sync of …": ("AUTH-9", "AUTH-16", "AUTH-21"),
+    "sync of …": ("AUTH-9", "AUTH-21", "AUTH-16"),  # at the DUT's boot floors
     "forged MAC": ("RX-8", "AUTH-14", "AUTH-10"),
     "replay of a genuine frame": ("AUTH-12", "AUTH-14", "RX-8"),
     "replay of the first price sync": ("AUTH-16", "AUTH-17"),
