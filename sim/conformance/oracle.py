@@ -237,6 +237,9 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     state, xi_prev = first.rt.state, first.rt.cstate.xi_prev
     page_t: dict[int | None, float] = {}  # when the DUT last sent each Diag page
     episode: tuple[int, int] | None = None  # (its first tick, its last tick)
+    # a DUT started before the record: its sync schedule and counts are known from its
+    # first sync in the record on (the oracle's first syncs are its own start's)
+    syncs_known = any(f.msg.arbitration_id in contract.SYNCED_BY for f in align[0])
     with quiet_firmware():
         # the last group may be cut short by the end of the recording
         for group in dut_groups[start:-1]:
@@ -274,7 +277,8 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                             last = cut == maybe and g == len(guesses) - 1
                             twin = chain if last else chain.clone()
                             diffs = _compare(codec, twin.rt.tick(t_guess), group,
-                                             outcome.ticks, step, t_tick - first_sent)
+                                             outcome.ticks, step, t_tick - first_sent,
+                                             syncs_known)
                             if not diffs:
                                 found.append(((h, d, g, maybe - cut), twin, cut))
                             elif failure is None or cut == maybe and d + g + h == 0:
@@ -319,6 +323,11 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                     break
                 _adopt(failure[0].rt, codec, group, mc_id, diag_id)
                 hyps = [(failure[0], failure[1])]
+            if not syncs_known and any(f.msg.arbitration_id in contract.SYNCED_BY
+                                       for f in group):
+                syncs_known = True
+                for oracle, _ in hyps:
+                    _adopt_syncs(oracle.rt, codec, group)
             now = hyps[0][0].rt.state
             went = _state_change(state, now)
             if went:
@@ -408,11 +417,14 @@ def _tick_groups(frames: Sequence[Frame], mc_id: int, dut_ids: set[int]) -> list
 
 
 def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence[Frame],
-             tick: int, step: str, t: float) -> list[Mismatch]:
+             tick: int, step: str, t: float, syncs: bool = True) -> list[Mismatch]:
     """The DUT's frames of one tick against the oracle's (``t``: from the schedule's
     start, for the report): its sync frames first (AUTH-9: which are due, and their
     Count), then MC, Setpoint and Diag."""
     diffs: list[Mismatch] = []
+    if not syncs:  # ``syncs``: compare the sync frames too
+        group = [f for f in group if f.msg.arbitration_id not in contract.SYNCED_BY]
+        expected = [m for m in expected if m.arbitration_id not in contract.SYNCED_BY]
     got_syncs = [f.msg for f in group if f.msg.arbitration_id in contract.SYNCED_BY]
     exp_syncs = [m for m in expected if m.arbitration_id in contract.SYNCED_BY]
     names = [codec.name_of(m.arbitration_id) for m in got_syncs]
@@ -479,24 +491,14 @@ def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: i
     """After a difference, re-synchronise the oracle to what the DUT's frames show (λ,
     state, the reset count, the Diag counters of the page) and check the rest from
     there: one fault then fails where it shows, not every frame after it."""
-    io = rt.io
-    if any(f.msg.arbitration_id in contract.SYNCED_BY for f in group):
-        # the DUT sent its syncs at this tick: the oracle's sync schedule goes from here
-        t = group[0].t
-        io._hello_due = False
-        io._hello_after = t + HELLO_FRACTION * io.sync_s
-        io._sync_next = t + io.sync_s
+    _adopt_syncs(rt, codec, group)
     for f in group:
         fid = f.msg.arbitration_id
         try:
             s = _signals(codec, f.msg)
         except BessDedError:
             continue
-        if fid in contract.SYNCED_BY and contract.SYNCED_BY[fid] in io._tx_count:
-            synced = contract.SYNCED_BY[fid]  # its count, then the tick's frames of it
-            io._tx_count[synced] = s["Count"] + sum(g.msg.arbitration_id == synced
-                                                    for g in group)
-        elif fid == mc_id:
+        if fid == mc_id:
             rt.state = State(s["State"])
             if rt.lambda_q24 != s["Lambda"]:  # its guard bits are unknown: the wire value's
                 rt.cstate = replace(rt.cstate, lam=fx.widen(s["Lambda"]))
@@ -514,6 +516,27 @@ def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: i
                     rt.cstate = replace(rt.cstate, resets=got)
                 elif name in _DIAG_COUNTERS:
                     rt.counters[_DIAG_COUNTERS[name]] += got - values[name]
+
+
+def _adopt_syncs(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame]) -> None:
+    """The DUT sent its syncs at this tick: the oracle's sync schedule and message counts
+    go on from the DUT's."""
+    io = rt.io
+    if not any(f.msg.arbitration_id in contract.SYNCED_BY for f in group):
+        return
+    t = group[0].t
+    io._hello_due = False
+    io._hello_after = t + HELLO_FRACTION * io.sync_s
+    io._sync_next = t + io.sync_s
+    for f in group:
+        synced = contract.SYNCED_BY.get(f.msg.arbitration_id)
+        if synced in io._tx_count:
+            try:
+                count = _signals(codec, f.msg)["Count"]
+            except BessDedError:
+                continue
+            # the count it announces, then the tick's frames of that ID
+            io._tx_count[synced] = count + sum(g.msg.arbitration_id == synced for g in group)
 
 
 def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
