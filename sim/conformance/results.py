@@ -129,11 +129,11 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS) -> tuple[str, ...]:
         meet = tuple(m for m in context if m in sig)
         if meet:
             return meet
+    meet = tuple(m for m in sig if m in step_musts)
     if contexts:
         if mm.message == "Diag" and sig and mm.signal not in _DERIVED:
-            return sig  # a counter names its own cause
+            return meet or sig  # a counter names its own cause
         return contexts[0]
-    meet = tuple(m for m in sig if m in step_musts)
     if meet:
         return meet
     return sig or step_musts or ("TICK-1",)
