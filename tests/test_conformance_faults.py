@@ -45,11 +45,12 @@ def test_each_fault_is_a_genuine_deviation(fault: Fault) -> None:
 
 
 # (fault, named first in the verdict today): a sample the default suite plays in full
-# (command_any_target: a State difference named by the moment, CMD-1, in no signal's list)
+# (command_any_target: a State difference named by the moment, CMD-1, in no signal's list;
+# no_hello: the DUT's sync frames compared, AUTH-9)
 SAMPLE = [("plant_fault_level", True), ("gains_no_last_safety", True),
           ("extended_is_malformed", True), ("diag_shares_mc_count", True),
           ("safe_setpoint_enabled", True), ("replayed_sync_stale", True),
-          ("command_any_target", True)]
+          ("command_any_target", True), ("no_hello", True)]
 
 
 @pytest.mark.parametrize("name,first", SAMPLE, ids=[n for n, _ in SAMPLE])
