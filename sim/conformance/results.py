@@ -228,16 +228,13 @@ def _must_order(must: str) -> tuple[int, int]:
 def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
             outcome: Outcome, codec: FrameCodec | None = None) -> None:
     """Name the requirement when a known deviation explains the DUT better than the
-    spec: with it modelled, the oracle must match the whole episode of the first
-    divergence and diverge less, only where the spec's diverged too (a deviation that
-    only matches the first ticks for the fault explains nothing)."""
+    spec: with it modelled, the oracle must match the DUT at every tick where the spec's
+    diverged (a deviation that only matches the first ticks for the fault explains
+    nothing)."""
     if not outcome.mismatches:
         return
     first = outcome.mismatches[0].tick
-    diverged = {(m.tick, m.message, m.signal) for m in outcome.mismatches}
-    episode = {m.tick for m in outcome.mismatches if first in (m.tick, m.follows)}
-    if episode:  # the ticks in between too (no difference there)
-        episode = set(range(first, max(episode) + 1))
+    diverged = {m.tick for m in outcome.mismatches}
     for must, (what, deviation) in MUTANTS.items():
         alt = check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches=1,
                     filtered_first=outcome.filtered)
@@ -246,10 +243,8 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
         # check the rest of the schedule with that deviation modelled
         rest = check(cfg, keyring, dut_key, frames, codec, deviation,
                      filtered_first=alt.filtered)
-        # none left in the first divergence's episode (what the deviation is to explain),
-        # and every one left is one the spec's oracle has too (another fault's)
-        left = {(m.tick, m.message, m.signal) for m in rest.mismatches}
-        if ({t for t, _, _ in left} & episode or not left <= diverged
+        # the deviation explains every tick where the spec's oracle diverged
+        if ({m.tick for m in rest.mismatches} & diverged
                 or rest.differing_ticks >= outcome.differing_ticks):
             continue
         outcome.explained_by[must] = what
