@@ -125,10 +125,10 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS) -> tuple[str, ...]:
     contexts = [c for c in ([EDGES.get(e, ()) for e in mm.transition]
                             + [_moment_musts(n, steps) for n in mm.moment]
                             + [TRANSITIONS.get(w, ()) for w in mm.transition]) if c]
-    for context in contexts:  # the latest that the signal can show
-        meet = tuple(m for m in context if m in sig)
-        if meet:
-            return meet
+    # those the signal can show, of every context, the latest (the most specific) first
+    meet = _ordered([m for context in contexts for m in context if m in sig], ())
+    if meet:
+        return meet
     meet = tuple(m for m in sig if m in step_musts)
     if contexts:
         if mm.message == "Diag" and sig and mm.signal not in _DERIVED:
