@@ -500,6 +500,15 @@ class NodeIO:
         for fid in self._tx_count:
             self._tx_count[fid] = count
 
+    def follow_tx_count(self, fid: int, count: int) -> bool:
+        """Send own secured message ``fid`` next at ``count`` (False, nothing set: not an
+        own secured ID): the conformance oracle goes on from the counts a device announced
+        after it diverged."""
+        if fid not in self._tx_count:
+            return False
+        self._tx_count[fid] = count
+        return True
+
     def sender_lost(self, fid: int) -> None:
         """``fid``'s sender timed out: its counter gap aliases, and a secured ID may need
         a wider freshness window or its next sync."""

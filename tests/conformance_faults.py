@@ -1076,10 +1076,10 @@ def schedule_setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyri
 @dataclass
 class Score:
     """One fault against the schedule. ``failed``: the requirements the verdict fails, in
-    its order (the report's FAIL lines); ``unexercised``: those of them failed only as
-    "not exercised" (the check stops after 20 mismatches, and the verdict then fails the
-    requirements of every step it did not reach); ``first_diff``: the requirements the
-    first difference alone fails (what the report would name if that were all)."""
+    its order (the report's FAIL lines, the first divergence's first); ``unexercised``:
+    those of them failed only as "not exercised" (the device's frames ended before their
+    step); ``first_diff``: the requirements the first difference alone fails (what the
+    report would name if that were all)."""
 
     fault: str
     requirement: str

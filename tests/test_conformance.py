@@ -109,9 +109,12 @@ def test_an_unknown_deviation_fails_the_requirements_of_its_signal_and_step() ->
 
     frames = conf.simulate(cfg, ring(), planned, no_auth_count)
     outcome, results = _judge(cfg, ring, frames)
-    # the earlier run's sync played first (AUTH-21) is an auth failure too
-    assert {r.must for r in results if not r.passed} == {"AUTH-14", "AUTH-16", "AUTH-21",
-                                                          "RX-8"}
+    # the earlier run's sync played first (AUTH-21) is the first auth failure: named first
+    failed = [r.must for r in results if not r.passed]
+    assert failed[0] == "AUTH-21", failed
+    assert set(failed) <= {"AUTH-10", "AUTH-11", "AUTH-12", "AUTH-14", "AUTH-16", "AUTH-17",
+                           "AUTH-21", "AUTH-25", "RX-8"}, failed
+    assert "first divergence at step" in results[0].detail
     # page 8 goes out every 90 ticks: the first after the earlier run's sync at the start
     assert outcome.mismatches[0].step in ("price-only", "running")
     assert outcome.mismatches[0].signal == "RejectedAuth"
@@ -171,11 +174,73 @@ def test_the_schedule_does_what_its_steps_say() -> None:
 
 
 def test_every_requirement_named_exists_in_the_spec() -> None:
+    from sim.conformance import results as res
+
     spec = set(conf.spec_requirements())
     named = {m for s in conf.STEPS for m in s.musts} | set(conf.MUTANTS)
     named |= {m for v in conf.SIGNAL_MUSTS.values() for m in v}
+    for table in (res.MOMENTS, res.TRANSITIONS, res.STATE_RULES, res.EDGES):
+        named |= {m for v in table.values() for m in v}
     assert named <= spec, named - spec
     assert len(spec) > 100
+
+
+def _mm(message: str, signal: str, expected: object, got: object, tick: int = 100,
+        step: str = "control", moment: tuple[str, ...] = (),
+        transition: tuple[str, ...] = (), follows: int | None = None) -> conf.Mismatch:
+    return conf.Mismatch(tick * 0.01, tick, step, message, signal, expected, got,
+                         moment=moment, transition=transition, follows=follows,
+                         raw=(expected, got))
+
+
+def test_a_difference_names_what_the_step_exercises_at_that_moment() -> None:
+    """Expected: a λ difference after a SET_GAINS names CMD-5, a State difference after
+    an ISOLATE STATE-7 and after an ISOLATE for another agent CMD-1; a λ one LSB off names
+    the wire rounding (NUM-8, in no signal's list), a missed reset at ξ = 0 the crossing
+    rule (STEP-2); a counter names its own cause, narrowed by the moment where they meet;
+    without a moment, the signal's requirements narrowed by the step's."""
+    a = conf.attribute
+    assert a(_mm("MC", "Lambda", 1000, 5000, step="commands",
+                 moment=("SET_GAINS in bounds",)))[0] == "CMD-5"
+    assert a(_mm("MC", "State", "RUNNING", "ISOLATED", step="commands",
+                 moment=("ISOLATE",)))[0] == "STATE-7"
+    assert a(_mm("MC", "State", "RUNNING", "ISOLATED", step="commands",
+                 moment=("ISOLATE for another agent",))) == ("CMD-1",)
+    assert a(_mm("MC", "Lambda", 1000, 1001, moment=("SET_GAINS in bounds",))) == ("NUM-8",)
+    assert a(_mm("MC", "Resets", 2, 1, transition=("ξ = 0 after ξprev ≠ 0",))) == ("STEP-2",)
+    assert a(_mm("MC", "State", "INIT", "SAFE", step="start"))[0] == "STATE-5"
+    assert a(_mm("Diag", "ImplausibleGains", 1, 0, step="commands",
+                 moment=("ISOLATE", "SET_GAINS out of bounds"))) == ("CMD-5",)
+    assert a(_mm("Diag", "RejectedDlc", 1, 0, step="commands",
+                 moment=("ISOLATE",))) == ("RX-7",)
+    assert a(_mm("Diag", "PriceTimeouts", 0, 1, step="price-only")) == ("TMO-3",)
+    assert a(_mm("MC", "Lambda", 1000, 5000)) == ("XI-2", "STEP-6", "STEP-7", "STEP-8",
+                                                  "TX-1")
+    step = conf.Step("x", 0, 10, "", ("NUM-1",), moments=(("my note", ("NUM-1",)),))
+    assert a(_mm("MC", "Lambda", 1000, 5000, step="x", moment=("my note",)),
+             [*conf.STEPS, step]) == ("NUM-1",)
+
+
+def test_the_verdict_names_the_first_divergence_first_and_one_cause_per_episode() -> None:
+    """Expected: the FAIL lines in the order of the evidence, not the spec's; the
+    differences that follow a divergence (its episode) fail nothing more; the first FAIL
+    line names the step, the tick, the signal, both values and the requirement; a check
+    that went to the end fails no requirement as "not exercised"."""
+    first = _mm("MC", "Lambda", 1000, 5000, tick=603, step="commands",
+                moment=("SET_GAINS in bounds",))
+    follow = [_mm("MC", "Lambda", 1000 + k, 5000, tick=603 + k, step="commands",
+                  follows=603) for k in range(1, 30)]
+    later = _mm("Diag", "RejectedDlc", 1, 0, tick=700, step="commands")
+    outcome = conf.Outcome(ticks=900, mismatches=[first, *follow, later],
+                           steps_seen={s.name for s in conf.STEPS})
+    results = conf.verdict(outcome)
+    failed = [r for r in results if not r.passed]
+    assert [r.must for r in failed] == ["CMD-5", "CMD-2", "RX-7"], failed
+    detail = failed[0].detail
+    for part in ("step commands", "tick 603", "SET_GAINS in bounds", "MC.Lambda = 5000",
+                 "expected 1000", "CMD-5", "29 more differences"):
+        assert part in detail, (part, detail)
+    assert all(r.passed for r in results[3:])
 
 
 def test_junit_has_one_case_per_requirement_and_the_failures(tmp_path: Path) -> None:

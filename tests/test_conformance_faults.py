@@ -45,9 +45,13 @@ def test_each_fault_is_a_genuine_deviation(fault: Fault) -> None:
 
 
 # (fault, named first in the verdict today): a sample the default suite plays in full
+# (command_any_target: a State difference named by the moment, CMD-1, in no signal's list;
+# no_hello: the DUT's sync frames compared, AUTH-9; extended_is_malformed: its page shows
+# the unknown ID of the content step too, the later noted frame, named first: RX-6)
 SAMPLE = [("plant_fault_level", True), ("gains_no_last_safety", True),
-          ("extended_is_malformed", True), ("diag_shares_mc_count", True),
-          ("safe_setpoint_enabled", False), ("replayed_sync_stale", False)]
+          ("extended_is_malformed", False), ("diag_shares_mc_count", True),
+          ("safe_setpoint_enabled", True), ("replayed_sync_stale", True),
+          ("command_any_target", True), ("no_hello", True)]
 
 
 @pytest.mark.parametrize("name,first", SAMPLE, ids=[n for n, _ in SAMPLE])
@@ -63,7 +67,7 @@ def test_a_sample_of_faults_fails_conformance_naming_its_requirement(
 
 
 # measured on this commit (docs/conformance.md): a floor, not a target
-FLOOR = {"caught": 22, "named": 11, "named_first": 4, "named_by_first_diff": 10}
+FLOOR = {"caught": 23, "named": 19, "named_first": 17, "named_by_first_diff": 18}
 
 
 def _score_tool():  # type: ignore[no-untyped-def]

@@ -71,7 +71,7 @@ def table(scores: list[cf.Score]) -> str:
     the first difference, then the requirements failed (those failed only as "not
     exercised" counted, not listed)."""
     lines = [f"{'fault':26s} {'requirement':11s} {'class':11s} {'caught':6s} {'1st':3s} "
-             f"{'any':3s} {'dif':3s} failed (verdict order; +N not exercised)"]
+             f"{'any':3s} {'dif':3s} failed (verdict order: by evidence; +N not exercised)"]
     for s in scores:
         shown = [m for m in s.failed if m not in s.unexercised]
         failed = " ".join(shown[:7]) + (f" …{len(shown) - 7}" if len(shown) > 7 else "")

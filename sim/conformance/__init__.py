@@ -15,8 +15,11 @@ a MAC that verifies with the DUT's key at consecutive freshness values. Where th
 leaves the order open (a frame sent while the DUT was ticking), the oracle tries each
 order and keeps the one that explains the DUT, so a conformant DUT passes at any load.
 
-A mismatch fails the requirement IDs of docs/firmware-spec.md that the step exercises and
-the mismatching signal belongs to. When a known deviation (``MUTANTS``: e.g. the band
+After a difference the oracle re-synchronises to what the DUT's frames show (λ, state,
+counters, syncs) and checks on; a difference fails the requirements the schedule was
+exercising at that moment (a noted frame of the tester, a state change or an edge of the
+oracle's controller), narrowed by the signal (``attribute``), and the report lists the
+first divergence first. When a known deviation (``MUTANTS``: e.g. the band
 re-armed at the reset sample) explains the DUT's frames from the start, the report names
 that requirement.
 
@@ -38,8 +41,10 @@ from sim.conformance.oracle import (
     check,
 )
 from sim.conformance.results import (
+    MOMENTS,
     REQUIREMENTS_FILE,
     Result,
+    attribute,
     explain,
     junit,
     spec_requirements,
@@ -51,6 +56,7 @@ __all__ = [
     "Frame",
     "LATE_TICKS",
     "MAX_HYPOTHESES",
+    "MOMENTS",
     "MUTANTS",
     "Mismatch",
     "Outcome",
@@ -61,6 +67,7 @@ __all__ = [
     "SIGNAL_MUSTS",
     "STEPS",
     "Step",
+    "attribute",
     "check",
     "drive",
     "explain",

@@ -4,16 +4,17 @@ JUnit XML."""
 from __future__ import annotations
 
 import functools
+import math
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from firmware_py.config import AgentConfig
 from firmware_py.frames import FrameCodec
 from firmware_py.secoc import Keyring
 from sim.conformance.mutants import MUTANTS
-from sim.conformance.oracle import SIGNAL_MUSTS, Frame, Outcome, check
+from sim.conformance.oracle import SIGNAL_MUSTS, Frame, Mismatch, Outcome, check
 from sim.conformance.schedule import STEPS, Step
 
 # docs/firmware-spec.md's requirement IDs in order, shipped as package data (docs/ is not
@@ -37,42 +38,185 @@ def spec_requirements() -> tuple[str, ...]:
     return tuple(line for line in lines if line and not line.startswith("#"))
 
 
+# What the schedule's noted frames (``Frame.note``, tester side) exercise: a difference
+# within MOMENT_TICKS after one names these first (narrowed by its signal's, where they
+# meet). A step may declare more (``Step.moments``); a note ending in "…" is a prefix.
+MOMENTS: dict[str, tuple[str, ...]] = {
+    "an earlier run's price sync (AUTH-21)": ("AUTH-21",),
+    "sync of …": ("AUTH-9", "AUTH-21", "AUTH-16"),  # at the DUT's boot floors
+    "forged MAC": ("RX-8", "AUTH-14", "AUTH-10"),
+    "replay of a genuine frame": ("AUTH-12", "AUTH-14", "RX-8"),
+    "replay of the first price sync": ("AUTH-16", "AUTH-17"),
+    "frame from another boot": ("AUTH-11", "AUTH-14", "RX-8"),
+    "a genuine frame delivered …": ("AUTH-25",),
+    "extended ID": ("RX-1",),
+    "unknown ID": ("RX-6",),
+    "the DUT's own MC ID": ("RX-3",),
+    "DLC 7": ("RX-7",),
+    "SET_GAINS in bounds": ("CMD-5", "CMD-2"),
+    "SET_GAINS out of bounds": ("CMD-5", "DIAG-4"),
+    "ISOLATE for another agent": ("CMD-1",),
+    "ISOLATE": ("STATE-7", "CMD-3", "CMD-2"),
+    "ISOLATE while ISOLATED": ("STATE-7", "STATE-9", "CMD-3"),
+    "RECONNECT": ("STATE-8", "CMD-4", "STATE-4"),
+}
+
+# The oracle's state changes (``Mismatch.transition``) and what they exercise
+TRANSITIONS: dict[str, tuple[str, ...]] = {
+    "INIT → RUNNING": ("STATE-4", "STATE-6"),
+    "SAFE → RUNNING": ("STATE-4", "STATE-6"),
+    "RUNNING → SAFE": ("STATE-3", "STATE-6", "SP-3"),
+    "RUNNING → ISOLATED": ("STATE-7",),
+    "ISOLATED → INIT": ("STATE-8",),
+}
+
+# A state the DUT reports instead of the oracle's: the rule that decides between them
+STATE_RULES: dict[tuple[str, str], tuple[str, ...]] = {
+    ("INIT", "SAFE"): ("STATE-5",), ("INIT", "RUNNING"): ("STATE-4", "STATE-2"),
+    ("RUNNING", "INIT"): ("STATE-4", "STATE-2"), ("SAFE", "RUNNING"): ("STATE-3", "TMO-2"),
+    ("RUNNING", "SAFE"): ("STATE-3", "TMO-2"), ("SAFE", "INIT"): ("STATE-4",),
+    ("ISOLATED", "SAFE"): ("STATE-9",), ("ISOLATED", "INIT"): ("STATE-9", "STATE-8"),
+    ("ISOLATED", "RUNNING"): ("STATE-9", "STATE-8"),
+}
+
+# the signal that shows a tick's cause first, when several differ in it
+_PRIMARY = ("Sync.frames", "frames of the tick.", "MC.State", "MC.Resets", "MC.Lambda",
+            "Setpoint.Enable", "Setpoint.PowerSetpoint")
+
+
+def _primary(mm: Mismatch) -> int:
+    key = f"{mm.message}.{mm.signal}"
+    return _PRIMARY.index(key) if key in _PRIMARY else len(_PRIMARY)
+
+
+def _moment_musts(note: str, steps: Sequence[Step]) -> tuple[str, ...]:
+    table = dict(MOMENTS)
+    for s in steps:
+        table.update(dict(s.moments))
+    if note in table:
+        return table[note]
+    return next((v for k, v in table.items() if k.endswith("…") and note.startswith(k[:-1])),
+                ())
+
+
+def _ordered(first: Sequence[str], second: Sequence[str]) -> tuple[str, ...]:
+    return tuple(dict.fromkeys((*first, *second)))
+
+
+def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS) -> tuple[str, ...]:
+    """The requirements one difference names, the likeliest first: what the schedule was
+    exercising at that moment (a noted frame of the tester: a command, a forged MAC, ...;
+    else a state change of the oracle), narrowed by the signal where they meet; else the
+    signal's own (``SIGNAL_MUSTS``; for a λ or setpoint one LSB off, the rounding rule;
+    for a State, the transition rule between the two states), narrowed by the step's."""
+    key = f"{mm.message}.{mm.signal}"
+    sig = SIGNAL_MUSTS.get(key, ())
+    exp, got = mm.raw
+    one_lsb = isinstance(exp, int) and isinstance(got, int) and abs(exp - got) == 1
+    # one LSB off is a rounding, whatever the moment: the wire λ (Q54 → Q24), the map
+    if key == "MC.Lambda" and one_lsb:
+        return ("NUM-8",)
+    if key == "Setpoint.PowerSetpoint" and one_lsb:
+        return ("SP-1",)
+    if key == "MC.State":
+        sig = _ordered(STATE_RULES.get((str(mm.expected), str(mm.got)), ()), sig)
+    step = next((s for s in steps if s.name == mm.step), None)
+    step_musts = step.musts if step else ()
+    contexts = [c for c in ([EDGES.get(e, ()) for e in mm.transition]
+                            + [_moment_musts(n, steps) for n in mm.moment]
+                            + [TRANSITIONS.get(w, ()) for w in mm.transition]) if c]
+    # those the signal can show, of every context, the latest (the most specific) first
+    meet = _ordered([m for context in contexts for m in context if m in sig], ())
+    if meet:
+        return meet
+    meet = tuple(m for m in sig if m in step_musts)
+    if contexts:
+        if mm.message == "Diag" and sig and mm.signal not in _DERIVED:
+            return meet or sig  # a counter names its own cause
+        return contexts[0]
+    if meet:
+        return meet
+    return sig or step_musts or ("TICK-1",)
+
+
+# Diag values that show the consequence of a classification, not a cause of their own
+_DERIVED = {"SafetySender", "SafetyCause", "NeighboursAlive", "State"}
+
+# What the oracle's controller met exactly at the divergent tick (``Mismatch.transition``)
+EDGES: dict[str, tuple[str, ...]] = {
+    "ξ = 0 after ξprev ≠ 0": ("STEP-2",),
+    "|ξ| = BAND": ("BAND-3",),
+}
+
+
 def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS) -> list[Result]:
-    """Pass or fail for each requirement the schedule exercises."""
+    """Pass or fail for each requirement the schedule exercises: the failed ones first,
+    in the order of the evidence (the first difference's requirements first), then the
+    rest in the spec's order. A difference fails the requirements ``attribute`` names;
+    the differences right after it (an episode: the oracle re-synchronised to the DUT
+    after each) are the same cause and fail nothing more."""
     exercised: dict[str, list[str]] = {}
     for s in steps:
         for m in s.musts:
             exercised.setdefault(m, []).append(s.name)
-    failed: dict[str, list[str]] = {}
+    # (time, order, requirements, why)
+    evidence: list[tuple[float, int, tuple[str, ...], str]] = []
+    by_tick: dict[int, list[Mismatch]] = {}
     for mm in outcome.mismatches:
-        musts = set(SIGNAL_MUSTS.get(f"{mm.message}.{mm.signal}", ()))
-        step = next((s for s in steps if s.name == mm.step), None)
-        if step is not None and musts & set(step.musts):
-            musts &= set(step.musts)
-        if not musts:
-            musts = set(step.musts) if step else {"TICK-1"}
+        by_tick.setdefault(mm.tick, []).append(mm)
+    episodes: dict[int, tuple[Mismatch, int, int]] = {}  # first tick → (cause, n, last)
+    for tick, mms in by_tick.items():
+        if mms[0].follows is not None and mms[0].follows in episodes:
+            cause, n, _ = episodes[mms[0].follows]
+            episodes[mms[0].follows] = (cause, n + len(mms), tick)
+            continue
+        episodes[tick] = (min(mms, key=_primary), len(mms), tick)
+    for n_ep, (cause, n, last) in enumerate(episodes.values()):
+        musts = attribute(cause, steps)
+        why = _first_divergence(cause, musts, n, last)
+        evidence.append((cause.t, n_ep, musts, why))
+    for err, t in zip(outcome.auth_errors,
+                      [*outcome.auth_times, *[math.inf] * len(outcome.auth_errors)],
+                      strict=False):
+        evidence.append((t, len(evidence), ("AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8"), err))
+    evidence.sort(key=lambda e: (e[0], e[1]))
+    failed: dict[str, list[str]] = {}
+    for _, _, musts, why in evidence:
         for must in musts:
-            failed.setdefault(must, []).append(str(mm))
-    for err in outcome.auth_errors:
-        for must in ("AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8"):
-            failed.setdefault(must, []).append(err)
+            failed.setdefault(must, []).append(why)
     if outcome.explained_by:  # a known deviation explains the DUT: name that one
         first = str(outcome.mismatches[0])
         failed = {must: [f"the DUT behaves as if {what} (first difference: {first})"]
                   for must, what in outcome.explained_by.items()} | {
                  must: why for must, why in failed.items() if must.startswith("AUTH-")}
-    results = []
+    results = [Result(must, False, why[0]) for must, why in failed.items()]
     for must in sorted(exercised, key=_must_order):
         if must in failed:
-            results.append(Result(must, False, failed[must][0]))
-        elif not set(exercised[must]) & outcome.steps_seen:
-            results.append(Result(must, False, "not exercised: the run ended before step "
-                                  + exercised[must][0]))
+            continue
+        if not set(exercised[must]) & outcome.steps_seen:
+            if outcome.stopped:
+                results.append(Result(must, False, f"not checked: {outcome.stopped} "
+                                      f"(before step {exercised[must][0]})"))
+            else:
+                results.append(Result(must, False, "not exercised: the device's frames "
+                                      "ended before step " + exercised[must][0]))
         else:
             results.append(Result(must, True, "steps " + ", ".join(exercised[must])))
-    for must in sorted(set(failed) - set(exercised), key=_must_order):
-        results.append(Result(must, False, failed[must][0]))
     return results
+
+
+def _first_divergence(mm: Mismatch, musts: Sequence[str], n: int, last: int) -> str:
+    """The report of one divergence: where, what, the requirement under test there."""
+    at = f"step {mm.step}, the device's tick {mm.tick} (t = {mm.t:.3f} s)"
+    if mm.moment:
+        at += f", after the tester's {mm.moment[0]!r}"
+    elif mm.transition:
+        at += f", the oracle going {mm.transition[0]}"
+    what = (f"{mm.message}.{mm.signal} = {mm.got!r}, expected {mm.expected!r}"
+            if mm.signal else f"{mm.message}: {mm.got!r}, expected {mm.expected!r}")
+    more = (f"; {n - 1} more difference{'s' if n > 2 else ''} to tick {last} (the oracle "
+            f"re-synchronised to the device after each)" if n > 1 else "")
+    return f"first divergence at {at}: {what}; under test there: {', '.join(musts)}{more}"
 
 
 def _must_order(must: str) -> tuple[int, int]:
@@ -83,21 +227,31 @@ def _must_order(must: str) -> tuple[int, int]:
 
 def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
             outcome: Outcome, codec: FrameCodec | None = None) -> None:
-    """Name the requirement when a known deviation explains the DUT better than the spec."""
+    """Name the requirement when a known deviation explains the DUT better than the
+    spec: with it modelled, the oracle must match the DUT at every tick where the spec's
+    diverged (a deviation that only matches the first ticks for the fault explains
+    nothing)."""
     if not outcome.mismatches:
         return
     first = outcome.mismatches[0].tick
+    diverged = {m.tick for m in outcome.mismatches}
     for must, (what, deviation) in MUTANTS.items():
         alt = check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches=1,
                     filtered_first=outcome.filtered)
-        if not alt.mismatches or alt.mismatches[0].tick > first + 50:
-            # check the rest of the schedule with that deviation modelled
-            rest = check(cfg, keyring, dut_key, frames, codec, deviation,
-                         filtered_first=alt.filtered)
-            outcome.explained_by[must] = what
-            outcome.steps_seen, outcome.ticks = rest.steps_seen, rest.ticks
-            outcome.mismatches[1:] = rest.mismatches
-            return
+        if alt.mismatches and alt.mismatches[0].tick <= first:
+            continue
+        # check the rest of the schedule with that deviation modelled
+        rest = check(cfg, keyring, dut_key, frames, codec, deviation,
+                     filtered_first=alt.filtered)
+        # the deviation explains every tick where the spec's oracle diverged
+        if ({m.tick for m in rest.mismatches} & diverged
+                or rest.differing_ticks >= outcome.differing_ticks):
+            continue
+        outcome.explained_by[must] = what
+        outcome.steps_seen, outcome.ticks = rest.steps_seen, rest.ticks
+        outcome.mismatches[1:] = [replace(m, follows=None) for m in rest.mismatches]
+        outcome.stopped = rest.stopped
+        return
 
 
 def junit(results: Sequence[Result], path: Path, name: str) -> None:

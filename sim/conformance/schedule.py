@@ -19,13 +19,17 @@ from firmware_py.nodeio import FleetSender
 @dataclass(frozen=True)
 class Step:
     """One part of the schedule, in ticks of the DUT's Ts: what it does and the
-    requirements (docs/firmware-spec.md IDs) its frames exercise."""
+    requirements (docs/firmware-spec.md IDs) its frames exercise. ``moments``: what
+    its noted frames exercise, (note, requirements), for the verdict to name a
+    difference that follows one of them (sim.conformance.results ``MOMENTS`` holds the
+    schedule's own; a note ending in "…" is a prefix)."""
 
     name: str
     start: int
     end: int
     what: str
     musts: tuple[str, ...]
+    moments: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
 
 STEPS = (
