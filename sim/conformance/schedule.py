@@ -29,11 +29,13 @@ class Step:
 
 
 STEPS = (
-    Step("start", 0, 30, "syncs of every input, then silence: the DUT stays INIT with λ(0), "
-         "answers the syncs, sends MC/Setpoint/Diag at their cadences",
+    Step("start", 0, 30, "syncs of every input but the command's, then silence: the DUT "
+         "stays INIT with λ(0), answers the syncs, sends MC/Setpoint/Diag at their "
+         "cadences; after the join window a command frame before its sync (unsynced), "
+         "then the command's sync",
          ("GEN-2", "STATE-1", "STATE-10", "TICK-1", "TX-1", "TX-2", "TX-3", "TX-4", "TX-5",
-          "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-16",
-          "AUTH-21", "RX-4")),
+          "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-11",
+          "AUTH-16", "AUTH-21", "AUTH-26", "RX-4")),
     Step("price-only", 30, 60, "price and neighbours but no plant status: still INIT",
          ("STATE-2", "STATE-5", "TMO-3", "LIVE-1", "LIVE-2", "PRICE-6", "AUTH-12",
           "AUTH-15")),
@@ -62,6 +64,26 @@ STEPS = (
          "fault (SAFE), each followed by recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
           "RX-11", "AUTH-13")),
+    Step("limits", 910, 1060, "SET_GAINS exactly at k_max/h_max and k_min/h_min and a gain "
+         "that rounds half up; a neighbour λ step of exactly the LAM-1 bound, one LSB more, "
+         "and back by the bound; a price step of exactly price_step_max, one LSB more "
+         "(a candidate kept across a PriceValid = 0 frame); a neighbour ramp to the top of "
+         "the λ range (large |ξ|), alive but INIT for 5 ticks; a status with FaultSoc and "
+         "PowerLimited set",
+         ("CMD-5", "CMD-6", "LAM-1", "LAM-2", "PRICE-1", "PRICE-3", "PRICE-4", "PRICE-6",
+          "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-6", "STEP-7", "STEP-8", "STEP-12",
+          "NUM-3", "NUM-4", "RX-11", "DIAG-3")),
+    Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
+         "consecutive forged frames on one ID and one fewer on another; a price frame 16 "
+         "freshness values on; a neighbour's frames lost on the bus past its timeout, its "
+         "count 25 on when it returns",
+         ("AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "RX-12", "RX-13", "LIVE-2",
+          "LIVE-3", "TMO-4", "DIAG-4")),
+    Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
+         "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
+         "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh",
+         ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
+          "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4")),
 )
 
 
@@ -148,41 +170,119 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         earlier = FleetSender(codec, keys, boot=tx.boot - 1)
         add(0, "start", earlier.sync("ER_Price"), "an earlier run's price sync (AUTH-21)")
     for name in inputs:
-        add(0, "start", tx.sync(name), f"sync of {name}")
+        if name != "ER_Command":  # held back past the DUT's join window (AUTH-11)
+            add(0, "start", tx.sync(name), f"sync of {name}")
+    add(22.6, "start", tx.frame("ER_Command", {
+        "Command": int(Command.ISOLATE), "Target": other, "GainK": 0, "GainH": 0}),
+        "a command before its sync, after the join window: unsynced")
+    add(25, "start", tx.sync("ER_Command"), "sync of ER_Command")
     first_sync = next(p.msg for p in out if p.note == "sync of ER_Price")
+    lam_step = q(cfg.lambda_step_max)   # LAM-1's bound for one sample
+    price_step = q(cfg.price_step_max)  # PRICE-3's bound
+    # the price step's sign: the edges of the limits step stay inside [rho_min, rho_max]
+    p_sign = 1 if q(price) + 2 * price_step < q(cfg.rho_max) else -1
+    top = q(cfg.lambda_max) - lam_step  # where the ramp of the limits step ends
+
+    def lam_edge(j: int, k: int) -> int:
+        """Neighbour j's λ from the limits step on: held where the schedule left it; for
+        the first neighbour, LAM-1 at its edges (a step of exactly the bound, accepted;
+        one LSB more than the bound from the slot's λ, rejected; back by exactly the
+        bound), then a ramp at 0.9 of the bound per tick to the top of the λ range, so
+        that |ξ| is large for long (a gain's last KTS bit shows on the wire λ)."""
+        hold = lam_j(j, at["limits"])
+        c = k - at["limits"]
+        if j != nbrs[0] or c < 20:
+            return hold
+        if c == 20 or 22 <= c < 25:
+            return hold + lam_step
+        if c == 21:
+            return hold + 2 * lam_step + 1
+        return max(hold, min(hold + (c - 24) * (9 * lam_step // 10), top))
+
+    def price_edge(k: int) -> tuple[int, int] | None:
+        """(PriceValid, ρ) of the price at tick k of the limits step: a step of exactly
+        q24(price_step_max) (accepted) and back; then one LSB more (a candidate), a
+        PriceValid = 0 frame (the candidate kept), the candidate twice more (accepted at
+        price_persist = 3: the frame after the invalid one must count as the second)."""
+        c, base, d = k - at["limits"], q(price), p_sign * price_step
+        if 30 <= c < 45:
+            return 1, base + d
+        if c == 60:
+            return 0, base
+        if 55 <= c < 75:
+            return 1, base + d + p_sign
+        if 75 <= c < 80:
+            return 1, base + p_sign  # back by exactly the bound
+        return 1, base
+
+    # the states step: (tick, command) and the price's and plant's conditions
+    st = at["states"]
+    gains_raw = _gain_raw_rounding_up(cfg)
     genuine: list[can.Message] = []
     held: list[can.Message] = []   # a genuine frame delivered late (AUTH-25)
+    fr = at["freshness"]
     for k in range(30, STEPS[-1].end):
         step = step_at(k)
         silent_nbr = 10 <= k - at["timeouts"] < 20
-        silent_price = 40 <= k - at["timeouts"] < 80
-        fault = 120 <= k - at["timeouts"] < 140
+        lost_nbr = 30 <= k - fr < 55  # sent, but lost on the bus: the count moves on
+        silent_price = 40 <= k - at["timeouts"] < 80 or 60 <= k - st < 110
+        invalid_price = 10 <= k - st < 50  # PriceValid = 0 only: an outage all the same
+        fault = 120 <= k - at["timeouts"] < 140 or 65 <= k - st < 75
+        soc = 100 <= k - at["limits"] < 120
         for j in nbrs:
             if silent_nbr and j == nbrs[0]:
                 continue
-            lam = lam_j(j, k)
+            if k >= at["limits"]:
+                lam = lam_edge(j, k)
+            else:
+                lam = lam_j(j, k)
             if k == at["content"] + 30 and j == nbrs[0]:
                 lam += q(0.5)  # a jump above lambda_step_max per sample: implausible
-            msg = tx.frame(mc_name(j), {"State": int(State.RUNNING), "Lambda": lam,
+            nbr_state = State.RUNNING
+            if 60 <= k - at["limits"] < 65 and j == nbrs[0]:
+                nbr_state = State.INIT  # alive, but not in ξ (XI-1)
+            msg = tx.frame(mc_name(j), {"State": int(nbr_state), "Lambda": lam,
                                         "Resets": 0})
+            if lost_nbr and j == nbrs[0]:
+                continue
             add(k + 0.5, step, msg)
             genuine.append(msg)
         if price_every(k) and not silent_price:
-            r = q(ramp(k, price))
+            valid, r = 1, q(ramp(k, price))
             if 20 <= k - at["content"] < 25:
                 r = q(6.0)  # above rho_max: implausible
             elif 40 <= k - at["content"] < 70:
                 r = q(price + 0.6)  # a step above price_step_max, persistent
-            add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
+            elif at["limits"] <= k < at["freshness"]:
+                valid, r = price_edge(k) or (1, r)
+            elif invalid_price:
+                valid = 0
+            if k == fr + 20:  # 15 frames lost on the bus: this one is 16 values on
+                for _ in range(15):
+                    tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0, "Rho": r})
+            add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0,
                                                       "Rho": r}))
         if k >= 60 and status_every(k):
-            add(k + 0.75, step, tx.frame(status_name(i), {**status,
-                                                          "FaultOverCurrent": int(fault)}))
+            add(k + 0.75, step, tx.frame(status_name(i), {
+                **status, "FaultOverCurrent": int(fault), "FaultSoc": int(soc),
+                "PowerLimited": int(soc)}))
+        if k == fr + 5:  # every sender's periodic sync, in step with its frames
+            for name in inputs:
+                add(k + 0.9, step, tx.sync(name), f"periodic sync of {name}")
+        if k == fr + 10:  # untrusted_after forged frames in a row on one ID (RX-13)
+            for n in range(cfg.untrusted_after):
+                add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Command", {
+                    "Command": int(Command.ISOLATE), "Target": other, "GainK": 0,
+                    "GainH": 0})), "forged command")
+        if k == fr + 12:  # one fewer on another ID: no verdict
+            for n in range(cfg.untrusted_after - 1):
+                add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Price", {
+                    "PriceValid": 1, "Segment": 0, "Rho": q(price)})), "forged price")
         if k == at["authentication"] + 10:  # a forged MAC on a neighbour's frame with a wild λ
             forged = tx.frame(mc_name(nbrs[0]) if nbrs else "ER_Price", {
                 "State": int(State.RUNNING), "Lambda": q(3.0), "Resets": 0} if nbrs else {
                 "PriceValid": 1, "Segment": 0, "Rho": q(3.0)})
-            forged.data[0] ^= 0x5A
+            forged = _forged(forged)
             add(k + 0.6, step, forged, "forged MAC")
         if k == at["authentication"] + 20:
             add(k + 0.6, step, _copy(genuine[-40]), "replay of a genuine frame")
@@ -227,6 +327,25 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": target, "GainK": round(kk * 1000),
                     "GainH": round(hh * 1000)}), note)
+        for tick, cmd, graw, hraw, note in (
+                (5, Command.SET_GAINS, _raw_bounds(cfg.k_min, cfg.k_max)[1],
+                 _raw_bounds(cfg.h_min, cfg.h_max)[1], "SET_GAINS at k_max and h_max"),
+                (10, Command.SET_GAINS, _raw_bounds(cfg.k_min, cfg.k_max)[0],
+                 _raw_bounds(cfg.h_min, cfg.h_max)[0], "SET_GAINS at k_min and h_min"),
+                (15, Command.SET_GAINS, gains_raw, round(h_gain * 1000),
+                 "SET_GAINS whose KTS rounds half up")):
+            if k == at["limits"] + tick:
+                add(k + 0.6, step, tx.frame("ER_Command", {
+                    "Command": int(cmd), "Target": i, "GainK": graw, "GainH": hraw}), note)
+        for tick, cmd, note in ((5, Command.RECONNECT, "RECONNECT in RUNNING"),
+                                (40, Command.RECONNECT, "RECONNECT in SAFE"),
+                                (45, Command.ISOLATE, "ISOLATE in SAFE"),
+                                (95, Command.RECONNECT, "RECONNECT, the price stale"),
+                                (100, Command.ISOLATE, "ISOLATE in INIT"),
+                                (120, Command.RECONNECT, "RECONNECT, all fresh")):
+            if k == st + tick:
+                add(k + 0.6, step, tx.frame("ER_Command", {
+                    "Command": int(cmd), "Target": i, "GainK": 0, "GainH": 0}), note)
     out.sort(key=lambda p: p.at)
     return out
 
@@ -234,6 +353,29 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
 def _copy(msg: can.Message) -> can.Message:
     return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False,
                        data=bytes(msg.data))
+
+
+def _forged(msg: can.Message) -> can.Message:
+    """``msg`` with its first byte changed: its MAC no longer verifies."""
+    msg.data[0] ^= 0x5A
+    return msg
+
+
+def _raw_bounds(low: float, high: float) -> tuple[int, int]:
+    """CMD-5's raw bounds of a gain: the smallest raw r in 0..16383 with r·0.001 ≥ low and
+    the largest with r·0.001 ≤ high (binary64): a SET_GAINS exactly at the bounds."""
+    fits = [r for r in range(16384) if low <= r * 0.001 <= high]
+    return (fits[0], fits[-1]) if fits else (0, 0)
+
+
+def _gain_raw_rounding_up(cfg: AgentConfig) -> int:
+    """A GainK raw value inside [k_min, k_max] (CMD-5) whose ``raw·TSQ/1000`` has a
+    fraction of at least ½ (so KTS' rounds up, not down), the nearest to 1.25·k."""
+    tsq = round(cfg.controller.ts * (1 << 30))
+    lo, hi = _raw_bounds(cfg.k_min, cfg.k_max)
+    want = round(1.25 * cfg.controller.k * 1000)
+    fits = [r for r in range(max(lo, 1), hi + 1) if (r * tsq) % 1000 >= 500]
+    return min(fits, key=lambda r: abs(r - want)) if fits else round(cfg.controller.k * 1000)
 
 
 def _unknown_id(codec: FrameCodec) -> int:
