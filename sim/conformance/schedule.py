@@ -76,9 +76,10 @@ STEPS = (
     Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
          "consecutive forged frames on one ID and one fewer on another; a price frame 16 "
          "freshness values on; a neighbour's frames lost on the bus past its timeout, its "
-         "count 25 on when it returns",
-         ("AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "RX-12", "RX-13", "LIVE-2",
-          "LIVE-3", "TMO-4", "DIAG-4")),
+         "count 25 on when it returns; a neighbour's Setpoint sync (a peer's boot: a hello), "
+         "then again (no hello)",
+         ("AUTH-9", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-18",
+          "AUTH-19", "RX-5", "RX-12", "RX-13", "LIVE-2", "LIVE-3", "TMO-4", "DIAG-4")),
     Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
          "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
          "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh",
@@ -274,6 +275,9 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Command", {
                     "Command": int(Command.ISOLATE), "Target": other, "GainK": 0,
                     "GainH": 0})), "forged command")
+        if k in (fr + 40, fr + 60) and nbrs:  # a peer's sync: first of its boot, then again
+            add(k + 0.6, step, tx.sync(f"AGENT_{nbrs[0]}_Setpoint"),
+                "a neighbour's Setpoint sync (a peer sync)")
         if k == fr + 12:  # one fewer on another ID: no verdict
             for n in range(cfg.untrusted_after - 1):
                 add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Price", {
