@@ -226,7 +226,7 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         "a command before its sync, after the join window: unsynced")
     add(25, "start", tx.sync("ER_Command"), "sync of ER_Command")
     first_sync = next(p.msg for p in out if p.note == "sync of ER_Price")
-    lam_step = q(cfg.lambda_step_max)   # LAM-1's bound for one sample
+    lam_step = q(_set(cfg.lambda_step_max))   # LAM-1's bound for one sample
     price_step = q(cfg.price_step_max)  # PRICE-3's bound
     # the price step's sign: the edges of the limits step stay inside [rho_min, rho_max]
     p_sign = 1 if q(price) + 2 * price_step < q(cfg.rho_max) else -1
@@ -380,10 +380,10 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                     "Command": int(cmd), "Target": target, "GainK": round(kk * 1000),
                     "GainH": round(hh * 1000)}), note)
         for tick, cmd, graw, hraw, note in (
-                (5, Command.SET_GAINS, _raw_bounds(cfg.k_min, cfg.k_max)[1],
-                 _raw_bounds(cfg.h_min, cfg.h_max)[1], "SET_GAINS at k_max and h_max"),
-                (10, Command.SET_GAINS, _raw_bounds(cfg.k_min, cfg.k_max)[0],
-                 _raw_bounds(cfg.h_min, cfg.h_max)[0], "SET_GAINS at k_min and h_min"),
+                (5, Command.SET_GAINS, _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))[1],
+                 _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))[1], "SET_GAINS at k_max and h_max"),
+                (10, Command.SET_GAINS, _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))[0],
+                 _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))[0], "SET_GAINS at k_min and h_min"),
                 (15, Command.SET_GAINS, gains_raw, round(h_gain * 1000),
                  "SET_GAINS whose KTS rounds half up")):
             if k == at["limits"] + tick:
@@ -413,6 +413,12 @@ def _forged(msg: can.Message) -> can.Message:
     return msg
 
 
+def _set(value: float | None) -> float:
+    """A bound AgentConfig derives when not given (never None after __post_init__)."""
+    assert value is not None
+    return value
+
+
 def _raw_bounds(low: float, high: float) -> tuple[int, int]:
     """CMD-5's raw bounds of a gain: the smallest raw r in 0..16383 with r·0.001 ≥ low and
     the largest with r·0.001 ≤ high (binary64): a SET_GAINS exactly at the bounds."""
@@ -424,7 +430,7 @@ def _gain_raw_rounding_up(cfg: AgentConfig) -> int:
     """A GainK raw value inside [k_min, k_max] (CMD-5) whose ``raw·TSQ/1000`` has a
     fraction of at least ½ (so KTS' rounds up, not down), the nearest to 1.25·k."""
     tsq = round(cfg.controller.ts * (1 << 30))
-    lo, hi = _raw_bounds(cfg.k_min, cfg.k_max)
+    lo, hi = _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))
     want = round(1.25 * cfg.controller.k * 1000)
     fits = [r for r in range(max(lo, 1), hi + 1) if (r * tsq) % 1000 >= 500]
     return min(fits, key=lambda r: abs(r - want)) if fits else round(cfg.controller.k * 1000)
