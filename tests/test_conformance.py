@@ -160,17 +160,28 @@ def test_the_schedule_does_what_its_steps_say() -> None:
             dut.on_frame(planned[nxt].msg, t0 + planned[nxt].at)
             nxt += 1
         dut.tick(t)
+    # ... and in the limits, freshness and states steps: SAFE on PriceValid = 0 frames only,
+    # ISOLATE in SAFE, RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT
     assert states == ["INIT", "RUNNING", "ISOLATED", "RUNNING", "SAFE", "RUNNING", "SAFE",
-                      "RUNNING"]
+                      "RUNNING", "SAFE", "ISOLATED", "INIT", "ISOLATED", "RUNNING"]
     c = dut.counters
-    assert c["auth"] == 5 and c["dlc"] == 1 and c["impersonation"] == 1
+    # 5 in the authentication step, untrusted_after forged commands, one fewer forged prices
+    assert c["auth"] == 5 + 5 + 4 and c["untrusted_sources"] == 1
+    assert c["dlc"] == 1 and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
-    assert c["unknown_id"] == 2 and c["implausible_price"] == 5 and c["implausible_gains"] == 1
-    assert c["implausible_lambda"] == 2 and c["price_steps_accepted"] == 2
-    assert c["neighbour_timeouts"] == 1 and c["price_timeouts"] == 1
-    assert c["plant_faults"] == 1 and c["commands_isolate"] == 2
-    assert c["commands_reconnect"] == 1 and c["resyncs"] == 4 and c["lost_frames"] == 3
-    assert dut.cstate.resets == 3  # after ISOLATE's reset of the count: resets still happen
+    assert c["unsynced"] == 1  # the command before its sync (AUTH-11)
+    assert c["unknown_id"] == 2 and c["implausible_gains"] == 1  # SET_GAINS at the bounds pass
+    # the price step one LSB above the bound: twice a candidate, accepted the third time
+    assert c["implausible_price"] == 5 + 2 and c["price_steps_accepted"] == 2 + 1
+    assert c["implausible_lambda"] == 2 + 1  # one LSB above LAM-1's bound
+    # the neighbour lost on the bus; the PriceValid = 0 outage and the one while ISOLATED
+    assert c["neighbour_timeouts"] == 2 and c["price_timeouts"] == 3
+    assert c["plant_faults"] == 2  # the second while ISOLATED
+    assert c["commands_isolate"] == 4 and c["commands_reconnect"] == 5
+    # in-step syncs are no resyncs; lost: 3, 5 forged commands, 4 forged prices, a price
+    # 16 values on (15), the neighbour's 25 frames lost on the bus
+    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 5 + 4 + 15 + 25
+    assert dut.cstate.resets >= 1  # after ISOLATE's reset of the count: resets still happen
 
 
 def test_every_requirement_named_exists_in_the_spec() -> None:

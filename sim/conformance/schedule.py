@@ -33,11 +33,13 @@ class Step:
 
 
 STEPS = (
-    Step("start", 0, 30, "syncs of every input, then silence: the DUT stays INIT with λ(0), "
-         "answers the syncs, sends MC/Setpoint/Diag at their cadences",
+    Step("start", 0, 30, "syncs of every input but the command's, then silence: the DUT "
+         "stays INIT with λ(0), answers the syncs, sends MC/Setpoint/Diag at their "
+         "cadences; after the join window a command frame before its sync (unsynced), "
+         "then the command's sync",
          ("GEN-2", "STATE-1", "STATE-10", "TICK-1", "TX-1", "TX-2", "TX-3", "TX-4", "TX-5",
-          "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-16",
-          "AUTH-21", "RX-4")),
+          "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-11",
+          "AUTH-16", "AUTH-21", "AUTH-26", "RX-4", "GEN-1", "GEN-4")),
     Step("price-only", 30, 60, "price and neighbours but no plant status: still INIT",
          ("STATE-2", "STATE-5", "TMO-3", "LIVE-1", "LIVE-2", "PRICE-6", "AUTH-12",
           "AUTH-15")),
@@ -48,7 +50,7 @@ STEPS = (
          ("CTRL-1", "CTRL-4", "CTRL-5", "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-2",
           "STEP-3", "STEP-4", "STEP-5", "STEP-6", "STEP-7", "STEP-8", "STEP-9", "BAND-1",
           "BAND-2", "BAND-3", "TX-1", "SP-1", "LAM-2", "DIAG-1", "NUM-1", "NUM-2",
-          "NUM-3")),
+          "NUM-3", "NUM-6", "NUM-7", "NUM-8")),
     Step("authentication", 450, 510, "forged MACs, a replayed frame, a replayed sync, a "
          "frame from another boot, a genuine frame delivered late (stale, not auth): "
          "rejected and counted, λ unmoved by them",
@@ -57,7 +59,7 @@ STEPS = (
     Step("content", 510, 580, "an extended ID, an unknown ID, the DUT's own ID, a short "
          "frame, a price out of bounds, a persistent price step, a neighbour λ jump",
          ("RX-1", "RX-3", "RX-6", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
-          "LAM-1", "DIAG-1", "DIAG-4")),
+          "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
          "agent, ISOLATE, RECONNECT",
          ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "STATE-7", "STATE-8", "STATE-9",
@@ -66,8 +68,77 @@ STEPS = (
          "fault (SAFE), each followed by recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
           "RX-11", "AUTH-13")),
+    Step("limits", 910, 1060, "SET_GAINS exactly at k_max/h_max and k_min/h_min and a gain "
+         "that rounds half up; a neighbour λ step of exactly the LAM-1 bound, one LSB more, "
+         "and back by the bound; a price step of exactly price_step_max, one LSB more "
+         "(a candidate kept across a PriceValid = 0 frame); a neighbour ramp to the top of "
+         "the λ range (large |ξ|), alive but INIT for 5 ticks; a status with FaultSoc and "
+         "PowerLimited set",
+         ("CMD-5", "CMD-6", "LAM-1", "LAM-2", "PRICE-1", "PRICE-3", "PRICE-4", "PRICE-6",
+          "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-6", "STEP-7", "STEP-8", "STEP-12",
+          "NUM-3", "NUM-4", "RX-11", "DIAG-3")),
+    Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
+         "consecutive forged frames on one ID and one fewer on another; a price frame 16 "
+         "freshness values on; a neighbour's frames lost on the bus past its timeout, its "
+         "count 25 on when it returns; a neighbour's Setpoint sync (a peer's boot: a hello), "
+         "then again (no hello)",
+         ("AUTH-9", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-18",
+          "AUTH-19", "RX-5", "RX-12", "RX-13", "LIVE-2", "LIVE-3", "TMO-4", "DIAG-4")),
+    Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
+         "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
+         "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh",
+         ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
+          "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4")),
 )
 
+
+# The requirements no step exercises, and why: what a bus run cannot show, or what this
+# schedule leaves to the unit tests and vectors (docs/conformance.md's coverage table
+# lists them; a test fails when a spec requirement is in neither STEPS nor here).
+NOT_ON_BUS: dict[str, str] = {
+    "NUM-5": "isqrt is used by the ft controller only; the DUT runs its configuration's "
+             "kind (reset in every case but 2 and 6): the controller vectors check it",
+    "CTRL-2": "the dwell of kind dwell: a DUT configured from case 6 runs it; the "
+              "controller vectors check it bit for bit",
+    "CTRL-3": "fpow of kind ft: the controller vectors check it",
+    "STEP-10": "kind pc: the controller vectors check it",
+    "STEP-11": "kind ft: the controller vectors check it",
+    "DWELL-1": "kind dwell: the DUT runs its configuration's kind; a crossing exactly D "
+               "samples after a reset needs a dwell DUT and a trajectory planned on it",
+    "DWELL-2": "kind dwell (as DWELL-1)",
+    "SP-2": "setpoint_limited is not on the Diag frame (DIAG-5): not visible on the bus",
+    "DIAG-2": "a counter at 65535 needs 65536 counted events (about 8 s of a full "
+              "1 Mbit/s bus of unknown IDs): longer than the schedule; unit tests",
+    "DIAG-5": "these counters are not on any frame: not visible on the bus",
+    "TX-6": "a raw value outside its DBC range arises only from a counter past its "
+            "maximum (DIAG-2): as DIAG-2",
+    "RX-2": "remote, error and FD frames are counted as malformed, which is on no frame "
+            "(DIAG-5); python-can's virtual buses cannot carry error frames",
+    "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
+    "AUTH-1": "with a key file the DUT derives no key (the file holds them): exercised "
+              "only by an --insecure run (AUTH-20); the secoc vectors check it",
+    "AUTH-2": "every MAC of the schedule is a CMAC, but a wrong CMAC fails everything "
+              "(AUTH-4, AUTH-7): no step isolates it; the secoc vectors check it",
+    "AUTH-3": "the boot the DUT sends is taken from its syncs, not compared with the key "
+              "file's + 1, and persisting is not visible on the bus: node vectors",
+    "AUTH-5": "2^24 frames on one ID take 46.6 h at Ts = 10 ms; the node vector "
+              "tx_count_wrap checks it through the binding",
+    "AUTH-20": "an --insecure run (no key file) exercises it: the schedule is the same, "
+               "but the default run has a key file",
+    "CFG-1": "the DUT reads the configuration the tester writes; a misread shows only "
+             "where it changes frames (price_s in the timeouts step, the bounds of the "
+             "limits step), not at each key's own bounds: unit tests (test_config.py)",
+    "CFG-2": "as CFG-1", "CFG-3": "as CFG-1", "CFG-4": "as CFG-1", "CFG-5": "as CFG-1",
+    "CFG-6": "as CFG-1", "CFG-7": "as CFG-1", "CFG-8": "as CFG-1 (the key file)",
+    "LOOP-1": "the run loop's timing depends on the DUT's host, not on the bus",
+    "LOOP-2": "deadline misses depend on the DUT's host (DeadlineMisses is not compared)",
+    "LOOP-3": "the DUT's clock is not visible on the bus", "LOOP-4": "as RX-2",
+    "LOOP-5": "a configuration that never starts cannot be run on a bus",
+    "LOOP-6": "inputs that are no CAN frame cannot be sent on a CAN bus",
+    "SCALE-1": "the DUT gets the scaled configuration (--time-scale); that it does not "
+               "know F is not visible; unit tests",
+    "SCALE-2": "as SCALE-1",
+}
 
 PULSE = 0.05  # cu/kWh: well above the reset band, below lambda_step_max (10·k·Ts)
 
@@ -152,41 +223,122 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         earlier = FleetSender(codec, keys, boot=tx.boot - 1)
         add(0, "start", earlier.sync("ER_Price"), "an earlier run's price sync (AUTH-21)")
     for name in inputs:
-        add(0, "start", tx.sync(name), f"sync of {name}")
+        if name != "ER_Command":  # held back past the DUT's join window (AUTH-11)
+            add(0, "start", tx.sync(name), f"sync of {name}")
+    add(22.6, "start", tx.frame("ER_Command", {
+        "Command": int(Command.ISOLATE), "Target": other, "GainK": 0, "GainH": 0}),
+        "a command before its sync, after the join window: unsynced")
+    add(25, "start", tx.sync("ER_Command"), "sync of ER_Command")
     first_sync = next(p.msg for p in out if p.note == "sync of ER_Price")
+    lam_step = q(_set(cfg.lambda_step_max))   # LAM-1's bound for one sample
+    price_step = q(cfg.price_step_max)  # PRICE-3's bound
+    # the price step's sign: the edges of the limits step stay inside [rho_min, rho_max]
+    p_sign = 1 if q(price) + 2 * price_step < q(cfg.rho_max) else -1
+    top = q(cfg.lambda_max) - lam_step  # where the ramp of the limits step ends
+
+    def lam_edge(j: int, k: int) -> int:
+        """Neighbour j's λ from the limits step on: held where the schedule left it; for
+        the first neighbour, LAM-1 at its edges (a step of exactly the bound, accepted;
+        one LSB more than the bound from the slot's λ, rejected; back by exactly the
+        bound), then a ramp at 0.9 of the bound per tick to the top of the λ range, so
+        that |ξ| is large for long (a gain's last KTS bit shows on the wire λ)."""
+        hold = lam_j(j, at["limits"])
+        c = k - at["limits"]
+        if j != nbrs[0] or c < 20:
+            return hold
+        if c == 20 or 22 <= c < 25:
+            return hold + lam_step
+        if c == 21:
+            return hold + 2 * lam_step + 1
+        return max(hold, min(hold + (c - 24) * (9 * lam_step // 10), top))
+
+    def price_edge(k: int) -> tuple[int, int] | None:
+        """(PriceValid, ρ) of the price at tick k of the limits step: a step of exactly
+        q24(price_step_max) (accepted) and back; then one LSB more (a candidate), a
+        PriceValid = 0 frame (the candidate kept), the candidate twice more (accepted at
+        price_persist = 3: the frame after the invalid one must count as the second)."""
+        c, base, d = k - at["limits"], q(price), p_sign * price_step
+        if 30 <= c < 45:
+            return 1, base + d
+        if c == 60:
+            return 0, base
+        if 55 <= c < 75:
+            return 1, base + d + p_sign
+        if 75 <= c < 80:
+            return 1, base + p_sign  # back by exactly the bound
+        return 1, base
+
+    # the states step: (tick, command) and the price's and plant's conditions
+    st = at["states"]
+    gains_raw = _gain_raw_rounding_up(cfg)
     genuine: list[can.Message] = []
     held: list[can.Message] = []   # a genuine frame delivered late (AUTH-25)
+    fr = at["freshness"]
     for k in range(30, STEPS[-1].end):
         step = step_at(k)
         silent_nbr = 10 <= k - at["timeouts"] < 20
-        silent_price = 40 <= k - at["timeouts"] < 80
-        fault = 120 <= k - at["timeouts"] < 140
+        lost_nbr = 30 <= k - fr < 55  # sent, but lost on the bus: the count moves on
+        silent_price = 40 <= k - at["timeouts"] < 80 or 60 <= k - st < 110
+        invalid_price = 10 <= k - st < 50  # PriceValid = 0 only: an outage all the same
+        fault = 120 <= k - at["timeouts"] < 140 or 65 <= k - st < 75
+        soc = 100 <= k - at["limits"] < 120
         for j in nbrs:
             if silent_nbr and j == nbrs[0]:
                 continue
-            lam = lam_j(j, k)
+            if k >= at["limits"]:
+                lam = lam_edge(j, k)
+            else:
+                lam = lam_j(j, k)
             if k == at["content"] + 30 and j == nbrs[0]:
                 lam += q(0.5)  # a jump above lambda_step_max per sample: implausible
-            msg = tx.frame(mc_name(j), {"State": int(State.RUNNING), "Lambda": lam,
+            nbr_state = State.RUNNING
+            if 60 <= k - at["limits"] < 65 and j == nbrs[0]:
+                nbr_state = State.INIT  # alive, but not in ξ (XI-1)
+            msg = tx.frame(mc_name(j), {"State": int(nbr_state), "Lambda": lam,
                                         "Resets": 0})
+            if lost_nbr and j == nbrs[0]:
+                continue
             add(k + 0.5, step, msg)
             genuine.append(msg)
         if price_every(k) and not silent_price:
-            r = q(ramp(k, price))
+            valid, r = 1, q(ramp(k, price))
             if 20 <= k - at["content"] < 25:
                 r = q(6.0)  # above rho_max: implausible
             elif 40 <= k - at["content"] < 70:
                 r = q(price + 0.6)  # a step above price_step_max, persistent
-            add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
+            elif at["limits"] <= k < at["freshness"]:
+                valid, r = price_edge(k) or (1, r)
+            elif invalid_price:
+                valid = 0
+            if k == fr + 20:  # 15 frames lost on the bus: this one is 16 values on
+                for _ in range(15):
+                    tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0, "Rho": r})
+            add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0,
                                                       "Rho": r}))
         if k >= 60 and status_every(k):
-            add(k + 0.75, step, tx.frame(status_name(i), {**status,
-                                                          "FaultOverCurrent": int(fault)}))
+            add(k + 0.75, step, tx.frame(status_name(i), {
+                **status, "FaultOverCurrent": int(fault), "FaultSoc": int(soc),
+                "PowerLimited": int(soc)}))
+        if k == fr + 5:  # every sender's periodic sync, in step with its frames
+            for name in inputs:
+                add(k + 0.9, step, tx.sync(name), f"periodic sync of {name}")
+        if k == fr + 10:  # untrusted_after forged frames in a row on one ID (RX-13)
+            for n in range(cfg.untrusted_after):
+                add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Command", {
+                    "Command": int(Command.ISOLATE), "Target": other, "GainK": 0,
+                    "GainH": 0})), "forged command")
+        if k in (fr + 40, fr + 60) and nbrs:  # a peer's sync: first of its boot, then again
+            add(k + 0.6, step, tx.sync(f"AGENT_{nbrs[0]}_Setpoint"),
+                "a neighbour's Setpoint sync (a peer sync)")
+        if k == fr + 12:  # one fewer on another ID: no verdict
+            for n in range(cfg.untrusted_after - 1):
+                add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Price", {
+                    "PriceValid": 1, "Segment": 0, "Rho": q(price)})), "forged price")
         if k == at["authentication"] + 10:  # a forged MAC on a neighbour's frame with a wild λ
             forged = tx.frame(mc_name(nbrs[0]) if nbrs else "ER_Price", {
                 "State": int(State.RUNNING), "Lambda": q(3.0), "Resets": 0} if nbrs else {
                 "PriceValid": 1, "Segment": 0, "Rho": q(3.0)})
-            forged.data[0] ^= 0x5A
+            forged = _forged(forged)
             add(k + 0.6, step, forged, "forged MAC")
         if k == at["authentication"] + 20:
             add(k + 0.6, step, _copy(genuine[-40]), "replay of a genuine frame")
@@ -231,6 +383,25 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": target, "GainK": round(kk * 1000),
                     "GainH": round(hh * 1000)}), note)
+        for tick, cmd, graw, hraw, note in (
+                (5, Command.SET_GAINS, _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))[1],
+                 _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))[1], "SET_GAINS at k_max and h_max"),
+                (10, Command.SET_GAINS, _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))[0],
+                 _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))[0], "SET_GAINS at k_min and h_min"),
+                (15, Command.SET_GAINS, gains_raw, round(h_gain * 1000),
+                 "SET_GAINS whose KTS rounds half up")):
+            if k == at["limits"] + tick:
+                add(k + 0.6, step, tx.frame("ER_Command", {
+                    "Command": int(cmd), "Target": i, "GainK": graw, "GainH": hraw}), note)
+        for tick, cmd, note in ((5, Command.RECONNECT, "RECONNECT in RUNNING"),
+                                (40, Command.RECONNECT, "RECONNECT in SAFE"),
+                                (45, Command.ISOLATE, "ISOLATE in SAFE"),
+                                (95, Command.RECONNECT, "RECONNECT, the price stale"),
+                                (100, Command.ISOLATE, "ISOLATE in INIT"),
+                                (120, Command.RECONNECT, "RECONNECT, all fresh")):
+            if k == st + tick:
+                add(k + 0.6, step, tx.frame("ER_Command", {
+                    "Command": int(cmd), "Target": i, "GainK": 0, "GainH": 0}), note)
     out.sort(key=lambda p: p.at)
     return out
 
@@ -238,6 +409,35 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
 def _copy(msg: can.Message) -> can.Message:
     return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False,
                        data=bytes(msg.data))
+
+
+def _forged(msg: can.Message) -> can.Message:
+    """``msg`` with its first byte changed: its MAC no longer verifies."""
+    msg.data[0] ^= 0x5A
+    return msg
+
+
+def _set(value: float | None) -> float:
+    """A bound AgentConfig derives when not given (never None after __post_init__)."""
+    assert value is not None
+    return value
+
+
+def _raw_bounds(low: float, high: float) -> tuple[int, int]:
+    """CMD-5's raw bounds of a gain: the smallest raw r in 0..16383 with r·0.001 ≥ low and
+    the largest with r·0.001 ≤ high (binary64): a SET_GAINS exactly at the bounds."""
+    fits = [r for r in range(16384) if low <= r * 0.001 <= high]
+    return (fits[0], fits[-1]) if fits else (0, 0)
+
+
+def _gain_raw_rounding_up(cfg: AgentConfig) -> int:
+    """A GainK raw value inside [k_min, k_max] (CMD-5) whose ``raw·TSQ/1000`` has a
+    fraction of at least ½ (so KTS' rounds up, not down), the nearest to 1.25·k."""
+    tsq = round(cfg.controller.ts * (1 << 30))
+    lo, hi = _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))
+    want = round(1.25 * cfg.controller.k * 1000)
+    fits = [r for r in range(max(lo, 1), hi + 1) if (r * tsq) % 1000 >= 500]
+    return min(fits, key=lambda r: abs(r - want)) if fits else round(cfg.controller.k * 1000)
 
 
 def _unknown_id(codec: FrameCodec) -> int:
