@@ -14,7 +14,6 @@ from .config import load_agent_config
 from .errors import BessDedError
 from .faultinject import FaultyBus, RxFaults, neighbour_mc
 from .node import (
-    NODE_RCVBUF,
     RxTxBus,
     StopFlag,
     behind_filter,
@@ -67,7 +66,7 @@ def run_agent(args: argparse.Namespace) -> int:
     stop.install_signal_handlers()
     kw = with_acceptance_filter(bus_kwargs(args.interface, args.channel, args.bus_config),
                                 agent.io.accepted_ids(), args.acceptance_filter)
-    bus = open_bus(NODE_RCVBUF, **kw)
+    bus = open_bus(**kw)
     faults = RxFaults(args.inject_rx_loss, args.inject_rx_delay, args.inject_rx_jitter,
                       args.inject_seed, match=neighbour_mc(cfg.id))
     node_bus: RxTxBus = behind_filter(bus, kw)

@@ -162,16 +162,11 @@ def check_bus_keys(interface: str, extra: dict[str, Any]) -> None:
                              f"unknown key {key!r}{hint}")
 
 
-# A node's kernel receive queue: ~1,000 frames, a second of a 64-node fleet's traffic.
-# The default (~200 frames on SocketCAN) overflows while a starved node sleeps, and the
-# kernel drops the overflow silently; a frame behind a gap of more than one freshness
-# window (AUTH-12) then fails authentication although it is genuine.
-NODE_RCVBUF = 1 << 20  # bytes
-
-
 def open_bus(receive_buffer: int | None = None, **kw: Any) -> can.BusABC:
     """Open a python-can bus from ``bus_kwargs`` output, with a clear error if it fails;
-    ``receive_buffer``: its socket's kernel receive queue in bytes, where it has one."""
+    ``receive_buffer``: its socket's kernel receive queue in bytes, where it has one (a
+    recorder's; a node keeps the default: under overload a control loop is better served
+    by the kernel dropping old frames than by a deep queue of stale ones)."""
     try:
         bus = can.Bus(**kw)
     except (OSError, can.CanError, ValueError, ImportError) as e:

@@ -191,19 +191,3 @@ def test_udp_multicast_case7_twelve_agents_account_for_every_tick(tmp_path: Path
     assert m["settling_times_s"][-1] is not None   # in the band from then to the end
     assert settling_ticks(tmp_path, m) <= 2 * lockstep_settling_ticks(sc)
 
-
-def test_a_node_bus_queues_a_second_of_frames_in_the_kernel(udp_port: int) -> None:
-    """A node's socket gets NODE_RCVBUF of kernel receive queue (the kernel reports
-    twice what was set, for its bookkeeping): a starved node finds its input queued
-    instead of silently dropped behind a gap wider than a freshness window."""
-    import socket
-
-    from firmware_py.node import NODE_RCVBUF, bus_kwargs, bus_socket, open_bus
-
-    kw = bus_kwargs("udp_multicast", None, {"port": udp_port})
-    with open_bus(**kw) as plain, open_bus(NODE_RCVBUF, **kw) as node:
-        sockets = bus_socket(plain), bus_socket(node)
-        assert sockets[0] is not None and sockets[1] is not None
-        default, enlarged = (s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
-                             for s in sockets)
-    assert enlarged >= NODE_RCVBUF > default

@@ -87,12 +87,6 @@ int bd_linux_open(bd_platform *plat, const char *ifname, const uint32_t *ids, si
      * being dropped unseen by the kernel; the node itself sends classic frames only */
     int fd_frames = 1;
     (void)setsockopt(fd, SOL_CAN_RAW, CAN_RAW_FD_FRAMES, &fd_frames, sizeof fd_frames);
-    /* a starved node's input queued by the kernel (~1,000 frames), not dropped silently:
-     * a frame behind a gap of more than one freshness window would fail AUTH-12 */
-    int rcvbuf = BD_LINUX_RCVBUF;
-    if (setsockopt(fd, SOL_SOCKET, SO_RCVBUFFORCE, &rcvbuf, sizeof rcvbuf) < 0) {
-        (void)setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);  /* not root */
-    }
     memset(&addr, 0, sizeof addr);
     addr.can_family = AF_CAN;
     addr.can_ifindex = ifr.ifr_ifindex;

@@ -11,7 +11,6 @@
 #include "bessded/platform.h"
 
 #define BD_LINUX_FILTERS_MAX 512
-#define BD_LINUX_RCVBUF (1 << 20)   /* bytes: the socket's kernel receive queue */
 
 struct bd_platform {
     int fd;

@@ -62,8 +62,7 @@ def serve(node: Any, args: argparse.Namespace) -> int:
     """Run ``node`` on the bus the flags name until --duration or SIGINT/SIGTERM; always
     shut the bus down and print the node's summary to stderr."""
     from firmware_py.node import (
-        NODE_RCVBUF,
-        StopFlag,
+            StopFlag,
         behind_filter,
         bus_kwargs,
         open_bus,
@@ -77,7 +76,7 @@ def serve(node: Any, args: argparse.Namespace) -> int:
     stop = StopFlag()
     kw = with_acceptance_filter(bus_kwargs(args.interface, args.channel, args.bus_config),
                                 node.io.accepted_ids(), args.acceptance_filter)
-    bus = open_bus(NODE_RCVBUF, **kw)
+    bus = open_bus(**kw)
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         stop.install_signal_handlers()
