@@ -1,7 +1,7 @@
 """The bus a run uses: its python-can options (``BusOptions``), a private udp_multicast
 port per run (``private_port``), and what the recorder and the Tester need of a bus's
 receive socket (``RECORDER_RCVBUF``, ``udp_drops``; ``bus_socket`` and
-``enlarge_receive_buffer`` are firmware_py.node's, the nodes' own).
+``enlarge_receive_buffer`` are firmware_py.node's, beside ``open_bus``).
 
 Part of `bess-ded up` (``sim.run.busrun``), apart from the node processes
 (``sim.run.nodeprocs``) and the recorder (``sim.run.recorder``).
