@@ -21,9 +21,11 @@ spec (equivalent mutants) are not in the set; docs/conformance.md lists the ones
 
 from __future__ import annotations
 
+import importlib.util
 import types
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import can
@@ -1145,3 +1147,14 @@ def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
                  str(outcome.mismatches[0]) if outcome.mismatches else
                  (outcome.auth_errors[0] if outcome.auth_errors else ""),
                  time.perf_counter() - start)
+
+
+def score_tool():  # type: ignore[no-untyped-def]
+    """tools/conformance_score.py as a module (its ``table``, ``summary``, ``main``): what
+    the fault-score tests of firmware_py and firmware_c print and check."""
+    path = Path(__file__).resolve().parents[1] / "tools" / "conformance_score.py"
+    spec = importlib.util.spec_from_file_location("conformance_score", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -10,12 +10,10 @@ fault score"; `python tools/conformance_score.py`).
 
 from __future__ import annotations
 
-import importlib.util
 import logging
-from pathlib import Path
 
 import pytest
-from conformance_faults import BY_NAME, FAULTS, Fault, score
+from conformance_faults import BY_NAME, FAULTS, Fault, score, score_tool
 
 from sim import conformance as conf
 
@@ -73,22 +71,13 @@ def test_a_sample_of_faults_fails_conformance_naming_its_requirement(
 FLOOR = {"caught": 23, "named": 18, "named_first": 7, "named_by_first_diff": 15}
 
 
-def _score_tool():  # type: ignore[no-untyped-def]
-    path = Path(__file__).resolve().parents[1] / "tools" / "conformance_score.py"
-    spec = importlib.util.spec_from_file_location("conformance_score", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.long
 @pytest.mark.mutation
 def test_the_fault_score_of_the_schedule_does_not_regress(
         capsys: pytest.CaptureFixture[str]) -> None:
     """Expected (case 1, agent 3, jitter 0.3, seed 0): the faultless agent passes, and at
     least as many faults are caught and named as docs/conformance.md reports."""
-    tool = _score_tool()
+    tool = score_tool()
     assert not score(None).caught
     logging.disable(logging.CRITICAL)
     try:

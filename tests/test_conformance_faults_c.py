@@ -14,12 +14,12 @@ set scores at least what docs/conformance.md reports (`python tools/conformance_
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import shutil
 from pathlib import Path
 
 import pytest
+from conformance_faults import score_tool
 from conformance_faults_c import BY_NAME, FAULTS, CFault, apply_patch, runtime, score
 
 from sim import conformance as conf
@@ -97,15 +97,6 @@ def test_a_sampled_c_fault_fails_conformance_naming_its_requirement() -> None:
 FLOOR = {"caught": 10, "named": 4, "named_first": 2, "named_by_first_diff": 4}
 
 
-def _score_tool():  # type: ignore[no-untyped-def]
-    path = Path(__file__).resolve().parents[1] / "tools" / "conformance_score.py"
-    spec = importlib.util.spec_from_file_location("conformance_score", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.long
 @pytest.mark.mutation
 def test_the_c_fault_score_of_the_schedule_does_not_regress(
@@ -115,6 +106,6 @@ def test_the_c_fault_score_of_the_schedule_does_not_regress(
     import json
 
     out = tmp_path / "score.json"
-    assert _score_tool().main(["--device", "c", "--case", "1:3", "--json", str(out)]) == 0
+    assert score_tool().main(["--device", "c", "--case", "1:3", "--json", str(out)]) == 0
     s = json.loads(out.read_text())["cases"]["1:3"]["summary"]
     assert all(s[k] >= v for k, v in FLOOR.items()), (s, capsys.readouterr().out[-3000:])
