@@ -426,8 +426,14 @@ def _set(value: float | None) -> float:
 def _raw_bounds(low: float, high: float) -> tuple[int, int]:
     """CMD-5's raw bounds of a gain: the smallest raw r in 0..16383 with r·0.001 ≥ low and
     the largest with r·0.001 ≤ high (binary64): a SET_GAINS exactly at the bounds."""
-    fits = [r for r in range(16384) if low <= r * 0.001 <= high]
-    return (fits[0], fits[-1]) if fits else (0, 0)
+    def fits(r: int) -> bool:
+        return 0 <= r <= 16383 and low <= r * 0.001 <= high
+
+    # the binary64 product is within an ulp of r/1000: search only next to low·1000, high·1000
+    lo = next((r for r in range(max(0, math.floor(low * 1000) - 2), 16384) if fits(r)), None)
+    hi = next((r for r in range(min(16383, math.ceil(high * 1000) + 2), -1, -1) if fits(r)),
+              None)
+    return (lo, hi) if lo is not None and hi is not None else (0, 0)
 
 
 def _gain_raw_rounding_up(cfg: AgentConfig) -> int:
