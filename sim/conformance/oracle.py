@@ -6,9 +6,12 @@ from __future__ import annotations
 import copy
 import logging
 import math
+from collections import Counter, deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
+from enum import Enum
+from types import BuiltinFunctionType, FunctionType
 from typing import Any, cast
 
 import can
@@ -148,8 +151,85 @@ class _Oracle:
 
     def clone(self) -> _Oracle:
         twin = copy.copy(self)
-        twin.rt = copy.deepcopy(self.rt, dict(self._shared))
+        twin.rt = _twin(self.rt, dict(self._shared))
         return twin
+
+
+_ATOMS = {int, float, bool, str, bytes, type(None), complex}
+"""Types a deep copy returns as they are (frozen values; enum members and functions too,
+by ``_kind``)."""
+
+
+def _kind(t: type) -> str:
+    """How ``_twin`` copies an instance of ``t``: "atom", "map" (dict, Counter), "seq"
+    (list, deque, set), "tuple", "frozen" (a frozen dataclass), "obj" (a plain class of
+    ours: its __dict__ and __slots__), or "deep" (anything else: copy.deepcopy)."""
+    if t in _ATOMS or issubclass(t, (Enum, type)) or t in (FunctionType, BuiltinFunctionType):
+        return "atom"
+    if t in (dict, Counter):
+        return "map"
+    if t in (list, deque, set):
+        return "seq"
+    if t is tuple:
+        return "tuple"
+    params = getattr(t, "__dataclass_params__", None)
+    if params is not None and params.frozen:
+        return "frozen"
+    custom = ("__deepcopy__", "__reduce__", "__reduce_ex__", "__getstate__", "__copy__")
+    if t.__module__.split(".")[0] in ("firmware_py", "sim") and not any(
+            name in vars(c) for c in t.__mro__[:-1] for name in custom):
+        return "obj"
+    return "deep"
+
+
+_KINDS: dict[type, str] = {}
+
+
+def _twin(x: Any, memo: dict[int, Any]) -> Any:
+    """``copy.deepcopy(x, memo)`` for what an agent runtime holds, several times faster
+    (the clones are most of a check's time): flat containers of values are copied whole,
+    our own classes field by field, anything else by copy.deepcopy. ``memo`` maps id →
+    copy, pre-seeded with what the clones share."""
+    t = type(x)
+    kind = _KINDS.get(t) or _KINDS.setdefault(t, _kind(t))
+    if kind == "atom":
+        return x
+    done = memo.get(id(x), memo)
+    if done is not memo:
+        return done
+    if kind == "deep":
+        return copy.deepcopy(x, memo)
+    if kind == "tuple":
+        out: Any = tuple(_twin(v, memo) for v in x)
+    elif kind == "frozen":  # a frozen dataclass of values (ControllerState) is a value
+        if all(_KINDS.get(type(getattr(x, f.name))) == "atom" for f in fields(x)):
+            return x
+        return copy.deepcopy(x, memo)
+    elif kind == "map":
+        out = x.copy()
+        for k, v in x.items():
+            if _KINDS.get(type(v)) != "atom":
+                out[k] = _twin(v, memo)
+    elif kind == "seq":
+        out = x.copy()
+        if not all(_KINDS.get(type(v)) == "atom" for v in x):
+            out = t(_twin(v, memo) for v in x) if t is not deque else deque(
+                (_twin(v, memo) for v in x), maxlen=x.maxlen)
+    else:
+        out = object.__new__(t)
+        memo[id(x)] = out
+        if hasattr(x, "__dict__"):
+            attrs = x.__dict__.copy()
+            for k, v in attrs.items():
+                if _KINDS.get(type(v)) != "atom":
+                    attrs[k] = _twin(v, memo)
+            out.__dict__.update(attrs)
+        for c in t.__mro__[:-1]:
+            for slot in vars(c).get("__slots__", ()):
+                if slot not in ("__dict__", "__weakref__") and hasattr(x, slot):
+                    object.__setattr__(out, slot, _twin(getattr(x, slot), memo))
+    memo[id(x)] = out
+    return out
 
 
 def _signals(codec: FrameCodec, msg: can.Message) -> dict[str, int]:
