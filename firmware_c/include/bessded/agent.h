@@ -116,9 +116,11 @@ typedef void (*bd_event_fn)(void *ctx, int event, uint32_t frame_id, uint32_t de
 #define BD_RX_HAS_FV 0x02u        /* the last accepted freshness value is known */
 #define BD_RX_LOST 0x04u          /* its sender timed out: LOST_WINDOWS windows tried */
 #define BD_RX_JOIN 0x08u          /* joining: fv is the newest sync's FV (AUTH-26) */
+#define BD_RX_BACK 0x10u          /* back is set (AUTH-27) */
 typedef struct {
     int64_t untrusted_until;
     uint64_t fv;                  /* the last accepted freshness value */
+    uint64_t back;                /* fv before the latest boot advance (AUTH-27) */
     uint16_t id;                  /* the input's frame ID */
     uint16_t sync_id;             /* its <name>_Sync */
     uint16_t streak;              /* consecutive E2E failures (RX-12) */
