@@ -245,9 +245,9 @@ static void old_sync(bd_agent *a, uint64_t last, uint64_t v, uint32_t id, int64_
  * so the advance was forged. Taken (1); else 0, nothing done. */
 static int revert(bd_agent *a, bd_rx_slot *s, uint64_t v, uint32_t boot, uint32_t id)
 {
-    if ((s->flags & BD_RX_BACK) == 0u || v == 0u || v - 1u <= s->back
-        || boot >= fv_boot(s->fv + 1u)
-        || boot < fv_boot(s->back + 1u)) {
+    uint64_t back = fv_join(s->back_boot, s->back_count);
+    if ((s->flags & BD_RX_BACK) == 0u || v == 0u || v - 1u <= back
+        || boot >= fv_boot(s->fv + 1u) || boot < fv_boot(back + 1u)) {
         return 0;
     }
     s->flags &= (uint8_t)~(BD_RX_BACK | BD_RX_LOST);
@@ -318,7 +318,8 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
             return;
         }
         if (m.boot > expected) {
-            s->back = s->fv;   /* AUTH-27: where a forged advance is undone to */
+            s->back_boot = (uint16_t)fv_boot(s->fv);   /* AUTH-27: where a forged */
+            s->back_count = (uint32_t)(s->fv & FV_COUNT_MASK);   /* advance is undone to */
             s->flags |= BD_RX_BACK;
         }
     }

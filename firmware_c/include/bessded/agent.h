@@ -120,13 +120,14 @@ typedef void (*bd_event_fn)(void *ctx, int event, uint32_t frame_id, uint32_t de
 typedef struct {
     int64_t untrusted_until;
     uint64_t fv;                  /* the last accepted freshness value */
-    uint64_t back;                /* fv before the latest boot advance (AUTH-27) */
     uint16_t id;                  /* the input's frame ID */
     uint16_t sync_id;             /* its <name>_Sync */
     uint16_t streak;              /* consecutive E2E failures (RX-12) */
     uint16_t seen;                /* bit k: the frame of FV fv - k was accepted (AUTH-25) */
     uint8_t key_index;            /* its sender's verification key, in bd_agent.key */
     uint8_t flags;                /* BD_RX_* */
+    uint16_t back_boot;           /* fv before the latest boot advance (AUTH-27), split: */
+    uint32_t back_count;          /* it fits the struct's padding, no RAM added */
 } bd_rx_slot;
 
 #define BD_NB_HAS_LAM 0x01u
