@@ -63,6 +63,12 @@ every start does, not an anomaly), then takes
 the newest one with the sender marked lost: every live peer's answer to its hello has
 superseded a replayed sync by then.
 
+Bounded boot advance (AUTH-27). A verified sync more than ``SYNC_BOOT_JUMP_MAX`` (8) boots
+ahead of the sender's expected boot is refused (``sync_jump`` and ``auth``): a key holder
+could otherwise lock a sender out for good with one sync of boot 65535. One within the
+bound is taken, the value before it kept; a later sync of the sender in the boot it had
+left (newer than anything taken of it) undoes the advance (``sync_jump``).
+
 Late is not forged. A frame that fails the window is tried once more, with the most
 recent freshness value at or below the last accepted one that has its low bits
 (``STALE_WINDOWS`` = 1 window: the 16 values up to the last accepted, one CMAC, spent
