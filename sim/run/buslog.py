@@ -305,7 +305,7 @@ class Monitor:
         self.fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
         self.cycle_of = cycle_of or (lambda name: _cycle_s(name, MC_CYCLE_S))
         self.t_last: dict[int, float] = {}   # per secured ID: when its state last moved
-        self.boots: dict[str, int] = {}  # label -> the highest boot of its verified syncs
+        self.boots: dict[str, int] = {}  # label -> the boot of its latest verified sync
         self.back: dict[int, int] = {}  # per secured ID: its value before its last boot advance
         # syncs that undid a boot advance: their sender carried on in the boot it had left
         self.undone: Counter[str] = Counter()
