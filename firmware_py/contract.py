@@ -245,6 +245,7 @@ AGENT_COUNTERS: tuple[str, ...] = (
     "not_a_frame", "invalid_frame", "rx_error",  # the bus's inputs (LOOP-6)
     "stale",
     "joining",  # AUTH-26: frames of the join window
+    "sync_jump",  # AUTH-27: syncs refused for a boot jump (also counted under auth)
 )
 
 

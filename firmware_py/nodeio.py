@@ -63,6 +63,12 @@ every start does, not an anomaly), then takes
 the newest one with the sender marked lost: every live peer's answer to its hello has
 superseded a replayed sync by then.
 
+Bounded boot advance (AUTH-27). A verified sync more than ``SYNC_BOOT_JUMP_MAX`` (8) boots
+ahead of the sender's expected boot is refused (``sync_jump`` and ``auth``): a key holder
+could otherwise lock a sender out for good with one sync of boot 65535. One within the
+bound is taken, the value before it kept; a later sync of the sender in the boot it had
+left (newer than anything taken of it) undoes the advance (``sync_jump``).
+
 Late is not forged. A frame that fails the window is tried once more, with the most
 recent freshness value at or below the last accepted one that has its low bits
 (``STALE_WINDOWS`` = 1 window: the 16 values up to the last accepted, one CMAC, spent
@@ -95,6 +101,7 @@ from .frames import (
 from .secoc import (
     INSECURE_BOOT,
     INSECURE_MASTER,
+    SYNC_BOOT_JUMP_MAX,
     FreshnessVerifier,
     Keyring,
     derive_node_key,
@@ -191,6 +198,8 @@ class NodeIO:
         self._synced_by = {contract.SYNC_OF[fid]: fid for fid in self._verify_key}
         self._fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
         self._lost: set[int] = set()  # secured IDs whose sender timed out
+        # AUTH-27: per secured input, the last value before its latest boot advance
+        self._back: dict[int, int] = {}
         self._peer_boot: dict[int, int] = {}  # sync ID of a frame not used -> its boot
         if keys.insecure:  # every insecure sender starts at boot 1, count 0: no sync needed
             self._joining = None  # and no replay protection to join for
@@ -425,17 +434,62 @@ class NodeIO:
                 self._lost.discard(fid)  # in step with the sender: the normal window
                 return  # nothing new: the sender sent no frame since its last sync
             if not self.keys.insecure:  # a genuine sync never goes back
-                self._old_sync(name, sync_id, last, fv - 1, t)
+                if not self._revert(fid, name, fv, last):
+                    self._old_sync(name, sync_id, last, fv - 1, t)
                 return
             # --insecure: a restarted sender comes back at boot 1, count 0 (nothing is
             # persisted), so its values go back; insecure mode has no replay protection
             self._fv.forget(fid)
             restarted = True
+        elif last is not None and not self.keys.insecure:
+            expected = contract.FRESHNESS.split(last + 1)[0]
+            if self._boot_jump(name, sync_id, expected, boot, t):
+                return
+            if boot > expected:
+                self._back[fid] = last  # AUTH-27: where a forged advance is undone to
         self._fv.accept(fid, fv - 1, frame=False)  # its next frame uses fv
         self._lost.discard(fid)
         self.counters["resyncs"] += 1
         if restarted and hello:
             self._hello_due = True  # a peer (re)started: tell it our freshness now
+
+    def _revert(self, fid: int, name: str, fv: int, last: int) -> bool:
+        """AUTH-27: a verified sync below the last value, of a boot below the current one
+        but not below the one its sender left at its latest boot advance, and newer than
+        anything taken of that boot: the sender is alive where the advance said it was
+        not, so the advance was forged (a restarted sender never sends its old boot
+        again). The sync is taken: the sender recovers at its next sync, or its restart."""
+        back = self._back.get(fid)
+        boot = contract.FRESHNESS.split(fv)[0]
+        if (back is None or fv - 1 <= back or boot >= contract.FRESHNESS.split(last + 1)[0]
+                or boot < contract.FRESHNESS.split(back + 1)[0]):
+            return False
+        del self._back[fid]
+        self._fv.forget(fid)
+        self._fv.accept(fid, fv - 1, frame=False)
+        self._lost.discard(fid)
+        self.counters["resyncs"] += 1
+        self.counters["sync_jump"] += 1
+        self._hello_due = True
+        log.warning("%s: %s of boot %d undoes a boot advance to %d it took earlier: that "
+                    "one was forged (AUTH-27)", self.who, name, boot,
+                    contract.FRESHNESS.split(last + 1)[0])
+        return True
+
+    def _boot_jump(self, name: str, sync_id: int, expected: int, boot: int,
+                   t: float) -> bool:
+        """AUTH-27: a verified sync whose boot lies more than SYNC_BOOT_JUMP_MAX ahead of
+        the ``expected`` one is refused (``sync_jump`` and ``auth``): a genuine sender does
+        not jump that far, and taking it would lock the sender out until its own boot
+        counter passed the forged one."""
+        if boot - expected <= SYNC_BOOT_JUMP_MAX:
+            return False
+        self.counters["sync_jump"] += 1
+        sender = contract.sender_of(name.removesuffix("_Sync"))
+        top = expected + SYNC_BOOT_JUMP_MAX
+        self.fail(sync_id, "auth", f"{name}: expected boot {expected}..{top} of {sender}, but "
+                  f"got boot {boot} (a forged sync: a key holder's, AUTH-27)", t)
+        return True
 
     def _peer_sync(self, msg: can.Message, sync_id: int, t: float) -> bool:
         """A sync of a frame this node does not use, from a fleet node whose key it holds

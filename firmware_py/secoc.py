@@ -62,6 +62,13 @@ MAC_BITS = 24                       # profile 1: a 24-bit truncated CMAC on the 
 TX_FRESHNESS_BITS = 4               # the low 4 bits of FV on the wire (the DBC's Counter)
 DATA_ID_BITS = 16                   # SecOCDataId is a uint16
 SEEN_BITS = 32                      # accepted frames remembered below the last (AUTH-25)
+# AUTH-27: a sync may move its sender's boot counter at most this far ahead of the boot a
+# receiver expects. A genuine sender moves one boot per start (and per 2^24 frames on an
+# ID), more only when starts fail before their first sync is heard (the boot is persisted
+# first, AUTH-3): 8 leaves 7 failed starts in a row (systemd gives up after 5 by default).
+# A key holder's forged sync can thus move a sender's freshness at most 8 of its 65,535
+# boots, not to its end (which locked the sender out for good: issue 25).
+SYNC_BOOT_JUMP_MAX = 8
 FV_WIRE_BYTES = 8                   # FV in the MAC input: always 8 bytes, big-endian
 NODE_KEY_LABEL = b"bess-ded/secoc/node-key/v1"
 FLEET_ID_LABEL = b"bess-ded/secoc/fleet-id/v1"

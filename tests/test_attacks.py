@@ -532,7 +532,7 @@ def test_forged_diag_pages_never_enter_the_report(
     for agent in want:
         if agent != "agent_2":
             assert got[agent] == want[agent], agent
-    # agent 2 heard the frames on its own ID: impersonation, counted as foreign (on pages
+    # agent 2 heard the frames on its own ID: impersonation, counted as foreign too (on pages
     # sent at different times: the later one has counted more); the rest as in the
     # honest run (no forged value reached the report)
     impersonation = got["agent_2"]["RejectedImpersonation"]
@@ -545,7 +545,7 @@ def test_forged_diag_pages_never_enter_the_report(
     # no false alarm reached the verdict: only the forgery itself, and agent 2's truthful
     # report of frames on its ID it did not send
     assert {(a["kind"], a["node"]) for a in m["anomalies"]} == {
-        ("auth_failed", "bus"), ("foreign_traffic", "agent_2")}, m["anomalies"]
+        ("auth_failed", "bus"), ("impersonation", "agent_2")}, m["anomalies"]
 
 
 def test_forged_balance_frames_never_enter_the_ledger(
@@ -565,4 +565,4 @@ def test_forged_balance_frames_never_enter_the_ledger(
     assert _final(tr)[0] < 1e-3 and m["verdict"]["exit_code"] == 3
     # the router heard frames on its own ID that it did not send, and says so
     assert {(a["kind"], a["node"]) for a in m["anomalies"]} == {
-        ("auth_failed", "bus"), ("foreign_traffic", "router")}, m["anomalies"]
+        ("auth_failed", "bus"), ("impersonation", "router")}, m["anomalies"]

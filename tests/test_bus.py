@@ -37,9 +37,9 @@ pytestmark = pytest.mark.slow
 TRANSIENT_TOL = 0.03
 FINAL_TOL = 1e-3
 # anomalies that blame a node or an outsider: a starved host must never produce them
-BLAME = {"auth_failed", "untrusted_source", "foreign_traffic", "setpoint_inconsistent",
-         "lambda_outlier", "malformed_frames", "rejected_frames", "key_mismatch",
-         "wrong_keys", "node_died"}
+BLAME = {"auth_failed", "untrusted_source", "foreign_traffic", "impersonation", "sync_jump",
+         "setpoint_inconsistent", "lambda_outlier", "malformed_frames", "rejected_frames",
+         "key_mismatch", "wrong_keys", "node_died"}
 
 
 def lockstep_as_started(sc: Scenario, tr: Trajectory) -> Trajectory:

@@ -360,6 +360,43 @@ def test_a_sync_below_the_boot_floor_is_refused_alike_in_c_and_python() -> None:
     assert py.price == 1 << 23 and py.state == c.state  # the genuine price only
 
 
+def test_a_forged_boot_jump_is_refused_or_undone_alike_in_c_and_python() -> None:
+    """AUTH-27, bit for bit (issue 25): with the router's key (which agent 3's key file
+    holds), a price sync of boot 5 + 9 is refused (`sync_jump`, `auth`) and the genuine
+    price goes on; one of boot 5 + 8 (within the bound) is taken, the genuine price
+    then fails (`auth`), and the router's next genuine sync of boot 5 undoes it; the
+    router restarted (boot 6) is heard."""
+    peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
+
+    def ring() -> Keyring:
+        return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
+                       peers=peers)
+    cfg = _cfg()
+    py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
+    keys = {n: derive_node_key(MASTER, n) for n in peers}
+    router = FleetSender(FrameCodec(), keys=keys, boot=5)
+    far = FleetSender(FrameCodec(), keys=keys, boot=5 + 9)
+    near = FleetSender(FrameCodec(), keys=keys, boot=5 + 8)
+    price = {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0}
+    script = [router.sync("ER_Price"), router.frame("ER_Price", price),
+              far.sync("ER_Price"), router.frame("ER_Price", price),  # refused; price goes on
+              near.sync("ER_Price"), router.frame("ER_Price", price),  # taken; price fails
+              router.sync("ER_Price"), router.frame("ER_Price", price)]  # undone; price
+    router.restart()
+    script += [router.sync("ER_Price"), router.frame("ER_Price", price)]
+    assert [bytes(m.data) for m in py.tick(0.0)] == [bytes(m.data) for m in c.tick(0.0)]
+    for k, msg in enumerate(script):  # after the join window (AUTH-26) its hello opened
+        t = (JOIN_TICKS + k) * TS
+        py.on_frame(msg, t)
+        c.on_frame(msg, t)
+        assert [bytes(m.data) for m in py.tick(t)] == [bytes(m.data) for m in c.tick(t)]
+        assert py.counters == c.counters, (k, py.counters, c.counters)
+    assert py.counters["sync_jump"] == 2 and py.counters["auth"] == 2
+    assert py.counters["resyncs"] == 4  # the first, the near jump, the undo, the restart
+    assert py.io.last_freshness(FrameCodec().frame_id("ER_Price")) == \
+        (6 << 24)  # the restarted router's first price frame
+
+
 # --------------------------------------------------------------------------- conformance
 
 

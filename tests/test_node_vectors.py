@@ -271,6 +271,10 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
         mp.setattr(AgentRuntime, "_diag_frame", _no_diag_mac(AgentRuntime._diag_frame))
     elif kind == "one_freshness_window_after_a_timeout":
         mp.setattr(nodeio, "LOST_WINDOWS", 1)
+    elif kind == "no_boot_bound":  # AUTH-27's bound lifted
+        mp.setattr(nodeio, "SYNC_BOOT_JUMP_MAX", 1 << 16)
+    elif kind == "no_boot_undo":  # AUTH-27's undo left out
+        mp.setattr(nodeio.NodeIO, "_revert", lambda *_a: False)
     elif kind == "no_lambda_plausibility":
         mp.setattr(AgentRuntime, "_on_mc", _no_plausibility(AgentRuntime._on_mc))
     elif kind == "no_dwell":
@@ -291,10 +295,12 @@ MUTATIONS: dict[str, list[str]] = {
     "band_rearms_at_reset": [
         "auth_forgery_replay", "boot_floors", "commands", "init_wait_status",
         "malformed_foreign", "neighbour_timeout", "peer_restart", "price_timeout_safe",
-        "start_steady", "status_fault_timeout"],
+        "start_steady", "status_fault_timeout", "sync_boot_jump"],
     # every vector: each sends Diag pages
     "diag_without_mac": [p.stem for p in VECTORS],
     "one_freshness_window_after_a_timeout": ["price_timeout_safe"],
+    "no_boot_bound": ["sync_boot_jump"],
+    "no_boot_undo": ["sync_boot_jump"],
     "no_lambda_plausibility": ["neighbour_timeout"],
     "no_dwell": ["insecure_scaled"],
     "state_entry_restarts_dwell_and_band": ["insecure_scaled"],

@@ -887,10 +887,40 @@ def sc_boot_floors() -> Scenario:
     return s
 
 
+def sc_boot_jump() -> Scenario:
+    s = Scenario(
+        "sync_boot_jump",
+        "Bounded boot advance (AUTH-27), syncs signed with the router's key as a key holder "
+        "forges them: a price sync 9 boots ahead of the router's is refused (sync_jump and "
+        "auth on the sync ID, nothing set): the genuine price goes on; one 8 boots ahead is "
+        "taken, so the genuine prices after it fail (auth); the router's next sync, of the "
+        "boot it is still in, undoes the advance (sync_jump, resync, hello) and its prices "
+        "are taken again; the router then restarts (boot + 1) and is heard.",
+        ["AUTH-16", "AUTH-27", "DIAG-1"])
+    nb = start(s)
+    s.run(40, price=RHO, nbrs=nb)
+    boot = s.router.boot
+    s.rx(s.router.sync("ER_Price", count=0, boot=boot + 9),
+         note="a price sync 9 boots ahead: sync_jump and auth, nothing set")
+    s.run(20, price=RHO, nbrs=nb)
+    s.rx(s.router.sync("ER_Price", count=0, boot=boot + 8),
+         note="8 boots ahead: taken (the value before it kept)")
+    s.run(12, price=RHO, nbrs=nb)
+    s.sync("router", "ER_Price", note="the router's own sync, of the boot it is in: undoes "
+           "the advance (sync_jump, resync, hello)")
+    s.run(30, price=RHO, nbrs=nb)
+    s.router.restart()
+    s.run(4, price=None, nbrs=nb)
+    s.sync("router", "ER_Price", note="the router restarted (boot + 1): its price sync")
+    s.sync("router", "ER_Command")
+    s.run(30, price=RHO, nbrs=nb)
+    return s
+
+
 SCENARIOS: tuple[Callable[[], Scenario], ...] = (
     sc_start_steady, sc_init_wait, sc_neighbour_timeout, sc_price_timeout, sc_status,
     sc_commands, sc_auth, sc_peer_restart, sc_malformed, sc_price_steps, sc_tx_wrap,
-    sc_insecure, sc_boot_floors)
+    sc_insecure, sc_boot_floors, sc_boot_jump)
 
 
 def render_all() -> dict[str, str]:

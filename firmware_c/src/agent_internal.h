@@ -16,6 +16,7 @@
 
 #define FV_WINDOW (1u << BD_FV_TX_BITS)
 #define FV_MAX ((UINT64_C(1) << (BD_FV_BOOT_BITS + BD_FV_COUNT_BITS)) - 1u)
+#define FV_COUNT_MASK ((UINT64_C(1) << BD_FV_COUNT_BITS) - 1u)
 
 /* AUTH-7: the one join and split of a freshness value, Boot ‖ Count (the DBC's sizes);
  * inline, as the one-file runtime had them. */

@@ -13,6 +13,7 @@
 
 #define LOST_WINDOWS 8u     /* windows tried after a sender timed out (AUTH-10) */
 #define STALE_WINDOWS 1u    /* past windows tried before a frame is forged (AUTH-25) */
+#define SYNC_BOOT_JUMP_MAX 8u  /* boots a sync may move its sender ahead (AUTH-27) */
 
 /* ------------------------------------------------------------------ the contract's IDs */
 
@@ -238,6 +239,26 @@ static void old_sync(bd_agent *a, uint64_t last, uint64_t v, uint32_t id, int64_
     }
 }
 
+/* AUTH-27: a verified sync of value v below the last one, of a boot below the current
+ * one but not below the one its sender left at its latest boot advance, and newer than
+ * anything taken of that boot: the sender is alive where the advance said it was not,
+ * so the advance was forged. Taken (1); else 0, nothing done. */
+static int revert(bd_agent *a, bd_rx_slot *s, uint64_t v, uint32_t boot, uint32_t id)
+{
+    uint64_t back = fv_join(s->back_boot, s->back_count);
+    if ((s->flags & BD_RX_BACK) == 0u || v == 0u || v - 1u <= back
+        || boot >= fv_boot(s->fv + 1u) || boot < fv_boot(back + 1u)) {
+        return 0;
+    }
+    s->flags &= (uint8_t)~(BD_RX_BACK | BD_RX_LOST);
+    s->seen = seen_after(s, 0, v - 1u, 0u);
+    s->fv = v - 1u;
+    bd_count_add(a, BD_C_RESYNCS, 1u, id);
+    bd_count_add(a, BD_C_SYNC_JUMP, 1u, id);
+    a->hello_due = 1;
+    return 1;
+}
+
 /* AUTH-13..17: a sync of one of the agent's inputs. */
 static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
 {
@@ -280,11 +301,27 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
             return;
         }
         if (!a->insecure) {   /* a genuine sync never goes back */
-            old_sync(a, s->fv, fv - 1u, f->id, t);
+            if (!revert(a, s, fv, m.boot, f->id)) {
+                old_sync(a, s->fv, fv - 1u, f->id, t);
+            }
             return;
         }
         s->flags &= (uint8_t)~BD_RX_HAS_FV;   /* --insecure: a restarted sender is at boot 1 */
         restarted = 1;
+    } else if (has_fv && !a->insecure) {
+        uint32_t expected = fv_boot(s->fv + 1u);
+        if (m.boot > expected + SYNC_BOOT_JUMP_MAX) {
+            /* AUTH-27: a genuine sender never jumps that far; a forged sync must not lock
+             * it out for good */
+            bd_count_add(a, BD_C_SYNC_JUMP, 1u, f->id);
+            fail(a, NULL, f->id, BD_C_AUTH, t);
+            return;
+        }
+        if (m.boot > expected) {
+            s->back_boot = (uint16_t)fv_boot(s->fv);   /* AUTH-27: where a forged */
+            s->back_count = (uint32_t)(s->fv & FV_COUNT_MASK);   /* advance is undone to */
+            s->flags |= BD_RX_BACK;
+        }
     }
     if (fv - 1u <= FV_MAX) {
         s->seen = seen_after(s, (s->flags & BD_RX_HAS_FV) != 0u, fv - 1u, 0u);

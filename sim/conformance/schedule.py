@@ -125,6 +125,8 @@ NOT_ON_BUS: dict[str, str] = {
               "tx_count_wrap checks it through the binding",
     "AUTH-20": "an --insecure run (no key file) exercises it: the schedule is the same, "
                "but the default run has a key file",
+    "AUTH-27": "a boot jump is not yet a step: tests/test_c_agent.py plays it against the "
+               "C agent and firmware_py bit for bit, tests/test_selfmon.py against a fleet",
     "CFG-1": "the DUT reads the configuration the tester writes; a misread shows only "
              "where it changes frames (price_s in the timeouts step, the bounds of the "
              "limits step), not at each key's own bounds: unit tests (test_config.py)",

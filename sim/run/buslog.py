@@ -30,7 +30,7 @@ from firmware_py.contract import COUNTER_MODULO, MC_CYCLE_S, TIMEOUT_CYCLES, Sta
 from firmware_py.errors import ConfigError, FrameError
 from firmware_py.frames import COUNTER_STEP_MAX, DecodedFrame, FrameCodec
 from firmware_py.nodeio import LOST_WINDOWS
-from firmware_py.secoc import FreshnessVerifier, frame_verifies
+from firmware_py.secoc import SYNC_BOOT_JUMP_MAX, FreshnessVerifier, frame_verifies
 from sim.model.scenario import MAX_AGENT_SAMPLES, Scenario
 from sim.model.trajectory import Trajectory
 
@@ -101,6 +101,11 @@ class LogContents:
     # sender's key file rolled back (AUTH-21); label -> (lowest such boot, its floor)
     stale_boot: dict[str, tuple[int, int]] = field(default_factory=dict)
     stale_boot_syncs: Counter[str] = field(default_factory=Counter)  # those syncs, by name
+    # syncs whose MAC verifies but whose boot jumps more than SYNC_BOOT_JUMP_MAX above the
+    # sender's (AUTH-27: a key holder's forgery), by name; refused like the nodes refuse them
+    sync_jump: Counter[str] = field(default_factory=Counter)
+    # genuine syncs that undid such a forged advance within the bound (AUTH-27), by name
+    sync_undone: Counter[str] = field(default_factory=Counter)
     syncs: int = 0
     # frames the capture received before an earlier-stamped one (read_log sorts them)
     reordered: int = 0
@@ -300,25 +305,50 @@ class Monitor:
         self.fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
         self.cycle_of = cycle_of or (lambda name: _cycle_s(name, MC_CYCLE_S))
         self.t_last: dict[int, float] = {}   # per secured ID: when its state last moved
-        self.boots: dict[str, int] = {}  # label -> the highest boot of its verified syncs
+        self.boots: dict[str, int] = {}  # label -> the boot of its latest verified sync
+        self.back: dict[int, int] = {}  # per secured ID: its value before its last boot advance
+        # syncs that undid a boot advance: their sender carried on in the boot it had left
+        self.undone: Counter[str] = Counter()
 
     def _key(self, name: str) -> bytes | None:
         return self.keys.get(contract.sender_of(name.removesuffix("_Sync")))
 
     def sync(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> None:
         """Take a sync frame: its freshness becomes the sender's (raises ``StaleBoot``,
-        ``Stale`` or ``Forged`` when it does not verify as the newest)."""
+        ``SyncJump``, ``Stale`` or ``Forged`` when it does not verify as the newest). A
+        sync that undoes a forged boot advance (AUTH-27) is taken and counted in
+        ``undone``."""
         key = self._key(f.name)
         fv = contract.FRESHNESS.join(f.raw["Boot"], f.raw["Count"])
         fid = contract.SYNCED_BY[f.frame_id]
         label = contract.sender_of(f.name.removesuffix("_Sync"))
         floor = max(self.boot_floors.get(label, 0), self.boots.get(label, 0))
         verified = key is not None and frame_verifies(key, f.frame_id, data, fv)
-        if verified and f.raw["Boot"] < floor:
-            raise StaleBoot(label, f.raw["Boot"], floor)
+        boot = f.raw["Boot"]
+        last, back = self.fv.last(fid), self.back.get(fid)
+        split = contract.FRESHNESS.split
+        if (verified and last is not None and back is not None and fv - 1 > back
+                and split(back + 1)[0] <= boot < split(last + 1)[0]):
+            # AUTH-27, as the nodes do: the sender is alive in the boot a forged sync
+            # advanced it from; back to its genuine freshness
+            del self.back[fid]
+            self.fv.forget(fid)
+            self.fv.accept(fid, fv - 1, frame=False)
+            self.boots[label] = boot
+            self.t_last[fid] = t
+            self.undone[f.name] += 1
+            return
+        # below the sender's floor, unless this ID is still in that boot (another of the
+        # sender's IDs taken to a later boot by a forged sync must not condemn it)
+        if verified and boot < floor and (last is None or boot < split(last + 1)[0]):
+            raise StaleBoot(label, boot, floor)
+        known = self.boots.get(label, self.boot_floors.get(label))
+        if verified and known is not None and boot > known + SYNC_BOOT_JUMP_MAX:
+            raise SyncJump  # a key holder's forged boot, refused as the nodes do (AUTH-27)
         if verified:
-            self.boots[label] = f.raw["Boot"]
-            last = self.fv.last(fid)
+            self.boots[label] = boot
+            if last is not None and boot > split(last + 1)[0]:
+                self.back[fid] = last
             if last is None or fv - 1 > last:
                 self.fv.accept(fid, fv - 1, frame=False)
             if last is None or fv - 1 >= last:
@@ -353,6 +383,11 @@ class Monitor:
         if self.fv.search_late(f.frame_id, f.counter, self.STALE_WINDOWS, verifies):
             raise Stale
         raise Forged
+
+
+class SyncJump(Exception):
+    """``Monitor``: a verified sync whose boot lies more than SYNC_BOOT_JUMP_MAX above the
+    highest its sender used (or its boot at the run's start): refused (AUTH-27)."""
 
 
 class Forged(Exception):
@@ -440,6 +475,9 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
             except Forged:
                 out.forged[f.name] += 1
                 continue
+            except SyncJump:
+                out.sync_jump[f.name] += 1
+                continue
             except StaleBoot as e:
                 low = out.stale_boot.get(e.label, (e.boot, e.floor))
                 out.stale_boot[e.label] = (min(low[0], e.boot), max(low[1], e.floor))
@@ -478,6 +516,8 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
             for sig in f.raw:
                 if sig not in ("Mac", "CRC", "Counter", "Page"):
                     out.series[("balance", sig)].append((t, f.phys(sig)))
+    if monitor is not None:
+        out.sync_undone.update(monitor.undone)
     _message_silences(out, cycles, NODE_SILENCE_MIN_TS * (ts or MC_CYCLE_S))
     return out
 

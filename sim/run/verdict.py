@@ -26,6 +26,7 @@ import numpy as np
 
 from firmware_py.contract import MC_CYCLE_S, State
 from firmware_py.nodeio import JOIN_FRACTION, SYNC_S
+from firmware_py.secoc import SYNC_BOOT_JUMP_MAX
 from sim.model.scenario import Scenario
 from sim.model.trajectory import Trajectory
 from sim.run.buslog import LogContents
@@ -54,20 +55,28 @@ HOST_OVERLOAD_SHARE = 0.75  # this share of the nodes (≥ 2) all late: the host
 _LATE_KINDS = ("deadline_misses", "price_timeout", "status_timeout", "setpoint_timeout")
 # the anomaly kinds most likely to explain a run that did not converge, most likely first
 _CAUSES = ("wrong_keys", "key_mismatch", "node_died", "node_not_started", "no_price",
-           "setpoint_inconsistent", "lambda_outlier", "insecure_keys", "auth_failed",
-           "untrusted_source", "foreign_traffic", "host_overloaded", "agent_safe_at_end",
+           "setpoint_inconsistent", "lambda_outlier", "insecure_keys", "impersonation",
+           "auth_failed", "sync_jump", "untrusted_source", "foreign_traffic",
+           "host_overloaded", "agent_safe_at_end",
            "agent_init_at_end", "agent_isolated_at_end", "agent_silent", "node_silent",
            "plant_fault", "price_timeout", "status_timeout", "setpoint_timeout",
            "deadline_misses", "bus_silence", "agent_safe", "power_limit")
 INIT, RUNNING, ISOLATED, SAFE = State.INIT, State.RUNNING, State.ISOLATED, State.SAFE
 
+# a node heard frames on its own IDs that it did not send (its echo is told apart by
+# NodeIO, firmware-spec RX-3): someone speaks as it, with or without its key
+_IMPERSONATION = ("frames on its own IDs that it did not send: another sender speaks as it "
+                  "(forged, or a key holder's)")
+# foreign traffic other than impersonation (which ForeignFrames/foreign also count)
+_FOREIGN = ("frames that cannot come from its own fleet (IDs outside the run, interleaved "
+            "counter sequences)")
 # AGENT_i_Diag counters that a healthy run keeps at 0: (signal, anomaly kind, what)
 _AGENT_FAULT_COUNTERS = (
     ("PriceTimeouts", "price_timeout", "price timeouts (no valid ER_Price for the timeout)"),
     ("StatusTimeouts", "status_timeout", "plant-status timeouts"),
     ("PlantFaults", "plant_fault", "plant faults reported by PLANT_i_Status"),
-    ("ForeignFrames", "foreign_traffic", "frames that cannot come from its own fleet (another "
-     "sender on its IDs, IDs outside the run, interleaved counter sequences)"),
+    ("RejectedImpersonation", "impersonation", _IMPERSONATION),
+    ("ForeignFrames", "foreign_traffic", _FOREIGN),
     ("RejectedCrc", "rejected_frames", "frames with a bad CRC"),
     ("RejectedDlc", "rejected_frames", "frames with a bad length"),
     ("RejectedRange", "rejected_frames", "frames with a value out of range"),
@@ -82,12 +91,14 @@ _AGENT_FAULT_COUNTERS = (
     ("RejectedAuth", "auth_failed", "secured frames or syncs whose MAC does not verify "
      "(forged, replayed or corrupted)"),
 )
+_SYNC_JUMP = ("syncs with a valid MAC that would move their sender's boot counter more than "
+              f"{SYNC_BOOT_JUMP_MAX} ahead (AUTH-27: a key holder's forgery), refused")
 # the plant's and router's counters (logs/*.counters.json) that a healthy run keeps at 0
 _SIM_FAULT_COUNTERS = (
     ("setpoint_timeouts", "setpoint_timeout", "setpoint timeouts"),
     ("status_timeouts", "status_timeout", "status timeouts"),
-    ("foreign", "foreign_traffic", "frames that cannot come from its own fleet (another "
-     "sender on its IDs, IDs outside the run, interleaved counter sequences)"),
+    ("impersonation", "impersonation", _IMPERSONATION),
+    ("foreign", "foreign_traffic", _FOREIGN),
     ("crc", "rejected_frames", "frames with a bad CRC"),
     ("dlc", "rejected_frames", "frames with a bad length"),
     ("range", "rejected_frames", "frames with a value out of range"),
@@ -109,6 +120,7 @@ _SIM_FAULT_COUNTERS = (
      "untrusted by consecutive E2E failures"),
     ("auth", "auth_failed", "secured frames or syncs whose MAC does not verify (forged, "
      "replayed or corrupted)"),
+    ("sync_jump", "sync_jump", _SYNC_JUMP),
 )
 
 
@@ -502,6 +514,16 @@ def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
         out.append(Anomaly("auth_failed", "bus", f"{name}: {k} frames whose MAC does not "
                            "verify with its sender's key (forged, or replayed from an earlier "
                            "window or run); the analysis left them out"))
+    for name, k in sorted(log.sync_jump.items()):
+        out.append(Anomaly("sync_jump", "bus", f"{name}: {k} syncs with a valid MAC whose boot "
+                           f"counter jumps more than {SYNC_BOOT_JUMP_MAX} above its sender's "
+                           "(AUTH-27: forged by a key holder); the nodes and the analysis "
+                           "refused them"))
+    for name, k in sorted(log.sync_undone.items()):
+        out.append(Anomaly("sync_jump", "bus", f"{name}: {k} genuine syncs of its sender's "
+                           "current boot after a sync had advanced that boot (AUTH-27: that "
+                           "advance was forged by a key holder; undone by the nodes and the "
+                           "analysis)"))
     stale = sum(log.stale.values())
     if stale > STALE_FRACTION * max(log.frames, 1):
         out.append(Anomaly("stale_frames", "bus", f"{stale} genuine secured frames of "
@@ -554,13 +576,18 @@ def _top(c: Any, k: int = 4) -> str:
 def _counters(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly]) -> None:
     for a, d in sorted(log.diag.items()):
         name = f"agent_{a}"
+        # ForeignFrames counts the impersonations too, reported on their own: the rest is
+        # its two other parts (pages sent at other times, so not ForeignFrames minus one)
+        d = {**d, "ForeignFrames": d.get("ForeignIds", 0) + d.get("InterleavedCounters", 0)}
         for sig, kind, what in _AGENT_FAULT_COUNTERS:
             if d.get(sig, 0):
                 if kind in ("untrusted_source", "implausible_frames", "auth_failed"):
                     what += _last_rejected(d)
                 out.append(Anomaly(kind, name, f"{d[sig]} {what}"))
     for node, c in sorted((facts.node_counters or {}).items()):
-        counters = c.get("counters", {})
+        counters = dict(c.get("counters", {}))
+        counters["foreign"] = max(0, counters.get("foreign", 0)
+                                  - counters.get("impersonation", 0))
         for key, kind, what in _SIM_FAULT_COUNTERS:
             if counters.get(key, 0):
                 out.append(Anomaly(kind, node, f"{counters[key]} {what}"))

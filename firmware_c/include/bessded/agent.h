@@ -116,6 +116,7 @@ typedef void (*bd_event_fn)(void *ctx, int event, uint32_t frame_id, uint32_t de
 #define BD_RX_HAS_FV 0x02u        /* the last accepted freshness value is known */
 #define BD_RX_LOST 0x04u          /* its sender timed out: LOST_WINDOWS windows tried */
 #define BD_RX_JOIN 0x08u          /* joining: fv is the newest sync's FV (AUTH-26) */
+#define BD_RX_BACK 0x10u          /* back is set (AUTH-27) */
 typedef struct {
     int64_t untrusted_until;
     uint64_t fv;                  /* the last accepted freshness value */
@@ -125,6 +126,8 @@ typedef struct {
     uint16_t seen;                /* bit k: the frame of FV fv - k was accepted (AUTH-25) */
     uint8_t key_index;            /* its sender's verification key, in bd_agent.key */
     uint8_t flags;                /* BD_RX_* */
+    uint16_t back_boot;           /* fv before the latest boot advance (AUTH-27), split: */
+    uint32_t back_count;          /* it fits the struct's padding, no RAM added */
 } bd_rx_slot;
 
 #define BD_NB_HAS_LAM 0x01u
