@@ -238,6 +238,39 @@ def test_c_core_and_vectorised_request_give_the_same_run_bit_for_bit() -> None:
     assert np.array_equal(got.lam, ref.lam)
 
 
+# --------------------------------------------------------------------------- on a bus
+
+BUS_S = 10.0
+
+
+def _bus_final_p(out: Path, n: int) -> np.ndarray:
+    last = np.genfromtxt(out / "trajectory.csv", delimiter=",", names=True)[-1]
+    return np.array([last[f"p_{i}"] for i in range(1, n + 1)])
+
+
+def test_on_the_in_process_bus_the_liar_is_tolerated_and_still_named(tmp_path: Path) -> None:
+    """The whole node stack (firmware_py's runtime, NodeIO, the MACs, the plausibility
+    rules, the verdict) on the deterministic in-process bus: agent 3 runs
+    tests/deviant_agent.py's LIE-RAMP with only its own key. With F = 1 the honest
+    batteries end within 1 kW of the honest fleet's (0.02 kW measured; 3.4 kW without
+    the trimming, growing with the ramp), and the verdict still names the liar."""
+    from deviant_agent import lying
+
+    from sim.run import busrun
+
+    sc = replace(load_scenario(RING7), duration=BUS_S)
+    honest = tmp_path / "honest"
+    busrun.run_in_process(replace(sc, resilient_f=0), honest, BUS_S, channel="wmsr-honest")
+    ref = _bus_final_p(honest, sc.n)
+    out = tmp_path / "ramp"
+    with lying("LIE-RAMP", 3):
+        m = busrun.run_in_process(sc, out, BUS_S, channel="wmsr-ramp")
+    p = _bus_final_p(out, sc.n)
+    others = [i for i in range(sc.n) if i != 2]
+    assert float(np.max(np.abs(p[others] - ref[others]))) < TOLERANCE_KW, (p, ref)
+    assert m["verdict"]["cause"].startswith("lambda_outlier [agent_3]"), m["verdict"]
+
+
 # --------------------------------------------------------------------------- the CLI
 
 
