@@ -8,6 +8,8 @@ Example (``bess-ded up`` writes one per agent into DIR/agents/)::
     pinned = false          # hears the price in ξ (b_ii = 1)
     fleet_size = 4          # optional: agents in the run; frames of agents beyond it are
                             # counted as foreign (absent: unknown, not checked)
+    resilient_f = 0         # optional: W-MSR trimming of F neighbour λ above and F below
+                            # the own λ before ξ (0, the default: off; docs/security.md)
 
     [controller]            # firmware_py.controllers.ControllerConfig
     kind = "reset"
@@ -98,6 +100,8 @@ LAMBDA_STEP_GAIN = 10.0          # lambda_step_max = 10·k·Ts (0.1 cu/kWh at k 
 GAIN_LO, GAIN_HI = 0.5, 2.0      # SET_GAINS bounds: × the configured k and h
 UNTRUSTED_AFTER = 5              # consecutive E2E failures (as opendbc's safety layer)
 UNTRUSTED_S = 1.0                # s at Ts = 10 ms, stretched with Ts
+# W-MSR's F: trimming 2F of at most N_AGENTS_MAX − 1 neighbours leaves one (WMSR-1)
+RESILIENT_F_MAX = (N_AGENTS_MAX - 1) // 2
 
 
 def untrusted_s(ts: float) -> float:
@@ -153,6 +157,7 @@ class AgentConfig:
     h_max: float | None = None
     untrusted_after: int = UNTRUSTED_AFTER
     untrusted_s: float | None = None
+    resilient_f: int = 0            # W-MSR trimming (controllers.resilient_trim); 0: off
     source: str = "<config>"
 
     def __post_init__(self) -> None:
@@ -171,6 +176,8 @@ class AgentConfig:
         agent: dict[str, Any] = {"id": self.id, "lambda0": self.lambda0, "pinned": self.pinned}
         if self.fleet_size is not None:
             agent["fleet_size"] = self.fleet_size
+        if self.resilient_f:  # written only when on: the default files stay as they were
+            agent["resilient_f"] = self.resilient_f
         doc = {
             "agent": agent,
             "controller": {"kind": c.kind, "k": c.k, "h": c.h, "ts": c.ts, "dwell": c.dwell,
@@ -259,7 +266,7 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         if k not in {"agent", "controller", "neighbour", "battery", "timeouts", "limits"}:
             raise fail(k, "unknown table; expected agent, controller, neighbour, battery, "
                        "timeouts or limits")
-    a = table("agent", {"id", "lambda0", "pinned", "fleet_size"})
+    a = table("agent", {"id", "lambda0", "pinned", "fleet_size", "resilient_f"})
     ident = agent_id(a.get("id"), "agent.id")
     pinned = a.get("pinned", False)
     if not isinstance(pinned, bool):
@@ -269,6 +276,10 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
                               or not ident <= fleet <= N_AGENTS_MAX):
         raise fail("agent.fleet_size", f"expected an agent count in {ident}..{N_AGENTS_MAX} "
                    f"(at least this agent's id), but got {fleet!r}")
+    trim = a.get("resilient_f", 0)
+    if isinstance(trim, bool) or not isinstance(trim, int) or not 0 <= trim <= RESILIENT_F_MAX:
+        raise fail("agent.resilient_f", f"expected an integer in 0..{RESILIENT_F_MAX}, but got "
+                   f"{trim!r}")
 
     c = table("controller", {"kind", "k", "h", "ts", "dwell", "band", "ft_exponent"})
     try:
@@ -346,7 +357,7 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         k_min=opt("k_min", 0, GAIN_MAX), k_max=opt("k_max", 0, GAIN_MAX),
         h_min=opt("h_min", 0, GAIN_MAX), h_max=opt("h_max", 0, GAIN_MAX),
         untrusted_after=count("untrusted_after", 1, 1000, UNTRUSTED_AFTER),
-        untrusted_s=opt("untrusted_s", 0, 3600), source=src)
+        untrusted_s=opt("untrusted_s", 0, 3600), resilient_f=trim, source=src)
     if not cfg.lambda_min < cfg.lambda0 < cfg.lambda_max:
         raise fail("agent.lambda0", f"expected a value inside limits [{cfg.lambda_min}, "
                    f"{cfg.lambda_max}], but got {cfg.lambda0}")
@@ -394,5 +405,5 @@ def agent_configs_from_scenario(sc: Any) -> list[AgentConfig]:
             h_max=min(GAIN_HI * sc.controller.h, GAIN_MAX),
             # the scenario's price plausibility limits
             rho_min=sc.rho_min, rho_max=sc.rho_max, price_step_max=sc.price_step_max,
-            fleet_size=sc.n, source=f"{sc.source}#agent{i}"))
+            resilient_f=sc.resilient_f, fleet_size=sc.n, source=f"{sc.source}#agent{i}"))
     return out

@@ -320,14 +320,39 @@ class StepOutput:
     reset: bool         # ν was reset at this sample
 
 
+def resilient_trim(lam: float | int, neighbours: Sequence[tuple[float | int, float | int]],
+                   f: int) -> list[tuple[float | int, float | int]]:
+    """W-MSR (LeBlanc et al. 2013): ``neighbours`` without up to ``f`` of the λ_j strictly
+    above ``lam`` (the largest) and up to ``f`` strictly below it (the smallest).
+
+    A neighbour whose λ_j equals ``lam`` is never dropped. Ties: the terms are ranked by
+    (distance from ``lam``, weight), largest first, and the first ``f`` of each side go;
+    terms equal in both are interchangeable (their products are equal), so the result's
+    sum does not depend on the order the neighbours come in (firmware-spec WMSR-2).
+    ``f`` = 0 returns the list as given (the default update, bit for bit)."""
+    if f <= 0:
+        return list(neighbours)
+    above = sorted((t for t in neighbours if t[1] > lam), key=lambda t: (t[1], t[0]),
+                   reverse=True)
+    below = sorted((t for t in neighbours if t[1] < lam), key=lambda t: (-t[1], t[0]),
+                   reverse=True)
+    level = [t for t in neighbours if t[1] == lam]
+    return above[f:] + below[f:] + level
+
+
 def consensus_error(ar: Arithmetic, lam: float | int,
                     neighbours: Sequence[tuple[float | int, float | int]],
-                    pin: float | int, price: float | int) -> tuple[float | int, bool]:
+                    pin: float | int, price: float | int,
+                    trim: int = 0) -> tuple[float | int, bool]:
     """ξ_i = Σ_j a_ij (λ_i − λ_j) + b_ii (λ_i − ρ). Returns (ξ, saturated?).
 
     ``neighbours`` holds (a_ij, λ_j) for the neighbours currently alive; ``pin`` is
-    b_ii (0 when the agent does not hear the price, or the price is lost).
+    b_ii (0 when the agent does not hear the price, or the price is lost). ``trim`` > 0:
+    the resilient update, the neighbour terms after ``resilient_trim(lam, ..., trim)``;
+    the price term is never trimmed (the router's price is authenticated, not a vote).
     """
+    if trim:
+        neighbours = resilient_trim(lam, neighbours, trim)
     acc = ar.mul(pin, lam - price) if pin else 0
     for weight, lam_j in neighbours:
         acc += ar.mul(weight, lam - lam_j)

@@ -364,7 +364,7 @@ class AgentRuntime:
         if is_active(self.state):
             xi, sat = consensus_error(self.ctrl.ar, self.lambda_q24, self._xi_neighbours(),
                                       self.pin if self.price is not None else 0,
-                                      self.price or 0)
+                                      self.price or 0, self.cfg.resilient_f)
             self.cstate, _ = self.ctrl.step(self.cstate, xi)
             self.counters["saturations"] += sat
         frames = self.io.syncs(t)

@@ -262,6 +262,15 @@ def _restart_at_entry(orig: Callable[..., Any]) -> Callable[..., Any]:
     return update_state
 
 
+def _trim_smaller_weight_first(lam: Any, neighbours: Any, f: int) -> list[Any]:
+    """WMSR-2 broken: of equal λ_j, the smaller weight dropped first."""
+    if f <= 0:
+        return list(neighbours)
+    above = sorted((t for t in neighbours if t[1] > lam), key=lambda t: (-t[1], t[0]))
+    below = sorted((t for t in neighbours if t[1] < lam), key=lambda t: (t[1], t[0]))
+    return above[f:] + below[f:] + [t for t in neighbours if t[1] == lam]
+
+
 @contextlib.contextmanager
 def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
     if kind == "band_rearms_at_reset":
@@ -282,6 +291,10 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
                    controllers.ResetPIController._reset_now)
     elif kind == "state_entry_restarts_dwell_and_band":
         mp.setattr(AgentRuntime, "_update_state", _restart_at_entry(AgentRuntime._update_state))
+    elif kind == "resilient_f_ignored":   # WMSR-1 broken: no trimming
+        mp.setattr(controllers, "resilient_trim", lambda lam, nb, f: list(nb))
+    elif kind == "trim_ties_by_smaller_weight":
+        mp.setattr(controllers, "resilient_trim", _trim_smaller_weight_first)
     else:
         raise ValueError(kind)
     yield
@@ -295,7 +308,7 @@ MUTATIONS: dict[str, list[str]] = {
     "band_rearms_at_reset": [
         "auth_forgery_replay", "boot_floors", "commands", "init_wait_status",
         "malformed_foreign", "neighbour_timeout", "peer_restart", "price_timeout_safe",
-        "start_steady", "status_fault_timeout", "sync_boot_jump"],
+        "resilient_trim", "start_steady", "status_fault_timeout", "sync_boot_jump"],
     # every vector: each sends Diag pages
     "diag_without_mac": [p.stem for p in VECTORS],
     "one_freshness_window_after_a_timeout": ["price_timeout_safe"],
@@ -304,6 +317,8 @@ MUTATIONS: dict[str, list[str]] = {
     "no_lambda_plausibility": ["neighbour_timeout"],
     "no_dwell": ["insecure_scaled"],
     "state_entry_restarts_dwell_and_band": ["insecure_scaled"],
+    "resilient_f_ignored": ["resilient_trim"],
+    "trim_ties_by_smaller_weight": ["resilient_trim"],
 }
 
 

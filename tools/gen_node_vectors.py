@@ -917,10 +917,39 @@ def sc_boot_jump() -> Scenario:
     return s
 
 
+def sc_resilient() -> Scenario:
+    toml = BASE_TOML.format(extra="").replace(
+        "fleet_size = 4\n", "fleet_size = 4\nresilient_f = 1\n") + (
+        "\n[[neighbour]]\nid = 4\nweight = 2.0\n")
+    s = Scenario(
+        "resilient_trim",
+        "The resilient update (W-MSR, resilient_f = 1) with three neighbours: agent 4 lies "
+        "0.05 above agent 1 (the largest lambda above the own: dropped, and agent 3's, the "
+        "smallest below, too); then tells exactly agent 1's lambda (a tie: of the two, "
+        "weight 2.0, agent 4's, is dropped); then 0.03 below agent 3 (the smallest below: "
+        "dropped, with agent 1, the largest above); the price term never dropped.",
+        ["CFG-2", "XI-1", "XI-2", "WMSR-1", "WMSR-2"], toml=toml)
+    nb = neighbours()
+    lie = noise(7, 4000, NOISE_LSB)
+    high = {**nb, 4: lambda k: (1, LAM1 + q24(0.05) + lie[k])}
+    s.tick()
+    s.sync_all()
+    s.join()
+    for j, f in high.items():
+        s.mc(j, f(0)[1], 1)
+    s.price(RHO)
+    s.status()
+    s.run(150, price=RHO, nbrs=high)
+    s.run(100, price=RHO, nbrs={**nb, 4: lambda k: (1, nb[1](k)[1])})
+    s.run(100, price=RHO, nbrs={**nb, 4: lambda k: (1, LAM3 - q24(0.03) + lie[k])})
+    return s
+
+
 SCENARIOS: tuple[Callable[[], Scenario], ...] = (
     sc_start_steady, sc_init_wait, sc_neighbour_timeout, sc_price_timeout, sc_status,
     sc_commands, sc_auth, sc_peer_restart, sc_malformed, sc_price_steps, sc_tx_wrap,
-    sc_insecure, sc_boot_floors, sc_boot_jump)
+    sc_insecure, sc_boot_floors, sc_boot_jump,
+    sc_resilient)
 
 
 def render_all() -> dict[str, str]:

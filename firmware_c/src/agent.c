@@ -308,6 +308,7 @@ static void step(bd_agent *a)
     }
     uint32_t sat = 0u;
     int32_t pin = a->has_price ? (a->p.pinned ? (INT32_C(1) << BD_LAMBDA_Q) : 0) : 0;
+    n = bd_wmsr_trim(bd_agent_lambda(a), a->p.resilient_f, w, lam, n);  /* WMSR-1 */
     int32_t xi = bd_xi(bd_agent_lambda(a), pin, a->has_price ? a->price : 0, w, lam, n,
                        &sat);
     bd_ctrl_step(&a->ctrl, &a->cs, xi, NULL);

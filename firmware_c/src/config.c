@@ -343,8 +343,10 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
     if (!bd_toml_has_table(&d, "agent")) {
         return bd_toml_errorf(&d, "agent", "expected a table, but got None");
     }
-    static const char *const agent_keys[] = {"id", "lambda0", "pinned", "fleet_size", NULL};
-    if (check_keys(&d, "agent", agent_keys, "fleet_size, id, lambda0, pinned") != 0
+    static const char *const agent_keys[] = {"id", "lambda0", "pinned", "fleet_size",
+                                             "resilient_f", NULL};
+    if (check_keys(&d, "agent", agent_keys, "fleet_size, id, lambda0, pinned, resilient_f")
+        != 0
         || agent_id(&d, bd_toml_find(&d, "agent", -1, "id"), "agent.id", &p->id) != 0) {
         return -1;
     }
@@ -362,6 +364,15 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
                                   BD_N_AGENTS_MAX, bd_toml_repr(e, got, sizeof got));
         }
         p->fleet_size = (uint32_t)e->i;
+    }
+    /* WMSR-1: F of the resilient update, 0 (off) unless given */
+    e = bd_toml_find(&d, "agent", -1, "resilient_f");
+    if (e != NULL) {
+        if (e->type != TOML_INT || e->i < 0 || e->i > BD_RESILIENT_F_MAX) {
+            return bd_toml_errorf(&d, "agent.resilient_f", "expected an integer in 0..%d, but "
+                                  "got %s", BD_RESILIENT_F_MAX, bd_toml_repr(e, got, sizeof got));
+        }
+        p->resilient_f = (uint32_t)e->i;
     }
     /* CFG-3 */
     if (!bd_toml_has_table(&d, "controller")) {

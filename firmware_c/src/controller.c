@@ -240,3 +240,42 @@ int32_t bd_xi(int32_t lam_wire, int32_t pin, int32_t rho, const int32_t *weights
     }
     return bd_sat32(acc, sat_count);
 }
+
+/* WMSR-1, WMSR-2: drop up to f terms whose lambda_j is strictly above lam_wire (the
+ * largest lambda_j first, of equal ones the largest weight) and up to f strictly below
+ * (the smallest first, then the largest weight). A removed term is overwritten by the
+ * last one: the order changes, the sum bd_xi takes of the rest does not. O(f n). */
+size_t bd_wmsr_trim(int32_t lam_wire, uint32_t f, int32_t *weights, int32_t *lam_j, size_t n)
+{
+    int side;
+
+    for (side = 0; side < 2; ++side) {
+        uint32_t dropped;
+        for (dropped = 0u; dropped < f; ++dropped) {
+            size_t j;
+            size_t pick = n;
+            for (j = 0u; j < n; ++j) {
+                int outside = (side == 0) ? (lam_j[j] > lam_wire) : (lam_j[j] < lam_wire);
+                if (outside == 0) {
+                    continue;
+                }
+                if (pick == n) {
+                    pick = j;
+                } else {
+                    int further = (side == 0) ? (lam_j[j] > lam_j[pick])
+                                              : (lam_j[j] < lam_j[pick]);
+                    if (further || ((lam_j[j] == lam_j[pick]) && (weights[j] > weights[pick]))) {
+                        pick = j;
+                    }
+                }
+            }
+            if (pick == n) {
+                break;  /* no more terms on this side */
+            }
+            n--;
+            weights[pick] = weights[n];
+            lam_j[pick] = lam_j[n];
+        }
+    }
+    return n;
+}

@@ -45,6 +45,7 @@ class Params(ctypes.Structure):
 
     _fields_ = [
         ("id", ctypes.c_uint32), ("fleet_size", ctypes.c_uint32), ("pinned", ctypes.c_int32),
+        ("resilient_f", ctypes.c_uint32),
         ("lambda0", ctypes.c_int32), ("ctrl", cimpl.CtrlConfig),
         ("n_neighbours", ctypes.c_uint32),
         ("neighbour_id", ctypes.c_uint32 * MAX_NEIGHBOURS),
@@ -276,6 +277,7 @@ def params_of(cfg: AgentConfig) -> Params:
     p.id = cfg.id
     p.fleet_size = cfg.fleet_size or 0
     p.pinned = int(cfg.pinned)
+    p.resilient_f = cfg.resilient_f
     p.lambda0 = fx.to_fixed(cfg.lambda0)
     p.ctrl = cimpl.CtrlConfig(cimpl.KIND_CODES[c.kind], int(ref.kts), int(ref.hts),
                            int(ref.ts_q), int(ref.band), ref.dwell_samples, p_num, p_sqrts)

@@ -145,6 +145,8 @@ class CCore:
                                    ctypes.POINTER(_Record)]),
             ("bd_xi", i32, [i32, i32, i32, ctypes.POINTER(i32), ctypes.POINTER(i32),
                             ctypes.c_size_t, p_u32]),
+            ("bd_wmsr_trim", ctypes.c_size_t, [i32, ctypes.c_uint32, ctypes.POINTER(i32),
+                                               ctypes.POINTER(i32), ctypes.c_size_t]),
         ):
             fn = getattr(lib, name)
             fn.restype = res
@@ -152,12 +154,15 @@ class CCore:
         self.lib = lib
 
     def xi(self, lam_wire: int, pin: int, rho: int,
-           neighbours: Sequence[tuple[int, int]]) -> tuple[int, bool]:
-        """XI-2/XI-3 in C: (ξ, saturated?), as ``consensus_error`` on FixedArithmetic."""
+           neighbours: Sequence[tuple[int, int]], trim: int = 0) -> tuple[int, bool]:
+        """XI-2/XI-3 in C: (ξ, saturated?), as ``consensus_error`` on FixedArithmetic;
+        ``trim`` > 0: after bd_wmsr_trim (WMSR-1, WMSR-2), as the agent steps."""
         n = len(neighbours)
         weights = (ctypes.c_int32 * max(n, 1))(*(w for w, _ in neighbours))
         lams = (ctypes.c_int32 * max(n, 1))(*(lam for _, lam in neighbours))
         sats = ctypes.c_uint32(0)
+        if trim:
+            n = self.lib.bd_wmsr_trim(lam_wire, trim, weights, lams, n)
         out = self.lib.bd_xi(lam_wire, pin, rho, weights, lams, n, ctypes.byref(sats))
         return int(out), sats.value > 0
 

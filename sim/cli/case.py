@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
-from firmware_py.cliargs import nonnegative_float, positive_float
+from firmware_py.cliargs import int_in, nonnegative_float, positive_float
+from firmware_py.config import RESILIENT_F_MAX
 from firmware_py.controllers import KINDS
 from sim.run.lockstep_case import DEFAULT_DWELL_S
 
@@ -44,6 +46,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dwell", type=positive_float(), metavar="S",
                    help=f"dwell Δ in s for the dwell controller (default: the scenario's, else "
                    f"{DEFAULT_DWELL_S:g})")
+    p.add_argument("--resilient", type=int_in(0, RESILIENT_F_MAX, what="a number of liars F"),
+                   metavar="F",
+                   help="the resilient (W-MSR) update: each agent drops up to F neighbour λ "
+                   "above its own and F below before ξ; prints whether the graph meets its "
+                   "condition (default: the scenario's resilient_f, else 0: off)")
     add_arithmetic_arguments(p)
     p.add_argument("--impl", choices=("py", "c"), default="py",
                    help="the controller implementation the agents step: firmware_py "
@@ -64,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     sc = resolve_scenario(scenario_spec(args))
+    if args.resilient is not None:
+        sc = replace(sc, resilient_f=args.resilient)
     result = run_case(sc, controller=args.controller, band=args.band, dwell=args.dwell,
                       fixed=args.fixed, impl=args.impl, out=args.out, plot=not args.no_plot)
     results = result.runs
@@ -76,6 +85,11 @@ def run(args: argparse.Namespace) -> int:
     if len(runs) == 1:
         print(f"  controller {controller_desc(runs[0][1].controller)}")
         for line in runs[0][1].analysis().describe()[1:]:
+            print(f"  {line}")
+    if sc.resilient_f:
+        from sim.model.robust import resilience
+
+        for line in resilience(sc.n, sc.edges, sc.pinned, sc.resilient_f).describe():
             print(f"  {line}")
     print()
     print(summary_table([(label, m) for label, _, _, m in results],

@@ -115,6 +115,9 @@ NOT_ON_BUS: dict[str, str] = {
     "RX-2": "remote, error and FD frames are counted as malformed, which is on no frame "
             "(DIAG-5); python-can's virtual buses cannot carry error frames",
     "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
+    "WMSR-1": "resilient_f = 0 (off) in the configuration the tester writes: the node "
+              "vector resilient_trim and tests/test_resilient.py check it",
+    "WMSR-2": "as WMSR-1",
     "AUTH-1": "with a key file the DUT derives no key (the file holds them): exercised "
               "only by an --insecure run (AUTH-20); the secoc vectors check it",
     "AUTH-2": "every MAC of the schedule is a CMAC, but a wrong CMAC fails everything "

@@ -8,7 +8,7 @@ clock is involved, so runs are bit-for-bit repeatable and much faster than real 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 
 import numpy as np
@@ -26,7 +26,8 @@ VEC_MIN_AGENTS = 8
 def run_lockstep(sc: Scenario, fixed: bool = True,
                  progress: Callable[[int, int], None] | None = None,
                  impl: str = "auto", start_tick: int = 0, loss: float = 0.0,
-                 loss_seed: int = 0) -> Trajectory:
+                 loss_seed: int = 0,
+                 lies: Mapping[int, Callable[[int, int], int]] | None = None) -> Trajectory:
     """``impl``: "py" steps firmware_py's controllers agent by agent, "vec" the same
     fixed-point step over numpy arrays (sim.model.vlockstep: all agents at once), "c" the
     C core (firmware_c, through sim.cbind.cimpl: its controller step and its ξ), fixed
@@ -36,9 +37,17 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
     in INIT: a bus run's start, whose nodes take no frame in their join window,
     firmware-spec AUTH-26). ``loss``: each neighbour's MC frame lost with this probability
     (seeded by ``loss_seed``; sim.model.links: the receiver holds the last λ and times
-    the neighbour out), the same frames on every ``impl``."""
+    the neighbour out), the same frames on every ``impl``. ``lies``: agent (1-based) →
+    ``told(k, λ)``, the λ (a Q24 int) that agent sends its neighbours at sample k instead
+    of its own (a compromised agent with its own key, tests/deviant_agent.py's LIE-*); its
+    trajectory holds the told λ (its setpoints follow what it tells). ``sc.resilient_f``
+    > 0 runs every agent's ξ through the W-MSR trimming (controllers.resilient_trim);
+    both run on the scalar loop ("vec" falls back to "py")."""
+    if impl == "vec" and (lies or sc.resilient_f):
+        impl = "py"  # the resilient update or a liar: the per-agent loop, same results
     if impl == "auto":
-        impl = "vec" if fixed and sc.n >= VEC_MIN_AGENTS and vectorisable(sc) else "py"
+        impl = ("vec" if fixed and sc.n >= VEC_MIN_AGENTS and vectorisable(sc) and not lies
+                else "py")
     if impl == "vec":
         if not fixed:
             raise ValueError("the vectorised step is fixed point only (impl='vec' with "
@@ -47,8 +56,10 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
     ctrl = make_controller(sc.controller, fixed)
     step, initial, wire = ctrl.step, ctrl.initial_state, ctrl.wire_lambda
 
+    trim = sc.resilient_f
+
     def xi_of(lam: int, nbrs: list[tuple[int, int]], pin: int, rho: int) -> tuple[int, bool]:
-        return consensus_error(ctrl.ar, lam, nbrs, pin, rho)  # type: ignore[return-value]
+        return consensus_error(ctrl.ar, lam, nbrs, pin, rho, trim)  # type: ignore[return-value]
 
     if impl == "c":
         from sim.cbind.cimpl import CController
@@ -60,7 +71,7 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
 
         def xi_of(lam: int, nbrs: list[tuple[int, int]], pin: int, rho: int
                   ) -> tuple[int, bool]:
-            return c.core.xi(lam, pin, rho, nbrs)
+            return c.core.xi(lam, pin, rho, nbrs, trim)
     elif impl != "py":
         raise ValueError(f"impl: expected 'auto', 'py', 'vec' or 'c', but got {impl!r}")
     q = ctrl.quantise
@@ -94,10 +105,12 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
         rho_q = q(rho, "rho")
         rho_arr[k], seg_arr[k] = rho, seg
         lams = [wire(s) for s in states]     # the λ each agent sends at this sample
+        told = [lies[i + 1](k, int(v)) if lies and i + 1 in lies and active[i] else v
+                for i, v in enumerate(lams)]
         if k >= start_tick:
-            held, alive = links.exchange(np.array(lams)[senders])  # Q24 ints or floats
+            held, alive = links.exchange(np.array(told)[senders])  # Q24 ints or floats
         for i, s in enumerate(states):
-            lam[k, i] = real(lams[i])
+            lam[k, i] = real(told[i])
             act[k, i] = active[i]
             if not active[i] or k < start_tick:
                 continue

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import tomli_w
 
-from firmware_py.config import PRICE_STEP_MAX, RHO_MAX, RHO_MIN, AgentConfig
+from firmware_py.config import PRICE_STEP_MAX, RESILIENT_F_MAX, RHO_MAX, RHO_MIN, AgentConfig
 from firmware_py.contract import N_AGENTS_MAX
 from firmware_py.controllers import ControllerConfig
 from firmware_py.errors import ConfigError, ParameterError
@@ -101,6 +101,7 @@ class Scenario:
     rho_min: float = RHO_MIN
     rho_max: float = RHO_MAX
     price_step_max: float = PRICE_STEP_MAX  # a larger step is accepted once it persists
+    resilient_f: int = 0  # W-MSR trimming in every agent's ξ (0: off; sim.model.robust)
 
     # ---- derived views
 
@@ -210,7 +211,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
     ConfigError on an unknown, missing or out-of-range key."""
     r = _Reader(src)
     r.only(data, "", {"name", "title", "ts", "duration", "load_kw", "controller", "graph",
-                      "price", "battery", "event", "variant", "limits"})
+                      "price", "battery", "event", "variant", "limits", "resilient_f"})
     ts = r.number(data, "ts", lo=1e-4, hi=1.0)
     duration = r.number(data, "duration", lo=ts, hi=1e5)
 
@@ -325,7 +326,9 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         controller=controller, n=n, edges=edges, pinned=pinned, batteries=tuple(batteries),
         lambda0=tuple(lambda0), prices=tuple(prices), events=tuple(events),
         variants=tuple(variants), rho_min=rho_min, rho_max=rho_max,
-        price_step_max=step_max)
+        price_step_max=step_max,
+        resilient_f=int(r.number(data, "resilient_f", lo=0, hi=RESILIENT_F_MAX, integer=True))
+        if "resilient_f" in data else 0)
     if n <= MAX_AGENTS:  # a fleet a bus can carry: its agents' configurations load too
         for label, run in sc.runs():
             check_agents(run, "variant " + label if sc.variants else "")
@@ -472,6 +475,8 @@ def to_toml(sc: Scenario) -> str:
                                        if k != "lambda0"}}
                     for b, l0 in zip(sc.batteries, sc.lambda0, strict=True)],
     }
+    if sc.resilient_f:  # only when on: a default scenario's file stays as it was
+        doc["resilient_f"] = sc.resilient_f
     if sc.events:
         doc["event"] = [{"t": e.t, "agent": e.agent, "action": e.action} for e in sc.events]
     # the source path may hold anything; keep it out of the comment line's way

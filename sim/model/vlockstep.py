@@ -38,9 +38,10 @@ _HALF_GUARD = np.int64(1 << (fx.GUARD - 1))
 
 def vectorisable(sc: Scenario) -> bool:
     """True if the vectorised step gives firmware_py's results for ``sc``: a PI-family or
-    PC controller in Q24 with every weight and pin below 64 (no int64 overflow)."""
+    PC controller in Q24 with every weight and pin below 64 (no int64 overflow), without
+    the resilient update (its per-agent sort runs on the scalar loop)."""
     c = sc.controller
-    if c.kind not in KINDS or c.q != fx.Q:
+    if c.kind not in KINDS or c.q != fx.Q or sc.resilient_f:  # W-MSR sorts: the scalar loop
         return False
     return float(np.max(sc.adjacency, initial=0.0)) < WEIGHT_RAW_MAX / fx.ONE
 

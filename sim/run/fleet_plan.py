@@ -87,6 +87,11 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
                                        "--bus-config '{\"port\": N}')" if port else ""))
     for line in sc.analysis().describe()[1:]:
         say(f"  {line}")
+    if sc.resilient_f:  # the agents trim: say whether the graph lets it tolerate liars
+        from sim.model.robust import resilience
+
+        for line in resilience(sc.n, sc.edges, sc.pinned, sc.resilient_f).describe():
+            say(f"  {line}")
     if keys is not None:
         fleet = check_key_set(keys, sc.n, sc)
         say(f"  keys: {keys}/ (fleet id {fleet})")

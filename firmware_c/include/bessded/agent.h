@@ -28,6 +28,7 @@ extern "C" {
 #endif
 
 #define BD_MAX_NEIGHBOURS (BD_N_AGENTS_MAX - 1)
+#define BD_RESILIENT_F_MAX ((BD_N_AGENTS_MAX - 1) / 2) /* 2F trimmed leave one (WMSR-1) */
 #define BD_MAX_PEERS (BD_N_AGENTS_MAX + 2)       /* every agent, the plant, the router */
 #define BD_TICK_FRAMES_MAX 6                      /* 3 syncs, MC, Setpoint, Diag */
 #define BD_ECHO_DEPTH 4                           /* own frames kept to tell their echo */
@@ -44,6 +45,7 @@ typedef struct {
     uint32_t id;                  /* 1..BD_N_AGENTS_MAX */
     uint32_t fleet_size;          /* 0: unknown (RX-6 not checked) */
     int32_t pinned;               /* 0/1 (CTRL-5) */
+    uint32_t resilient_f;         /* W-MSR F, 0: off (WMSR-1) */
     int32_t lambda0;              /* q24(lambda0) */
     bd_ctrl_config ctrl;          /* KTS, HTS, TSQ, BAND, D, ft exponent (CTRL-1..3) */
     uint32_t n_neighbours;

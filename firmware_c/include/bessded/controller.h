@@ -106,6 +106,12 @@ void bd_ctrl_run(const bd_ctrl_config *cfg, bd_ctrl_state *s, const int32_t *xi,
 int32_t bd_xi(int32_t lam_wire, int32_t pin, int32_t rho, const int32_t *weights,
               const int32_t *lam_j, size_t n, uint32_t *sat_count);
 
+/* WMSR-1, WMSR-2: the resilient update's trimming, in place before bd_xi: up to f of the
+ * n terms (W_j, lambda_j) strictly above lam_wire and up to f strictly below are removed
+ * (the furthest first; of equal lambda_j the largest W_j); returns the terms left, in
+ * weights[0..] and lam_j[0..] (their order changed). f = 0 leaves all n. */
+size_t bd_wmsr_trim(int32_t lam_wire, uint32_t f, int32_t *weights, int32_t *lam_j, size_t n);
+
 #ifdef __cplusplus
 }
 #endif
