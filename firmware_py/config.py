@@ -81,7 +81,15 @@ from typing import Any
 import tomli_w
 
 from . import fixedpoint as fx
-from .contract import MC_CYCLE_S, N_AGENTS_MAX, raw_range, scale, status_name, timeout_s
+from .contract import (
+    FV_TX_BITS,
+    MC_CYCLE_S,
+    N_AGENTS_MAX,
+    raw_range,
+    scale,
+    status_name,
+    timeout_s,
+)
 from .controllers import ControllerConfig
 from .errors import ConfigError, ParameterError
 
@@ -118,7 +126,7 @@ NEIGHBOUR_PERIODS = 3            # periodic: a neighbour silent 3 Ts is timed ou
 HEARTBEAT_MARGIN = 2             # event: timed out after heartbeat + 2 Ts of silence
 # a neighbour timeout of at most 15 periods: while a neighbour counts as alive, at most 15
 # of its frames in a row can be lost, which the 4-bit counter window still places (AUTH-12)
-HEARTBEAT_MAX = 15 - HEARTBEAT_MARGIN
+HEARTBEAT_MAX = (1 << FV_TX_BITS) - 1 - HEARTBEAT_MARGIN  # 13
 
 
 @dataclass(frozen=True)

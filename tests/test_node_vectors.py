@@ -276,6 +276,8 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
     elif kind == "no_dwell":
         mp.setattr(controllers.DwellResetPIController, "_reset_now",
                    controllers.ResetPIController._reset_now)
+    elif kind == "mc_every_tick":  # TX-7 ignored: the MC frame every tick in event mode
+        mp.setattr(AgentRuntime, "_mc_due", lambda self: True)
     elif kind == "state_entry_restarts_dwell_and_band":
         mp.setattr(AgentRuntime, "_update_state", _restart_at_entry(AgentRuntime._update_state))
     else:
@@ -289,7 +291,7 @@ MUTATIONS: dict[str, list[str]] = {
     # the reset-PI vectors but price_steps and tx_count_wrap (insecure_scaled runs the
     # dwell controller)
     "band_rearms_at_reset": [
-        "auth_forgery_replay", "boot_floors", "commands", "init_wait_status",
+        "auth_forgery_replay", "boot_floors", "commands", "event_transmit", "init_wait_status",
         "malformed_foreign", "neighbour_timeout", "peer_restart", "price_timeout_safe",
         "start_steady", "status_fault_timeout"],
     # every vector: each sends Diag pages
@@ -298,6 +300,7 @@ MUTATIONS: dict[str, list[str]] = {
     "no_lambda_plausibility": ["neighbour_timeout"],
     "no_dwell": ["insecure_scaled"],
     "state_entry_restarts_dwell_and_band": ["insecure_scaled"],
+    "mc_every_tick": ["event_transmit"],
 }
 
 
