@@ -151,3 +151,28 @@ def test_event_transmit_meets_the_acceptance_on_every_paper_case() -> None:
     assert len({c.case for c in results}) == 7
     bad = [c for c in results if not c.accepted]
     assert not bad, bad
+
+
+@pytest.mark.slow
+def test_virtual_bus_event_mode_matches_lockstep_without_anomalies(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Case 1 with event-triggered λ on python-can's virtual bus (every node in one
+    process, simulated clock): converged, no anomaly (the quiet bus of a settled fleet is
+    no bus_silence), no neighbour timeout or rejected frame (silent ticks leave no gap in
+    the MC counters), far fewer MC frames, and λ as the lockstep started at the bus run's
+    first RUNNING sample (within a transient step; the bus shows the λ last sent)."""
+    from test_bus import FINAL_TOL, TRANSIENT_TOL, compare_with_lockstep
+
+    from sim.run import busrun
+
+    sc = replace(load_case(1), duration=10.0, transmit=Transmit("event"))
+    m = busrun.run_in_process(sc, tmp_path, duration=10.0, channel="test-virtual-event")
+    assert m["verdict"]["ok"] and m["anomalies"] == [], m["anomalies"]
+    assert m["final_error"] < FINAL_TOL
+    for diag in m["node_diagnostics"].values():
+        assert diag["NeighbourTimeouts"] == diag["RejectedAuth"] == diag["Unsynced"] == 0
+    from sim.run.buslog import read_log
+
+    log = read_log(tmp_path / "run.log")
+    assert sum(log.sequences[f"AGENT_{i}_MC"].frames for i in range(1, 5)) < 0.3 * 4 * 1000
+    worst, end = compare_with_lockstep(sc, tmp_path)
+    assert worst < TRANSIENT_TOL and end < FINAL_TOL

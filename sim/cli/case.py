@@ -25,6 +25,7 @@ from ._common import (
     add_arithmetic_arguments,
     add_no_plot_argument,
     add_scenario_argument,
+    add_transmit_argument,
     one_line_errors,
     scenario_spec,
 )
@@ -45,6 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"dwell Δ in s for the dwell controller (default: the scenario's, else "
                    f"{DEFAULT_DWELL_S:g})")
     add_arithmetic_arguments(p)
+    add_transmit_argument(p)
     p.add_argument("--impl", choices=("py", "c"), default="py",
                    help="the controller implementation the agents step: firmware_py "
                    "(default) or firmware_c's C core (fixed point; the same trajectory bit "
@@ -58,12 +60,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from sim.model.metrics import SETTLING_BAND
-    from sim.model.scenario_select import resolve_scenario
+    from sim.model.scenario_select import resolve_scenario, with_transmit
     from sim.report.textfmt import controller_desc, describe, fmt_settling
     from sim.run.lockstep_case import run_case, summary_table
 
     t0 = time.perf_counter()
-    sc = resolve_scenario(scenario_spec(args))
+    sc = with_transmit(resolve_scenario(scenario_spec(args)), args.transmit)
     result = run_case(sc, controller=args.controller, band=args.band, dwell=args.dwell,
                       fixed=args.fixed, impl=args.impl, out=args.out, plot=not args.no_plot)
     results = result.runs
@@ -95,6 +97,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"settling time ({SETTLING_BAND:.0%} band), per price segment:")
         for label, s, _, m in results:
             print(f"  {label:<{width}}  {fmt_settling(s, m['settling_times_s'])}")
+        print()
+    if sc.transmit.event:
+        tx = sc.transmit
+        print(f"event-triggered λ (threshold {tx.threshold:g} cu/kWh, heartbeat "
+              f"{tx.heartbeat} ticks), MC frames sent of one per agent and tick:")
+        width = max(len(label) for label, _ in runs)
+        for label, _, _, m in results:
+            print(f"  {label:<{width}}  {m['mc_frames']} of {m['mc_frames_periodic']} "
+                  f"({1 - m['mc_frames'] / m['mc_frames_periodic']:.1%} fewer)")
         print()
     print(f"wrote ({time.perf_counter() - t0:.1f} s):")
     for path in written:

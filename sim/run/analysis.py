@@ -181,9 +181,10 @@ def _json(path: Path) -> Any:
 def _demo_signed(log_path: Path, sc: Any, demo: dict[str, bytes]) -> bool:
     """Do the log's secured frames verify with the public demo keys (an --insecure run)?"""
     from sim.run.buslog import read_log
+    from sim.run.verdict import silence_ts
 
     try:
-        log = read_log(log_path, n=sc.n, ts=sc.ts, keys=demo)
+        log = read_log(log_path, n=sc.n, ts=sc.ts, keys=demo, silence_ts=silence_ts(sc))
     except (ValueError, EOFError):
         return False  # report() names the format problem
     return log.syncs > 0 and not log.forged

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from firmware_py.contract import MC_CYCLE_S, State
+from firmware_py.contract import MC_CYCLE_S, State, every_ticks
 from firmware_py.nodeio import JOIN_FRACTION, SYNC_S
 from sim.model.scenario import Scenario
 from sim.model.trajectory import Trajectory
@@ -459,6 +459,15 @@ def _agent_states(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anom
                                    "the scenario has it isolated", t))
 
 
+def silence_ts(sc: Scenario) -> int:
+    """The longest quiet bus that is no anomaly, in Ts: SILENCE_TS; with event-triggered
+    λ a settled fleet's MC frames fall silent too and the bus carries the price, status
+    and setpoint cadence (every 5 Ts): SILENCE_TS more than that."""
+    if not sc.transmit.event:
+        return SILENCE_TS
+    return every_ticks("ER_Price") + SILENCE_TS
+
+
 def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
     t0 = log.t_first_price or 0.0
     for cluster in _clusters(log.silences, SILENCE_CLUSTER_S * sc.ts / MC_CYCLE_S):
@@ -467,7 +476,7 @@ def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
         what = (f"no frame for {longest:.3f} s ({longest / sc.ts:.0f} Ts)" if len(cluster) == 1
                 else f"{len(cluster)} gaps without a frame between t = {a - t0:.2f} and "
                 f"{b - t0:.2f} s, the longest {longest:.3f} s ({longest / sc.ts:.0f} Ts)")
-        out.append(Anomaly("bus_silence", "bus", f"{what}; more than {SILENCE_TS} Ts",
+        out.append(Anomaly("bus_silence", "bus", f"{what}; more than {silence_ts(sc)} Ts",
                            a - t0))
     by_sender: dict[str, list[tuple[float, float, str]]] = {}
     for name, gaps in log.message_silences.items():
