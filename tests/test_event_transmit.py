@@ -176,3 +176,26 @@ def test_virtual_bus_event_mode_matches_lockstep_without_anomalies(tmp_path) -> 
     assert sum(log.sequences[f"AGENT_{i}_MC"].frames for i in range(1, 5)) < 0.3 * 4 * 1000
     worst, end = compare_with_lockstep(sc, tmp_path)
     assert worst < TRANSIENT_TOL and end < FINAL_TOL
+
+
+def test_setpoint_check_allows_the_event_threshold_between_mc_frames() -> None:
+    """With event-triggered λ the agent's setpoint follows its current λ, which may be up
+    to the threshold from the λ its last MC frame carries: consistent (lag), as the plant
+    and the verdict check; beyond it, or periodic (lag 0), it waits and is inconsistent."""
+    from sim.nodes.consistency import Check, Setpoint, SetpointCheck, mc_lag
+
+    cfg = agent_configs_from_scenario(replace(load_case(1), transmit=Transmit("event")))[1]
+    lag = mc_lag(cfg)
+    assert lag == cfg.transmit.threshold_q24 > 0
+    assert mc_lag(agent_configs_from_scenario(load_case(1))[1]) == 0
+    lam = 13421773  # 0.8 cu/kWh
+    for lag_, moved, want in ((lag, lag, Check.CONSISTENT), (lag, 3 * lag, Check.INCONSISTENT),
+                              (0, lag, Check.INCONSISTENT)):
+        check = SetpointCheck(cfg.battery, period=0.01, lag=lag_)
+        assert check.mc(1, lam, 0.0) is None
+        sp = Setpoint(True, check.map(lam + moved)[0], 0.005)
+        got = check.setpoint(sp)
+        if want is Check.CONSISTENT:
+            assert got == [(Check.CONSISTENT, sp)]
+        else:  # waits for the next frame, which still carries the old λ
+            assert got == [] and check.mc(1, lam, 0.01) == (want, sp)

@@ -296,12 +296,12 @@ def _setpoints(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomal
     """Each agent's setpoints against its own dispatch rule at the λ it publishes (the
     check the plant makes, sim.nodes.consistency), from the recording."""
     from firmware_py.config import agent_configs_from_scenario
-    from sim.nodes.consistency import Check, Setpoint, SetpointCheck
+    from sim.nodes.consistency import Check, Setpoint, SetpointCheck, mc_lag
 
     t0 = log.t_first_price or 0.0
     plant = ((facts.node_counters or {}).get("plant") or {}).get("counters", {})
     for cfg in agent_configs_from_scenario(sc):
-        check = SetpointCheck(cfg.battery, period=sc.ts)
+        check = SetpointCheck(cfg.battery, period=sc.ts, lag=mc_lag(cfg))
         bad: list[tuple[Setpoint, int]] = []   # (the setpoint, the λ raw it ignored)
         total = 0
         for t, what, a, b in log.dispatch.get(cfg.id, []):
