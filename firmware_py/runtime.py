@@ -34,8 +34,8 @@ rising edges of the over-current/voltage flags.
 Cadences come from the DBC: the MC frame every tick (or, with ``[transmit] mode =
 "event"``, when λ moved beyond a threshold, the State changed or a heartbeat is due:
 ``_mc_due``), the setpoint and diagnostics every ``contract.every_ticks`` ticks (5 and 10
-at the DBC's cycles), so a node with a longer Ts stretches them all alike. The diagnostics rotate over ``DIAG_PAGES``, one
-page per diag frame.
+at the DBC's cycles), so a node with a longer Ts stretches them all alike. The diagnostics
+rotate over ``DIAG_PAGES``, one page per diag frame.
 
 Safety model (docs/safety-model.md): on top of the E2E checks (and NodeIO's untrusted
 sources), an accepted price outside ``[rho_min, rho_max]`` or more than
