@@ -174,6 +174,8 @@ def test_virtual_bus_event_mode_matches_lockstep_without_anomalies(tmp_path) -> 
 
     log = read_log(tmp_path / "run.log")
     assert sum(log.sequences[f"AGENT_{i}_MC"].frames for i in range(1, 5)) < 0.3 * 4 * 1000
+    # the ticks each agent ran, by its frames (its setpoints: the MC frames are fewer)
+    assert all(996 <= log.ticks_run(i) <= 1000 for i in range(1, 5))
     worst, end = compare_with_lockstep(sc, tmp_path)
     assert worst < TRANSIENT_TOL and end < FINAL_TOL
 

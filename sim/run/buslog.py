@@ -152,6 +152,15 @@ class LogContents:
         s = self.sequences.get(f"AGENT_{agent}_MC")
         return 0 if s is None else s.frames
 
+    def ticks_run(self, agent: int) -> int:
+        """How many ticks the agent ran, at least, by its frames: one MC frame per tick
+        when it sends every tick; with event-triggered λ fewer, but its k setpoints (one
+        every SETPOINT_EVERY ticks from its first) took (k − 1)·SETPOINT_EVERY + 1."""
+        s = self.sequences.get(f"AGENT_{agent}_Setpoint")
+        setpoints = 0 if s is None else s.frames
+        every = contract.every_ticks(contract.setpoint_name(1))
+        return max(self.mc_frames(agent), (setpoints - 1) * every + 1)
+
 
 # why a log line holds no frame (LogContents.skipped_lines), as the report words it
 LINE_CAUSES = {

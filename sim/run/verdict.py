@@ -594,13 +594,14 @@ def _counters(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly
 
 def node_deadlines(log: LogContents, node_counters: dict[str, Any] | None
                    ) -> dict[str, tuple[int, int]]:
-    """(deadline misses, ticks) per node: an agent's from its last AGENT_i_Diag and its
-    recorded MC frames (one per tick it ran) plus the misses; the plant's and router's
+    """(deadline misses, ticks) per node: an agent's from its last AGENT_i_Diag and the
+    ticks its recorded frames show it ran (LogContents.ticks_run) plus the misses; the
+    plant's and router's
     from the counters they wrote at exit."""
     out = {}
     for a, d in sorted(log.diag.items()):
         misses = d.get("DeadlineMisses", 0)
-        out[f"agent_{a}"] = (misses, log.mc_frames(a) + misses)
+        out[f"agent_{a}"] = (misses, log.ticks_run(a) + misses)
     for node, c in (node_counters or {}).items():
         out[node] = (c.get("counters", {}).get("deadline_miss", 0), c.get("ticks", 0))
     return out
