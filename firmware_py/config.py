@@ -33,8 +33,10 @@ Example (``bess-ded up`` writes one per agent into DIR/agents/)::
 
 Both timeouts default to 5 cycles of their frame (firmware_py.contract.timeout_s) at
 the controller's Ts: 5 × 50 ms = 0.25 s at Ts = 10 ms, stretched in a time-scaled run.
-Keep them (and neighbour_periods) under 8 cycles: longer, a sender's lost frames alias
-in the 4-bit E2E counter and read as foreign traffic (firmware_py.nodeio).
+Keep them (and neighbour_periods) under 8 cycles for E2E frames: longer, a sender's lost
+frames alias in the 4-bit E2E counter and read as foreign traffic (firmware_py.nodeio).
+An agent's inputs are all secured (SecOC), whose freshness window places up to 15 lost
+frames in a row (AUTH-12): event mode's neighbour timeout goes up to 15 periods.
 
     [transmit]              # optional: when the MC frame goes out (firmware-spec TX-7)
     mode = "periodic"       # "periodic": every tick; "event": see below
