@@ -35,8 +35,20 @@ Example (``bess-ded up`` writes one per agent into DIR/agents/)::
 
 Both timeouts default to 5 cycles of their frame (firmware_py.contract.timeout_s) at
 the controller's Ts: 5 × 50 ms = 0.25 s at Ts = 10 ms, stretched in a time-scaled run.
-Keep them (and neighbour_periods) under 8 cycles: longer, a sender's lost frames alias
-in the 4-bit E2E counter and read as foreign traffic (firmware_py.nodeio).
+Keep them (and neighbour_periods) under 8 cycles for E2E frames: longer, a sender's lost
+frames alias in the 4-bit E2E counter and read as foreign traffic (firmware_py.nodeio).
+An agent's inputs are all secured (SecOC), whose freshness window places up to 15 lost
+frames in a row (AUTH-12): event mode's neighbour timeout goes up to 15 periods.
+
+    [transmit]              # optional: when the MC frame goes out (firmware-spec TX-7)
+    mode = "periodic"       # "periodic": every tick; "event": see below
+    threshold = 3e-4        # event: send when |λ − λ last sent| exceeds this (cu/kWh) ...
+    heartbeat = 13          # ... and at least every this many ticks (1..13)
+
+In event mode the neighbour timeout defaults to heartbeat + 2 periods (a receiver holds
+the last λ it heard until then). Skipped ticks cost the SecOC freshness nothing: the
+message count C advances per frame sent, not per tick; the heartbeat is bounded so that
+the timeout stays under the counter's 16-value window (15 lost frames in a row).
 
     [limits]
     lambda_min = -10.0      # plausibility range for any λ or ρ received
@@ -73,7 +85,15 @@ from typing import Any
 import tomli_w
 
 from . import fixedpoint as fx
-from .contract import MC_CYCLE_S, N_AGENTS_MAX, raw_range, scale, status_name, timeout_s
+from .contract import (
+    FV_TX_BITS,
+    MC_CYCLE_S,
+    N_AGENTS_MAX,
+    raw_range,
+    scale,
+    status_name,
+    timeout_s,
+)
 from .controllers import ControllerConfig
 from .errors import ConfigError, ParameterError
 
@@ -102,6 +122,59 @@ UNTRUSTED_AFTER = 5              # consecutive E2E failures (as opendbc's safety
 UNTRUSTED_S = 1.0                # s at Ts = 10 ms, stretched with Ts
 # W-MSR's F: trimming 2F of at most N_AGENTS_MAX − 1 neighbours leaves one (WMSR-1)
 RESILIENT_F_MAX = (N_AGENTS_MAX - 1) // 2
+
+
+# event-triggered MC transmission (issue 23; docs/theory.md, docs/performance.md)
+TRANSMIT_MODES = ("periodic", "event")
+EVENT_THRESHOLD = 3e-4           # cu/kWh; the final-error cost is bounded in docs/theory.md
+EVENT_HEARTBEAT = 13             # ticks: ≥ 90 % fewer frames once settled
+NEIGHBOUR_PERIODS = 3            # periodic: a neighbour silent 3 Ts is timed out
+HEARTBEAT_MARGIN = 2             # event: timed out after heartbeat + 2 Ts of silence
+# a neighbour timeout of at most 15 periods: while a neighbour counts as alive, at most 15
+# of its frames in a row can be lost, which the 4-bit counter window still places (AUTH-12)
+HEARTBEAT_MAX = (1 << FV_TX_BITS) - 1 - HEARTBEAT_MARGIN  # 13
+
+
+@dataclass(frozen=True)
+class Transmit:
+    """When an agent sends its MC frame: every tick ("periodic"), or ("event") when its
+    wire λ moved more than ``threshold`` (cu/kWh) from the λ last sent, when its State
+    changed, and at least every ``heartbeat`` ticks (firmware-spec TX-7)."""
+
+    mode: str = "periodic"
+    threshold: float = EVENT_THRESHOLD
+    heartbeat: int = EVENT_HEARTBEAT
+
+    def __post_init__(self) -> None:
+        if self.mode not in TRANSMIT_MODES:
+            raise ParameterError("mode", f"one of {', '.join(TRANSMIT_MODES)}", self.mode)
+        if (isinstance(self.threshold, bool) or not isinstance(self.threshold, (int, float))
+                or not (math.isfinite(self.threshold) and 0 <= self.threshold < 1)):
+            raise ParameterError("threshold", "a number in [0, 1) cu/kWh", self.threshold)
+        if (isinstance(self.heartbeat, bool) or not isinstance(self.heartbeat, int)
+                or not 1 <= self.heartbeat <= HEARTBEAT_MAX):
+            raise ParameterError("heartbeat", f"an integer number of ticks in "
+                                 f"1..{HEARTBEAT_MAX}", self.heartbeat)
+
+    @property
+    def event(self) -> bool:
+        """Event-triggered (else every tick)."""
+        return self.mode == "event"
+
+    @property
+    def threshold_q24(self) -> int:
+        """The threshold as a Q24 word (q24, NUM-4)."""
+        return fx.to_fixed(float(self.threshold), "transmit.threshold")
+
+    @property
+    def neighbour_periods(self) -> int:
+        """The default neighbour timeout in periods: a receiver holds a silent
+        neighbour's λ for up to one heartbeat plus the margin."""
+        return self.heartbeat + HEARTBEAT_MARGIN if self.event else NEIGHBOUR_PERIODS
+
+    def to_doc(self) -> dict[str, Any]:
+        """The [transmit] table (to_toml)."""
+        return {"mode": self.mode, "threshold": self.threshold, "heartbeat": self.heartbeat}
 
 
 def untrusted_s(ts: float) -> float:
@@ -139,7 +212,7 @@ class AgentConfig:
     controller: ControllerConfig
     neighbours: tuple[Neighbour, ...]
     battery: DispatchParams
-    neighbour_timeout_periods: int = 3
+    neighbour_timeout_periods: int = NEIGHBOUR_PERIODS
     price_timeout_s: float = PRICE_TIMEOUT_S
     status_timeout_s: float = STATUS_TIMEOUT_S
     lambda_min: float = -10.0
@@ -158,6 +231,7 @@ class AgentConfig:
     untrusted_after: int = UNTRUSTED_AFTER
     untrusted_s: float | None = None
     resilient_f: int = 0            # W-MSR trimming (controllers.resilient_trim); 0: off
+    transmit: Transmit = Transmit()
     source: str = "<config>"
 
     def __post_init__(self) -> None:
@@ -196,6 +270,8 @@ class AgentConfig:
                        "untrusted_after": self.untrusted_after,
                        "untrusted_s": self.untrusted_s},
         }
+        if self.transmit != Transmit():  # periodic files stay as they were
+            doc["transmit"] = self.transmit.to_doc()
         # tomli-w inlines short arrays of tables; [[neighbour]] blocks read better when edited
         nbrs = "".join("\n[[neighbour]]\n" + tomli_w.dumps({"id": nb.id, "weight": nb.weight})
                        for nb in self.neighbours)
@@ -263,9 +339,10 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         return x
 
     for k in data:
-        if k not in {"agent", "controller", "neighbour", "battery", "timeouts", "limits"}:
+        if k not in {"agent", "controller", "neighbour", "battery", "timeouts", "limits",
+                     "transmit"}:
             raise fail(k, "unknown table; expected agent, controller, neighbour, battery, "
-                       "timeouts or limits")
+                       "timeouts, limits or transmit")
     a = table("agent", {"id", "lambda0", "pinned", "fleet_size", "resilient_f"})
     ident = agent_id(a.get("id"), "agent.id")
     pinned = a.get("pinned", False)
@@ -325,7 +402,17 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
             raise fail(f"battery.{key}", f"expected a limit within ±327.67 kW (the setpoint "
                        f"frame's range), but got {value}")
 
+    tx = table("transmit", {"mode", "threshold", "heartbeat"}, required=False)
+    try:
+        transmit = Transmit(**tx)
+    except ParameterError as e:
+        raise fail(f"transmit.{e.name}", f"expected {e.expected}, but got {e.got!r}") from None
     t = table("timeouts", {"neighbour_periods", "price_s", "status_s"}, required=False)
+    periods = int(num(t, "timeouts", "neighbour_periods", 1, 100, transmit.neighbour_periods))
+    if transmit.event and periods <= transmit.heartbeat:
+        raise fail("timeouts.neighbour_periods", f"expected more than transmit.heartbeat = "
+                   f"{transmit.heartbeat} periods (a neighbour may be silent that long), but "
+                   f"got {periods}")
     lim = table("limits", {"lambda_min", "lambda_max", "rho_min", "rho_max", "price_step_max",
                            "price_persist", "lambda_step_max", "k_min", "k_max", "h_min",
                            "h_max", "untrusted_after", "untrusted_s"}, required=False)
@@ -342,7 +429,7 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
     cfg = AgentConfig(
         id=ident, lambda0=num(a, "agent", "lambda0", -100, 100), pinned=pinned,
         controller=controller, neighbours=tuple(neighbours), battery=battery,
-        neighbour_timeout_periods=int(num(t, "timeouts", "neighbour_periods", 1, 100, 3)),
+        neighbour_timeout_periods=periods, transmit=transmit,
         price_timeout_s=num(t, "timeouts", "price_s", 0.01, 60,
                             timeout_s("ER_Price", controller.ts)),
         status_timeout_s=num(t, "timeouts", "status_s", 0.01, 60,
@@ -405,5 +492,7 @@ def agent_configs_from_scenario(sc: Any) -> list[AgentConfig]:
             h_max=min(GAIN_HI * sc.controller.h, GAIN_MAX),
             # the scenario's price plausibility limits
             rho_min=sc.rho_min, rho_max=sc.rho_max, price_step_max=sc.price_step_max,
-            resilient_f=sc.resilient_f, fleet_size=sc.n, source=f"{sc.source}#agent{i}"))
+            resilient_f=sc.resilient_f, fleet_size=sc.n, transmit=sc.transmit,
+            neighbour_timeout_periods=sc.transmit.neighbour_periods,
+            source=f"{sc.source}#agent{i}"))
     return out

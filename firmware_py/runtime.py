@@ -31,10 +31,11 @@ controller's Ts (contract.timeout_s), 0.25 s at Ts = 10 ms. A frame is fresh whi
 frame's E2E counter tracker (an outage's counter gap aliases); ``plant_faults`` counts
 rising edges of the over-current/voltage flags.
 
-Cadences come from the DBC: the MC frame every tick, the setpoint and diagnostics
-every ``contract.every_ticks`` ticks (5 and 10 at the DBC's cycles), so a node with a
-longer Ts stretches them all alike. The diagnostics rotate over ``DIAG_PAGES``, one
-page per diag frame.
+Cadences come from the DBC: the MC frame every tick (or, with ``[transmit] mode =
+"event"``, when λ moved beyond a threshold, the State changed or a heartbeat is due:
+``_mc_due``), the setpoint and diagnostics every ``contract.every_ticks`` ticks (5 and 10
+at the DBC's cycles), so a node with a longer Ts stretches them all alike. The diagnostics
+rotate over ``DIAG_PAGES``, one page per diag frame.
 
 Safety model (docs/safety-model.md): on top of the E2E checks (and NodeIO's untrusted
 sources), an accepted price outside ``[rho_min, rho_max]`` or more than
@@ -177,6 +178,10 @@ class AgentRuntime:
         self.power_limited = False
         self.ticks = 0
         self._now = 0.0
+        # TX-7: the (λ, State) of the last MC frame sent and the ticks since
+        self._mc_last: tuple[int, State] | None = None
+        self._mc_age = 0
+        self._mc_threshold = cfg.transmit.threshold_q24
 
     # ------------------------------------------------------------------ receive
 
@@ -368,7 +373,8 @@ class AgentRuntime:
             self.cstate, _ = self.ctrl.step(self.cstate, xi)
             self.counters["saturations"] += sat
         frames = self.io.syncs(t)
-        frames.append(self._mc_frame())
+        if self._mc_due():
+            frames.append(self._mc_frame())
         if self.ticks % SETPOINT_EVERY == 0:
             frames.append(self._setpoint_frame())
         if self.ticks % DIAG_EVERY == 0:
@@ -430,6 +436,20 @@ class AgentRuntime:
     def neighbours_alive(self) -> int:
         """How many neighbours are alive and active (their λ enters ξ)."""
         return sum(s.alive and is_active(s.state) for s in self.neighbours.values())
+
+    def _mc_due(self) -> bool:
+        """TX-1/TX-7: send the MC frame this tick? Always when periodic; in event mode the
+        first tick, a State change, |λ − λ last sent| > threshold, or ``heartbeat`` ticks
+        since the last one (the neighbours hold the last λ they heard until then)."""
+        tx = self.cfg.transmit
+        lam = self.lambda_q24
+        self._mc_age += 1
+        if (tx.event and self._mc_last is not None and self._mc_age < tx.heartbeat
+                and self._mc_last[1] == self.state
+                and abs(lam - self._mc_last[0]) <= self._mc_threshold):
+            return False
+        self._mc_last, self._mc_age = (lam, self.state), 0
+        return True
 
     def _mc_frame(self) -> can.Message:
         return self.io.send(mc_name(self.cfg.id), {

@@ -112,16 +112,19 @@ EVENT = st.one_of(
               st.binary(min_size=7, max_size=8), st.just(0)),
 )
 # the configuration variants: key file and fleet of 4; the setpoint clipped at ±0.5 kW;
-# --insecure with no fleet size (peer syncs of any agent, keys derived on demand)
-VARIANTS = {"base": ("fleet_size = 4", -100.0, 100.0, False),
-            "clipped": ("fleet_size = 4", -0.5, 0.5, False),
-            "insecure": ("", -100.0, 100.0, True)}
+# --insecure with no fleet size (peer syncs of any agent, keys derived on demand); the MC
+# frame event-triggered (TX-7, a short heartbeat)
+VARIANTS = {"base": ("fleet_size = 4", -100.0, 100.0, False, ""),
+            "clipped": ("fleet_size = 4", -0.5, 0.5, False, ""),
+            "insecure": ("", -100.0, 100.0, True, ""),
+            "event": ("fleet_size = 4", -100.0, 100.0, False,
+                      '\n[transmit]\nmode = "event"\nheartbeat = 6\n')}
 
 
 def _both(variant: str) -> tuple[AgentRuntime, CAgent]:
-    fleet, p_min, p_max, insecure = VARIANTS[variant]
+    fleet, p_min, p_max, insecure, extra = VARIANTS[variant]
     cfg = parse_agent_config(tomllib.loads(CONFIG.format(fleet=fleet, p_min=p_min,
-                                                         p_max=p_max)), "random.toml")
+                                                         p_max=p_max) + extra), "random.toml")
     peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
 
     def ring() -> Keyring:
@@ -247,9 +250,9 @@ def run_both(variant: str, events: list[tuple]) -> tuple[AgentRuntime, CAgent]:
 
 
 def _cfg(variant: str = "base") -> Any:
-    fleet, p_min, p_max, _ = VARIANTS[variant]
+    fleet, p_min, p_max, _, extra = VARIANTS[variant]
     return parse_agent_config(tomllib.loads(CONFIG.format(fleet=fleet, p_min=p_min,
-                                                          p_max=p_max)), "edge.toml")
+                                                          p_max=p_max) + extra), "edge.toml")
 
 
 @pytest.mark.parametrize("peers", [("router", "plant", "agent_1", "agent_3"),

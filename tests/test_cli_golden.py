@@ -27,6 +27,9 @@ RUNS = {
     "case3_c": ["case", "3", "--impl", "c", "--no-plot"],
     "compare2": ["compare", "2"],
     "deploy7": ["deploy", "--case", "7"],
+    # event-triggered λ (issue 23): the MC frames sent, the agents' [transmit] tables
+    "case7_event": ["case", "7", "--transmit", "event", "--no-plot"],
+    "deploy1_event": ["deploy", "--case", "1", "--transmit", "event", "--insecure"],
 }
 
 

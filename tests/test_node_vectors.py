@@ -289,6 +289,8 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
     elif kind == "no_dwell":
         mp.setattr(controllers.DwellResetPIController, "_reset_now",
                    controllers.ResetPIController._reset_now)
+    elif kind == "mc_every_tick":  # TX-7 ignored: the MC frame every tick in event mode
+        mp.setattr(AgentRuntime, "_mc_due", lambda self: True)
     elif kind == "state_entry_restarts_dwell_and_band":
         mp.setattr(AgentRuntime, "_update_state", _restart_at_entry(AgentRuntime._update_state))
     elif kind == "resilient_f_ignored":   # WMSR-1 broken: no trimming
@@ -306,7 +308,7 @@ MUTATIONS: dict[str, list[str]] = {
     # the reset-PI vectors but price_steps and tx_count_wrap (insecure_scaled runs the
     # dwell controller)
     "band_rearms_at_reset": [
-        "auth_forgery_replay", "boot_floors", "commands", "init_wait_status",
+        "auth_forgery_replay", "boot_floors", "commands", "event_transmit", "init_wait_status",
         "malformed_foreign", "neighbour_timeout", "peer_restart", "price_timeout_safe",
         "resilient_trim", "start_steady", "status_fault_timeout", "sync_boot_jump"],
     # every vector: each sends Diag pages
@@ -319,6 +321,7 @@ MUTATIONS: dict[str, list[str]] = {
     "state_entry_restarts_dwell_and_band": ["insecure_scaled"],
     "resilient_f_ignored": ["resilient_trim"],
     "trim_ties_by_smaller_weight": ["resilient_trim"],
+    "mc_every_tick": ["event_transmit"],
 }
 
 

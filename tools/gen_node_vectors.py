@@ -945,11 +945,43 @@ def sc_resilient() -> Scenario:
     return s
 
 
+def sc_event_transmit() -> Scenario:
+    s = Scenario(
+        "event_transmit",
+        "Event-triggered MC ([transmit] mode = event, threshold 3e-4, heartbeat 5: the "
+        "neighbour timeout defaults to 7 periods): the first tick sends; then an MC frame "
+        "only when the wire lambda moved more than the threshold from the one last sent, the "
+        "State changed (INIT -> RUNNING, ISOLATE, RECONNECT), or 5 ticks passed; its message "
+        "count C advances per frame sent, not per tick (AUTH-4), and MC_Sync announces the "
+        "next one. Agent 1 sends every 4th tick only and agent 3 falls silent for 6 ticks: "
+        "held and alive (in xi); agent 3 silent for 9 ticks times out (7 periods) and comes "
+        "back. A price step moves lambda: a frame every tick while it moves fast.",
+        ["CFG-6", "CFG-9", "TX-1", "TX-7", "TICK-1", "LIVE-2", "LIVE-3", "AUTH-4", "AUTH-8",
+         "XI-1", "DIAG-1"],
+        extra_toml='\n[transmit]\nmode = "event"\nthreshold = 3e-4\nheartbeat = 5\n')
+    nb = start(s)
+    s.run(60, price=RHO, nbrs=nb)
+    sparse = {1: lambda k: nb[1](k) if k % 4 == 0 else None, 3: nb[3]}
+    s.run(40, price=RHO, nbrs=sparse)
+    s.run(6, price=RHO, nbrs={1: sparse[1]})        # agent 3 silent 6 ticks: still alive
+    s.run(20, price=RHO, nbrs=sparse)
+    s.run(9, price=RHO, nbrs={1: sparse[1]})        # 9 ticks: timed out after 7 periods
+    s.run(30, price=RHO, nbrs=sparse)
+    s.command("ISOLATE", note="ISOLATE: the State change is sent at once")
+    s.run(12, price=RHO, nbrs=sparse)
+    s.command("RECONNECT", note="RECONNECT: INIT, then RUNNING: both sent")
+    s.run(20, price=RHO, nbrs=sparse)
+    rho2 = q24(0.9)
+    s.run(5, price=rho2, nbrs=sparse)               # a price step: lambda moves
+    s.run(200, price=rho2, nbrs=sparse)
+    return s
+
+
 SCENARIOS: tuple[Callable[[], Scenario], ...] = (
     sc_start_steady, sc_init_wait, sc_neighbour_timeout, sc_price_timeout, sc_status,
     sc_commands, sc_auth, sc_peer_restart, sc_malformed, sc_price_steps, sc_tx_wrap,
     sc_insecure, sc_boot_floors, sc_boot_jump,
-    sc_resilient)
+    sc_resilient, sc_event_transmit)
 
 
 def render_all() -> dict[str, str]:

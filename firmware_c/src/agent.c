@@ -399,6 +399,24 @@ static int64_t setpoint_raw(int32_t lam, int64_t g, int64_t o)
     return ch + ((cl << 32) + r) / (INT64_C(1) << 40) - o;
 }
 
+/* TX-7: send the MC frame this tick? Always when periodic; in event mode the first tick,
+ * a State change, |lambda - lambda last sent| > threshold, or heartbeat ticks since the
+ * last one (its neighbours hold the lambda they last heard until then). */
+static int mc_due(bd_agent *a, int32_t lam)
+{
+    int64_t moved = (int64_t)lam - (int64_t)a->mc_last_lam;
+    a->mc_age++;
+    if (a->p.tx_event != 0u && a->mc_has_last != 0 && a->mc_age < a->p.tx_heartbeat
+        && a->mc_last_state == a->state && (moved < 0 ? -moved : moved) <= a->p.tx_threshold) {
+        return 0;
+    }
+    a->mc_last_lam = lam;
+    a->mc_last_state = a->state;
+    a->mc_age = 0u;
+    a->mc_has_last = 1;
+    return 1;
+}
+
 size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
 {
     bd_frame buf[BD_TICK_FRAMES_MAX];
@@ -415,16 +433,18 @@ size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
     }
     n = syncs(a, t, buf);
     int32_t lam = bd_agent_lambda(a);
-    /* MC every tick (TX-1) */
-    if (next_count(a, 0, &count) != 0) {
-        return 0u;
+    /* MC every tick (TX-1), or when due in event mode (TX-7) */
+    if (mc_due(a, lam)) {
+        if (next_count(a, 0, &count) != 0) {
+            return 0u;
+        }
+        frame_init(&buf[n], a->echo[ECHO_MC].id);
+        bd_encode_mc(count % FV_WINDOW, a->state,
+                     a->cs.resets % (BD_AGENT_MC_RESETS_MAX + 1u), lam, buf[n].data);
+        sign(a, &buf[n], fv_join(a->boot, count));
+        remember(&a->echo[ECHO_MC], buf[n].data);
+        n++;
     }
-    frame_init(&buf[n], a->echo[ECHO_MC].id);
-    bd_encode_mc(count % FV_WINDOW, a->state,
-                 a->cs.resets % (BD_AGENT_MC_RESETS_MAX + 1u), lam, buf[n].data);
-    sign(a, &buf[n], fv_join(a->boot, count));
-    remember(&a->echo[ECHO_MC], buf[n].data);
-    n++;
     if (a->ticks % BD_SETPOINT_EVERY == 0u) {   /* SP-1..3 */
         int32_t p = 0;
         uint32_t enable = active(a->state) ? 1u : 0u;

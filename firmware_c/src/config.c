@@ -13,6 +13,14 @@
 
 #include "toml.h"
 
+/* [transmit] defaults (firmware_py/config.py: EVENT_THRESHOLD, EVENT_HEARTBEAT, ...): a
+ * neighbour timeout of heartbeat + margin periods stays within the 4-bit counter window,
+ * so at most 15 frames of a live neighbour can be lost in a row (CFG-9, AUTH-12) */
+#define BD_EVENT_THRESHOLD 3e-4
+#define BD_EVENT_HEARTBEAT 13
+#define BD_HEARTBEAT_MARGIN 2
+#define BD_EVENT_HEARTBEAT_MAX ((1 << BD_FV_TX_BITS) - 1 - BD_HEARTBEAT_MARGIN)
+
 /* Unknown keys of a table (CFG-1): "[table.key] unknown key; expected one of ..." */
 static int check_keys(toml_doc *d, const char *table, const char *const *allowed,
                       const char *list)
@@ -317,7 +325,7 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
     memset(p, 0, sizeof *p);
     /* CFG-1: the tables */
     static const char *const tables[] = {"agent", "controller", "neighbour", "battery",
-                                         "timeouts", "limits", NULL};
+                                         "timeouts", "limits", "transmit", NULL};
     for (int k = 0; k < d.n; ++k) {
         int ok = 0;
         for (const char *const *t = tables; *t != NULL; ++t) {
@@ -326,7 +334,7 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
         if (!ok) {
             return bd_toml_errorf(&d, d.e[k].table[0] != '\0' ? d.e[k].table : d.e[k].key,
                                   "unknown table; expected agent, controller, neighbour, "
-                                  "battery, timeouts or limits");
+                                  "battery, timeouts, limits or transmit");
         }
     }
     for (int k = 0; k < d.n_tables; ++k) {
@@ -336,7 +344,8 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
         }
         if (!ok) {
             return bd_toml_errorf(&d, d.tables[k], "unknown table; expected agent, "
-                                  "controller, neighbour, battery, timeouts or limits");
+                                  "controller, neighbour, battery, timeouts, limits or "
+                                  "transmit");
         }
     }
     /* CFG-2 */
@@ -457,6 +466,42 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
         return bd_toml_errorf(&d, "battery.p_max", "expected a limit within ±327.67 kW (the "
                               "setpoint frame's range), but got %.17g", p_max);
     }
+    /* CFG-9: [transmit] (firmware_py.config.Transmit) */
+    static const char *const transmit_keys[] = {"mode", "threshold", "heartbeat", NULL};
+    double threshold = BD_EVENT_THRESHOLD;
+    long long heartbeat = BD_EVENT_HEARTBEAT;
+    if (check_keys(&d, "transmit", transmit_keys, "heartbeat, mode, threshold") != 0) {
+        return -1;
+    }
+    e = bd_toml_find(&d, "transmit", -1, "mode");
+    p->tx_event = 0u;
+    if (e != NULL) {
+        if (e->type != TOML_STRING || (strcmp(e->s, "periodic") != 0
+                                       && strcmp(e->s, "event") != 0)) {
+            return bd_toml_errorf(&d, "transmit.mode", "expected one of periodic, event, but "
+                                  "got %s", bd_toml_repr(e, got, sizeof got));
+        }
+        p->tx_event = strcmp(e->s, "event") == 0 ? 1u : 0u;
+    }
+    e = bd_toml_find(&d, "transmit", -1, "threshold");
+    if (e != NULL) {
+        if (!finite_entry(e) || !(e->f >= 0.0 && e->f < 1.0)) {
+            return bd_toml_errorf(&d, "transmit.threshold", "expected a number in [0, 1) "
+                                  "cu/kWh, but got %s", bd_toml_repr(e, got, sizeof got));
+        }
+        threshold = e->f;
+    }
+    e = bd_toml_find(&d, "transmit", -1, "heartbeat");
+    if (e != NULL) {
+        if (e->type != TOML_INT || e->i < 1 || e->i > BD_EVENT_HEARTBEAT_MAX) {
+            return bd_toml_errorf(&d, "transmit.heartbeat", "expected an integer number of "
+                                  "ticks in 1..%d, but got %s", BD_EVENT_HEARTBEAT_MAX,
+                                  bd_toml_repr(e, got, sizeof got));
+        }
+        heartbeat = e->i;
+    }
+    (void)q24(threshold, &p->tx_threshold);
+    p->tx_heartbeat = (uint32_t)heartbeat;
     /* CFG-6, CFG-7 */
     static const char *const timeout_keys[] = {"neighbour_periods", "price_s", "status_s", NULL};
     static const char *const limit_keys[] = {
@@ -471,7 +516,10 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
     }
     const double every_price = BD_PRICE_EVERY, every_status = BD_STATUS_EVERY;
     const double cycles = BD_TIMEOUT_CYCLES;
-    const double d_periods = 3.0, d_price = cycles * (every_price * ts),
+    /* in event mode a neighbour may be silent for a heartbeat: the default timeout is
+     * heartbeat + 2 periods (TX-7) */
+    const double d_periods = p->tx_event != 0u ? (double)(heartbeat + BD_HEARTBEAT_MARGIN) : 3.0,
+                 d_price = cycles * (every_price * ts),
                  d_status = cycles * (every_status * ts);
     const double d_lmin = -10.0, d_lmax = 10.0, d_rmin = -5.0, d_rmax = 5.0, d_step = 0.5;
     const double gain_max = BD_GAIN_RAW_MAX * (1.0 / BD_GAIN_SCALE_DIV);
@@ -498,6 +546,11 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
         || count(&d, "untrusted_after", 1, 1000, 5, &p->untrusted_after) != 0
         || num(&d, "limits", -1, "untrusted_s", 0.0, 3600.0, &untrusted, &untrusted) != 0) {
         return -1;
+    }
+    if (p->tx_event != 0u && trunc(periods) <= (double)heartbeat) {
+        return bd_toml_errorf(&d, "timeouts.neighbour_periods", "expected more than "
+                              "transmit.heartbeat = %lld periods (a neighbour may be silent "
+                              "that long), but got %.0f", heartbeat, trunc(periods));
     }
     if (!(lmin < lambda0 && lambda0 < lmax)) {
         return bd_toml_errorf(&d, "agent.lambda0", "expected a value inside limits [%.17g, "

@@ -581,6 +581,26 @@ def input_checks(quick: bool) -> Table:
                  data={r[0]: float(r[1]) for r in rows})
 
 
+def event_transmit(quick: bool) -> Table:
+    """Event-triggered λ against periodic on the paper cases (sim.bench.event): MC frames
+    over the run and once settled, settling time, final error; deterministic lockstep
+    figures (docs/performance.md). --quick: each case's own controller, no variants."""
+    from firmware_py.config import Transmit
+    from sim.bench.event import HEADERS, paper_cases, rows
+
+    tx = Transmit("event")
+    results = paper_cases(tx, variants=not quick)
+    ok = all(c.accepted for c in results)
+    note = (f"threshold {tx.threshold:g} cu/kWh, heartbeat {tx.heartbeat} ticks; issue 23's "
+            f"acceptance (≥ 50 % fewer, ≥ 90 % fewer once settled, settling ≤ 1.1×, final "
+            f"error ≤ 1e-3): {'met' if ok else 'NOT met'}")
+    data = {f"case{c.case}/{c.label}": {"frames": c.frames, "settled_frames": c.settled_frames,
+                                        "settling_s": c.settling, "final_error": c.final_error}
+            for c in results}
+    return Table("Event-triggered λ against periodic (lockstep, MC frames of all agents)",
+                 HEADERS, rows(results), note=note, data=data)
+
+
 BENCHES: list[Bench] = [
     controller_step,
     c_controller_step,
@@ -592,6 +612,7 @@ BENCHES: list[Bench] = [
     input_checks,
     bus_load,
     secoc_settling,
+    event_transmit,
 ]
 
 

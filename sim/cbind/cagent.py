@@ -62,6 +62,8 @@ class Params(ctypes.Structure):
         ("price_persist", ctypes.c_uint32), ("untrusted_after", ctypes.c_uint32),
         ("gain_k_raw_min", ctypes.c_uint32), ("gain_k_raw_max", ctypes.c_uint32),
         ("gain_h_raw_min", ctypes.c_uint32), ("gain_h_raw_max", ctypes.c_uint32),
+        ("tx_event", ctypes.c_uint32), ("tx_threshold", ctypes.c_int32),
+        ("tx_heartbeat", ctypes.c_uint32),
     ]
 
 
@@ -302,6 +304,9 @@ def params_of(cfg: AgentConfig) -> Params:
     p.untrusted_after = cfg.untrusted_after
     p.gain_k_raw_min, p.gain_k_raw_max = _gain_raw_bounds(cfg.k_min, cfg.k_max)
     p.gain_h_raw_min, p.gain_h_raw_max = _gain_raw_bounds(cfg.h_min, cfg.h_max)
+    p.tx_event = int(cfg.transmit.event)
+    p.tx_threshold = cfg.transmit.threshold_q24
+    p.tx_heartbeat = cfg.transmit.heartbeat
     return p
 
 

@@ -90,3 +90,14 @@ def add_arithmetic_arguments(p: argparse.ArgumentParser) -> None:
                    help="fixed point (Q24 words, Q54 state), what the firmware runs (default)")
     g.add_argument("--float", dest="fixed", action="store_false",
                    help="the float twin of the same controller")
+
+
+def add_transmit_argument(p: argparse.ArgumentParser) -> None:
+    """--transmit periodic|event: how the agents send their λ (firmware-spec TX-7)."""
+    from firmware_py.config import TRANSMIT_MODES
+
+    p.add_argument("--transmit", choices=TRANSMIT_MODES, default=None,
+                   help="the agents send their λ (MC frame) every tick (periodic) or when it "
+                   "moved more than a threshold and at least every heartbeat (event; the "
+                   "scenario's event_threshold, event_heartbeat); default: the scenario's "
+                   "transmit, else periodic")

@@ -26,7 +26,12 @@ from pathlib import Path
 def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.cliargs import positive_float, time_scale
 
-    from ._common import add_case_option, add_no_plot_argument, one_line_errors
+    from ._common import (
+        add_case_option,
+        add_no_plot_argument,
+        add_transmit_argument,
+        one_line_errors,
+    )
 
     p = one_line_errors(sub.add_parser(
         "analyze", help="metrics, anomalies and plots from a recorded CAN log",
@@ -35,6 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="candump-format log of the fleet, or the directory `up` wrote")
     add_case_option(p, required=False)
     p.add_argument("--variant", metavar="LABEL", help="the variant that ran (cases 2, 3, 6)")
+    add_transmit_argument(p)
     p.add_argument("--time-scale", type=time_scale, metavar="F",
                    help="the --time-scale the run used (default: the run's, else 1)")
     p.add_argument("--tolerance", type=positive_float(), metavar="CU",
@@ -59,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
     from sim.run.runreport import summary_lines
 
     analysis = prepare_analysis(args.log, args.case, args.variant, args.time_scale,
-                                args.tolerance, args.out, args.counters, args.keys)
+                                args.tolerance, args.out, args.counters, args.keys,
+                                transmit=args.transmit)
     print(analysis.describe())
     rec = analysis.run(plot=not args.no_plot)
     for line in summary_lines(rec.metrics, rec.verdict, analysis.time_scale):

@@ -27,6 +27,7 @@ from ._common import (
     add_arithmetic_arguments,
     add_no_plot_argument,
     add_scenario_argument,
+    add_transmit_argument,
     one_line_errors,
     scenario_spec,
 )
@@ -52,6 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "above its own and F below before ξ; prints whether the graph meets its "
                    "condition (default: the scenario's resilient_f, else 0: off)")
     add_arithmetic_arguments(p)
+    add_transmit_argument(p)
     p.add_argument("--impl", choices=("py", "c"), default="py",
                    help="the controller implementation the agents step: firmware_py "
                    "(default) or firmware_c's C core (fixed point; the same trajectory bit "
@@ -65,12 +67,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from sim.model.metrics import SETTLING_BAND
-    from sim.model.scenario_select import resolve_scenario
+    from sim.model.scenario_select import resolve_scenario, with_transmit
     from sim.report.textfmt import controller_desc, describe, fmt_settling
     from sim.run.lockstep_case import run_case, summary_table
 
     t0 = time.perf_counter()
-    sc = resolve_scenario(scenario_spec(args))
+    sc = with_transmit(resolve_scenario(scenario_spec(args)), args.transmit)
     if args.resilient is not None:
         sc = replace(sc, resilient_f=args.resilient)
     result = run_case(sc, controller=args.controller, band=args.band, dwell=args.dwell,
@@ -109,6 +111,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"settling time ({SETTLING_BAND:.0%} band), per price segment:")
         for label, s, _, m in results:
             print(f"  {label:<{width}}  {fmt_settling(s, m['settling_times_s'])}")
+        print()
+    if sc.transmit.event:
+        tx = sc.transmit
+        print(f"event-triggered λ (threshold {tx.threshold:g} cu/kWh, heartbeat "
+              f"{tx.heartbeat} ticks), MC frames sent of one per agent and tick:")
+        width = max(len(label) for label, _ in runs)
+        for label, _, _, m in results:
+            print(f"  {label:<{width}}  {m['mc_frames']} of {m['mc_frames_periodic']} "
+                  f"({1 - m['mc_frames'] / m['mc_frames_periodic']:.1%} fewer)")
         print()
     print(f"wrote ({time.perf_counter() - t0:.1f} s):")
     for path in written:

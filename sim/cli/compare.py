@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from sim.model.scenario import Scenario
-from sim.model.scenario_select import resolve_scenario
+from sim.model.scenario_select import resolve_scenario, with_transmit
 from sim.report.textfmt import (
     describe,
     fmt_pct,
@@ -29,7 +29,13 @@ from sim.report.textfmt import (
 )
 from sim.run.lockstep_case import simulate
 
-from ._common import add_arithmetic_arguments, add_scenario_argument, one_line_errors, scenario_spec
+from ._common import (
+    add_arithmetic_arguments,
+    add_scenario_argument,
+    add_transmit_argument,
+    one_line_errors,
+    scenario_spec,
+)
 
 # (label, controller overrides): the paper's method first, then its baselines
 CONTROLLERS: tuple[tuple[str, dict[str, Any]], ...] = (
@@ -46,6 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_scenario_argument(p)
     add_arithmetic_arguments(p)
+    add_transmit_argument(p)
     p.add_argument("--out", type=Path, metavar="DIR",
                    help="output directory (default: runs/compare-<scenario name>)")
     one_line_errors(p)
@@ -61,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     from sim.report import plots
 
     t0 = time.perf_counter()
-    sc = resolve_scenario(scenario_spec(args))
+    sc = with_transmit(resolve_scenario(scenario_spec(args)), args.transmit)
     runs = plan(sc)
     out: Path = args.out or Path("runs") / f"compare-{slug(sc.name)}"
     out.mkdir(parents=True, exist_ok=True)

@@ -24,7 +24,7 @@ from pathlib import Path
 def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.cliargs import time_scale
 
-    from ._common import add_case_option, one_line_errors
+    from ._common import add_case_option, add_transmit_argument, one_line_errors
 
     p = one_line_errors(sub.add_parser(
         "deploy", help="write a scenario's node configurations and key files, run nothing",
@@ -33,6 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--variant", metavar="LABEL",
                    help="for a scenario with variants (cases 2, 3, 6): which one "
                    "(default: the first)")
+    add_transmit_argument(p)
     p.add_argument("--time-scale", type=time_scale, default=1.0, metavar="F",
                    help="stretch the time axis by F (Ts·F, k/F, h/F²), as `up --time-scale`")
     p.add_argument("--out", type=Path, metavar="DIR",
@@ -54,11 +55,12 @@ def run(args: argparse.Namespace) -> int:
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
     from sim.model.scenario import scaled, to_toml
-    from sim.model.scenario_select import pick_variant, resolve_scenario
+    from sim.model.scenario_select import pick_variant, resolve_scenario, with_transmit
     from sim.run.keyset import check_key_set, prepare_key_dir, write_key_set
     from sim.run.nodeprocs import RT_PRIORITY
 
     sc, chosen = pick_variant(resolve_scenario(args.case), args.variant, "deploy")
+    sc = with_transmit(sc, args.transmit)
     sc = scaled(sc, args.time_scale)
     out: Path = args.out or Path("runs") / f"deploy-{sc.name}"
     # everything checked before anything is written

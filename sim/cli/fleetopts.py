@@ -20,9 +20,10 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
     output, time scale, keys."""
     from firmware_py.cliargs import duration_s, time_scale
 
-    from ._common import add_case_option, add_no_plot_argument
+    from ._common import add_case_option, add_no_plot_argument, add_transmit_argument
 
     add_case_option(p)
+    add_transmit_argument(p)
     p.add_argument("--variant", metavar="LABEL",
                    help="for a scenario with variants (cases 2, 3, 6): which one to run "
                    "(default: the first)")
@@ -66,7 +67,8 @@ def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
     return plan_fleet_run(args.case, variant=args.variant,
                           bus=busrun.BusOptions(args.interface, args.channel, args.bus_config),
                           duration=args.duration, out=args.out, time_scale=args.time_scale,
-                          keys=args.keys, insecure=args.insecure, command=command, nodes=nodes)
+                          keys=args.keys, insecure=args.insecure, command=command, nodes=nodes,
+                          transmit=args.transmit)
 
 
 def print_report(plan: RunPlan, rec: Recording) -> int:

@@ -135,6 +135,9 @@ NOT_ON_BUS: dict[str, str] = {
              "limits step), not at each key's own bounds: unit tests (test_config.py)",
     "CFG-2": "as CFG-1", "CFG-3": "as CFG-1", "CFG-4": "as CFG-1", "CFG-5": "as CFG-1",
     "CFG-6": "as CFG-1", "CFG-7": "as CFG-1", "CFG-8": "as CFG-1 (the key file)",
+    "CFG-9": "as CFG-1",
+    "TX-7": "the schedule runs periodic DUTs (the default); event-triggered sending is "
+            "pinned by the node vector event_transmit, in firmware_py and firmware_c",
     "LOOP-1": "the run loop's timing depends on the DUT's host, not on the bus",
     "LOOP-2": "deadline misses depend on the DUT's host (DeadlineMisses is not compared)",
     "LOOP-3": "the DUT's clock is not visible on the bus", "LOOP-4": "as RX-2",

@@ -14,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 
 from firmware_py.controllers import consensus_error, make_controller
-from sim.model.links import Links
+from sim.model.links import Links, Transmitter
 from sim.model.scenario import Event, Scenario
 from sim.model.trajectory import Trajectory
 from sim.model.vlockstep import run_vectorised, vectorisable
@@ -79,7 +79,8 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
     neighbours = [[(j - 1, q(w, "weight")) for j, w in sc.neighbours(i)] for i in range(1, n + 1)]
     senders = np.array([j for nb in neighbours for j, _ in nb], dtype=np.int64)
     first_link = np.cumsum([0] + [len(nb) for nb in neighbours])  # agent i's links from here
-    links = Links(len(senders), loss, loss_seed)
+    links = Links(len(senders), loss, loss_seed, sc.transmit.neighbour_periods)
+    tx = Transmitter(n, sc.transmit, q(sc.transmit.threshold, "threshold"))
     pin = [q(1.0, "pin") if i in sc.pinned else 0 for i in range(1, n + 1)]
     states = [initial(l0) for l0 in sc.lambda0]
     active = [True] * n
@@ -89,26 +90,30 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
 
     shape = (steps, n)
     lam, u, xi, nu = (np.zeros(shape) for _ in range(4))
-    act = np.zeros(shape, dtype=bool)
+    act, sent = np.zeros(shape, dtype=bool), np.zeros(shape, dtype=bool)
     rho_arr, seg_arr = np.zeros(steps), np.zeros(steps, dtype=int)
     resets: list[list[float]] = [[] for _ in range(n)]
     real, real_state = ctrl.real, ctrl.real_state
 
     for k in range(steps):
         t = k * ts
+        # a State change is sent at once (TX-7): the start and plug-and-play events
+        force = np.full(n, k == start_tick)
         for e in events.get(k, ()):
             i = e.agent - 1
             active[i] = e.action == "reconnect"
+            force[i] = True
             if e.action == "isolate":  # off the network: P = 0, λ at its idle MC
                 states[i] = initial(sc.batteries[i].idle_lambda)
         rho, seg = sc.price_at(t)
         rho_q = q(rho, "rho")
         rho_arr[k], seg_arr[k] = rho, seg
-        lams = [wire(s) for s in states]     # the λ each agent sends at this sample
+        lams = [wire(s) for s in states]     # each agent's λ at this sample
         told = [lies[i + 1](k, int(v)) if lies and i + 1 in lies and active[i] else v
-                for i, v in enumerate(lams)]
+                for i, v in enumerate(lams)]  # what a liar sends instead (tests, tools)
+        pub, sent[k] = tx.publish(np.array(told), force)  # the λ last sent (TX-7)
         if k >= start_tick:
-            held, alive = links.exchange(np.array(told)[senders])  # Q24 ints or floats
+            held, alive = links.exchange(pub[senders], sent[k][senders])  # Q24 ints or floats
         for i, s in enumerate(states):
             lam[k, i] = real(told[i])
             act[k, i] = active[i]
@@ -132,4 +137,4 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
     return Trajectory.sampled(sc.batteries, ts, lam, act, rho=rho_arr, segment=seg_arr, u=u,
                               xi=xi, nu=nu, resets=resets,
                               saturations=sum(s.saturations for s in states),
-                              label=sc.controller.kind)
+                              label=sc.controller.kind, mc_sent=sent)

@@ -18,7 +18,14 @@ from typing import Any
 import numpy as np
 import tomli_w
 
-from firmware_py.config import PRICE_STEP_MAX, RESILIENT_F_MAX, RHO_MAX, RHO_MIN, AgentConfig
+from firmware_py.config import (
+    PRICE_STEP_MAX,
+    RESILIENT_F_MAX,
+    RHO_MAX,
+    RHO_MIN,
+    AgentConfig,
+    Transmit,
+)
 from firmware_py.contract import N_AGENTS_MAX
 from firmware_py.controllers import ControllerConfig
 from firmware_py.errors import ConfigError, ParameterError
@@ -102,6 +109,9 @@ class Scenario:
     rho_max: float = RHO_MAX
     price_step_max: float = PRICE_STEP_MAX  # a larger step is accepted once it persists
     resilient_f: int = 0  # W-MSR trimming in every agent's ξ (0: off; sim.model.robust)
+    # when the agents send their MC frame (``transmit``, ``event_threshold``,
+    # ``event_heartbeat``; firmware_py.config.Transmit): every tick unless "event"
+    transmit: Transmit = Transmit()
 
     # ---- derived views
 
@@ -211,7 +221,8 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
     ConfigError on an unknown, missing or out-of-range key."""
     r = _Reader(src)
     r.only(data, "", {"name", "title", "ts", "duration", "load_kw", "controller", "graph",
-                      "price", "battery", "event", "variant", "limits", "resilient_f"})
+                      "price", "battery", "event", "variant", "limits", "resilient_f",
+                      "transmit", "event_threshold", "event_heartbeat"})
     ts = r.number(data, "ts", lo=1e-4, hi=1.0)
     duration = r.number(data, "duration", lo=ts, hi=1e5)
 
@@ -320,13 +331,14 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         r.controller({**ctrl, **overrides}, ts, key)  # validate now, not at run time
         variants.append(Variant(label, overrides))
 
+    transmit = r.transmit(data)
     sc = Scenario(
         name=str(data.get("name", Path(src).stem)), title=str(data.get("title", "")), source=src,
         ts=ts, duration=duration, load_kw=r.number(data, "load_kw", lo=-1e6, hi=1e6),
         controller=controller, n=n, edges=edges, pinned=pinned, batteries=tuple(batteries),
         lambda0=tuple(lambda0), prices=tuple(prices), events=tuple(events),
         variants=tuple(variants), rho_min=rho_min, rho_max=rho_max,
-        price_step_max=step_max,
+        price_step_max=step_max, transmit=transmit,
         resilient_f=int(r.number(data, "resilient_f", lo=0, hi=RESILIENT_F_MAX, integer=True))
         if "resilient_f" in data else 0)
     if n <= MAX_AGENTS:  # a fleet a bus can carry: its agents' configurations load too
@@ -396,6 +408,21 @@ class _Reader:
             raise self.fail(key, f"expected a value in {'(' if lo_open else '['}{lo:g}, "
                             f"{hi:g}], but got {x!r}")
         return float(x)
+
+    def transmit(self, data: Mapping[str, Any]) -> Transmit:
+        kw: dict[str, Any] = {}
+        if "transmit" in data:
+            kw["mode"] = data["transmit"]
+        if "event_threshold" in data:
+            kw["threshold"] = self.number(data, "event_threshold", lo=0, hi=1)
+        if "event_heartbeat" in data:
+            kw["heartbeat"] = int(self.number(data, "event_heartbeat", lo=1, hi=1e6,
+                                              integer=True))
+        try:
+            return Transmit(**kw)
+        except ParameterError as e:
+            key = "transmit" if e.name == "mode" else f"event_{e.name}"
+            raise self.fail(key, f"expected {e.expected}, but got {e.got!r}") from None
 
     def agent(self, x: Any, n: int, key: str) -> int:
         if isinstance(x, bool) or not isinstance(x, int) or not 1 <= x <= n:
@@ -477,6 +504,9 @@ def to_toml(sc: Scenario) -> str:
     }
     if sc.resilient_f:  # only when on: a default scenario's file stays as it was
         doc["resilient_f"] = sc.resilient_f
+    if sc.transmit != Transmit():  # periodic scenarios are written as they were
+        doc.update(transmit=sc.transmit.mode, event_threshold=sc.transmit.threshold,
+                   event_heartbeat=sc.transmit.heartbeat)
     if sc.events:
         doc["event"] = [{"t": e.t, "agent": e.agent, "action": e.action} for e in sc.events]
     # the source path may hold anything; keep it out of the comment line's way

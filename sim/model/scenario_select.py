@@ -5,8 +5,10 @@ name them (docs/api.md)."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
+from firmware_py.config import TRANSMIT_MODES, Transmit
 from firmware_py.errors import ConfigError
 from sim.model.scenario import SCENARIO_DIR, Scenario, load_case, load_scenario
 
@@ -43,3 +45,16 @@ def pick_variant(sc: Scenario, label: str | None, command: str = "up",
     if label not in labels:
         label = next(x for x in labels if x.casefold() == label.casefold())
     return run, f" [variant {label}]"
+
+
+def with_transmit(sc: Scenario, mode: str | None) -> Scenario:
+    """``sc`` with its agents sending the MC frame ``mode`` ("periodic" or "event", the
+    command line's --transmit; None: as the scenario says). Event mode keeps the scenario's
+    threshold and heartbeat (event_threshold, event_heartbeat), else the defaults."""
+    if mode is None or mode == sc.transmit.mode:
+        return sc
+    if mode not in TRANSMIT_MODES:
+        raise ConfigError(sc.source, "transmit", f"expected one of {', '.join(TRANSMIT_MODES)}"
+                          f", but got {mode!r}")
+    tx = sc.transmit
+    return replace(sc, transmit=Transmit(mode, tx.threshold, tx.heartbeat))

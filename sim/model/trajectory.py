@@ -33,6 +33,7 @@ class Trajectory:
     # error is judged over, whatever state they are in. None: the same as ``active``.
     expected: np.ndarray | None = None
     state: np.ndarray | None = None  # (K, N) AGENT_i_MC.State (bus runs only)
+    mc_sent: np.ndarray | None = None  # (K, N) agent sent its MC frame at t_k (lockstep)
 
     @classmethod
     def sampled(cls, batteries: Sequence[Any], ts: float, lam: np.ndarray, active: np.ndarray,

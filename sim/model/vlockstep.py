@@ -25,7 +25,7 @@ import numpy as np
 
 from firmware_py import fixedpoint as fx
 from firmware_py.controllers import Controller, make_controller
-from sim.model.links import Links
+from sim.model.links import Links, Transmitter
 from sim.model.scenario import Event, Scenario
 from sim.model.trajectory import Trajectory
 
@@ -135,7 +135,8 @@ def run_vectorised(sc: Scenario, progress: Callable[[int, int], None] | None = N
     bounds = np.searchsorted(rows, np.arange(n + 1))  # agent i's edges: bounds[i]:bounds[i+1]
     starts, lonely = bounds[:-1], bounds[:-1] == bounds[1:]  # lonely: agents without an edge
     prod = np.zeros(len(rows) + 1, dtype=np.int64)   # one product per edge, then a 0 to end on
-    links = Links(len(rows), loss, loss_seed)
+    links = Links(len(rows), loss, loss_seed, sc.transmit.neighbour_periods)
+    tx = Transmitter(n, sc.transmit, q(sc.transmit.threshold, "threshold"))
     pinned = np.zeros(n, dtype=bool)
     pinned[[p - 1 for p in sc.pinned]] = True
     pin = np.where(pinned, np.int64(q(1.0, "pin")), np.int64(0))
@@ -152,16 +153,18 @@ def run_vectorised(sc: Scenario, progress: Callable[[int, int], None] | None = N
 
     shape = (steps, n)
     lam, u, xi_rec, nu_rec = (np.zeros(shape) for _ in range(4))
-    act = np.zeros(shape, dtype=bool)
+    act, sent = np.zeros(shape, dtype=bool), np.zeros(shape, dtype=bool)
     rho_arr, seg_arr = np.zeros(steps), np.zeros(steps, dtype=int)
     reset_at: list[list[float]] = [[] for _ in range(n)]
     lam_scale, state_scale = float(fx.ONE), float(1 << (fx.Q + fx.GUARD))
 
     for k in range(steps):
         t = k * ts
+        force = np.full(n, k == start_tick)  # State changes are sent at once (TX-7)
         for e in events.get(k, ()):
             i = e.agent - 1
             active[i] = e.action == "reconnect"
+            force[i] = True
             if e.action == "isolate":  # off the network: P = 0, λ at its idle MC (a new state)
                 state = _keep(np.arange(n) == i, idle, state)
         all_active = bool(active.all())
@@ -171,10 +174,11 @@ def run_vectorised(sc: Scenario, progress: Callable[[int, int], None] | None = N
         wire = state.wire()
         lam[k] = wire / lam_scale
         act[k] = active
+        pub, sent[k] = tx.publish(wire, force)   # the λ each agent last sent
         if k < start_tick:
             continue
         # ξ: one rounded product per edge from an active neighbour, summed per agent
-        held, alive = links.exchange(wire[cols])
+        held, alive = links.exchange(pub[cols], sent[k][cols])
         prod[:-1] = (weights * (wire[rows] - held) + _HALF) >> fx.Q
         if not all_active or loss:
             prod[:-1][~(active[cols] & alive)] = 0
@@ -200,4 +204,5 @@ def run_vectorised(sc: Scenario, progress: Callable[[int, int], None] | None = N
 
     return Trajectory.sampled(sc.batteries, ts, lam, act, rho=rho_arr, segment=seg_arr, u=u,
                               xi=xi_rec, nu=nu_rec, resets=reset_at,
-                              saturations=int(state.saturations.sum()), label=sc.controller.kind)
+                              saturations=int(state.saturations.sum()), label=sc.controller.kind,
+                              mc_sent=sent)

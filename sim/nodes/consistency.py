@@ -13,10 +13,12 @@ A setpoint that matches none of the last ``MC_WINDOW`` MC frames waits for the n
 explains it, or if it lies between what the MC frames before and after it give (the
 MC frame of its own tick was lost), inconsistent if not; if more than one MC frame was
 lost between them (``period`` given: their times more than 2.5 periods apart), λ may
-have turned in the gap (a reset), so the setpoint is left unverified. A disabled setpoint (0 kW) is
-always consistent: it is the safe direction, as a stale setpoint is. A second setpoint
-arriving while one still waits (the MC frames are not getting through) leaves the first
-unverified, not inconsistent.
+have turned in the gap (a reset), so the setpoint is left unverified. With
+event-triggered λ an agent's λ may be up to its threshold from the one its last MC frame
+carries (``lag``): a setpoint between what those two give is consistent. A disabled
+setpoint (0 kW) is always consistent: it is the safe direction, as a stale setpoint is.
+A second setpoint arriving while one still waits (the MC frames are not getting through)
+leaves the first unverified, not inconsistent.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from enum import Enum
 
-from firmware_py.config import DispatchParams
+from firmware_py.config import AgentConfig, DispatchParams
 from firmware_py.contract import State, is_active
 from firmware_py.runtime import SetpointMap
 
@@ -59,6 +61,9 @@ class SetpointCheck:
     mcs: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=MC_WINDOW))
     pending: Setpoint | None = None
     last_mc_t: float | None = None
+    # Q24: how far the agent's λ may be from the one its last MC frame carries; with
+    # event-triggered λ (firmware-spec TX-7) its threshold, else 0 (every tick sent)
+    lag: int = 0
 
     def __post_init__(self) -> None:
         self.map = SetpointMap(self.params)
@@ -71,8 +76,10 @@ class SetpointCheck:
     def _explains(self, sp: Setpoint, state: int, lam_raw: int) -> bool:
         if not sp.enable and sp.raw == 0:
             return True   # disabled: the safe direction, whatever the state says
-        enable, raw = self.expected(state, lam_raw)
-        return sp.enable == enable and abs(sp.raw - raw) <= ROUNDING_RAW
+        # the map is monotone in λ: λ within ±lag of the frame's gives setpoints in between
+        enable, lo = self.expected(state, lam_raw - self.lag)
+        hi = self.expected(state, lam_raw + self.lag)[1]
+        return sp.enable == enable and lo - ROUNDING_RAW <= sp.raw <= hi + ROUNDING_RAW
 
     def _between(self, sp: Setpoint, a: tuple[int, int], b: tuple[int, int]) -> bool:
         """Within the setpoints of two consecutive MC frames, one of them dispatching:
@@ -114,3 +121,9 @@ class SetpointCheck:
         else:
             self.pending = sp
         return out
+
+
+def mc_lag(cfg: AgentConfig) -> int:
+    """SetpointCheck's ``lag`` for an agent configured as ``cfg``: its event threshold
+    (Q24), 0 when it sends every tick."""
+    return cfg.transmit.threshold_q24 if cfg.transmit.event else 0

@@ -102,7 +102,7 @@ from firmware_py.nodeio import NodeIO
 from firmware_py.secoc import Keyring
 from sim.model.cost import Battery
 from sim.model.scenario import Scenario
-from sim.nodes.consistency import Check, Setpoint, SetpointCheck
+from sim.nodes.consistency import Check, Setpoint, SetpointCheck, mc_lag
 from sim.nodes.nodeclock import SimNodeClock, TimeWindow
 
 log = logging.getLogger(__name__)
@@ -362,7 +362,8 @@ class PlantNode(SimNodeClock):
         # each agent's MC frames too: its setpoints must be its λ through its dispatch rule
         self._mc_ids = {c.frame_id(mc_name(u.agent)): u for u in self.units}
         self.obey_inconsistent = obey_inconsistent
-        self._checks = {cfg.id: SetpointCheck(cfg.battery, period=scenario.ts)
+        self._checks = {cfg.id: SetpointCheck(cfg.battery, period=scenario.ts,
+                                              lag=mc_lag(cfg))
                         for cfg in agent_configs_from_scenario(scenario)}
         self.io = NodeIO(c, "the plant", own=self._status_names,
                          wanted=[*self._setpoint_ids, *self._mc_ids],

@@ -70,18 +70,19 @@ class LogAnalysis:
 def prepare_analysis(log: Path, case: str | None = None, variant: str | None = None,
                      time_scale: float | None = None, tolerance: float | None = None,
                      out: Path | None = None, counters: Path | None = None,
-                     keys: Path | None = None, say: Callable[[str], None] = print
-                     ) -> LogAnalysis:
+                     keys: Path | None = None, say: Callable[[str], None] = print,
+                     transmit: str | None = None) -> LogAnalysis:
     """Check the inputs of an analysis of ``log`` (a CAN log file, or the directory ``up``
     wrote), reading what the run left beside it. ``case``: the scenario (a case number or
     a .toml; default: the run directory's scenario.toml); ``variant``, ``time_scale``,
     ``tolerance``: as the run used them (default: the run's facts, else the first
     variant, 1, 1e-3); ``out``: default <log's directory>/<log stem>-analysis;
     ``counters``, ``keys``: directories (default: the run directory's logs/ and keys/).
-    ``say`` gets the note that names a variant chosen by default."""
+    ``say`` gets the note that names a variant chosen by default; ``transmit``: with
+    ``case``, how the agents sent their λ ("periodic", "event"; default the scenario's)."""
     from firmware_py import secoc
     from sim.model.scenario import scaled
-    from sim.model.scenario_select import pick_variant, resolve_scenario
+    from sim.model.scenario_select import pick_variant, resolve_scenario, with_transmit
     from sim.run.keyset import load_key_set
     from sim.run.verdict import TOLERANCE
 
@@ -126,7 +127,7 @@ def prepare_analysis(log: Path, case: str | None = None, variant: str | None = N
                                   "analyze", say)
     else:
         sc, chosen = pick_variant(resolve_scenario(case), variant, "analyze", say)
-        sc = scaled(sc, scale)
+        sc = scaled(with_transmit(sc, transmit), scale)
     keys_dir = keys or run_dir / "keys"
     if keys is not None and not keys_dir.is_dir():
         raise ConfigError(str(keys_dir), "--keys", "expected a key set directory "
@@ -181,9 +182,10 @@ def _json(path: Path) -> Any:
 def _demo_signed(log_path: Path, sc: Any, demo: dict[str, bytes]) -> bool:
     """Do the log's secured frames verify with the public demo keys (an --insecure run)?"""
     from sim.run.buslog import read_log
+    from sim.run.verdict import silence_ts
 
     try:
-        log = read_log(log_path, n=sc.n, ts=sc.ts, keys=demo)
+        log = read_log(log_path, n=sc.n, ts=sc.ts, keys=demo, silence_ts=silence_ts(sc))
     except (ValueError, EOFError):
         return False  # report() names the format problem
     return log.syncs > 0 and not log.forged

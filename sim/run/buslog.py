@@ -157,6 +157,15 @@ class LogContents:
         s = self.sequences.get(f"AGENT_{agent}_MC")
         return 0 if s is None else s.frames
 
+    def ticks_run(self, agent: int) -> int:
+        """How many ticks the agent ran, at least, by its frames: one MC frame per tick
+        when it sends every tick; with event-triggered λ fewer, but its k setpoints (one
+        every SETPOINT_EVERY ticks from its first) took (k − 1)·SETPOINT_EVERY + 1."""
+        s = self.sequences.get(f"AGENT_{agent}_Setpoint")
+        setpoints = 0 if s is None else s.frames
+        every = contract.every_ticks(contract.setpoint_name(1))
+        return max(self.mc_frames(agent), (setpoints - 1) * every + 1)
+
 
 # why a log line holds no frame (LogContents.skipped_lines), as the report words it
 LINE_CAUSES = {
@@ -408,11 +417,13 @@ class StaleBoot(Exception):
 
 def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
              ts: float | None = None, keys: Mapping[str, bytes] | None = None,
-             boot_floors: Mapping[str, int] | None = None) -> LogContents:
+             boot_floors: Mapping[str, int] | None = None,
+             silence_ts: float = 3) -> LogContents:
     """Decode every frame of a candump-format log (``can.LogReader``: any suffix it knows).
 
     ``n``: the run's fleet size, so frames of agents beyond it count as outside the run;
-    ``ts``: the run's sample time, for the silence threshold (3·Ts) and for the message
+    ``ts``: the run's sample time, for the silence threshold (``silence_ts``·Ts: more in a
+    run whose agents send their λ event-triggered, sim.run.verdict.silence_ts) and for the message
     cycles of a time-scaled run (the DBC's cycles are for Ts = 10 ms); ``keys``: the
     run's node keys (label → key), to leave out forged and replayed secured frames
     (``forged``) as every receiver does. Without them, secured frames are taken as
@@ -436,7 +447,7 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     segment_raw: int | None = None
     segment = 0
     segment_mod = codec.raw_range("ER_Price", "Segment")[1] + 1
-    silence = 3 * ts if ts else None
+    silence = silence_ts * ts if ts else None
     cycles: dict[str, float] = {}
     t_prev: float | None = None
     captured = list(read_frames(path, out.skipped_lines))

@@ -43,21 +43,24 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
                    time_scale: float | None = None, keys: Path | None = None,
                    insecure: bool = False, command: str = "up",
                    nodes: str = "{n} agents + plant + router",
-                   say: Callable[[str], None] = print) -> RunPlan:
+                   say: Callable[[str], None] = print,
+                   transmit: str | None = None) -> RunPlan:
     """Check a fleet run of scenario ``case`` (a case number or a .toml) and announce it
     through ``say``, line by line (``nodes``: what runs, ``{n}`` the number of agents).
     ``bus`` must connect processes (not python-can's ``virtual``); a udp_multicast bus
     without a port gets a private one. ``duration``: s of price time (default: the
     scenario's); ``time_scale``: default 1, or GUEST_TIME_SCALE under tools/vcan-run;
     ``keys``: a key set directory (checked), else ``insecure`` or a fresh set in
-    ``out``/keys at the run; ``out``: default runs/<command>-<scenario>."""
+    ``out``/keys at the run; ``out``: default runs/<command>-<scenario>; ``transmit``:
+    "periodic" or "event" (None: the scenario's, scenario_select.with_transmit)."""
     from sim.model.scenario import MAX_AGENT_SAMPLES, scaled
-    from sim.model.scenario_select import pick_variant, resolve_scenario
+    from sim.model.scenario_select import pick_variant, resolve_scenario, with_transmit
     from sim.run import busrun
     from sim.run.keyset import check_key_set
 
     base = resolve_scenario(case)
     sc, chosen = pick_variant(base, variant, command, say)
+    sc = with_transmit(sc, transmit)
     bus = bus or busrun.BusOptions()
     kw = bus.resolved()  # checks the JSON (and the keys) before anything starts
     if kw["interface"] in IN_PROCESS_INTERFACES:

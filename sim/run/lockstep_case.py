@@ -87,6 +87,10 @@ def simulate(runs: list[tuple[str, Scenario]], fixed: bool, impl: str = "py"
         m = compute(s, tr)
         m["arithmetic"] = "fixed" if fixed else "float"
         m["implementation"] = "firmware_c" if impl == "c" else "firmware_py"
+        if s.transmit.event and tr.mc_sent is not None:  # periodic metrics stay as they were
+            m["transmit"] = s.transmit.to_doc()
+            m["mc_frames"] = int(tr.mc_sent.sum())
+            m["mc_frames_periodic"] = int(tr.mc_sent.size)  # every agent every sample
         out.append(CaseRun(label, s, tr, m))
     return out
 

@@ -18,7 +18,15 @@ from sim.model import metrics
 from sim.model.scenario import Scenario
 from sim.model.trajectory import Trajectory
 from sim.run import buslog
-from sim.run.verdict import TOLERANCE, RunFacts, Verdict, anomalies_json, judge, node_deadlines
+from sim.run.verdict import (
+    TOLERANCE,
+    RunFacts,
+    Verdict,
+    anomalies_json,
+    judge,
+    node_deadlines,
+    silence_ts,
+)
 
 
 @dataclass
@@ -47,7 +55,7 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
     facts = facts or RunFacts()
     out.mkdir(parents=True, exist_ok=True)
     log = buslog.read_log(log_path, codec, n=sc.n, ts=sc.ts, keys=keys,
-                          boot_floors=boot_floors)
+                          boot_floors=boot_floors, silence_ts=silence_ts(sc))
     tr = buslog.trajectory_from_log(sc, log) if log.t_first_price is not None else None
     m: dict[str, Any] = {"scenario": sc.name, "time_scale": time_scale}
     if tr is not None and tr.t.size:

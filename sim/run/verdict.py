@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from firmware_py.contract import MC_CYCLE_S, State
+from firmware_py.contract import MC_CYCLE_S, State, every_ticks
 from firmware_py.nodeio import JOIN_FRACTION, SYNC_S
 from firmware_py.secoc import SYNC_BOOT_JUMP_MAX
 from sim.model.scenario import Scenario
@@ -308,12 +308,12 @@ def _setpoints(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomal
     """Each agent's setpoints against its own dispatch rule at the λ it publishes (the
     check the plant makes, sim.nodes.consistency), from the recording."""
     from firmware_py.config import agent_configs_from_scenario
-    from sim.nodes.consistency import Check, Setpoint, SetpointCheck
+    from sim.nodes.consistency import Check, Setpoint, SetpointCheck, mc_lag
 
     t0 = log.t_first_price or 0.0
     plant = ((facts.node_counters or {}).get("plant") or {}).get("counters", {})
     for cfg in agent_configs_from_scenario(sc):
-        check = SetpointCheck(cfg.battery, period=sc.ts)
+        check = SetpointCheck(cfg.battery, period=sc.ts, lag=mc_lag(cfg))
         bad: list[tuple[Setpoint, int]] = []   # (the setpoint, the λ raw it ignored)
         total = 0
         for t, what, a, b in log.dispatch.get(cfg.id, []):
@@ -471,6 +471,15 @@ def _agent_states(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anom
                                    "the scenario has it isolated", t))
 
 
+def silence_ts(sc: Scenario) -> int:
+    """The longest quiet bus that is no anomaly, in Ts: SILENCE_TS; with event-triggered
+    λ a settled fleet's MC frames fall silent too and the bus carries the price, status
+    and setpoint cadence (every 5 Ts): SILENCE_TS more than that."""
+    if not sc.transmit.event:
+        return SILENCE_TS
+    return every_ticks("ER_Price") + SILENCE_TS
+
+
 def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
     t0 = log.t_first_price or 0.0
     for cluster in _clusters(log.silences, SILENCE_CLUSTER_S * sc.ts / MC_CYCLE_S):
@@ -479,7 +488,7 @@ def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
         what = (f"no frame for {longest:.3f} s ({longest / sc.ts:.0f} Ts)" if len(cluster) == 1
                 else f"{len(cluster)} gaps without a frame between t = {a - t0:.2f} and "
                 f"{b - t0:.2f} s, the longest {longest:.3f} s ({longest / sc.ts:.0f} Ts)")
-        out.append(Anomaly("bus_silence", "bus", f"{what}; more than {SILENCE_TS} Ts",
+        out.append(Anomaly("bus_silence", "bus", f"{what}; more than {silence_ts(sc)} Ts",
                            a - t0))
     by_sender: dict[str, list[tuple[float, float, str]]] = {}
     for name, gaps in log.message_silences.items():
@@ -612,13 +621,14 @@ def _counters(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly
 
 def node_deadlines(log: LogContents, node_counters: dict[str, Any] | None
                    ) -> dict[str, tuple[int, int]]:
-    """(deadline misses, ticks) per node: an agent's from its last AGENT_i_Diag and its
-    recorded MC frames (one per tick it ran) plus the misses; the plant's and router's
+    """(deadline misses, ticks) per node: an agent's from its last AGENT_i_Diag and the
+    ticks its recorded frames show it ran (LogContents.ticks_run) plus the misses; the
+    plant's and router's
     from the counters they wrote at exit."""
     out = {}
     for a, d in sorted(log.diag.items()):
         misses = d.get("DeadlineMisses", 0)
-        out[f"agent_{a}"] = (misses, log.mc_frames(a) + misses)
+        out[f"agent_{a}"] = (misses, log.ticks_run(a) + misses)
     for node, c in (node_counters or {}).items():
         out[node] = (c.get("counters", {}).get("deadline_miss", 0), c.get("ticks", 0))
     return out

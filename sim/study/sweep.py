@@ -51,11 +51,16 @@ AXES: dict[str, str] = {
     "duration": "the run's length, s",
     "loss": "the probability that a neighbour's MC frame is lost (sim.model.links)",
     "loss_seed": "the seed of the frame losses",
+    "transmit": "'periodic' or 'event': when the agents send their λ (firmware-spec TX-7)",
+    "event_threshold": "event mode: the λ move that triggers a frame, cu/kWh",
+    "event_heartbeat": "event mode: the longest silence between frames, ticks (1..13)",
 }
+TRANSMIT_AXES = {"transmit": "mode", "event_threshold": "threshold",
+                 "event_heartbeat": "heartbeat"}
 CONTROLLER_AXES = {"controller": "kind", "k": "k", "h": "h", "band": "band", "dwell": "dwell"}
 METRIC_COLUMNS = ["agents_n", "settling_time_s", "final_error", "converged", "peak_control",
                   "control_total_variation", "overshoot", "resets", "saturations", "eta_max",
-                  "discrete_stable", "wall_s", "error"]
+                  "discrete_stable", "mc_frames", "wall_s", "error"]
 CONVERGED_ERROR = 1e-3  # cu/kWh: the bus runs' verdict tolerance (docs/metrics.md)
 
 
@@ -198,6 +203,7 @@ def run_point(params: Mapping[str, Any]) -> dict[str, Any]:
                final_error=m["final_error"],
                converged=int(m["final_error"] < CONVERGED_ERROR and settling is not None),
                peak_control=m.get("peak_control", ""),
+               mc_frames=int(tr.mc_sent.sum()) if tr.mc_sent is not None else "",
                control_total_variation=m.get("control_total_variation", ""),
                overshoot=m["overshoot"], resets=sum(m["resets"]), saturations=m["saturations"],
                eta_max=m["eta_max"], discrete_stable=int(m["discrete_stable"]),
@@ -223,6 +229,9 @@ def scenario_of(params: Mapping[str, Any]) -> Any:
         sc = load_scenario(graph)
     if "duration" in params:
         sc = replace(sc, duration=float(params["duration"]))
+    tx = {field: params[axis] for axis, field in TRANSMIT_AXES.items() if axis in params}
+    if tx:  # Transmit checks the values (ParameterError)
+        sc = replace(sc, transmit=replace(sc.transmit, **tx))
     overrides = {field: params[axis] for axis, field in CONTROLLER_AXES.items()
                  if axis in params}
     return sc.with_controller(**overrides) if overrides else replace(sc, variants=())

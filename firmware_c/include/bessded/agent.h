@@ -78,6 +78,12 @@ typedef struct {
     uint32_t gain_k_raw_max;
     uint32_t gain_h_raw_min;
     uint32_t gain_h_raw_max;
+    /* TX-7: the MC frame every tick (tx_event 0), or when wire lambda moved more than
+     * tx_threshold (q24) from the one last sent, the State changed, or tx_heartbeat ticks
+     * passed since the last one (tx_event 1) */
+    uint32_t tx_event;
+    int32_t tx_threshold;
+    uint32_t tx_heartbeat;
 } bd_agent_params;
 
 /* The node's key material (CFG-8, AUTH-1..3, AUTH-20). */
@@ -198,6 +204,10 @@ typedef struct {
     int64_t hello_after;
     uint32_t boot;
     uint32_t tx_count[3];         /* MC, Setpoint, Diag: message counts under this boot */
+    int32_t mc_last_lam;          /* TX-7: the lambda and State of the last MC frame sent, */
+    uint32_t mc_last_state;       /* the ticks since (mc_age), whether one was sent yet */
+    uint32_t mc_age;
+    int32_t mc_has_last;
     int32_t sync_pending;         /* syncs due at the next tick (start, new boot) */
     int32_t hello_due;
     int64_t join_until;           /* AUTH-26: end of the join window (INT64_MAX: not begun) */
