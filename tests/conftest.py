@@ -20,8 +20,12 @@ from firmware_py.frames import DecodedFrame, FrameCodec
 pytest_plugins = ("sim.testkit.plugin",)
 
 # udp_multicast runs of one test session take ports from a block of 100 of its own (by
-# pid), so two sessions running at once (a developer's and CI's) never hear each other.
-_ports = itertools.count(43200 + (os.getpid() % 200) * 100)
+# pid), so two sessions running at once (a developer's and CI's) never hear each other;
+# pytest-xdist's workers (-n) of one session take blocks of different parity.
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")[2:]
+_BLOCK = ((os.getpid() % 100) * 2 + int(_WORKER) % 2 if _WORKER.isdigit()
+          else os.getpid() % 200)
+_ports = itertools.count(43200 + _BLOCK * 100)
 
 
 def next_udp_port() -> int:
