@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -56,3 +57,49 @@ def test_lockstep_failover_changes_nothing_without_a_lost_pinned_agent() -> None
     sc = load_case(4)   # agent 2 (not pinned) isolated and reconnected
     a, b = run_lockstep(sc), run_lockstep(sc, failover=True, impl="py")
     assert np.array_equal(a.lam, b.lam)
+
+
+def _router_run(kill_at: float | None = None, isolate_at: float | None = None,
+                seconds: float = 1.0) -> tuple[Any, list[tuple[float, dict[str, int]]]]:
+    """The router of case 1 (--insecure keys) fed every agent's MC frames each Ts (agent 1
+    silent from ``kill_at``, or reporting ISOLATED from ``isolate_at``): the router and
+    the ER_Command frames it sent, decoded."""
+    from firmware_py.frames import FrameCodec, mc_name
+    from firmware_py.nodeio import FleetSender
+    from sim.nodes.router import RouterNode
+
+    codec = FrameCodec()
+    sender = FleetSender(codec)
+    router = RouterNode(load_case(1))
+    commands = []
+    for k in range(round(seconds / 0.01)):
+        t = k * 0.01
+        for i in range(1, 5):
+            state = 1
+            if i == 1 and kill_at is not None and t >= kill_at:
+                continue
+            if i == 1 and isolate_at is not None and t >= isolate_at:
+                state = 2
+            router.on_frame(sender.frame(mc_name(i), {"Lambda": 0, "State": state,
+                                                      "Resets": 0}, k % 16), t)
+        for msg in router.tick(t):
+            if msg.arbitration_id == codec.frame_id("ER_Command"):
+                commands.append((t, codec.decode(msg).raw))
+    return router, commands
+
+
+def test_the_router_pins_the_leaves_when_the_centre_goes_silent() -> None:
+    router, commands = _router_run(kill_at=0.5)
+    # last frame at 0.49 s; timed out after 3 Ts: noticed at the tick of 0.53 s
+    assert [(round(t, 2), c["Command"], c["Target"], c["GainK"]) for t, c in commands] == [
+        (round(0.53 + d, 2), 0, i, 1) for d in (0.0, 0.01, 0.02) for i in (2, 3, 4)]
+    assert router.counters["failovers"] == 3
+    assert [(e.lost, e.pinned) for e in router.failover_log] == [((1,), (2, 3, 4))]
+    assert "failover t=0.53 s: pinned agents lost 1; pinned 2, 3, 4" in router.summary()
+
+
+def test_the_router_fails_over_for_an_isolated_pinned_agent_and_not_without_a_loss() -> None:
+    _, commands = _router_run(isolate_at=0.5)
+    assert {c["Target"] for _, c in commands} == {2, 3, 4} and commands[0][0] == 0.5
+    router, commands = _router_run()
+    assert commands == [] and router.counters["failovers"] == 0
