@@ -606,11 +606,14 @@ def trajectory_from_log(sc: Scenario, log: LogContents, label: str = "bus") -> T
         r = log.series[(f"AGENT_{i}_MC", "Resets")]
         resets.append([t - t0 for (t, v), (_, v0) in zip(r[1:], r, strict=False) if v != v0])
     u = np.vstack([np.diff(lam, axis=0) / ts, np.zeros((1, sc.n))])
+    expected = planned_participation(sc, grid - t0)
+    for i, t_last in failed_over(log).items():  # dead, and failed over: no longer judged
+        if 1 <= i <= sc.n:
+            expected[grid > t_last, i - 1] = False
     return Trajectory(t=grid - t0, lam=lam, rho=_hold(log.series[("price", "Rho")], grid, np.nan),
                       segment=_hold(log.series[("price", "Segment")], grid, 0).astype(int),
                       active=np.vectorize(contract.is_active, otypes=[bool])(state), p=p, u=u,
-                      resets=resets, label=label, expected=planned_participation(sc, grid - t0),
-                      state=state.astype(int))
+                      resets=resets, label=label, expected=expected, state=state.astype(int))
 
 
 def node_diagnostics(log: LogContents) -> dict[str, Any]:
@@ -654,6 +657,26 @@ def failovers(events: list[dict[str, Any]], gap_s: float = 0.1) -> list[dict[str
             out[-1]["pinned"].append(e["target"])
         else:
             out.append({"t": e["t"], "pinned": [e["target"]]})
+    return out
+
+
+def failed_over(log: LogContents) -> dict[int, float]:
+    """The agents the router failed over from and that never came back: agent → the time
+    of its last MC frame (recording time), for each agent silent from before a PIN
+    (GainK = PIN_ON, CMD-7) to the end of the recording. The run is judged without them
+    from that time on (trajectory_from_log: a dead agent's held λ is no dispatch); its
+    silence stays an anomaly (node_silent)."""
+    from firmware_py.contract import Command
+    from firmware_py.frames import PIN_ON
+
+    pins = [t for t, cmd, _, gain_k in log.commands if cmd == Command.PIN and gain_k == PIN_ON]
+    out: dict[int, float] = {}
+    for (name, sig), series in log.series.items():
+        if sig != "Lambda" or not name.endswith("_MC") or not series:
+            continue
+        last = series[-1][0]
+        if any(t > last for t in pins):
+            out[int(name.split("_")[1])] = last
     return out
 
 
