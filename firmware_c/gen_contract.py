@@ -37,7 +37,7 @@ import cantools  # noqa: E402
 from cantools.database.can import Database  # noqa: E402
 
 from dbc import DBC_PATH  # noqa: E402
-from firmware_py import contract  # noqa: E402
+from firmware_py import contract, frames  # noqa: E402
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name  # noqa: E402
 from firmware_py.runtime import AgentRuntime  # noqa: E402
 
@@ -119,6 +119,8 @@ def contract_header(db: Database) -> tuple[str, str]:
         define(f"BD_STATE_{s.name}", int(s), "AGENT_<i>_MC.State")
     for c in contract.Command:
         define(f"BD_CMD_{c.name}", int(c), "ER_Command.Command")
+    define("BD_PIN_ON", frames.PIN_ON, "ER_Command PIN: GainK to pin (CMD-7)")
+    define("BD_PIN_OFF", frames.PIN_OFF, "ER_Command PIN: GainK to unpin (CMD-7)")
     cause = db.get_message_by_name(diag_name(1)).get_signal_by_name("SafetyCause")
     for value, label in sorted(cause.choices.items()):
         define(f"BD_SAFETY_CAUSE_{label}", int(value), "AGENT_<i>_Diag.SafetyCause")

@@ -196,6 +196,7 @@ class Command(IntEnum):
     ISOLATE = _choice("ER_Command", "Command", "ISOLATE")
     RECONNECT = _choice("ER_Command", "Command", "RECONNECT")
     SET_GAINS = _choice("ER_Command", "Command", "SET_GAINS")
+    PIN = _choice("ER_Command", "Command", "PIN")  # GainK: frames.PIN_ON / PIN_OFF (CMD-7)
 
 
 def is_active(state: int) -> bool:

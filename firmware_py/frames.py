@@ -72,6 +72,8 @@ __all__ = [
     "DLC",
     "LAMBDA_Q",
     "N_AGENTS_MAX",
+    "PIN_OFF",
+    "PIN_ON",
     "COUNTER_MODULO",
     "CounterStatus",
     "CounterTracker",
@@ -541,6 +543,22 @@ def _unpack(frame: str, sigs: Iterable[_Sig], x: int, raw: dict[str, int]) -> No
         raw[name] = v
 
 
+PIN_ON, PIN_OFF = 1, 2
+"""ER_Command PIN (CMD-7): its GainK raw says which way (the DBC's comment of GainK); any
+other GainK, or GainH ≠ 0, is out of range like a raw value outside the DBC's."""
+
+
+def _pin_rule(db: Database) -> tuple[int, int] | None:
+    """(ER_Command's ID, the Command value of PIN), or None if the DBC has no PIN."""
+    try:
+        msg = db.get_message_by_name("ER_Command")
+        choices: Mapping[Any, Any] = msg.get_signal_by_name("Command").choices or {}
+    except KeyError:
+        return None
+    pin = [int(v) for v, n in choices.items() if str(n) == "PIN"]
+    return (msg.frame_id, pin[0]) if pin else None
+
+
 class FrameCodec:
     """Encode and decode every frame of the DBC, with E2E CRC and raw range checks.
 
@@ -555,6 +573,7 @@ class FrameCodec:
         self._by_id = c.by_id
         self._by_name = c.by_name
         self._ids = frozenset(c.by_id)
+        self._pin_rule = _pin_rule(c.db)
 
     # ------------------------------------------------------------ lookups
 
@@ -765,4 +784,10 @@ class FrameCodec:
         _unpack(f.name, f.base, x, raw)
         if f.mux is not None:  # the page's signals, once the multiplexer is known
             _unpack(f.name, f.pages.get(raw[f.mux], ()), x, raw)
+        if self._pin_rule is not None and fid == self._pin_rule[0] \
+                and raw["Command"] == self._pin_rule[1] \
+                and (raw["GainK"] not in (PIN_ON, PIN_OFF) or raw["GainH"] != 0):
+            raise RangeError(f"{f.name}.GainK: expected {PIN_ON} (pin) or {PIN_OFF} (unpin) "
+                             f"with GainH = 0 in a PIN command, but got GainK = {raw['GainK']}, "
+                             f"GainH = {raw['GainH']}")
         return DecodedFrame(f.name, fid, f.agent, raw.get("Counter", 0), raw, f)

@@ -46,7 +46,8 @@ sources), an accepted price outside ``[rho_min, rho_max]`` or more than
 (``implausible_lambda``, its last good λ kept); SET_GAINS outside ``[k_min, k_max]``,
 ``[h_min, h_max]`` is rejected (``implausible_gains``, gains unchanged). ISOLATE and
 RECONNECT are logged at warning level with the claimed sender and counted
-(``commands_isolate``, ``commands_reconnect``).
+(``commands_isolate``, ``commands_reconnect``). PIN (GainK 1) and UNPIN (GainK 2) set or
+clear the price term of ξ (``pin``, b_ii = 1), in any state, nothing else changes (CMD-7).
 
 Every frame that is rejected lands in ``counters`` under its cause; the first few
 of each cause are logged with the full reason, so nothing is dropped silently.
@@ -65,7 +66,7 @@ from .config import AgentConfig, DispatchParams
 from .contract import Command, State, cycle_s, every_ticks, is_active, scale
 from .controllers import consensus_error, make_controller
 from .errors import FrameError, RangeError
-from .frames import DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name, status_name
+from .frames import PIN_ON, DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from .nodeio import NodeIO
 from .secoc import Keyring
 
@@ -302,6 +303,11 @@ class AgentRuntime:
                     f"(limits.k_min..h_max), but got k = {k:g}, h = {h:g}; gains unchanged")
                 return
             self._set_gains(f.raw["GainK"], f.raw["GainH"], k, h)
+        elif cmd == Command.PIN:  # CMD-7, in any state: the decoder checked GainK and GainH
+            self.pin = fx.ONE if f.raw["GainK"] == PIN_ON else 0
+            log.warning("agent %d: %s from claimed sender 0x%03X (ER_Command, counter %d) in "
+                        "state %s", self.cfg.id, "PIN" if self.pin else "UNPIN", fid,
+                        f.counter, self.state.name)
         elif cmd not in Command._value2member_map_:
             raise RangeError(f"ER_Command.Command: expected one of {[int(c) for c in Command]}, "
                              f"but got {cmd}")

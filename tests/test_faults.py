@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import signal
 import subprocess
@@ -42,7 +43,7 @@ from firmware_py.faultinject import FaultyBus, RxFaults, neighbour_mc
 from firmware_py.frames import FrameCodec, agent_of
 from firmware_py.nodeio import JOIN_FRACTION, SYNC_S
 from firmware_py.runtime import DIAG_EVERY, AgentRuntime
-from sim.model.scenario import load_case
+from sim.model.scenario import load_case, load_scenario
 from sim.nodes import inject
 from sim.run import busrun
 
@@ -319,6 +320,42 @@ def test_agent_killed_and_restarted_simulated_clock(tmp_path: Path) -> None:
     d1 = m["node_diagnostics"]["agent_1"]
     assert d1["NeighbourTimeouts"] == 1 and d1["RejectedAuth"] == 0 and d1["Unsynced"] == 0
     assert "auth_failed" not in {a["kind"] for a in m["anomalies"]}, m["anomalies"]
+
+
+FAILOVER = Path(__file__).resolve().parent.parent / "examples" / "failover_case1.toml"
+
+
+def test_pinned_agent_killed_failover_simulated_clock(tmp_path: Path) -> None:
+    """Issue 23.5 (exact, simulated clock): examples/failover_case1.toml is case 1 with ρ
+    stepping 0.8 → 0.9 at 10 s. Agent 1, the star's centre and its only pinned agent, is
+    killed at 5 s for good: the three leaves are cut off from each other and the price.
+    The router hears agent 1's MC frames stop, and after the agents' neighbour timeout
+    (3·Ts) plus a sample pins each leaf (a component of its own: the highest degree, 0,
+    ties by id) with one ER_Command PIN each, repeated 3 times; the leaves follow the step
+    (max|λ−ρ| ≤ 1e-3 over agents 2–4 at the end). The run's metrics list the three pins
+    as events and one failover; the router's summary names it; the verdict judges agents
+    2–4 only from agent 1's last frame on (buslog.failed_over): converged, with the kill's
+    anomalies."""
+    sc = load_scenario(FAILOVER)
+    m = busrun.run_in_process(sc, tmp_path, sc.duration,
+                              channel=f"faults-sim-{next(_sim_channels)}",
+                              restarts=[("agent_1", 5.0, math.inf)])
+    recs = decode_log(tmp_path)
+    assert m["failovers"] == [{"t": pytest.approx(5.04), "pinned": [2, 3, 4]}]
+    assert [(e["command"], e["target"]) for e in m["events"]] == [("pin", 2), ("pin", 3),
+                                                                   ("pin", 4)]
+    router = m["node_counters"]["router"]["counters"]
+    assert router["failovers"] == 3 and router["command_frames"] == 9
+    assert "failover t=5.04 s: pinned agents lost 1; pinned 2, 3, 4" in m["node_summaries"][-1]
+    final = {i: series(recs, f"AGENT_{i}_MC", "Lambda")[-1][1] / 2**24 for i in (2, 3, 4)}
+    assert max(abs(lam - 0.9) for lam in final.values()) <= FINAL_TOL, final
+    assert all(series(recs, f"AGENT_{i}_MC", "State")[-1][1] == RUNNING for i in (2, 3, 4))
+    # the failover is no anomaly, the kill is (agent 1 silent; its plant's setpoints stop);
+    # the dead agent failed over from is judged no more: converged, with anomalies
+    assert {(a["kind"], a["node"]) for a in m["anomalies"]} == {
+        ("node_silent", "agent_1"), ("setpoint_timeout", "plant")}, m["anomalies"]
+    assert m["verdict"]["converged"] and m["verdict"]["exit_code"] == 3
+    assert m["final_error"] <= FINAL_TOL and m["settling_times_s"][-1] < 1.0
 
 
 @pytest.mark.realtime

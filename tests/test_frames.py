@@ -42,6 +42,7 @@ from hypothesis import strategies as st
 
 from dbc import DBC_PATH
 from firmware_py import contract, frames
+from firmware_py.contract import Command
 from firmware_py.errors import (
     ConfigError,
     CrcError,
@@ -54,6 +55,8 @@ from firmware_py.errors import (
 from firmware_py.frames import (
     LAMBDA_Q,
     N_AGENTS_MAX,
+    PIN_OFF,
+    PIN_ON,
     CounterTracker,
     FrameCodec,
     agent_of,
@@ -551,10 +554,25 @@ def test_malformed_kinds(codec: FrameCodec, kind: str) -> None:
 
 # All 8 bytes; for E2E frames byte 0 ("--") is replaced by the correct CRC. Secured and
 # sync frames carry an arbitrary Mac: the codec does not check it.
+@pytest.mark.parametrize(("gain_k", "gain_h"), [(0, 0), (3, 0), (16383, 0), (1, 1), (2, 5)])
+def test_a_pin_with_another_gain_is_out_of_range(codec: FrameCodec, gain_k: int,
+                                                 gain_h: int) -> None:
+    """CMD-7: Command 0 (PIN) takes GainK 1 (pin) or 2 (unpin) and GainH 0; anything else
+    is out of range at decode, as Command 0 was before PIN existed."""
+    for ok in (PIN_ON, PIN_OFF):
+        d = codec.decode(codec.encode("ER_Command", {"Command": int(Command.PIN), "Target": 1,
+                                                     "GainK": ok, "GainH": 0}, 0))
+        assert d.raw["GainK"] == ok
+    msg = codec.encode("ER_Command", {"Command": int(Command.PIN), "Target": 1,
+                                      "GainK": gain_k, "GainH": gain_h}, 0)
+    with pytest.raises(RangeError, match=r"ER_Command\.GainK: expected 1 \(pin\) or 2") as e:
+        codec.decode(msg)
+    assert e.value.cause == "range"
+
+
 @pytest.mark.parametrize(("fid", "hexdata", "signal", "got"), [
     (0x281, "AB CD EF 00 00 00 C9 00", "Soc", 201),          # Soc raw 201 > 200 (100 %)
     (0x281, "00 00 00 00 00 00 FF 00", "Soc", 255),
-    (0x020, "00 00 00 40 00 00 00 00", "Command", 0),        # no command 0 (Target 1)
     (0x020, "00 00 00 20 00 00 00 00", "Target", 0),         # RECONNECT agent 0
     (0x020, "00 00 00 50 08 00 00 00", "Target", 33),        # ISOLATE agent 33 = 0b100001
     (0x410, "12 34 56 01 00 00 00 00", "Boot", 0),           # ER_Price_Sync boot 0
@@ -594,8 +612,8 @@ def test_rejection_order_id_dlc_crc_range(codec: FrameCodec) -> None:
     with pytest.raises(UnknownFrameError):
         e2e.decode(frame(0x521, bad_range_bad_crc[:7]))
     # a secured frame has no CRC: DLC, then range (the Mac is NodeIO's, after the codec)
-    command_0 = bytes.fromhex("FF FF FF 40 00 00 00 00")
-    with pytest.raises(RangeError, match="ER_Command.Command"):
+    command_0 = bytes.fromhex("FF FF FF 40 00 00 00 00")  # a PIN with GainK 0 (CMD-7)
+    with pytest.raises(RangeError, match="ER_Command.GainK"):
         codec.decode(frame(0x020, command_0))
     with pytest.raises(FrameLengthError):
         codec.decode(frame(0x020, command_0[:7]))
@@ -766,6 +784,8 @@ def draw_raw(draw: st.DrawFn, codec: FrameCodec, msg: Any) -> dict[str, int]:
             continue
         lo, hi = codec.raw_range(msg.name, s.name)
         raw[s.name] = draw(st.integers(lo, hi))
+    if msg.name == "ER_Command" and raw["Command"] == Command.PIN:  # CMD-7: GainK says which
+        raw["GainK"], raw["GainH"] = draw(st.sampled_from((PIN_ON, PIN_OFF))), 0
     return raw
 
 
@@ -994,7 +1014,7 @@ def test_dbc_loads_strict_with_the_contract() -> None:
     assert dict(state.choices) == {0: "INIT", 1: "RUNNING", 2: "ISOLATED", 3: "SAFE"}
     command = db.get_message_by_name("ER_Command").get_signal_by_name("Command")
     assert command.choices is not None
-    assert dict(command.choices) == {1: "ISOLATE", 2: "RECONNECT", 3: "SET_GAINS"}
+    assert dict(command.choices) == {0: "PIN", 1: "ISOLATE", 2: "RECONNECT", 3: "SET_GAINS"}
     target = db.get_message_by_name("ER_Command").get_signal_by_name("Target")
     assert (target.minimum, target.maximum) == (1, 32)
     diag = db.get_message_by_name("AGENT_1_Diag")

@@ -228,6 +228,14 @@ def test_every_state_and_command_appears_in_the_frames(
 # --------------------------------------------------------------------------- the vectors can fail
 
 
+def _ignore_pin(orig: Callable[..., Any]) -> Callable[..., Any]:
+    def on_command(self: Any, f: Any, fid: int) -> None:
+        pin = self.pin
+        orig(self, f, fid)
+        self.pin = pin
+    return on_command
+
+
 def _rearm_at_reset(orig: Callable[..., Any]) -> Callable[..., Any]:
     def step(self: Any, s: Any, xi: Any) -> Any:
         new, out = orig(self, s, xi)
@@ -297,6 +305,8 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
         mp.setattr(controllers, "resilient_trim", lambda lam, nb, f: list(nb))
     elif kind == "trim_ties_by_smaller_weight":
         mp.setattr(controllers, "resilient_trim", _trim_smaller_weight_first)
+    elif kind == "pin_ignored":           # CMD-7 broken: a PIN counted, nothing else
+        mp.setattr(AgentRuntime, "_on_command", _ignore_pin(AgentRuntime._on_command))
     else:
         raise ValueError(kind)
     yield
@@ -309,7 +319,7 @@ MUTATIONS: dict[str, list[str]] = {
     # dwell controller)
     "band_rearms_at_reset": [
         "auth_forgery_replay", "boot_floors", "commands", "event_transmit", "init_wait_status",
-        "malformed_foreign", "neighbour_timeout", "peer_restart", "price_timeout_safe",
+        "malformed_foreign", "neighbour_timeout", "peer_restart", "pin", "price_timeout_safe",
         "resilient_trim", "start_steady", "status_fault_timeout", "sync_boot_jump"],
     # every vector: each sends Diag pages
     "diag_without_mac": [p.stem for p in VECTORS],
@@ -322,6 +332,7 @@ MUTATIONS: dict[str, list[str]] = {
     "resilient_f_ignored": ["resilient_trim"],
     "trim_ties_by_smaller_weight": ["resilient_trim"],
     "mc_every_tick": ["event_transmit"],
+    "pin_ignored": ["pin"],
 }
 
 

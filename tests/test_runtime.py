@@ -10,13 +10,13 @@ import pytest
 
 from firmware_py import fixedpoint as fx
 from firmware_py.config import agent_configs_from_scenario
-from firmware_py.contract import COUNTER_MODULO, every_ticks, timeout_s
-from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name
+from firmware_py.contract import COUNTER_MODULO, Command, every_ticks, timeout_s
+from firmware_py.frames import PIN_OFF, PIN_ON, FrameCodec, mc_name, setpoint_name, status_name
 from firmware_py.node import bus_kwargs, run_node, with_acceptance_filter
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import DIAG_EVERY, AgentRuntime, SetpointMap, State
 from sim.model.lockstep import run_lockstep
-from sim.model.scenario import load_case, scaled
+from sim.model.scenario import PriceStep, load_case, scaled
 
 CODEC = FrameCodec()
 TS = 0.01
@@ -193,6 +193,32 @@ def test_isolate_and_reconnect_commands() -> None:
     net.run(8.0)
     assert a2.state == State.RUNNING
     assert net.error() < 1e-3
+
+
+def test_pin_and_unpin_commands() -> None:
+    """CMD-7: UNPIN takes the price term out of the hub's ξ, PIN puts it into a leaf's; a
+    PIN with another GainK is out of range (counted under range, not a command). With
+    agent 3 pinned instead of agent 1 the star still follows a new price."""
+    net = Net(1)
+    net.run(5.0)
+
+    def pin(target: int, gain_k: int) -> None:
+        net.deliver(SENDER.frame("ER_Command", {"Command": int(Command.PIN), "Target": target,
+                                                "GainK": gain_k, "GainH": 0}, net.k % 16))
+
+    hub, leaf = net.agents[0], net.agents[2]
+    assert (hub.pin, leaf.pin) == (fx.ONE, 0)
+    pin(1, PIN_OFF)
+    pin(3, PIN_ON)
+    assert (hub.pin, leaf.pin) == (0, fx.ONE)
+    assert (hub.counters["commands"], leaf.counters["commands"]) == (1, 1)
+    assert hub.state == leaf.state == State.RUNNING
+    pin(2, 0)
+    assert net.agents[1].counters["range"] == 1 and net.agents[1].counters["commands"] == 0
+    assert net.agents[1].pin == 0
+    net.sc = replace(net.sc, prices=(PriceStep(0.0, 0.9),))
+    net.run(15.0)
+    assert max(abs(a.lam - 0.9) for a in net.agents) < 1e-3
 
 
 def test_set_gains_command_and_bad_gains_counted() -> None:

@@ -888,8 +888,9 @@ def test_a_scaled_agent_steps_as_the_unscaled_one_up_to_quantisation(kind: str) 
 
 def test_acceptance_filters_pass_the_syncs_of_the_keys_held(tmp_path: Path) -> None:
     """AUTH-19, GEN-5 (key files, case 1): the agent's filter passes the syncs of what it
-    takes (not its peer syncs); the router's also passes every agent's syncs, the plant's
-    the router's (ER_Price_Sync, ER_Command_Sync)."""
+    takes (not its peer syncs); the router's also passes every agent's syncs (its MC
+    syncs, as it takes the MC frames; without the failover, every agent's peer syncs), the
+    plant's the router's (ER_Price_Sync, ER_Command_Sync)."""
     from sim.nodes.plant import PlantNode
     from sim.nodes.router import RouterNode
 
@@ -903,8 +904,15 @@ def test_acceptance_filters_pass_the_syncs_of_the_keys_held(tmp_path: Path) -> N
     assert not {0x701, 0x703} & set(a.io.accepted_ids())
     router = RouterNode(load_case(1), keys=Keyring.from_file(
         write_key_file(tmp_path / "r.toml", "router", [*agents, "plant"])))
-    assert {0x501, 0x502, 0x503, 0x504, 0x601, 0x602, 0x603, 0x604} <= \
+    # the router takes every agent's MC frames (the pinned-agent failover, docs/faults.md):
+    # their syncs are its own, and an agent's restart shows on them (no peer syncs needed)
+    assert {0x101, 0x102, 0x103, 0x104, 0x501, 0x502, 0x503, 0x504} <= \
         set(router.io.accepted_ids())
+    assert not {0x601, 0x602, 0x603, 0x604} & set(router.io.accepted_ids())
+    no_failover = RouterNode(load_case(1), failover=False, keys=Keyring.from_file(
+        write_key_file(tmp_path / "r2.toml", "router", [*agents, "plant"])))
+    assert {0x501, 0x502, 0x503, 0x504, 0x601, 0x602, 0x603, 0x604} <= \
+        set(no_failover.io.accepted_ids())
     assert not {0x701, 0x702, 0x703, 0x704} & set(router.io.accepted_ids())
     plant = PlantNode(load_case(1), keys=Keyring.from_file(
         write_key_file(tmp_path / "p.toml", "plant", [*agents, "router"])))

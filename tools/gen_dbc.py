@@ -75,7 +75,9 @@ SYNC_OFFSET = 0x400  # <name>_Sync ID = the secured frame's ID + SYNC_OFFSET
 DEFAULT_OUTPUT = Path(__file__).resolve().parent.parent / "dbc" / "bess_ded.dbc"
 
 STATE_CHOICES = {0: "INIT", 1: "RUNNING", 2: "ISOLATED", 3: "SAFE"}
-COMMAND_CHOICES = {1: "ISOLATE", 2: "RECONNECT", 3: "SET_GAINS"}
+COMMAND_CHOICES = {0: "PIN", 1: "ISOLATE", 2: "RECONNECT", 3: "SET_GAINS"}
+# PIN (issue 23.5) took the one free value of the 2-bit Command: its GainK says which way
+# (firmware_py.frames PIN_ON / PIN_OFF)
 # AGENT_<i>_Diag SafetyCause (firmware_py.runtime.SAFETY_CAUSES, docs/safety-model.md)
 SAFETY_CAUSE_CHOICES = {0: "NONE", 1: "UNTRUSTED", 2: "IMPLAUSIBLE_PRICE",
                         3: "IMPLAUSIBLE_LAMBDA", 4: "IMPLAUSIBLE_GAINS", 5: "AUTH"}
@@ -236,13 +238,16 @@ def _er_command() -> Message:
     rx = _all_agents()
     return _msg(ER_COMMAND_ID, "ER_Command", "ER", [
         *_secoc(rx),
-        _sig("Command", 28, 2, minimum=1, maximum=3, choices=COMMAND_CHOICES, receivers=rx,
+        _sig("Command", 28, 2, minimum=0, maximum=3, choices=COMMAND_CHOICES, receivers=rx,
              comment="ISOLATE: agent Target leaves the consensus (plug-and-play out); RECONNECT: "
-                     "it re-enters; SET_GAINS: it adopts GainK and GainH."),
+                     "it re-enters; SET_GAINS: it adopts GainK and GainH; PIN: it hears the "
+                     "price in its consensus error (GainK = 1) or no longer (GainK = 2), "
+                     "GainH = 0; any other PIN is out of range."),
         _sig("Target", 30, 6, minimum=1, maximum=N_AGENTS, receivers=rx,
              comment="Agent index 1..32 the command is addressed to; other agents ignore it."),
         _sig("GainK", 36, 14, scale=0.001, receivers=rx,
-             comment="Proportional consensus gain k (SET_GAINS only; 0 otherwise)."),
+             comment="Proportional consensus gain k (SET_GAINS); PIN: 1 = pin, 2 = unpin; 0 "
+                     "otherwise."),
         _sig("GainH", 50, 14, scale=0.001, receivers=rx,
              comment="Integral consensus gain h (SET_GAINS only; 0 otherwise)."),
     ], "Energy router command to one agent (event frame, sent on demand; its counter still "

@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).parent))  # tools/gen_vectors.py
 
 from gen_vectors import q24, splitmix64, write_or_check  # noqa: E402  (shared with the controller's)
 
-from firmware_py import contract  # noqa: E402
+from firmware_py import contract, frames  # noqa: E402
 from firmware_py.config import parse_agent_config  # noqa: E402
 from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name  # noqa: E402
 from firmware_py.runtime import AgentRuntime  # noqa: E402
@@ -977,11 +977,40 @@ def sc_event_transmit() -> Scenario:
     return s
 
 
+def sc_pin() -> Scenario:
+    s = Scenario(
+        "pin",
+        "PIN (ER_Command Command 0, CMD-7) on a pinned agent: an UNPIN (GainK 2) for agent 3 "
+        "(ignored); UNPIN: the price term leaves xi at once, lambda follows the neighbours "
+        "only; PINs out of range (GainK 0, GainK 3, GainH 1: rejected before authentication, "
+        "counted under range); ISOLATE, PIN while ISOLATED (counted, no other effect), "
+        "RECONNECT: back to RUNNING with the price term, lambda back to the price.",
+        ["CMD-1", "CMD-2", "CMD-7", "XI-1", "XI-2", "STATE-7", "STATE-8"])
+    nb = start(s)
+    off, on = frames.PIN_OFF, frames.PIN_ON
+    s.run(60, price=RHO, nbrs=nb)
+    s.command("PIN", target=3, k=off, note="UNPIN for agent 3: ignored")
+    s.run(10, price=RHO, nbrs=nb)
+    s.command("PIN", k=off, note="UNPIN: the price term leaves xi")
+    s.run(100, price=RHO, nbrs=nb)
+    s.command("PIN", k=0, note="PIN with GainK 0: range")
+    s.command("PIN", k=3, note="PIN with GainK 3: range")
+    s.command("PIN", k=on, h=1, note="PIN with GainH 1: range")
+    s.run(20, price=RHO, nbrs=nb)
+    s.command("ISOLATE", note="ISOLATE")
+    s.run(10, price=RHO, nbrs=nb)
+    s.command("PIN", k=on, note="PIN while ISOLATED: counted, pinned again")
+    s.run(10, price=RHO, nbrs=nb)
+    s.command("RECONNECT", note="RECONNECT: RUNNING with the price term")
+    s.run(150, price=RHO, nbrs=nb)
+    return s
+
+
 SCENARIOS: tuple[Callable[[], Scenario], ...] = (
     sc_start_steady, sc_init_wait, sc_neighbour_timeout, sc_price_timeout, sc_status,
     sc_commands, sc_auth, sc_peer_restart, sc_malformed, sc_price_steps, sc_tx_wrap,
     sc_insecure, sc_boot_floors, sc_boot_jump,
-    sc_resilient, sc_event_transmit)
+    sc_resilient, sc_event_transmit, sc_pin)
 
 
 def render_all() -> dict[str, str]:

@@ -161,6 +161,7 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     }
     a->p = *p;
     a->ctrl = p->ctrl;
+    a->pinned = p->pinned != 0 ? 1 : 0;
     bd_ctrl_init(&a->cs, p->lambda0);
     a->state = BD_STATE_INIT;
     a->on_event = on_event;
@@ -307,7 +308,7 @@ static void step(bd_agent *a)
         }
     }
     uint32_t sat = 0u;
-    int32_t pin = a->has_price ? (a->p.pinned ? (INT32_C(1) << BD_LAMBDA_Q) : 0) : 0;
+    int32_t pin = a->has_price ? (a->pinned ? (INT32_C(1) << BD_LAMBDA_Q) : 0) : 0;
     n = bd_wmsr_trim(bd_agent_lambda(a), a->p.resilient_f, w, lam, n);  /* WMSR-1 */
     int32_t xi = bd_xi(bd_agent_lambda(a), pin, a->has_price ? a->price : 0, w, lam, n,
                        &sat);

@@ -115,7 +115,7 @@ static int32_t gain_q30(uint32_t raw, int32_t tsq)
     return q > INT32_MAX ? -1 : (int32_t)q;
 }
 
-/* CMD-1..6 */
+/* CMD-1..7 */
 int bd_on_command(bd_agent *a, const bd_command_msg *m, uint32_t id)
 {
     if (m->target != a->p.id) {
@@ -133,6 +133,8 @@ int bd_on_command(bd_agent *a, const bd_command_msg *m, uint32_t id)
         if (a->state == BD_STATE_ISOLATED) {
             bd_set_state(a, BD_STATE_INIT);
         }
+    } else if (m->command == BD_CMD_PIN) {   /* CMD-7: the decoder checked GainK, GainH */
+        a->pinned = m->gain_k == BD_PIN_ON ? 1 : 0;
     } else {   /* BD_CMD_SET_GAINS: the decoder checked the range */
         if (m->gain_k < a->p.gain_k_raw_min || m->gain_k > a->p.gain_k_raw_max
             || m->gain_h < a->p.gain_h_raw_min || m->gain_h > a->p.gain_h_raw_max) {

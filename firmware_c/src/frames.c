@@ -30,10 +30,13 @@ int bd_decode_command(const uint8_t d[8], bd_command_msg *m)
     m->target = f.target;
     m->gain_k = f.gain_k;
     m->gain_h = f.gain_h;
+    /* CMD-7: a PIN says which way in GainK (BD_PIN_ON / BD_PIN_OFF), with GainH = 0 */
+    int pin_ok = f.command != BD_CMD_PIN
+                 || ((f.gain_k == BD_PIN_ON || f.gain_k == BD_PIN_OFF) && f.gain_h == 0u);
     return (bd_dbc_er_command_command_is_in_range(f.command)
             && bd_dbc_er_command_target_is_in_range(f.target)
             && bd_dbc_er_command_gain_k_is_in_range(f.gain_k)
-            && bd_dbc_er_command_gain_h_is_in_range(f.gain_h)) ? 0 : -1;
+            && bd_dbc_er_command_gain_h_is_in_range(f.gain_h) && pin_ok) ? 0 : -1;
 }
 
 int bd_decode_mc(const uint8_t d[8], bd_mc_msg *m)

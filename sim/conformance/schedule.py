@@ -114,6 +114,8 @@ NOT_ON_BUS: dict[str, str] = {
             "maximum (DIAG-2): as DIAG-2",
     "RX-2": "remote, error and FD frames are counted as malformed, which is on no frame "
             "(DIAG-5); python-can's virtual buses cannot carry error frames",
+    "CMD-7": "the schedule sends no PIN yet (a new command, issue 23.5): the node vector pin "
+             "checks it, replayed by both agents",
     "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
     "WMSR-1": "resilient_f = 0 (off) in the configuration the tester writes: the node "
               "vector resilient_trim and tests/test_resilient.py check it",

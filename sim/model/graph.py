@@ -171,3 +171,24 @@ def analyse(h: np.ndarray, k: float, hgain: float, ts: float, kind: str = "reset
 def describe(h: np.ndarray, k: float, hgain: float, ts: float, kind: str = "reset") -> list[str]:
     """``analyse(...).describe()``: the lines `case`, `compare` and `up` print."""
     return analyse(h, k, hgain, ts, kind).describe()
+
+
+def failover_choice(n: int, edges: Iterable[Sequence[float]], pinned: Iterable[int],
+                    live: Iterable[int]) -> list[int]:
+    """The pinned-agent failover's choice (docs/faults.md): the agents to pin so that the
+    price reaches every ``live`` agent again. The graph of the live agents (the edges
+    between two of them) falls into connected components; each that holds no live
+    ``pinned`` agent gets one: its agent with the most live neighbours, ties by the
+    lowest id. Sorted; empty if every live agent already hears the price."""
+    up = set(live)
+    kept = [e for e in edges if int(e[0]) in up and int(e[1]) in up]
+    degree = dict.fromkeys(up, 0)
+    for e in kept:
+        degree[int(e[0])] += 1
+        degree[int(e[1])] += 1
+    chosen = []
+    for comp in unpinned_components(n, kept, set(pinned) & up):
+        members = [i for i in comp if i in up]  # an agent not live is a component alone
+        if members:
+            chosen.append(min(members, key=lambda i: (-degree[i], i)))
+    return sorted(chosen)

@@ -14,6 +14,7 @@ from dataclasses import replace
 import numpy as np
 
 from firmware_py.controllers import consensus_error, make_controller
+from sim.model.graph import failover_choice
 from sim.model.links import Links, Transmitter
 from sim.model.scenario import Event, Scenario
 from sim.model.trajectory import Trajectory
@@ -21,13 +22,17 @@ from sim.model.vlockstep import run_vectorised, vectorisable
 
 # below this many agents numpy's per-call cost outweighs the loop it replaces (bess-ded bench)
 VEC_MIN_AGENTS = 8
+# the failover's delay beyond the neighbour timeout, in samples: the router hears the
+# timeout a sample late and its PIN reaches the agent a sample later (sim.nodes.router)
+FAILOVER_DELAY_TS = 2
 
 
 def run_lockstep(sc: Scenario, fixed: bool = True,
                  progress: Callable[[int, int], None] | None = None,
                  impl: str = "auto", start_tick: int = 0, loss: float = 0.0,
                  loss_seed: int = 0,
-                 lies: Mapping[int, Callable[[int, int], int]] | None = None) -> Trajectory:
+                 lies: Mapping[int, Callable[[int, int], int]] | None = None,
+                 failover: bool = False) -> Trajectory:
     """``impl``: "py" steps firmware_py's controllers agent by agent, "vec" the same
     fixed-point step over numpy arrays (sim.model.vlockstep: all agents at once), "c" the
     C core (firmware_c, through sim.cbind.cimpl: its controller step and its ξ), fixed
@@ -42,12 +47,17 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
     of its own (a compromised agent with its own key, tests/deviant_agent.py's LIE-*); its
     trajectory holds the told λ (its setpoints follow what it tells). ``sc.resilient_f``
     > 0 runs every agent's ξ through the W-MSR trimming (controllers.resilient_trim);
-    both run on the scalar loop ("vec" falls back to "py")."""
-    if impl == "vec" and (lies or sc.resilient_f):
+    both run on the scalar loop ("vec" falls back to "py"). ``failover``: the router's
+    pinned-agent failover (sim.nodes.router, docs/faults.md): when a pinned agent is
+    isolated (the lockstep's model of a dead agent), ``FAILOVER_DELAY_TS`` samples later
+    (the router's detection: the agents' neighbour timeout, a sample to hear it, one for
+    the PIN to arrive) the agents ``graph.failover_choice`` names are pinned (scalar loop
+    only, "vec" falls back to "py")."""
+    if impl == "vec" and (lies or sc.resilient_f or failover):
         impl = "py"  # the resilient update or a liar: the per-agent loop, same results
     if impl == "auto":
         impl = ("vec" if fixed and sc.n >= VEC_MIN_AGENTS and vectorisable(sc) and not lies
-                else "py")
+                and not failover else "py")
     if impl == "vec":
         if not fixed:
             raise ValueError("the vectorised step is fixed point only (impl='vec' with "
@@ -94,6 +104,9 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
     rho_arr, seg_arr = np.zeros(steps), np.zeros(steps, dtype=int)
     resets: list[list[float]] = [[] for _ in range(n)]
     real, real_state = ctrl.real, ctrl.real_state
+    pinned = set(sc.pinned)                 # whom the failover counts as pinned
+    failover_due: int | None = None         # the sample its PINs take effect
+    delay = sc.transmit.neighbour_periods + FAILOVER_DELAY_TS
 
     for k in range(steps):
         t = k * ts
@@ -105,6 +118,15 @@ def run_lockstep(sc: Scenario, fixed: bool = True,
             force[i] = True
             if e.action == "isolate":  # off the network: P = 0, λ at its idle MC
                 states[i] = initial(sc.batteries[i].idle_lambda)
+                if failover and e.agent in pinned:
+                    failover_due = k + delay
+        if failover_due == k:
+            live = [i + 1 for i in range(n) if active[i]]
+            if any(not active[p - 1] for p in pinned):
+                for p in failover_choice(n, sc.edges, pinned, live):
+                    pinned.add(p)
+                    pin[p - 1] = q(1.0, "pin")
+            failover_due = None
         rho, seg = sc.price_at(t)
         rho_q = q(rho, "rho")
         rho_arr[k], seg_arr[k] = rho, seg

@@ -22,6 +22,23 @@
   meanwhile is not sent later (a silent router is a dead router); the periodic
   cadence and the ledger go on. Counted in ``silenced_frames``.
 
+Pinned-agent failover (issue 23.5; docs/faults.md): the router also takes every agent's
+``AGENT_<i>_MC`` (verified like any secured input) to know which agents are up: heard
+within the agents' own neighbour timeout (``neighbour_timeout_periods``·Ts) and not
+ISOLATED. When an agent it counts as pinned (the scenario's ``pinned``, and every agent
+it pinned since) is lost (heard once, then silent for that timeout; or ISOLATED, which
+takes it out of the consensus just as well), it looks at the graph of the agents up
+(the scenario's edges between two agents up): every connected component of it without a
+pinned agent up no longer hears the price, and gets one: the agent of that component
+with the most neighbours up, ties by the lowest id (``sim.model.graph.failover_choice``),
+pinned by an authenticated ``ER_Command`` PIN (CMD-7, repeated like every command).
+Counted in ``failovers`` (one per agent pinned), listed in ``failover_log`` and the
+summary. An agent it pinned that restarts (heard again after it was lost, or INIT after
+RUNNING) starts from its configuration, unpinned: the router pins it again. Nothing
+happens while no pinned agent is lost (a fleet starting up, an unpinned agent isolated),
+so a run without a lost pinned agent sends exactly what it sent before.
+``failover=False`` turns it off (the MC frames are then not taken at all).
+
 Status reception uses the E2E checks of the agent runtime: rejections by cause,
 ``repeated_counter``, ``lost_frames``, foreign traffic (firmware_py.nodeio); a BESS
 whose status is older than 5 status cycles (``contract.timeout_s``: 250 ms at Ts =
@@ -38,13 +55,14 @@ from dataclasses import dataclass, field
 
 import can
 
-from firmware_py.config import untrusted_s
-from firmware_py.contract import Command, cycle_s, status_name, timeout_s
+from firmware_py.config import agent_configs_from_scenario, untrusted_s
+from firmware_py.contract import Command, State, cycle_s, mc_name, status_name, timeout_s
 from firmware_py.errors import ParameterError
-from firmware_py.frames import LAMBDA_Q, FrameCodec
+from firmware_py.frames import LAMBDA_Q, PIN_OFF, PIN_ON, FrameCodec
 from firmware_py.nodeio import NodeIO
 from firmware_py.secoc import Keyring
 from sim.model.cost import expenditure, kkt_optimum
+from sim.model.graph import failover_choice
 from sim.model.scenario import Scenario
 from sim.nodes.nodeclock import SimNodeClock, TimeWindow
 from sim.nodes.plant import Cyclic
@@ -56,7 +74,8 @@ COMMAND_SPACING_S = 0.010
 SCHEDULE_EPS_S = 1e-6   # float slack when comparing a tick time with a schedule time
 
 COMMANDS = {"isolate": Command.ISOLATE, "reconnect": Command.RECONNECT,
-            "set_gains": Command.SET_GAINS}
+            "set_gains": Command.SET_GAINS, "pin": Command.PIN, "unpin": Command.PIN}
+PIN_GAIN_K = {"pin": PIN_ON, "unpin": PIN_OFF}   # a PIN's GainK says which way (CMD-7)
 EVENT_COMMANDS = {"isolate": "isolate", "reconnect": "reconnect"}
 _STATUS_FLAGS = ("FaultOverCurrent", "FaultVoltage", "FaultSoc", "PowerLimited")
 
@@ -108,6 +127,31 @@ class _PendingCommand:
 
 
 @dataclass
+class _AgentSlot:
+    """What the router knows of one agent from its MC frames (the failover's input)."""
+
+    rx: float | None = None     # last accepted MC frame
+    state: int = State.INIT
+    up: bool = False            # heard within the timeout
+    lost: bool = False          # heard once, then silent for the timeout
+
+
+@dataclass(frozen=True)
+class Failover:
+    """One failover: when (s from the router's first tick), the pinned agents lost, and
+    the agents the router pinned."""
+
+    t: float
+    lost: tuple[int, ...]
+    pinned: tuple[int, ...]
+
+    def line(self) -> str:
+        """``t=5.07 s: pinned agents lost 1; pinned 2, 3, 4``."""
+        return (f"t={self.t:.2f} s: pinned agents lost {', '.join(map(str, self.lost))}; "
+                f"pinned {', '.join(map(str, self.pinned))}")
+
+
+@dataclass
 class _StatusSlot:
     power: float = 0.0
     rx: float | None = None
@@ -123,14 +167,16 @@ class RouterNode(SimNodeClock):
     ``lost_frames``, ``foreign`` (with ``impersonation``, ``foreign_id``, ``counter_jump``,
     ``counter_clash``), ``status_frames`` (accepted), ``status_timeouts``,
     ``price_frames``, ``command_frames``, ``balance_frames`` (pages), ``silenced_frames``,
-    ``events`` (scenario events fired), ``encode_saturations``, and the loop's
+    ``events`` (scenario events fired), ``failovers`` (agents pinned by the failover),
+    ``encode_saturations``, and the loop's
     ``deadline_miss`` / ``send_failure``. Ledger: ``cost`` and ``optimal_cost`` (cu),
     ``grid_power`` (last P_e, kW), ``cost_rate`` / ``optimal_cost_rate`` (cu/h).
     """
 
     def __init__(self, scenario: Scenario, period: float = 0.01,
                  silent: Iterable[SilentWindow | Sequence[float] | str] = (),
-                 codec: FrameCodec | None = None, keys: Keyring | None = None) -> None:
+                 codec: FrameCodec | None = None, keys: Keyring | None = None,
+                 failover: bool = True) -> None:
         if not (math.isfinite(period) and period > 0):
             raise ParameterError("period", "a positive number of seconds", period)
         self.scenario = scenario
@@ -153,8 +199,18 @@ class RouterNode(SimNodeClock):
         self._status = {c.frame_id(status_name(i)): _StatusSlot()
                         for i in range(1, scenario.n + 1)}
         self._slots = list(self._status.values())
+        # the failover's view of the agents: their MC frames, the graph, who is pinned
+        self.failover = failover
+        self._mc = ({c.frame_id(mc_name(i)): i for i in range(1, scenario.n + 1)}
+                    if failover else {})
+        self._agents = {i: _AgentSlot() for i in range(1, scenario.n + 1)}
+        cfgs = agent_configs_from_scenario(scenario)
+        self.agent_timeout = cfgs[0].neighbour_timeout_periods * scenario.ts
+        self.pinned = set(scenario.pinned)      # whom the router counts as pinned
+        self._commanded: set[int] = set()       # of those, the ones it pinned itself
+        self.failover_log: list[Failover] = []
         self.io = NodeIO(c, "the router", own=("ER_Price", "ER_Command", "ER_Balance"),
-                         wanted=self._status, fleet_size=scenario.n,
+                         wanted=[*self._status, *self._mc], fleet_size=scenario.n,
                          untrusted_s=untrusted_s(scenario.ts), keys=keys,
                          sync_s=cycle_s("ER_Price_Sync", scenario.ts))
         self.counters = self.io.counters
@@ -178,9 +234,9 @@ class RouterNode(SimNodeClock):
                      h: float | None = None) -> None:
         """Queue an ER_Command (sent at the next tick, then repeated: 3 frames 10 ms apart).
 
-        ``kind``: "isolate", "reconnect" or "set_gains" (the last needs ``k`` and ``h``,
-        0..16.383 in steps of 0.001: the DBC's GainK/GainH). Thread-safe: a tool may call it
-        while run_node runs.
+        ``kind``: "isolate", "reconnect", "set_gains" (it needs ``k`` and ``h``, 0..16.383
+        in steps of 0.001: the DBC's GainK/GainH), "pin" or "unpin" (CMD-7). Thread-safe: a
+        tool may call it while run_node runs.
         """
         key = str(kind).lower()
         if key not in COMMANDS:
@@ -199,6 +255,8 @@ class RouterNode(SimNodeClock):
                 gains[sig] = raw
         elif k is not None or h is not None:
             raise ParameterError("command gains", "k and h only with set_gains", (k, h))
+        elif key in PIN_GAIN_K:
+            gains["GainK"] = PIN_GAIN_K[key]
         with self._lock:
             self._pending.append(_PendingCommand({"Command": int(COMMANDS[key]),
                                                   "Target": target,
@@ -211,6 +269,16 @@ class RouterNode(SimNodeClock):
         balance and the cost ledger."""
         f = self.io.receive(msg, t)
         if f is None:
+            return
+        agent = self._mc.get(f.frame_id)
+        if agent is not None:
+            a = self._agents[agent]
+            restarted = a.lost or (a.state != State.INIT and f.raw["State"] == State.INIT)
+            if restarted and agent in self._commanded:
+                log.info("router: agent %d (pinned by the failover) is back: pinning it "
+                         "again", agent)
+                self.send_command("pin", agent)
+            a.rx, a.state, a.up, a.lost = t, f.raw["State"], True, False
             return
         slot = self._status[f.frame_id]
         self.counters["status_frames"] += 1
@@ -239,6 +307,8 @@ class RouterNode(SimNodeClock):
             self.counters["events"] += 1
             log.info("router: t = %.3f s: %s agent %d", t_rel, e.action, e.agent)
             self.send_command(EVENT_COMMANDS[e.action], e.agent)
+        if self._mc:
+            self._failover(t, t_rel)
         frames += self._due_commands(t_rel)
         if self._balance.due(t_rel):  # both pages: the ledger pairs rates of one instant
             frames += [("ER_Balance", raw) for raw in self._balance_raw()]
@@ -247,6 +317,36 @@ class RouterNode(SimNodeClock):
             self.counters["silenced_frames"] += len(frames)
             return []
         return self.io.syncs(t) + [self._send(name, raw) for name, raw in frames]
+
+    def _failover(self, t: float, t_rel: float) -> None:
+        """Agents up or lost by their MC frames; if a pinned agent is lost, pin one agent
+        in every component of the agents up that holds no pinned agent up."""
+        newly_lost = []
+        for i, a in self._agents.items():
+            up = a.rx is not None and t - a.rx <= self.agent_timeout + 1e-9
+            if a.up and not up:
+                a.lost = True
+                self.io.sender_lost(self.codec.frame_id(mc_name(i)))  # its gap aliases
+                log.info("router: AGENT_%d_MC timed out", i)
+                if i in self.pinned:
+                    newly_lost.append(i)
+            a.up = up
+        lost = sorted(i for i in self.pinned
+                      if self._agents[i].lost or self._agents[i].state == State.ISOLATED)
+        if not lost:
+            return
+        live = [i for i, a in self._agents.items() if a.up and a.state != State.ISOLATED]
+        chosen = failover_choice(self.scenario.n, self.scenario.edges, self.pinned, live)
+        if not chosen:
+            return
+        for i in chosen:
+            self.pinned.add(i)
+            self._commanded.add(i)
+            self.counters["failovers"] += 1
+            self.send_command("pin", i)
+        event = Failover(t_rel, tuple(lost), tuple(sorted(chosen)))
+        self.failover_log.append(event)
+        log.warning("router: failover at %s", event.line())
 
     def _due_commands(self, t_rel: float) -> list[tuple[str, dict[str, int]]]:
         out = []
@@ -323,6 +423,7 @@ class RouterNode(SimNodeClock):
         c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items()) if v) or "none"
         extra = (f" ({100 * (self.cost / self.optimal_cost - 1):+.2f} % vs optimal)"
                  if self.optimal_cost > 0 else "")
+        fo = "".join(f"; failover {e.line()}" for e in self.failover_log)
         return (f"router: t={t:.2f} s, ρ={self.rho:g} (segment {self.segment}), "
                 f"P_e={self.grid_power:.2f} kW, cost={self.cost:.4f} cu, optimal="
-                f"{self.optimal_cost:.4f} cu{extra}, counters: {c}")
+                f"{self.optimal_cost:.4f} cu{extra}, counters: {c}{fo}")

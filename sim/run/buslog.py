@@ -113,6 +113,8 @@ class LogContents:
     # PowerSetpoint raw), for the setpoint-consistency check (sim.nodes.consistency)
     dispatch: dict[int, list[tuple[float, str, int, int]]] = field(
         default_factory=lambda: defaultdict(list))
+    # every ER_Command recorded: (t, Command, Target, GainK) raw (router_events)
+    commands: list[tuple[float, int, int, int]] = field(default_factory=list)
     # log lines that hold no frame, by cause (LINE_CAUSES): skipped, never silently
     skipped_lines: Counter[str] = field(default_factory=Counter)
     # timestamps of frames far outside the recording's time span (a clock jump or a
@@ -523,6 +525,8 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
         elif f.name.endswith("_Diag"):
             out.diag[f.agent or 0].update({k: v for k, v in f.raw.items()
                                            if k not in ("Mac", "CRC", "Counter", "Page")})
+        elif f.name == "ER_Command":
+            out.commands.append((t, f.raw["Command"], f.raw["Target"], f.raw["GainK"]))
         elif f.name == "ER_Balance":  # one page's signals
             for sig in f.raw:
                 if sig not in ("Mac", "CRC", "Counter", "Page"):
@@ -602,16 +606,78 @@ def trajectory_from_log(sc: Scenario, log: LogContents, label: str = "bus") -> T
         r = log.series[(f"AGENT_{i}_MC", "Resets")]
         resets.append([t - t0 for (t, v), (_, v0) in zip(r[1:], r, strict=False) if v != v0])
     u = np.vstack([np.diff(lam, axis=0) / ts, np.zeros((1, sc.n))])
+    expected = planned_participation(sc, grid - t0)
+    for i, t_last in failed_over(log).items():  # dead, and failed over: no longer judged
+        if 1 <= i <= sc.n:
+            expected[grid > t_last, i - 1] = False
     return Trajectory(t=grid - t0, lam=lam, rho=_hold(log.series[("price", "Rho")], grid, np.nan),
                       segment=_hold(log.series[("price", "Segment")], grid, 0).astype(int),
                       active=np.vectorize(contract.is_active, otypes=[bool])(state), p=p, u=u,
-                      resets=resets, label=label, expected=planned_participation(sc, grid - t0),
-                      state=state.astype(int))
+                      resets=resets, label=label, expected=expected, state=state.astype(int))
 
 
 def node_diagnostics(log: LogContents) -> dict[str, Any]:
     """Per agent: the last value of every diagnostics counter it broadcast."""
     return {f"agent_{a}": dict(sorted(d.items())) for a, d in sorted(log.diag.items())}
+
+
+def router_events(log: LogContents, gap_s: float = 0.1) -> list[dict[str, Any]]:
+    """The router's commands as events of the run, from the recorded ER_Command frames:
+    each command once (the router repeats it, COMMAND_REPEATS frames 10 ms apart: frames
+    of the same command and target within ``gap_s`` of the last are one event), in bus
+    order: ``{"t", "command", "target"}``, command the DBC's name (PIN: ``pin`` or
+    ``unpin`` by its GainK, CMD-7). A PIN is the router's pinned-agent failover."""
+    from firmware_py.contract import Command
+    from firmware_py.frames import PIN_ON
+
+    out: list[dict[str, Any]] = []
+    last: dict[tuple[int, int, int], float] = {}
+    for t, cmd, target, gain_k in log.commands:
+        key = (cmd, target, gain_k)
+        if key in last and t - last[key] <= gap_s:
+            last[key] = t
+            continue
+        last[key] = t
+        if cmd == Command.PIN:
+            name = "pin" if gain_k == PIN_ON else "unpin"
+        else:
+            name = Command(cmd).name.lower() if cmd in Command._value2member_map_ else str(cmd)
+        out.append({"t": t - (log.t_first_price or 0.0), "command": name, "target": target})
+    return out
+
+
+def failovers(events: list[dict[str, Any]], gap_s: float = 0.1) -> list[dict[str, Any]]:
+    """The pinned-agent failovers among ``router_events``: the pins, those within
+    ``gap_s`` of each other as one failover: ``{"t", "pinned": [agents]}``."""
+    out: list[dict[str, Any]] = []
+    for e in events:
+        if e["command"] != "pin":
+            continue
+        if out and e["t"] - out[-1]["t"] <= gap_s:
+            out[-1]["pinned"].append(e["target"])
+        else:
+            out.append({"t": e["t"], "pinned": [e["target"]]})
+    return out
+
+
+def failed_over(log: LogContents) -> dict[int, float]:
+    """The agents the router failed over from and that never came back: agent → the time
+    of its last MC frame (recording time), for each agent silent from before a PIN
+    (GainK = PIN_ON, CMD-7) to the end of the recording. The run is judged without them
+    from that time on (trajectory_from_log: a dead agent's held λ is no dispatch); its
+    silence stays an anomaly (node_silent)."""
+    from firmware_py.contract import Command
+    from firmware_py.frames import PIN_ON
+
+    pins = [t for t, cmd, _, gain_k in log.commands if cmd == Command.PIN and gain_k == PIN_ON]
+    out: dict[int, float] = {}
+    for (name, sig), series in log.series.items():
+        if sig != "Lambda" or not name.endswith("_MC") or not series:
+            continue
+        last = series[-1][0]
+        if any(t > last for t in pins):
+            out[int(name.split("_")[1])] = last
+    return out
 
 
 def router_ledger(log: LogContents) -> dict[str, float] | None:

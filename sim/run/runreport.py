@@ -87,6 +87,9 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
         "tolerance": tolerance,
         "insecure": facts.insecure,
         "router_ledger": buslog.router_ledger(log),
+        # the router's commands (events, not anomalies), its failovers among them
+        "events": (events := buslog.router_events(log)),
+        "failovers": buslog.failovers(events),
         # lines of the log that held no frame, and frames far off its time span: left out
         "log_lines_skipped": dict(log.skipped_lines),
         "timestamp_outliers": log.time_outliers,
@@ -135,6 +138,10 @@ def summary_lines(m: dict[str, Any], verdict: Verdict, time_scale: float = 1.0) 
                 line += (f"; router's ledger: {ledger['cost']:.4f} cu spent, optimum "
                          f"{ledger['optimal_cost']:.4f} cu")
             lines.append(line)
+    for fo in m.get("failovers", []):
+        lines.append(f"  failover at {secs(fo['t'])}: the router pinned agent"
+                     f"{'s' if len(fo['pinned']) > 1 else ''} "
+                     f"{', '.join(map(str, fo['pinned']))} (every pinned agent was lost)")
     lines.append(f"  frames recorded {m['frames_recorded']}, undecodable "
                  f"{sum(m['frames_undecodable'].values())}, missed by the recorder "
                  f"{m['frames_missed_by_recorder']}, deadline misses "

@@ -29,7 +29,7 @@ from firmware_py.nodeio import JOIN_FRACTION, SYNC_S
 from firmware_py.secoc import SYNC_BOOT_JUMP_MAX
 from sim.model.scenario import Scenario
 from sim.model.trajectory import Trajectory
-from sim.run.buslog import LogContents
+from sim.run.buslog import LogContents, failed_over
 
 EXIT_OK = 0              # converged, no anomaly
 EXIT_NOT_CONVERGED = 1   # the fleet did not converge (reasons in the verdict)
@@ -443,6 +443,7 @@ def _agent_states(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anom
                   reasons: list[str]) -> None:
     assert tr.state is not None and tr.expected is not None
     ts, grace = sc.ts, STATE_GRACE_TS * sc.ts
+    gone = failed_over(log)  # dead and failed over: their held State is no state
     for i in range(sc.n):
         name = f"agent_{i + 1}"
         if log.mc_frames(i + 1) == 0:
@@ -466,7 +467,7 @@ def _agent_states(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anom
                     out.append(Anomaly(f"agent_{what.lower()}", name, f"in {what} for {d:.2f} s "
                                        f"where the scenario has it dispatching", t))
         for t, d in _intervals((state == RUNNING) & ~expected, tr.t, ts):
-            if d > grace:
+            if d > grace and i + 1 not in gone:
                 out.append(Anomaly("agent_not_isolated", name, f"RUNNING for {d:.2f} s where "
                                    "the scenario has it isolated", t))
 

@@ -164,6 +164,7 @@ typedef struct {
 typedef struct {
     bd_agent_params p;
     bd_ctrl_config ctrl;          /* the constants in use (SET_GAINS changes KTS, HTS) */
+    int32_t pinned;               /* 0/1 in use: p.pinned at start, PIN changes it (CMD-7) */
     bd_ctrl_state cs;
     uint32_t count[BD_C_COUNT];   /* saturating */
     uint32_t ticks;
