@@ -18,6 +18,7 @@ data, a fault a CAN link does not produce.
 
 from __future__ import annotations
 
+import hashlib
 import heapq
 import itertools
 import random
@@ -36,6 +37,17 @@ def neighbour_mc(own_agent: int | None) -> Callable[[can.Message], bool]:
     own = None if own_agent is None else MC_BASE + own_agent
     return lambda m: (MC_BASE < m.arbitration_id <= MC_BASE + N_AGENTS_MAX
                       and m.arbitration_id != own)
+
+
+def every_frame(msg: can.Message) -> bool:
+    """Matches every frame a node receives (the bus runs' ``--loss`` fault mode)."""
+    return True
+
+
+def node_seed(seed: int, node: str) -> int:
+    """The loss seed of one node of a run from the run's ``seed`` and the node's name
+    (``agent_3``, ``plant``, ...): every node draws its own, reproducible sequence."""
+    return int.from_bytes(hashlib.sha256(f"{seed}/{node}".encode()).digest()[:6], "big")
 
 
 @dataclass
@@ -69,6 +81,7 @@ class FaultyBus:
         self.pending: list[tuple[float, int, can.Message]] = []
         self.seq = itertools.count()
         self.last_release: dict[int, float] = {}  # per ID: keeps one sender's frames in order
+        self.matched = 0  # frames the faults applied to (dropped ones included)
         self.dropped = 0
         self.delayed = 0
 
@@ -93,6 +106,7 @@ class FaultyBus:
             if msg is not None:
                 f = self.faults
                 if f.match(msg):
+                    self.matched += 1
                     if self.rng.random() < f.loss:
                         self.dropped += 1
                         continue
