@@ -60,6 +60,9 @@ class RxFaults:
     jitter: float = 0.0        # s, extra uniform random delay in [0, jitter]
     seed: int = 0
     match: Callable[[can.Message], bool] = field(default_factory=lambda: neighbour_mc(None))
+    # frames on an ID the node itself has sent (its echo: loopback, no network path)
+    # pass untouched, whatever ``match`` says
+    spare_own: bool = False
 
     @property
     def active(self) -> bool:
@@ -81,12 +84,14 @@ class FaultyBus:
         self.pending: list[tuple[float, int, can.Message]] = []
         self.seq = itertools.count()
         self.last_release: dict[int, float] = {}  # per ID: keeps one sender's frames in order
+        self.own: set[int] = set()  # the IDs sent through this wrapper (spare_own)
         self.matched = 0  # frames the faults applied to (dropped ones included)
         self.dropped = 0
         self.delayed = 0
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Pass the frame on to the wrapped bus (faults are on the receive side only)."""
+        self.own.add(msg.arbitration_id)
         self.bus.send(msg, timeout=timeout)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
@@ -105,7 +110,7 @@ class FaultyBus:
             msg = self.bus.recv(timeout=wait)
             if msg is not None:
                 f = self.faults
-                if f.match(msg):
+                if f.match(msg) and not (f.spare_own and msg.arbitration_id in self.own):
                     self.matched += 1
                     if self.rng.random() < f.loss:
                         self.dropped += 1
@@ -122,6 +127,11 @@ class FaultyBus:
             if end is not None and self.clock() >= end and not (
                     self.pending and self.pending[0][0] <= self.clock()):
                 return None
+
+    def summary(self, who: str) -> str:
+        """What it injected, as the node prints it at exit."""
+        return (f"{who}: injected {self.dropped} losses of {self.matched} frames, "
+                f"{self.delayed} delays")
 
     def shutdown(self) -> None:
         """Shut the wrapped bus down, if it has a shutdown."""
