@@ -54,9 +54,11 @@ class LossRun:
     p_tail: tuple[float, ...]  # kW per battery, median over the last second
 
 
-def case_scenario(case: int, mode: str) -> Scenario:
-    """The case with the transmission mode ``mode``."""
-    return replace(load_case(case), transmit=Transmit(mode))
+def case_scenario(case: int, mode: str, duration: float | None = None) -> Scenario:
+    """The case with the transmission mode ``mode`` (and ``duration``, s: None, the
+    case's)."""
+    sc = replace(load_case(case), transmit=Transmit(mode))
+    return sc if duration is None else replace(sc, duration=duration)
 
 
 def _tail(sc: Scenario, tr: Trajectory) -> tuple[float, tuple[float, ...]]:
@@ -69,12 +71,13 @@ def _tail(sc: Scenario, tr: Trajectory) -> tuple[float, tuple[float, ...]]:
             tuple(float(x) for x in np.median(tr.p[-k:], axis=0)))
 
 
-def run_one(case: int, mode: str, loss: float, seed: int, out: Path) -> LossRun:
+def run_one(case: int, mode: str, loss: float, seed: int, out: Path,
+            duration: float | None = None) -> LossRun:
     """Run ``case`` in process at ``loss`` with ``seed``; the recording in ``out``."""
     from sim.run.buslog import read_log, trajectory_from_log
     from sim.run.busrun import run_in_process
 
-    sc = case_scenario(case, mode)
+    sc = case_scenario(case, mode, duration)
     m = run_in_process(sc, out, sc.duration, channel=f"loss-{case}-{mode}-{loss}-{seed}",
                        loss=loss, loss_seed=seed)
     tr = trajectory_from_log(sc, read_log(out / "run.log", n=sc.n, ts=sc.ts))
@@ -90,7 +93,7 @@ def run_one(case: int, mode: str, loss: float, seed: int, out: Path) -> LossRun:
 
 def run_all(cases: tuple[int, ...] = CASES, losses: tuple[float, ...] = LOSSES,
             modes: tuple[str, ...] = MODES, seeds: tuple[int, ...] = SEEDS,
-            progress: bool = False) -> list[LossRun]:
+            progress: bool = False, duration: float | None = None) -> list[LossRun]:
     """Every (case, mode, loss, seed) run (the lossless ones once: no seed matters)."""
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -99,7 +102,7 @@ def run_all(cases: tuple[int, ...] = CASES, losses: tuple[float, ...] = LOSSES,
                 for loss in losses:
                     for seed in (seeds if loss else seeds[:1]):
                         r = run_one(case, mode, loss, seed,
-                                    Path(tmp) / f"{case}-{mode}-{loss}-{seed}")
+                                    Path(tmp) / f"{case}-{mode}-{loss}-{seed}", duration)
                         if progress:
                             print(f"  case {case} {mode} loss {loss:g} seed {seed}: "
                                   f"final {r.final_error:.1e}, settling {r.settling:.2f} s, "
@@ -179,9 +182,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cases", default="1,7", help="comma-separated (default: 1,7)")
     p.add_argument("--seeds", type=int, default=len(SEEDS), help="seeds per lossy run")
     p.add_argument("--modes", default="periodic,event")
+    p.add_argument("--losses", default="0,0.1,0.3", help="comma-separated; 0 first")
+    p.add_argument("--duration", type=float, default=None,
+                   help="seconds per run (default: each case's)")
     args = p.parse_args(argv)
-    runs = run_all(tuple(int(c) for c in args.cases.split(",")), LOSSES,
-                   tuple(args.modes.split(",")), tuple(range(args.seeds)), progress=True)
+    runs = run_all(tuple(int(c) for c in args.cases.split(",")),
+                   tuple(float(x) for x in args.losses.split(",")),
+                   tuple(args.modes.split(",")), tuple(range(args.seeds)), progress=True,
+                   duration=args.duration)
     rs = rows(runs)
     print(table(rs))
     material = [r for r in rs if r.material]
