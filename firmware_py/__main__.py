@@ -12,7 +12,7 @@ import sys
 from .cliargs import duration_s, float_in, int_in, probability
 from .config import load_agent_config
 from .errors import BessDedError
-from .faultinject import FaultyBus, RxFaults, neighbour_mc
+from .faultinject import FaultyBus, RxFaults, every_frame, neighbour_mc
 from .node import (
     RxTxBus,
     StopFlag,
@@ -51,6 +51,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="extra uniform random delay in [0, S] seconds")
     t.add_argument("--inject-seed", type=int_in(0), default=0, metavar="N",
                    help="seed of the injected faults")
+    t.add_argument("--inject-rx-all", action="store_true",
+                   help="apply them to every frame received (price, status, commands, "
+                   "syncs, every MC), not only neighbour MC frames; the echo of the "
+                   "node's own frames passes (`bess-ded up --loss`)")
 
 
 def run_agent(args: argparse.Namespace) -> int:
@@ -68,7 +72,9 @@ def run_agent(args: argparse.Namespace) -> int:
                                 agent.io.accepted_ids(), args.acceptance_filter)
     bus = open_bus(**kw)
     faults = RxFaults(args.inject_rx_loss, args.inject_rx_delay, args.inject_rx_jitter,
-                      args.inject_seed, match=neighbour_mc(cfg.id))
+                      args.inject_seed,
+                      match=every_frame if args.inject_rx_all else neighbour_mc(cfg.id),
+                      spare_own=args.inject_rx_all)
     node_bus: RxTxBus = behind_filter(bus, kw)
     if faults.active:
         node_bus = FaultyBus(node_bus, faults)
@@ -78,8 +84,7 @@ def run_agent(args: argparse.Namespace) -> int:
         bus.shutdown()
         print(agent.summary(), file=sys.stderr, flush=True)
         if isinstance(node_bus, FaultyBus):
-            print(f"agent {cfg.id}: injected {node_bus.dropped} losses, {node_bus.delayed} "
-                  "delays", file=sys.stderr, flush=True)
+            print(node_bus.summary(f"agent {cfg.id}"), file=sys.stderr, flush=True)
     return 0
 
 

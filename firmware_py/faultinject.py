@@ -18,6 +18,7 @@ data, a fault a CAN link does not produce.
 
 from __future__ import annotations
 
+import hashlib
 import heapq
 import itertools
 import random
@@ -38,6 +39,17 @@ def neighbour_mc(own_agent: int | None) -> Callable[[can.Message], bool]:
                       and m.arbitration_id != own)
 
 
+def every_frame(msg: can.Message) -> bool:
+    """Matches every frame a node receives (the bus runs' ``--loss`` fault mode)."""
+    return True
+
+
+def node_seed(seed: int, node: str) -> int:
+    """The loss seed of one node of a run from the run's ``seed`` and the node's name
+    (``agent_3``, ``plant``, ...): every node draws its own, reproducible sequence."""
+    return int.from_bytes(hashlib.sha256(f"{seed}/{node}".encode()).digest()[:6], "big")
+
+
 @dataclass
 class RxFaults:
     """What FaultyBus does to the frames ``match`` selects: lose each with
@@ -48,6 +60,9 @@ class RxFaults:
     jitter: float = 0.0        # s, extra uniform random delay in [0, jitter]
     seed: int = 0
     match: Callable[[can.Message], bool] = field(default_factory=lambda: neighbour_mc(None))
+    # frames on an ID the node itself has sent (its echo: loopback, no network path)
+    # pass untouched, whatever ``match`` says
+    spare_own: bool = False
 
     @property
     def active(self) -> bool:
@@ -69,11 +84,14 @@ class FaultyBus:
         self.pending: list[tuple[float, int, can.Message]] = []
         self.seq = itertools.count()
         self.last_release: dict[int, float] = {}  # per ID: keeps one sender's frames in order
+        self.own: set[int] = set()  # the IDs sent through this wrapper (spare_own)
+        self.matched = 0  # frames the faults applied to (dropped ones included)
         self.dropped = 0
         self.delayed = 0
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Pass the frame on to the wrapped bus (faults are on the receive side only)."""
+        self.own.add(msg.arbitration_id)
         self.bus.send(msg, timeout=timeout)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
@@ -92,7 +110,8 @@ class FaultyBus:
             msg = self.bus.recv(timeout=wait)
             if msg is not None:
                 f = self.faults
-                if f.match(msg):
+                if f.match(msg) and not (f.spare_own and msg.arbitration_id in self.own):
+                    self.matched += 1
                     if self.rng.random() < f.loss:
                         self.dropped += 1
                         continue
@@ -108,6 +127,11 @@ class FaultyBus:
             if end is not None and self.clock() >= end and not (
                     self.pending and self.pending[0][0] <= self.clock()):
                 return None
+
+    def summary(self, who: str) -> str:
+        """What it injected, as the node prints it at exit."""
+        return (f"{who}: injected {self.dropped} losses of {self.matched} frames, "
+                f"{self.delayed} delays")
 
     def shutdown(self) -> None:
         """Shut the wrapped bus down, if it has a shutdown."""

@@ -10,7 +10,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from firmware_py.cliargs import MAX_PERIOD_S, duration_s, float_in, time_scale
+from firmware_py.cliargs import (
+    MAX_PERIOD_S,
+    duration_s,
+    float_in,
+    int_in,
+    probability,
+    time_scale,
+)
 from firmware_py.nodeargs import (
     add_bus_arguments,
     add_filter_argument,
@@ -42,6 +49,12 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
                    help="at exit, write the node's ticks and counters (deadline misses, "
                         "rejected frames by cause) to FILE as JSON: unlike the agents, the "
                         "plant and router have no diagnostics frame on the bus")
+    t = p.add_argument_group("fault injection on received frames (`bess-ded up --loss`)")
+    t.add_argument("--inject-rx-loss", type=probability, default=0.0, metavar="P",
+                   help="drop each frame received with probability P (the echo of the "
+                   "node's own frames passes)")
+    t.add_argument("--inject-seed", type=int_in(0), default=0, metavar="N",
+                   help="seed of the injected loss")
 
 
 def load_node_scenario(args: argparse.Namespace) -> Any:
@@ -61,8 +74,10 @@ def load_node_scenario(args: argparse.Namespace) -> Any:
 def serve(node: Any, args: argparse.Namespace) -> int:
     """Run ``node`` on the bus the flags name until --duration or SIGINT/SIGTERM; always
     shut the bus down and print the node's summary to stderr."""
+    from firmware_py.faultinject import FaultyBus, RxFaults, every_frame
     from firmware_py.node import (
-            StopFlag,
+        RxTxBus,
+        StopFlag,
         behind_filter,
         bus_kwargs,
         open_bus,
@@ -80,7 +95,12 @@ def serve(node: Any, args: argparse.Namespace) -> int:
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         stop.install_signal_handlers()
-        run_node(node, behind_filter(bus, kw), duration=args.duration, stop=stop)
+        node_bus: RxTxBus = behind_filter(bus, kw)
+        if args.inject_rx_loss > 0:
+            node_bus = injector = FaultyBus(node_bus, RxFaults(
+                args.inject_rx_loss, seed=args.inject_seed, match=every_frame,
+                spare_own=True))
+        run_node(node, node_bus, duration=args.duration, stop=stop)
     finally:
         try:
             for s, h in previous.items():  # in-process callers (tests) get theirs back
@@ -88,7 +108,11 @@ def serve(node: Any, args: argparse.Namespace) -> int:
         finally:
             bus.shutdown()
             print(node.summary(), file=sys.stderr, flush=True)
+            doc: dict[str, Any] = {"ticks": node.ticks,
+                                   "counters": dict(sorted(node.counters.items()))}
+            if args.inject_rx_loss > 0:
+                print(injector.summary(args.command), file=sys.stderr, flush=True)
+                doc["injected"] = {"dropped": injector.dropped, "received": injector.matched}
             if args.counters_json:
-                Path(args.counters_json).write_text(json.dumps(
-                    {"ticks": node.ticks, "counters": dict(sorted(node.counters.items()))}))
+                Path(args.counters_json).write_text(json.dumps(doc))
     return 0

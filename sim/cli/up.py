@@ -45,7 +45,23 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the plant follows a setpoint that is not its agent's dispatch rule "
                    "at the λ it publishes (still reported: setpoint_inconsistent); default: "
                    "it holds the last consistent one (docs/security.md)")
+    add_loss_arguments(p)
     p.set_defaults(func=run)
+
+
+def add_loss_arguments(p: argparse.ArgumentParser) -> None:
+    """--loss P, --loss-seed N: the random-loss fault mode (docs/faults.md)."""
+    from firmware_py.cliargs import float_in, int_in
+
+    g = p.add_argument_group("fault mode: random frame loss (docs/faults.md)")
+    g.add_argument("--loss", type=float_in(0.0, 0.99, what="a probability"),
+                   default=0.0, metavar="P",
+                   help="every node drops each frame it receives (but its own echo) with "
+                   "probability P; the drops are counted and reported apart from the "
+                   "anomalies (default: 0)")
+    g.add_argument("--loss-seed", type=int_in(0), default=0, metavar="N",
+                   help="seed of the loss: each node draws from its own generator seeded "
+                   "from N and its name (default: 0)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     rec = busrun.record(plan.sc, plan.out, plan.bus, duration=plan.duration,
                         plot=not args.no_plot, time_scale=plan.scale, keys=args.keys,
                         insecure=args.insecure, c_agents=c_agents, c_node=c_node,
-                        tolerance=args.tolerance,
+                        tolerance=args.tolerance, loss=args.loss, loss_seed=args.loss_seed,
                         extra={"plant": ["--obey-inconsistent"]} if args.obey_inconsistent
                         else None)
     return print_report(plan, rec)

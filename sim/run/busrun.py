@@ -26,6 +26,7 @@ from typing import Any
 import can
 
 from firmware_py import contract, secoc
+from firmware_py.faultinject import node_seed
 from firmware_py.frames import FrameCodec
 from firmware_py.node import open_bus
 from sim.model.scenario import Scenario, to_toml
@@ -39,7 +40,7 @@ from sim.run.busopts import (
     enlarge_receive_buffer,
     private_port,
 )
-from sim.run.inprocess import in_process_nodes, recorder_keys, run_in_process
+from sim.run.inprocess import in_process_nodes, injected_loss, recorder_keys, run_in_process
 from sim.run.keyset import load_boot_floors, load_key_set, provision_keys, write_boot_floors
 from sim.run.nodeprocs import (
     IN_GUEST,
@@ -101,7 +102,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
            insecure: bool = False, dut: str | None = None, dut_wait_s: float = 60.0,
            on_ready: Callable[[Path | None], None] | None = None,
            c_agents: frozenset[int] = frozenset(), c_node: Path | None = None,
-           tolerance: float = TOLERANCE) -> Recording:
+           tolerance: float = TOLERANCE, loss: float = 0.0, loss_seed: int = 0
+           ) -> Recording:
     """Run the scenario on the bus for ``duration`` s of price time (default: the
     scenario's). ``extra`` adds argv per node (fault flags),
     ``delays`` starts a node late (s after t = 0), ``actions`` calls
@@ -120,6 +122,12 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     ``c_agents`` run firmware_c's node program ``c_node`` instead of firmware_py.
     ``tolerance``: the verdict's bound on the final |λ − ρ| (cu/kWh).
 
+    ``loss``: the random-loss fault mode (`up --loss`, docs/faults.md): every node started
+    here loses each frame it receives but its own echo with probability ``loss``, from
+    its own generator seeded from ``loss_seed`` and its name (its fault-injection flags,
+    ``--inject-rx-loss``); the losses each node counted are the metrics'
+    ``injected_loss`` and the verdict does not blame them on a node.
+
     SIGINT or SIGTERM stops the run early: the nodes are stopped and the outputs are
     written for what was recorded, with the verdict marked interrupted. Every node that
     exits during the run is a ``node_died`` anomaly (fault tests kill nodes on purpose
@@ -133,7 +141,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
         with _previous_kept(out) if dut else contextlib.nullcontext():
             return _record(sc, out, bus, watch, duration, extra, delays, quiet,
                            rt_priority, actions, plot, time_scale, keys, insecure, dut,
-                           dut_wait_s, on_ready, c_agents, c_node, tolerance)
+                           dut_wait_s, on_ready, c_agents, c_node, tolerance, loss,
+                           loss_seed)
     finally:
         watch.shutdown()
 
@@ -176,8 +185,12 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
             dut: str | None, dut_wait_s: float,
             on_ready: Callable[[Path | None], None] | None,
             c_agents: frozenset[int], c_node: Path | None,
-            tolerance: float) -> Recording:
+            tolerance: float, loss: float = 0.0, loss_seed: int = 0) -> Recording:
     out.mkdir(parents=True, exist_ok=True)
+    if not 0 <= loss < 1:
+        raise BusRunError(f"loss: expected a probability in [0, 1), but got {loss}")
+    if loss > 0:
+        extra = loss_argv(sc, loss, loss_seed, extra)
     duration = sc.duration if duration is None else duration
     # the nodes read exactly what ran: variants resolved, time scale applied
     scenario_path = out / "scenario.toml"
@@ -235,12 +248,57 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
         writer.stop()
     facts = RunFacts(exit_codes=codes, deaths=deaths, node_counters=sim_node_counters(out),
                      interrupted=interrupted, recorder_counters=notifier.counters(),
-                     insecure=key_dir is None)
+                     insecure=key_dir is None,
+                     injected_loss=(None if loss == 0 else
+                                    injected_loss(loss, loss_seed, LOSS_FRAMES,
+                                                  _injected_counts(specs, logdir, out))))
     write_run_facts(out, facts, boot_floors, time_scale, tolerance)
     return report(sc, out / "run.log", out, facts, plot=plot, time_scale=time_scale,
                   codec=codec, keys=monitor_keys, boot_floors=boot_floors,
                   tolerance=tolerance)
 
+
+
+# what `up --loss` drops: what its nodes' --inject-rx-all/--inject-rx-loss apply to
+LOSS_FRAMES = "every frame each node receives but its own echo"
+
+
+def loss_argv(sc: Scenario, loss: float, seed: int,
+              extra: dict[str, list[str]] | None) -> dict[str, list[str]]:
+    """``extra`` with each node's fault flags for the random-loss fault mode: every
+    agent, the plant and the router lose each frame they receive (but their own echo)
+    with probability ``loss``, each from its own seed (faultinject.node_seed)."""
+    out = {k: list(v) for k, v in (extra or {}).items()}
+    for name in [f"agent_{i}" for i in range(1, sc.n + 1)] + list(SIM_NODES):
+        flags = ["--inject-rx-loss", repr(loss), "--inject-seed",
+                 str(node_seed(seed, name))]
+        out[name] = out.get(name, []) + flags + (["--inject-rx-all"]
+                                                 if name.startswith("agent_") else [])
+    return out
+
+
+def _injected_counts(specs: list[NodeSpec], logdir: Path, out: Path
+                     ) -> dict[str, tuple[int, int]]:
+    """(frames dropped, frames the loss applied to) per node, as each printed (agents,
+    in their log) or wrote (plant, router: counters JSON) them at exit; a node that
+    left no count (killed) is left out."""
+    counts: dict[str, tuple[int, int]] = {}
+    counters = sim_node_counters(out)
+    for s in specs:
+        if s.name in counters:
+            inj = counters[s.name].get("injected")
+            if inj:
+                counts[s.name] = (int(inj["dropped"]), int(inj["received"]))
+            continue
+        path = logdir / f"{s.name}.log"
+        who = s.name.replace("_", " ") + ": injected "
+        lines = path.read_text(errors="replace").splitlines() if path.is_file() else []
+        for line in lines:  # "agent 3: injected 12 losses of 120 frames, 0 delays"
+            if line.startswith(who):
+                w = line.split()
+                counts[s.name] = (counts.get(s.name, (0, 0))[0] + int(w[3]),
+                                  counts.get(s.name, (0, 0))[1] + int(w[6]))
+    return counts
 
 
 def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration: float,

@@ -18,6 +18,7 @@ import can
 
 from firmware_py import secoc
 from firmware_py.config import agent_configs_from_scenario
+from firmware_py.faultinject import FaultyBus, RxFaults, every_frame, node_seed
 from firmware_py.frames import FrameCodec
 from firmware_py.node import GuardedBus
 from sim.model.scenario import Scenario, to_toml
@@ -64,6 +65,18 @@ def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
     return out
 
 
+def injected_loss(p: float, seed: int, frames: str,
+                  per_node: Mapping[str, tuple[int, int]]) -> dict[str, Any]:
+    """The random-loss fault mode's record of a run (metrics' ``injected_loss``): its
+    probability, seed, which frames it applied to and, per node, (frames dropped,
+    frames it applied to)."""
+    dropped = {n: d for n, (d, _) in per_node.items()}
+    seen = {n: k for n, (_, k) in per_node.items()}
+    return {"probability": p, "seed": seed, "frames": frames, "dropped": dropped,
+            "received": seen, "dropped_total": sum(dropped.values()),
+            "received_total": sum(seen.values())}
+
+
 def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bess-ded",
                    plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = (),
                    restarts: Sequence[tuple[str, float, float]] = (),
@@ -71,7 +84,8 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
                    insecure: bool = False,
                    inject: Callable[[float], Sequence[can.Message]] | None = None,
                    observe: Callable[[float, dict[str, Any]], None] | None = None,
-                   tolerance: float = TOLERANCE) -> dict[str, Any]:
+                   tolerance: float = TOLERANCE, loss: float = 0.0,
+                   loss_seed: int = 0) -> dict[str, Any]:
     """The same nodes as `up` on python-can's in-process ``virtual`` bus, stepped on a
     simulated clock.
 
@@ -99,6 +113,14 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     bus instance of its own; the recording and the analysis see them as any frame.
     ``observe(t, nodes)``: called after every sample with the live nodes by name (a
     test's window on state the bus does not carry, e.g. an agent's neighbours alive).
+
+    ``loss``: the random-loss fault mode (docs/faults.md): every node (agents, plant,
+    router) loses each frame it receives, of every kind, with probability ``loss``,
+    drawn from its own generator seeded from ``loss_seed`` and its name
+    (``faultinject.node_seed``), so a run is reproduced by its seed. The recorder hears
+    every frame (the loss is at the receivers, not on the wire); the frames dropped are
+    counted per node in the metrics' ``injected_loss`` and the verdict does not blame
+    them on a node (``RunFacts.injected_loss``).
     """
     out.mkdir(parents=True, exist_ok=True)
     codec = FrameCodec()
@@ -133,8 +155,14 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     watch = can.Bus(**kw)
     recorder = GuardedBus(watch, lambda cause: None, who="recorder")
     # what each node reads, as run_node reads it (the node at index i, restarts included)
-    guards = [GuardedBus(bus, functools.partial(_note, nodes, i), who=name)
-              for i, (bus, name) in enumerate(zip(buses, names, strict=True))]
+    guards: list[Any] = [GuardedBus(bus, functools.partial(_note, nodes, i), who=name)
+                         for i, (bus, name) in enumerate(zip(buses, names, strict=True))]
+    if not 0 <= loss < 1:
+        raise BusRunError(f"loss: expected a probability in [0, 1), but got {loss}")
+    if loss > 0:  # at the receivers, behind what each node's GuardedBus already refused
+        guards = [FaultyBus(g, RxFaults(loss, seed=node_seed(loss_seed, name),
+                                        match=every_frame))
+                  for g, name in zip(guards, names, strict=True)]
     attacker = can.Bus(**kw) if inject is not None else None
     writer = can.Logger(str(out / "run.log"))
     try:
@@ -178,7 +206,13 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     (out / "logs").mkdir(exist_ok=True)
     for role, c in counters.items():
         counters_path(out, role).write_text(json.dumps(c) + "\n")
-    facts = RunFacts(node_counters=counters, recorder_counters=dropped, insecure=insecure)
+    injected = None
+    if loss > 0:
+        injected = injected_loss(loss, loss_seed, "every frame each node receives",
+                                 {n: (g.dropped, g.matched)
+                                  for n, g in zip(names, guards, strict=True)})
+    facts = RunFacts(node_counters=counters, recorder_counters=dropped, insecure=insecure,
+                     injected_loss=injected)
     write_run_facts(out, facts, boot_floors, 1.0, tolerance)
     m = report(sc, out / "run.log", out, facts, plot=False, codec=codec,
                keys=recorder_keys(rings), tolerance=tolerance,

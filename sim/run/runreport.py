@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +24,7 @@ from sim.run.verdict import (
     Verdict,
     anomalies_json,
     judge,
+    loss_text,
     node_deadlines,
     silence_ts,
 )
@@ -86,6 +87,9 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
         "exit_codes": facts.exit_codes or {},
         "tolerance": tolerance,
         "insecure": facts.insecure,
+        "injected_loss": (None if facts.injected_loss is None else
+                          {**facts.injected_loss,
+                           "explains": [asdict(a) for a in verdict.loss_explained]}),
         "router_ledger": buslog.router_ledger(log),
         # the router's commands (events, not anomalies), its failovers among them
         "events": (events := buslog.router_events(log)),
@@ -146,6 +150,8 @@ def summary_lines(m: dict[str, Any], verdict: Verdict, time_scale: float = 1.0) 
                  f"{sum(m['frames_undecodable'].values())}, missed by the recorder "
                  f"{m['frames_missed_by_recorder']}, deadline misses "
                  f"{json.dumps(m['deadline_misses'])}")
+    if (inj := m.get("injected_loss")) is not None:
+        lines.append("  " + loss_text(inj, verdict.loss_explained))
     if verdict.anomalies:
         lines.append(f"  anomalies ({len(verdict.anomalies)}):")
         lines += [f"    - {a.text(time_scale)}" for a in verdict.anomalies]

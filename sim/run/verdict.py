@@ -19,7 +19,7 @@ document lists them, so that a rule and its anomaly are read together.
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -149,6 +149,9 @@ class Verdict:
     anomalies: list[Anomaly]
     interrupted: bool = False
     cause: str | None = None     # not converged: the most likely cause, from the anomalies
+    # what the injected random loss (--loss, RunFacts.injected_loss) explains: the
+    # timeouts and SAFE episodes it caused, kept apart from the anomalies
+    loss_explained: list[Anomaly] = field(default_factory=list)
 
     @property
     def exit_code(self) -> int:
@@ -182,12 +185,16 @@ class RunFacts:
     recorder_counters: dict[str, int] | None = None      # bus inputs it dropped, by cause
     interrupted: bool = False
     insecure: bool = False   # signed with the public demo keys (--insecure)
+    # the random-loss fault mode (--loss): probability, seed, frames dropped per node
+    # (sim.run.inprocess.injected_loss); None: no loss injected
+    injected_loss: dict[str, Any] | None = None
 
     def as_json(self) -> dict[str, Any]:
         """What ``up`` leaves in DIR/logs/run_facts.json, for ``analyze`` of the run."""
         return {"exit_codes": self.exit_codes, "deaths": self.deaths,
                 "interrupted": self.interrupted, "insecure": self.insecure,
-                "recorder_counters": self.recorder_counters}
+                "recorder_counters": self.recorder_counters,
+                "injected_loss": self.injected_loss}
 
     @classmethod
     def from_json(cls, d: dict[str, Any], node_counters: dict[str, Any] | None
@@ -197,7 +204,8 @@ class RunFacts:
                    deaths=[tuple(x) for x in d["deaths"]] if d.get("deaths") else None,
                    node_counters=node_counters, interrupted=bool(d.get("interrupted")),
                    insecure=bool(d.get("insecure")),
-                   recorder_counters=d.get("recorder_counters"))
+                   recorder_counters=d.get("recorder_counters"),
+                   injected_loss=d.get("injected_loss"))
 
 
 def judge(sc: Scenario, log: LogContents, tr: Trajectory | None, m: dict[str, Any],
@@ -238,6 +246,38 @@ def judge(sc: Scenario, log: LogContents, tr: Trajectory | None, m: dict[str, An
         reasons.append(f"the final λ is {err:.2e} cu/kWh from ρ, more than the tolerance "
                        f"{tolerance:g} cu/kWh")
     return _verdict(reasons, _host_overload(log, facts, out), facts)
+
+
+# what frames lost at random cause by themselves: no valid price, status or setpoint
+# for a timeout (5 periods), and an agent's SAFE until they come back
+LOSS_KINDS = ("price_timeout", "status_timeout", "setpoint_timeout", "agent_safe")
+
+
+def _loss_explained(facts: RunFacts, out: list[Anomaly]
+                    ) -> tuple[list[Anomaly], list[Anomaly]]:
+    """(the anomalies, what the injected loss explains): with the random-loss fault mode
+    on (``facts.injected_loss`` with frames dropped), the timeouts at the nodes that
+    lost frames and the SAFE episodes of an agent that timed out are the fault mode's
+    doing, not a node's fault: moved out of the anomalies (the run still reports them,
+    under the injected loss). Everything else stays an anomaly."""
+    inj = facts.injected_loss or {}
+    lost = {n for n, k in (inj.get("dropped") or {}).items() if k}
+    if not lost:
+        return out, []
+    timed_out = {a.node for a in out if a.kind in LOSS_KINDS[:3] and a.node in lost}
+    mine = [a for a in out if a.node in timed_out and a.kind in LOSS_KINDS]
+    return [a for a in out if a not in mine], mine
+
+
+def loss_text(inj: dict[str, Any], explained: list[Anomaly]) -> str:
+    """One line on the injected loss: what it dropped and what it explains."""
+    kinds = Counter(a.kind for a in explained)
+    folded = "; it explains " + ", ".join(f"{k} ×{v}" for k, v in kinds.items()) \
+        if kinds else ""
+    share = inj["dropped_total"] / max(inj["received_total"], 1)
+    return (f"injected loss (fault mode, p = {inj['probability']:g}, seed {inj['seed']}, "
+            f"{inj['frames']}): {inj['dropped_total']} of {inj['received_total']} frames "
+            f"dropped ({100 * share:.1f} %){folded}")
 
 
 def _mac_failures(log: LogContents) -> Counter[str]:
@@ -296,12 +336,18 @@ def _key_mismatch(log: LogContents, facts: RunFacts, out: list[Anomaly],
 
 
 def _verdict(reasons: list[str], out: list[Anomaly], facts: RunFacts) -> Verdict:
+    out, explained = _loss_explained(facts, out)
     cause = None
     if reasons:
         ranked = [a for k in _CAUSES for a in out if a.kind == k]
-        cause = (f"{ranked[0].kind} [{ranked[0].node}]: {ranked[0].detail}" if ranked
-                 else "no anomaly explains it: " + reasons[0])
-    return Verdict(not reasons, reasons, out, facts.interrupted, cause)
+        inj = facts.injected_loss or {}
+        if ranked:
+            cause = f"{ranked[0].kind} [{ranked[0].node}]: {ranked[0].detail}"
+        elif inj.get("dropped_total"):
+            cause = loss_text(inj, explained)
+        else:
+            cause = "no anomaly explains it: " + reasons[0]
+    return Verdict(not reasons, reasons, out, facts.interrupted, cause, explained)
 
 
 def _setpoints(sc: Scenario, log: LogContents, facts: RunFacts, out: list[Anomaly]) -> None:
