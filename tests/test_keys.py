@@ -43,6 +43,51 @@ def test_fleet_for_a_case(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     assert doc["format"] == secoc.KEY_FILE_FORMAT and doc["freshness"] == {"boot_counter": 0}
 
 
+def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path) -> None:
+    """AUTH-28, issue 25 item 5: each key file lists the node keys of the broadcasts it
+    takes and the keys of its own link frames only; agent 3's file yields no key that
+    tags agent 1's setpoint or status (nor any link frame whose parties exclude it), and
+    no file but the plant's, agent 1's and the router's holds PLANT_1_Status's key."""
+    from firmware_py import contract
+    from firmware_py.frames import FrameCodec
+
+    out = tmp_path / "keys"
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(out)]) == 0
+    master = secoc.load_master_key(out / "master.key")
+    files = {n: secoc.load_node_key(out / f"{n}.key")
+             for n in ["agent_1", "agent_2", "agent_3", "agent_4", "plant", "router"]}
+    links = contract.link_frames(4)
+    assert links == [*(f"AGENT_{i}_Setpoint" for i in range(1, 5)),
+                     *(f"PLANT_{i}_Status" for i in range(1, 5))]
+    for node, nk in files.items():
+        want = [f for f in links if node in contract.parties_of(f)]
+        assert sorted(nk.frames) == sorted(want), node
+        assert all(k == secoc.derive_frame_key(master, f) for f, k in nk.frames.items())
+        assert "plant" not in nk.peers  # the plant sends link frames only
+    assert sorted(files["agent_3"].frames) == ["AGENT_3_Setpoint", "PLANT_3_Status"]
+    assert "router" in files["agent_3"].peers and "plant" not in files["agent_3"].peers
+    assert [n for n, nk in files.items() if "PLANT_1_Status" in nk.frames] == [
+        "agent_1", "plant", "router"]
+    # every key agent 3's file holds fails to tag agent 1's status and setpoint, and
+    # every link frame whose parties exclude agent 3
+    codec = FrameCodec()
+    ring = secoc.Keyring.from_file(out / "agent_3.key")
+    held = [ring.key, *files["agent_3"].peers.values(), *files["agent_3"].frames.values()]
+    for name in links:
+        if "agent_3" in contract.parties_of(name):
+            continue
+        assert ring.key_for(name) is None and ring.key_for(name + "_Sync") is None
+        fid = codec.frame_id(name)
+        genuine = secoc.derive_frame_key(master, name)
+        data = bytearray(8)
+        data[4:6] = (12000).to_bytes(2, "little")
+        fv = contract.FRESHNESS.join(1, 7)
+        for key in held:
+            forged = bytearray(data)
+            secoc.sign_frame(key, fid, forged, fv)
+            assert not secoc.frame_verifies(genuine, fid, forged, fv), (name, key.hex())
+
+
 def test_files_never_exist_world_readable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
                                           ) -> None:
     """Every key file is opened with mode 0600 and O_EXCL from the start."""

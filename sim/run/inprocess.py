@@ -16,7 +16,7 @@ from typing import Any
 
 import can
 
-from firmware_py import secoc
+from firmware_py import contract, secoc
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.frames import FrameCodec
 from firmware_py.node import GuardedBus
@@ -61,6 +61,11 @@ def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
         held = Counter(k for m, r in rings.items() if m != n
                        and (k := r.key_of(n)) is not None)
         out[n] = held.most_common(1)[0][0] if held else ring.key
+    n_agents = sum(label.startswith("agent_") for label in rings)
+    for name in contract.link_frames(n_agents):  # AUTH-28: the key its parties hold
+        got = Counter(k for r in rings.values() if (k := r.key_for(name)) is not None)
+        if got:
+            out[name] = got.most_common(1)[0][0]
     return out
 
 

@@ -48,20 +48,43 @@ def prepare_key_dir(out: Path, force: bool) -> None:
 
 
 def peers_of(sc: Any) -> dict[str, list[str]]:
-    """Need to know: the senders whose secured frames each node receives, i.e. whose
-    verification keys its key file holds (agent i: the router, the plant and its
-    neighbours; the plant: every agent and the router; the router: the plant and every
-    agent). The router and the plant use the keys of the nodes whose frames they do not
-    take only to notice a restart from its sync and re-announce their own at once."""
+    """Need to know: the senders whose broadcast frames each node receives, i.e. whose
+    node keys its key file holds (agent i: the router and its neighbours; the plant:
+    every agent and the router; the router: every agent). The router and the plant use
+    the keys of the nodes whose frames they do not take only to notice a restart from
+    its sync and re-announce their own at once. No node holds the plant's node key: the
+    plant sends link frames only (``frames_of``, AUTH-28)."""
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
 
-    out = {f"agent_{c.id}": ["router", "plant", *(f"agent_{n.id}" for n in c.neighbours)]
+    out = {f"agent_{c.id}": ["router", *(f"agent_{n.id}" for n in c.neighbours)]
            for c in agent_configs_from_scenario(sc)}
     agents = [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
     out["plant"] = [*agents, "router"]
-    out["router"] = ["plant", *agents]
+    out["router"] = list(agents)
     return out
+
+
+def frames_of(sc: Any) -> dict[str, list[str]]:
+    """AUTH-28: the link frames whose keys each node's key file holds, those it sends or
+    receives (agent i: AGENT_<i>_Setpoint and PLANT_<i>_Status; the plant: every agent's
+    two; the router: every PLANT_<i>_Status)."""
+    from firmware_py import contract, secoc
+
+    return {node: [f for f in contract.link_frames(sc.n) if node in contract.parties_of(f)]
+            for node in secoc.fleet_nodes(sc.n)}
+
+
+def node_document(sc: Any, master: bytes, node: str, boot: int = 0,
+                  floors: Mapping[str, int] | None = None) -> dict:
+    """``node``'s key file (a TOML document) from the fleet master key: its own key, the
+    node keys of its peers (``peers_of``) and its link frame keys (``frames_of``)."""
+    from firmware_py import secoc
+
+    return secoc.node_key_document(
+        node, secoc.derive_node_key(master, node), secoc.fleet_id(master), boot,
+        {p: secoc.derive_node_key(master, p) for p in peers_of(sc)[node]}, floors,
+        {f: secoc.derive_frame_key(master, f) for f in frames_of(sc)[node]})
 
 
 def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -> None:
@@ -73,20 +96,24 @@ def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -
     if with_master:
         secoc.write_private(out / "master.key", secoc.MASTER_FILE_HEADER
                             + tomli_w.dumps(secoc.master_key_document(master)))
-    fleet = secoc.fleet_id(master)
-    for node, peers in peers_of(sc).items():
-        doc = secoc.node_key_document(node, secoc.derive_node_key(master, node), fleet, 0,
-                                      {p: secoc.derive_node_key(master, p) for p in peers})
+    for node in peers_of(sc):
+        doc = node_document(sc, master, node)
         secoc.write_private(out / f"{node}.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
 def load_key_set(keys_dir: Path) -> dict[str, bytes]:
-    """Every node's own key from a key set (label -> key): what a monitor of the run
-    (the recorder's analysis) needs to tell forged frames from the fleet's."""
+    """Every node's own key from a key set (label -> key), and every link frame key its
+    files list (message name -> key, AUTH-28): what a monitor of the run (the
+    recorder's analysis) needs to tell forged frames from the fleet's."""
     from firmware_py import secoc
 
-    return {k.node: k.key for k in (secoc.load_node_key(p) for p in key_files(keys_dir)
-                                    if p.name != "master.key")}
+    files = [secoc.load_node_key(p) for p in key_files(keys_dir) if p.name != "master.key"]
+    out: dict[str, bytes] = {}
+    for k in files:
+        for name, key in k.frames.items():
+            out.setdefault(name, key)
+    out.update({k.node: k.key for k in files})
+    return out
 
 
 def load_boot_floors(keys_dir: Path) -> dict[str, int]:
@@ -180,10 +207,15 @@ def check_key_set(keys: Path, n: int, sc: Any | None = None) -> str:
     if len(fleets) != 1:
         raise ParameterError("--keys", "key files of one fleet", f"fleet ids {sorted(fleets)}")
     sc_peers = peers_of(sc) if sc is not None else {}
+    sc_frames = frames_of(sc) if sc is not None else {}
     for node, k in loaded.items():
         if missing := [p for p in sc_peers.get(node, []) if p not in k.peers]:
             raise ParameterError("--keys", f"{node}.key with the keys of the nodes it receives "
                                  f"from ({', '.join(sc_peers[node])})",
+                                 f"none for {', '.join(missing)}")
+        if missing := [f for f in sc_frames.get(node, []) if f not in k.frames]:
+            raise ParameterError("--keys", f"{node}.key with the keys of its link frames "
+                                 f"(AUTH-28: {', '.join(sc_frames[node])})",
                                  f"none for {', '.join(missing)}")
     return fleets.pop()
 
