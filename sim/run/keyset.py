@@ -220,6 +220,51 @@ def check_key_set(keys: Path, n: int, sc: Any | None = None) -> str:
     return fleets.pop()
 
 
+@dataclass
+class RotatedKeys:
+    """What ``rotate_node_keys`` did."""
+
+    node: str
+    rewritten: list[str]      # the nodes whose key files now hold the new keys
+    untouched: list[str]      # the fleet's other nodes: their files are as they were
+
+
+def rotate_node_keys(sc: Any, keys_dir: Path, node: str) -> RotatedKeys:
+    """Rotate ``node``'s keys in the key set ``keys_dir`` (issue 25, item 5): a new own key
+    and new keys of every link frame it is a party of (AUTH-28), all fresh from the OS's
+    CSPRNG (not derived from the master key: re-provisioning from the master undoes a
+    rotation). Rewrites ``node``'s file and the files of the nodes that hold one of those
+    keys (its peers that verify its broadcasts, the other parties of its link frames),
+    keeping every boot counter and floor; no other file is touched. An interrupted
+    rotation is finished by running it again (all affected files get newer keys)."""
+    import tomli_w
+
+    from firmware_py import contract, secoc
+
+    fleet = secoc.fleet_nodes(sc.n)
+    if node not in fleet:
+        raise ParameterError("--rotate", f"a node of the fleet ({', '.join(fleet)})", node)
+    check_key_set(keys_dir, sc.n, sc)
+    own = secrets.token_bytes(secoc.KEY_BYTES)
+    links = {f: secrets.token_bytes(secoc.KEY_BYTES) for f in contract.link_frames(sc.n)
+             if node in contract.parties_of(f)}
+    rewritten, untouched = [], []
+    for label in fleet:
+        path = keys_dir / f"{label}.key"
+        k = secoc.load_node_key(path)
+        key = own if label == node else k.key
+        peers = {p: own if p == node else pk for p, pk in k.peers.items()}
+        frames = {f: links.get(f, fk) for f, fk in k.frames.items()}
+        if key == k.key and peers == dict(k.peers) and frames == dict(k.frames):
+            untouched.append(label)
+            continue
+        doc = secoc.node_key_document(label, key, k.fleet_id, k.boot_counter, peers,
+                                      k.floors, frames)
+        secoc.write_private(path, secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
+        rewritten.append(label)
+    return RotatedKeys(node, rewritten, untouched)
+
+
 def provision_keys(sc: Any, key_dir: Path) -> Path:
     """A fresh key set for one run in ``key_dir`` (0700; a previous run's is replaced):
     every run signs with keys no other run holds, so nothing recorded elsewhere replays."""
