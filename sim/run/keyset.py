@@ -101,6 +101,17 @@ def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -
         secoc.write_private(out / f"{node}.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
+def derived_keys(master: bytes, n: int) -> dict[str, bytes]:
+    """Every key a fleet of ``n`` agents derives from ``master``: each node's (label ->
+    key) and each link frame's (message name -> key, AUTH-28), as ``load_key_set`` gives
+    them from files: a monitor's keys for a run without a key set (--insecure)."""
+    from firmware_py import contract, secoc
+
+    out = {node: secoc.derive_node_key(master, node) for node in secoc.fleet_nodes(n)}
+    out.update({f: secoc.derive_frame_key(master, f) for f in contract.link_frames(n)})
+    return out
+
+
 def load_key_set(keys_dir: Path) -> dict[str, bytes]:
     """Every node's own key from a key set (label -> key), and every link frame key its
     files list (message name -> key, AUTH-28): what a monitor of the run (the

@@ -150,12 +150,9 @@ def fleet_keys(master: bytes, n: int | None = None) -> dict[str, bytes]:
     """Every node key of a fleet master key (label → key) and every link frame key
     (message name → key, AUTH-28), for up to ``n`` agents."""
     from firmware_py.frames import N_AGENTS_MAX
+    from sim.run.keyset import derived_keys
 
-    out = {node: secoc.derive_node_key(master, node)
-           for node in secoc.fleet_nodes(n or N_AGENTS_MAX)}
-    out.update({name: secoc.derive_frame_key(master, name)
-                for name in contract.link_frames(n)})
-    return out
+    return derived_keys(master, n or N_AGENTS_MAX)
 
 
 def _resolve_keys(keys: Any) -> dict[str, bytes] | None:
