@@ -39,7 +39,7 @@ from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import GAIN_DIV, AgentRuntime
-from firmware_py.secoc import Keyring
+from firmware_py.secoc import Keyring, fleet_nodes
 from sim.model.scenario import load_case
 from sim.testkit.tester import fleet_keys
 
@@ -631,7 +631,8 @@ class Rig:
         node = f"agent_{self.cfg.id}"
         if secure:
             ring = Keyring(node, KEYS[node], 0, lambda _b: None, master=MASTER,
-                           floors={n: floors for n in KEYS if n != node} if floors else None)
+                           floors={n: floors for n in fleet_nodes(4) if n != node}
+                           if floors else None)
             self.tx = FleetSender(CODEC, KEYS, boot=boot)
         else:
             ring = Keyring.insecure_for(node)
@@ -1071,7 +1072,7 @@ def schedule_setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyri
 
     def ring() -> Keyring:
         return Keyring(node, SCHEDULE_KEYS[node], 0, lambda _b: None, master=MASTER,
-                       floors={n: 2 for n in SCHEDULE_KEYS if n != node})
+                       floors={n: 2 for n in fleet_nodes(12) if n != node})
 
     return cfg, ring, conf.plan(cfg, SCHEDULE_KEYS, sc.prices[0].rho, boot=2)
 
