@@ -330,6 +330,42 @@ def test_boot_is_persisted_before_use_and_a_failure_refuses_the_start() -> None:
         CAgent(_cfg(), ring)
 
 
+def test_a_status_under_another_agents_link_key_is_auth_alike_in_c_and_python() -> None:
+    """AUTH-28, bit for bit: agent 2 (a key file's keys: the router's and its neighbours'
+    node keys, its own link frame keys) takes PLANT_2_Status and its sync under
+    PLANT_2_Status's key; the same sync and frames under PLANT_3_Status's key (what
+    agent 3's file holds) or under the plant's node key (what every agent held before)
+    are `auth` on both runtimes and change nothing; another agent's link sync
+    (PLANT_3_Status_Sync, AGENT_1_Setpoint_Sync) is ignored, as on no key held."""
+    peers = {n: derive_node_key(MASTER, n) for n in ("router", "agent_1", "agent_3")}
+
+    def ring() -> Keyring:
+        return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
+                       peers=peers, frames=FRAMES)
+    cfg = _cfg()
+    py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
+    status = {"Soc": 100, "Power": 0, "PowerLimited": 0, "FaultSoc": 0, "FaultVoltage": 0,
+              "FaultOverCurrent": 1}
+    forgers = [FleetSender(FrameCodec(), keys={"PLANT_2_Status": k}, boot=5) for k in (
+        ALL_FRAMES["PLANT_3_Status"], derive_node_key(MASTER, "plant"))]
+    others = FleetSender(FrameCodec(), keys=ALL_FRAMES, boot=5)
+    genuine = FleetSender(FrameCodec(), keys=ALL_FRAMES, boot=4)
+    script = [genuine.sync("PLANT_2_Status"),
+              *(m for f in forgers for m in (f.sync("PLANT_2_Status"),
+                                             f.frame("PLANT_2_Status", status))),
+              others.sync("PLANT_3_Status"), others.sync("AGENT_1_Setpoint"),
+              genuine.frame("PLANT_2_Status", {**status, "FaultOverCurrent": 0})]
+    assert [bytes(m.data) for m in py.tick(0.0)] == [bytes(m.data) for m in c.tick(0.0)]
+    for k, msg in enumerate(script):  # after the join window (AUTH-26) its hello opened
+        t = (JOIN_TICKS + k) * TS
+        py.on_frame(msg, t)
+        c.on_frame(msg, t)
+        assert [bytes(m.data) for m in py.tick(t)] == [bytes(m.data) for m in c.tick(t)]
+        assert py.counters == c.counters, (k, py.counters, c.counters)
+    assert py.counters["auth"] == 4 and py.counters["resyncs"] == 1
+    assert py.counters["plant_faults"] == 0 and py.state == c.state
+
+
 def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
     """AUTH-5 with no boot left: firmware_py raises (the node ends); the C agent sends
     nothing more and reports BD_ERR_BOOT."""
