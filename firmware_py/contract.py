@@ -22,6 +22,7 @@ module that needs the notion uses this function.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from enum import IntEnum
 
 from cantools.database.can import Message as DbcMessage
@@ -38,6 +39,7 @@ from .frames import (
     SETPOINT_BASE,
     STATUS_BASE,
     FrameCodec,
+    agent_of,
     diag_name,
     mc_name,
     setpoint_name,
@@ -59,6 +61,7 @@ __all__ = [
     "FV_COUNT_BITS",
     "FRESHNESS",
     "FV_TX_BITS",
+    "LINK_FRAMES",
     "MAC_BITS",
     "PEER_SYNCED_BY",
     "REPORT_IDS",
@@ -75,9 +78,12 @@ __all__ = [
     "cycle_s",
     "diag_name",
     "every_ticks",
+    "frame_key",
     "is_active",
     "is_cyclic",
+    "link_frames",
     "mc_name",
+    "parties_of",
     "raw_range",
     "scale",
     "sender_of",
@@ -222,6 +228,52 @@ PEER_SYNCED_BY = {sync: fid for sync, fid in SYNCED_BY.items() if fid not in REP
 """The syncs a node may take as a peer's (NodeIO._peer_sync): those of the frames that
 drive the dispatch. A peer's restart shows on them; a report frame's sync adds nothing
 (and the C agent keeps per-sync state for these only)."""
+
+
+def _receivers(fid: int) -> frozenset[str]:
+    """The key labels of a message's DBC receivers (ER -> router, PLANT -> plant)."""
+    nodes = {r for s in _DB.get_message_by_frame_id(fid).signals for r in s.receivers}
+    return frozenset({"ER": "router", "PLANT": "plant"}.get(n, n.lower()) for n in nodes)
+
+
+LINK_FRAMES = frozenset(
+    _CODEC.name_of(fid) for fid in SECURED_IDS
+    if fid not in REPORT_IDS and sum(r.startswith("agent_") for r in _receivers(fid))
+    + ("plant" in _receivers(fid)) == 1)
+"""AUTH-28: the secured messages with a single receiving peer, an agent or the plant
+(AGENT_<i>_Setpoint: the plant; PLANT_<i>_Status: agent i, and the router that accounts
+for it): each is signed with a key of its own, held by its sender and its DBC
+receivers only (``secoc.derive_frame_key``), so no third node can forge it. The other
+secured messages are broadcasts (ER_Price, ER_Command, AGENT_<i>_MC) or reports, signed
+with their sender's node key."""
+_PARTIES = {_CODEC.name_of(fid): _receivers(fid)
+            for fid in SECURED_IDS if _CODEC.name_of(fid) in LINK_FRAMES}
+
+
+def parties_of(name: str) -> frozenset[str]:
+    """The nodes holding link frame ``name``'s key (AUTH-28): its sender and its DBC
+    receivers."""
+    return _PARTIES[name] | {sender_of(name)}
+
+
+def link_frames(n: int | None = None) -> list[str]:
+    """The link frames (AUTH-28) of a fleet of ``n`` agents (None: every agent the DBC
+    defines), by frame ID."""
+    fids = sorted(_CODEC.frame_id(name) for name in LINK_FRAMES)
+    return [_CODEC.name_of(fid) for fid in fids
+            if n is None or (agent_of(fid) or 0) <= n]
+
+
+def frame_key(keys: Mapping[str, bytes], name: str) -> bytes | None:
+    """The key of message ``name`` (or its ``_Sync``) from a monitor's key table
+    (``label -> node key`` and ``message -> link frame key``, AUTH-28): a link frame's
+    own key, a broadcast's sender's key; None if the table has none."""
+    base = name.removesuffix("_Sync")
+    if base in LINK_FRAMES:
+        return keys.get(base)
+    return keys.get(sender_of(base))
+
+
 MAC_BITS = _CODEC.raw_range("ER_Price", "Mac")[1].bit_length()
 """Bits of the truncated CMAC on the wire (the DBC's Mac signal)."""
 FV_TX_BITS = _CODEC.raw_range("ER_Price", "Counter")[1].bit_length()

@@ -104,6 +104,7 @@ from .secoc import (
     SYNC_BOOT_JUMP_MAX,
     FreshnessVerifier,
     Keyring,
+    derive_frame_key,
     derive_node_key,
     frame_verifies,
     sign_frame,
@@ -175,6 +176,15 @@ class NodeIO:
         self._tx_count = {fid: 0 for fid in self._sent if fid in contract.SECURED_IDS}
         for fid in self._tx_count:
             self._sent[contract.SYNC_OF[fid]] = deque(maxlen=ECHO_DEPTH)
+        # AUTH-28: a link frame is signed with its own key, a broadcast with the node's
+        self._sign_key: dict[int, bytes] = {}
+        for fid in self._tx_count:
+            k = keys.key_for(codec.name_of(fid))
+            if k is None:
+                raise ConfigError("keyring", keys.node, f"expected the key of "
+                                  f"{codec.name_of(fid)} (this node sends it), but the key "
+                                  "file has none: re-provision with bess-ded keys")
+            self._sign_key[fid] = k
         self.boot = keys.new_boot() if self._tx_count else keys.boot
         self.sync_s = sync_s
         self._sync_next: float | None = None      # None: at the first call of syncs()
@@ -189,10 +199,10 @@ class NodeIO:
         for fid in self.trackers:
             if fid in contract.SECURED_IDS:
                 sender = contract.sender_of(codec.name_of(fid))
-                k = keys.key_of(sender)
+                k = keys.key_for(codec.name_of(fid))
                 if k is None:
                     raise ConfigError("keyring", keys.node, f"expected the verification key "
-                                      f"of {sender} (it sends {codec.name_of(fid)}), but the "
+                                      f"of {codec.name_of(fid)} (sent by {sender}), but the "
                                       "key file has none: re-provision with bess-ded keys")
                 self._verify_key[fid] = k
         self._synced_by = {contract.SYNC_OF[fid]: fid for fid in self._verify_key}
@@ -223,7 +233,8 @@ class NodeIO:
             sender = contract.sender_of(self.codec.name_of(fid))
             if (sender not in taken and sender != self.keys.node
                     and (self.fleet_size is None or (agent_of(sid) or 0) <= self.fleet_size)
-                    and self.keys.key_of(sender, derive=False) is not None):
+                    and self.keys.key_for(self.codec.name_of(fid), derive=False)
+                    is not None):
                 peers.add(sid)
         return sorted(set(self._sent) | set(self.trackers) | set(self._synced_by) | peers)
 
@@ -500,7 +511,7 @@ class NodeIO:
         if self.fleet_size is not None and (agent or 0) > self.fleet_size:
             return False
         name = self.codec.name_of(sync_id)
-        key = self.keys.key_of(contract.sender_of(name))
+        key = self.keys.key_for(name)  # None: not held, or a link frame of others (AUTH-28)
         if key is None:
             return False
         try:
@@ -588,7 +599,7 @@ class NodeIO:
             sync_id = contract.SYNC_OF[fid]
             msg = self.codec.encode(self.codec.name_of(sync_id),
                                     {"Count": count, "Boot": self.boot}, 0)
-            sign_frame(self.keys.key, sync_id, msg.data,
+            sign_frame(self._sign_key[fid], sync_id, msg.data,
                        contract.FRESHNESS.join(self.boot, count))
             self._sent[sync_id].append(bytes(msg.data))
             out.append(msg)
@@ -659,7 +670,7 @@ class NodeIO:
                 self._tx_count = dict.fromkeys(self._tx_count, 0)
                 self._sync_next, count = None, 0
             msg = self.codec.encode(name, raw, count % _FV_WINDOW)
-            sign_frame(self.keys.key, fid, msg.data,
+            sign_frame(self._sign_key[fid], fid, msg.data,
                        contract.FRESHNESS.join(self.boot, count))
             self._tx_count[fid] = count + 1
         self._sent[fid].append(bytes(msg.data))
@@ -686,9 +697,13 @@ class FleetSender:
         self._count: dict[int, int] = {}
 
     def _key(self, name: str) -> bytes:
-        label = contract.sender_of(name)
+        """AUTH-28: a link frame's own key (``keys[name]``), else the sender's."""
+        base = name.removesuffix("_Sync")
+        label = base if base in contract.LINK_FRAMES else contract.sender_of(base)
         if label not in self.keys and self.insecure:
-            self.keys[label] = derive_node_key(INSECURE_MASTER, label)
+            self.keys[label] = (derive_frame_key(INSECURE_MASTER, label)
+                                if base in contract.LINK_FRAMES
+                                else derive_node_key(INSECURE_MASTER, label))
         return self.keys[label]
 
     def frame(self, name: str, raw: Mapping[str, Any], counter: int | None = None,

@@ -13,9 +13,22 @@ Keys
     with LABEL = ``b"bess-ded/secoc/node-key/v1"``, the counter ``i`` and the output
     length L = 128 as 32-bit big-endian integers, the counter before the fixed data.
     A node holds only its own K_node; knowing it says nothing about another node's
-    key or about K_master (a PRF output). ``fleet_id(master)`` is a public 64-bit
-    tag of the key set (same KDF, label ``b"bess-ded/secoc/fleet-id/v1"``, empty
-    context, L = 64) so that nodes from different provisionings can tell.
+    key or about K_master (a PRF output).
+
+    ``derive_frame_key(master, name)``: the key of a *link frame*, a secured message
+    with a single receiving peer (``contract.LINK_FRAMES``: AGENT_<i>_Setpoint to the
+    plant, PLANT_<i>_Status to agent i, which the router reads too), and of its sync
+    (AUTH-28)::
+
+        K_frame = PRF(K_master, [1]_32 ‖ FRAME_LABEL ‖ 0x00 ‖ UTF-8(message name) ‖ [128]_32)
+
+    with FRAME_LABEL = ``b"bess-ded/secoc/frame-key/v1"``. Only the frame's sender and
+    its DBC receivers hold it (a key file's ``[frame_keys]``), so a third node's key
+    file cannot sign it: agent 3 can no longer forge agent 1's status or setpoint.
+
+    ``fleet_id(master)`` is a public 64-bit tag of the key set (same KDF, label
+    ``b"bess-ded/secoc/fleet-id/v1"``, empty context, L = 64) so that nodes from
+    different provisionings can tell.
 
 Freshness
     Per sender and frame ID, a 40-bit full freshness value FV = boot counter (16 bits)
@@ -72,11 +85,13 @@ SYNC_BOOT_JUMP_MAX = 8
 FV_WIRE_BYTES = 8                   # FV in the MAC input: always 8 bytes, big-endian
 NODE_KEY_LABEL = b"bess-ded/secoc/node-key/v1"
 FLEET_ID_LABEL = b"bess-ded/secoc/fleet-id/v1"
+FRAME_KEY_LABEL = b"bess-ded/secoc/frame-key/v1"
 KEY_FILE_FORMAT = "bess-ded-secoc-node-key/1"
 MASTER_FILE_FORMAT = "bess-ded-secoc-master-key/1"
 KDF_NAME = "NIST SP 800-108 counter mode, CMAC-AES-128"
 MAC_NAME = "CMAC-AES-128"
 _NODE_RE = re.compile(r"[a-z][a-z0-9_]{0,31}")
+_FRAME_RE = re.compile(r"[A-Z][A-Za-z0-9_]{0,31}")
 
 
 class SecOCError(BessDedError, ValueError):
@@ -117,6 +132,20 @@ def _kbkdf(master_key: bytes, label: bytes, context: bytes, length: int) -> byte
 def derive_node_key(master_key: bytes, node: str) -> bytes:
     """The node's 16-byte CMAC key (see the module docstring for the exact encoding)."""
     return _kbkdf(master_key, NODE_KEY_LABEL, check_node_name(node).encode(), KEY_BYTES)
+
+
+def check_frame_name(name: str) -> str:
+    """A DBC message name as a frame key's label ('PLANT_1_Status')."""
+    if not isinstance(name, str) or not _FRAME_RE.fullmatch(name):
+        raise SecOCError(f"frame: expected a DBC message name like 'PLANT_1_Status' "
+                         f"([A-Z][A-Za-z0-9_]*, at most 32 characters), but got {name!r}")
+    return name
+
+
+def derive_frame_key(master_key: bytes, name: str) -> bytes:
+    """The 16-byte CMAC key of link frame ``name`` and of its sync (AUTH-28; the module
+    docstring gives the encoding): held only by its sender and its receivers."""
+    return _kbkdf(master_key, FRAME_KEY_LABEL, check_frame_name(name).encode(), KEY_BYTES)
 
 
 def fleet_id(master_key: bytes) -> str:
@@ -380,6 +409,7 @@ class NodeKey:
     path: Path
     peers: Mapping[str, bytes] = field(default_factory=dict)  # label -> verification key
     floors: Mapping[str, int] = field(default_factory=dict)   # label -> lowest boot accepted
+    frames: Mapping[str, bytes] = field(default_factory=dict)  # link frame -> its key
 
     def __repr__(self) -> str:  # never print the key
         return (f"NodeKey(node={self.node!r}, fleet_id={self.fleet_id!r}, "
@@ -392,10 +422,12 @@ class NodeKey:
 
 def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
                       peers: Mapping[str, bytes] | None = None,
-                      floors: Mapping[str, int] | None = None) -> dict:
+                      floors: Mapping[str, int] | None = None,
+                      frames: Mapping[str, bytes] | None = None) -> dict:
     """The TOML document of a node key file. ``peers``: the verification keys of the
-    senders this node receives secured frames from (need to know: docs/security.md);
-    ``floors``: the lowest boot counter it accepts from each of them (AUTH-21)."""
+    senders of the broadcast frames this node receives (need to know: docs/security.md);
+    ``floors``: the lowest boot counter it accepts from each sender (AUTH-21);
+    ``frames``: the keys of the link frames it sends or receives (AUTH-28)."""
     doc = {
         "format": KEY_FILE_FORMAT,
         "node": check_node_name(node),
@@ -406,6 +438,9 @@ def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
         "freshness": {"boot_counter": boot_counter},
         "peers": {check_node_name(p): _check_key(k).hex() for p, k in (peers or {}).items()},
     }
+    if frames:
+        doc["frame_keys"] = {check_frame_name(f): _check_key(k).hex()
+                             for f, k in sorted(frames.items())}
     if floors:
         doc["floors"] = {check_node_name(p): int(b) for p, b in sorted(floors.items())}
     return doc
@@ -517,15 +552,34 @@ def load_node_key(path: Path | str) -> NodeKey:
         except SecOCError as e:
             raise KeyFileError(f"{path}: [peers] {e}") from e
         peers[peer] = _hex_key(table, peer, path)
+    ftable = doc.get("frame_keys", {})
+    if not isinstance(ftable, dict):
+        raise KeyFileError(f"{path}: [frame_keys] expected a table of message = key (hex)")
+    frames = {}
+    for name in ftable:
+        try:
+            check_frame_name(name)
+        except SecOCError as e:
+            raise KeyFileError(f"{path}: [frame_keys] {e}") from e
+        frames[name] = _hex_key(ftable, name, path)
+    senders = set(peers) | _frame_senders(frames)
     floors = doc.get("floors", {})
     if not isinstance(floors, dict) or any(
-            p not in peers or not isinstance(b, int) or isinstance(b, bool)
+            p not in senders or not isinstance(b, int) or isinstance(b, bool)
             or not 0 <= b <= DEFAULT_LAYOUT.max_boot for p, b in floors.items()):
         raise KeyFileError(f"{path}: [floors] expected a table of peer = lowest boot counter "
-                           f"(0..{DEFAULT_LAYOUT.max_boot}), for peers listed in [peers]")
+                           f"(0..{DEFAULT_LAYOUT.max_boot}), for peers listed in [peers] or "
+                           f"senders of [frame_keys]")
     return NodeKey(node=node, key=_hex_key(doc, "key", path),  # type: ignore[arg-type]
                    fleet_id=fleet, boot_counter=boot, path=path, peers=peers,
-                   floors=dict(floors))
+                   floors=dict(floors), frames=frames)
+
+
+def _frame_senders(frames: Mapping[str, bytes]) -> set[str]:
+    """The senders of link frames (their floors may be kept, AUTH-21)."""
+    from . import contract  # contract imports this module
+
+    return {contract.sender_of(f) for f in frames if f in contract.LINK_FRAMES}
 
 
 def save_boot_counter(path: Path | str, boot: int) -> None:
@@ -537,7 +591,7 @@ def save_boot_counter(path: Path | str, boot: int) -> None:
         raise SecOCError(f"{path}: boot counter must not go back ({current.boot_counter} "
                          f"→ {boot})")
     doc = node_key_document(current.node, current.key, current.fleet_id, boot, current.peers,
-                            current.floors)
+                            current.floors, current.frames)
     write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
@@ -548,11 +602,12 @@ def save_floors(path: Path | str, floors: Mapping[str, int]) -> None:
 
     current = load_node_key(path)
     merged = dict(current.floors)
+    senders = set(current.peers) | _frame_senders(current.frames)
     for peer, boot in floors.items():
-        if peer in current.peers:
+        if peer in senders:
             merged[peer] = max(merged.get(peer, 0), boot)
     doc = node_key_document(current.node, current.key, current.fleet_id,
-                            current.boot_counter, current.peers, merged)
+                            current.boot_counter, current.peers, merged, current.frames)
     write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
@@ -615,7 +670,8 @@ class Keyring:
     def __init__(self, node: str, key: bytes, boot: int, persist: Callable[[int], None],
                  peers: Mapping[str, bytes] | None = None, master: bytes | None = None,
                  insecure: bool = False, fleet: str = "",
-                 floors: Mapping[str, int] | None = None) -> None:
+                 floors: Mapping[str, int] | None = None,
+                 frames: Mapping[str, bytes] | None = None) -> None:
         self.node = check_node_name(node)
         self.key = _check_key(key)
         self.boot = boot
@@ -627,6 +683,7 @@ class Keyring:
         # AUTH-21: per peer, the lowest boot counter this node accepts (a sync of an
         # earlier boot is a replay of an earlier run, or the peer's key file rolled back)
         self.floors = dict(floors or {})
+        self._frames = dict(frames or {})  # AUTH-28: link frame -> its key
 
     def floor_of(self, node: str) -> int:
         """The lowest boot counter accepted from ``node`` (0: no floor; never insecure)."""
@@ -645,6 +702,26 @@ class Keyring:
         if k is None and self._master is not None and derive:
             k = self._peers[node] = derive_node_key(self._master, node)
         return k
+
+    def key_for(self, name: str, derive: bool = True) -> bytes | None:
+        """The key that signs and verifies message ``name`` (or its ``_Sync``): a link
+        frame's own key (AUTH-28) if this node is its sender or a receiver, else None; a
+        broadcast frame's sender's key (``key_of``). None: this node does not hold it."""
+        from . import contract  # contract imports this module
+
+        base = name.removesuffix("_Sync")
+        if base not in contract.LINK_FRAMES:
+            return self.key_of(contract.sender_of(base), derive)
+        if self.node not in contract.parties_of(base):
+            return None
+        k = self._frames.get(base)
+        if k is None and self._master is not None and derive:
+            k = self._frames[base] = derive_frame_key(self._master, base)
+        return k
+
+    def listed_frame_keys(self) -> dict[str, bytes]:
+        """The link frame keys listed or derived so far (name → key), a copy."""
+        return dict(self._frames)
 
     def listed_keys(self) -> dict[str, bytes]:
         """The peer keys listed or derived so far (label → key), a copy: what a key file
@@ -678,7 +755,7 @@ class Keyring:
         """The keyring of a node key file (its boots persisted back to the file)."""
         k = load_node_key(path)
         return cls(k.node, k.key, k.boot_counter, k.persist(), peers=k.peers,
-                   fleet=k.fleet_id, floors=k.floors)
+                   fleet=k.fleet_id, floors=k.floors, frames=k.frames)
 
     @classmethod
     def insecure_for(cls, node: str) -> Keyring:

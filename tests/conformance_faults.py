@@ -39,8 +39,9 @@ from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import GAIN_DIV, AgentRuntime
-from firmware_py.secoc import Keyring, derive_node_key, fleet_nodes
+from firmware_py.secoc import Keyring, fleet_nodes
 from sim.model.scenario import load_case
+from sim.testkit.tester import fleet_keys
 
 Apply = Callable[[AgentRuntime], None]
 
@@ -600,7 +601,7 @@ def _count_wraps_in_boot(rt: AgentRuntime) -> None:
 
 CODEC = FrameCodec()
 MASTER = bytes(range(16))
-KEYS = {n: derive_node_key(MASTER, n) for n in fleet_nodes(4)}
+KEYS = fleet_keys(MASTER, 4)  # node keys and link frame keys (AUTH-28)
 BASE: AgentConfig = agent_configs_from_scenario(load_case(1))[2]  # case 1, agent 3
 EXACT_TS = 2.0 ** -7  # Ts whose multiples are exact in binary64: boundaries hit exactly
 
@@ -630,7 +631,8 @@ class Rig:
         node = f"agent_{self.cfg.id}"
         if secure:
             ring = Keyring(node, KEYS[node], 0, lambda _b: None, master=MASTER,
-                           floors={n: floors for n in KEYS if n != node} if floors else None)
+                           floors={n: floors for n in fleet_nodes(4) if n != node}
+                           if floors else None)
             self.tx = FleetSender(CODEC, KEYS, boot=boot)
         else:
             ring = Keyring.insecure_for(node)
@@ -1055,7 +1057,7 @@ assert len(BY_NAME) == len(FAULTS), "fault names must be unique"
 
 # --------------------------------------------------------------------------- scoring
 
-SCHEDULE_KEYS = {n: derive_node_key(MASTER, n) for n in fleet_nodes(12)}
+SCHEDULE_KEYS = fleet_keys(MASTER, 12)
 
 
 def schedule_setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyring], list[Any]]:
@@ -1070,7 +1072,7 @@ def schedule_setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyri
 
     def ring() -> Keyring:
         return Keyring(node, SCHEDULE_KEYS[node], 0, lambda _b: None, master=MASTER,
-                       floors={n: 2 for n in SCHEDULE_KEYS if n != node})
+                       floors={n: 2 for n in fleet_nodes(12) if n != node})
 
     return cfg, ring, conf.plan(cfg, SCHEDULE_KEYS, sc.prices[0].rho, boot=2)
 

@@ -26,10 +26,11 @@ import pytest
 
 from firmware_py import contract, secoc
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
-from firmware_py.nodeio import NodeIO
+from firmware_py.nodeio import FleetSender, NodeIO
 from firmware_py.runtime import AgentRuntime
 from sim.model.scenario import PriceStep, load_case
 from sim.run.busrun import run_in_process
+from sim.run.keyset import write_key_set
 
 CASE = load_case(1)
 DURATION_S = 10.0
@@ -212,6 +213,84 @@ def test_a_node_with_a_wrong_key_is_not_heard_and_it_is_reported(tmp_path: Path)
     assert _kinds(m) == {"key_mismatch"}
     assert m["verdict"]["cause"].startswith("key_mismatch [agent_3]")
     assert any("agent_3" in r for r in m["verdict"]["reasons"]), m["verdict"]["reasons"]
+
+
+# --------------------------------------------------------------------------- insiders
+
+
+INSIDER_MASTER = bytes(range(1, 17))
+INSIDER_FORGERIES = {
+    # agent 1's status: an over-current fault (it would lock agent 1 in SAFE, issue 25)
+    "PLANT_1_Status": ("agent_1", "PLANT_3_Status",
+                       {"Soc": 100, "Power": 0, "PowerLimited": 0, "FaultSoc": 0,
+                        "FaultVoltage": 0, "FaultOverCurrent": 1}),
+    # agent 1's setpoint at p_max to the plant
+    "AGENT_1_Setpoint": ("plant", "AGENT_3_Setpoint",
+                         {"Enable": 1,
+                          "PowerSetpoint": CODEC.raw_range(setpoint_name(1), "PowerSetpoint")[1]}),
+}
+
+
+def insider(name: str, raw: dict[str, int], key: bytes,
+            sent: list[can.Message]) -> Callable[[float], list[can.Message]]:
+    """A key holder's forgery of link frame ``name``: a sync one boot ahead of its sender
+    (within AUTH-27's bound, so a right key would move the receiver to it) every second,
+    then ``raw`` at the frame's rate under the next counts, all signed with ``key``."""
+    tx = FleetSender(CODEC, keys={name: key}, boot=2)
+
+    def inject(t: float) -> list[can.Message]:
+        k = _tick(t)
+        if t < ATTACK_FROM_S:
+            return []
+        out = [tx.sync(name)] if k % 100 == 0 else []
+        if k % 5 == 0:
+            out.append(tx.frame(name, raw))
+        sent.extend(out)
+        return out
+    return inject
+
+
+@pytest.mark.parametrize("key_from", ["agent 3's key file", "the genuine link key"])
+@pytest.mark.parametrize("name", list(INSIDER_FORGERIES))
+def test_agent_3s_key_file_cannot_forge_agent_1s_status_or_setpoint(
+        name: str, key_from: str, honest: tuple[dict[str, Any], np.ndarray],
+        tmp_path: Path) -> None:
+    """AUTH-28, issue 25: an insider holding agent 3's key file (as `bess-ded keys`
+    writes it) forges the plant's status to agent 1 and agent 1's setpoint to the plant,
+    with a sync one boot ahead and frames under the next counts, signed with the best
+    key it has (its own link frame of that kind). Every forged sync and frame is an auth
+    failure at its receiver, the dispatch holds as in the honest run, and the run names
+    both the MAC failures and the impersonation (the frame's genuine sender sees its own
+    ID sent by someone else). The control: the same forgery under the genuine link key
+    (what every agent held before link frame keys) is taken and bites."""
+    receiver, own_link, raw = INSIDER_FORGERIES[name]
+    keys = tmp_path / "keys"
+    keys.mkdir(mode=0o700)
+    write_key_set(CASE, keys, INSIDER_MASTER)
+    held = secoc.load_node_key(keys / "agent_3.key")
+    assert name not in held.frames and "plant" not in held.peers
+    key = (held.frames[own_link] if key_from.startswith("agent 3")
+           else secoc.derive_frame_key(INSIDER_MASTER, name))
+    counters: dict[str, Any] = {}
+
+    def observe(_t: float, nodes: dict[str, Any]) -> None:
+        if (node := nodes.get(receiver)) is not None:
+            counters.update(node.io.counters)
+    sent: list[can.Message] = []
+    rings = secoc.Keyring.fleet(INSIDER_MASTER, secoc.fleet_nodes(CASE.n))
+    m, tr = _run(tmp_path / "run", insider(name, raw, key, sent), keyrings=rings,
+                 observe=observe)
+    kinds = _kinds(m)
+    if key_from.startswith("the genuine"):   # the control: the forgery is taken
+        assert counters["auth"] < len(sent) and counters["sync_jump"] > 0
+        assert kinds & {"agent_safe", "setpoint_inconsistent"}, kinds
+        return
+    assert counters["auth"] == len(sent) > 100, (counters["auth"], len(sent))
+    err, p = _final(tr)
+    _, p_honest = _final(honest[1])
+    assert err < 1e-3 and np.max(np.abs(p - p_honest)) < 1.0, (err, p, p_honest)
+    assert kinds == {"auth_failed", "impersonation"}, m["anomalies"]
+    assert m["verdict"]["exit_code"] == 3  # converged, with anomalies
 
 
 def _receivers() -> list[tuple[Any, list[int]]]:

@@ -23,14 +23,21 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_node_vectors import VECTORS, keyring, load, replay
 
+from firmware_py import contract
 from firmware_py.config import agent_configs_from_scenario, parse_agent_config
 from firmware_py.contract import SYNCED_BY
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime
-from firmware_py.secoc import INSECURE_MASTER, Keyring, derive_node_key, fleet_nodes
+from firmware_py.secoc import (
+    INSECURE_MASTER,
+    Keyring,
+    derive_frame_key,
+    derive_node_key,
+)
 from sim.cbind.cagent import CAgent, keyring_from, ns, params_of
 from sim.cbind.cimpl import SOURCE_DIR as SOURCE
+from sim.testkit.tester import fleet_keys
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -53,6 +60,9 @@ def test_node_vector_replays_byte_exact_in_c(path) -> None:
 # --------------------------------------------------------------------------- random traffic
 
 MASTER = bytes(range(16))
+# AUTH-28: agent 2's link frames, under keys of their own
+FRAMES = {f: derive_frame_key(MASTER, f) for f in ("AGENT_2_Setpoint", "PLANT_2_Status")}
+ALL_FRAMES = {f: derive_frame_key(MASTER, f) for f in contract.link_frames()}  # the senders'
 TS = 2.0 ** -7   # every tick time, offset and timeout is exact in binary64 and in ns
 CONFIG = f"""
 [agent]
@@ -131,7 +141,7 @@ def _both(variant: str) -> tuple[AgentRuntime, CAgent]:
         if insecure:
             return Keyring.insecure_for("agent_2")
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
-                       peers=peers)
+                       peers=peers, frames=FRAMES)
     return AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
 
 
@@ -183,7 +193,7 @@ def run_both(variant: str, events: list[tuple]) -> tuple[AgentRuntime, CAgent]:
     if VARIANTS[variant][3]:   # every insecure sender runs at boot 1 with the public keys
         senders = {n: FleetSender() for n in LABELS}
     else:
-        senders = {n: FleetSender(keys={n: derive_node_key(MASTER, n)}, boot=b)
+        senders = {n: FleetSender(keys={n: derive_node_key(MASTER, n), **ALL_FRAMES}, boot=b)
                    for n, b in zip(LABELS, (3, 5, 2, 4, 9), strict=True)}
     history: list[can.Message] = []
     n = 0
@@ -268,9 +278,9 @@ def test_acceptance_filter_ids_are_firmware_pys(peers: tuple[str, ...] | None) -
     else:
         keys = {n: derive_node_key(MASTER, n) for n in peers}
         ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 0, lambda _b: None,
-                       peers=keys)
+                       peers=keys, frames=FRAMES)
         ring_c = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 0, lambda _b: None,
-                         peers=keys)
+                         peers=keys, frames=FRAMES)
     assert CAgent(cfg, ring_c).accepted_ids() == AgentRuntime(cfg, keys=ring).io.accepted_ids()
 
 
@@ -304,19 +314,56 @@ def test_boot_is_persisted_before_use_and_a_failure_refuses_the_start() -> None:
     saved: list[int] = []
     peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
     ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, saved.append,
-                   peers=peers)
+                   peers=peers, frames=FRAMES)
     c = CAgent(_cfg(), ring)
     assert saved == [7] and c.boot == 7 and ring.boot == 7
 
     def refuse(_boot: int) -> None:
         raise OSError("disk full")
-    ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, refuse, peers=peers)
+    ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, refuse, peers=peers,
+                   frames=FRAMES)
     with pytest.raises(ValueError, match="error 12"):
         CAgent(_cfg(), ring)
     ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 65535, saved.append,
-                   peers=peers)
+                   peers=peers, frames=FRAMES)
     with pytest.raises(ValueError, match="error 12"):   # the boot counter is exhausted
         CAgent(_cfg(), ring)
+
+
+def test_a_status_under_another_agents_link_key_is_auth_alike_in_c_and_python() -> None:
+    """AUTH-28, bit for bit: agent 2 (a key file's keys: the router's and its neighbours'
+    node keys, its own link frame keys) takes PLANT_2_Status and its sync under
+    PLANT_2_Status's key; the same sync and frames under PLANT_3_Status's key (what
+    agent 3's file holds) or under the plant's node key (what every agent held before)
+    are `auth` on both runtimes and change nothing; another agent's link sync
+    (PLANT_3_Status_Sync, AGENT_1_Setpoint_Sync) is ignored, as on no key held."""
+    peers = {n: derive_node_key(MASTER, n) for n in ("router", "agent_1", "agent_3")}
+
+    def ring() -> Keyring:
+        return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
+                       peers=peers, frames=FRAMES)
+    cfg = _cfg()
+    py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
+    status = {"Soc": 100, "Power": 0, "PowerLimited": 0, "FaultSoc": 0, "FaultVoltage": 0,
+              "FaultOverCurrent": 1}
+    forgers = [FleetSender(FrameCodec(), keys={"PLANT_2_Status": k}, boot=5) for k in (
+        ALL_FRAMES["PLANT_3_Status"], derive_node_key(MASTER, "plant"))]
+    others = FleetSender(FrameCodec(), keys=ALL_FRAMES, boot=5)
+    genuine = FleetSender(FrameCodec(), keys=ALL_FRAMES, boot=4)
+    script = [genuine.sync("PLANT_2_Status"),
+              *(m for f in forgers for m in (f.sync("PLANT_2_Status"),
+                                             f.frame("PLANT_2_Status", status))),
+              others.sync("PLANT_3_Status"), others.sync("AGENT_1_Setpoint"),
+              genuine.frame("PLANT_2_Status", {**status, "FaultOverCurrent": 0})]
+    assert [bytes(m.data) for m in py.tick(0.0)] == [bytes(m.data) for m in c.tick(0.0)]
+    for k, msg in enumerate(script):  # after the join window (AUTH-26) its hello opened
+        t = (JOIN_TICKS + k) * TS
+        py.on_frame(msg, t)
+        c.on_frame(msg, t)
+        assert [bytes(m.data) for m in py.tick(t)] == [bytes(m.data) for m in c.tick(t)]
+        assert py.counters == c.counters, (k, py.counters, c.counters)
+    assert py.counters["auth"] == 4 and py.counters["resyncs"] == 1
+    assert py.counters["plant_faults"] == 0 and py.state == c.state
 
 
 def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
@@ -324,7 +371,7 @@ def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
     nothing more and reports BD_ERR_BOOT."""
     peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
     ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 65534, lambda _b: None,
-                   peers=peers)
+                   peers=peers, frames=FRAMES)
     c = CAgent(_cfg(), ring)
     c.set_tx_count((1 << 24) - 1, 0)
     assert len(c.tick(0.0)) == 6          # 3 syncs, the last MC count, setpoint, diag
@@ -334,22 +381,24 @@ def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
 def test_a_sync_below_the_boot_floor_is_refused_alike_in_c_and_python() -> None:
     """AUTH-21, bit for bit: a router sync of boot 4 (valid MAC) below the floor 5 is
     `auth` on the sync ID and sets no freshness, so the replayed price after it is
-    `unsynced`; the genuine sync of boot 5 is taken, and its price. A peer sync (the
-    plant's, of agent 3's status) below its floor is `auth` too."""
+    `unsynced`; the genuine sync of boot 5 is taken, and its price. The plant's sync of
+    agent 2's status below the plant's floor is `auth` too (the floor of the sender of a
+    link frame, AUTH-28); its sync of agent 1's status is none of agent 2's: ignored."""
     peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
 
     def ring() -> Keyring:
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
-                       peers=peers, floors={"router": 5, "plant": 3})
+                       peers=peers, floors={"router": 5, "plant": 3},
+                       frames=FRAMES)
     cfg = _cfg()
     py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
-    old = FleetSender(FrameCodec(), keys={n: derive_node_key(MASTER, n) for n in peers},
-                      boot=4)
+    old = FleetSender(FrameCodec(), boot=4,
+                      keys={**{n: derive_node_key(MASTER, n) for n in peers}, **ALL_FRAMES})
     new = FleetSender(FrameCodec(), keys=old.keys, boot=5)
     price = {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0}
     script = [old.sync("ER_Price"), old.frame("ER_Price", price),
               old.sync("PLANT_1_Status"), old.sync("PLANT_2_Status"),  # plant at boot 4 ok
-              FleetSender(FrameCodec(), keys=old.keys, boot=2).sync("PLANT_3_Status"),
+              FleetSender(FrameCodec(), keys=old.keys, boot=2).sync("PLANT_2_Status"),
               new.sync("ER_Price"), new.frame("ER_Price", price)]
     assert [bytes(m.data) for m in py.tick(0.0)] == [bytes(m.data) for m in c.tick(0.0)]
     for k, msg in enumerate(script):  # after the join window (AUTH-26) its hello opened
@@ -359,7 +408,7 @@ def test_a_sync_below_the_boot_floor_is_refused_alike_in_c_and_python() -> None:
         assert [bytes(m.data) for m in py.tick(t)] == [bytes(m.data) for m in c.tick(t)]
         assert py.counters == c.counters, (k, py.counters, c.counters)
     assert py.counters["auth"] == 2 and py.counters["unsynced"] == 1
-    assert py.io.last_safety == ("auth", 0x683)
+    assert py.io.last_safety == ("auth", 0x682)
     assert py.price == 1 << 23 and py.state == c.state  # the genuine price only
 
 
@@ -373,10 +422,10 @@ def test_a_forged_boot_jump_is_refused_or_undone_alike_in_c_and_python() -> None
 
     def ring() -> Keyring:
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
-                       peers=peers)
+                       peers=peers, frames=FRAMES)
     cfg = _cfg()
     py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
-    keys = {n: derive_node_key(MASTER, n) for n in peers}
+    keys = {n: derive_node_key(MASTER, n) for n in peers} | ALL_FRAMES
     router = FleetSender(FrameCodec(), keys=keys, boot=5)
     far = FleetSender(FrameCodec(), keys=keys, boot=5 + 9)
     near = FleetSender(FrameCodec(), keys=keys, boot=5 + 8)
@@ -415,7 +464,7 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
 
     sc = load_case(case)
     cfg = agent_configs_from_scenario(sc)[dut - 1]
-    keys = {n: derive_node_key(MASTER, n) for n in fleet_nodes(sc.n)}
+    keys = fleet_keys(MASTER, sc.n)   # node keys and link frame keys (AUTH-28)
     node = f"agent_{dut}"
 
     def ring() -> Keyring:
@@ -445,13 +494,17 @@ def dump_node_vectors(path: Path) -> dict[str, list[tuple[int, int, str]]]:
         lines.append(f"V {vec['name']} {vec['config'].encode().hex()}")
         if k["insecure"]:
             key = derive_node_key(INSECURE_MASTER, k["node"])
-            lines.append(f"K {k['node']} 1 {key.hex()} 0 0")
+            lines.append(f"K {k['node']} 1 {key.hex()} 0 0 0")
         else:
             floors = k.get("floors", {})
             peers = " ".join(f"{label} {h} {floors.get(label, 0)}"
                              for label, h in k["peers"].items())
+            fk = k["frame_keys"]   # AUTH-28: the setpoint's and the status' keys
+            i = k["node"].removeprefix("agent_")
+            plant = 0 if "plant" in k["peers"] else floors.get("plant", 0)
             lines.append(f"K {k['node']} 0 {k['key']} {k['boot_counter']} {len(k['peers'])} "
-                         f"{peers}")
+                         f"{peers} 2 {fk[f'AGENT_{i}_Setpoint']} {fk[f'PLANT_{i}_Status']} "
+                         f"{plant}")
         if "tx_count" in vec.get("setup", {}):
             lines.append(f"S {vec['setup']['tx_count']}")
         for row in vec["input"]:
@@ -537,6 +590,10 @@ def test_c_secoc_against_firmware_py() -> None:
             out = ctypes.create_string_buffer(16)
             assert lib.bd_derive_node_key(master, label.encode(), out) == 0
             assert out.raw == secoc.derive_node_key(master, label)
+        for name in ("AGENT_1_Setpoint", "AGENT_32_Setpoint", "PLANT_7_Status"):  # AUTH-28
+            out = ctypes.create_string_buffer(16)
+            assert lib.bd_derive_frame_key(master, name.encode(), out) == 0
+            assert out.raw == secoc.derive_frame_key(master, name)
         tag = ctypes.create_string_buffer(8)
         assert lib.bd_fleet_id(master, tag) == 0 and tag.raw.hex() == secoc.fleet_id(master)
     out = ctypes.create_string_buffer(16)

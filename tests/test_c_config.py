@@ -23,6 +23,7 @@ from firmware_py.errors import ConfigError
 from firmware_py.secoc import (
     KEY_FILE_HEADER,
     KeyFileError,
+    derive_frame_key,
     derive_node_key,
     fleet_id,
     load_node_key,
@@ -262,6 +263,43 @@ def test_key_file_boot_floors_load_and_survive_every_boot_rewrite(tmp_path: Path
         load_keyfile(path, "agent_2")
     with pytest.raises(KeyFileError, match=r"\[floors\] expected"):
         load_node_key(path)
+
+
+def test_key_file_frame_keys_load_and_survive_every_boot_rewrite(tmp_path: Path) -> None:
+    """AUTH-28, CFG-8: agent 2's key file as `bess-ded keys` writes it (the router's and
+    its neighbours' node keys, its two link frame keys, no plant key) loads in C with
+    the setpoint's and the status' keys firmware_py reads; the C persist keeps
+    [frame_keys] and the plant's floor; the C agent starts with it; a link frame key of
+    another agent is refused."""
+    import tomli_w
+
+    from sim.cbind.cagent import CAgent
+    from sim.run.keyset import node_document
+
+    sc = load_case(1)
+    path = tmp_path / "agent_2.key"
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(node_document(sc, MASTER, "agent_2", 6)))
+    save_floors(path, {"router": 9, "plant": 5})
+    ref = load_node_key(path)
+    assert "plant" not in ref.peers and sorted(ref.frames) == ["AGENT_2_Setpoint",
+                                                               "PLANT_2_Status"]
+    assert dict(ref.floors) == {"router": 9, "plant": 5}
+    k = load_keyfile(path, "agent_2")
+    assert k.has_frame_keys == 1 and k.status_floor == 5
+    assert bytes(k.setpoint_key) == derive_frame_key(MASTER, "AGENT_2_Setpoint")
+    assert bytes(k.status_key) == derive_frame_key(MASTER, "PLANT_2_Status")
+    assert k.persist_boot(k.persist_ctx, 7) == 0
+    again = load_node_key(path)
+    assert again.boot_counter == 7 and again.frames == ref.frames
+    assert dict(again.floors) == {"router": 9, "plant": 5}
+    agent = CAgent(agent_configs_from_scenario(sc)[1], load_keyfile(path, "agent_2"))
+    assert agent.boot == 8
+    doc = tomllib.loads(path.read_text())
+    doc["frame_keys"]["PLANT_1_Status"] = derive_frame_key(MASTER, "PLANT_1_Status").hex()
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    with pytest.raises(CConfigError, match=r"\[frame_keys\] expected the keys of "
+                       r"AGENT_2_Setpoint and PLANT_2_Status only, but got 'PLANT_1_Status'"):
+        load_keyfile(path, "agent_2")
 
 
 def test_key_file_refusals(tmp_path: Path) -> None:

@@ -415,7 +415,8 @@ def bump_boot(path: Path, boot: int) -> None:
     import tomli_w
 
     secoc.write_private(path, secoc.KEY_FILE_HEADER + tomli_w.dumps(
-        secoc.node_key_document(k.node, k.key, k.fleet_id, boot, k.peers)))
+        secoc.node_key_document(k.node, k.key, k.fleet_id, boot, k.peers, k.floors,
+                                k.frames)))
 
 
 def test_up_checks_every_key_file_before_starting_a_node(
@@ -451,9 +452,15 @@ def test_up_checks_every_key_file_before_starting_a_node(
     k = secoc.load_node_key(keys / "agent_2.key")
     secoc.write_private(keys / "agent_2.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(
         secoc.node_key_document(k.node, k.key, k.fleet_id, 0,
-                                {p: v for p, v in k.peers.items() if p != "agent_1"})))
-    assert ("agent_2.key with the keys of the nodes it receives from (router, plant, "
+                                {p: v for p, v in k.peers.items() if p != "agent_1"},
+                                None, k.frames)))
+    assert ("agent_2.key with the keys of the nodes it receives from (router, "
             "agent_1), but got 'none for agent_1'") in up()
+    secoc.write_private(keys / "agent_2.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(
+        secoc.node_key_document(k.node, k.key, k.fleet_id, 0, k.peers, None,
+                                {f: v for f, v in k.frames.items() if f != "PLANT_2_Status"})))
+    assert ("agent_2.key with the keys of its link frames (AUTH-28: AGENT_2_Setpoint, "
+            "PLANT_2_Status), but got 'none for PLANT_2_Status'") in up()
 
     shutil.copy2(saved / "agent_2.key", keys / "agent_2.key")
     (keys / "plant.key").unlink()

@@ -17,7 +17,6 @@ from pathlib import Path
 import pytest
 from conformance_run import DEVIANT, DEVICE_HINT, FIRMWARE_PY, run_conformance
 
-from firmware_py import secoc
 from firmware_py.config import AgentConfig, agent_configs_from_scenario
 from firmware_py.frames import FrameCodec
 from firmware_py.runtime import AgentRuntime
@@ -25,9 +24,10 @@ from firmware_py.secoc import Keyring
 from sim import conformance as conf
 from sim.cli import main
 from sim.model.scenario import load_case
+from sim.testkit.tester import fleet_keys
 
 MASTER = bytes(range(16))
-KEYS = {n: secoc.derive_node_key(MASTER, n) for n in secoc.fleet_nodes(12)}
+KEYS = fleet_keys(MASTER, 12)  # node keys and link frame keys (AUTH-28)
 
 
 def _setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyring],

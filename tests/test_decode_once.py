@@ -24,6 +24,7 @@ from sim import conformance as conf
 from sim.model.scenario import load_case
 from sim.run import inprocess
 from sim.run.recorder import Progress
+from sim.testkit.tester import fleet_keys
 
 
 def _frame_key(msg: can.Message) -> tuple[float, int, bytes]:
@@ -113,7 +114,7 @@ def test_the_conformance_check_decodes_each_dut_frame_once() -> None:
     a second pass with the other filter): each DUT frame is still decoded once per
     check. The jittered case keeps several hypotheses alive at many ticks."""
     master = bytes(range(16))
-    keys = {n: secoc.derive_node_key(master, n) for n in secoc.fleet_nodes(4)}
+    keys = fleet_keys(master, 4)
     sc = load_case(1)
     cfg = agent_configs_from_scenario(sc)[0]
 

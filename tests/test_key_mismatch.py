@@ -35,16 +35,20 @@ def kinds(m: dict) -> list[tuple[str, str]]:
 
 @pytest.mark.parametrize("whole_file", [False, True], ids=["own-key", "other-key-set"])
 def test_a_node_with_another_key_is_named(tmp_path: Path, whole_file: bool) -> None:
-    """agent_3 signs with a key of another provisioning: only its own key (it still
-    verifies the others), or its whole key file (it rejects everyone else's frames too).
+    """agent_3 signs with keys of another provisioning: only its own signing keys (it
+    still verifies the others), or its whole key file (it rejects everyone else's frames too).
     Every receiver rejects its frames; the verdict says so once, naming agent_3 and its
     key file, instead of a MAC failure and an untrusted-source alarm per receiver."""
     master, other = secrets.token_bytes(secoc.KEY_BYTES), secrets.token_bytes(secoc.KEY_BYTES)
     if whole_file:
         ring = secoc.Keyring.fleet(other, ["agent_3"])["agent_3"]
     else:
+        # its signing keys (its own, and its setpoint's link frame key, AUTH-28) are
+        # another provisioning's; it verifies with the fleet's
         ring = secoc.Keyring("agent_3", secoc.derive_node_key(other, "agent_3"), 0,
-                             lambda _b: None, master=master, fleet=secoc.fleet_id(master))
+                             lambda _b: None, master=master, fleet=secoc.fleet_id(master),
+                             frames={"AGENT_3_Setpoint":
+                                     secoc.derive_frame_key(other, "AGENT_3_Setpoint")})
     m = busrun.run_in_process(SC, tmp_path, SC.duration, channel=f"keys-{whole_file}",
                               keyrings=fleet_with(ring, master))
     v = m["verdict"]

@@ -43,6 +43,105 @@ def test_fleet_for_a_case(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     assert doc["format"] == secoc.KEY_FILE_FORMAT and doc["freshness"] == {"boot_counter": 0}
 
 
+def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path) -> None:
+    """AUTH-28, issue 25 item 5: each key file lists the node keys of the broadcasts it
+    takes and the keys of its own link frames only; agent 3's file yields no key that
+    tags agent 1's setpoint or status (nor any link frame whose parties exclude it), and
+    no file but the plant's, agent 1's and the router's holds PLANT_1_Status's key."""
+    from firmware_py import contract
+    from firmware_py.frames import FrameCodec
+
+    out = tmp_path / "keys"
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(out)]) == 0
+    master = secoc.load_master_key(out / "master.key")
+    files = {n: secoc.load_node_key(out / f"{n}.key")
+             for n in ["agent_1", "agent_2", "agent_3", "agent_4", "plant", "router"]}
+    links = contract.link_frames(4)
+    assert links == [*(f"AGENT_{i}_Setpoint" for i in range(1, 5)),
+                     *(f"PLANT_{i}_Status" for i in range(1, 5))]
+    for node, nk in files.items():
+        want = [f for f in links if node in contract.parties_of(f)]
+        assert sorted(nk.frames) == sorted(want), node
+        assert all(k == secoc.derive_frame_key(master, f) for f, k in nk.frames.items())
+        assert "plant" not in nk.peers  # the plant sends link frames only
+    assert sorted(files["agent_3"].frames) == ["AGENT_3_Setpoint", "PLANT_3_Status"]
+    assert "router" in files["agent_3"].peers and "plant" not in files["agent_3"].peers
+    assert [n for n, nk in files.items() if "PLANT_1_Status" in nk.frames] == [
+        "agent_1", "plant", "router"]
+    # every key agent 3's file holds fails to tag agent 1's status and setpoint, and
+    # every link frame whose parties exclude agent 3
+    codec = FrameCodec()
+    ring = secoc.Keyring.from_file(out / "agent_3.key")
+    held = [ring.key, *files["agent_3"].peers.values(), *files["agent_3"].frames.values()]
+    for name in links:
+        if "agent_3" in contract.parties_of(name):
+            continue
+        assert ring.key_for(name) is None and ring.key_for(name + "_Sync") is None
+        fid = codec.frame_id(name)
+        genuine = secoc.derive_frame_key(master, name)
+        data = bytearray(8)
+        data[4:6] = (12000).to_bytes(2, "little")
+        fv = contract.FRESHNESS.join(1, 7)
+        for key in held:
+            forged = bytearray(data)
+            secoc.sign_frame(key, fid, forged, fv)
+            assert not secoc.frame_verifies(genuine, fid, forged, fv), (name, key.hex())
+
+
+def test_rotating_one_node_rewrites_only_the_files_sharing_its_keys(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 25, item 5: `keys --rotate agent_3` gives agent 3 a new own key and new link
+    frame keys, written into its file and those of the nodes holding one of them (case
+    1: agent 1, its neighbour; the plant; the router), boot counters and floors kept;
+    agents 2 and 4's files are untouched byte for byte. The old copy of agent_3.key no
+    longer tags agent 3's setpoint or MC as its receivers now verify them; the rotated
+    set passes `up`'s check and runs a clean dispatch."""
+    from firmware_py import contract
+    from firmware_py.frames import FrameCodec
+    from sim.model.scenario import load_case
+    from sim.run import busrun
+    from sim.run.keyset import check_key_set, write_boot_floors
+
+    out = tmp_path / "keys"
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(out)]) == 0
+    write_boot_floors(out, ["plant"], {"agent_3": 2})
+    secoc.save_boot_counter(out / "agent_3.key", 4)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    old = secoc.load_node_key(out / "agent_3.key")
+    capsys.readouterr()
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(out),
+                 "--rotate", "agent_3"]) == 0
+    said = capsys.readouterr().out
+    assert "rewrote agent_1.key, agent_3.key, plant.key, router.key" in said, said
+    changed = {p.name for p in out.iterdir() if p.read_bytes() != before[p.name]}
+    assert changed == {"agent_3.key", "agent_1.key", "plant.key", "router.key"}
+    new = secoc.load_node_key(out / "agent_3.key")
+    assert new.key != old.key and new.boot_counter == 4
+    assert all(new.frames[f] != old.frames[f] for f in old.frames)
+    assert new.peers == old.peers  # the keys of others it holds are not its to rotate
+    plant = secoc.load_node_key(out / "plant.key")
+    assert plant.peers["agent_3"] == new.key and plant.floors["agent_3"] == 2
+    assert plant.frames["AGENT_3_Setpoint"] == new.frames["AGENT_3_Setpoint"]
+    assert secoc.load_node_key(out / "router.key").frames["PLANT_3_Status"] == \
+        new.frames["PLANT_3_Status"]
+    assert secoc.load_node_key(out / "agent_1.key").peers["agent_3"] == new.key
+    codec = FrameCodec()
+    for name, old_key, now in (("AGENT_3_Setpoint", old.frames["AGENT_3_Setpoint"],
+                                plant.frames["AGENT_3_Setpoint"]),
+                               ("AGENT_3_MC", old.key, plant.peers["agent_3"])):
+        data, fid, fv = bytearray(8), codec.frame_id(name), contract.FRESHNESS.join(5, 1)
+        secoc.sign_frame(old_key, fid, data, fv)
+        assert not secoc.frame_verifies(now, fid, data, fv)
+    sc = load_case(1)
+    assert check_key_set(out, sc.n, sc)
+    m = busrun.run_in_process(sc, tmp_path / "run", sc.duration, channel="rotated",
+                              keyrings={n: secoc.Keyring.from_file(out / f"{n}.key")
+                                        for n in secoc.fleet_nodes(sc.n)})
+    assert m["verdict"]["exit_code"] == 0, m["anomalies"]
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(out),
+                 "--rotate", "agent_9"]) == 2
+
+
 def test_files_never_exist_world_readable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
                                           ) -> None:
     """Every key file is opened with mode 0600 and O_EXCL from the start."""

@@ -32,7 +32,13 @@ from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec, setpoint_name, status_name
 from firmware_py.node import StopFlag, run_node
 from firmware_py.nodeio import FleetSender
-from firmware_py.secoc import INSECURE_MASTER, Keyring, derive_node_key, frame_verifies
+from firmware_py.secoc import (
+    INSECURE_MASTER,
+    Keyring,
+    derive_frame_key,
+    derive_node_key,
+    frame_verifies,
+)
 from sim.cli import main
 from sim.model.cost import Battery, expenditure, kkt_optimum
 from sim.model.scenario import Scenario, load_case, scaled
@@ -50,9 +56,13 @@ DT = 0.01
 _channels = itertools.count()
 
 SENDER = FleetSender(CODEC)  # the agents and the plant, --insecure: boot 1, no sync needed
-PLANT_KEY = derive_node_key(INSECURE_MASTER, "plant")    # what an insecure router verifies
 ROUTER_KEY = derive_node_key(INSECURE_MASTER, "router")  # what an insecure agent verifies
 WRONG_KEY = bytes(16 * [9])                              # a forger's: right layout, no key
+
+
+def link_key(name: str) -> bytes:
+    """A link frame's insecure key (AUTH-28), what an insecure receiver verifies it with."""
+    return derive_frame_key(INSECURE_MASTER, name.removesuffix("_Sync"))
 
 
 @pytest.fixture(autouse=True)
@@ -320,7 +330,7 @@ def test_bad_setpoints_are_rejected_by_cause_and_counters_checked() -> None:
     assert "expected a MAC that verifies" in plant.last_error["auth"]
     # the same count with another payload from a sender without agent 1's key: was a
     # counter clash (foreign); now it simply fails the MAC and is not used
-    forger = FleetSender(CODEC, keys={"agent_1": WRONG_KEY})
+    forger = FleetSender(CODEC, keys={"AGENT_1_Setpoint": WRONG_KEY})
     plant.on_frame(setpoint(1, 120.0, 1, sender=forger), 0.005)
     assert plant.counters["auth"] == 5 and plant.counters["counter_clash"] == 0
     assert plant.counters["foreign"] == 0 and plant.unit(1).p_set == 40.0
@@ -510,7 +520,7 @@ def test_router_rejects_bad_status_frames_and_times_statuses_out() -> None:
     router.on_frame(flipped(nxt, 6), 0.0)       # a bit of Soc
     assert router.counters["auth"] == 3 and router.counters["crc"] == 0
     assert router.counters["repeated_counter"] == 0 and router.io.last_safety == ("auth", fid)
-    forger = FleetSender(CODEC, keys={"plant": WRONG_KEY})
+    forger = FleetSender(CODEC, keys={"PLANT_1_Status": WRONG_KEY})
     router.on_frame(status(1, 20.0, 1, sender=forger), 0.0)  # same count, new payload
     assert router.counters["auth"] == 4 and router.counters["counter_clash"] == 0
     assert router.counters["foreign"] == 0 and router.measured_powers[0] == 10.0
@@ -742,10 +752,10 @@ def test_plant_signs_its_status_frames_and_sends_their_syncs_every_second() -> N
             if is_sync(m):
                 count = sent[SYNCED_BY[fid]]
                 assert (f.raw["Boot"], f.raw["Count"]) == (1, count)
-                assert frame_verifies(PLANT_KEY, fid, m.data, fv(1, count))
+                assert frame_verifies(link_key(f.name), fid, m.data, fv(1, count))
                 syncs.append((round(T(k), 2), f.name))
             else:
-                assert frame_verifies(PLANT_KEY, fid, m.data, fv(1, sent[fid]))
+                assert frame_verifies(link_key(f.name), fid, m.data, fv(1, sent[fid]))
                 assert f.counter == sent[fid] % 16
                 sent[fid] += 1
             router.on_frame(m, T(k))
@@ -764,7 +774,8 @@ def test_plant_hears_an_agent_after_its_sync_and_answers_its_restart_with_its_ow
     0.1 s), so the restarted agent hears it within one round trip."""
     master = bytes(range(16))
     plant = PlantNode(load_case(1), keys=Keyring.fleet(master, ["plant"])["plant"])
-    agent = FleetSender(CODEC, keys={"agent_1": derive_node_key(master, "agent_1")}, boot=3)
+    agent = FleetSender(CODEC, boot=3,   # AUTH-28: agent 1's setpoint under its own key
+                        keys={"AGENT_1_Setpoint": derive_frame_key(master, "AGENT_1_Setpoint")})
     assert plant.io.boot == 1 and len([m for m in plant.tick(0.0) if is_sync(m)]) == 4
     plant.on_frame(setpoint(1, 10.0, sender=agent), 0.0)
     assert plant.counters["joining"] == 1 and plant.unit(1).setpoint_rx is None

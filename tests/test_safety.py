@@ -22,6 +22,7 @@ from pathlib import Path
 import can
 import pytest
 
+from firmware_py import contract
 from firmware_py import fixedpoint as fx
 from firmware_py.config import (
     agent_configs_from_scenario,
@@ -69,7 +70,8 @@ def _fresh_senders() -> None:
 def forger() -> FleetSender:
     """A sender that knows the layouts but not the keys: every frame it signs is forged."""
     labels = ("router", "plant", *(f"agent_{i}" for i in range(1, 9)))
-    return FleetSender(CODEC, keys=dict.fromkeys(labels, WRONG_KEY))
+    links = contract.link_frames(8)   # AUTH-28: setpoints and statuses under their own keys
+    return FleetSender(CODEC, keys=dict.fromkeys([*labels, *links], WRONG_KEY))
 
 
 def tampered(msg: can.Message) -> can.Message:

@@ -171,6 +171,28 @@ def test_kdf_deterministic_separated_and_as_documented() -> None:
                      "agent_7", "plant", "router"]
 
 
+def test_frame_key_kdf_as_documented_and_separated() -> None:
+    """AUTH-28: a link frame's key is AUTH-1's KDF with its own label over the message
+    name: one per frame, none equal to a node key or to another frame's."""
+    from firmware_py import contract
+
+    master = bytes(range(16))
+    names = contract.link_frames(4)
+    keys = {f: secoc.derive_frame_key(master, f) for f in names}
+    for f, k in keys.items():
+        assert k == _reference_kbkdf(master, secoc.FRAME_KEY_LABEL, f.encode(), 16)
+    nodes = {derive_node_key(master, n) for n in secoc.fleet_nodes(4)}
+    assert len(set(keys.values())) == len(names) and not nodes & set(keys.values())
+    assert secoc.derive_frame_key(bytes(16), names[0]) != keys[names[0]]
+    assert contract.parties_of("AGENT_1_Setpoint") == {"agent_1", "plant"}
+    assert contract.parties_of("PLANT_1_Status") == {"plant", "agent_1", "router"}
+    assert "ER_Price" not in contract.LINK_FRAMES and "AGENT_1_MC" not in contract.LINK_FRAMES
+    assert "ER_Command" not in contract.LINK_FRAMES and "AGENT_1_Diag" not in contract.LINK_FRAMES
+    for bad in ("", "plant_1_status", "A" * 33, "PLANT 1"):
+        with pytest.raises(SecOCError):
+            secoc.derive_frame_key(master, bad)
+
+
 @pytest.mark.parametrize("bad", ["", "Agent_1", "agent 1", "1agent", "a" * 33, "agent-1"])
 def test_bad_node_names(bad: str) -> None:
     with pytest.raises(SecOCError):

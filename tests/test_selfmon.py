@@ -219,7 +219,8 @@ def test_the_bound_and_the_undo_at_one_receiver() -> None:
     plant = PlantNode(CASE, keys=rings["plant"])
     io = plant.io
     fid = CODEC.frame_id("AGENT_1_Setpoint")
-    keys = {"agent_1": secoc.derive_node_key(MASTER, "agent_1")}
+    # AUTH-28: agent 1's setpoint under its link frame key
+    keys = {"AGENT_1_Setpoint": secoc.derive_frame_key(MASTER, "AGENT_1_Setpoint")}
     genuine = FleetSender(CODEC, keys=keys, boot=3)
     frames = [genuine.sync("AGENT_1_Setpoint"),
               genuine.frame("AGENT_1_Setpoint", {"Enable": 0, "PowerSetpoint": 0})]

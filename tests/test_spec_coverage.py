@@ -19,6 +19,7 @@ import can
 import pytest
 import tomli_w
 
+from firmware_py import contract
 from firmware_py import fixedpoint as fx
 from firmware_py.config import agent_configs_from_scenario, parse_agent_config
 from firmware_py.controllers import (
@@ -35,12 +36,14 @@ from firmware_py.runtime import AgentRuntime, State
 from firmware_py.secoc import (
     KEY_FILE_HEADER,
     Keyring,
+    derive_frame_key,
     derive_node_key,
     fleet_id,
     node_key_document,
     write_private,
 )
 from sim.model.scenario import load_case, scaled
+from sim.testkit.tester import fleet_keys
 
 CODEC = FrameCodec()
 SENDER = FleetSender(CODEC)  # the other nodes, --insecure: boot 1, no sync needed
@@ -363,39 +366,53 @@ def test_limits_order_defaults_and_q24() -> None:
     assert a.price_step_max == 8388608
 
 
-def write_key_file(path: Path, node: str, peers: list[str]) -> Path:
+def write_key_file(path: Path, node: str, peers: list[str],
+                   frames: list[str] | None = None) -> Path:
+    """A key file of case 1's fleet: ``node``'s key, its ``peers``' node keys and the keys
+    of ``frames`` (None: every link frame of agents 1..4 it is a party of, AUTH-28)."""
     master = bytes(range(16))
+    if frames is None:
+        frames = [f for f in contract.link_frames(4) if node in contract.parties_of(f)]
     doc = node_key_document(node, derive_node_key(master, node), fleet_id(master), 0,
-                            {p: derive_node_key(master, p) for p in peers})
+                            {p: derive_node_key(master, p) for p in peers}, None,
+                            {f: derive_frame_key(master, f) for f in frames})
     write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
     return path
 
 
 def test_a_key_file_lacking_a_senders_key_stops_the_start(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """CFG-8: agent 2 of case 1 takes ER_* (router), PLANT_2_Status (plant) and
-    AGENT_1_MC (agent_1): a key file without any one of them stops the start naming the
-    sender (the agent's command exits 2 before it opens a bus); with all three it
-    starts (and persists its new boot, AUTH-3)."""
+    """CFG-8, AUTH-28: agent 2 of case 1 takes ER_* (router), AGENT_1_MC (agent_1) and
+    PLANT_2_Status (its link frame key), and signs AGENT_2_Setpoint (its link frame key):
+    a key file without any one of them stops the start naming it (the agent's command
+    exits 2 before it opens a bus); with all four it starts (and persists its new boot,
+    AUTH-3)."""
     from firmware_py.__main__ import main
 
     cfg = agent_configs_from_scenario(load_case(1))[1]
     conf = tmp_path / "agent.toml"
     conf.write_text(cfg.to_toml())
-    path = write_key_file(tmp_path / "no_plant.toml", "agent_2", ["router", "agent_1"])
+    every = ["router", "agent_1"]
+    links = ["AGENT_2_Setpoint", "PLANT_2_Status"]
+    path = write_key_file(tmp_path / "no_status.toml", "agent_2", every, links[:1])
     capsys.readouterr()
     assert main(["--config", str(conf), "--key", str(path), "--interface", "virtual",
                  "--channel", "cfg8-never-opened", "--duration", "0.01"]) == 2
     err = capsys.readouterr().err
-    assert "verification key of plant" in err and "Traceback" not in err
-    every = ["router", "plant", "agent_1"]
+    assert "verification key of PLANT_2_Status" in err and "Traceback" not in err
     for missing in every:
         path = write_key_file(tmp_path / f"no_{missing}.toml", "agent_2",
-                              [p for p in every if p != missing])
+                              [p for p in every if p != missing], links)
         with pytest.raises(ConfigError) as e:
             AgentRuntime(cfg, CODEC, keys=Keyring.from_file(path))
-        assert f"verification key of {missing}" in str(e.value)
-    path = write_key_file(tmp_path / "all.toml", "agent_2", every)
+        assert f"(sent by {missing})" in str(e.value)
+    for missing in links:
+        path = write_key_file(tmp_path / f"no_{missing}.toml", "agent_2", every,
+                              [f for f in links if f != missing])
+        with pytest.raises(ConfigError) as e:
+            AgentRuntime(cfg, CODEC, keys=Keyring.from_file(path))
+        assert f"key of {missing}" in str(e.value)
+    path = write_key_file(tmp_path / "all.toml", "agent_2", every, links)
     a = AgentRuntime(cfg, CODEC, keys=Keyring.from_file(path))
     assert a.io.boot == 1 and Keyring.from_file(path).boot == 1
 
@@ -812,25 +829,24 @@ def hello_after(a: AgentRuntime, sync: can.Message) -> bool:
                                      "AGENT_1_Setpoint"])
 def test_insecure_and_in_memory_keyrings_take_every_fleet_sync_as_a_peer_sync(
         sync_of: str, tmp_path: Path) -> None:
-    """AUTH-19, RX-5, AUTH-18: insecure and in-memory fleet keyrings hold every key, so
-    any fleet node's restart sync (here of agents 3 and 4, not neighbours of agent 2)
-    makes a hello pending; a key-file agent holding only the router's, the plant's and
-    agent 1's keys takes PLANT_3_Status_Sync and its neighbour's AGENT_1_Setpoint_Sync
-    as peer syncs and ignores the syncs of agents 3 and 4."""
+    """AUTH-19, RX-5, AUTH-18, AUTH-28: insecure and in-memory fleet keyrings hold every
+    node key, so any fleet node's restart sync of a broadcast (here agent 3's MC, not a
+    neighbour of agent 2) makes a hello pending; other agents' link frames (AGENT_j_
+    Setpoint, PLANT_j_Status) are under keys agent 2 does not hold: ignored, even in
+    those modes. A key-file agent holding only the router's and agent 1's node keys and
+    its own link frame keys has no peer syncs: it ignores all four."""
     restarted = FleetSender(CODEC, boot=2)
     ring = Keyring.insecure_for("agent_2")
-    assert hello_after(agent_with(ring), restarted.sync(sync_of))
+    broadcast = sync_of == "AGENT_3_MC"
+    assert hello_after(agent_with(ring), restarted.sync(sync_of)) == broadcast
     master = bytes(range(16))
     fleet = Keyring.fleet(master, ["agent_2"])["agent_2"]
-    keyed = FleetSender(CODEC, keys={n: derive_node_key(master, n)
-                                     for n in ("agent_1", "agent_3", "agent_4", "plant")},
-                        boot=2)
+    keyed = FleetSender(CODEC, keys=fleet_keys(master, 4), boot=2)
     a = agent_with(fleet)
-    assert hello_after(a, keyed.sync(sync_of))
-    path = write_key_file(tmp_path / "a2.toml", "agent_2", ["router", "plant", "agent_1"])
+    assert hello_after(a, keyed.sync(sync_of)) == broadcast
+    path = write_key_file(tmp_path / "a2.toml", "agent_2", ["router", "agent_1"])
     b = agent_with(Keyring.from_file(path))
-    assert hello_after(b, keyed.sync(sync_of)) == (sync_of in ("PLANT_3_Status",
-                                                               "AGENT_1_Setpoint"))
+    assert not hello_after(b, keyed.sync(sync_of))
     assert a.counters["auth"] == b.counters["auth"] == 0
 
 
@@ -887,31 +903,34 @@ def test_a_scaled_agent_steps_as_the_unscaled_one_up_to_quantisation(kind: str) 
 
 
 def test_acceptance_filters_pass_the_syncs_of_the_keys_held(tmp_path: Path) -> None:
-    """AUTH-19, GEN-5 (key files, case 1): the agent's filter passes the syncs of what it
-    takes (not its peer syncs); the router's also passes every agent's syncs (its MC
-    syncs, as it takes the MC frames; without the failover, every agent's peer syncs), the
-    plant's the router's (ER_Price_Sync, ER_Command_Sync)."""
+    """AUTH-19, GEN-5, AUTH-28 (key files, case 1): the agent's filter passes the syncs of
+    what it takes (not its peer syncs); the router's also passes every agent's MC frames
+    and syncs (it takes the MC frames for the pinned-agent failover; not the setpoints'
+    syncs, under link frame keys it does not hold), the plant's the router's
+    (ER_Price_Sync, ER_Command_Sync)."""
     from sim.nodes.plant import PlantNode
     from sim.nodes.router import RouterNode
 
     agents = [f"agent_{j}" for j in range(1, 5)]
     ring = Keyring.from_file(write_key_file(tmp_path / "a2.toml", "agent_2",
-                                            ["router", "plant", "agent_1"]))
+                                            ["router", "agent_1"]))
     a = AgentRuntime(agent_configs_from_scenario(load_case(1))[1], CODEC, keys=ring)
     syncs = {i for i in a.io.accepted_ids() if i >= 0x400}
     assert syncs == {0x410, 0x420, 0x501, 0x502, 0x602, 0x682, 0x702}  # 0x702: its own
     # the reports' syncs are nobody's peer syncs (RX-5): not even the router's
     assert not {0x701, 0x703} & set(a.io.accepted_ids())
     router = RouterNode(load_case(1), keys=Keyring.from_file(
-        write_key_file(tmp_path / "r.toml", "router", [*agents, "plant"])))
+        write_key_file(tmp_path / "r.toml", "router", agents)))
     # the router takes every agent's MC frames (the pinned-agent failover, docs/faults.md):
     # their syncs are its own, and an agent's restart shows on them (no peer syncs needed)
     assert {0x101, 0x102, 0x103, 0x104, 0x501, 0x502, 0x503, 0x504} <= \
         set(router.io.accepted_ids())
     assert not {0x601, 0x602, 0x603, 0x604} & set(router.io.accepted_ids())
     no_failover = RouterNode(load_case(1), failover=False, keys=Keyring.from_file(
-        write_key_file(tmp_path / "r2.toml", "router", [*agents, "plant"])))
-    assert {0x501, 0x502, 0x503, 0x504, 0x601, 0x602, 0x603, 0x604} <= \
+        write_key_file(tmp_path / "r2.toml", "router", agents)))
+    # without it the router takes no MC frame, but still the agents' MC syncs (peer syncs)
+    assert {0x501, 0x502, 0x503, 0x504} <= set(no_failover.io.accepted_ids())
+    assert not {0x101, 0x102, 0x103, 0x104, 0x601, 0x602, 0x603, 0x604} & \
         set(no_failover.io.accepted_ids())
     assert not {0x701, 0x702, 0x703, 0x704} & set(router.io.accepted_ids())
     plant = PlantNode(load_case(1), keys=Keyring.from_file(

@@ -483,14 +483,16 @@ def _ground_truth_log(path: Path) -> tuple[int, int, int]:
     import random
 
     from firmware_py.nodeio import FleetSender
-    from firmware_py.secoc import derive_node_key
+    from firmware_py.secoc import derive_frame_key, derive_node_key
 
     rnd = random.Random(19)
     master = bytes(range(16))
     labels = ("router", "plant", "agent_1", "agent_2")
-    honest = FleetSender(keys={n: derive_node_key(master, n) for n in labels}, boot=5)
+    links = ("PLANT_1_Status",)   # AUTH-28: under its own link frame key
+    honest = FleetSender(keys={**{n: derive_node_key(master, n) for n in labels},
+                               **{f: derive_frame_key(master, f) for f in links}}, boot=5)
     attacker = FleetSender(keys={n: bytes(rnd.randrange(256) for _ in range(16))
-                                 for n in labels}, boot=5)
+                                 for n in (*labels, *links)}, boot=5)
     ts, frames, genuine, late, attack = 0.01, [], [], 0, 0
 
     def honest_frames(k: int) -> list[can.Message]:
@@ -554,13 +556,14 @@ def test_the_recorder_tells_late_genuine_frames_from_a_flood_of_forged_ones(
     the recorder accepts no forged frame, calls no genuine frame forged, and counts
     exactly the reordered genuine frames as stale; the verdict says stale_frames only
     above its threshold and never auth_failed for them."""
-    from firmware_py.secoc import derive_node_key
+    from firmware_py.secoc import derive_frame_key, derive_node_key
     from sim.run import buslog, verdict
 
     path = tmp_path / "truth.log"
     n_genuine, n_late, n_attack = _ground_truth_log(path)
     keys = {n: derive_node_key(bytes(range(16)), n)
             for n in ("router", "plant", "agent_1", "agent_2")}
+    keys["PLANT_1_Status"] = derive_frame_key(bytes(range(16)), "PLANT_1_Status")
     log = buslog.read_log(path, keys=keys, ts=0.01)
     assert sum(log.forged.values()) == n_attack            # every attacker frame, no more
     assert sum(log.stale.values()) == n_late > 0           # every late genuine frame

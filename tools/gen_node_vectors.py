@@ -47,6 +47,7 @@ from firmware_py.secoc import (  # noqa: E402
     KDF_NAME,
     MAC_NAME,
     Keyring,
+    derive_frame_key,
     derive_node_key,
     fleet_id,
     sign_frame,
@@ -116,9 +117,18 @@ class Sender:
     """One other node of the fleet (router, plant, a neighbour): its key, boot counter and
     the message count of each secured ID it sends, as its NodeIO would keep them."""
 
-    def __init__(self, label: str, key: bytes, boot: int) -> None:
-        self.label, self.key, self.boot = label, key, boot
+    def __init__(self, label: str, key: bytes, boot: int, master: bytes | None = None) -> None:
+        self.label, self.key, self.boot, self.master = label, key, boot, master
         self.count: dict[int, int] = {}
+
+    def key_for(self, name: str) -> bytes:
+        """AUTH-28: a link frame's own key (from the fleet master), else the node's."""
+        base = name.removesuffix("_Sync")
+        if base not in contract.LINK_FRAMES:
+            return self.key
+        if self.master is None:
+            raise ValueError(f"{self.label}: {base} needs the fleet master key")
+        return derive_frame_key(self.master, base)
 
     def frame(self, name: str, raw: Mapping[str, int], skip: int = 0,
               patch: tuple[int, int, int] | None = None) -> can.Message:
@@ -129,7 +139,7 @@ class Sender:
         msg = CODEC.encode(name, raw, c % (1 << contract.FV_TX_BITS))
         if patch is not None:
             set_bits(msg.data, *patch)
-        sign_frame(self.key, fid, msg.data, contract.FRESHNESS.join(self.boot, c))
+        sign_frame(self.key_for(name), fid, msg.data, contract.FRESHNESS.join(self.boot, c))
         self.count[fid] = c + 1
         return msg
 
@@ -140,7 +150,7 @@ class Sender:
         boot = self.boot if boot is None else boot
         sync_id = contract.SYNC_OF[fid]
         msg = CODEC.encode(CODEC.name_of(sync_id), {"Count": count, "Boot": boot}, 0)
-        sign_frame(self.key, sync_id, msg.data, contract.FRESHNESS.join(boot, count))
+        sign_frame(self.key_for(name), sync_id, msg.data, contract.FRESHNESS.join(boot, count))
         return msg
 
     def restart(self) -> None:
@@ -165,7 +175,9 @@ class Scenario:
         self.insecure = insecure
         master = INSECURE_MASTER if insecure else TEST_MASTER
         node = f"agent_{self.cfg.id}"
-        peer_labels = ["router", "plant", *(f"agent_{n.id}" for n in self.cfg.neighbours)]
+        peer_labels = ["router", *(f"agent_{n.id}" for n in self.cfg.neighbours)]
+        # AUTH-28: its own setpoint's and status' keys; the plant's node key it needs not
+        frame_names = [setpoint_name(self.cfg.id), status_name(self.cfg.id)]
         self.keys_doc: dict[str, Any]
         if insecure:
             keys = None
@@ -174,13 +186,15 @@ class Scenario:
             boots = dict.fromkeys(SENDER_BOOTS, 1)
         else:
             peers = {p: derive_node_key(master, p) for p in peer_labels}
+            frames = {f: derive_frame_key(master, f) for f in frame_names}
             keys = Keyring(node, derive_node_key(master, node), BOOT_COUNTER, lambda _b: None,
-                           peers=peers, fleet=fleet_id(master), floors=floors)
+                           peers=peers, fleet=fleet_id(master), floors=floors, frames=frames)
             self.keys_doc = {"insecure": False, "master_key": master.hex(), "kdf": KDF_NAME,
                              "mac": MAC_NAME, "fleet_id": fleet_id(master), "node": node,
                              "key": derive_node_key(master, node).hex(),
                              "boot_counter": BOOT_COUNTER,
-                             "peers": {p: k.hex() for p, k in peers.items()}}
+                             "peers": {p: k.hex() for p, k in peers.items()},
+                             "frame_keys": {f: k.hex() for f, k in frames.items()}}
             if floors:  # AUTH-21: the key file's [floors]
                 self.keys_doc["floors"] = dict(floors)
             boots = dict(SENDER_BOOTS)
@@ -190,7 +204,7 @@ class Scenario:
             # a test hook: start the agent's own message counts high (AUTH-5 in seconds)
             self.agent.io.start_tx_counts(tx_count)
             self.setup["tx_count"] = tx_count
-        self.senders = {lbl: Sender(lbl, derive_node_key(master, lbl), boots[lbl])
+        self.senders = {lbl: Sender(lbl, derive_node_key(master, lbl), boots[lbl], master)
                         for lbl in SENDER_BOOTS}
         self.keys_doc["sender_boots"] = {lbl: s.boot for lbl, s in self.senders.items()}
         self.router, self.plant = self.senders["router"], self.senders["plant"]
@@ -639,12 +653,12 @@ def sc_peer_restart() -> Scenario:
         "Restarted senders: agent 1 restarts (boot + 1, count 0): its frames before its "
         "sync fail (auth), its sync with the new boot resyncs it and makes a hello pending: "
         "the agent re-sends its syncs 0.1 s after its last; the router restarts likewise; "
-        "peer syncs: PLANT_1_Status_Sync (the plant's key is held) and agent 1's "
-        "Setpoint_Sync of a new boot make a hello, the same boot again nothing, a forged one "
-        "counts auth; AGENT_4_MC_Sync (no key held) is ignored; the agent's own frames "
+        "other agents' link frames (AUTH-28: PLANT_1_Status_Sync, agent 1's Setpoint_Sync, "
+        "a forged PLANT_3_Status_Sync) are under keys the agent does not hold: ignored, "
+        "no hello, no auth; AGENT_4_MC_Sync (no key held) is ignored; the agent's own frames "
         "echoed back are ignored, the same IDs with other data are impersonation.",
-        ["AUTH-9", "AUTH-11", "AUTH-14", "AUTH-16", "AUTH-18", "AUTH-19", "RX-3", "RX-4",
-         "RX-5", "RX-6", "LIVE-2", "DIAG-1"])
+        ["AUTH-9", "AUTH-11", "AUTH-14", "AUTH-16", "AUTH-18", "AUTH-19", "AUTH-28", "RX-3",
+         "RX-4", "RX-5", "RX-6", "LIVE-2", "DIAG-1"])
     nb = start(s)
     s.run(40, price=RHO, nbrs=nb)
     a1 = s.senders["agent_1"]
@@ -654,14 +668,14 @@ def sc_peer_restart() -> Scenario:
     s.run(1, price=RHO, nbrs={3: nb[3]})
     s.sync("agent_1", mc_name(1), note="agent 1's sync, new boot: resync, hello pending")
     s.run(20, price=RHO, nbrs=nb)
-    s.sync("plant", status_name(1), note="peer sync PLANT_1_Status_Sync: hello")
+    s.sync("plant", status_name(1), note="PLANT_1_Status_Sync, agent 1's link: ignored")
     s.run(13, price=RHO, nbrs=nb)
-    s.sync("agent_1", setpoint_name(1), note="peer sync AGENT_1_Setpoint_Sync: hello")
+    s.sync("agent_1", setpoint_name(1), note="AGENT_1_Setpoint_Sync, agent 1's link: ignored")
     s.run(15, price=RHO, nbrs=nb)
-    s.sync("agent_1", setpoint_name(1), note="same boot again: nothing")
+    s.sync("agent_1", setpoint_name(1), note="again: ignored")
     bad = s.senders["plant"].sync(status_name(3), boot=7)
     bad.data[0] ^= 1
-    s.rx(bad, note="forged PLANT_3_Status_Sync: auth")
+    s.rx(bad, note="forged PLANT_3_Status_Sync: not its link, ignored")
     s.sync("agent_4", mc_name(4), note="AGENT_4_MC_Sync, no key held: ignored")
     s.run(15, price=RHO, nbrs=nb)
     s.router.restart()
@@ -859,10 +873,11 @@ def sc_boot_floors() -> Scenario:
         "Boot floors (the key file's [floors]: each sender's boot at this start): before the "
         "genuine syncs, an earlier run's router price sync (boot 2 < floor 3) is auth and "
         "sets nothing, so its price is unsynced, and agent 1's MC sync of boot 1 is auth; "
-        "the genuine syncs and frames then start the agent as usual; later a peer sync of "
-        "the plant at boot 4 (< 5) is auth and makes no hello, an agent 3 sync of a new "
+        "the genuine syncs and frames then start the agent as usual; later the plant's sync "
+        "of PLANT_2_Status at boot 4 (< the plant's floor 5, kept for its link frame, "
+        "AUTH-28) is auth and sets nothing, an agent 3 sync of a new "
         "boot (above its floor) resyncs.",
-        ["AUTH-16", "AUTH-18", "AUTH-21", "CFG-8"], floors=floors)
+        ["AUTH-16", "AUTH-21", "AUTH-28", "CFG-8"], floors=floors)
     nb = neighbours()
     s.tick()
     earlier = Sender("router", s.router.key, 2)
@@ -879,7 +894,7 @@ def sc_boot_floors() -> Scenario:
     s.price(RHO)
     s.status()
     s.run(40, price=RHO, nbrs=nb)
-    s.rx(s.plant.sync(status_name(1), boot=4), note="peer sync of the plant, boot 4 < 5: auth")
+    s.rx(s.plant.sync(status_name(AGENT), boot=4), note="the plant's sync, boot 4 < 5: auth")
     s.run(15, price=RHO, nbrs=nb)
     s.senders["agent_3"].restart()
     s.sync("agent_3", mc_name(3), note="agent 3 restarted, boot 5 > floor 4: resync")

@@ -130,6 +130,19 @@ int bd_key_of(bd_agent *a, uint32_t label)
     return (int)a->n_keys++;
 }
 
+/* AUTH-28: a link frame's name, prefix || id (1..32, decimal) || suffix */
+static void frame_name(const char *prefix, uint32_t id, const char *suffix,
+                       char out[BD_LABEL_MAX + 1])
+{
+    size_t n = strlen(prefix);
+    memcpy(out, prefix, n);
+    if (id >= 10u) {
+        out[n++] = (char)('0' + id / 10u);
+    }
+    out[n++] = (char)('0' + id % 10u);
+    memcpy(&out[n], suffix, strlen(suffix) + 1u);
+}
+
 static int new_boot(bd_agent *a)
 {
     if (a->boot >= BOOT_MAX) {
@@ -184,6 +197,40 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
         a->key_floor[a->n_keys] = a->insecure ? 0u : keys->peer_floor[k];
         memcpy(a->key[a->n_keys], keys->peer_key[k], BD_KEY_BYTES);
         a->n_keys++;
+    }
+    /* AUTH-28: the link frame keys; PLANT_<id>_Status's takes the plant's place in the
+     * key table (the agent takes nothing else from the plant) */
+    uint8_t status_key[BD_KEY_BYTES];
+    uint16_t status_floor = a->insecure ? 0u : keys->status_floor;
+    if (a->derive) {
+        char name[BD_LABEL_MAX + 1];
+        frame_name("AGENT_", p->id, "_Setpoint", name);
+        int bad = bd_derive_frame_key(a->master, name, a->setpoint_key);
+        frame_name("PLANT_", p->id, "_Status", name);
+        if (bad != 0 || bd_derive_frame_key(a->master, name, status_key) != 0) {
+            return BD_ERR_CRYPTO;
+        }
+    } else if (keys->has_frame_keys) {
+        memcpy(a->setpoint_key, keys->setpoint_key, BD_KEY_BYTES);
+        memcpy(status_key, keys->status_key, BD_KEY_BYTES);
+    } else {
+        return BD_ERR_MISSING_KEY;
+    }
+    uint32_t plant = 0u;
+    while (plant < a->n_keys && a->key_label[plant] != LABEL_PLANT) {
+        plant++;
+    }
+    if (plant == a->n_keys) {
+        if (a->n_keys >= BD_MAX_PEERS) {
+            return BD_ERR_PARAMS;
+        }
+        a->key_label[plant] = LABEL_PLANT;
+        a->key_floor[plant] = 0u;
+        a->n_keys++;
+    }
+    memcpy(a->key[plant], status_key, BD_KEY_BYTES);
+    if (status_floor > a->key_floor[plant]) {
+        a->key_floor[plant] = status_floor;
     }
     /* inputs (RX-1): price, command, own status, neighbours' MC; each with its sender's key */
     uint32_t ids[BD_RX_MC0 + BD_MAX_NEIGHBOURS];
@@ -329,7 +376,8 @@ static void remember(bd_echo *e, const uint8_t d[8])
 
 static void sign(bd_agent *a, bd_frame *f, uint64_t fv)
 {
-    if (bd_sign_frame(a->own_key, f->id, f->data, fv) != 0) {
+    int link = f->id == BD_SETPOINT_BASE + a->p.id || f->id == BD_SETPOINT_SYNC_BASE + a->p.id;
+    if (bd_sign_frame(link ? a->setpoint_key : a->own_key, f->id, f->data, fv) != 0) {
         a->fatal = BD_ERR_CRYPTO;
     }
 }

@@ -171,6 +171,10 @@ size_t bd_agent_accepted_ids(const bd_agent *a, uint32_t *ids, size_t max)
         for (uint32_t q = 0u; q < a->n_listed && !held; ++q) {
             held = a->key_label[q] == sender;
         }
+        if ((sid > BD_SETPOINT_SYNC_BASE && sid <= BD_SETPOINT_SYNC_BASE + BD_N_AGENTS_MAX)
+            || (sid > BD_STATUS_SYNC_BASE && sid <= BD_STATUS_SYNC_BASE + BD_N_AGENTS_MAX)) {
+            held = 0;   /* AUTH-28: another agent's link frame, under a key it lacks */
+        }
         if (!taken && held && (a->p.fleet_size == 0u || bd_id_agent(sid) <= a->p.fleet_size)) {
             insert_sorted(ids, &n, max, sid);
         }

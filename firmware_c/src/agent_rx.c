@@ -367,6 +367,10 @@ static int peer_sync(bd_agent *a, const bd_frame *f, int64_t t, int k)
     if (a->p.fleet_size != 0u && bd_id_agent(f->id) > a->p.fleet_size) {
         return 0;
     }
+    if ((f->id > BD_SETPOINT_SYNC_BASE && f->id <= BD_SETPOINT_SYNC_BASE + BD_N_AGENTS_MAX)
+        || (f->id > BD_STATUS_SYNC_BASE && f->id <= BD_STATUS_SYNC_BASE + BD_N_AGENTS_MAX)) {
+        return 0;   /* AUTH-28: another agent's link frame, under a key it does not hold */
+    }
     uint32_t label = bd_id_sender(f->id);
     int key = (label == a->p.id) ? -2 : bd_key_of(a, label);
     if (key == -1) {

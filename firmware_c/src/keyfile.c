@@ -105,6 +105,17 @@ static int persist_boot(void *ctx, uint32_t boot)
         hex_of(k->peer_key[p], BD_KEY_BYTES, hex);
         ok = fprintf(f, "%s = \"%s\"\n", k->peer_label[p], hex) > 0;
     }
+    if (k->has_frame_keys && ok) {   /* AUTH-28: sorted by name, as firmware_py writes */
+        char sp[BD_LABEL_MAX + 1];
+        char st[BD_LABEL_MAX + 1];
+        char hex2[2 * BD_KEY_BYTES + 1];
+        (void)snprintf(sp, sizeof sp, "AGENT_%s_Setpoint", k->node + 6);
+        (void)snprintf(st, sizeof st, "PLANT_%s_Status", k->node + 6);
+        hex_of(k->setpoint_key, BD_KEY_BYTES, hex);
+        hex_of(k->status_key, BD_KEY_BYTES, hex2);
+        ok = fprintf(f, "\n[frame_keys]\n%s = \"%s\"\n%s = \"%s\"\n", sp, hex, st,
+                     hex2) > 0;
+    }
     int floors = 0;   /* AUTH-21: the peers' boot floors are kept */
     for (uint32_t p = 0u; p < k->n_peers && ok; ++p) {
         if (k->peer_floor[p] != 0u) {
@@ -115,6 +126,10 @@ static int persist_boot(void *ctx, uint32_t boot)
             ok = ok && fprintf(f, "%s = %u\n", k->peer_label[p],
                                (unsigned)k->peer_floor[p]) > 0;
         }
+    }
+    if (k->status_floor != 0u && ok) {   /* the plant's, a sender of [frame_keys] only */
+        ok = fprintf(f, "%splant = %u\n", floors == 0 ? "\n[floors]\n" : "",
+                     (unsigned)k->status_floor) > 0;
     }
     ok = ok && fflush(f) == 0 && fsync(fileno(f)) == 0;
     ok = (fclose(f) == 0) && ok;
@@ -248,6 +263,36 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
         memcpy(k->peer_label[k->n_peers], pe->key, strlen(pe->key) + 1u);
         k->n_peers++;
     }
+    char sp[BD_LABEL_MAX + 1];   /* AUTH-28: the agent's two link frames */
+    char stn[BD_LABEL_MAX + 1];
+    (void)snprintf(sp, sizeof sp, "AGENT_%s_Setpoint", k->node + 6);
+    (void)snprintf(stn, sizeof stn, "PLANT_%s_Status", k->node + 6);
+    int got = 0;
+    for (int q = 0; q < d.n; ++q) {
+        const toml_entry *pe = &d.e[q];
+        if (strcmp(pe->table, "frame_keys") != 0) {
+            continue;
+        }
+        int which = strcmp(pe->key, sp) == 0 ? 1 : strcmp(pe->key, stn) == 0 ? 2 : 0;
+        if (which == 0) {
+            (void)snprintf(err, errlen, "%s: [frame_keys] expected the keys of %s and %s "
+                           "only, but got '%s'", path, sp, stn, pe->key);
+            return -1;
+        }
+        if (pe->type != TOML_STRING
+            || hex_key(pe->s, which == 1 ? k->setpoint_key : k->status_key) != 0) {
+            (void)snprintf(err, errlen, "%s: [%s] expected %d hex digits", path, pe->key,
+                           2 * BD_KEY_BYTES);
+            return -1;
+        }
+        got |= which;
+    }
+    if (got != 0 && got != 3) {
+        (void)snprintf(err, errlen, "%s: [frame_keys] expected the keys of %s and %s, but "
+                       "one is missing", path, sp, stn);
+        return -1;
+    }
+    k->has_frame_keys = got == 3;
     for (int q = 0; q < d.n; ++q) {   /* AUTH-21: each peer's lowest boot accepted */
         const toml_entry *pe = &d.e[q];
         if (strcmp(pe->table, "floors") != 0) {
@@ -257,10 +302,15 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
         while (p < k->n_peers && strcmp(k->peer_label[p], pe->key) != 0) {
             p++;
         }
+        if (p == k->n_peers && k->has_frame_keys && strcmp(pe->key, "plant") == 0
+            && pe->type == TOML_INT && pe->i >= 0 && pe->i <= 65535) {
+            k->status_floor = (uint16_t)pe->i;   /* the sender of PLANT_<id>_Status */
+            continue;
+        }
         if (p == k->n_peers || pe->type != TOML_INT || pe->i < 0 || pe->i > 65535) {
             (void)snprintf(err, errlen, "%s: [floors] expected a table of peer = lowest boot "
-                           "counter (0..65535), for peers listed in [peers], but got '%s'",
-                           path, pe->key);
+                           "counter (0..65535), for peers listed in [peers] or senders of "
+                           "[frame_keys], but got '%s'", path, pe->key);
             return -1;
         }
         k->peer_floor[p] = (uint16_t)pe->i;

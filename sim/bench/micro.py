@@ -462,7 +462,7 @@ def agent_tick(quick: bool) -> Table:
                 py_ns.append(end - start)
                 start = time.perf_counter_ns()
         lines = [f"V bench {toml.encode().hex()}",
-                 f"K agent_1 1 {Keyring.insecure_for('agent_1').key.hex()} 0 0"]
+                 f"K agent_1 1 {Keyring.insecure_for('agent_1').key.hex()} 0 0 0"]
         for kind, t, msg in events:
             if kind == "rx":
                 assert isinstance(msg, can.Message)

@@ -83,6 +83,8 @@ class KeyringC(ctypes.Structure):
         ("peer_label", (ctypes.c_char * (LABEL_MAX + 1)) * MAX_PEERS),
         ("peer_key", (ctypes.c_uint8 * 16) * MAX_PEERS),
         ("peer_floor", ctypes.c_uint16 * MAX_PEERS),
+        ("has_frame_keys", ctypes.c_int32), ("setpoint_key", ctypes.c_uint8 * 16),
+        ("status_key", ctypes.c_uint8 * 16), ("status_floor", ctypes.c_uint16),
         ("persist_boot", PERSIST_FN), ("persist_ctx", ctypes.c_void_p),
     ]
 
@@ -126,6 +128,8 @@ class Runtime:
             ("bd_keyring_insecure", ctypes.c_int, [ctypes.c_char_p, ctypes.POINTER(KeyringC)]),
             ("bd_derive_node_key", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p,
                                                   ctypes.c_char_p]),
+            ("bd_derive_frame_key", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p,
+                                                   ctypes.c_char_p]),
             ("bd_fleet_id", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p]),
             ("bd_sign_frame", ctypes.c_int, [ctypes.c_char_p, u32, ctypes.c_char_p,
                                              ctypes.c_uint64]),
@@ -311,9 +315,12 @@ def params_of(cfg: AgentConfig) -> Params:
 
 
 def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | None = None,
-               insecure: bool = False, floors: Mapping[str, int] | None = None) -> KeyringC:
+               insecure: bool = False, floors: Mapping[str, int] | None = None,
+               frames: Mapping[str, bytes] | None = None) -> KeyringC:
     """A bd_keyring for the C agent: ``node``'s key and boot, its peers' keys
-    (at most MAX_PEERS) with their boot floors; not persisted (see keyring_from)."""
+    (at most MAX_PEERS) with their boot floors, its link frame keys (``frames``:
+    AGENT_<i>_Setpoint and PLANT_<i>_Status, AUTH-28; others ignored); not persisted
+    (see keyring_from)."""
     k = KeyringC()
     k.node = node.encode()
     k.key[:] = list(key)
@@ -327,6 +334,15 @@ def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | No
         k.peer_label[i].value = label.encode()
         k.peer_key[i][:] = list(pk)
         k.peer_floor[i] = (floors or {}).get(label, 0)
+    ix = node.removeprefix("agent_")
+    sp = (frames or {}).get(f"AGENT_{ix}_Setpoint")
+    st = (frames or {}).get(f"PLANT_{ix}_Status")
+    if sp is not None and st is not None:
+        k.has_frame_keys = 1
+        k.setpoint_key[:] = list(sp)
+        k.status_key[:] = list(st)
+    if "plant" not in peers:
+        k.status_floor = (floors or {}).get("plant", 0)
     return k
 
 
@@ -336,8 +352,13 @@ def keyring_from(ring: Keyring) -> KeyringC:
     if ring.insecure:
         return keyring_of(ring.node, ring.key, ring.boot, insecure=True)
     for peer in ring.floors:   # a floor needs its peer listed (derived, for a fleet's)
-        ring.key_of(peer)
-    k = keyring_of(ring.node, ring.key, ring.boot, ring.listed_keys(), floors=ring.floors)
+        if peer != "plant":    # the agent takes only its link frame from the plant
+            ring.key_of(peer)
+    i = ring.node.removeprefix("agent_")
+    for name in (f"AGENT_{i}_Setpoint", f"PLANT_{i}_Status"):
+        ring.key_for(name)
+    k = keyring_of(ring.node, ring.key, ring.boot, ring.listed_keys(), floors=ring.floors,
+                   frames=ring.listed_frame_keys())
     if ring.master is not None:   # a simulated fleet: any sender's key on demand
         k.has_master = 1
         k.master[:] = list(ring.master)

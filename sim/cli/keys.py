@@ -6,7 +6,14 @@ NIST SP 800-108 (CMAC-AES-128), and its freshness state (boot counter 0). The ma
 key is drawn from the OS's random source and written to DIR/master.key, unless
 --master-key FILE gives one (then it is not copied). Every file is created 0600 and
 DIR 0700. An existing key set is not overwritten without --force; re-provisioning
-from a new master key is how a compromised node is revoked (docs/security.md).
+from a new master key is how a fleet is re-keyed (docs/security.md). Each file holds
+only what its node needs: its own key, the node keys of the broadcasts it takes, and
+the keys of its own link frames (setpoint, status: AUTH-28).
+
+--rotate NODE replaces one node's keys in the key set DIR (a compromised or lost
+node): a new random key for NODE and for each link frame it sends or receives,
+written into NODE's file and the files of the nodes that hold one of them, every
+boot counter kept; no other file changes. Restart the nodes named.
 Every node signs and verifies its secured frames with its key file:
 `bess-ded up --keys DIR`, `bess-ded deploy --keys DIR`, or one node per host with
 `bess-ded agent ... --key DIR/agent_3.key` (docs/security.md).
@@ -34,6 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "an owner-only file) instead of a new random one")
     p.add_argument("--force", action="store_true",
                    help="replace an existing key set in DIR")
+    p.add_argument("--rotate", metavar="NODE",
+                   help="rotate NODE's keys in the key set DIR (agent_3, plant, router): "
+                        "rewrites its file and those of the nodes sharing its keys only")
     p.set_defaults(func=run)
 
 
@@ -43,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
 
     sc = resolve_scenario(args.case)
     out: Path = args.out
+    if args.rotate is not None:
+        return _rotate(sc, out, args)
     ks = provision_fleet_keys(sc, out, args.master_key, args.force)
     nodes, stale = ks.nodes, ks.removed
 
@@ -57,4 +69,24 @@ def run(args: argparse.Namespace) -> int:
               f"off the nodes (keep it offline); re-derive with --master-key {out}/master.key")
     else:
         print(f"  master key from {args.master_key} (not copied)")
+    return 0
+
+
+def _rotate(sc: object, out: Path, args: argparse.Namespace) -> int:
+    from firmware_py.errors import ParameterError
+    from sim.run.keyset import rotate_node_keys
+
+    if args.master_key is not None or args.force:
+        raise ParameterError("--rotate", "no --master-key or --force (a rotation keeps the "
+                             "key set and draws new random keys)",
+                             "--master-key" if args.master_key is not None else "--force")
+    r = rotate_node_keys(sc, out, args.rotate)
+    print(f"bess-ded keys: rotated {r.node}'s keys in {out}/ (new random keys, boot "
+          "counters kept)")
+    print(f"  rewrote {', '.join(f'{n}.key' for n in r.rewritten)}: restart these nodes with "
+          "their new files")
+    if r.untouched:
+        print(f"  untouched: {', '.join(f'{n}.key' for n in r.untouched)}")
+    print(f"  an old copy of {r.node}.key no longer signs as {r.node} nor its link frames; "
+          "the other nodes' keys it held stay valid until those nodes are rotated too")
     return 0

@@ -321,7 +321,10 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
         return outcome
     inputs = [f for f in frames if f.sent]
     first_sent = inputs[0].t if inputs else math.inf
-    _check_auth(codec, dut_key, frames, syncs, outcome,
+    # AUTH-28: the setpoint under its own link frame key, the broadcasts under the DUT's
+    keys = {fid: keyring.key_for(codec.name_of(fid)) or dut_key for fid in own}
+    keys = {fid: dut_key if fid != sp_id else keys[fid] for fid in own}
+    _check_auth(codec, keys, frames, syncs, outcome,
                 0.0 if math.isinf(first_sent) else first_sent)
     outcome.filtered = filtered
     if filtered:
@@ -684,7 +687,7 @@ def _adopt_syncs(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame]) ->
         io.follow_tx_count(synced, count + sum(g.msg.arbitration_id == synced for g in group))
 
 
-def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
+def _check_auth(codec: FrameCodec, keys: Mapping[int, bytes], frames: Sequence[Frame],
                 syncs: Mapping[int, int], outcome: Outcome, t0: float = 0.0) -> None:
     """Every secured DUT frame verifies at the freshness its syncs announce, +1 per
     frame (AUTH-4, AUTH-6..8). ``t0``: the schedule's start (``auth_times``)."""
@@ -704,7 +707,7 @@ def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {e}")
                 continue
             fv = contract.FRESHNESS.join(s["Boot"], s["Count"])
-            if not secoc.frame_verifies(key, fid, f.msg.data, fv):
+            if not secoc.frame_verifies(keys[syncs[fid]], fid, f.msg.data, fv):
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} MAC does "
                                            f"not verify at Boot {s['Boot']} Count {s['Count']}")
             elif syncs[fid] in nxt and fv != nxt[syncs[fid]]:
@@ -722,7 +725,8 @@ def _check_auth(codec: FrameCodec, key: bytes, frames: Sequence[Frame],
             if counter is not None and counter != want:
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} Counter "
                                            f"{counter}, expected {want}")
-            elif counter is not None and not secoc.frame_verifies(key, fid, f.msg.data, fv):
+            elif counter is not None and not secoc.frame_verifies(keys[fid], fid, f.msg.data,
+                                                                   fv):
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} MAC does "
                                            f"not verify at freshness {fv:#x}")
             nxt[fid] = fv + 1

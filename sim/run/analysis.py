@@ -83,7 +83,7 @@ def prepare_analysis(log: Path, case: str | None = None, variant: str | None = N
     from firmware_py import secoc
     from sim.model.scenario import scaled
     from sim.model.scenario_select import pick_variant, resolve_scenario, with_transmit
-    from sim.run.keyset import load_key_set
+    from sim.run.keyset import derived_keys, load_key_set
     from sim.run.verdict import TOLERANCE
 
     log_path = log
@@ -133,8 +133,7 @@ def prepare_analysis(log: Path, case: str | None = None, variant: str | None = N
         raise ConfigError(str(keys_dir), "--keys", "expected a key set directory "
                           "(bess-ded keys --fleet --out DIR)")
     node_keys = load_key_set(keys_dir) if keys_dir.is_dir() else None
-    demo = {n: secoc.derive_node_key(secoc.INSECURE_MASTER, n)
-            for n in secoc.fleet_nodes(sc.n)}
+    demo = derived_keys(secoc.INSECURE_MASTER, sc.n)  # node and link frame keys
     if node_keys is None and (facts.insecure or _demo_signed(log_path, sc, demo)):
         node_keys, facts.insecure = demo, True
     return LogAnalysis(log_path, sc, chosen, out or run_dir / f"{log_path.stem}-analysis",

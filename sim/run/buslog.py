@@ -322,7 +322,7 @@ class Monitor:
         self.undone: Counter[str] = Counter()
 
     def _key(self, name: str) -> bytes | None:
-        return self.keys.get(contract.sender_of(name.removesuffix("_Sync")))
+        return contract.frame_key(self.keys, name)  # AUTH-28: a link frame's own key
 
     def sync(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> None:
         """Take a sync frame: its freshness becomes the sender's (raises ``StaleBoot``,

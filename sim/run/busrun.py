@@ -41,7 +41,13 @@ from sim.run.busopts import (
     private_port,
 )
 from sim.run.inprocess import in_process_nodes, injected_loss, recorder_keys, run_in_process
-from sim.run.keyset import load_boot_floors, load_key_set, provision_keys, write_boot_floors
+from sim.run.keyset import (
+    derived_keys,
+    load_boot_floors,
+    load_key_set,
+    provision_keys,
+    write_boot_floors,
+)
 from sim.run.nodeprocs import (
     IN_GUEST,
     RT_PRIORITY,
@@ -217,8 +223,7 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
     for s in specs:
         s.delay = (delays or {}).get(s.name, 0.0)
     monitor_keys = (load_key_set(key_dir) if key_dir is not None else
-                    {n: secoc.derive_node_key(secoc.INSECURE_MASTER, n)
-                     for n in secoc.fleet_nodes(sc.n)})
+                    derived_keys(secoc.INSECURE_MASTER, sc.n))
     writer = Cutoff(can.Logger(str(out / "run.log")))
     progress = Progress(codec, sc.n)
     # above the real-time nodes on udp_multicast, where 14 nodes' datagrams fill one

@@ -16,7 +16,7 @@ from typing import Any
 
 import can
 
-from firmware_py import secoc
+from firmware_py import contract, secoc
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.faultinject import FaultyBus, RxFaults, every_frame, node_seed
 from firmware_py.frames import FrameCodec
@@ -62,6 +62,15 @@ def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
         held = Counter(k for m, r in rings.items() if m != n
                        and (k := r.key_of(n)) is not None)
         out[n] = held.most_common(1)[0][0] if held else ring.key
+    n_agents = sum(label.startswith("agent_") for label in rings)
+    for name in contract.link_frames(n_agents):  # AUTH-28: the key its receivers hold,
+        sender = contract.sender_of(name)        # the sender's breaking a tie
+        got: Counter[bytes] = Counter()
+        for m, r in rings.items():
+            if (k := r.key_for(name)) is not None:
+                got[k] += 1 if m == sender else 2
+        if got:
+            out[name] = got.most_common(1)[0][0]
     return out
 
 

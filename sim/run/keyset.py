@@ -48,20 +48,43 @@ def prepare_key_dir(out: Path, force: bool) -> None:
 
 
 def peers_of(sc: Any) -> dict[str, list[str]]:
-    """Need to know: the senders whose secured frames each node receives, i.e. whose
-    verification keys its key file holds (agent i: the router, the plant and its
-    neighbours; the plant: every agent and the router; the router: the plant and every
-    agent). The router and the plant use the keys of the nodes whose frames they do not
-    take only to notice a restart from its sync and re-announce their own at once."""
+    """Need to know: the senders whose broadcast frames each node receives, i.e. whose
+    node keys its key file holds (agent i: the router and its neighbours; the plant:
+    every agent and the router; the router: every agent). The router and the plant use
+    the keys of the nodes whose frames they do not take only to notice a restart from
+    its sync and re-announce their own at once. No node holds the plant's node key: the
+    plant sends link frames only (``frames_of``, AUTH-28)."""
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
 
-    out = {f"agent_{c.id}": ["router", "plant", *(f"agent_{n.id}" for n in c.neighbours)]
+    out = {f"agent_{c.id}": ["router", *(f"agent_{n.id}" for n in c.neighbours)]
            for c in agent_configs_from_scenario(sc)}
     agents = [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
     out["plant"] = [*agents, "router"]
-    out["router"] = ["plant", *agents]
+    out["router"] = list(agents)
     return out
+
+
+def frames_of(sc: Any) -> dict[str, list[str]]:
+    """AUTH-28: the link frames whose keys each node's key file holds, those it sends or
+    receives (agent i: AGENT_<i>_Setpoint and PLANT_<i>_Status; the plant: every agent's
+    two; the router: every PLANT_<i>_Status)."""
+    from firmware_py import contract, secoc
+
+    return {node: [f for f in contract.link_frames(sc.n) if node in contract.parties_of(f)]
+            for node in secoc.fleet_nodes(sc.n)}
+
+
+def node_document(sc: Any, master: bytes, node: str, boot: int = 0,
+                  floors: Mapping[str, int] | None = None) -> dict:
+    """``node``'s key file (a TOML document) from the fleet master key: its own key, the
+    node keys of its peers (``peers_of``) and its link frame keys (``frames_of``)."""
+    from firmware_py import secoc
+
+    return secoc.node_key_document(
+        node, secoc.derive_node_key(master, node), secoc.fleet_id(master), boot,
+        {p: secoc.derive_node_key(master, p) for p in peers_of(sc)[node]}, floors,
+        {f: secoc.derive_frame_key(master, f) for f in frames_of(sc)[node]})
 
 
 def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -> None:
@@ -73,20 +96,35 @@ def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -
     if with_master:
         secoc.write_private(out / "master.key", secoc.MASTER_FILE_HEADER
                             + tomli_w.dumps(secoc.master_key_document(master)))
-    fleet = secoc.fleet_id(master)
-    for node, peers in peers_of(sc).items():
-        doc = secoc.node_key_document(node, secoc.derive_node_key(master, node), fleet, 0,
-                                      {p: secoc.derive_node_key(master, p) for p in peers})
+    for node in peers_of(sc):
+        doc = node_document(sc, master, node)
         secoc.write_private(out / f"{node}.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
+def derived_keys(master: bytes, n: int) -> dict[str, bytes]:
+    """Every key a fleet of ``n`` agents derives from ``master``: each node's (label ->
+    key) and each link frame's (message name -> key, AUTH-28), as ``load_key_set`` gives
+    them from files: a monitor's keys for a run without a key set (--insecure)."""
+    from firmware_py import contract, secoc
+
+    out = {node: secoc.derive_node_key(master, node) for node in secoc.fleet_nodes(n)}
+    out.update({f: secoc.derive_frame_key(master, f) for f in contract.link_frames(n)})
+    return out
+
+
 def load_key_set(keys_dir: Path) -> dict[str, bytes]:
-    """Every node's own key from a key set (label -> key): what a monitor of the run
-    (the recorder's analysis) needs to tell forged frames from the fleet's."""
+    """Every node's own key from a key set (label -> key), and every link frame key its
+    files list (message name -> key, AUTH-28): what a monitor of the run (the
+    recorder's analysis) needs to tell forged frames from the fleet's."""
     from firmware_py import secoc
 
-    return {k.node: k.key for k in (secoc.load_node_key(p) for p in key_files(keys_dir)
-                                    if p.name != "master.key")}
+    files = [secoc.load_node_key(p) for p in key_files(keys_dir) if p.name != "master.key"]
+    out: dict[str, bytes] = {}
+    for k in files:
+        for name, key in k.frames.items():
+            out.setdefault(name, key)
+    out.update({k.node: k.key for k in files})
+    return out
 
 
 def load_boot_floors(keys_dir: Path) -> dict[str, int]:
@@ -180,12 +218,62 @@ def check_key_set(keys: Path, n: int, sc: Any | None = None) -> str:
     if len(fleets) != 1:
         raise ParameterError("--keys", "key files of one fleet", f"fleet ids {sorted(fleets)}")
     sc_peers = peers_of(sc) if sc is not None else {}
+    sc_frames = frames_of(sc) if sc is not None else {}
     for node, k in loaded.items():
         if missing := [p for p in sc_peers.get(node, []) if p not in k.peers]:
             raise ParameterError("--keys", f"{node}.key with the keys of the nodes it receives "
                                  f"from ({', '.join(sc_peers[node])})",
                                  f"none for {', '.join(missing)}")
+        if missing := [f for f in sc_frames.get(node, []) if f not in k.frames]:
+            raise ParameterError("--keys", f"{node}.key with the keys of its link frames "
+                                 f"(AUTH-28: {', '.join(sc_frames[node])})",
+                                 f"none for {', '.join(missing)}")
     return fleets.pop()
+
+
+@dataclass
+class RotatedKeys:
+    """What ``rotate_node_keys`` did."""
+
+    node: str
+    rewritten: list[str]      # the nodes whose key files now hold the new keys
+    untouched: list[str]      # the fleet's other nodes: their files are as they were
+
+
+def rotate_node_keys(sc: Any, keys_dir: Path, node: str) -> RotatedKeys:
+    """Rotate ``node``'s keys in the key set ``keys_dir`` (issue 25, item 5): a new own key
+    and new keys of every link frame it is a party of (AUTH-28), all fresh from the OS's
+    CSPRNG (not derived from the master key: re-provisioning from the master undoes a
+    rotation). Rewrites ``node``'s file and the files of the nodes that hold one of those
+    keys (its peers that verify its broadcasts, the other parties of its link frames),
+    keeping every boot counter and floor; no other file is touched. An interrupted
+    rotation is finished by running it again (all affected files get newer keys)."""
+    import tomli_w
+
+    from firmware_py import contract, secoc
+
+    fleet = secoc.fleet_nodes(sc.n)
+    if node not in fleet:
+        raise ParameterError("--rotate", f"a node of the fleet ({', '.join(fleet)})", node)
+    check_key_set(keys_dir, sc.n, sc)
+    own = secrets.token_bytes(secoc.KEY_BYTES)
+    links = {f: secrets.token_bytes(secoc.KEY_BYTES) for f in contract.link_frames(sc.n)
+             if node in contract.parties_of(f)}
+    rewritten, untouched = [], []
+    for label in fleet:
+        path = keys_dir / f"{label}.key"
+        k = secoc.load_node_key(path)
+        key = own if label == node else k.key
+        peers = {p: own if p == node else pk for p, pk in k.peers.items()}
+        frames = {f: links.get(f, fk) for f, fk in k.frames.items()}
+        if key == k.key and peers == dict(k.peers) and frames == dict(k.frames):
+            untouched.append(label)
+            continue
+        doc = secoc.node_key_document(label, key, k.fleet_id, k.boot_counter, peers,
+                                      k.floors, frames)
+        secoc.write_private(path, secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
+        rewritten.append(label)
+    return RotatedKeys(node, rewritten, untouched)
 
 
 def provision_keys(sc: Any, key_dir: Path) -> Path:

@@ -147,11 +147,12 @@ Since = Literal["call", "mark"] | float   # expect's window
 
 
 def fleet_keys(master: bytes, n: int | None = None) -> dict[str, bytes]:
-    """Every node key of a fleet master key (label → key), for up to ``n`` agents."""
+    """Every node key of a fleet master key (label → key) and every link frame key
+    (message name → key, AUTH-28), for up to ``n`` agents."""
     from firmware_py.frames import N_AGENTS_MAX
+    from sim.run.keyset import derived_keys
 
-    return {node: secoc.derive_node_key(master, node)
-            for node in secoc.fleet_nodes(n or N_AGENTS_MAX)}
+    return derived_keys(master, n or N_AGENTS_MAX)
 
 
 def _resolve_keys(keys: Any) -> dict[str, bytes] | None:
@@ -453,7 +454,12 @@ class Tester:
             fs = self._senders.get(label)
             if fs is None:
                 fs = self._senders[label] = FleetSender(self.codec, {}, boot=self._boot)
-            fs.keys[sender] = self.keys[label]
+            base = name.removesuffix("_Sync")
+            if base in contract.LINK_FRAMES:  # AUTH-28: its own key, held by its parties
+                own = self.keys.get(base) if label == sender else None
+                fs.keys[base] = own if own is not None else self.keys[label]
+            else:
+                fs.keys[sender] = self.keys[label]
             out: list[can.Message] = []
             t = self.now()
             if fid in contract.SECURED_IDS:

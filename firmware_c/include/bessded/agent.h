@@ -99,6 +99,12 @@ typedef struct {
     char peer_label[BD_MAX_PEERS][BD_LABEL_MAX + 1];
     uint8_t peer_key[BD_MAX_PEERS][BD_KEY_BYTES];
     uint16_t peer_floor[BD_MAX_PEERS];    /* AUTH-21: lowest boot accepted (0: none) */
+    /* AUTH-28: the agent's link frame keys, AGENT_<id>_Setpoint's (it signs) and
+     * PLANT_<id>_Status's (it verifies); has_master: derived instead */
+    int32_t has_frame_keys;
+    uint8_t setpoint_key[BD_KEY_BYTES];
+    uint8_t status_key[BD_KEY_BYTES];
+    uint16_t status_floor;                /* AUTH-21: the plant's, if not in peer_floor */
     /* Persist a new boot counter before it is used (write-ahead, AUTH-3); 0 on
      * success. NULL: nothing persisted (insecure mode, tests). */
     int (*persist_boot)(void *ctx, uint32_t boot);
@@ -199,6 +205,7 @@ typedef struct {
         power_limited, has_candidate;
     /* transmit side */
     uint8_t own_key[BD_KEY_BYTES];
+    uint8_t setpoint_key[BD_KEY_BYTES];   /* AUTH-28: the own setpoint's link frame key */
     int (*persist_boot)(void *ctx, uint32_t boot);
     void *persist_ctx;
     int64_t sync_next;

@@ -31,6 +31,12 @@ int bd_cmac_aes128(const uint8_t key[BD_KEY_BYTES], const uint8_t *msg, size_t l
 int bd_derive_node_key(const uint8_t master[BD_KEY_BYTES], const char *label,
                        uint8_t out[BD_KEY_BYTES]);
 
+/* AUTH-28: the key of link frame `name` (a DBC message name, 1..32 characters:
+ * AGENT_<i>_Setpoint, PLANT_<i>_Status) and of its sync: CMAC(K_master, 00000001 ||
+ * "bess-ded/secoc/frame-key/v1" || 00 || name || 00000080). 0 on success. */
+int bd_derive_frame_key(const uint8_t master[BD_KEY_BYTES], const char *name,
+                        uint8_t out[BD_KEY_BYTES]);
+
 /* The public fleet tag of a key set (the KDF with label "bess-ded/secoc/fleet-id/v1",
  * empty context, L = 64): 8 bytes. 0 on success. */
 int bd_fleet_id(const uint8_t master[BD_KEY_BYTES], uint8_t out[8]);
