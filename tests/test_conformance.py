@@ -33,7 +33,8 @@ KEYS = {n: secoc.derive_node_key(MASTER, n) for n in secoc.fleet_nodes(12)}
 def _setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyring],
                                          list[conf.Planned]]:
     sc = load_case(case)
-    cfg = agent_configs_from_scenario(sc)[dut - 1]
+    # the configuration the tester writes, as the reference parser reads it
+    _, cfg = conf.written_config(agent_configs_from_scenario(sc)[dut - 1])
     node = f"agent_{dut}"
 
     def ring() -> Keyring:  # its peers' floors at boot 2, as `up` writes them (AUTH-21)
@@ -166,21 +167,25 @@ def test_the_schedule_does_what_its_steps_say() -> None:
                       "RUNNING", "SAFE", "ISOLATED", "INIT", "ISOLATED", "RUNNING"]
     c = dut.counters
     # 5 in the authentication step, untrusted_after forged commands, one fewer forged prices
-    assert c["auth"] == 5 + 5 + 4 and c["untrusted_sources"] == 1
+    # (untrusted_after = 6 in the configuration the tester writes)
+    assert cfg.untrusted_after == 6 and cfg.price_persist == 4
+    assert c["auth"] == 5 + 6 + 5 and c["untrusted_sources"] == 1
     assert c["dlc"] == 1 and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
     assert c["unsynced"] == 1  # the command before its sync (AUTH-11)
     assert c["unknown_id"] == 2 and c["implausible_gains"] == 1  # SET_GAINS at the bounds pass
-    # the price step one LSB above the bound: twice a candidate, accepted the third time
-    assert c["implausible_price"] == 5 + 2 and c["price_steps_accepted"] == 2 + 1
+    # content: a price above rho_max, a persistent step there and back (price_persist − 1
+    # candidates each); the step one LSB above the bound: price_persist − 1 candidates,
+    # accepted the price_persist-th time
+    assert c["implausible_price"] == 1 + 3 + 3 + 3 and c["price_steps_accepted"] == 2 + 1
     assert c["implausible_lambda"] == 2 + 1  # one LSB above LAM-1's bound
     # the neighbour lost on the bus; the PriceValid = 0 outage and the one while ISOLATED
     assert c["neighbour_timeouts"] == 2 and c["price_timeouts"] == 3
     assert c["plant_faults"] == 2  # the second while ISOLATED
     assert c["commands_isolate"] == 4 and c["commands_reconnect"] == 5
-    # in-step syncs are no resyncs; lost: 3, 5 forged commands, 4 forged prices, a price
+    # in-step syncs are no resyncs; lost: 3, 6 forged commands, 5 forged prices, a price
     # 16 values on (15), the neighbour's 25 frames lost on the bus
-    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 5 + 4 + 15 + 25
+    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 6 + 5 + 15 + 25
     assert dut.cstate.resets >= 1  # after ISOLATE's reset of the count: resets still happen
 
 

@@ -50,7 +50,16 @@ from sim.conformance.results import (
     spec_requirements,
     verdict,
 )
-from sim.conformance.schedule import PULSE, STEPS, Planned, Step, plan
+from sim.conformance.schedule import (
+    PULSE,
+    STEPS,
+    Planned,
+    Step,
+    conformance_config,
+    plan,
+    read_config,
+    written_config,
+)
 
 __all__ = [
     "Frame",
@@ -69,11 +78,14 @@ __all__ = [
     "Step",
     "attribute",
     "check",
+    "conformance_config",
     "drive",
     "explain",
     "junit",
     "plan",
+    "read_config",
     "simulate",
     "spec_requirements",
     "verdict",
+    "written_config",
 ]

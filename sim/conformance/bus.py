@@ -145,12 +145,15 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     if scale is None:
         scale = GUEST_TIME_SCALE if os.environ.get("VCAN_RUN_GUEST") == "1" else 1.0
     sc = scaled(sc, scale)
-    cfg = agent_configs_from_scenario(sc)[i - 1]
+    # the scenario's agent with every key the schedule observes off its default
+    # (conf.conformance_config): the DUT reads the file, the oracle reads it too, with
+    # the reference parser (a device that misreads it fails a CFG-n requirement)
+    text, cfg = conf.written_config(agent_configs_from_scenario(sc)[i - 1])
     out = out or Path("runs") / f"conformance-{sc.name}-agent{i}"
     node = f"agent_{i}"
     (out / "agents").mkdir(parents=True, exist_ok=True)
     cfg_path = out / "agents" / f"{node}.toml"
-    cfg_path.write_text(cfg.to_toml())
+    cfg_path.write_text(text)
     tester_keys: dict[str, bytes] | None
     if insecure:
         tester_keys = None
