@@ -11,6 +11,7 @@ from dataclasses import replace
 from typing import Any
 
 from firmware_py import config as fc
+from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig, Neighbour
 from firmware_py.contract import status_name, timeout_s
 from firmware_py.controllers import ControllerConfig, PIController
@@ -71,6 +72,13 @@ def misreads(cfg: AgentConfig, text: str | None = None) -> list[tuple[str, str, 
     ns_ts = round(c.ts * 1e9) / 1e9
     add("CFG-3", f"it reads controller.ts as {ns_ts!r} s (the period kept in whole ns, "
         f"Ts and its Q30 word taken from it), not {c.ts!r}", ctrl(ts=ns_ts))
+    if ns_ts != c.ts:  # ... TSQ only: k·ts and h·ts from the file's ts, as written
+        k2, h2 = c.k * c.ts / ns_ts, c.h * c.ts / ns_ts
+        if all(fx.to_q30(a * ns_ts) == fx.to_q30(b * c.ts) for a, b in ((k2, c.k),
+                                                                         (h2, c.h))):
+            add("CFG-3", f"its TSQ (ν's Q30 period) is the period in whole ns, {ns_ts!r} "
+                f"s, not the file's ts {c.ts!r} (k·ts and h·ts from the file's)",
+                ctrl(ts=ns_ts, k=k2, h=h2))
     if dflt.ts != ns_ts:
         add("CFG-3", f"it takes controller.ts's default {dflt.ts!r}, not the file's "
             f"{c.ts!r}", ctrl(ts=dflt.ts))
