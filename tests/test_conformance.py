@@ -339,3 +339,47 @@ def test_an_agent_whose_band_re_arms_at_the_reset_sample_fails_band_2(tmp_path: 
     fails = re.findall(r"^  FAIL  (\S+)", log, re.M)
     assert fails == ["BAND-2"], log
     assert "re-arms at the reset sample" in log
+
+
+def test_a_quick_run_plays_the_first_steps_and_lists_the_rest_not_run(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`bess-ded conformance --quick` in process: the steps of ``QUICK`` only (start to
+    commands, 7.1 of 13.5 s at Ts = 10 ms); firmware_py passes every requirement they
+    exercise; those only the later steps exercise are NOT RUN (never passed, JUnit
+    skipped), the verdict says it was a quick run, and the exit code is 0."""
+    from sim.cli.conformance import report
+
+    sc = load_case(1)
+    _, cfg = conf.written_config(agent_configs_from_scenario(sc)[2])
+    _, ring, _ = _setup(1, 3)
+    planned = conf.plan(cfg, KEYS, sc.prices[0].rho, boot=2, quick=True)
+    played = conf.played_steps(planned)
+    assert [s.name for s in played] == list(conf.QUICK)
+    assert played[-1].end * cfg.controller.ts == pytest.approx(7.1)
+    frames = conf.simulate(cfg, ring(), planned, jitter=0.3)
+    outcome = conf.check(cfg, ring(), KEYS["agent_3"], frames)
+    results = conf.verdict(outcome, played=played)
+    assert not outcome.mismatches and outcome.steps_seen == set(conf.QUICK)
+    run = [r for r in results if not r.not_run]
+    skipped = [r for r in results if r.not_run]
+    assert run and all(r.passed for r in run), [r for r in run if not r.passed]
+    assert not any(r.passed for r in skipped)
+    later = {m for s in conf.STEPS if s.name not in conf.QUICK for m in s.musts}
+    early = {m for s in played for m in s.musts}
+    assert {r.must for r in skipped} == later - early  # e.g. the timeouts' and CFG-6
+    assert {"TMO-1", "CFG-6", "AUTH-18"} <= {r.must for r in skipped}
+    assert {r.must for r in results} == later | early
+    assert "not run: a quick run (--quick)" in skipped[0].detail
+    code = report(outcome, results, tmp_path, tmp_path / "j.xml", "quick")
+    out = capsys.readouterr().out
+    assert code == 0
+    assert f"bess-ded conformance: PASS (a quick run): {len(run)} of {len(run)}" in out
+    assert f"{len(skipped)} not run (--quick)" in out and "  NOT RUN  TMO-1" in out
+    suite = ET.parse(tmp_path / "j.xml").getroot().find("testsuite")
+    assert suite is not None and suite.get("failures") == "0"
+    assert suite.get("skipped") == str(len(skipped))
+    # a failure in a quick run is a failure: the not-run ones do not hide it
+    failing = conf.Outcome(ticks=outcome.ticks, steps_seen=outcome.steps_seen, mismatches=[
+        _mm("MC", "Lambda", 1000, 5000, tick=603, step="commands",
+            moment=("SET_GAINS in bounds",))])
+    assert report(failing, conf.verdict(failing, played=played), tmp_path, None, "q") == 1

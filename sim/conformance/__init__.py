@@ -52,11 +52,13 @@ from sim.conformance.results import (
 )
 from sim.conformance.schedule import (
     PULSE,
+    QUICK,
     STEPS,
     Planned,
     Step,
     conformance_config,
     plan,
+    played_steps,
     read_config,
     written_config,
 )
@@ -70,6 +72,7 @@ __all__ = [
     "Mismatch",
     "Outcome",
     "PULSE",
+    "QUICK",
     "Planned",
     "REQUIREMENTS_FILE",
     "Result",
@@ -83,6 +86,7 @@ __all__ = [
     "explain",
     "junit",
     "plan",
+    "played_steps",
     "read_config",
     "simulate",
     "spec_requirements",

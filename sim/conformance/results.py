@@ -32,6 +32,13 @@ class Result:
     must: str
     passed: bool
     detail: str
+    # not run: a --quick run does not play the steps that exercise it (never passed)
+    not_run: bool = False
+
+    @property
+    def failed(self) -> bool:
+        """Failed (not passed, and run)."""
+        return not self.passed and not self.not_run
 
 
 @functools.cache
@@ -152,12 +159,25 @@ EDGES: dict[str, tuple[str, ...]] = {
 }
 
 
-def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS) -> list[Result]:
+def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
+            played: Sequence[Step] | None = None) -> list[Result]:
     """Pass or fail for each requirement the schedule exercises: the failed ones first,
     in the order of the evidence (the first difference's requirements first), then the
     rest in the spec's order. A difference fails the requirements ``attribute`` names;
     the differences right after it (an episode: the oracle re-synchronised to the DUT
-    after each) are the same cause and fail nothing more."""
+    after each) are the same cause and fail nothing more. ``played``: the steps a
+    --quick run played (None: all); the requirements only the others exercise come
+    last, "not run" (``Result.not_run``), neither passed nor failed."""
+    if played is not None and len(played) < len(steps):
+        results = verdict(outcome, played)
+        run = {r.must for r in results}
+        skipped = [s.name for s in steps if s not in played]
+        for must in sorted({m for s in steps for m in s.musts} - run, key=_must_order):
+            where = ", ".join(s.name for s in steps if must in s.musts)
+            results.append(Result(must, False, f"not run: a quick run (--quick) does not "
+                                  f"play step {where} (skipped: {', '.join(skipped)})",
+                                  not_run=True))
+        return results
     exercised: dict[str, list[str]] = {}
     for s in steps:
         for m in s.musts:
@@ -332,11 +352,14 @@ def _plain(codec: FrameCodec, msg: can.Message) -> object:
 def junit(results: Sequence[Result], path: Path, name: str) -> None:
     """JUnit XML: one test case per requirement."""
     suite = ET.Element("testsuite", name=name, tests=str(len(results)),
-                       failures=str(sum(not r.passed for r in results)))
+                       failures=str(sum(r.failed for r in results)),
+                       skipped=str(sum(r.not_run for r in results)))
     for r in results:
         case = ET.SubElement(suite, "testcase", classname=f"conformance.{r.must.split('-')[0]}",
                              name=r.must)
-        if not r.passed:
+        if r.not_run:
+            ET.SubElement(case, "skipped", message=r.detail[:200])
+        elif not r.passed:
             ET.SubElement(case, "failure", message=r.detail[:200]).text = r.detail
     root = ET.Element("testsuites", name=name)
     root.append(suite)
