@@ -46,6 +46,7 @@ class ConformanceSetup:
     out: Path
     planned: list[Planned]
     quick: bool = False   # --quick: the steps of sim.conformance.schedule.QUICK only
+    config_text: str | None = None  # the configuration file written (cfg: its reading)
 
     @property
     def node(self) -> str:
@@ -102,7 +103,8 @@ class ConformanceSetup:
         # firmware_py's agent filters on SocketCAN (GEN-5): model that first there
         outcome = conf.check(self.cfg, self.ring, self.dut_key, frames, codec,
                              filtered_first=self.bus.resolved()["interface"] == "socketcan")
-        conf.explain(self.cfg, self.ring, self.dut_key, frames, outcome, codec)
+        conf.explain(self.cfg, self.ring, self.dut_key, frames, outcome, codec,
+                     config_text=self.config_text)
         if outcome.mismatches and late > ts:
             outcome.problems.append(
                 f"the tester was up to {late * 1000:.0f} ms late (Ts = {ts * 1000:g} ms): on "
@@ -193,7 +195,7 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     cmd = ["bess-ded", "agent", "--config", str(cfg_path), *key_argv, *bus.argv(), *rt]
     say(f"  start the device with its configuration and key, e.g.: {shlex.join(cmd)}")
     say(f"  waiting up to {wait:g} s for its {diag_name(i)} frame ...")
-    return ConformanceSetup(sc, i, cfg, ring, dut_key, bus, out, planned, quick)
+    return ConformanceSetup(sc, i, cfg, ring, dut_key, bus, out, planned, quick, text)
 
 
 def write_report(outcome: Outcome, results: Sequence[Result], out: Path,
