@@ -1124,6 +1124,8 @@ FAULTS += [
                   _dropping("timeouts", "price_s")),
     _config_fault("cfg_weights_default", "CFG-4", "the [[neighbour]] weight is never read: "
                   "every a_ij = 1.0", _weights_default),
+    _config_fault("cfg_k_max_default", "CFG-7", "limits.k_max is never read: the default "
+                  "2·k, not the file's bound", _dropping("limits", "k_max")),
     _config_fault("cfg_periods_rounded", "CFG-6", "timeouts.neighbour_periods rounded to "
                   "the nearest integer, not truncated (4.7 → 5, not 4)", _periods_rounded),
     _config_fault("cfg_ts_whole_ns", "CFG-3", "the period kept in whole ns and Ts (its Q30 "

@@ -173,7 +173,8 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     assert c["dlc"] == 1 and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
     assert c["unsynced"] == 1  # the command before its sync (AUTH-11)
-    assert c["unknown_id"] == 2 and c["implausible_gains"] == 1  # SET_GAINS at the bounds pass
+    # SET_GAINS at the bounds pass; one LSB beyond each of the four bounds is refused
+    assert c["unknown_id"] == 2 and c["implausible_gains"] == 1 + 4
     # content: a price above rho_max, a persistent step there and back (price_persist − 1
     # candidates each); the step one LSB above the bound: price_persist − 1 candidates,
     # accepted the price_persist-th time

@@ -65,6 +65,7 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "DLC 7": ("RX-7",),
     "SET_GAINS in bounds": ("CMD-5", "CMD-2"),
     "SET_GAINS out of bounds": ("CMD-5", "DIAG-4"),
+    "SET_GAINS one LSB …": ("CMD-5", "DIAG-4"),
     "ISOLATE for another agent": ("CMD-1",),
     "ISOLATE": ("STATE-7", "CMD-3", "CMD-2"),
     "ISOLATE while ISOLATED": ("STATE-7", "STATE-9", "CMD-3"),

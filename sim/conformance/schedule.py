@@ -69,9 +69,10 @@ STEPS = (
          "fault (SAFE), each followed by recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
           "RX-11", "AUTH-13", "CFG-6")),
-    Step("limits", 910, 1060, "SET_GAINS exactly at k_max/h_max and k_min/h_min and a gain "
-         "that rounds half up; a neighbour λ step of exactly the LAM-1 bound, one LSB more, "
-         "and back by the bound; a price step of exactly price_step_max, one LSB more "
+    Step("limits", 910, 1060, "SET_GAINS exactly at k_max/h_max and k_min/h_min, a gain "
+         "that rounds half up, then one LSB beyond each bound; a neighbour λ step of "
+         "exactly the LAM-1 bound, one LSB more, and back by the bound; a price step of "
+         "exactly price_step_max, one LSB more "
          "(a candidate kept across a PriceValid = 0 frame); a neighbour ramp to the top of "
          "the λ range (large |ξ|), alive but INIT for 5 ticks; a status with FaultSoc and "
          "PowerLimited set",
@@ -367,6 +368,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     # the states step: (tick, command) and the price's and plant's conditions
     st = at["states"]
     gains_raw = _gain_raw_rounding_up(cfg)
+    k_raw = _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))
+    h_raw = _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))
     genuine: list[can.Message] = []
     held: list[can.Message] = []   # a genuine frame delivered late (AUTH-25)
     fr = at["freshness"]
@@ -485,8 +488,18 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 (10, Command.SET_GAINS, _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))[0],
                  _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))[0], "SET_GAINS at k_min and h_min"),
                 (15, Command.SET_GAINS, gains_raw, round(h_gain * 1000),
-                 "SET_GAINS whose KTS rounds half up")):
-            if k == at["limits"] + tick:
+                 "SET_GAINS whose KTS rounds half up"),
+                # one LSB beyond each bound: refused (a device with wider bounds, e.g.
+                # the defaults 0.5·k..2·k instead of the file's, takes them: CFG-7)
+                (17, Command.SET_GAINS, k_raw[1] + 1, round(h_gain * 1000),
+                 "SET_GAINS one LSB above k_max"),
+                (18, Command.SET_GAINS, gains_raw, h_raw[1] + 1,
+                 "SET_GAINS one LSB above h_max"),
+                (19, Command.SET_GAINS, k_raw[0] - 1, round(h_gain * 1000),
+                 "SET_GAINS one LSB below k_min"),
+                (20, Command.SET_GAINS, gains_raw, h_raw[0] - 1,
+                 "SET_GAINS one LSB below h_min")):
+            if k == at["limits"] + tick and 0 <= min(graw, hraw) and max(graw, hraw) < 16384:
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": i, "GainK": graw, "GainH": hraw}), note)
         for tick, cmd, note in ((5, Command.RECONNECT, "RECONNECT in RUNNING"),
