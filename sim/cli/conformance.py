@@ -5,7 +5,7 @@ agent I (written to OUT/agents/agent_I.toml) and its key file OUT/keys/agent_I.k
 (a fresh key set, unless --keys DIR or --insecure). Start the device with them on the
 same bus; this command waits for its Diag frame (--wait S), then plays the rest of the
 bus for it: the router's price and commands, its plant's status and its neighbours' MC
-frames, along a fixed schedule of about 9 s at Ts = 10 ms (stretched by --time-scale):
+frames, along a fixed schedule of 13.5 s at Ts = 10 ms (stretched by --time-scale):
 start-up, control with moving neighbours, forged and replayed frames, malformed and
 implausible content, every command, and every timeout (sim/conformance/).
 

@@ -23,6 +23,13 @@ first divergence first. When a known deviation (``MUTANTS``: e.g. the band
 re-armed at the reset sample) explains the DUT's frames from the start, the report names
 that requirement.
 
+The DUT's configuration file (``written_config``) is the scenario's agent with every key
+the schedule observes off its default; the oracle reads the same file with the reference
+parser, and a known misreading of it (``mutants.misreads``: a default taken, a value
+rounded otherwise) that explains the DUT is named like a known deviation (CFG-3/4/6/7).
+``plan(..., quick=True)``: the steps of ``QUICK`` only (`bess-ded conformance --quick`;
+``verdict(..., played=...)`` lists the others' requirements "not run").
+
 The package: ``schedule`` (the steps and the frames), ``oracle`` (the record and its check),
 ``results`` (per requirement, JUnit), ``mutants`` (known deviations), ``drive`` (running
 it in process or on a bus) and ``bus`` (the check of a device, what ``bess-ded conformance``
