@@ -201,7 +201,9 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     return replace(
         cfg, controller=ctrl, neighbours=nbrs, lambda0=_rounds_up(cfg.lambda0, 24),
         neighbour_timeout_periods=4.7,  # type: ignore[arg-type]  # CFG-6 truncates: 4
-        price_timeout_s=0.32, status_timeout_s=0.29,
+        # 0.32 s and 0.29 s at Ts = 10 ms (the defaults: 0.25 s), stretched with Ts
+        price_timeout_s=round(1.28 * cfg.price_timeout_s, 9),
+        status_timeout_s=round(1.16 * cfg.status_timeout_s, 9),
         lambda_min=-9.5, lambda_max=9.5, rho_min=max(cfg.rho_min, -4.5),
         rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=4,
         lambda_step_max=step_max, k_min=0.6 * k, k_max=1.8 * k, h_min=0.6 * h,
