@@ -22,6 +22,7 @@ spec (equivalent mutants) are not in the set; docs/conformance.md lists the ones
 from __future__ import annotations
 
 import importlib.util
+import tomllib
 import types
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -32,7 +33,12 @@ import can
 
 from firmware_py import contract
 from firmware_py import fixedpoint as fx
-from firmware_py.config import AgentConfig, Neighbour, agent_configs_from_scenario
+from firmware_py.config import (
+    AgentConfig,
+    Neighbour,
+    agent_configs_from_scenario,
+    parse_agent_config,
+)
 from firmware_py.contract import Command, State, is_active
 from firmware_py.controllers import DwellResetPIController, ResetPIController
 from firmware_py.errors import ParameterError
@@ -58,6 +64,10 @@ class Fault:
     apply: Apply
     group: str = ""
     witness: Callable[[Apply | None], Any] | None = None
+    # a slip of the configuration path: the device's reading of its TOML file (the
+    # tester's, conformance_config), instead of the reference parser's; ``apply`` then
+    # plants nothing
+    misread: Callable[[str], AgentConfig] | None = None
 
 
 # --------------------------------------------------------------------------- planting
@@ -1051,6 +1061,79 @@ FAULTS: list[Fault] = [
           drive(lambda r: r.run(5, lam=1.0, state=State.SAFE))),
 ]
 
+# ----------------------------------------------------------- the configuration path (item 4)
+
+CONFIG = "configuration"
+
+
+def _dropping(table: str, key: str) -> Callable[[str], AgentConfig]:
+    """A parser that never reads ``table.key`` (a misspelt or forgotten key): the default."""
+    def parse(text: str) -> AgentConfig:
+        data = tomllib.loads(text)
+        data[table].pop(key, None)
+        return parse_agent_config(data, "<misread>")
+    return parse
+
+
+def _weights_default(text: str) -> AgentConfig:
+    """A parser that reads each [[neighbour]]'s id but not its weight (1.0)."""
+    data = tomllib.loads(text)
+    data["neighbour"] = [{"id": nb["id"]} for nb in data.get("neighbour", [])]
+    return parse_agent_config(data, "<misread>")
+
+
+def _periods_rounded(text: str) -> AgentConfig:
+    """neighbour_periods rounded to the nearest integer, not truncated (CFG-6: 4.7 → 5)."""
+    data = tomllib.loads(text)
+    t = data.get("timeouts", {})
+    if "neighbour_periods" in t:
+        t["neighbour_periods"] = int(t["neighbour_periods"] + 0.5)
+    return parse_agent_config(data, "<misread>")
+
+
+def _ts_whole_ns(text: str) -> AgentConfig:
+    """Ts kept as a whole number of ns (the loop's period) and TSQ taken from that."""
+    data = tomllib.loads(text)
+    c = data["controller"]
+    c["ts"] = round(c.get("ts", 0.01) * 1e9) / 1e9
+    return parse_agent_config(data, "<misread>")
+
+
+def _reading(parse: Callable[[str], AgentConfig]) -> Callable[[Apply | None], Any]:
+    """A witness of a configuration fault: the tester's file for case 1, agent 3 as the
+    faulty parser reads it (the fault's ``apply``) or as the reference does (None)."""
+    def witness(apply: Apply | None) -> Any:
+        from sim import conformance as conf
+
+        text, ref = conf.written_config(BASE)
+        got = ref if apply is None else parse(text)
+        return replace(got, source="")
+    return witness
+
+
+def _config_fault(name: str, requirement: str, description: str,
+                  parse: Callable[[str], AgentConfig]) -> Fault:
+    return Fault(name, requirement, description, lambda rt: None, CONFIG, _reading(parse),
+                 misread=parse)
+
+
+FAULTS += [
+    _config_fault("cfg_untrusted_after_default", "CFG-7", "limits.untrusted_after is never "
+                  "read (a misspelt key): the default 5, not the file's value",
+                  _dropping("limits", "untrusted_after")),
+    _config_fault("cfg_price_s_default", "CFG-6", "timeouts.price_s is never read: the "
+                  "default 5 price cycles, not the file's value",
+                  _dropping("timeouts", "price_s")),
+    _config_fault("cfg_weights_default", "CFG-4", "the [[neighbour]] weight is never read: "
+                  "every a_ij = 1.0", _weights_default),
+    _config_fault("cfg_k_max_default", "CFG-7", "limits.k_max is never read: the default "
+                  "2·k, not the file's bound", _dropping("limits", "k_max")),
+    _config_fault("cfg_periods_rounded", "CFG-6", "timeouts.neighbour_periods rounded to "
+                  "the nearest integer, not truncated (4.7 → 5, not 4)", _periods_rounded),
+    _config_fault("cfg_ts_whole_ns", "CFG-3", "the period kept in whole ns and Ts (its Q30 "
+                  "word TSQ) taken from it, not from the file's ts", _ts_whole_ns),
+]
+
 BY_NAME = {f.name: f for f in FAULTS}
 assert len(BY_NAME) == len(FAULTS), "fault names must be unique"
 
@@ -1067,7 +1150,7 @@ def schedule_setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyri
     from sim import conformance as conf
 
     sc = load_case(case)
-    cfg = agent_configs_from_scenario(sc)[dut - 1]
+    _, cfg = conf.written_config(agent_configs_from_scenario(sc)[dut - 1])
     node = f"agent_{dut}"
 
     def ring() -> Keyring:
@@ -1075,6 +1158,13 @@ def schedule_setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyri
                        floors={n: 2 for n in fleet_nodes(12) if n != node})
 
     return cfg, ring, conf.plan(cfg, SCHEDULE_KEYS, sc.prices[0].rho, boot=2)
+
+
+def schedule_text(case: int, dut: int) -> str:
+    """The configuration file the tester writes for ``schedule_setup``'s device."""
+    from sim import conformance as conf
+
+    return conf.written_config(agent_configs_from_scenario(load_case(case))[dut - 1])[0]
 
 
 @dataclass
@@ -1116,23 +1206,34 @@ class Score:
 
 
 def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
-          seed: int = 0, make_dut: Callable[..., Any] | None = None) -> Score:
+          seed: int = 0, make_dut: Callable[..., Any] | None = None,
+          dut_from_text: Callable[[str], Callable[..., Any]] | None = None) -> Score:
     """Play the schedule in process against the agent with ``fault`` (None: none) and
     judge it as `bess-ded conformance` does (check, explain, verdict). ``make_dut``: the
     device, as ``simulate`` takes it (tests/conformance_faults_c.py: the C agent on a
-    library with the fault built in; then ``fault`` only names it, nothing is planted)."""
+    library with the fault built in; then ``fault`` only names it, nothing is planted);
+    ``dut_from_text``: the device given the configuration file the tester writes (the C
+    agent reads it with its own loader). A fault with ``misread``: firmware_py's agent
+    configured from that file as the faulty parser reads it."""
     import time
 
     from sim import conformance as conf
 
     start = time.perf_counter()
     cfg, ring, planned = schedule_setup(case, dut)
+    text = schedule_text(case, dut)
+    if dut_from_text is not None:
+        make_dut = dut_from_text(text)
+    misread = getattr(fault, "misread", None)
+    if misread is not None and make_dut is None:
+        dut_cfg = misread(text)
+        make_dut = lambda _c, codec, k: AgentRuntime(dut_cfg, codec, keys=k)  # noqa: E731
     frames = conf.simulate(cfg, ring(), planned,
                            None if fault is None or make_dut is not None else fault.apply,
                            jitter=jitter, seed=seed, make_dut=make_dut)
     key = SCHEDULE_KEYS[f"agent_{dut}"]
     outcome = conf.check(cfg, ring(), key, frames)
-    conf.explain(cfg, ring(), key, frames, outcome)
+    conf.explain(cfg, ring(), key, frames, outcome, config_text=text)
     results = conf.verdict(outcome)
     first = conf.Outcome(mismatches=outcome.mismatches[:1],
                          auth_errors=[] if outcome.mismatches else outcome.auth_errors[:1],

@@ -40,7 +40,7 @@ from firmware_py.controllers import make_controller
 from firmware_py.nodeio import FleetSender
 from firmware_py.secoc import Keyring
 from sim.cbind import cimpl
-from sim.cbind.cagent import CAgent, Runtime
+from sim.cbind.cagent import CAgent, Runtime, params_dict, parse_config
 from sim.cbind.cagent import load as load_runtime
 
 Patch = tuple[str, str, str]   # (file under firmware_c/src, text, replacement)
@@ -135,17 +135,23 @@ def runtime(fault: CFault | None) -> Runtime:
     return _RUNTIMES[fault.name]
 
 
-def make_dut(fault: CFault | None) -> Callable[[AgentConfig, Any, Keyring], CAgent]:
-    """``simulate``'s ``make_dut``: a C agent on the library with ``fault``."""
+def make_dut(fault: CFault | None, text: str | None = None
+             ) -> Callable[[AgentConfig, Any, Keyring], CAgent]:
+    """``simulate``'s ``make_dut``: a C agent on the library with ``fault``, configured
+    from the configuration file ``text`` as the library's own loader reads it
+    (bd_config_parse; None: firmware_py's arithmetic of the oracle's configuration)."""
     rt = runtime(fault)
-    return lambda cfg, _codec, ring: CAgent(cfg, ring, runtime=rt)
+    params = parse_config(text, runtime=rt) if text is not None else None
+    return lambda cfg, _codec, ring: CAgent(cfg, ring, runtime=rt, params=params)
 
 
 def score(fault: CFault | None, case: int = 1, dut: int = 3, jitter: float = 0.3,
           seed: int = 0) -> cf.Score:
     """The schedule played in process against the C agent with ``fault`` (None: none),
-    judged as `bess-ded conformance` does."""
-    return cf.score(fault, case, dut, jitter, seed, make_dut=make_dut(fault))
+    configured from the file the tester writes (the configuration path, item 4), judged
+    as `bess-ded conformance` does."""
+    return cf.score(fault, case, dut, jitter, seed,
+                    dut_from_text=lambda text: make_dut(fault, text))
 
 
 # --------------------------------------------------------------------------- witnesses
@@ -443,6 +449,39 @@ FAULTS: list[CFault] = [
            "and error frames are malformed)",
            (("agent_rx.c", "(BD_FRAME_RTR | BD_FRAME_ERR | BD_FRAME_FD)",
              "(BD_FRAME_RTR | BD_FRAME_ERR)"),), DIAG, drive(_fd_frame)),
+]
+
+
+
+def _loaded(rt: Runtime | None) -> Any:
+    """A witness of a configuration fault: the tester's file for case 1, agent 3 as the
+    library's loader reads it (bd_config_parse: every field of bd_agent_params)."""
+    from sim import conformance as conf
+
+    text, _ = conf.written_config(cf.BASE)
+    return params_dict(parse_config(text, runtime=rt or load_runtime()))
+
+
+CONFIG = cf.CONFIG
+FAULTS += [
+    # the configuration path (item 4)
+    CFault("c_cfg_untrusted_after_misspelt", "CFG-7", "limits.untrusted_after looked up "
+           "under a misspelt name: the default 5, not the file's value",
+           (("config.c", 'count(&d, "untrusted_after", 1, 1000, 5, &p->untrusted_after)',
+             'count(&d, "untrusted_afte", 1, 1000, 5, &p->untrusted_after)'),), CONFIG,
+           _loaded),
+    CFault("c_cfg_price_persist_misspelt", "CFG-7", "limits.price_persist looked up under a "
+           "misspelt name: the default 3, not the file's value",
+           (("config.c", 'count(&d, "price_persist", 1, 100, 3, &p->price_persist)',
+             'count(&d, "price_persists", 1, 100, 3, &p->price_persist)'),), CONFIG, _loaded),
+    CFault("c_cfg_tsq_from_ns", "CFG-3", "TSQ taken from the period rounded to whole ns, not "
+           "from the file's ts", (("config.c", "double values[3] = {k * ts, h * ts, ts};",
+                                   "double values[3] = {k * ts, h * ts, "
+                                   "nearbyint(ts * 1e9) / 1e9};"),), CONFIG, _loaded),
+    CFault("c_cfg_periods_rounded", "CFG-6", "neighbour_periods rounded to the nearest "
+           "integer, not truncated (4.7 → 5)",
+           (("config.c", "p->neighbour_timeout_ns = to_ns(trunc(periods) * ts);",
+             "p->neighbour_timeout_ns = to_ns(nearbyint(periods) * ts);"),), CONFIG, _loaded),
 ]
 
 BY_NAME = {f.name: f for f in FAULTS}

@@ -35,7 +35,7 @@ from firmware_py.secoc import (
     derive_frame_key,
     derive_node_key,
 )
-from sim.cbind.cagent import CAgent, keyring_from, ns, params_of
+from sim.cbind.cagent import CAgent, keyring_from, ns, params_of, parse_config
 from sim.cbind.cimpl import SOURCE_DIR as SOURCE
 from sim.testkit.tester import fleet_keys
 
@@ -456,14 +456,17 @@ def test_a_forged_boot_jump_is_refused_or_undone_alike_in_c_and_python() -> None
                                                       (7, 5, 0.5, False)])
 def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter: float,
                                                      filtered: bool) -> None:
-    """`bess-ded conformance`'s whole schedule (sim.conformance: 910 ticks, 84
+    """`bess-ded conformance`'s whole schedule (sim.conformance: 1350 ticks, the
     requirements) played against the C agent on a simulated clock, with late ticks and
     frames, and behind its acceptance filter: every requirement passes."""
     from sim import conformance as conf
     from sim.model.scenario import load_case
 
     sc = load_case(case)
-    cfg = agent_configs_from_scenario(sc)[dut - 1]
+    # the configuration the tester writes: the C loader reads it for the device, the
+    # reference parser for the oracle (issue 22 item 4: the configuration path)
+    text, cfg = conf.written_config(agent_configs_from_scenario(sc)[dut - 1])
+    params = parse_config(text)
     keys = fleet_keys(MASTER, sc.n)   # node keys and link frame keys (AUTH-28)
     node = f"agent_{dut}"
 
@@ -472,7 +475,7 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
 
     planned = conf.plan(cfg, keys, sc.prices[0].rho)
     frames = conf.simulate(cfg, ring(), planned, jitter=jitter, seed=dut, filtered=filtered,
-                           make_dut=lambda c, _codec, k: CAgent(c, k))
+                           make_dut=lambda c, _codec, k: CAgent(c, k, params=params))
     outcome = conf.check(cfg, ring(), keys[node], frames)
     results = conf.verdict(outcome)
     assert not outcome.mismatches, outcome.mismatches[:3]

@@ -33,7 +33,8 @@ KEYS = fleet_keys(MASTER, 12)  # node keys and link frame keys (AUTH-28)
 def _setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyring],
                                          list[conf.Planned]]:
     sc = load_case(case)
-    cfg = agent_configs_from_scenario(sc)[dut - 1]
+    # the configuration the tester writes, as the reference parser reads it
+    _, cfg = conf.written_config(agent_configs_from_scenario(sc)[dut - 1])
     node = f"agent_{dut}"
 
     def ring() -> Keyring:  # its peers' floors at boot 2, as `up` writes them (AUTH-21)
@@ -166,21 +167,26 @@ def test_the_schedule_does_what_its_steps_say() -> None:
                       "RUNNING", "SAFE", "ISOLATED", "INIT", "ISOLATED", "RUNNING"]
     c = dut.counters
     # 5 in the authentication step, untrusted_after forged commands, one fewer forged prices
-    assert c["auth"] == 5 + 5 + 4 and c["untrusted_sources"] == 1
+    # (untrusted_after = 6 in the configuration the tester writes)
+    assert cfg.untrusted_after == 6 and cfg.price_persist == 4
+    assert c["auth"] == 5 + 6 + 5 and c["untrusted_sources"] == 1
     assert c["dlc"] == 1 and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
     assert c["unsynced"] == 1  # the command before its sync (AUTH-11)
-    assert c["unknown_id"] == 2 and c["implausible_gains"] == 1  # SET_GAINS at the bounds pass
-    # the price step one LSB above the bound: twice a candidate, accepted the third time
-    assert c["implausible_price"] == 5 + 2 and c["price_steps_accepted"] == 2 + 1
+    # SET_GAINS at the bounds pass; one LSB beyond each of the four bounds is refused
+    assert c["unknown_id"] == 2 and c["implausible_gains"] == 1 + 4
+    # content: a price above rho_max, a persistent step there and back (price_persist − 1
+    # candidates each); the step one LSB above the bound: price_persist − 1 candidates,
+    # accepted the price_persist-th time
+    assert c["implausible_price"] == 1 + 3 + 3 + 3 and c["price_steps_accepted"] == 2 + 1
     assert c["implausible_lambda"] == 2 + 1  # one LSB above LAM-1's bound
     # the neighbour lost on the bus; the PriceValid = 0 outage and the one while ISOLATED
     assert c["neighbour_timeouts"] == 2 and c["price_timeouts"] == 3
     assert c["plant_faults"] == 2  # the second while ISOLATED
     assert c["commands_isolate"] == 4 and c["commands_reconnect"] == 5
-    # in-step syncs are no resyncs; lost: 3, 5 forged commands, 4 forged prices, a price
+    # in-step syncs are no resyncs; lost: 3, 6 forged commands, 5 forged prices, a price
     # 16 values on (15), the neighbour's 25 frames lost on the bus
-    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 5 + 4 + 15 + 25
+    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 6 + 5 + 15 + 25
     assert dut.cstate.resets >= 1  # after ISOLATE's reset of the count: resets still happen
 
 
@@ -334,3 +340,47 @@ def test_an_agent_whose_band_re_arms_at_the_reset_sample_fails_band_2(tmp_path: 
     fails = re.findall(r"^  FAIL  (\S+)", log, re.M)
     assert fails == ["BAND-2"], log
     assert "re-arms at the reset sample" in log
+
+
+def test_a_quick_run_plays_the_first_steps_and_lists_the_rest_not_run(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`bess-ded conformance --quick` in process: the steps of ``QUICK`` only (start to
+    commands, 7.1 of 13.5 s at Ts = 10 ms); firmware_py passes every requirement they
+    exercise; those only the later steps exercise are NOT RUN (never passed, JUnit
+    skipped), the verdict says it was a quick run, and the exit code is 0."""
+    from sim.cli.conformance import report
+
+    sc = load_case(1)
+    _, cfg = conf.written_config(agent_configs_from_scenario(sc)[2])
+    _, ring, _ = _setup(1, 3)
+    planned = conf.plan(cfg, KEYS, sc.prices[0].rho, boot=2, quick=True)
+    played = conf.played_steps(planned)
+    assert [s.name for s in played] == list(conf.QUICK)
+    assert played[-1].end * cfg.controller.ts == pytest.approx(7.1)
+    frames = conf.simulate(cfg, ring(), planned, jitter=0.3)
+    outcome = conf.check(cfg, ring(), KEYS["agent_3"], frames)
+    results = conf.verdict(outcome, played=played)
+    assert not outcome.mismatches and outcome.steps_seen == set(conf.QUICK)
+    run = [r for r in results if not r.not_run]
+    skipped = [r for r in results if r.not_run]
+    assert run and all(r.passed for r in run), [r for r in run if not r.passed]
+    assert not any(r.passed for r in skipped)
+    later = {m for s in conf.STEPS if s.name not in conf.QUICK for m in s.musts}
+    early = {m for s in played for m in s.musts}
+    assert {r.must for r in skipped} == later - early  # e.g. the timeouts' and CFG-6
+    assert {"TMO-1", "CFG-6", "AUTH-18"} <= {r.must for r in skipped}
+    assert {r.must for r in results} == later | early
+    assert "not run: a quick run (--quick)" in skipped[0].detail
+    code = report(outcome, results, tmp_path, tmp_path / "j.xml", "quick")
+    out = capsys.readouterr().out
+    assert code == 0
+    assert f"bess-ded conformance: PASS (a quick run): {len(run)} of {len(run)}" in out
+    assert f"{len(skipped)} not run (--quick)" in out and "  NOT RUN  TMO-1" in out
+    suite = ET.parse(tmp_path / "j.xml").getroot().find("testsuite")
+    assert suite is not None and suite.get("failures") == "0"
+    assert suite.get("skipped") == str(len(skipped))
+    # a failure in a quick run is a failure: the not-run ones do not hide it
+    failing = conf.Outcome(ticks=outcome.ticks, steps_seen=outcome.steps_seen, mismatches=[
+        _mm("MC", "Lambda", 1000, 5000, tick=603, step="commands",
+            moment=("SET_GAINS in bounds",))])
+    assert report(failing, conf.verdict(failing, played=played), tmp_path, None, "q") == 1

@@ -17,7 +17,8 @@ from conformance_faults import BY_NAME, FAULTS, Fault, score, score_tool
 
 from sim import conformance as conf
 
-CLASSES = {"arithmetic", "boundary", "commands", "state", "freshness", "diagnostics"}
+CLASSES = {"arithmetic", "boundary", "commands", "state", "freshness", "diagnostics",
+           "configuration"}
 
 
 def test_the_set_covers_every_class_and_names_requirements_of_the_spec() -> None:
@@ -49,7 +50,9 @@ def test_each_fault_is_a_genuine_deviation(fault: Fault) -> None:
 SAMPLE = [("plant_fault_level", True), ("gains_no_last_safety", True),
           ("extended_is_malformed", False), ("diag_shares_mc_count", True),
           ("safe_setpoint_enabled", True), ("replayed_sync_stale", True),
-          ("command_any_target", True), ("no_hello", True)]
+          ("command_any_target", True), ("no_hello", True),
+          # the configuration path (item 4): price_s's default taken, named CFG-6
+          ("cfg_price_s_default", True)]
 
 
 @pytest.mark.parametrize("name,first", SAMPLE, ids=[n for n, _ in SAMPLE])

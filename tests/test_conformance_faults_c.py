@@ -25,12 +25,13 @@ from conformance_faults_c import BY_NAME, FAULTS, CFault, apply_patch, runtime, 
 from sim import conformance as conf
 from sim.cbind import cimpl
 
-CLASSES = {"arithmetic", "boundary", "commands", "state", "freshness", "diagnostics"}
+CLASSES = {"arithmetic", "boundary", "commands", "state", "freshness", "diagnostics",
+           "configuration"}
 
 
 def test_the_c_set_covers_every_class_and_names_requirements_of_the_spec() -> None:
     spec = set(conf.spec_requirements())
-    assert 15 <= len(FAULTS) <= 30
+    assert 15 <= len(FAULTS) <= 40
     assert {f.group for f in FAULTS} == CLASSES
     assert all(f.requirement in spec for f in FAULTS), [f.name for f in FAULTS
                                                          if f.requirement not in spec]
@@ -72,8 +73,9 @@ def test_each_c_fault_is_a_genuine_deviation(fault: CFault) -> None:
 
 # a sample the default suite checks (cheap: two libraries, one schedule run): a fault the
 # schedule catches and names first today, and one it misses (docs/conformance.md)
-SAMPLE = ["c_lost_frames_plus_one", "c_rearm_ge"]
-SAMPLE_PLAYED = "c_lost_frames_plus_one"
+SAMPLE = ["c_lost_frames_plus_one", "c_rearm_ge", "c_cfg_untrusted_after_misspelt"]
+# the second: the C loader misreading the tester's configuration file (item 4), named CFG-7
+SAMPLE_PLAYED = ["c_lost_frames_plus_one", "c_cfg_untrusted_after_misspelt"]
 
 
 @pytest.mark.mutation
@@ -84,12 +86,13 @@ def test_a_sample_of_c_faults_is_genuine(name: str) -> None:
 
 
 @pytest.mark.mutation
-def test_a_sampled_c_fault_fails_conformance_naming_its_requirement() -> None:
+@pytest.mark.parametrize("name", SAMPLE_PLAYED)
+def test_a_sampled_c_fault_fails_conformance_naming_its_requirement(name: str) -> None:
     """Expected: the schedule, played in process against the C agent on the fault's
-    library and judged as `bess-ded conformance` judges a device, fails it naming the
-    fault's requirement first. (The faultless C agent passes the same run:
-    tests/test_c_agent.py.)"""
-    s = score(BY_NAME[SAMPLE_PLAYED])
+    library (configured from the tester's file by that library's loader) and judged as
+    `bess-ded conformance` judges a device, fails it naming the fault's requirement
+    first. (The faultless C agent passes the same run: tests/test_c_agent.py.)"""
+    s = score(BY_NAME[name])
     assert s.caught and s.named_first, (s.failed, s.first_mismatch)
 
 

@@ -23,6 +23,13 @@ first divergence first. When a known deviation (``MUTANTS``: e.g. the band
 re-armed at the reset sample) explains the DUT's frames from the start, the report names
 that requirement.
 
+The DUT's configuration file (``written_config``) is the scenario's agent with every key
+the schedule observes off its default; the oracle reads the same file with the reference
+parser, and a known misreading of it (``mutants.misreads``: a default taken, a value
+rounded otherwise) that explains the DUT is named like a known deviation (CFG-3/4/6/7).
+``plan(..., quick=True)``: the steps of ``QUICK`` only (`bess-ded conformance --quick`;
+``verdict(..., played=...)`` lists the others' requirements "not run").
+
 The package: ``schedule`` (the steps and the frames), ``oracle`` (the record and its check),
 ``results`` (per requirement, JUnit), ``mutants`` (known deviations), ``drive`` (running
 it in process or on a bus) and ``bus`` (the check of a device, what ``bess-ded conformance``
@@ -50,7 +57,18 @@ from sim.conformance.results import (
     spec_requirements,
     verdict,
 )
-from sim.conformance.schedule import PULSE, STEPS, Planned, Step, plan
+from sim.conformance.schedule import (
+    PULSE,
+    QUICK,
+    STEPS,
+    Planned,
+    Step,
+    conformance_config,
+    plan,
+    played_steps,
+    read_config,
+    written_config,
+)
 
 __all__ = [
     "Frame",
@@ -61,6 +79,7 @@ __all__ = [
     "Mismatch",
     "Outcome",
     "PULSE",
+    "QUICK",
     "Planned",
     "REQUIREMENTS_FILE",
     "Result",
@@ -69,11 +88,15 @@ __all__ = [
     "Step",
     "attribute",
     "check",
+    "conformance_config",
     "drive",
     "explain",
     "junit",
     "plan",
+    "played_steps",
+    "read_config",
     "simulate",
     "spec_requirements",
     "verdict",
+    "written_config",
 ]

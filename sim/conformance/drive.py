@@ -42,7 +42,8 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
     t0 = (lead_ticks + 0.5) * ts  # the schedule's start, after the DUT's first Diag
     inputs = sorted((Frame(t0 + p.at + rnd.uniform(0, jitter * ts), p.msg, True, p.step,
                            p.note) for p in planned), key=lambda f: f.t)
-    end = t0 + STEPS[-1].end * ts + 3 * ts
+    played = {p.step for p in planned}
+    end = t0 + max((s.end for s in STEPS if s.name in played), default=0) * ts + 3 * ts
     passed = set(getattr(dut, "io", dut).accepted_ids())
     record: list[Frame] = []
     nxt = 0

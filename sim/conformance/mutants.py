@@ -1,13 +1,20 @@
 """Known deviations (``MUTANTS``): firmware_py's agent with one requirement broken,
-for the report to name a deviation that explains a device's frames, and for the tests."""
+for the report to name a deviation that explains a device's frames, and for the tests;
+and known misreadings of the configuration file (``misreads``): the file read with
+one key's default instead of its value, or a value rounded otherwise (CFG-3..7)."""
 
 from __future__ import annotations
 
+import tomllib
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
-from firmware_py.controllers import PIController
+from firmware_py import config as fc
+from firmware_py import fixedpoint as fx
+from firmware_py.config import AgentConfig, Neighbour
+from firmware_py.contract import status_name, timeout_s
+from firmware_py.controllers import ControllerConfig, PIController
 from firmware_py.runtime import AgentRuntime
 
 
@@ -40,3 +47,72 @@ MUTANTS: dict[str, tuple[str, Callable[[AgentRuntime], None]]] = {
 }
 """Known deviations: requirement → (what the DUT does instead, how to make the oracle do
 it). Used only to name the requirement when the DUT fails."""
+
+
+def misreads(cfg: AgentConfig, text: str | None = None) -> list[tuple[str, str, AgentConfig]]:
+    """The configurations a device that misreads ``cfg``'s file (the reference parser's
+    reading) runs from: (requirement, what the device does, that configuration), one
+    key at a time: the key's default taken instead of the file's value (CFG-3, CFG-4,
+    CFG-6, CFG-7: a misspelt or unread key), ``neighbour_periods`` rounded instead of
+    truncated (CFG-6: from the file's ``text``, if given), the period kept in whole ns
+    and Ts taken from it (CFG-3). Only readings that differ from ``cfg`` are listed.
+    Used only to name the requirement when a DUT fails (``explain``), like
+    ``MUTANTS``."""
+    c = cfg.controller
+    dflt = ControllerConfig(kind=c.kind)
+    out: list[tuple[str, str, AgentConfig]] = []
+
+    def add(must: str, what: str, alt: AgentConfig) -> None:
+        if alt != cfg:
+            out.append((must, what, alt))
+
+    def ctrl(**kw: Any) -> AgentConfig:
+        return replace(cfg, controller=replace(c, **kw))
+
+    ns_ts = round(c.ts * 1e9) / 1e9
+    add("CFG-3", f"it reads controller.ts as {ns_ts!r} s (the period kept in whole ns, "
+        f"Ts and its Q30 word taken from it), not {c.ts!r}", ctrl(ts=ns_ts))
+    if ns_ts != c.ts:  # ... TSQ only: k·ts and h·ts from the file's ts, as written
+        k2, h2 = c.k * c.ts / ns_ts, c.h * c.ts / ns_ts
+        if all(fx.to_q30(a * ns_ts) == fx.to_q30(b * c.ts) for a, b in ((k2, c.k),
+                                                                         (h2, c.h))):
+            add("CFG-3", f"its TSQ (ν's Q30 period) is the period in whole ns, {ns_ts!r} "
+                f"s, not the file's ts {c.ts!r} (k·ts and h·ts from the file's)",
+                ctrl(ts=ns_ts, k=k2, h=h2))
+    if dflt.ts != ns_ts:
+        add("CFG-3", f"it takes controller.ts's default {dflt.ts!r}, not the file's "
+            f"{c.ts!r}", ctrl(ts=dflt.ts))
+    for key in ("k", "h", "band"):
+        add("CFG-3", f"it takes controller.{key}'s default {getattr(dflt, key)!r}, not the "
+            f"file's {getattr(c, key)!r}", ctrl(**{key: getattr(dflt, key)}))
+    if any(n.weight != 1.0 for n in cfg.neighbours):
+        add("CFG-4", "it takes the neighbour weights' default 1.0, not the file's "
+            + ", ".join(f"{n.weight!r}" for n in cfg.neighbours),
+            replace(cfg, neighbours=tuple(Neighbour(n.id) for n in cfg.neighbours)))
+    defaults: list[tuple[str, str, Any]] = [
+        ("CFG-6", "neighbour_timeout_periods", cfg.transmit.neighbour_periods),
+        ("CFG-6", "price_timeout_s", timeout_s("ER_Price", c.ts)),
+        ("CFG-6", "status_timeout_s", timeout_s(status_name(cfg.id), c.ts)),
+        ("CFG-7", "lambda_min", -10.0), ("CFG-7", "lambda_max", 10.0),
+        ("CFG-7", "rho_min", fc.RHO_MIN), ("CFG-7", "rho_max", fc.RHO_MAX),
+        ("CFG-7", "price_step_max", fc.PRICE_STEP_MAX),
+        ("CFG-7", "price_persist", fc.PRICE_PERSIST),
+        ("CFG-7", "lambda_step_max", fc.LAMBDA_STEP_GAIN * c.k * c.ts),
+        ("CFG-7", "k_min", fc.GAIN_LO * c.k), ("CFG-7", "k_max", fc.GAIN_HI * c.k),
+        ("CFG-7", "h_min", fc.GAIN_LO * c.h), ("CFG-7", "h_max", fc.GAIN_HI * c.h),
+        ("CFG-7", "untrusted_after", fc.UNTRUSTED_AFTER),
+    ]
+    written = tomllib.loads(text).get("timeouts", {}).get("neighbour_periods") if text else None
+    if isinstance(written, (int, float)) and int(written + 0.5) != int(written):
+        add("CFG-6", f"it rounds timeouts.neighbour_periods = {written!r} to "
+            f"{int(written + 0.5)}, not truncates it to {cfg.neighbour_timeout_periods}",
+            replace(cfg, neighbour_timeout_periods=int(written + 0.5)))
+    for must, field, value in defaults:
+        add(must, f"it takes {_KEYS.get(field, 'limits.' + field)}'s default {value!r}, "
+            f"not the file's {getattr(cfg, field)!r}", replace(cfg, **{field: value}))
+    return out
+
+
+_KEYS = {"neighbour_timeout_periods": "timeouts.neighbour_periods",
+         "price_timeout_s": "timeouts.price_s", "status_timeout_s": "timeouts.status_s"}
+

@@ -4,13 +4,14 @@ exercises) and the frames the tester sends along them (``plan``)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+import tomllib
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
 
 import can
 
 from firmware_py import contract, secoc
-from firmware_py.config import AgentConfig
+from firmware_py.config import AgentConfig, Neighbour, parse_agent_config
 from firmware_py.contract import Command, State
 from firmware_py.frames import FrameCodec, mc_name, status_name
 from firmware_py.nodeio import FleetSender
@@ -50,7 +51,7 @@ STEPS = (
          ("CTRL-1", "CTRL-4", "CTRL-5", "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-2",
           "STEP-3", "STEP-4", "STEP-5", "STEP-6", "STEP-7", "STEP-8", "STEP-9", "BAND-1",
           "BAND-2", "BAND-3", "TX-1", "SP-1", "LAM-2", "DIAG-1", "NUM-1", "NUM-2",
-          "NUM-3", "NUM-6", "NUM-7", "NUM-8")),
+          "NUM-3", "NUM-6", "NUM-7", "NUM-8", "CFG-3", "CFG-4")),
     Step("authentication", 450, 510, "forged MACs, a replayed frame, a replayed sync, a "
          "frame from another boot, a genuine frame delivered late (stale, not auth): "
          "rejected and counted, λ unmoved by them",
@@ -59,7 +60,7 @@ STEPS = (
     Step("content", 510, 580, "an extended ID, an unknown ID, the DUT's own ID, a short "
          "frame, a price out of bounds, a persistent price step, a neighbour λ jump",
          ("RX-1", "RX-3", "RX-6", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
-          "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5")),
+          "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
          "agent, ISOLATE, RECONNECT",
          ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "STATE-7", "STATE-8", "STATE-9",
@@ -67,23 +68,25 @@ STEPS = (
     Step("timeouts", 710, 910, "a neighbour silent, the price silent (SAFE), a plant "
          "fault (SAFE), each followed by recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
-          "RX-11", "AUTH-13")),
-    Step("limits", 910, 1060, "SET_GAINS exactly at k_max/h_max and k_min/h_min and a gain "
-         "that rounds half up; a neighbour λ step of exactly the LAM-1 bound, one LSB more, "
-         "and back by the bound; a price step of exactly price_step_max, one LSB more "
+          "RX-11", "AUTH-13", "CFG-6")),
+    Step("limits", 910, 1060, "SET_GAINS exactly at k_max/h_max and k_min/h_min, a gain "
+         "that rounds half up, then one LSB beyond each bound; a neighbour λ step of "
+         "exactly the LAM-1 bound, one LSB more, and back by the bound; a price step of "
+         "exactly price_step_max, one LSB more "
          "(a candidate kept across a PriceValid = 0 frame); a neighbour ramp to the top of "
          "the λ range (large |ξ|), alive but INIT for 5 ticks; a status with FaultSoc and "
          "PowerLimited set",
          ("CMD-5", "CMD-6", "LAM-1", "LAM-2", "PRICE-1", "PRICE-3", "PRICE-4", "PRICE-6",
           "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-6", "STEP-7", "STEP-8", "STEP-12",
-          "NUM-3", "NUM-4", "RX-11", "DIAG-3")),
+          "NUM-3", "NUM-4", "RX-11", "DIAG-3", "CFG-7")),
     Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
          "consecutive forged frames on one ID and one fewer on another; a price frame 16 "
          "freshness values on; a neighbour's frames lost on the bus past its timeout, its "
          "count 25 on when it returns; a neighbour's Setpoint sync (a peer's boot: a hello), "
          "then again (no hello)",
          ("AUTH-9", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-18",
-          "AUTH-19", "RX-5", "RX-12", "RX-13", "LIVE-2", "LIVE-3", "TMO-4", "DIAG-4")),
+          "AUTH-19", "RX-5", "RX-12", "RX-13", "LIVE-2", "LIVE-3", "TMO-4", "DIAG-4",
+          "CFG-7")),
     Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
          "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
          "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh",
@@ -91,6 +94,17 @@ STEPS = (
           "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4")),
 )
 
+
+# `bess-ded conformance --quick`: the first steps only (7.1 of 13.5 s at Ts = 10 ms), for
+# development: start-up, a state change to RUNNING, the controller bit for bit, the
+# authentication, the content rules, every command: one step per requirement class (GEN,
+# NUM, CTRL, XI, STEP, BAND, STATE, LIVE, TMO, TICK, TX, SP, DIAG, RX, PRICE, LAM, CMD,
+# AUTH, CFG). A prefix, so that every step played runs from the state the whole schedule
+# gives it; the requirements only the later steps exercise (the timeouts, the edges of
+# the limits, the freshness windows, each state's reaction to each command) are "not
+# run", never passed.
+QUICK = ("start", "price-only", "running", "control", "authentication", "content",
+         "commands")
 
 # The requirements no step exercises, and why: what a bus run cannot show, or what this
 # schedule leaves to the unit tests and vectors (docs/conformance.md's coverage table
@@ -132,12 +146,16 @@ NOT_ON_BUS: dict[str, str] = {
                "but the default run has a key file",
     "AUTH-27": "a boot jump is not yet a step: tests/test_c_agent.py plays it against the "
                "C agent and firmware_py bit for bit, tests/test_selfmon.py against a fleet",
-    "CFG-1": "the DUT reads the configuration the tester writes; a misread shows only "
-             "where it changes frames (price_s in the timeouts step, the bounds of the "
-             "limits step), not at each key's own bounds: unit tests (test_config.py)",
-    "CFG-2": "as CFG-1", "CFG-3": "as CFG-1", "CFG-4": "as CFG-1", "CFG-5": "as CFG-1",
-    "CFG-6": "as CFG-1", "CFG-7": "as CFG-1", "CFG-8": "as CFG-1 (the key file)",
-    "CFG-9": "as CFG-1",
+    "CFG-1": "the DUT reads the configuration the tester writes, whose tables are all "
+             "allowed: a refused file never starts (LOOP-5); unit tests (test_config.py)",
+    "CFG-2": "id, lambda0 and pinned are the scenario's (no default to take instead; "
+             "lambda0's q24 rounds up: a truncating DUT fails NUM-4); fleet_size and "
+             "resilient_f change no frame of the schedule: unit tests",
+    "CFG-5": "the battery keys are all required (no default to take instead); a misread "
+             "one fails SP-1 (the setpoint) or CMD-3 (the idle λ): unit tests",
+    "CFG-8": "the key file: a misread key fails every MAC (AUTH-4..8); the refusals "
+             "(a sender's key missing, a symbolic link) stop the start: unit tests",
+    "CFG-9": "the schedule runs periodic DUTs (no [transmit] table): as TX-7",
     "TX-7": "the schedule runs periodic DUTs (the default); event-triggered sending is "
             "pinned by the node vector event_transmit, in firmware_py and firmware_c",
     "LOOP-1": "the run loop's timing depends on the DUT's host, not on the bus",
@@ -149,6 +167,63 @@ NOT_ON_BUS: dict[str, str] = {
                "know F is not visible; unit tests",
     "SCALE-2": "as SCALE-1",
 }
+
+# ------------------------------------------------------------------ the DUT's configuration
+
+
+def _rounds_up(x: float, bits: int, scale: float = 1.0) -> float:
+    """A value next to ``x`` whose ``value·scale·2^bits`` has a fraction of 0.625: its
+    fixed-point word rounds up (q24, q30: NUM-4, NUM-6), so a device that truncates, or
+    that takes another value (a default), holds another word."""
+    word = math.floor(x * scale * (1 << bits))
+    return (word + 0.625) / (1 << bits) / scale
+
+
+def conformance_config(cfg: AgentConfig) -> AgentConfig:
+    """The configuration the tester writes for the DUT (its TOML file, CFG-1..9): the
+    scenario's agent ``cfg`` with every key whose effect the schedule observes set off
+    its default (CFG-3: ts, k, h, band; CFG-4: the weights; CFG-6: neighbour_periods,
+    price_s, status_s; CFG-7: the limits the steps meet at their bounds) and every
+    value that goes to a fixed-point word one whose word rounds up (``_rounds_up``), so
+    that a device taking a default instead of the file's value, truncating instead of
+    rounding, or rounding ``neighbour_periods`` instead of truncating it (4.7 → 4) runs
+    differently from the oracle, which reads the same file with the reference parser.
+    ts moves by less than one Q30 LSB (< 1 ns): the period on the bus stays Ts."""
+    c = cfg.controller
+    ts = _rounds_up(c.ts, 30)
+    if round(ts * 1e9) != round(c.ts * 1e9):  # keep the period's ns (the C node's clock)
+        ts = c.ts
+    k = _rounds_up(1.1 * c.k, 30, ts)
+    h = _rounds_up(0.9 * c.h, 30, ts)
+    ctrl = replace(c, ts=ts, k=k, h=h, band=_rounds_up(1.5 * c.band, 24))
+    nbrs = tuple(Neighbour(n.id, _rounds_up(1.25 * n.weight, 24)) for n in cfg.neighbours)
+    step_max = _rounds_up(0.9 * 10.0 * k * ts, 24)  # below the default 10·k·Ts
+    # a price step of 0.45: the content step's persistent 0.6 stays above it
+    price_step = _rounds_up(min(cfg.price_step_max, 0.45), 24)
+    return replace(
+        cfg, controller=ctrl, neighbours=nbrs, lambda0=_rounds_up(cfg.lambda0, 24),
+        neighbour_timeout_periods=4.7,  # type: ignore[arg-type]  # CFG-6 truncates: 4
+        # 0.32 s and 0.29 s at Ts = 10 ms (the defaults: 0.25 s), stretched with Ts
+        price_timeout_s=round(1.28 * cfg.price_timeout_s, 9),
+        status_timeout_s=round(1.16 * cfg.status_timeout_s, 9),
+        lambda_min=-9.5, lambda_max=9.5, rho_min=max(cfg.rho_min, -4.5),
+        rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=4,
+        lambda_step_max=step_max, k_min=0.6 * k, k_max=1.8 * k, h_min=0.6 * h,
+        h_max=1.8 * h, untrusted_after=6, source=f"{cfg.source} (conformance)")
+
+
+def written_config(cfg: AgentConfig) -> tuple[str, AgentConfig]:
+    """The DUT's configuration file (``conformance_config`` of the scenario's agent
+    ``cfg``) and the oracle's configuration: that text read by the reference parser
+    (firmware_py.config), as the DUT reads it with its own."""
+    text = conformance_config(cfg).to_toml()
+    return text, read_config(text, cfg.source)
+
+
+def read_config(text: str, src: str = "<conformance>") -> AgentConfig:
+    """An agent TOML text read by the reference parser (firmware_py.config)."""
+    return parse_agent_config(tomllib.loads(text), src)
+
 
 PULSE = 0.05  # cu/kWh: well above the reset band, below lambda_step_max (10·k·Ts)
 
@@ -169,12 +244,26 @@ def _tick_of(name: str) -> Callable[[int], bool]:
 
 
 def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
-         codec: FrameCodec | None = None, boot: int = secoc.INSECURE_BOOT) -> list[Planned]:
+         codec: FrameCodec | None = None, boot: int = secoc.INSECURE_BOOT,
+         quick: bool = False) -> list[Planned]:
     """The tester's frames for DUT ``cfg`` (times in s from the start), signed with
     ``keys`` (label → key of the router, the plant and the neighbours; None: the
     insecure keys). ``price``: the ρ to hold (the scenario's first). ``boot``: the boot
     every sender the tester plays runs at, at least the DUT's boot floors (AUTH-21);
-    above 1, an earlier run's price sync (boot − 1) comes first."""
+    above 1, an earlier run's price sync (boot − 1) comes first. ``quick``: the steps
+    of ``QUICK`` only."""
+    out = _plan(cfg, keys, price, codec, boot)
+    return [p for p in out if p.step in QUICK] if quick else out
+
+
+def played_steps(planned: Sequence[Planned]) -> tuple[Step, ...]:
+    """The steps ``planned`` plays (all of ``STEPS``, or ``QUICK``'s)."""
+    names = {p.step for p in planned}
+    return tuple(s for s in STEPS if s.name in names)
+
+
+def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
+          codec: FrameCodec | None, boot: int) -> list[Planned]:
     codec = codec or FrameCodec()
     tx = FleetSender(codec, keys, boot=boot if keys is not None else secoc.INSECURE_BOOT)
     ts, i = cfg.controller.ts, cfg.id
@@ -265,22 +354,26 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     def price_edge(k: int) -> tuple[int, int] | None:
         """(PriceValid, ρ) of the price at tick k of the limits step: a step of exactly
         q24(price_step_max) (accepted) and back; then one LSB more (a candidate), a
-        PriceValid = 0 frame (the candidate kept), the candidate twice more (accepted at
-        price_persist = 3: the frame after the invalid one must count as the second)."""
+        PriceValid = 0 frame (the candidate kept), the candidate price_persist − 1 times
+        more (accepted at the last: the frame after the invalid one must count as the
+        second), then back by exactly the bound."""
         c, base, d = k - at["limits"], q(price), p_sign * price_step
+        until = 55 + 5 * (cfg.price_persist + 1)  # the price goes every 5 ticks
         if 30 <= c < 45:
             return 1, base + d
         if c == 60:
             return 0, base
-        if 55 <= c < 75:
+        if 55 <= c < until:
             return 1, base + d + p_sign
-        if 75 <= c < 80:
+        if until <= c < until + 5:
             return 1, base + p_sign  # back by exactly the bound
         return 1, base
 
     # the states step: (tick, command) and the price's and plant's conditions
     st = at["states"]
     gains_raw = _gain_raw_rounding_up(cfg)
+    k_raw = _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))
+    h_raw = _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))
     genuine: list[can.Message] = []
     held: list[can.Message] = []   # a genuine frame delivered late (AUTH-25)
     fr = at["freshness"]
@@ -399,8 +492,18 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 (10, Command.SET_GAINS, _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))[0],
                  _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))[0], "SET_GAINS at k_min and h_min"),
                 (15, Command.SET_GAINS, gains_raw, round(h_gain * 1000),
-                 "SET_GAINS whose KTS rounds half up")):
-            if k == at["limits"] + tick:
+                 "SET_GAINS whose KTS rounds half up"),
+                # one LSB beyond each bound: refused (a device with wider bounds, e.g.
+                # the defaults 0.5·k..2·k instead of the file's, takes them: CFG-7)
+                (17, Command.SET_GAINS, k_raw[1] + 1, round(h_gain * 1000),
+                 "SET_GAINS one LSB above k_max"),
+                (18, Command.SET_GAINS, gains_raw, h_raw[1] + 1,
+                 "SET_GAINS one LSB above h_max"),
+                (19, Command.SET_GAINS, k_raw[0] - 1, round(h_gain * 1000),
+                 "SET_GAINS one LSB below k_min"),
+                (20, Command.SET_GAINS, gains_raw, h_raw[0] - 1,
+                 "SET_GAINS one LSB below h_min")):
+            if k == at["limits"] + tick and 0 <= min(graw, hraw) and max(graw, hraw) < 16384:
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": i, "GainK": graw, "GainH": hraw}), note)
         for tick, cmd, note in ((5, Command.RECONNECT, "RECONNECT in RUNNING"),
