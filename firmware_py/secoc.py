@@ -509,6 +509,22 @@ def _read_private(path: Path, what: str) -> dict:
         raise KeyFileError(f"{path}: not a readable TOML {what}: {e}") from e
 
 
+def _key_table(doc: dict, table_name: str, what: str,
+               check: Callable[[str], object], path: Path) -> dict[str, bytes]:
+    """A key file's ``[table_name]`` of WHAT = key (hex), each name checked."""
+    table = doc.get(table_name, {})
+    if not isinstance(table, dict):
+        raise KeyFileError(f"{path}: [{table_name}] expected a table of {what} = key (hex)")
+    keys = {}
+    for name in table:
+        try:
+            check(name)
+        except SecOCError as e:
+            raise KeyFileError(f"{path}: [{table_name}] {e}") from e
+        keys[name] = _hex_key(table, name, path)
+    return keys
+
+
 def _hex_key(doc: dict, name: str, path: Path) -> bytes:
     value = doc.get(name)
     try:
@@ -542,26 +558,8 @@ def load_node_key(path: Path | str) -> NodeKey:
             or not 0 <= boot <= DEFAULT_LAYOUT.max_boot):
         raise KeyFileError(f"{path}: [freshness.boot_counter] expected an integer "
                            f"0..{DEFAULT_LAYOUT.max_boot}, but got {boot!r}")
-    table = doc.get("peers", {})
-    if not isinstance(table, dict):
-        raise KeyFileError(f"{path}: [peers] expected a table of node = key (hex)")
-    peers = {}
-    for peer in table:
-        try:
-            check_node_name(peer)
-        except SecOCError as e:
-            raise KeyFileError(f"{path}: [peers] {e}") from e
-        peers[peer] = _hex_key(table, peer, path)
-    ftable = doc.get("frame_keys", {})
-    if not isinstance(ftable, dict):
-        raise KeyFileError(f"{path}: [frame_keys] expected a table of message = key (hex)")
-    frames = {}
-    for name in ftable:
-        try:
-            check_frame_name(name)
-        except SecOCError as e:
-            raise KeyFileError(f"{path}: [frame_keys] {e}") from e
-        frames[name] = _hex_key(ftable, name, path)
+    peers = _key_table(doc, "peers", "node", check_node_name, path)
+    frames = _key_table(doc, "frame_keys", "message", check_frame_name, path)
     senders = set(peers) | _frame_senders(frames)
     floors = doc.get("floors", {})
     if not isinstance(floors, dict) or any(
