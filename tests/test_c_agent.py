@@ -330,6 +330,19 @@ def test_boot_is_persisted_before_use_and_a_failure_refuses_the_start() -> None:
         CAgent(_cfg(), ring)
 
 
+def _replay_alike(py: AgentRuntime, c: CAgent, script: list[can.Message]) -> None:
+    """Tick both agents at t = 0, then give each frame of ``script`` one tick apart, after
+    the join window (AUTH-26: its hello opened): the same frames out and the same
+    counters at every tick."""
+    assert [bytes(m.data) for m in py.tick(0.0)] == [bytes(m.data) for m in c.tick(0.0)]
+    for k, msg in enumerate(script):
+        t = (JOIN_TICKS + k) * TS
+        py.on_frame(msg, t)
+        c.on_frame(msg, t)
+        assert [bytes(m.data) for m in py.tick(t)] == [bytes(m.data) for m in c.tick(t)]
+        assert py.counters == c.counters, (k, py.counters, c.counters)
+
+
 def test_a_status_under_another_agents_link_key_is_auth_alike_in_c_and_python() -> None:
     """AUTH-28, bit for bit: agent 2 (a key file's keys: the router's and its neighbours'
     node keys, its own link frame keys) takes PLANT_2_Status and its sync under
@@ -355,13 +368,7 @@ def test_a_status_under_another_agents_link_key_is_auth_alike_in_c_and_python() 
                                              f.frame("PLANT_2_Status", status))),
               others.sync("PLANT_3_Status"), others.sync("AGENT_1_Setpoint"),
               genuine.frame("PLANT_2_Status", {**status, "FaultOverCurrent": 0})]
-    assert [bytes(m.data) for m in py.tick(0.0)] == [bytes(m.data) for m in c.tick(0.0)]
-    for k, msg in enumerate(script):  # after the join window (AUTH-26) its hello opened
-        t = (JOIN_TICKS + k) * TS
-        py.on_frame(msg, t)
-        c.on_frame(msg, t)
-        assert [bytes(m.data) for m in py.tick(t)] == [bytes(m.data) for m in c.tick(t)]
-        assert py.counters == c.counters, (k, py.counters, c.counters)
+    _replay_alike(py, c, script)
     assert py.counters["auth"] == 4 and py.counters["resyncs"] == 1
     assert py.counters["plant_faults"] == 0 and py.state == c.state
 
@@ -400,13 +407,7 @@ def test_a_sync_below_the_boot_floor_is_refused_alike_in_c_and_python() -> None:
               old.sync("PLANT_1_Status"), old.sync("PLANT_2_Status"),  # plant at boot 4 ok
               FleetSender(FrameCodec(), keys=old.keys, boot=2).sync("PLANT_2_Status"),
               new.sync("ER_Price"), new.frame("ER_Price", price)]
-    assert [bytes(m.data) for m in py.tick(0.0)] == [bytes(m.data) for m in c.tick(0.0)]
-    for k, msg in enumerate(script):  # after the join window (AUTH-26) its hello opened
-        t = (JOIN_TICKS + k) * TS
-        py.on_frame(msg, t)
-        c.on_frame(msg, t)
-        assert [bytes(m.data) for m in py.tick(t)] == [bytes(m.data) for m in c.tick(t)]
-        assert py.counters == c.counters, (k, py.counters, c.counters)
+    _replay_alike(py, c, script)
     assert py.counters["auth"] == 2 and py.counters["unsynced"] == 1
     assert py.io.last_safety == ("auth", 0x682)
     assert py.price == 1 << 23 and py.state == c.state  # the genuine price only
@@ -436,13 +437,7 @@ def test_a_forged_boot_jump_is_refused_or_undone_alike_in_c_and_python() -> None
               router.sync("ER_Price"), router.frame("ER_Price", price)]  # undone; price
     router.restart()
     script += [router.sync("ER_Price"), router.frame("ER_Price", price)]
-    assert [bytes(m.data) for m in py.tick(0.0)] == [bytes(m.data) for m in c.tick(0.0)]
-    for k, msg in enumerate(script):  # after the join window (AUTH-26) its hello opened
-        t = (JOIN_TICKS + k) * TS
-        py.on_frame(msg, t)
-        c.on_frame(msg, t)
-        assert [bytes(m.data) for m in py.tick(t)] == [bytes(m.data) for m in c.tick(t)]
-        assert py.counters == c.counters, (k, py.counters, c.counters)
+    _replay_alike(py, c, script)
     assert py.counters["sync_jump"] == 2 and py.counters["auth"] == 2
     assert py.counters["resyncs"] == 4  # the first, the near jump, the undo, the restart
     assert py.io.last_freshness(FrameCodec().frame_id("ER_Price")) == \
