@@ -113,7 +113,11 @@ from .secoc import (
 log = logging.getLogger(__name__)
 
 LOG_FIRST = 5   # rejections logged in full per cause, then every 1000th
-ECHO_DEPTH = 4  # own frames remembered to recognise their echo
+ECHO_DEPTH = 4  # own frames remembered to recognise their echo (an agent: BD_ECHO_DEPTH)
+# the router and the plant, Python processes on a host whose loop may lag its socket: under
+# load an echo came back behind 4 later sends of its ID (a false impersonation, CI
+# 2026-11-27, case 7 on udp_multicast beside stress-ng); 64 ER_Price frames are 3.2 s
+HOST_ECHO_DEPTH = 64
 UNTRUSTED_AFTER = 5   # consecutive E2E failures from one source ID ...
 UNTRUSTED_S = 1.0     # ... make it untrusted this long (s; callers stretch it with Ts)
 # the causes that count towards the untrusted streak of the frame's ID
@@ -138,8 +142,10 @@ class NodeIO:
                  wanted: Iterable[int], fleet_size: int | None = None,
                  untrusted_after: int = UNTRUSTED_AFTER,
                  untrusted_s: float = UNTRUSTED_S, keys: Keyring | None = None,
-                 sync_s: float = SYNC_S, join_s: float | None = None) -> None:
-        """``own``: the messages this node sends; ``wanted``: the frame IDs it uses;
+                 sync_s: float = SYNC_S, join_s: float | None = None,
+                 echo_depth: int = ECHO_DEPTH) -> None:
+        """``own``: the messages this node sends (the last ``echo_depth`` of each ID are
+        remembered: their echo is not an impersonation); ``wanted``: the frame IDs it uses;
         ``fleet_size``: the agents of the run (None: unknown, per-agent IDs of any agent
         the DBC defines are then not counted as foreign); ``untrusted_after`` consecutive
         E2E failures on one ID make it untrusted for ``untrusted_s``; ``keys``: this
@@ -169,13 +175,13 @@ class NodeIO:
         self.fleet_size = fleet_size
         self.counters: Counter[str] = Counter()
         self.last_error: dict[str, str] = {}
-        self._sent: dict[int, deque[bytes]] = {codec.frame_id(n): deque(maxlen=ECHO_DEPTH)
+        self._sent: dict[int, deque[bytes]] = {codec.frame_id(n): deque(maxlen=echo_depth)
                                                for n in own}
         self.trackers = {fid: CounterTracker() for fid in wanted}
         # SecOC, transmit: one message counter per own secured ID under this boot
         self._tx_count = {fid: 0 for fid in self._sent if fid in contract.SECURED_IDS}
         for fid in self._tx_count:
-            self._sent[contract.SYNC_OF[fid]] = deque(maxlen=ECHO_DEPTH)
+            self._sent[contract.SYNC_OF[fid]] = deque(maxlen=echo_depth)
         # AUTH-28: a link frame is signed with its own key, a broadcast with the node's
         self._sign_key: dict[int, bytes] = {}
         for fid in self._tx_count:

@@ -98,7 +98,7 @@ from firmware_py.config import agent_configs_from_scenario, untrusted_s
 from firmware_py.contract import MC_CYCLE_S, cycle_s, mc_name, setpoint_name, status_name, timeout_s
 from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec
-from firmware_py.nodeio import NodeIO
+from firmware_py.nodeio import HOST_ECHO_DEPTH, NodeIO
 from firmware_py.secoc import Keyring
 from sim.model.cost import Battery
 from sim.model.scenario import Scenario
@@ -368,7 +368,8 @@ class PlantNode(SimNodeClock):
         self.io = NodeIO(c, "the plant", own=self._status_names,
                          wanted=[*self._setpoint_ids, *self._mc_ids],
                          fleet_size=scenario.n, untrusted_s=untrusted_s(scenario.ts),
-                         keys=keys, sync_s=cycle_s("ER_Price_Sync", scenario.ts))
+                         keys=keys, sync_s=cycle_s("ER_Price_Sync", scenario.ts),
+                         echo_depth=HOST_ECHO_DEPTH)
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         first = self._status_names[0]

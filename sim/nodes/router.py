@@ -59,7 +59,7 @@ from firmware_py.config import agent_configs_from_scenario, untrusted_s
 from firmware_py.contract import Command, State, cycle_s, mc_name, status_name, timeout_s
 from firmware_py.errors import ParameterError
 from firmware_py.frames import LAMBDA_Q, PIN_OFF, PIN_ON, FrameCodec
-from firmware_py.nodeio import NodeIO
+from firmware_py.nodeio import HOST_ECHO_DEPTH, NodeIO
 from firmware_py.secoc import Keyring
 from sim.model.cost import expenditure, kkt_optimum
 from sim.model.graph import failover_choice
@@ -212,7 +212,8 @@ class RouterNode(SimNodeClock):
         self.io = NodeIO(c, "the router", own=("ER_Price", "ER_Command", "ER_Balance"),
                          wanted=[*self._status, *self._mc], fleet_size=scenario.n,
                          untrusted_s=untrusted_s(scenario.ts), keys=keys,
-                         sync_s=cycle_s("ER_Price_Sync", scenario.ts))
+                         sync_s=cycle_s("ER_Price_Sync", scenario.ts),
+                         echo_depth=HOST_ECHO_DEPTH)
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         self._rho_lo, self._rho_hi = c.raw_range("ER_Price", "Rho")
