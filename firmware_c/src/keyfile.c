@@ -307,6 +307,10 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
             k->status_floor = (uint16_t)pe->i;   /* the sender of PLANT_<id>_Status */
             continue;
         }
+        if (p == k->n_peers && k->has_frame_keys && strcmp(pe->key, node) == 0
+            && pe->type == TOML_INT && pe->i >= 0 && pe->i <= 65535) {
+            continue;   /* its own (the sender of its setpoint): its boot is [freshness] */
+        }
         if (p == k->n_peers || pe->type != TOML_INT || pe->i < 0 || pe->i > 65535) {
             (void)snprintf(err, errlen, "%s: [floors] expected a table of peer = lowest boot "
                            "counter (0..65535), for peers listed in [peers] or senders of "

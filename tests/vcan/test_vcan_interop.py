@@ -6,7 +6,7 @@ One run serves all three checks (a scenario run costs ~1.5 min in the QEMU guest
     run (``--silent``), and can-utils speak for it with its key from the run's key set (the
     frames are signed here with ``FleetSender``, as any tool holding the key would). Once
     all four agents and the plant are heard (``candump -n 1`` each, on 11-bit data frames
-    only), ``cansend`` injects ``ER_Price_Sync`` (the freshness of boot 1000) and the first
+    only), ``cansend`` injects ``ER_Price_Sync`` (the freshness of boot 5) and the first
     ER_Price frame (ρ = 0.9, not case 1's 0.8), which takes the agents out of INIT, and
     ``canplayer`` then plays the next frames at the price cycle (by the file's timestamps),
     each with its own freshness value (a loop would replay spent values: rejected). (A
@@ -60,7 +60,7 @@ pytestmark = pytest.mark.vcan
 RHO = 0.9
 UNFILTERED = (1, 2)  # agents that see every frame; 3 and 4 keep the kernel filter
 PRICE_CYCLE_S = 0.05  # ER_Price's GenMsgCycleTime at Ts = 10 ms
-FEEDER_BOOT = 1000    # the boot counter the can-utils "router" announces
+FEEDER_BOOT = 5    # the boot the can-utils "router" announces: within AUTH-27's 8 of the floor 1
 PRICE_FRAMES = 2000   # more than the run needs at the price cycle
 BAD_EVERY = 50        # a tampered and a short frame after every 50th price frame
 MASTER = bytes(range(16))
