@@ -380,10 +380,12 @@ def neighbours(seed: int = 1, n: int = 4000) -> dict[int, Callable[[int], tuple[
     return {1: lambda k: (1, LAM1 + r1[k]), 3: lambda k: (1, LAM3 + r3[k])}
 
 
-def start(s: Scenario, ticks: int = 10) -> dict[int, Callable[[int], tuple[int, int]]]:
+def start(s: Scenario, ticks: int = 10,
+          nbrs: dict[int, Callable[[int], tuple[int, int]]] | None = None
+          ) -> dict[int, Callable[[int], tuple[int, int]]]:
     """Tick 0, the senders' syncs, the join window (AUTH-26), then ``ticks`` − 1 ticks of
-    traffic: RUNNING after."""
-    nb = neighbours()
+    traffic (``nbrs``: the neighbours' λ, else ``neighbours()``): RUNNING after."""
+    nb = neighbours() if nbrs is None else nbrs
     s.tick()
     s.sync_all()
     s.join()
@@ -947,14 +949,7 @@ def sc_resilient() -> Scenario:
     nb = neighbours()
     lie = noise(7, 4000, NOISE_LSB)
     high = {**nb, 4: lambda k: (1, LAM1 + q24(0.05) + lie[k])}
-    s.tick()
-    s.sync_all()
-    s.join()
-    for j, f in high.items():
-        s.mc(j, f(0)[1], 1)
-    s.price(RHO)
-    s.status()
-    s.run(150, price=RHO, nbrs=high)
+    start(s, 151, high)
     s.run(100, price=RHO, nbrs={**nb, 4: lambda k: (1, nb[1](k)[1])})
     s.run(100, price=RHO, nbrs={**nb, 4: lambda k: (1, LAM3 - q24(0.03) + lie[k])})
     return s
