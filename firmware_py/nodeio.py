@@ -84,7 +84,7 @@ from __future__ import annotations
 import logging
 from collections import Counter, deque
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import can
 
@@ -131,6 +131,15 @@ LOST_WINDOWS = 8      # freshness windows tried after a sender timed out (8·16 
 STALE_WINDOWS = 1     # past windows tried before a frame is called forged (16 values)
 _FV_WINDOW = 1 << contract.FV_TX_BITS
 _COUNT_MAX = contract.FRESHNESS.max_counter
+
+
+class SyncSchedule(NamedTuple):
+    """When a node's own syncs are next due: every ``sync_s`` and, after a peer
+    (re)started, a re-announce (hello) not before ``hello_after``."""
+
+    next: float | None   # None: at the node's first call of syncs()
+    hello_due: bool
+    hello_after: float
 
 
 class NodeIO:
@@ -370,6 +379,7 @@ class NodeIO:
                           "(forged, replayed or corrupted)", t)
             return None
         self._fv.accept(fid, fv)
+        self._back.pop(fid, None)  # AUTH-27: a frame of the new boot: the advance was its own
         self._lost.discard(fid)
         self.counters["lost_frames"] += fv - last - 1
         tracker = self.trackers[fid]
@@ -462,8 +472,8 @@ class NodeIO:
             expected = contract.FRESHNESS.split(last + 1)[0]
             if self._boot_jump(name, sync_id, expected, boot, t):
                 return
-            if boot > expected:
-                self._back[fid] = last  # AUTH-27: where a forged advance is undone to
+            if boot > expected:  # AUTH-27: where a forged advance is undone to; a second
+                self._back.setdefault(fid, last)  # one unconfirmed keeps the first's
         self._fv.accept(fid, fv - 1, frame=False)  # its next frame uses fv
         self._lost.discard(fid)
         self.counters["resyncs"] += 1
@@ -587,6 +597,28 @@ class NodeIO:
         if fid in self._verify_key:
             self._lost.add(fid)
 
+    @property
+    def sync_schedule(self) -> SyncSchedule:
+        """When this node's next syncs are due (a tester's oracle follows a device's)."""
+        return SyncSchedule(self._sync_next, self._hello_due, self._hello_after)
+
+    @sync_schedule.setter
+    def sync_schedule(self, when: SyncSchedule) -> None:
+        """Follow another node's schedule (the oracle adopts the device's)."""
+        self._sync_next, self._hello_due, self._hello_after = when
+
+    def syncs_sent_at(self, t: float) -> None:
+        """This node's syncs went out at ``t``: the next are due ``sync_s`` later, and a
+        re-announce not before HELLO_FRACTION·sync_s."""
+        self._hello_due = False
+        self._hello_after = t + HELLO_FRACTION * self.sync_s
+        self._sync_next = t + self.sync_s
+
+    def constant_tables(self) -> tuple[object, ...]:
+        """The tables that neither a frame nor a tick changes (copies of a node may share
+        them): the known IDs, the cyclic inputs, the verification keys and sync IDs."""
+        return (self._known, self._cyclic, self._verify_key, self._synced_by)
+
     def syncs(self, t: float) -> list[can.Message]:
         """The ``<name>_Sync`` frames due at ``t``: all of them at the first call, every
         ``sync_s``, and when a peer (re)started (at most every HELLO_FRACTION·sync_s)."""
@@ -597,9 +629,7 @@ class NodeIO:
             self._join_until = t + self.join_s  # this first call is the node's hello
         if not due:
             return []
-        self._hello_due = False
-        self._hello_after = t + HELLO_FRACTION * self.sync_s
-        self._sync_next = t + self.sync_s
+        self.syncs_sent_at(t)
         out = []
         for fid, count in self._tx_count.items():
             sync_id = contract.SYNC_OF[fid]

@@ -57,6 +57,7 @@ Foreign traffic (firmware_py.nodeio) is counted under ``foreign`` and its cause.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import can
@@ -460,7 +461,7 @@ class AgentRuntime:
     def _mc_frame(self) -> can.Message:
         return self.io.send(mc_name(self.cfg.id), {
             "State": int(self.state), "Lambda": self.lambda_q24,
-            "Resets": self.cstate.resets % (self._mc_max["Resets"] + 1)})
+            "Resets": self.cstate.resets % self.resets_modulo})
 
     def _setpoint_frame(self) -> can.Message:
         enable = is_active(self.state)
@@ -500,6 +501,32 @@ class AgentRuntime:
         return self.io.send(diag_name(self.cfg.id), {"Page": page, **raw})
 
     # ------------------------------------------------------------------ reporting
+
+    @property
+    def now(self) -> float:
+        """The time of the last tick (the agent's clock never goes back)."""
+        return self._now
+
+    @property
+    def diag_max(self) -> Mapping[str, int]:
+        """Each Diag signal's raw maximum, where its value saturates."""
+        return self._diag_max
+
+    @property
+    def resets_modulo(self) -> int:
+        """The MC frame's Resets signal counts modulo this."""
+        return self._mc_max["Resets"] + 1
+
+    def input_memory(self) -> tuple[bool, bool, int | None, int]:
+        """What the input checks remember between ticks besides receive times: price and
+        status fresh at the last tick, and a price beyond the step limit seen n times."""
+        return (self._price_fresh, self._status_fresh, self._price_candidate,
+                self._price_candidate_n)
+
+    def constant_tables(self) -> tuple[object, ...]:
+        """What neither a frame nor a tick changes (copies of an agent may share it)."""
+        return (self.codec, self.cfg, self.setpoint, self._diag_max, self._mc_max,
+                *self.io.constant_tables())
 
     @property
     def lambda_q24(self) -> int:

@@ -233,28 +233,12 @@ def _reach_ins(sources: dict[str, str]) -> list[str]:
     return out
 
 
-# sim/conformance's oracle clones and fingerprints an AgentRuntime through its private
-# state; that package is being reworked apart from this rule (issue 21): listed, so a
-# new reach-in anywhere (there too) fails
-KNOWN_REACH_INS = {
-    "sim/conformance/oracle.py": {
-        "rt._diag_max", "rt._mc_max", "io._known", "io._cyclic", "io._verify_key",
-        "io._synced_by", "rt._price_fresh", "rt._status_fresh", "rt._price_candidate",
-        "rt._price_candidate_n", "rt._now"},
-}
-
-
 def test_no_module_reaches_into_another_modules_private_names() -> None:
     """sim/ and firmware_py use each other's public names only (issue 21, item 5): an
     owner that must give access has a public, documented method for it."""
     sources = {str(p.relative_to(ROOT)): p.read_text(encoding="utf-8")
                for p in _py("sim") + _py("firmware_py")}
-    found = _reach_ins(sources)
-    bad = [f for f in found if f.split(" ", 1)[1]
-           not in KNOWN_REACH_INS.get(f.split(":", 1)[0], set())]
-    assert bad == []
-    # the exemptions are still needed (a fixed one is taken off the list)
-    assert {f.split(" ", 1)[1] for f in found} == set().union(*KNOWN_REACH_INS.values())
+    assert _reach_ins(sources) == []
 
 
 def test_the_reach_in_check_finds_what_it_looks_for() -> None:

@@ -444,6 +444,36 @@ def test_a_forged_boot_jump_is_refused_or_undone_alike_in_c_and_python() -> None
         (6 << 24)  # the restarted router's first price frame
 
 
+def test_two_forged_advances_are_undone_together_and_a_confirmed_one_for_good() -> None:
+    """AUTH-27, bit for bit: two forged price syncs in a row (boot 5 → 9 → 17, each within
+    the bound) while the router is down are both undone by the restarted router's first
+    sync (boot 6): the undo point is the first unconfirmed advance's. A genuine advance
+    confirmed by a frame of its boot is final: a genuine boot-5 sync replayed after it
+    (newer than any boot-5 frame taken) is a replay (`auth`), not an undo."""
+    keys = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
+
+    def ring() -> Keyring:
+        return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
+                       peers=keys, frames=FRAMES)
+    cfg = _cfg()
+    py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
+    keys |= ALL_FRAMES
+    router = FleetSender(FrameCodec(), keys=keys, boot=5)
+    price = {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0}
+    script = [router.sync("ER_Price"), router.frame("ER_Price", price)]
+    script += [FleetSender(FrameCodec(), keys=keys, boot=b).sync("ER_Price") for b in (9, 17)]
+    router.frame("ER_Price", price)  # not heard: the router's last boot-5 frame
+    replay = router.sync("ER_Price")  # a genuine boot-5 sync, newer than any frame taken
+    router.restart()
+    script += [router.sync("ER_Price"), router.frame("ER_Price", price), replay,
+               router.frame("ER_Price", price)]
+    _replay_alike(py, c, script)
+    assert py.counters["sync_jump"] == 1  # the one undo, of both advances
+    assert py.counters["resyncs"] == 4  # the first sync, boots 9 and 17, the undo
+    assert py.counters["auth"] == 1  # the replayed boot-5 sync
+    assert py.io.last_freshness(FrameCodec().frame_id("ER_Price")) == (6 << 24) + 1
+
+
 # --------------------------------------------------------------------------- conformance
 
 

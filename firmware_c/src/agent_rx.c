@@ -221,7 +221,8 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
         s->seen = seen_after(s, 1, fv, 1u);
         s->fv = fv;
     }
-    s->flags &= (uint8_t)~BD_RX_LOST;
+    /* AUTH-27: a frame of the new boot: the advance was its sender's own */
+    s->flags &= (uint8_t)~(BD_RX_LOST | BD_RX_BACK);
     uint64_t gap = fv - last - 1u;
     bd_count_add(a, BD_C_LOST_FRAMES, gap > UINT32_MAX ? UINT32_MAX : (uint32_t)gap, f->id);
     return 1;
@@ -317,9 +318,11 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
             fail(a, NULL, f->id, BD_C_AUTH, t);
             return;
         }
-        if (m.boot > expected) {
-            s->back_boot = (uint16_t)fv_boot(s->fv);   /* AUTH-27: where a forged */
-            s->back_count = (uint32_t)(s->fv & FV_COUNT_MASK);   /* advance is undone to */
+        if (m.boot > expected && (s->flags & BD_RX_BACK) == 0u) {
+            /* AUTH-27: where a forged advance is undone to (a second one before a frame
+             * of the new boot keeps the first's) */
+            s->back_boot = (uint16_t)fv_boot(s->fv);
+            s->back_count = (uint32_t)(s->fv & FV_COUNT_MASK);
             s->flags |= BD_RX_BACK;
         }
     }

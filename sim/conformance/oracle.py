@@ -22,7 +22,7 @@ from firmware_py.config import AgentConfig
 from firmware_py.contract import State
 from firmware_py.errors import BessDedError
 from firmware_py.frames import DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name
-from firmware_py.nodeio import HELLO_FRACTION
+from firmware_py.nodeio import SyncSchedule
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
 
@@ -144,10 +144,7 @@ class _Oracle:
             deviation(self.rt)
         # what no tick changes is shared by every clone, not copied (the clones are most
         # of the check's time): the contract tables, the keys, the configuration
-        rt, io = self.rt, self.rt.io
-        self._shared = {id(x): x for x in (
-            codec, keyring, cfg, rt.setpoint, rt._diag_max, rt._mc_max, io._known,
-            io._cyclic, io._verify_key, io._synced_by)}
+        self._shared = {id(x): x for x in (keyring, *self.rt.constant_tables())}
 
     def clone(self) -> _Oracle:
         twin = copy.copy(self)
@@ -390,7 +387,7 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                             last = cut == maybe and g == len(guesses) - 1
                             twin = chain if last else chain.clone()
                             io = twin.rt.io
-                            before = (io._sync_next, io._hello_due, io._hello_after)
+                            before = io.sync_schedule
                             sent = twin.rt.tick(t_guess)
                             diffs = _compare(codec, sent, group, outcome.ticks, step,
                                              t_tick - first_sent, syncs_known)
@@ -479,8 +476,7 @@ def _fingerprint(rt: AgentRuntime) -> tuple:
     hypotheses that differ only in when frames arrived are one (the likeliest kept);
     whether an input was late matters at the tick it is late for, and each tick tries
     that again."""
-    return (rt.state, rt.cstate, rt.price, rt._price_fresh, rt._status_fresh,
-            rt.plant_fault, rt._price_candidate, rt._price_candidate_n, rt.ctrl.kts,
+    return (rt.state, rt.cstate, rt.price, *rt.input_memory(), rt.plant_fault, rt.ctrl.kts,
             rt.ctrl.hts, tuple((s.lam, s.state, s.alive) for s in rt.neighbours.values()),
             tuple(sorted(rt.counters.items())))
 
@@ -495,7 +491,7 @@ def _tick_times(rt: AgentRuntime, prev_t: float, t_tick: float) -> list[float]:
     stale += [t + dt for t, dt in ((rt.price_rx, cfg.price_timeout_s),
                                    (rt.status_rx, cfg.status_timeout_s)) if t is not None]
     # the DUT's clock never goes back: not before this hypothesis's previous tick
-    earliest = max(prev_t - LATE_TICKS * rt.period, rt._now)
+    earliest = max(prev_t - LATE_TICKS * rt.period, rt.now)
     near = sorted(b for b in stale if earliest < b - 1e-6 and b < t_tick)
     return [t_tick, *(b - 1e-6 for b in near)]
 
@@ -620,15 +616,15 @@ def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: i
             rt.state = State(s["State"])
             if rt.lambda_q24 != s["Lambda"]:  # its guard bits are unknown: the wire value's
                 rt.cstate = replace(rt.cstate, lam=fx.widen(s["Lambda"]))
-            mod = rt._mc_max["Resets"] + 1
+            mod = rt.resets_modulo
             if rt.cstate.resets % mod != s["Resets"]:
                 rt.cstate = replace(rt.cstate, resets=rt.cstate.resets
                                     + (s["Resets"] - rt.cstate.resets) % mod)
         elif fid == diag_id:
             values = rt.diag_values()
             for name, got in s.items():
-                want = min(values.get(name, got), rt._diag_max.get(name, got))
-                if name not in values or got == want or got >= rt._diag_max.get(name, 1 << 62):
+                want = min(values.get(name, got), rt.diag_max.get(name, got))
+                if name not in values or got == want or got >= rt.diag_max.get(name, 1 << 62):
                     continue
                 if name == "Resets":
                     rt.cstate = replace(rt.cstate, resets=got)
@@ -637,7 +633,7 @@ def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: i
 
 
 def _sync_slack(rt: AgentRuntime, codec: FrameCodec,
-                before: tuple[float | None, bool, float], sent: Sequence[can.Message],
+                before: SyncSchedule, sent: Sequence[can.Message],
                 group: Sequence[Frame], diffs: list[Mismatch], t: float) -> list[Mismatch]:
     """A sync due exactly on a tick (every ``sync_s``, ``hello_gap`` after a hello) is
     due on either side of it by the clocks' noise: syncs one tick early or late are in
@@ -650,7 +646,8 @@ def _sync_slack(rt: AgentRuntime, codec: FrameCodec,
     ours = any(m.arbitration_id in contract.SYNCED_BY for m in sent)
     slack = 1.5 * rt.period
     if dut and not ours:
-        nxt = [x for x in (io._sync_next, io._hello_after if io._hello_due else None)
+        when = io.sync_schedule
+        nxt = [x for x in (when.next, when.hello_after if when.hello_due else None)
                if x is not None]
         if nxt and min(nxt) - t <= slack:  # the oracle's were due at the next tick
             _adopt_syncs(rt, codec, group)
@@ -660,7 +657,7 @@ def _sync_slack(rt: AgentRuntime, codec: FrameCodec,
         due = [x for x in (sync_next, hello_after if hello_due else None)
                if x is not None and x <= t]
         if due and t - min(due) <= slack:  # the DUT's are due at its next tick
-            io._sync_next, io._hello_due, io._hello_after = before
+            io.sync_schedule = before
             return rest
     return diffs
 
@@ -672,9 +669,7 @@ def _adopt_syncs(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame]) ->
     if not any(f.msg.arbitration_id in contract.SYNCED_BY for f in group):
         return
     t = group[0].t
-    io._hello_due = False
-    io._hello_after = t + HELLO_FRACTION * io.sync_s
-    io._sync_next = t + io.sync_s
+    io.syncs_sent_at(t)
     for f in group:
         synced = contract.SYNCED_BY.get(f.msg.arbitration_id)
         if synced is None:

@@ -359,7 +359,7 @@ class Monitor:
         if verified:
             self.boots[label] = boot
             if last is not None and boot > split(last + 1)[0]:
-                self.back[fid] = last
+                self.back.setdefault(fid, last)  # the first unconfirmed advance's
             if last is None or fv - 1 > last:
                 self.fv.accept(fid, fv - 1, frame=False)
             if last is None or fv - 1 >= last:
@@ -389,6 +389,7 @@ class Monitor:
         fv = self.fv.search(f.frame_id, f.counter, self.windows(f, t), verifies)
         if fv is not None:
             self.fv.accept(f.frame_id, fv)
+            self.back.pop(f.frame_id, None)  # a frame of the new boot: the advance was real
             self.t_last[f.frame_id] = t
             return True
         if self.fv.search_late(f.frame_id, f.counter, self.STALE_WINDOWS, verifies):
