@@ -595,9 +595,9 @@ def test_the_recorder_looks_ahead_only_as_far_as_the_elapsed_time_allows() -> No
     frames for a while, as many as 4 frames per cycle would need, up to MAX_WINDOWS
     (2.3 s of silence: 58 windows, beyond a node's LOST_WINDOWS)."""
     from firmware_py.nodeio import LOST_WINDOWS
-    from sim.run import buslog
+    from sim.run import monitor
 
-    mon = buslog.Monitor({}, None, lambda name: 0.01)
+    mon = monitor.Monitor({}, None, lambda name: 0.01)
     f = FrameCodec().decode(FrameCodec().encode("AGENT_1_MC", {"State": 1, "Resets": 0,
                                                                "Lambda": 0}, 0))
     assert mon.windows(f, 5.0) == LOST_WINDOWS              # nothing known yet

@@ -1,5 +1,10 @@
 """The record of a conformance run (``Frame``, ``Outcome``) and its check against
-the oracle, firmware_py's own agent runtime fed the same frames (``check``)."""
+the oracle, firmware_py's own agent runtime fed the same frames (``check``).
+
+Over 500 lines: the check is one search over hypotheses of the order of events (the
+clones, their fingerprints, the tick-time guesses and the re-synchronisation to the
+device's frames share its state); the record types at the top are its input.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,9 @@
 """The conformance schedule: the steps (``STEPS``, each with the requirements it
-exercises) and the frames the tester sends along them (``plan``)."""
+exercises) and the frames the tester sends along them (``plan``).
+
+Over 500 lines: the steps are one table, read in order beside docs/conformance.md's
+(generated from it); splitting it would part a step from its frames.
+"""
 
 from __future__ import annotations
 

@@ -82,6 +82,9 @@ seconds from the node's first tick; while one is active the flag is forced:
 ``overcurrent`` → FaultOverCurrent, ``voltage`` → FaultVoltage, ``soc`` → FaultSoc
 (flags only, the physics is untouched), ``power_limit`` → the BESS's power is
 clamped to ±50 % of p_max and PowerLimited is set.
+
+Over 500 lines: the node and its physics (batteries, choppers, faults) are one unit,
+stepped together each tick.
 """
 
 from __future__ import annotations

@@ -51,7 +51,7 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
     ``plot``, DIR/bus_run.png. ``time_scale`` only relabels the plot's time axis in
     scenario seconds. ``keys``: the run's node keys (label → key): forged and replayed
     secured frames are then left out of the analysis and reported; ``boot_floors``:
-    each node's lowest boot counter in the run (buslog._Monitor); ``tolerance``: how close
+    each node's lowest boot counter in the run (sim.run.monitor.Monitor); ``tolerance``: how close
     to ρ every dispatching agent's final λ must be for the run to converge (cu/kWh)."""
     facts = facts or RunFacts()
     out.mkdir(parents=True, exist_ok=True)

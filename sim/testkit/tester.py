@@ -33,7 +33,7 @@ from firmware_py.errors import BessDedError, FrameError
 from firmware_py.frames import DecodedFrame, FrameCodec, diag_name
 from firmware_py.node import RX_CAUSES, GuardedBus, frame_fault, rx_cause
 from firmware_py.nodeio import SYNC_S, FleetSender
-from sim.run.buslog import Forged, Monitor
+from sim.run.monitor import Forged, Monitor
 
 __all__ = ["ExpectationError", "Periodic", "Received", "Tester", "TesterError",
            "WallClock", "fleet_keys"]
