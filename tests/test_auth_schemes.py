@@ -111,13 +111,17 @@ def test_what_agent_3s_insider_forges_per_scheme() -> None:
     signed = auth.insider_forges(s["d"], sc)
     assert signed == {"ER_Price": "bound", "ER_Price_Sync": "forge",
                       "ER_Command_Sync": "forge"}
+    # the classic-CAN step: λ stays under agent 1's node key, the links and reports go
+    # pairwise (PLANT_3_Status to the router, AGENT_1_Diag out of reach)
+    assert auth.insider_forges(s["d-min"], sc) == {
+        **signed, mc_name(1): "forge", mc_name(1) + "_Sync": "forge"}
     assert auth.forged_summary({}) == "nothing (own frames only)"
 
 
 def test_scheme_table_structure() -> None:
     rows, data = auth.run(quick=True)
     keys = [s.key for s in auth.SCHEMES]
-    assert len(set(keys)) == len(keys) >= 7
+    assert len(set(keys)) == len(keys) >= 8
     assert len(rows) == len(auth.SCHEMES) and all(len(r) == len(auth.HEADERS) for r in rows)
     assert list(data["schemes"]) == keys
     for v in data["schemes"].values():

@@ -29,6 +29,9 @@ How each scheme puts a message on the wire (``Scheme.mode``, ``occurrence``):
   (TESLA, delayed disclosure); the sender discloses each interval's key one interval
   later, a 16-byte key in 2 classic frames per interval (its fastest cycle).
 
+Scheme ``d-min`` is the step that fits classic CAN: the router signed, the links and
+reports pairwise, λ left under its sender's node key.
+
 Timings are measured on this machine with the libraries the firmware uses (medians of
 batches, ``time.perf_counter``): printed and written, never asserted.
 """
@@ -151,12 +154,13 @@ class Scheme:
     router: str                # mode of the router's broadcasts (price, command)
     fd: bool = False           # CAN FD with the bit-rate switch for the multi-tag frames
     sig: str | None = None     # "ed25519" | "p256" for router = "sign"
+    links: str | None = None   # links and reports; None: "shared" with λ shared, else tags
 
     def mode(self, msg: Message) -> str:
         """How ``msg`` is authenticated: "shared", "tags", "sign" or "tesla"."""
         if msg.role in ("agent", "router"):
             return self.agent if msg.role == "agent" else self.router
-        return "shared" if self.agent == "shared" else "tags"   # links and reports
+        return self.links or ("shared" if self.agent == "shared" else "tags")
 
 
 SCHEMES = (
@@ -169,6 +173,8 @@ SCHEMES = (
            sig="ed25519"),
     Scheme("d-p256", "ECDSA-P256 router + pairwise λ, classic", "tags", "sign",
            sig="p256"),
+    Scheme("d-min", "Ed25519 router + pairwise links, λ shared, classic", "shared", "sign",
+           sig="ed25519", links="tags"),
     Scheme("e", "TESLA (delayed disclosure), classic", "tesla", "tesla"),
 )
 
