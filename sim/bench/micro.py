@@ -188,16 +188,15 @@ def codec_speed(quick: bool) -> Table:
     rows, data = [], {}
     for name, raw in samples.items():
         msg = codec.encode(name, raw, 5)
-        t_enc = median_us(partial(codec.encode, name, raw, 5), n)
-        t_dec = median_us(partial(codec.decode, msg), n)
+        t_enc = _median_us(partial(codec.encode, name, raw, 5), n)
+        t_dec = _median_us(partial(codec.decode, msg), n)
         rows.append([name, f"{t_enc:.2f}", f"{t_dec:.2f}"])
         data[name] = {"encode_us": t_enc, "decode_us": t_dec}
     return Table("Frame codec (firmware_py.frames), µs per frame, median",
                  ["message", "encode", "decode (length + range checks)"], rows, data=data)
 
 
-def median_us(fn: Callable[[], object], n: int, reps: int = 5) -> float:
-    """µs per call of ``fn``: the median over ``reps`` batches of ``n`` calls."""
+def _median_us(fn: Callable[[], object], n: int, reps: int = 5) -> float:
     times = []
     for _ in range(reps):
         t0 = time.perf_counter()
@@ -272,7 +271,7 @@ def secoc_cost(quick: bool) -> Table:
         tx = NodeIO(codec, "agent 2", own=[mc_name(2), diag_name(2)], wanted=[],
                     keys=rings["agent_2"])
         frames = [tx.send(name, raw) for _ in range(n)]
-        t_send = median_us(partial(tx.send, name, raw), n)
+        t_send = _median_us(partial(tx.send, name, raw), n)
         rx_times = []
         for _ in range(5):
             rx = NodeIO(codec, receiver[0], own=receiver[1], wanted=[codec.frame_id(name)],
@@ -384,8 +383,8 @@ def c_controller_step(quick: bool) -> Table:
                   rec: Any = rec) -> None:
             c.run_into(s0, arr, rec)
 
-        us_py = median_us(run_py, 1, reps) / len(xis)
-        us_c = median_us(run_c, 1, reps) / len(xis)
+        us_py = _median_us(run_py, 1, reps) / len(xis)
+        us_c = _median_us(run_c, 1, reps) / len(xis)
         data[kind] = {"python_us": us_py, "c_us": us_c}
         rows.append([kind, f"{us_py:.2f}", f"{us_c * 1000:.1f}", f"{us_py / us_c:.0f}×"])
     return Table("Controller step, firmware_c against firmware_py (fixed point), median",
@@ -565,13 +564,13 @@ def input_checks(quick: bool) -> Table:
     try:
         rows = [
             ["frame_fault (every input of every node)",
-             f"{median_us(partial(frame_fault, genuine[0]), n):.2f}"],
+             f"{_median_us(partial(frame_fault, genuine[0]), n):.2f}"],
             ["a genuine AGENT_2_MC accepted (for scale)", f"{per_frame(genuine, None):.2f}"],
             ["a forged AGENT_2_MC refused (window, then one look-back CMAC)",
              f"{per_frame(forged, 'auth'):.2f}"],
             ["a late genuine AGENT_2_MC counted stale", f"{per_late_frame():.2f}"],
             ["setpoint consistency at the plant: one MC frame and one setpoint",
-             f"{median_us(mc_then_setpoint, n):.2f}"]]
+             f"{_median_us(mc_then_setpoint, n):.2f}"]]
     finally:
         logging.disable(logging.NOTSET)
     return Table("Input checks (issue 19), firmware_py and the plant, µs per input, median",
