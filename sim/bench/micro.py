@@ -33,6 +33,7 @@ class Table:
     rows: list[list[str]]
     note: str = ""
     data: dict[str, Any] = field(default_factory=dict)  # machine-readable, for --json
+    align: str | None = None  # one 'l' or 'r' per column (textfmt.table's default: None)
 
 
 # A bench section: quick flag → Table. Keep `--quick` sections to a few seconds each.
@@ -607,7 +608,7 @@ def auth_schemes(quick: bool) -> Table:
 
     rows, data = run(quick)
     return Table("Authentication schemes (issue 25): cost, bus load at Ts = 10 ms, insider",
-                 HEADERS, rows, data=data,
+                 HEADERS, rows, data=data, align="l" + "r" * (len(HEADERS) - 2) + "l",
                  note=f"bus {data['nominal_bps'] / 1e3:.0f} kbit/s (DBC), FD data phase "
                  f"{data['fd_data_bps'] / 1e6:g} Mbit/s; worst-case stuffing; sign/verify: "
                  "the costliest operation per message (λ: "

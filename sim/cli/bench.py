@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     def show(tab: Table) -> None:
         print()
         print(tab.title)
-        print(table(tab.headers, tab.rows))
+        print(table(tab.headers, tab.rows, tab.align))
         if tab.note:
             print(f"  ({tab.note})")
         sys.stdout.flush()
