@@ -85,6 +85,7 @@ __all__ = [
     "mc_name",
     "parties_of",
     "raw_range",
+    "receivers_of",
     "scale",
     "sender_of",
     "setpoint_name",
@@ -230,7 +231,7 @@ drive the dispatch. A peer's restart shows on them; a report frame's sync adds n
 (and the C agent keeps per-sync state for these only)."""
 
 
-def _receivers(fid: int) -> frozenset[str]:
+def receivers_of(fid: int) -> frozenset[str]:
     """The key labels of a message's DBC receivers (ER -> router, PLANT -> plant)."""
     nodes = {r for s in _DB.get_message_by_frame_id(fid).signals for r in s.receivers}
     return frozenset({"ER": "router", "PLANT": "plant"}.get(n, n.lower()) for n in nodes)
@@ -238,15 +239,15 @@ def _receivers(fid: int) -> frozenset[str]:
 
 LINK_FRAMES = frozenset(
     _CODEC.name_of(fid) for fid in SECURED_IDS
-    if fid not in REPORT_IDS and sum(r.startswith("agent_") for r in _receivers(fid))
-    + ("plant" in _receivers(fid)) == 1)
+    if fid not in REPORT_IDS and sum(r.startswith("agent_") for r in receivers_of(fid))
+    + ("plant" in receivers_of(fid)) == 1)
 """AUTH-28: the secured messages with a single receiving peer, an agent or the plant
 (AGENT_<i>_Setpoint: the plant; PLANT_<i>_Status: agent i, and the router that accounts
 for it): each is signed with a key of its own, held by its sender and its DBC
 receivers only (``secoc.derive_frame_key``), so no third node can forge it. The other
 secured messages are broadcasts (ER_Price, ER_Command, AGENT_<i>_MC) or reports, signed
 with their sender's node key."""
-_PARTIES = {_CODEC.name_of(fid): _receivers(fid)
+_PARTIES = {_CODEC.name_of(fid): receivers_of(fid)
             for fid in SECURED_IDS if _CODEC.name_of(fid) in LINK_FRAMES}
 
 

@@ -33,6 +33,7 @@ class Table:
     rows: list[list[str]]
     note: str = ""
     data: dict[str, Any] = field(default_factory=dict)  # machine-readable, for --json
+    align: str | None = None  # one 'l' or 'r' per column (textfmt.table's default: None)
 
 
 # A bench section: quick flag → Table. Keep `--quick` sections to a few seconds each.
@@ -206,20 +207,18 @@ def _median_us(fn: Callable[[], object], n: int, reps: int = 5) -> float:
     return statistics.median(times)
 
 
-# worst-case length of a classic CAN data frame with an 11-bit ID and 8 data bytes,
-# bit stuffing included: 47 + 64 + floor((34 + 64 − 1)/4) = 135 bits
-FRAME_BITS = 135
-BITRATE = 500_000
-
-
 def bus_load(quick: bool) -> Table:
-    """Frames/s and worst-case bus load at 500 kbit/s from the DBC's cycle times.
+    """Frames/s and worst-case bus load at the DBC's bit rate from its cycle times.
 
-    The MC frame goes out every Ts; the other cycles are the DBC's (fixed).
+    The MC frame goes out every Ts; the other cycles are the DBC's (fixed). Every frame
+    is a classic 8-byte frame with an 11-bit ID: 135 bits worst case (sim.bench.canframe).
     """
     from firmware_py.frames import FrameCodec
+    from sim.bench.auth import dbc_bitrate
+    from sim.bench.canframe import classic_frame_time
 
     codec = FrameCodec()
+    frame_s = classic_frame_time(8, dbc_bitrate())
     db = codec.database
     cycle = {m.name: m.cycle_time for m in db.messages if m.cycle_time}
     per_agent_fixed = sum(1000 / cycle[name] for name in
@@ -237,7 +236,7 @@ def bus_load(quick: bool) -> Table:
                             ("32 agents", 32, 10), ("32 agents", 32, 40)):
         fps = shared + n * (1000 / ts_ms + per_agent_fixed)
         fps_auth = fps + sync_shared + n * sync_per_agent
-        load, load_auth = (f * FRAME_BITS / BITRATE for f in (fps, fps_auth))
+        load, load_auth = (f * frame_s for f in (fps, fps_auth))
         rows.append([label, str(n), str(ts_ms), f"{fps:.0f}", f"{100 * load:.1f} %",
                      f"{fps_auth:.0f}", f"{100 * load_auth:.1f} %"])
         data[f"{label} Ts={ts_ms}ms"] = {"agents": n, "ts_ms": ts_ms, "frames_per_s": fps,
@@ -601,6 +600,22 @@ def event_transmit(quick: bool) -> Table:
                  HEADERS, rows(results), note=note, data=data)
 
 
+def auth_schemes(quick: bool) -> Table:
+    """Every authentication scheme of issue 25 (sim.bench.auth): sign/verify µs measured
+    here, bus load of case 1, case 7 and a 32-agent ring at Ts = 10 ms from the DBC,
+    added latency, and what an insider with agent 3's key file still forges."""
+    from sim.bench.auth import HEADERS, run
+
+    rows, data = run(quick)
+    return Table("Authentication schemes (issue 25): cost, bus load at Ts = 10 ms, insider",
+                 HEADERS, rows, data=data, align="l" + "r" * (len(HEADERS) - 2) + "l",
+                 note=f"bus {data['nominal_bps'] / 1e3:.0f} kbit/s (DBC), FD data phase "
+                 f"{data['fd_data_bps'] / 1e6:g} Mbit/s; worst-case stuffing; sign/verify: "
+                 "the costliest operation per message (λ: "
+                 f"{data['lambda_tags_measured']} tags); +price latency of a signature: "
+                 "its frames, plus its verify on the node (M4 figures cited, ms)")
+
+
 BENCHES: list[Bench] = [
     controller_step,
     c_controller_step,
@@ -611,6 +626,7 @@ BENCHES: list[Bench] = [
     secoc_cost,
     input_checks,
     bus_load,
+    auth_schemes,
     secoc_settling,
     event_transmit,
 ]
@@ -638,11 +654,13 @@ def machine_info() -> dict[str, Any]:
 
 
 def run_benches(quick: bool = False, realtime: bool = False,
-                on_table: Callable[[Table], None] | None = None) -> list[Table]:
-    """Every section of BENCHES (and ``realtime_bus`` with ``realtime``), in order, with the
-    garbage collector off while each runs; ``on_table`` gets each table as it is done."""
+                on_table: Callable[[Table], None] | None = None,
+                only: list[Bench] | None = None) -> list[Table]:
+    """Every section of BENCHES (and ``realtime_bus`` with ``realtime``), or ``only`` those
+    given, in order, with the garbage collector off while each runs; ``on_table`` gets
+    each table as it is done."""
     tables = []
-    for bench in BENCHES + ([realtime_bus] if realtime else []):
+    for bench in only if only is not None else BENCHES + ([realtime_bus] if realtime else []):
         was_enabled = gc.isenabled()
         gc.collect()
         gc.disable()

@@ -1,4 +1,5 @@
-"""`bess-ded bench [--quick]`: how fast the control core and the simulator run.
+"""`bess-ded bench [--quick] [--auth]`: how fast the control core and the simulator run,
+and what each authentication scheme costs.
 
 Not a test (nothing passes or fails): numbers for docs/performance.md, with the
 machine they were measured on. The benchmarks are the library's: sim/bench/micro.py.
@@ -11,6 +12,8 @@ import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from firmware_py.errors import ParameterError
 
 from ._common import one_line_errors
 
@@ -27,18 +30,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="also run cases 1 and 7 as node processes on the bus (~1 min; "
                    "--quick: ~25 s): rates, deadline misses, silences, settling")
+    p.add_argument("--auth", action="store_true",
+                   help="only the authentication schemes (issue 25): sign/verify µs, bus "
+                   "load of cases 1, 7 and a 32-agent ring at Ts = 10 ms, latency, what "
+                   "an insider still forges (a few seconds)")
+    p.add_argument("--png", type=Path, metavar="FILE",
+                   help="also draw the schemes' bus load as a bar chart (PNG)")
     one_line_errors(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from sim.bench.micro import machine_info, run_benches
+    from sim.bench.micro import auth_schemes, machine_info, run_benches
     from sim.report.textfmt import table, write_json
 
     t0 = time.perf_counter()
     info = machine_info()
+    if args.auth and args.realtime:
+        raise ParameterError("--auth", "no --realtime with it (--auth runs the schemes only)",
+                             "--auth --realtime")
     print(f"bess-ded bench{' --quick' if args.quick else ''}"
-          f"{' --realtime' if args.realtime else ''}")
+          f"{' --realtime' if args.realtime else ''}{' --auth' if args.auth else ''}")
     print(f"  python {info['python']}, {info['platform']}")
     print(f"  CPU {info['cpu']} ({info['logical_cpus']} logical), numpy {info['numpy']}, "
           f"load average {info['load_average_1min']} at start")
@@ -46,12 +58,13 @@ def run(args: argparse.Namespace) -> int:
     def show(tab: Table) -> None:
         print()
         print(tab.title)
-        print(table(tab.headers, tab.rows))
+        print(table(tab.headers, tab.rows, tab.align))
         if tab.note:
             print(f"  ({tab.note})")
         sys.stdout.flush()
 
-    tables = run_benches(args.quick, args.realtime, on_table=show)
+    tables = run_benches(args.quick, args.realtime, on_table=show,
+                         only=[auth_schemes] if args.auth else None)
     print()
     print(f"bench took {time.perf_counter() - t0:.1f} s")
     if args.json:
@@ -59,4 +72,10 @@ def run(args: argparse.Namespace) -> int:
             {"title": t.title, "headers": t.headers, "rows": t.rows, "data": t.data}
             for t in tables]})
         print(f"wrote {args.json}")
+    if args.png:
+        from sim.bench.auth import plot
+
+        schemes = [t for t in tables if t.title.startswith("Authentication schemes")]
+        plot(schemes[0].data, args.png)
+        print(f"wrote {args.png}")
     return 0
