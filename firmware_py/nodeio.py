@@ -104,6 +104,7 @@ from .secoc import (
     SYNC_BOOT_JUMP_MAX,
     FreshnessVerifier,
     Keyring,
+    beyond_boot_bound,
     derive_frame_key,
     derive_node_key,
     frame_verifies,
@@ -486,12 +487,10 @@ class NodeIO:
         anything taken of that boot: the sender is alive where the advance said it was
         not, so the advance was forged (a restarted sender never sends its old boot
         again). The sync is taken: the sender recovers at its next sync, or its restart."""
-        back = self._back.get(fid)
-        boot = contract.FRESHNESS.split(fv)[0]
-        if (back is None or fv - 1 <= back or boot >= contract.FRESHNESS.split(last + 1)[0]
-                or boot < contract.FRESHNESS.split(back + 1)[0]):
+        if not contract.FRESHNESS.undoes_advance(fv, last, self._back.get(fid)):
             return False
         del self._back[fid]
+        boot = contract.FRESHNESS.split(fv)[0]
         self._fv.forget(fid)
         self._fv.accept(fid, fv - 1, frame=False)
         self._lost.discard(fid)
@@ -509,7 +508,7 @@ class NodeIO:
         the ``expected`` one is refused (``sync_jump`` and ``auth``): a genuine sender does
         not jump that far, and taking it would lock the sender out until its own boot
         counter passed the forged one."""
-        if boot - expected <= SYNC_BOOT_JUMP_MAX:
+        if not beyond_boot_bound(boot, expected):
             return False
         self.counters["sync_jump"] += 1
         sender = contract.sender_of(name.removesuffix("_Sync"))

@@ -94,6 +94,12 @@ _NODE_RE = re.compile(r"[a-z][a-z0-9_]{0,31}")
 _FRAME_RE = re.compile(r"[A-Z][A-Za-z0-9_]{0,31}")
 
 
+def beyond_boot_bound(boot: int, expected: int) -> bool:
+    """AUTH-27: whether a verified sync's ``boot`` lies too far ahead of the ``expected``
+    one to be taken (the nodes and the recorder's monitor refuse it alike)."""
+    return boot - expected > SYNC_BOOT_JUMP_MAX
+
+
 class SecOCError(BessDedError, ValueError):
     """A SecOC parameter or key is invalid (wrong length, out-of-range value)."""
 
@@ -250,6 +256,17 @@ class FreshnessLayout:
     def split(self, freshness: int) -> tuple[int, int]:
         """(boot, counter) of a freshness value."""
         return freshness >> self.counter_bits, freshness & self.max_counter
+
+    def undoes_advance(self, fv: int, last: int, back: int | None) -> bool:
+        """AUTH-27: whether a verified sync of value ``fv`` undoes the boot advance whose
+        undo point is ``back`` (None: none pending), ``last`` the value taken since: its
+        boot is at or after the one the advance left and before the current one, and it
+        is newer than anything taken of that boot. The nodes and the recorder's monitor
+        decide with this one rule."""
+        if back is None or fv - 1 <= back:
+            return False
+        boot = self.split(fv)[0]
+        return self.split(back + 1)[0] <= boot < self.split(last + 1)[0]
 
 
 DEFAULT_LAYOUT = FreshnessLayout()

@@ -13,7 +13,7 @@ from firmware_py import contract
 from firmware_py.contract import MC_CYCLE_S
 from firmware_py.frames import DecodedFrame
 from firmware_py.nodeio import LOST_WINDOWS
-from firmware_py.secoc import SYNC_BOOT_JUMP_MAX, FreshnessVerifier, frame_verifies
+from firmware_py.secoc import FreshnessVerifier, beyond_boot_bound, frame_verifies
 
 
 def cycle_or_inf(name: str, ts: float) -> float:
@@ -78,8 +78,7 @@ class Monitor:
         boot = f.raw["Boot"]
         last, back = self.fv.last(fid), self.back.get(fid)
         split = contract.FRESHNESS.split
-        if (verified and last is not None and back is not None and fv - 1 > back
-                and split(back + 1)[0] <= boot < split(last + 1)[0]):
+        if verified and last is not None and contract.FRESHNESS.undoes_advance(fv, last, back):
             # AUTH-27, as the nodes do: the sender is alive in the boot a forged sync
             # advanced it from; back to its genuine freshness
             del self.back[fid]
@@ -94,7 +93,7 @@ class Monitor:
         if verified and boot < floor and (last is None or boot < split(last + 1)[0]):
             raise StaleBoot(label, boot, floor)
         known = self.boots.get(label, self.boot_floors.get(label))
-        if verified and known is not None and boot > known + SYNC_BOOT_JUMP_MAX:
+        if verified and known is not None and beyond_boot_bound(boot, known):
             raise SyncJump  # a key holder's forged boot, refused as the nodes do (AUTH-27)
         if verified:
             self.boots[label] = boot
