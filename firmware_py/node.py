@@ -427,10 +427,10 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
     every node; every release ticks them one after the other, each at the clock of its
     own turn, and sends its frames at once (its echo comes back like any frame).
 
-    Deadlines are per node: a node whose turn comes more than Ts/2 after the release
-    counts 1 + floor(late/Ts) misses, as ``run_node`` counts them for one node, so a
-    node delayed by the work of the nodes before it counts what it was delayed by.
-    Periods skipped by the whole loop (the first node's lateness) are skipped by all.
+    Each node keeps its own release and deadline accounting, exactly ``run_node``'s: a
+    node whose turn comes more than Ts/2 after its release (delayed by its own overrun
+    or by the nodes before it) counts 1 + floor(late/Ts) misses and skips the periods
+    it missed; it rejoins the others at a later release (all releases are start + n·Ts).
     A bus input that is not a frame is counted by every node (each socket read it).
     ``run_node`` is this loop with one node."""
     nodes = list(nodes)
@@ -445,11 +445,12 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
         bus = GuardedBus(bus, nodes[0].note if len(nodes) == 1 else note_all, clock)
     period = nodes[0].period
     start = clock()
-    release = start
+    releases = [start] * len(nodes)
     while not stop.is_set():
         now = clock()
         if duration is not None and now - start >= duration:
             break
+        release = min(releases)
         if now < release:
             _deliver(nodes, bus.recv(timeout=min(release - now, 0.05)), clock)
             continue
@@ -460,14 +461,16 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
             if msg is None:
                 break
             _deliver(nodes, msg, clock)
-        late = now - release
-        skipped = int(late // period) if late > period / 2 else 0
         for i, node in enumerate(nodes):
+            if releases[i] > now:
+                continue  # it skipped ahead: it ticks at a later release
             t = now if i == 0 else clock()
-            late = t - release
+            late = t - releases[i]
             if late > period / 2:
-                node.note("deadline_miss", 1 + int(late // period))
+                skipped = int(late // period)
+                node.note("deadline_miss", 1 + skipped)
+                releases[i] += skipped * period
             _send(node, node.tick(t), bus, period)
+            releases[i] += period
         if on_tick is not None:
             on_tick(now - start)
-        release += (skipped + 1) * period

@@ -1,0 +1,143 @@
+"""Several agents in one process (firmware_py.host, node.run_nodes): what each agent sends
+is what it sends alone, deadlines stay per agent, and `up --agents-per-process` runs a
+case with every agent accounted for. Nothing here asserts a wall-clock rate: the
+capacity figures are `bess-ded bench --realtime`'s (docs/performance.md)."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import can
+import pytest
+from test_spec_coverage import CODEC, SENDER, Clock, FakeBus, Recorder, T, msg, price_frame
+
+from firmware_py import fixedpoint as fx
+from firmware_py.config import agent_configs_from_scenario
+from firmware_py.frames import mc_name, status_name
+from firmware_py.host import AcceptedOnly, host_bus
+from firmware_py.node import NodesOnOneBus, run_node, run_nodes
+from firmware_py.runtime import AgentRuntime
+from sim.model.scenario import load_case
+from sim.run import busrun
+
+TS = 0.01
+
+
+def script(seconds: float) -> list[tuple[float, can.Message]]:
+    """What the rest of case 1's fleet sends, on a fixed clock: the price and every
+    plant's status at their 50 ms cycle, every agent's MC each Ts (λ drifting), some of
+    them on the host's own agents' IDs (impersonations, counted alike)."""
+    frames = []
+    for k in range(round(seconds / TS)):
+        t = k * TS + 0.003
+        if k % 5 == 0:
+            frames.append((t, price_frame(0.8)))
+            frames += [(t, SENDER.frame(status_name(i), {
+                "FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
+                "Power": 0.0, "Soc": 50.0}, phys=True)) for i in range(1, 5)]
+        frames += [(t + 0.001 * i, SENDER.frame(mc_name(i), {
+            "State": 1, "Lambda": fx.to_fixed(0.5 + 0.1 * i + 0.001 * k), "Resets": 0}))
+            for i in range(1, 5)]
+    return frames
+
+
+def agents() -> list[AgentRuntime]:
+    return [AgentRuntime(cfg, CODEC) for cfg in agent_configs_from_scenario(load_case(1))]
+
+
+def sent_by(bus: FakeBus, agent: AgentRuntime) -> list[tuple[float, int, bytes]]:
+    own = set(agent.io._sent)  # the IDs it sends, syncs included
+    return [(t, m.arbitration_id, bytes(m.data)) for t, m in bus.sent
+            if m.arbitration_id in own]
+
+
+def test_an_agent_in_a_host_sends_what_it_sends_alone() -> None:
+    """Case 1's four agents on one loop and one (scripted) bus send, frame for frame and
+    at the same instants, what each sends driven alone by run_node on the same frames
+    and clock: only the scheduling is shared, never state."""
+    frames = script(1.5)
+    clock = Clock()
+    host = FakeBus(clock, [(t, copy.copy(m)) for t, m in frames])
+    together = agents()
+    run_nodes(together, host, duration=1.5, clock=clock)
+    for i, agent in enumerate(together):
+        clock = Clock()
+        alone = FakeBus(clock, [(t, copy.copy(m)) for t, m in frames])
+        solo = agents()[i]
+        run_node(solo, alone, duration=1.5, clock=clock)
+        assert sent_by(host, agent) == sent_by(alone, solo) and sent_by(alone, solo)
+        assert agent.counters == solo.counters and solo.state == agent.state
+    assert together[0].counters["impersonation"] > 0  # the script's own-ID frames
+
+
+def test_deadlines_are_per_node_in_a_host() -> None:
+    """Each node of a host keeps run_node's accounting of its own releases: a node whose
+    turn comes > Ts/2 late (delayed by the node before it) counts 1 + floor(late/Ts)
+    misses and skips what it missed; the node that overran counts its own; both hear
+    every frame at the same instant and tick together again afterwards."""
+    clock = Clock()
+    first = Recorder(clock, {2: 0.6, 5: 2.2})  # tick 2 delays the second node by 0.6 T
+    second = Recorder(clock)
+    run_nodes([first, second], FakeBus(clock, [(1.5 * T, msg())]), duration=10 * T,
+              clock=clock)
+    # release 6T comes at 7.2T for the first: 1 + 1 misses, ticks there for 7T
+    assert first.counters == {"deadline_miss": 2}
+    assert first.ticks() == pytest.approx([0, T, 2 * T, 3 * T, 4 * T, 5 * T, 7.2 * T,
+                                           8 * T, 9 * T])
+    # the second: 0.6 T late at 2T (1 miss), 2.2 T late at 5T (3 misses: 5T, 6T, 7T)
+    assert second.counters == {"deadline_miss": 1 + 3}
+    assert second.ticks() == pytest.approx([0, T, 2.6 * T, 3 * T, 4 * T, 7.2 * T, 8 * T,
+                                            9 * T])
+    assert [e for e in first.events if e[0] == "rx"] == [("rx", 1.5 * T)]
+    assert [e for e in second.events if e[0] == "rx"] == [("rx", 1.5 * T)]
+    with pytest.raises(NodesOnOneBus):
+        other = Recorder(clock)
+        other.period = 2 * T
+        run_nodes([first, other], FakeBus(clock), duration=T, clock=clock)
+
+
+def test_a_host_bus_filters_for_each_agent_and_hears_its_own() -> None:
+    """The kernel passes the union of the agents' IDs, each agent gets only its own; on
+    interfaces that do not loop sends back, the host's socket asks for them."""
+    a, b = agents()[:2]
+    kw, own = host_bus({"interface": "socketcan", "channel": "vcan0"},
+                       [a.io.accepted_ids(), b.io.accepted_ids()])
+    assert own and kw["receive_own_messages"]
+    assert {f["can_id"] for f in kw["can_filters"]} == \
+        set(a.io.accepted_ids()) | set(b.io.accepted_ids())
+    kw, own = host_bus({"interface": "udp_multicast"}, [a.io.accepted_ids()] * 2)
+    assert not own and "receive_own_messages" not in kw and "can_filters" not in kw
+    seen: list[int] = []
+    a.on_frame = lambda m, t: seen.append(m.arbitration_id)  # type: ignore[method-assign]
+    node = AcceptedOnly(a, a.io.accepted_ids())
+    for i in (2, 3, 4, 9):
+        node.on_frame(mc_name_frame(i), 0.0)
+    mcs = [CODEC.frame_id(mc_name(i)) for i in (2, 3, 4, 9)]
+    assert seen == [i for i in mcs if i in a.io.accepted_ids()] and seen and seen != mcs
+
+
+def mc_name_frame(i: int) -> can.Message:
+    return SENDER.frame(mc_name(i), {"State": 1, "Lambda": fx.to_fixed(0.8), "Resets": 0})
+
+
+@pytest.mark.realtime
+def test_up_with_agents_per_process_converges_every_agent_accounted(
+        tmp_path: Path, udp_port: int) -> None:
+    """Case 1's four agents in two host processes on udp_multicast: it converges, every
+    agent has its exit code and its ticks in the verdict by name, and the log names the
+    host processes. At any load: deadline misses are `bench --realtime`'s."""
+    sc = load_case(1)
+    bus = busrun.BusOptions("udp_multicast", None, f'{{"port": {udp_port}}}')
+    m = busrun.run(sc, tmp_path, bus, duration=10.0, quiet=True, plot=False,
+                   agents_per_process=2)
+    agents_ = {f"agent_{i}" for i in range(1, 5)}
+    assert set(m["exit_codes"]) == agents_ | {"plant", "router"}
+    assert all(code == 0 for code in m["exit_codes"].values()), m["exit_codes"]
+    assert agents_ <= set(m["node_ticks"]) and min(m["node_ticks"][a] for a in agents_) > 0
+    assert m["final_error"] < 1e-3, m
+    assert m["verdict"]["exit_code"] in (0, 3), m["verdict"]
+    assert sorted(p.name for p in (tmp_path / "logs").glob("host_*.log")) == \
+        ["host_1.log", "host_2.log"]
+    log = (tmp_path / "logs" / "host_1.log").read_text()
+    assert "agent 1: state=RUNNING" in log and "agent 2: state=RUNNING" in log
