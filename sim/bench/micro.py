@@ -19,9 +19,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from firmware_py.controllers import Controller, ControllerState, consensus_error
+
+if TYPE_CHECKING:
+    from sim.bench.realtime import CapacityPlan
 
 
 @dataclass
@@ -638,11 +641,21 @@ def machine_info() -> dict[str, Any]:
 
 
 def run_benches(quick: bool = False, realtime: bool = False,
-                on_table: Callable[[Table], None] | None = None) -> list[Table]:
-    """Every section of BENCHES (and ``realtime_bus`` with ``realtime``), in order, with the
-    garbage collector off while each runs; ``on_table`` gets each table as it is done."""
+                on_table: Callable[[Table], None] | None = None,
+                capacity: CapacityPlan | None = None,
+                only_capacity: bool = False) -> list[Table]:
+    """Every section of BENCHES (and ``realtime_bus`` and the fleet capacity with
+    ``realtime``: ``capacity`` a sim.bench.realtime.CapacityPlan, None: its default), in
+    order, with the garbage collector off while each runs; ``on_table`` gets each table
+    as it is done. ``only_capacity``: the fleet capacity alone."""
+    from sim.bench.realtime import capacity_table, print_run
+
+    def fleets(q: bool) -> Table:
+        return capacity_table(q, capacity, print_run)
+
     tables = []
-    for bench in BENCHES + ([realtime_bus] if realtime else []):
+    benches = [] if only_capacity else BENCHES + ([realtime_bus] if realtime else [])
+    for bench in benches + ([fleets] if realtime or only_capacity else []):
         was_enabled = gc.isenabled()
         gc.collect()
         gc.disable()
