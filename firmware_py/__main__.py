@@ -15,7 +15,7 @@ from .cliargs import duration_s, float_in, int_in, probability
 from .config import load_agent_config
 from .errors import BessDedError, ParameterError
 from .faultinject import FaultyBus, RxFaults, every_frame, neighbour_mc
-from .host import AcceptedOnly, host_bus
+from .host import AcceptedOnly, Routes, host_bus
 from .node import Node, RxTxBus, StopFlag, behind_filter, bus_kwargs, open_bus, run_nodes
 from .nodeargs import (
     add_bus_arguments,
@@ -88,7 +88,8 @@ def run_agent(args: argparse.Namespace) -> int:
     nodes: list[Node] = [AcceptedOnly(a, a.io.accepted_ids()) if own_filters else a
                          for a in agents]
     try:
-        run_nodes(nodes, node_bus, duration=args.duration, stop=stop)
+        run_nodes(nodes, node_bus, duration=args.duration, stop=stop,
+                  route=Routes(nodes, [a.io for a in agents]) if len(agents) > 1 else None)
     finally:
         bus.shutdown()
         for agent in agents:

@@ -382,12 +382,9 @@ class GuardedBus:
         return None
 
 
-def _deliver(nodes: Sequence[Node], msg: can.Message | None,
-             clock: Callable[[], float]) -> None:
-    """Hand ``msg`` to every node in turn, each at the clock of its own delivery, as
-    each node's own socket would have delivered it."""
-    if msg is None:
-        return
+def _deliver(nodes: Sequence[Node], msg: can.Message, clock: Callable[[], float]) -> None:
+    """Hand ``msg`` to each node in turn, each at the clock of its own delivery, as each
+    node's own socket would have delivered it."""
     for node in nodes:
         if msg.is_error_frame:  # a bus event (socketcan error class), not data
             node.note("error_frame")
@@ -421,7 +418,8 @@ class NodesOnOneBus(BessDedError, ValueError):
 
 def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = None,
               stop: StopFlag | None = None, clock: Callable[[], float] = time.monotonic,
-              on_tick: Callable[[float], None] | None = None) -> None:
+              on_tick: Callable[[float], None] | None = None,
+              route: Callable[[can.Message], Sequence[Node]] | None = None) -> None:
     """Drive several nodes of one period on one loop and one ``bus`` (a multi-agent host:
     one process, one socket, instead of one of each per node). Every frame read goes to
     every node; every release ticks them one after the other, each at the clock of its
@@ -432,7 +430,8 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
     or by the nodes before it) counts 1 + floor(late/Ts) misses and skips the periods
     it missed; it rejoins the others at a later release (all releases are start + n·Ts).
     A bus input that is not a frame is counted by every node (each socket read it).
-    ``run_node`` is this loop with one node."""
+    ``route(msg)``: the nodes a frame is handed to (default: all; firmware_py.host.Routes
+    leaves out those it cannot affect). ``run_node`` is this loop with one node."""
     nodes = list(nodes)
     if not nodes or any(n.period != nodes[0].period for n in nodes):
         raise NodesOnOneBus(f"one loop drives nodes of one period, but got periods "
@@ -452,7 +451,9 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
             break
         release = min(releases)
         if now < release:
-            _deliver(nodes, bus.recv(timeout=min(release - now, 0.05)), clock)
+            msg = bus.recv(timeout=min(release - now, 0.05))
+            if msg is not None:
+                _deliver(nodes if route is None else route(msg), msg, clock)
             continue
         # Take what is already queued before ticking: a node whose ticks overrun Ts
         # would otherwise never get back to the branch above and never read its inputs.
@@ -460,7 +461,7 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
             msg = bus.recv(timeout=0)
             if msg is None:
                 break
-            _deliver(nodes, msg, clock)
+            _deliver(nodes if route is None else route(msg), msg, clock)
         for i, node in enumerate(nodes):
             if releases[i] > now:
                 continue  # it skipped ahead: it ticks at a later release

@@ -15,7 +15,7 @@ from test_spec_coverage import CODEC, SENDER, Clock, FakeBus, Recorder, T, msg, 
 from firmware_py import fixedpoint as fx
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.frames import mc_name, status_name
-from firmware_py.host import AcceptedOnly, host_bus
+from firmware_py.host import AcceptedOnly, Routes, host_bus
 from firmware_py.node import NodesOnOneBus, run_node, run_nodes
 from firmware_py.runtime import AgentRuntime
 from sim.model.scenario import load_case
@@ -55,12 +55,15 @@ def sent_by(bus: FakeBus, agent: AgentRuntime) -> list[tuple[float, int, bytes]]
 def test_an_agent_in_a_host_sends_what_it_sends_alone() -> None:
     """Case 1's four agents on one loop and one (scripted) bus send, frame for frame and
     at the same instants, what each sends driven alone by run_node on the same frames
-    and clock: only the scheduling is shared, never state."""
+    and clock, with the same counters: only the scheduling is shared, never state, and
+    the frames a host does not hand an agent (Routes) are ones it would have ignored."""
     frames = script(1.5)
     clock = Clock()
     host = FakeBus(clock, [(t, copy.copy(m)) for t, m in frames])
     together = agents()
-    run_nodes(together, host, duration=1.5, clock=clock)
+    routes = Routes(together, [a.io for a in together])
+    run_nodes(together, host, duration=1.5, clock=clock, route=routes)
+    assert any(len(nodes) < len(together) for nodes in routes._by_id.values())
     for i, agent in enumerate(together):
         clock = Clock()
         alone = FakeBus(clock, [(t, copy.copy(m)) for t, m in frames])
@@ -115,6 +118,27 @@ def test_a_host_bus_filters_for_each_agent_and_hears_its_own() -> None:
         node.on_frame(mc_name_frame(i), 0.0)
     mcs = [CODEC.frame_id(mc_name(i)) for i in (2, 3, 4, 9)]
     assert seen == [i for i in mcs if i in a.io.accepted_ids()] and seen and seen != mcs
+
+
+def test_what_an_agent_ignores_changes_nothing_in_it() -> None:
+    """NodeIO.ignores (what Routes leaves out) names only IDs whose frames ``receive``
+    drops uncounted, once joined: every DBC ID and a few beyond, with any payload."""
+    agent = agents()[0]
+    agent.tick(0.0)                      # its hello: the join window opens ...
+    agent.on_frame(price_frame(0.8), 1.0)  # ... and a frame after it closes it
+    assert not agent.io.joining
+    before = copy.deepcopy(agent.io.counters)
+    ignored = [fid for fid in range(0x800) if agent.io.ignores(fid)]
+    for fid in ignored:
+        frame = can.Message(arbitration_id=fid, data=bytes(range(8)), is_extended_id=False)
+        assert agent.io.receive(frame, 1.0) is None
+    assert agent.io.counters == before
+    near = {n.id for n in agent.cfg.neighbours} | {agent.cfg.id}
+    mcs = {i: CODEC.frame_id(mc_name(i)) for i in range(1, 10)}
+    # the MC of a fleet agent that is no neighbour is ignored; its own, a neighbour's and
+    # one of an agent beyond the fleet (foreign_id) are not
+    assert {mcs[i] for i in range(1, 5) if i not in near} <= set(ignored) != set()
+    assert not {mcs[i] for i in near | {9}} & set(ignored)
 
 
 def mc_name_frame(i: int) -> can.Message:
