@@ -444,12 +444,12 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
         bus = GuardedBus(bus, nodes[0].note if len(nodes) == 1 else note_all, clock)
     period = nodes[0].period
     start = clock()
-    releases = [start] * len(nodes)
+    due = [0] * len(nodes)  # each node's next release, start + due·Ts: exact, so they rejoin
     while not stop.is_set():
         now = clock()
         if duration is not None and now - start >= duration:
             break
-        release = min(releases)
+        release = start + min(due) * period
         if now < release:
             msg = bus.recv(timeout=min(release - now, 0.05))
             if msg is not None:
@@ -463,15 +463,15 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
                 break
             _deliver(nodes if route is None else route(msg), msg, clock)
         for i, node in enumerate(nodes):
-            if releases[i] > now:
+            if start + due[i] * period > now:
                 continue  # it skipped ahead: it ticks at a later release
             t = now if i == 0 else clock()
-            late = t - releases[i]
+            late = t - (start + due[i] * period)
             if late > period / 2:
                 skipped = int(late // period)
                 node.note("deadline_miss", 1 + skipped)
-                releases[i] += skipped * period
+                due[i] += skipped
             _send(node, node.tick(t), bus, period)
-            releases[i] += period
+            due[i] += 1
         if on_tick is not None:
             on_tick(now - start)
