@@ -444,12 +444,12 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
         bus = GuardedBus(bus, nodes[0].note if len(nodes) == 1 else note_all, clock)
     period = nodes[0].period
     start = clock()
-    due = [0] * len(nodes)  # each node's next release, start + due·Ts: exact, so they rejoin
+    releases = [start] * len(nodes)
     while not stop.is_set():
         now = clock()
         if duration is not None and now - start >= duration:
             break
-        release = start + min(due) * period
+        release = min(releases)
         if now < release:
             msg = bus.recv(timeout=min(release - now, 0.05))
             if msg is not None:
@@ -463,15 +463,15 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
                 break
             _deliver(nodes if route is None else route(msg), msg, clock)
         for i, node in enumerate(nodes):
-            if start + due[i] * period > now:
+            if releases[i] > now:
                 continue  # it skipped ahead: it ticks at a later release
             t = now if i == 0 else clock()
-            late = t - (start + due[i] * period)
+            late = t - releases[i]
             if late > period / 2:
                 skipped = int(late // period)
                 node.note("deadline_miss", 1 + skipped)
-                due[i] += skipped
+                releases[i] += skipped * period
             _send(node, node.tick(t), bus, period)
-            due[i] += 1
+            releases[i] += period
         if on_tick is not None:
             on_tick(now - start)
