@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 
 from .cliargs import duration_s, float_in, int_in, probability
 from .config import load_agent_config
@@ -87,6 +88,7 @@ def run_agent(args: argparse.Namespace) -> int:
         node_bus = FaultyBus(node_bus, faults)
     nodes: list[Node] = [AcceptedOnly(a, a.io.accepted_ids()) if own_filters else a
                          for a in agents]
+    wall, cpu = time.monotonic(), time.process_time()
     try:
         run_nodes(nodes, node_bus, duration=args.duration, stop=stop,
                   route=Routes(nodes, [a.io for a in agents]) if len(agents) > 1 else None)
@@ -94,6 +96,11 @@ def run_agent(args: argparse.Namespace) -> int:
         bus.shutdown()
         for agent in agents:
             print(agent.summary(), file=sys.stderr, flush=True)
+        if len(agents) > 1:  # what a host costs, for sizing K (docs/performance.md)
+            wall, cpu = time.monotonic() - wall, time.process_time() - cpu
+            print(f"host of agents {', '.join(str(c.id) for c in configs)}: {cpu:.1f} s of "
+                  f"CPU in {wall:.1f} s ({100 * cpu / max(wall, 1e-9):.0f} % of a core)",
+                  file=sys.stderr, flush=True)
         if isinstance(node_bus, FaultyBus):
             print(node_bus.summary(f"agent {configs[0].id}"), file=sys.stderr, flush=True)
     return 0

@@ -165,3 +165,21 @@ def test_up_with_agents_per_process_converges_every_agent_accounted(
         ["host_1.log", "host_2.log"]
     log = (tmp_path / "logs" / "host_1.log").read_text()
     assert "agent 1: state=RUNNING" in log and "agent 2: state=RUNNING" in log
+
+
+def test_a_host_refuses_a_key_per_config_mismatch_and_fault_flags(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`python -m firmware_py` with two --config: one --key each, and no fault injection
+    (it is per socket); both usage errors, exit 2, before any bus is opened."""
+    from firmware_py import __main__ as agent_main
+
+    paths = []
+    for cfg in agent_configs_from_scenario(load_case(1))[:2]:
+        paths += ["--config", str(tmp_path / f"agent_{cfg.id}.toml")]
+        (tmp_path / f"agent_{cfg.id}.toml").write_text(cfg.to_toml())
+    assert agent_main.main(paths + ["--key", str(tmp_path / "agent_1.key"),
+                                    "--interface", "virtual"]) == 2
+    assert "one key file per --config (2)" in capsys.readouterr().err
+    assert agent_main.main(paths + ["--insecure", "--inject-rx-loss", "0.1",
+                                    "--interface", "virtual"]) == 2
+    assert "faults are injected per agent" in capsys.readouterr().err
