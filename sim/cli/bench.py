@@ -29,8 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="also run cases 1 and 7 as node processes on the bus (~1 min; "
                    "--quick: ~25 s): rates, deadline misses, silences, settling; and the "
-                   "fleet capacity: the agents' missed ticks by fleet size and agents per "
-                   "process, each run --repeats times (median and worst)")
+                   "fleet capacity (~8 min; --quick: ~2 min): the agents' missed ticks by "
+                   "fleet size and agents per process, each run --repeats times (median "
+                   "and worst)")
     f = p.add_argument_group("fleet capacity (with --realtime)")
     f.add_argument("--fleet-sizes", type=int_list, default=(16, 32), metavar="N,...",
                    help="agents per fleet (default: 16,32)")
