@@ -63,6 +63,9 @@ def run_agent(args: argparse.Namespace) -> int:
     from .runtime import AgentRuntime
 
     configs = [load_agent_config(path) for path in args.config]
+    ids = [cfg.id for cfg in configs]
+    if len(set(ids)) != len(ids):  # one identity twice: each would call the other forged
+        raise ParameterError("--config", "the files of distinct agents", ids)
     if args.key is not None and len(args.key) != len(configs):
         raise ParameterError("--key", f"one key file per --config ({len(configs)})",
                              len(args.key))

@@ -167,10 +167,10 @@ def test_up_with_agents_per_process_converges_every_agent_accounted(
     assert "agent 1: state=RUNNING" in log and "agent 2: state=RUNNING" in log
 
 
-def test_a_host_refuses_a_key_per_config_mismatch_and_fault_flags(
+def test_a_host_refuses_keys_not_one_per_config_one_agent_twice_and_fault_flags(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """`python -m firmware_py` with two --config: one --key each, and no fault injection
-    (it is per socket); both usage errors, exit 2, before any bus is opened."""
+    """`python -m firmware_py` with two --config: one --key each, distinct agents, and no
+    fault injection (it is per socket); usage errors, exit 2, before any bus is opened."""
     from firmware_py import __main__ as agent_main
 
     paths = []
@@ -183,3 +183,5 @@ def test_a_host_refuses_a_key_per_config_mismatch_and_fault_flags(
     assert agent_main.main(paths + ["--insecure", "--inject-rx-loss", "0.1",
                                     "--interface", "virtual"]) == 2
     assert "faults are injected per agent" in capsys.readouterr().err
+    assert agent_main.main(paths[:2] * 2 + ["--insecure", "--interface", "virtual"]) == 2
+    assert "the files of distinct agents, but got [1, 1]" in capsys.readouterr().err
