@@ -185,3 +185,31 @@ def test_a_host_refuses_keys_not_one_per_config_one_agent_twice_and_fault_flags(
     assert "faults are injected per agent" in capsys.readouterr().err
     assert agent_main.main(paths[:2] * 2 + ["--insecure", "--interface", "virtual"]) == 2
     assert "the files of distinct agents, but got [1, 1]" in capsys.readouterr().err
+
+
+def test_node_specs_put_the_python_agents_k_to_a_host(tmp_path: Path) -> None:
+    """`up --agents-per-process 5` on case 7 (12 agents): hosts of 5, 5 and 2 agents in
+    agent order, each agent's --config with its own --key, the plant and router alone;
+    an agent's fault flags are refused (they are per socket)."""
+    from sim.model.scenario import to_toml
+    from sim.run.busopts import BusRunError
+    from sim.run.nodeprocs import node_specs
+
+    sc = load_case(7)
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(to_toml(sc))
+    bus = busrun.BusOptions("udp_multicast", None, '{"port": 43299}')
+    specs = node_specs(sc, scenario, tmp_path, bus, keys=tmp_path / "keys",
+                       agents_per_process=5)
+    assert [s.name for s in specs] == ["host_1", "host_2", "host_3", "plant", "router"]
+    assert [len(s.members) for s in specs[:3]] == [5, 5, 2]
+    assert specs[1].members == tuple(f"agent_{i}" for i in range(6, 11))
+    argv = specs[1].argv
+    configs = [argv[i + 1] for i, a in enumerate(argv) if a == "--config"]
+    keys = [argv[i + 1] for i, a in enumerate(argv) if a == "--key"]
+    assert [Path(c).stem for c in configs] == [Path(k).stem for k in keys] == \
+        list(specs[1].members)
+    assert specs[3].nodes == ("plant",) and specs[0].nodes == specs[0].members
+    with pytest.raises(BusRunError, match="takes no fault-injection flags"):
+        node_specs(sc, scenario, tmp_path, bus, extra={"agent_2": ["--inject-rx-loss", "0.1"]},
+                   agents_per_process=2)
