@@ -1,4 +1,6 @@
-"""Run one agent node: ``python -m firmware_py --config agent_2.toml`` (or ``bess-ded agent``).
+"""Run one agent node: ``python -m firmware_py --config agent_2.toml`` (or ``bess-ded agent``),
+or several on one loop and one bus socket: ``--config a1.toml --key a1.key --config a2.toml
+--key a2.key ...`` (firmware_py.host: a host of agents, for more agents than cores).
 
 Kept free of numpy/matplotlib imports so a node starts fast on a small SBC.
 """
@@ -8,20 +10,14 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 
 from .cliargs import duration_s, float_in, int_in, probability
 from .config import load_agent_config
-from .errors import BessDedError
+from .errors import BessDedError, ParameterError
 from .faultinject import FaultyBus, RxFaults, every_frame, neighbour_mc
-from .node import (
-    RxTxBus,
-    StopFlag,
-    behind_filter,
-    bus_kwargs,
-    open_bus,
-    run_node,
-    with_acceptance_filter,
-)
+from .host import AcceptedOnly, Routes, host_bus
+from .node import Node, RxTxBus, StopFlag, behind_filter, bus_kwargs, open_bus, run_nodes
 from .nodeargs import (
     add_bus_arguments,
     add_filter_argument,
@@ -35,8 +31,11 @@ from .nodeargs import (
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The agent program's flags: --config, the key, bus and filter flags,
     --duration, --rt-priority and the fault-injection flags."""
-    p.add_argument("--config", required=True, help="agent TOML file (firmware_py/config.py)")
-    add_key_arguments(p)
+    p.add_argument("--config", required=True, action="append",
+                   help="agent TOML file (firmware_py/config.py); repeated: several agents "
+                   "of one Ts in this process, on one loop and one bus socket, each with "
+                   "its --key in the same order")
+    add_key_arguments(p, repeat=True)
     add_bus_arguments(p)
     add_filter_argument(p)
     p.add_argument("--duration", type=duration_s(), default=None, metavar="S",
@@ -58,33 +57,55 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_agent(args: argparse.Namespace) -> int:
-    """Run one agent node from parsed flags until --duration or SIGINT/SIGTERM;
-    prints its summary (and injected faults) to stderr at exit. Returns the exit code."""
+    """Run the agents of --config (one, or a host of several) from parsed flags until
+    --duration or SIGINT/SIGTERM; prints each one's summary (and injected faults) to
+    stderr at exit. Returns the exit code."""
     from .runtime import AgentRuntime
 
-    cfg = load_agent_config(args.config)
-    agent = AgentRuntime(cfg, keys=keyring_from_args(args, f"agent_{cfg.id}"))
+    configs = [load_agent_config(path) for path in args.config]
+    ids = [cfg.id for cfg in configs]
+    if len(set(ids)) != len(ids):  # one identity twice: each would call the other forged
+        raise ParameterError("--config", "the files of distinct agents", ids)
+    if args.key is not None and len(args.key) != len(configs):
+        raise ParameterError("--key", f"one key file per --config ({len(configs)})",
+                             len(args.key))
+    agents = [AgentRuntime(cfg, keys=keyring_from_args(
+        args, f"agent_{cfg.id}", None if args.key is None else args.key[i]))
+        for i, cfg in enumerate(configs)]
+    faults = RxFaults(args.inject_rx_loss, args.inject_rx_delay, args.inject_rx_jitter,
+                      args.inject_seed,
+                      match=every_frame if args.inject_rx_all else neighbour_mc(configs[0].id),
+                      spare_own=args.inject_rx_all)
+    if len(agents) > 1 and faults.active:
+        raise ParameterError("--inject-*", "one --config (faults are injected per agent, "
+                             "on its own socket)", f"{len(agents)} agents")
     if args.rt_priority:
         set_realtime(args.rt_priority)
     stop = StopFlag()
     stop.install_signal_handlers()
-    kw = with_acceptance_filter(bus_kwargs(args.interface, args.channel, args.bus_config),
-                                agent.io.accepted_ids(), args.acceptance_filter)
+    kw, own_filters = host_bus(bus_kwargs(args.interface, args.channel, args.bus_config),
+                               [a.io.accepted_ids() for a in agents], args.acceptance_filter)
     bus = open_bus(**kw)
-    faults = RxFaults(args.inject_rx_loss, args.inject_rx_delay, args.inject_rx_jitter,
-                      args.inject_seed,
-                      match=every_frame if args.inject_rx_all else neighbour_mc(cfg.id),
-                      spare_own=args.inject_rx_all)
-    node_bus: RxTxBus = behind_filter(bus, kw)
+    node_bus: RxTxBus = behind_filter(bus, kw) if len(agents) == 1 else bus
     if faults.active:
         node_bus = FaultyBus(node_bus, faults)
+    nodes: list[Node] = [AcceptedOnly(a, a.io.accepted_ids()) if own_filters else a
+                         for a in agents]
+    wall, cpu = time.monotonic(), time.process_time()
     try:
-        run_node(agent, node_bus, duration=args.duration, stop=stop)
+        run_nodes(nodes, node_bus, duration=args.duration, stop=stop,
+                  route=Routes(nodes, [a.io for a in agents]) if len(agents) > 1 else None)
     finally:
         bus.shutdown()
-        print(agent.summary(), file=sys.stderr, flush=True)
+        for agent in agents:
+            print(agent.summary(), file=sys.stderr, flush=True)
+        if len(agents) > 1:  # what a host costs, for sizing K (docs/performance.md)
+            wall, cpu = time.monotonic() - wall, time.process_time() - cpu
+            print(f"host of agents {', '.join(str(c.id) for c in configs)}: {cpu:.1f} s of "
+                  f"CPU in {wall:.1f} s ({100 * cpu / max(wall, 1e-9):.0f} % of a core)",
+                  file=sys.stderr, flush=True)
         if isinstance(node_bus, FaultyBus):
-            print(node_bus.summary(f"agent {cfg.id}"), file=sys.stderr, flush=True)
+            print(node_bus.summary(f"agent {configs[0].id}"), file=sys.stderr, flush=True)
     return 0
 
 

@@ -22,7 +22,7 @@ import signal
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Protocol
 
 import can
@@ -382,13 +382,23 @@ class GuardedBus:
         return None
 
 
-def _deliver(node: Node, msg: can.Message | None, clock: Callable[[], float]) -> None:
-    if msg is None:
-        return
-    if msg.is_error_frame:  # a bus event (socketcan error class), not data
-        node.note("error_frame")
-    else:
-        node.on_frame(msg, clock())
+def _deliver(nodes: Sequence[Node], msg: can.Message, clock: Callable[[], float]) -> None:
+    """Hand ``msg`` to each node in turn, each at the clock of its own delivery, as each
+    node's own socket would have delivered it."""
+    for node in nodes:
+        if msg.is_error_frame:  # a bus event (socketcan error class), not data
+            node.note("error_frame")
+        else:
+            node.on_frame(msg, clock())
+
+
+def _send(node: Node, frames: Iterable[can.Message], bus: RxTxBus, period: float) -> None:
+    for frame in frames:
+        try:
+            bus.send(frame, timeout=period)
+        except can.CanError as e:
+            node.note("send_failure")
+            log.warning("send failed for 0x%03X: %s", frame.arbitration_id, e)
 
 
 def run_node(node: Node, bus: RxTxBus, *, duration: float | None = None,
@@ -399,18 +409,51 @@ def run_node(node: Node, bus: RxTxBus, *, duration: float | None = None,
     Send failures (bus buffer full, interface down) are counted by the node
     (``note("send_failure")``) and logged; they never end the loop.
     """
+    run_nodes([node], bus, duration=duration, stop=stop, clock=clock, on_tick=on_tick)
+
+
+class NodesOnOneBus(BessDedError, ValueError):
+    """Nodes that cannot share one loop (none, or periods that differ)."""
+
+
+def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = None,
+              stop: StopFlag | None = None, clock: Callable[[], float] = time.monotonic,
+              on_tick: Callable[[float], None] | None = None,
+              route: Callable[[can.Message], Sequence[Node]] | None = None) -> None:
+    """Drive several nodes of one period on one loop and one ``bus`` (a multi-agent host:
+    one process, one socket, instead of one of each per node). Every frame read goes to
+    every node; every release ticks them one after the other, each at the clock of its
+    own turn, and sends its frames at once (its echo comes back like any frame).
+
+    Each node keeps its own release and deadline accounting, exactly ``run_node``'s: a
+    node whose turn comes more than Ts/2 after its release (delayed by its own overrun
+    or by the nodes before it) counts 1 + floor(late/Ts) misses and skips the periods
+    it missed; it rejoins the others at a later release (all releases are start + n·Ts).
+    A bus input that is not a frame is counted by every node (each socket read it).
+    ``route(msg)``: the nodes a frame is handed to (default: all; firmware_py.host.Routes
+    leaves out those it cannot affect). ``run_node`` is this loop with one node."""
+    nodes = list(nodes)
+    if not nodes or any(n.period != nodes[0].period for n in nodes):
+        raise NodesOnOneBus(f"one loop drives nodes of one period, but got periods "
+                            f"{[n.period for n in nodes]}")
     stop = stop or StopFlag()
     if not isinstance(bus, GuardedBus):
-        bus = GuardedBus(bus, node.note, clock)
-    period = node.period
+        def note_all(cause: str) -> None:
+            for n in nodes:
+                n.note(cause)
+        bus = GuardedBus(bus, nodes[0].note if len(nodes) == 1 else note_all, clock)
+    period = nodes[0].period
     start = clock()
-    release = start
+    releases = [start] * len(nodes)
     while not stop.is_set():
         now = clock()
         if duration is not None and now - start >= duration:
             break
+        release = min(releases)
         if now < release:
-            _deliver(node, bus.recv(timeout=min(release - now, 0.05)), clock)
+            msg = bus.recv(timeout=min(release - now, 0.05))
+            if msg is not None:
+                _deliver(nodes if route is None else route(msg), msg, clock)
             continue
         # Take what is already queued before ticking: a node whose ticks overrun Ts
         # would otherwise never get back to the branch above and never read its inputs.
@@ -418,18 +461,17 @@ def run_node(node: Node, bus: RxTxBus, *, duration: float | None = None,
             msg = bus.recv(timeout=0)
             if msg is None:
                 break
-            _deliver(node, msg, clock)
-        late = now - release
-        if late > period / 2:
-            skipped = int(late // period)
-            node.note("deadline_miss", 1 + skipped)
-            release += skipped * period
-        for frame in node.tick(now):
-            try:
-                bus.send(frame, timeout=period)
-            except can.CanError as e:
-                node.note("send_failure")
-                log.warning("send failed for 0x%03X: %s", frame.arbitration_id, e)
+            _deliver(nodes if route is None else route(msg), msg, clock)
+        for i, node in enumerate(nodes):
+            if releases[i] > now:
+                continue  # it skipped ahead: it ticks at a later release
+            t = now if i == 0 else clock()
+            late = t - releases[i]
+            if late > period / 2:
+                skipped = int(late // period)
+                node.note("deadline_miss", 1 + skipped)
+                releases[i] += skipped * period
+            _send(node, node.tick(t), bus, period)
+            releases[i] += period
         if on_tick is not None:
             on_tick(now - start)
-        release += period

@@ -24,10 +24,11 @@ def add_bus_arguments(p: argparse.ArgumentParser) -> None:
                    '\'{"port": 43200}\' (default: $CAN_CONFIG)')
 
 
-def add_key_arguments(p: argparse.ArgumentParser) -> None:
-    """--key FILE | --insecure, one of them required (docs/security.md)."""
+def add_key_arguments(p: argparse.ArgumentParser, repeat: bool = False) -> None:
+    """--key FILE | --insecure, one of them required (docs/security.md); ``repeat``:
+    --key may be given once per node of the process (a list)."""
     g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--key", metavar="FILE",
+    g.add_argument("--key", metavar="FILE", action="append" if repeat else "store",
                    help="this node's key file from `bess-ded keys --fleet` (owner-only: "
                         "0600); its boot counter is advanced at every start")
     g.add_argument("--insecure", action="store_true",
@@ -35,17 +36,19 @@ def add_key_arguments(p: argparse.ArgumentParser) -> None:
                         "forge frames); prints a warning")
 
 
-def keyring_from_args(args: argparse.Namespace, node: str) -> Keyring:
-    """The keyring of ``node`` (e.g. "agent_3") from --key FILE, or the public insecure
-    one with a warning on stderr. A key file of another node is refused."""
+def keyring_from_args(args: argparse.Namespace, node: str, key: str | None = None) -> Keyring:
+    """The keyring of ``node`` (e.g. "agent_3") from --key FILE (or ``key``, one of a
+    repeated --key), or the public insecure one with a warning on stderr. A key file of
+    another node is refused."""
     if args.insecure:
         print(f"bess-ded: warning: {node} runs --insecure: its frames are signed with the "
               "public demo key and anyone on the bus can forge them (docs/security.md)",
               file=sys.stderr, flush=True)
         return Keyring.insecure_for(node)
-    ring = Keyring.from_file(args.key)
+    key = key or args.key
+    ring = Keyring.from_file(key)
     if ring.node != node:
-        raise KeyFileError(f"--key {args.key}: expected the key file of {node}, but got "
+        raise KeyFileError(f"--key {key}: expected the key file of {node}, but got "
                            f"the one of {ring.node}")
     return ring
 

@@ -19,9 +19,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from firmware_py.controllers import Controller, ControllerState, consensus_error
+
+if TYPE_CHECKING:
+    from sim.bench.realtime import CapacityPlan
 
 
 @dataclass
@@ -653,14 +656,27 @@ def machine_info() -> dict[str, Any]:
             "numpy": numpy.__version__, "load_average_1min": load}
 
 
+def fleet_capacity(plan: CapacityPlan | None = None) -> Bench:
+    """The fleet-capacity section for ``plan`` (sim.bench.realtime; None: its default):
+    missed ticks by fleet size and agents per process, each run repeated."""
+    def fleets(quick: bool) -> Table:
+        from sim.bench.realtime import capacity_table, print_run
+
+        return capacity_table(quick, plan, print_run)
+    return fleets
+
+
 def run_benches(quick: bool = False, realtime: bool = False,
                 on_table: Callable[[Table], None] | None = None,
-                only: list[Bench] | None = None) -> list[Table]:
-    """Every section of BENCHES (and ``realtime_bus`` with ``realtime``), or ``only`` those
-    given, in order, with the garbage collector off while each runs; ``on_table`` gets
-    each table as it is done."""
+                only: list[Bench] | None = None,
+                capacity: CapacityPlan | None = None) -> list[Table]:
+    """Every section of BENCHES (and ``realtime_bus`` and the fleet capacity with
+    ``realtime``: ``capacity`` a sim.bench.realtime.CapacityPlan, None: its default), or
+    ``only`` those given, in order, with the garbage collector off while each runs;
+    ``on_table`` gets each table as it is done."""
+    realtime_parts = [realtime_bus, fleet_capacity(capacity)] if realtime else []
     tables = []
-    for bench in only if only is not None else BENCHES + ([realtime_bus] if realtime else []):
+    for bench in only if only is not None else BENCHES + realtime_parts:
         was_enabled = gc.isenabled()
         gc.collect()
         gc.disable()

@@ -5,17 +5,26 @@ settling measured on the wall clock — is measured here and written to the docs
 machine it ran on, never asserted by a test (the tests assert what holds at any load:
 docs/runs.md). Each run is `bess-ded up`'s own path (``busrun.record``) on a private
 udp_multicast port, or on the bus the caller names.
+
+``capacity``: how many agents run in real time on this host, a process per agent or K
+to a process (firmware_py.host), each fleet size repeated: the median and the worst of
+its missed ticks (issue 24).
 """
 
 from __future__ import annotations
 
+import statistics
 import tempfile
-from dataclasses import replace
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sim.model.scenario import load_case
 from sim.run import busrun
+
+if TYPE_CHECKING:
+    from sim.bench.micro import Table
 
 
 def realtime_run(case: int, seconds: float, bus: busrun.BusOptions | None = None
@@ -45,3 +54,153 @@ def realtime_run(case: int, seconds: float, bus: busrun.BusOptions | None = None
         "anomalies": [a["kind"] for a in m["anomalies"]],
         "exit_code": m["verdict"]["exit_code"],
     }
+
+
+# --------------------------------------------------------------------------- fleet capacity
+
+MISS_LIMIT_PCT = 0.1  # issue 24: a fleet "runs in real time" below this share of missed ticks
+WARMUP_S = 2.0        # after the first price: processes still starting, not counted
+
+
+@dataclass(frozen=True)
+class CapacityPlan:
+    """Which fleets `bench --realtime` sizes up: ``sizes`` agents on a random 4-regular
+    graph (sim.model.generate), each run with the Python agents ``per_process`` to a
+    process (1: a process each), ``repeats`` times, ``seconds`` of price time at Ts =
+    10 ms. ``impl`` "c": firmware_c's node program, a process per agent, on SocketCAN
+    ``channel`` (its only bus)."""
+
+    sizes: tuple[int, ...] = (16, 32)
+    per_process: tuple[int, ...] = (1, 16)
+    repeats: int = 3
+    seconds: float = 14.0
+    impl: str = "py"
+    channel: str = "vcan0"
+
+
+def steady_misses(log_path: Path, n: int, t_first_price: float
+                  ) -> dict[int, tuple[int, int]]:
+    """Per agent, (deadline misses, ticks) from WARMUP_S after the first price to the end,
+    read from the recording: AGENT_i_Diag page 0's DeadlineMisses and the MC frames."""
+    import can
+
+    from firmware_py.frames import FrameCodec, diag_name, mc_name
+
+    codec = FrameCodec()
+    diag = {codec.frame_id(diag_name(i)): i for i in range(1, n + 1)}
+    mc = {codec.frame_id(mc_name(i)): i for i in range(1, n + 1)}
+    start = t_first_price + WARMUP_S
+    first: dict[int, int] = {}
+    last: dict[int, int] = {}
+    ticks = dict.fromkeys(range(1, n + 1), 0)
+    for msg in can.LogReader(str(log_path)):
+        if msg.timestamp < start or msg.is_error_frame:
+            continue
+        i = mc.get(msg.arbitration_id)
+        if i is not None:
+            ticks[i] += 1
+            continue
+        i = diag.get(msg.arbitration_id)
+        if i is not None:
+            f = codec.decode(msg)
+            if f.raw["Page"] == 0:
+                first.setdefault(i, f.raw["DeadlineMisses"])
+                last[i] = f.raw["DeadlineMisses"]
+    return {i: (last.get(i, 0) - first.get(i, 0), ticks[i]) for i in range(1, n + 1)}
+
+
+def capacity_run(n: int, per_process: int, plan: CapacityPlan, seed: int = 0
+                 ) -> dict[str, Any]:
+    """One fleet of ``n`` agents for ``plan.seconds``: its agents' missed ticks in steady
+    state (all of them together, and the worst agent's), the plant's and router's over
+    the whole run, the final error and the exit code; ``did_not_run`` if it never
+    started (a router starved before its first price counts as 100 % missed)."""
+    from sim.model.generate import random_scenario
+
+    sc = random_scenario(n, degree=max(1, min(4, n - 1)), seed=seed,
+                         duration=plan.seconds)
+    c = plan.impl == "c"
+    if c:
+        from sim.cbind.cagent import node_program
+
+        bus = busrun.BusOptions("socketcan", plan.channel)
+    else:
+        bus, _ = busrun.private_port(busrun.BusOptions("udp_multicast"))
+    out: dict[str, Any] = {"impl": plan.impl, "agents": n, "per_process": per_process,
+                           "seconds": plan.seconds}
+    with tempfile.TemporaryDirectory(prefix=f"bess-ded-capacity-{plan.impl}{n}x") as tmp:
+        try:
+            rec = busrun.record(sc, Path(tmp), bus, duration=plan.seconds, quiet=True,
+                                plot=False, agents_per_process=per_process,
+                                c_agents=frozenset(range(1, n + 1)) if c else frozenset(),
+                                c_node=node_program() if c else None)
+        except busrun.BusRunError as e:
+            return {**out, "fleet_miss_pct": 100.0, "worst_agent_miss_pct": 100.0,
+                    "did_not_run": str(e).splitlines()[0]}
+        steady = steady_misses(Path(tmp) / "run.log", n, rec.log.t_first_price or 0.0)
+    m = rec.metrics
+    misses, ticks = sum(x for x, _ in steady.values()), sum(t for _, t in steady.values())
+    whole = {k: 100.0 * m["deadline_misses"][k] / max(t, 1)
+             for k, t in m["node_ticks"].items()}
+    return {**out, "fleet_miss_pct": 100.0 * misses / max(ticks, 1),
+            "steady_misses": misses, "steady_ticks": ticks,
+            "worst_agent_miss_pct": max(100.0 * x / max(t, 1) for x, t in steady.values()),
+            "plant_miss_pct": whole.get("plant"), "router_miss_pct": whole.get("router"),
+            "final_error": m.get("final_error"), "exit_code": m["verdict"]["exit_code"]}
+
+
+def capacity(plan: CapacityPlan, on_run: Callable[[dict[str, Any]], None] | None = None
+             ) -> list[dict[str, Any]]:
+    """Every fleet size of ``plan`` with each agents-per-process, ``plan.repeats`` times:
+    per (size, K) the runs, the median and the worst of the fleet's missed-tick share."""
+    out = []
+    for n in plan.sizes:
+        for k in (1,) if plan.impl == "c" else plan.per_process:
+            runs = []
+            for r in range(plan.repeats):
+                runs.append(capacity_run(n, k, plan, seed=r))
+                if on_run is not None:
+                    on_run(runs[-1])
+            pct = [x["fleet_miss_pct"] for x in runs]
+            out.append({"impl": plan.impl, "agents": n, "per_process": k, "runs": runs,
+                        "median_miss_pct": statistics.median(pct), "worst_miss_pct": max(pct),
+                        "worst_agent_miss_pct": max(x["worst_agent_miss_pct"] for x in runs),
+                        "real_time": statistics.median(pct) < MISS_LIMIT_PCT})
+    return out
+
+
+def capacity_table(quick: bool, plan: CapacityPlan | None = None,
+                   on_run: Callable[[dict[str, Any]], None] | None = None) -> Table:
+    """``capacity`` as a bench section (``--quick``: one run of 8 s per fleet)."""
+    from sim.bench.micro import Table
+
+    plan = plan or CapacityPlan()
+    if quick:
+        plan = replace(plan, repeats=1, seconds=8.0)
+    rows, data = [], []
+    for r in capacity(plan, on_run):
+        data.append(r)
+        exits = sorted({str(x.get("exit_code", "-")) for x in r["runs"]})
+        rows.append([r["impl"], str(r["agents"]), str(r["per_process"]),
+                     str(len(r["runs"])), f"{r['median_miss_pct']:.3f} %",
+                     f"{r['worst_miss_pct']:.3f} %", f"{r['worst_agent_miss_pct']:.2f} %",
+                     "yes" if r["real_time"] else "no", ",".join(exits)])
+    return Table(f"Fleet capacity at Ts = 10 ms ({plan.seconds:g} s per run, "
+                 f"{'udp_multicast' if plan.impl == 'py' else plan.channel})",
+                 ["impl", "agents", "per process", "runs", "missed (median)",
+                  "missed (worst run)", "worst agent", f"< {MISS_LIMIT_PCT} %", "exit"],
+                 rows, note=f"missed: the fleet's agents' deadline misses over their ticks "
+                 f"from {WARMUP_S:g} s after the first price (AGENT_i_Diag, MC frames); "
+                 "a did-not-start run counts 100 %", data={"fleets": data})
+
+
+def print_run(r: dict[str, Any]) -> None:
+    """One capacity run as a progress line."""
+    what = (f"  {r['impl']} {r['agents']} agents, {r['per_process']} per process: ")
+    if "did_not_run" in r:
+        print(what + f"did not run: {r['did_not_run']}", flush=True)
+        return
+    print(what + f"{r['fleet_miss_pct']:.3f} % missed ({r['steady_misses']} of "
+          f"{r['steady_ticks']} ticks), worst agent {r['worst_agent_miss_pct']:.2f} %, "
+          f"plant {r['plant_miss_pct']:.2f} %, router {r['router_miss_pct']:.2f} %, "
+          f"final error {r['final_error']:.1e}, exit {r['exit_code']}", flush=True)

@@ -1,5 +1,4 @@
-"""`bess-ded bench [--quick] [--auth]`: how fast the control core and the simulator run,
-and what each authentication scheme costs.
+"""`bess-ded bench [--quick]`: how fast the control core and the simulator run.
 
 Not a test (nothing passes or fails): numbers for docs/performance.md, with the
 machine they were measured on. The benchmarks are the library's: sim/bench/micro.py.
@@ -16,6 +15,7 @@ from typing import TYPE_CHECKING
 from firmware_py.errors import ParameterError
 
 from ._common import one_line_errors
+from .benchopts import add_capacity_arguments, selected
 
 if TYPE_CHECKING:
     from sim.bench.micro import Table
@@ -29,28 +29,31 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", type=Path, metavar="FILE", help="also write the results as JSON")
     p.add_argument("--realtime", action="store_true",
                    help="also run cases 1 and 7 as node processes on the bus (~1 min; "
-                   "--quick: ~25 s): rates, deadline misses, silences, settling")
+                   "--quick: ~25 s): rates, deadline misses, silences, settling; and the "
+                   "fleet capacity (~8 min; --quick: ~2 min): the agents' missed ticks by "
+                   "fleet size and agents per process, each run --repeats times (median "
+                   "and worst)")
     p.add_argument("--auth", action="store_true",
                    help="only the authentication schemes (issue 25): sign/verify µs, bus "
                    "load of cases 1, 7 and a 32-agent ring at Ts = 10 ms, latency, what "
                    "an insider still forges (a few seconds)")
     p.add_argument("--png", type=Path, metavar="FILE",
                    help="also draw the schemes' bus load as a bar chart (PNG)")
+    add_capacity_arguments(p)
     one_line_errors(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from sim.bench.micro import auth_schemes, machine_info, run_benches
+    from sim.bench.micro import machine_info, run_benches
     from sim.report.textfmt import table, write_json
 
     t0 = time.perf_counter()
+    only, plan = selected(args)
     info = machine_info()
-    if args.auth and args.realtime:
-        raise ParameterError("--auth", "no --realtime with it (--auth runs the schemes only)",
-                             "--auth --realtime")
     print(f"bess-ded bench{' --quick' if args.quick else ''}"
-          f"{' --realtime' if args.realtime else ''}{' --auth' if args.auth else ''}")
+          f"{' --realtime' if args.realtime else ''}{' --auth' if args.auth else ''}"
+          f"{' --capacity-only' if args.capacity_only else ''}")
     print(f"  python {info['python']}, {info['platform']}")
     print(f"  CPU {info['cpu']} ({info['logical_cpus']} logical), numpy {info['numpy']}, "
           f"load average {info['load_average_1min']} at start")
@@ -63,8 +66,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"  ({tab.note})")
         sys.stdout.flush()
 
-    tables = run_benches(args.quick, args.realtime, on_table=show,
-                         only=[auth_schemes] if args.auth else None)
+    tables = run_benches(args.quick, args.realtime, on_table=show, only=only,
+                         capacity=plan)
     print()
     print(f"bench took {time.perf_counter() - t0:.1f} s")
     if args.json:
@@ -76,6 +79,9 @@ def run(args: argparse.Namespace) -> int:
         from sim.bench.auth import plot
 
         schemes = [t for t in tables if t.title.startswith("Authentication schemes")]
+        if not schemes:
+            raise ParameterError("--png", "--png with a run that has the authentication "
+                                 "schemes (plain bench or --auth)", "--png without them")
         plot(schemes[0].data, args.png)
         print(f"wrote {args.png}")
     return 0

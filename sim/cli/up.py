@@ -28,6 +28,8 @@ from .fleetopts import add_run_arguments, plan_run, print_report
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from firmware_py.cliargs import int_in
+
     from ._common import one_line_errors
 
     p = one_line_errors(sub.add_parser(
@@ -41,6 +43,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--c-agents", metavar="I,J,...",
                    help="run these agents on firmware_c, the others on firmware_py "
                    "(SocketCAN only)")
+    p.add_argument("--agents-per-process", type=int_in(1), default=1, metavar="K",
+                   help="run the Python agents K to a process, on one loop and one bus "
+                   "socket each (firmware_py.host): more agents than cores in real time "
+                   "(default: 1, a process per agent; takes no --loss)")
     p.add_argument("--obey-inconsistent", action="store_true",
                    help="the plant follows a setpoint that is not its agent's dispatch rule "
                    "at the λ it publishes (still reported: setpoint_inconsistent); default: "
@@ -89,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
                         plot=not args.no_plot, time_scale=plan.scale, keys=args.keys,
                         insecure=args.insecure, c_agents=c_agents, c_node=c_node,
                         tolerance=args.tolerance, loss=args.loss, loss_seed=args.loss_seed,
+                        agents_per_process=args.agents_per_process,
                         extra={"plant": ["--obey-inconsistent"]} if args.obey_inconsistent
                         else None)
     return print_report(plan, rec)

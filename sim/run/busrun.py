@@ -108,8 +108,8 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
            insecure: bool = False, dut: str | None = None, dut_wait_s: float = 60.0,
            on_ready: Callable[[Path | None], None] | None = None,
            c_agents: frozenset[int] = frozenset(), c_node: Path | None = None,
-           tolerance: float = TOLERANCE, loss: float = 0.0, loss_seed: int = 0
-           ) -> Recording:
+           tolerance: float = TOLERANCE, loss: float = 0.0, loss_seed: int = 0,
+           agents_per_process: int = 1) -> Recording:
     """Run the scenario on the bus for ``duration`` s of price time (default: the
     scenario's). ``extra`` adds argv per node (fault flags),
     ``delays`` starts a node late (s after t = 0), ``actions`` calls
@@ -127,6 +127,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
     any node starts (to tell the operator, or a test, what to give the device).
     ``c_agents`` run firmware_c's node program ``c_node`` instead of firmware_py.
     ``tolerance``: the verdict's bound on the final |λ − ρ| (cu/kWh).
+    ``agents_per_process``: the Python agents K to a process (nodeprocs.node_specs).
 
     ``loss``: the random-loss fault mode (`up --loss`, docs/faults.md): every node started
     here loses each frame it receives but its own echo with probability ``loss``, from
@@ -148,7 +149,7 @@ def record(sc: Scenario, out: Path, bus: BusOptions, duration: float | None = No
             return _record(sc, out, bus, watch, duration, extra, delays, quiet,
                            rt_priority, actions, plot, time_scale, keys, insecure, dut,
                            dut_wait_s, on_ready, c_agents, c_node, tolerance, loss,
-                           loss_seed)
+                           loss_seed, agents_per_process)
     finally:
         watch.shutdown()
 
@@ -191,7 +192,8 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
             dut: str | None, dut_wait_s: float,
             on_ready: Callable[[Path | None], None] | None,
             c_agents: frozenset[int], c_node: Path | None,
-            tolerance: float, loss: float = 0.0, loss_seed: int = 0) -> Recording:
+            tolerance: float, loss: float = 0.0, loss_seed: int = 0,
+            agents_per_process: int = 1) -> Recording:
     out.mkdir(parents=True, exist_ok=True)
     if not 0 <= loss < 1:
         raise BusRunError(f"loss: expected a probability in [0, 1), but got {loss}")
@@ -209,11 +211,12 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
     codec = FrameCodec()
     key_dir = None if insecure else keys or provision_keys(sc, out / "keys")
     specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority, key_dir,
-                       frozenset({dut}) if dut else frozenset(), c_agents, c_node)
+                       frozenset({dut}) if dut else frozenset(), c_agents, c_node,
+                       agents_per_process)
     # read before any node starts, for the nodes this run starts (not a device under
     # test, whose key file is its own): a sync of an earlier boot is then a replay
     # (--insecure senders always run at boot 1: no floor to know)
-    started = {s.name for s in specs}
+    started = {n for s in specs for n in s.nodes}
     boot_floors = (None if key_dir is None else
                    {n: b for n, b in load_boot_floors(key_dir).items() if n in started})
     if key_dir is not None and boot_floors:  # AUTH-21: the nodes take no earlier boot either
@@ -344,7 +347,7 @@ def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration
             elif s.proc is not None and s.proc.pid not in seen_dead \
                     and (code := s.proc.poll()) is not None:
                 seen_dead.add(s.proc.pid)
-                deaths.append((s.name, now - t0, code))
+                deaths.extend((n, now - t0, code) for n in s.nodes)
                 if not quiet:
                     print(("\n" if tty else "") + f"  {s.name} exited with code {code} at "
                           f"t = {now - t0:.1f} s", file=sys.stderr, flush=True)

@@ -37,12 +37,19 @@ RT_PRIORITY = 10
 
 @dataclass
 class NodeSpec:
-    """One node process of a run: its name, argv, start delay and process."""
+    """One node process of a run: its name, argv, start delay and process; ``members``:
+    the agents a host process runs (its exit and death are each of theirs), else none."""
 
     name: str
     argv: list[str]
     delay: float = 0.0            # start this long after `up` starts it (fault tests)
     proc: subprocess.Popen[bytes] | None = None
+    members: tuple[str, ...] = ()
+
+    @property
+    def nodes(self) -> tuple[str, ...]:
+        """The nodes of the run this process is: its members, or itself."""
+        return self.members or (self.name,)
 
 
 def _die_with_parent() -> None:
@@ -64,7 +71,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
                rt_priority: int = RT_PRIORITY, keys: Path | None = None,
                exclude: frozenset[str] = frozenset(),
                c_agents: frozenset[int] = frozenset(),
-               c_node: Path | None = None) -> list[NodeSpec]:
+               c_node: Path | None = None, agents_per_process: int = 1) -> list[NodeSpec]:
     """Argv for every node. Agents and plant first; the router last, since its first
     price frame is t = 0 of the schedule. Every node runs under SCHED_FIFO
     ``rt_priority`` where the OS allows it (0: not), as firmware on an embedded Linux
@@ -74,8 +81,13 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
     test takes their place: `bess-ded restbus`); an agent's configuration file is still
     written, for the device. ``c_agents``: the agents that run the C firmware's node
     program ``c_node`` (firmware_c's bessded-agent, SocketCAN only) from the same
-    configuration and key files."""
+    configuration and key files. ``agents_per_process``: K > 1 runs the Python agents K
+    to a process (``host_1``, ``host_2``, ...: one loop and one bus socket each,
+    firmware_py.host), in agent order; they then take no fault-injection flags."""
     extra = extra or {}
+    if agents_per_process < 1:
+        raise BusRunError(f"agents per process: expected 1 or more, but got "
+                          f"{agents_per_process}")
 
     def key(name: str) -> list[str]:
         return ["--insecure"] if keys is None else ["--key", str(keys / f"{name}.key")]
@@ -85,6 +97,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
     cfg_dir.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m"]
     specs = []
+    hosted: list[tuple[str, list[str]]] = []   # (agent, its --config and key flags)
     for cfg in agent_configs_from_scenario(sc):
         path = cfg_dir / f"agent_{cfg.id}.toml"
         path.write_text(cfg.to_toml())
@@ -98,8 +111,19 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
             specs.append(NodeSpec(name, [str(c_node), "--config", str(path)] + key(name)
                                   + ["--channel", str(bus.resolved().get("channel"))] + rt))
             continue
-        specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)
-                              + bus.argv() + rt + extra.get(name, [])))
+        if agents_per_process == 1:
+            specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)
+                                  + bus.argv() + rt + extra.get(name, [])))
+        elif extra.get(name):
+            raise BusRunError(f"{name}: an agent of a host process (agents per process "
+                              f"{agents_per_process}) takes no fault-injection flags")
+        else:
+            hosted.append((name, ["--config", str(path)] + key(name)))
+    for k in range(0, len(hosted), agents_per_process):
+        group = hosted[k:k + agents_per_process]
+        specs.append(NodeSpec(f"host_{k // agents_per_process + 1}",
+                              py + ["firmware_py"] + [a for _, argv in group for a in argv]
+                              + bus.argv() + rt, members=tuple(n for n, _ in group)))
     for role in SIM_NODES:
         if role in exclude:
             continue
@@ -161,7 +185,8 @@ def _above_the_nodes(rt_priority: int) -> Iterator[None]:
 
 
 def stop_all(specs: list[NodeSpec], rt_priority: int = RT_PRIORITY) -> dict[str, int | None]:
-    """SIGTERM every node, wait for a clean exit, SIGKILL what is left. Returns exit codes.
+    """SIGTERM every node, wait for a clean exit, SIGKILL what is left. Returns exit codes
+    by node (a host's, each of its agents').
     ``rt_priority``: the SCHED_FIFO priority the nodes run at (node_specs)."""
     with _above_the_nodes(rt_priority):
         for s in specs:
@@ -170,14 +195,14 @@ def stop_all(specs: list[NodeSpec], rt_priority: int = RT_PRIORITY) -> dict[str,
     deadline = time.monotonic() + STOP_GRACE_S
     codes: dict[str, int | None] = {}
     for s in specs:
-        if s.proc is None:
-            codes[s.name] = None
-            continue
-        try:
-            codes[s.name] = s.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            s.proc.kill()
-            codes[s.name] = s.proc.wait()
+        code = None
+        if s.proc is not None:
+            try:
+                code = s.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                s.proc.kill()
+                code = s.proc.wait()
+        codes.update(dict.fromkeys(s.nodes, code))
     return codes
 
 

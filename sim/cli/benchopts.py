@@ -1,0 +1,65 @@
+"""`bess-ded bench`'s options beyond the sections themselves: the fleet capacity's plan
+(with --realtime, or --capacity-only) and which sections run."""
+
+from __future__ import annotations
+
+import argparse
+from typing import TYPE_CHECKING
+
+from firmware_py.cliargs import float_in, int_in
+from firmware_py.errors import ParameterError
+
+if TYPE_CHECKING:
+    from sim.bench.micro import Bench
+    from sim.bench.realtime import CapacityPlan
+
+
+def add_capacity_arguments(p: argparse.ArgumentParser) -> None:
+    """The fleet capacity's options (sim.bench.realtime.CapacityPlan)."""
+    f = p.add_argument_group("fleet capacity (with --realtime)")
+    f.add_argument("--fleet-sizes", type=int_list, default=(16, 32), metavar="N,...",
+                   help="agents per fleet (default: 16,32)")
+    f.add_argument("--agents-per-process", type=int_list, default=(1, 16), metavar="K,...",
+                   help="Python agents per process, each fleet run with each (default: 1,16)")
+    f.add_argument("--repeats", type=int_in(1), default=3, metavar="R",
+                   help="runs per fleet and K (default: 3)")
+    f.add_argument("--fleet-seconds", type=float_in(4.0, 3600.0), default=14.0, metavar="S",
+                   help="price time per run (default: 14: 12 s of steady state)")
+    f.add_argument("--fleet-impl", choices=("py", "c"), default="py",
+                   help="firmware_py agents on udp_multicast (default), or firmware_c's node "
+                   "program, a process per agent, on SocketCAN --channel")
+    f.add_argument("--channel", default="vcan0", help="SocketCAN channel of --fleet-impl c")
+    f.add_argument("--capacity-only", action="store_true",
+                   help="the fleet capacity alone: no micro-benchmarks, no cases")
+
+
+def int_list(text: str) -> tuple[int, ...]:
+    """"16,32" → (16, 32): positive integers."""
+    try:
+        out = tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        out = ()
+    if not out or min(out) < 1:
+        raise argparse.ArgumentTypeError(f"expected positive integers like 16,32, but got "
+                                         f"{text!r}")
+    return out
+
+
+def selected(args: argparse.Namespace) -> tuple[list[Bench] | None, CapacityPlan]:
+    """(the sections to run, None: the default set; the capacity plan) from the options:
+    --auth and --capacity-only each run one section alone."""
+    from sim.bench.micro import auth_schemes, fleet_capacity
+    from sim.bench.realtime import CapacityPlan  # noqa: F811 (the type above is for mypy)
+
+    alone = [o for o, on in (("--auth", args.auth), ("--capacity-only", args.capacity_only),
+                             ("--realtime", args.realtime)) if on]
+    if len(alone) > 1 and (args.auth or args.capacity_only):
+        raise ParameterError(alone[0], "one of --auth, --capacity-only, --realtime "
+                             "(the first two run one section alone)", " ".join(alone))
+    plan = CapacityPlan(args.fleet_sizes, args.agents_per_process, args.repeats,
+                        args.fleet_seconds, args.fleet_impl, args.channel)
+    if args.auth:
+        return [auth_schemes], plan
+    if args.capacity_only:
+        return [fleet_capacity(plan)], plan
+    return None, plan
