@@ -147,7 +147,7 @@ class _Oracle:
         rt, io = self.rt, self.rt.io
         self._shared = {id(x): x for x in (
             codec, keyring, cfg, rt.setpoint, rt._diag_max, rt._mc_max, io._known,
-            io._cyclic, io._verify_key, io._synced_by)}
+            io._verify_key, io._synced_by)}
 
     def clone(self) -> _Oracle:
         twin = copy.copy(self)
@@ -578,7 +578,7 @@ def _compare_signals(codec: FrameCodec, e: can.Message, g: can.Message, kind: st
     return [Mismatch(t, tick, step, kind, name, _show(name, value), _show(name, sg.get(name)),
                      raw=(value, sg.get(name)))
             for name, value in se.items()
-            if name not in ("Mac", "Counter", "CRC", "DeadlineMisses", "Boot")
+            if name not in ("Mac", "Counter", "DeadlineMisses", "Boot")
             and sg.get(name) != value]
 
 
@@ -592,13 +592,13 @@ def _show(name: str, raw: Any) -> Any:
 
 # Diag signal → the counter of AgentRuntime.counters it shows (the others are derived)
 _DIAG_COUNTERS = {
-    "RejectedCrc": "crc", "RejectedDlc": "dlc", "RejectedRange": "range",
+    "RejectedDlc": "dlc", "RejectedRange": "range",
     "RejectedUnknownId": "unknown_id", "RejectedImpersonation": "impersonation",
-    "RepeatedCounter": "repeated_counter", "LostFrames": "lost_frames",
+    "LostFrames": "lost_frames",
     "NeighbourTimeouts": "neighbour_timeouts", "PriceTimeouts": "price_timeouts",
     "StatusTimeouts": "status_timeouts", "PlantFaults": "plant_faults",
     "ForeignFrames": "foreign", "ForeignIds": "foreign_id",
-    "InterleavedCounters": "counter_jump", "Untrusted": "untrusted_sources",
+    "Untrusted": "untrusted_sources",
     "ImplausiblePrice": "implausible_price", "ImplausibleLambda": "implausible_lambda",
     "ImplausibleGains": "implausible_gains", "RejectedAuth": "auth",
     "Unsynced": "unsynced", "Resyncs": "resyncs", "Saturations": "saturations"}

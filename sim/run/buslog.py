@@ -474,7 +474,7 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
         kind = codec.kind(f.frame_id)
         if kind == "sync":
             out.syncs += 1
-        if monitor is not None and kind != "e2e":
+        if monitor is not None:
             try:
                 if kind == "sync":
                     monitor.sync(f, msg.data, t)
@@ -524,12 +524,12 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
                 out.series[(f.name, sig)].append((t, f.phys(sig)))
         elif f.name.endswith("_Diag"):
             out.diag[f.agent or 0].update({k: v for k, v in f.raw.items()
-                                           if k not in ("Mac", "CRC", "Counter", "Page")})
+                                           if k not in ("Mac", "Counter", "Page")})
         elif f.name == "ER_Command":
             out.commands.append((t, f.raw["Command"], f.raw["Target"], f.raw["GainK"]))
         elif f.name == "ER_Balance":  # one page's signals
             for sig in f.raw:
-                if sig not in ("Mac", "CRC", "Counter", "Page"):
+                if sig not in ("Mac", "Counter", "Page"):
                     out.series[("balance", sig)].append((t, f.phys(sig)))
     if monitor is not None:
         out.sync_undone.update(monitor.undone)
