@@ -34,7 +34,8 @@ from firmware_py.secoc import SYNC_BOOT_JUMP_MAX, FreshnessVerifier, frame_verif
 from sim.model.scenario import MAX_AGENT_SAMPLES, Scenario
 from sim.model.trajectory import Trajectory
 
-# a message silent this long restarts its counter sequence, as the nodes' trackers do
+# a message silent this long restarts its counter sequence, as a node widens a timed-out
+# sender's freshness window (firmware_py.nodeio.LOST_WINDOWS)
 SEQUENCE_TIMEOUT_CYCLES = TIMEOUT_CYCLES
 # a node is silent when a message of its own is missing for SEQUENCE_TIMEOUT_CYCLES of its
 # cycles and at least this many Ts (the agents' price timeout): shorter stalls of a
