@@ -210,9 +210,9 @@ class NodeIO:
         return k
 
     @property
-    def inputs(self) -> frozenset[int]:
-        """The secured IDs this node uses (``wanted``)."""
-        return self._inputs
+    def inputs(self) -> tuple[int, ...]:
+        """The secured IDs this node uses (``wanted``, in its order)."""
+        return tuple(self._verify_key)
 
     def accepted_ids(self) -> list[int]:
         """The IDs an acceptance filter must pass: what it uses (and the syncs of it), the
