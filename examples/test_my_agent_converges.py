@@ -33,6 +33,6 @@ def test_my_agent_converges(bess_fleet, bess_tester):
         bess_tester.expect(f"AGENT_{i}_MC", timeout_s=60, where=near)
 
     # nothing of the fleet's was rejected as forged or corrupt
-    bess_tester.assert_diagnostics(3, RejectedAuth=0, RejectedCrc=0, Untrusted=0)
+    bess_tester.assert_diagnostics(3, RejectedAuth=0, RejectedDlc=0, Untrusted=0)
     assert bess_tester.rejected["auth"] == 0, bess_tester.summary()
     fleet.assert_alive()

@@ -25,6 +25,7 @@ firmware_c/ beside firmware_py/ and dbc/) builds like the checkout.
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import tempfile
@@ -102,9 +103,6 @@ def contract_header(db: Database) -> tuple[str, str]:
         define(f"BD_{key}_BASE", _id_base(make), f"{pattern} = base + i")
         define(f"BD_{key}_SYNC_BASE", _id_base(lambda j, m=make: m(j) + "_Sync"),
                f"{pattern}_Sync = base + i")
-    define("BD_COUNTER_MODULO", contract.COUNTER_MODULO, "E2E counter modulus")
-    define("BD_COUNTER_STEP_MAX", contract.COUNTER_MODULO // 2,
-           "a larger forward step reads as a step back")
     define("BD_MAC_BITS", contract.MAC_BITS, "truncated CMAC on the wire")
     define("BD_FV_TX_BITS", contract.FV_TX_BITS, "freshness bits on the wire")
     define("BD_FV_COUNT_BITS", contract.FV_COUNT_BITS, "message counter of the FV")
@@ -158,6 +156,15 @@ def contract_header(db: Database) -> tuple[str, str]:
     if unmapped:
         sys.exit(f"gen_contract: src/agent_diag.c (diag_value) has no source for the DBC's "
                  f"{diag_name(1)} signals {', '.join(unmapped)}")
+    # the reserved slots (contract.DIAG_RESERVED, the DBC's mark) are exactly the cases of
+    # diag_value's block that returns 0
+    block = re.search(r"/\* reserved slots .*?\*/((?:\s*case BD_DIAG_SIG_\w+:)+)\s*return 0u;",
+                      diag_c, re.S)
+    zero = set(re.findall(r"BD_DIAG_SIG_(\w+):", block.group(1))) if block else set()
+    if zero != {n.upper() for n in contract.DIAG_RESERVED}:
+        sys.exit(f"gen_contract: src/agent_diag.c (diag_value) returns 0 for "
+                 f"{', '.join(sorted(zero)) or 'nothing'}, but the DBC's reserved "
+                 f"{diag_name(1)} signals are {', '.join(sorted(contract.DIAG_RESERVED))}")
     for k, name in enumerate(diag_signals):
         define(f"BD_DIAG_SIG_{name.upper()}", k, "AGENT_<i>_Diag signal")
     define("BD_N_DIAG_SIGNALS", len(diag_signals), "")

@@ -35,8 +35,6 @@ Example (``bess-ded up`` writes one per agent into DIR/agents/)::
 
 Both timeouts default to 5 cycles of their frame (firmware_py.contract.timeout_s) at
 the controller's Ts: 5 × 50 ms = 0.25 s at Ts = 10 ms, stretched in a time-scaled run.
-Keep them (and neighbour_periods) under 8 cycles for E2E frames: longer, a sender's lost
-frames alias in the 4-bit E2E counter and read as foreign traffic (firmware_py.nodeio).
 An agent's inputs are all secured (SecOC), whose freshness window places up to 15 lost
 frames in a row (AUTH-12): event mode's neighbour timeout goes up to 15 periods.
 
@@ -62,7 +60,7 @@ the timeout stays under the counter's 16-value window (15 lost frames in a row).
     k_max = 2.0
     h_min = 1.0
     h_max = 4.0
-    untrusted_after = 5     # consecutive E2E failures from one source ID ...
+    untrusted_after = 5     # consecutive DLC, range or MAC failures from one source ID ...
     untrusted_s = 1.0       # ... make it untrusted this long (default 1 s × Ts/10 ms)
 
 The safety limits (firmware_py.runtime, firmware_py.nodeio; docs/safety-model.md)
@@ -118,7 +116,7 @@ PRICE_PERSIST = 3                # frames of one new price level that make it ac
 LAMBDA_STEP_GAIN = 10.0          # lambda_step_max = 10·k·Ts (0.1 cu/kWh at k = 1, Ts = 10 ms;
                                  # the largest per-sample |Δλ| of cases 1..7 is 0.024)
 GAIN_LO, GAIN_HI = 0.5, 2.0      # SET_GAINS bounds: × the configured k and h
-UNTRUSTED_AFTER = 5              # consecutive E2E failures (as opendbc's safety layer)
+UNTRUSTED_AFTER = 5              # consecutive receive failures (as opendbc's safety layer)
 UNTRUSTED_S = 1.0                # s at Ts = 10 ms, stretched with Ts
 # W-MSR's F: trimming 2F of at most N_AGENTS_MAX − 1 neighbours leaves one (WMSR-1)
 RESILIENT_F_MAX = (N_AGENTS_MAX - 1) // 2

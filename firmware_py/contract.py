@@ -1,7 +1,7 @@
 """The bus contract in one place: every number the code needs from ``dbc/bess_ded.dbc``.
 
 Nothing here is typed in by hand: frame IDs and the per-agent ID bases, the agent
-limit, cycle times, the E2E counter modulus, the State and Command values and the
+limit, cycle times, the Counter signal's modulus, the State and Command values and the
 signals' raw ranges are read from the DBC (compiled once by ``firmware_py.frames``
 and shared with every codec). A DBC that lacks something this module names fails
 at import, with a ConfigError naming the DBC and the missing item, not later on the
@@ -13,7 +13,7 @@ ticks of that cycle: a message is sent every ``every_ticks(name)`` = round(cycle
 MC cycle) ticks. A node running at another Ts (a time-scaled run: Ts = 10 ms·F)
 therefore stretches every cycle by the same F: ``cycle_s(name, ts)``. Receivers
 time a cyclic sender out after ``TIMEOUT_CYCLES`` of its cycles (``timeout_s``), the
-E2E convention of "a few missed periods".
+AUTOSAR E2E convention of "a few missed periods".
 
 "Active". An agent takes part in the dispatch (its λ enters its neighbours' consensus
 error, its BESS follows its setpoint) iff its State is RUNNING: ``is_active``. Every
@@ -288,11 +288,14 @@ FRESHNESS = FreshnessLayout(FV_BOOT_BITS, FV_COUNT_BITS)
 # An agent's counters (docs/firmware-spec.md section 13) by the names firmware_py counts
 # them under, in the order firmware_c indexes them (BD_C_*, generated from this tuple by
 # firmware_c/gen_contract.py): the one list of both agents and of the node vectors.
+# (No crc, repeated_counter, counter_jump, counter_clash or untrusted: those counted the
+# E2E-only frames' checks, and the DBC has no such frame; their Diag slots are reserved,
+# DIAG_RESERVED.)
 AGENT_COUNTERS: tuple[str, ...] = (
-    "crc", "dlc", "range", "unknown_id", "malformed", "impersonation", "repeated_counter",
+    "dlc", "range", "unknown_id", "malformed", "impersonation",
     "lost_frames", "saturations", "neighbour_timeouts", "price_timeouts", "status_timeouts",
-    "plant_faults", "foreign", "foreign_id", "counter_jump", "counter_clash",
-    "untrusted_sources", "untrusted", "implausible_price", "implausible_lambda",
+    "plant_faults", "foreign", "foreign_id",
+    "untrusted_sources", "implausible_price", "implausible_lambda",
     "implausible_gains", "auth", "unsynced", "resyncs", "deadline_miss", "send_failure",
     "error_frame", "commands", "commands_isolate", "commands_reconnect",
     "price_steps_accepted", "setpoint_limited",
@@ -301,6 +304,12 @@ AGENT_COUNTERS: tuple[str, ...] = (
     "joining",  # AUTH-26: frames of the join window
     "sync_jump",  # AUTH-27: syncs refused for a boot jump (also counted under auth)
 )
+
+DIAG_RESERVED: frozenset[str] = frozenset(
+    s.name for s in _message(diag_name(1)).signals if (s.comment or "").startswith("Reserved"))
+"""The AGENT_<i>_Diag signals the DBC marks reserved (its comment, from tools/gen_dbc.py's
+slot table): always sent as 0, kept so the layout does not move (DIAG-1). They counted the
+checks of E2E-only frames (CRC, rolling counter), which the DBC no longer has."""
 
 
 def sender_of(name: str) -> str:

@@ -49,12 +49,6 @@ class FrameLengthError(FrameError):
     cause = "dlc"
 
 
-class CrcError(FrameError):
-    """A received E2E frame whose CRC does not match (counted as crc)."""
-
-    cause = "crc"
-
-
 class RangeError(FrameError):
     """A received signal outside its DBC range (counted as range)."""
 

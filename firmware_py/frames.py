@@ -1,26 +1,23 @@
-"""The firmware's frame codec: DBC-driven encode/decode with E2E protection.
+"""The firmware's frame codec: DBC-driven encode/decode with the secured frame layout.
 
 Why a codec of its own rather than ``cantools`` ``Message.encode``/``decode`` per
 frame: a node decodes every frame on the bus (a few thousand per second with 32
-agents) in pure Python, and cantools' generic path plus crccheck costs tens of
-microseconds per frame. The DBC is still the only source of the layout: on load
+agents) in pure Python, and cantools' generic path costs tens of microseconds per
+frame. The DBC is still the only source of the layout: on load
 every message is compiled into flat per-ID tables (shift, mask, sign, raw
 range), and the tests check the result byte for byte against cantools.
 
 Contract (see ``dbc/bess_ded.dbc`` and ``tools/gen_dbc.py``):
 
 * classic CAN, 11-bit IDs, DLC 8, Intel signals, raw integers in the firmware;
-* **secured** frames (in the project's DBC every frame: those that can change the
-  dispatch, and the diagnostics and balance that report and account) carry ``Mac`` in
-  bytes 0..2 and the truncated freshness value
-  ``Counter`` in the low nibble of byte 3; the codec only places and reads them, the
-  MAC itself is computed and checked by ``firmware_py.nodeio`` with the sender's key
-  (docs/security.md). ``<name>_Sync`` frames carry ``Mac``, ``Count`` and ``Boot``;
-* an **e2e** frame (a DBC frame without ``Mac``; the project's has none left):
-  byte 0 = CRC-8 SAE J1850 (AUTOSAR E2E profile 1 polynomial, init 0xFF, xorout
-  0xFF) over the CAN ID as 2 little-endian bytes (the data ID) then payload
-  bytes 1..7; the data ID makes a frame replayed under another ID fail the CRC;
-* low nibble of byte 1 = rolling counter 0..15 (checked with ``CounterTracker``);
+* every frame but the syncs is **secured** (those that can change the dispatch, and
+  the diagnostics and balance that report and account): ``Mac`` in bytes 0..2 and the
+  truncated freshness value ``Counter`` in the low nibble of byte 3; the codec only
+  places and reads them, the MAC itself is computed and checked by
+  ``firmware_py.nodeio`` with the sender's key (docs/security.md). ``<name>_Sync``
+  frames carry ``Mac``, ``Count`` and ``Boot``. A DBC message that is neither (no
+  ``Mac``: an E2E-only frame with a CRC, which the project's DBC no longer has) is
+  refused on load;
 * a raw value outside the DBC's [min|max] is rejected (cantools does not check
   on decode).
 
@@ -52,13 +49,11 @@ import cantools
 import cantools.database.errors
 from cantools.database.can import Database, Signal
 from cantools.database.can import Message as DbcMessage
-from crccheck.crc import Crc8SaeJ1850
 
 from dbc import DBC_PATH
 
 from .errors import (
     ConfigError,
-    CrcError,
     EncodeError,
     FrameError,
     FrameLengthError,
@@ -75,13 +70,10 @@ __all__ = [
     "PIN_OFF",
     "PIN_ON",
     "COUNTER_MODULO",
-    "CounterStatus",
-    "CounterTracker",
     "DecodedFrame",
     "FrameCodec",
     "agent_of",
     "diag_name",
-    "e2e_crc",
     "mc_name",
     "setpoint_name",
     "status_name",
@@ -99,9 +91,8 @@ _AGENT_MESSAGES = ("AGENT_{}_MC", "AGENT_{}_Setpoint", "PLANT_{}_Status", "AGENT
                    "AGENT_{}_Diag_Sync")
 _AGENT_NAME = re.compile(r"^(?:AGENT|PLANT)_([1-9][0-9]*)_(?:MC|Setpoint|Status|Diag)(?:_Sync)?$")
 _ER_MESSAGES = ("ER_Price", "ER_Command", "ER_Balance")
-_E2E_SIGNALS = ("Mac", "CRC", "Counter")  # filled in by the codec (Mac: by NodeIO)
+_PROTECTION = ("Mac", "Counter")  # filled in by the codec (Mac: by NodeIO)
 _LAYOUTS = {  # frame kind -> its protection signals' (start, length)
-    "e2e": {"CRC": (0, 8), "Counter": (8, 4)},
     "secured": {"Mac": (0, 24), "Counter": (24, 4)},
     "sync": {"Mac": (0, 24)},
 }
@@ -149,51 +140,6 @@ def agent_of(frame_id: int) -> int | None:
     return None
 
 
-# ---------------------------------------------------------------------------- CRC
-
-
-def _crc8_table(poly: int) -> tuple[int, ...]:
-    table = []
-    for byte in range(256):
-        c = byte
-        for _ in range(8):
-            c = ((c << 1) ^ poly) & 0xFF if c & 0x80 else (c << 1) & 0xFF
-        table.append(c)
-    return tuple(table)
-
-
-_CRC_POLY = 0x1D
-_CRC_INIT = 0xFF
-_CRC_XOROUT = 0xFF
-_CRC_TABLE = _crc8_table(_CRC_POLY)
-
-
-def _crc_register(data: bytes | bytearray, register: int = _CRC_INIT) -> int:
-    """Run bytes through the CRC register (no final XOR), so a prefix can be precomputed."""
-    t = _CRC_TABLE
-    for b in data:
-        register = t[register ^ b]
-    return register
-
-
-def _data_id(frame_id: int) -> bytes:
-    return frame_id.to_bytes(2, "little")
-
-
-def e2e_crc(frame_id: int, data: bytes | bytearray) -> int:
-    """The E2E CRC byte for a frame: CRC-8 SAE J1850 over the ID (2 bytes LE) + data[1:8].
-
-    Equal to ``crccheck.crc.Crc8SaeJ1850.calc(id_le + data[1:8])``; table-driven
-    here because crccheck's pure-Python loop costs ~7 µs per frame.
-    """
-    return _crc_register(bytes(data[1:DLC]), _crc_register(_data_id(frame_id))) ^ _CRC_XOROUT
-
-
-# The table-driven CRC must be the crccheck one (the contract names crccheck).
-if not (_crc_register(b"123456789") ^ _CRC_XOROUT) == Crc8SaeJ1850.calc(b"123456789") == 0x4B:
-    raise ImportError("CRC-8 SAE J1850 table does not match crccheck's check value 0x4B")
-
-
 # ---------------------------------------------------------------------------- compiled layout
 
 # One signal, flattened for the hot loops: (name, shift, mask, sign_bit, raw_min, raw_max).
@@ -207,11 +153,10 @@ class _Frame:
     name: str
     frame_id: int
     agent: int | None
-    kind: str                           # "e2e", "secured" or "sync" (_LAYOUTS)
+    kind: str                           # "secured" or "sync" (_LAYOUTS)
     counter_shift: int                  # start bit of Counter (0 for sync frames: none)
-    crc_seed: int                       # CRC register after the 2 data-ID bytes
-    base: tuple[_Sig, ...]              # decode: every non-multiplexed signal incl. CRC, Counter
-    tx_base: tuple[_Sig, ...]           # encode: base minus CRC and Counter
+    base: tuple[_Sig, ...]              # decode: every non-multiplexed signal incl. Mac, Counter
+    tx_base: tuple[_Sig, ...]           # encode: base minus Mac and Counter
     mux: str | None                     # multiplexer signal name, if any
     pages: Mapping[int, tuple[_Sig, ...]]
     scaling: Mapping[str, tuple[float, float]]  # name -> (scale, offset)
@@ -226,7 +171,7 @@ class _Compiled:
     by_name: Mapping[str, _Frame]
     n_agents: int                  # AGENT_1_MC..AGENT_<n>_MC
     bases: tuple[int, ...]         # ID base of each of _AGENT_MESSAGES (ID = base + i)
-    counter_modulo: int            # 2**length of the E2E Counter signal
+    counter_modulo: int            # 2**length of the Counter signal
 
 
 def _raw_range(sig: Signal) -> tuple[int, int]:
@@ -252,7 +197,8 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
         raise bad(f"expected a classic 11-bit frame of {DLC} bytes, but got ID 0x{m.frame_id:X} "
                   f"length {m.length} extended={m.is_extended_frame} fd={m.is_fd}")
     names = {s.name: s for s in m.signals}
-    kind = "sync" if m.name.endswith("_Sync") else "secured" if "Mac" in names else "e2e"
+    # no third kind: a message without Mac fails the secured layout's check below
+    kind = "sync" if m.name.endswith("_Sync") else "secured"
     for sname, (start, length) in _LAYOUTS[kind].items():
         s = names.get(sname)
         if s is None or (s.start, s.length) != (start, length):
@@ -286,8 +232,8 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
                 pages.setdefault(page, []).append(entry)
         else:
             base.append(entry)
-    # CRC and Counter first, then by start bit: the order raw dicts and errors list them in.
-    base.sort(key=lambda e: (_E2E_SIGNALS.index(e[0]) if e[0] in _E2E_SIGNALS else 3, e[1]))
+    # Mac and Counter first, then by start bit: the order raw dicts and errors list them in.
+    base.sort(key=lambda e: (_PROTECTION.index(e[0]) if e[0] in _PROTECTION else 3, e[1]))
     named = _AGENT_NAME.match(m.name)
     agent = int(named.group(1)) if named else None
     return _Frame(
@@ -296,9 +242,8 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
         agent=agent,
         kind=kind,
         counter_shift=names["Counter"].start if "Counter" in names else 0,
-        crc_seed=_crc_register(_data_id(m.frame_id)),
         base=tuple(base),
-        tx_base=tuple(e for e in base if e[0] not in _E2E_SIGNALS),
+        tx_base=tuple(e for e in base if e[0] not in _PROTECTION),
         mux=mux,
         pages={p: tuple(sigs) for p, sigs in pages.items()},
         scaling=scaling,
@@ -406,11 +351,12 @@ _DEFAULT = _load(DBC_PATH)
 N_AGENTS_MAX = _DEFAULT.n_agents
 """Agents the DBC defines frames for (AGENT_1..AGENT_<N_AGENTS_MAX>)."""
 COUNTER_MODULO = _DEFAULT.counter_modulo
-"""The E2E rolling counter counts modulo 2**(length of the Counter signal)."""
+"""A secured frame's ``Counter`` (the low bits of its freshness value) counts modulo
+2**(length of the Counter signal)."""
 COUNTER_STEP_MAX = COUNTER_MODULO // 2
-"""The largest forward step (1 + lost frames) one sender's counter can take between two
-frames a receiver sees: more reads as a step backwards, i.e. a second sender on the ID or
-a replay (every receiver times a sender out long before it loses that many frames)."""
+"""The largest forward step (1 + lost frames) of one sender's ``Counter`` between two
+frames a recorder sees that it still reads as frames lost (``sim.run.buslog``'s sequence
+statistics); more reads as a step backwards, i.e. out of sequence."""
 AGENT_BASES = _DEFAULT.bases
 MC_BASE, SETPOINT_BASE, STATUS_BASE, DIAG_BASE = AGENT_BASES[:4]
 
@@ -420,9 +366,10 @@ MC_BASE, SETPOINT_BASE, STATUS_BASE, DIAG_BASE = AGENT_BASES[:4]
 
 @dataclass(frozen=True, slots=True)
 class DecodedFrame:
-    """A received frame that passed every check: known ID, DLC 8, CRC, raw ranges.
+    """A received frame that passed every check of the codec: known ID, DLC 8, raw ranges
+    (the MAC and freshness are NodeIO's).
 
-    ``raw`` holds every signal present (including ``CRC`` and ``Counter``; for
+    ``raw`` holds every signal present (including ``Mac`` and ``Counter``; for
     the multiplexed diag frame, ``Page`` and that page's signals only) as raw
     integers, which is what the fixed-point firmware uses. ``phys`` scales on
     demand for the simulator and logs.
@@ -451,66 +398,6 @@ class DecodedFrame:
         """The DBC choice name of an enum signal's value (e.g. State → "RUNNING"), else None."""
         table = self._frame.choices.get(signal)
         return None if table is None else table.get(self.raw[signal])
-
-
-# ---------------------------------------------------------------------------- E2E counter
-
-
-@dataclass(frozen=True, slots=True)
-class CounterStatus:
-    """Result of one E2E counter check.
-
-    new_data: False when the counter repeats the last accepted one (a stale or
-    replayed frame: use nothing from it). lost: frames skipped since the last
-    accepted one, (c - last - 1) mod COUNTER_MODULO; 0 on the first frame.
-    """
-
-    new_data: bool
-    lost: int
-
-
-_FIRST = CounterStatus(True, 0)
-_REPEATED = CounterStatus(False, 0)
-_LOST = tuple(CounterStatus(True, n) for n in range(COUNTER_MODULO - 1))
-
-
-class CounterTracker:
-    """E2E receive check of one data ID's rolling counter (one instance per sender frame).
-
-    A 4-bit counter cannot tell 1 lost frame from 17: gaps of 16 or more frames
-    alias. Pair it with a reception timeout, and call ``reset()`` when the
-    sender times out so the first frame after it comes back is not counted as
-    a loss.
-    """
-
-    __slots__ = ("_last",)
-
-    def __init__(self) -> None:
-        self._last: int | None = None
-
-    @property
-    def last(self) -> int | None:
-        """The last accepted counter, None before the first frame (or after reset)."""
-        return self._last
-
-    def reset(self) -> None:
-        """Forget the last counter: the next one is taken as a first."""
-        self._last = None
-
-    def update(self, counter: int) -> CounterStatus:
-        """Check E2E ``counter`` against the last accepted one: new data or a repeat,
-        and how many frames were lost in between; remembers it."""
-        if not 0 <= counter < COUNTER_MODULO:
-            raise EncodeError("counter", f"an E2E counter in 0..{COUNTER_MODULO - 1}", counter)
-        last = self._last
-        if last is None:
-            self._last = counter
-            return _FIRST
-        delta = (counter - last) % COUNTER_MODULO
-        if delta == 0:
-            return _REPEATED
-        self._last = counter
-        return _LOST[delta - 1]
 
 
 # ---------------------------------------------------------------------------- codec
@@ -560,7 +447,7 @@ def _pin_rule(db: Database) -> tuple[int, int] | None:
 
 
 class FrameCodec:
-    """Encode and decode every frame of the DBC, with E2E CRC and raw range checks.
+    """Encode and decode every frame of the DBC, with the layout and raw range checks.
 
     The DBC is loaded (strict) and compiled once per file and shared by every
     codec in the process, so creating one codec per agent is cheap.
@@ -599,8 +486,8 @@ class FrameCodec:
         return self._ids
 
     def kind(self, frame_id: int) -> str:
-        """"secured" (MAC and truncated freshness), "sync" (full freshness under a MAC)
-        or "e2e" (CRC-8 and rolling counter): how the frame is protected."""
+        """"secured" (MAC and truncated freshness) or "sync" (full freshness under a MAC):
+        how the frame is protected."""
         f = self._by_id.get(frame_id)
         if f is None:
             raise UnknownFrameError(f"0x{frame_id:03X}: expected an ID defined in the DBC, "
@@ -665,8 +552,8 @@ class FrameCodec:
             detail = "; ".join(p for p in (
                 f"missing {', '.join(missing)}" if missing else "",
                 f"not in this frame {', '.join(extra)}" if extra else "") if p)
-            raise EncodeError(f.name, f"exactly the signals {', '.join(names)} (CRC and Counter "
-                              f"are filled in by the codec) [{detail}]", sorted(given))
+            raise EncodeError(f.name, f"exactly the signals {', '.join(names)} (Mac and Counter "
+                              f"are filled in by the sender) [{detail}]", sorted(given))
 
     @staticmethod
     def _check_counter(f: _Frame, counter: Any) -> int:
@@ -679,23 +566,16 @@ class FrameCodec:
             raise EncodeError(f"{f.name}.Counter", f"an int in 0..{COUNTER_MODULO - 1}", counter)
         return c
 
-    def _finish(self, f: _Frame, body: bytes) -> can.Message:
-        if f.kind != "e2e":  # the Mac is NodeIO's (it holds the keys)
-            return can.Message(arbitration_id=f.frame_id, is_extended_id=False, data=body,
-                               check=True)
-        c = f.crc_seed
-        t = _CRC_TABLE
-        for b in body[1:DLC]:
-            c = t[c ^ b]
-        data = bytearray(body)
-        data[0] = c ^ _CRC_XOROUT
-        return can.Message(arbitration_id=f.frame_id, is_extended_id=False, data=data,
+    @staticmethod
+    def _finish(f: _Frame, body: bytes) -> can.Message:
+        """The frame with its Mac bytes 0 (NodeIO signs it: it holds the keys)."""
+        return can.Message(arbitration_id=f.frame_id, is_extended_id=False, data=body,
                            check=True)
 
     def encode(self, name: str, raw: Mapping[str, int], counter: int) -> can.Message:
         """Build a frame from RAW integer signal values (what the fixed-point firmware holds).
 
-        ``raw`` must name exactly the frame's signals except CRC and Counter (for
+        ``raw`` must name exactly the frame's signals except Mac and Counter (for
         a diag frame: ``Page`` and that page's signals). Each value must be an
         integer inside the DBC's raw range: nothing is clipped or wrapped, so a
         saturating counter must be saturated by the caller. Raises EncodeError.
@@ -751,7 +631,7 @@ class FrameCodec:
     def decode(self, msg: can.Message) -> DecodedFrame:
         """Check and decode a received frame. Raises a FrameError subclass on rejection.
 
-        Order of checks: frame kind, known ID, DLC, CRC, raw ranges. Whatever
+        Order of checks: frame kind, known ID, DLC, raw ranges. Whatever
         fails first decides the ``cause`` the runtime counts.
         """
         fid = msg.arbitration_id
@@ -770,15 +650,6 @@ class FrameCodec:
         if msg.dlc != DLC or len(data) != DLC:
             got = msg.dlc if msg.dlc == len(data) else f"{msg.dlc} with {len(data)} data bytes"
             raise FrameLengthError(f"{f.name} (0x{fid:03X}): expected DLC {DLC}, but got {got}")
-        if f.kind == "e2e":  # secured frames: NodeIO checks the Mac
-            c = f.crc_seed
-            t = _CRC_TABLE
-            for b in data[1:DLC]:
-                c = t[c ^ b]
-            c ^= _CRC_XOROUT
-            if c != data[0]:
-                raise CrcError(f"{f.name} (0x{fid:03X}): expected CRC 0x{c:02X}, but got "
-                               f"0x{data[0]:02X}")
         x = int.from_bytes(data, "little")
         raw: dict[str, int] = {}
         _unpack(f.name, f.base, x, raw)

@@ -1,12 +1,14 @@
-"""The frame seam every node shares: receive checks and E2E transmit.
+"""The frame seam every node shares: receive checks and secured transmit.
 
 Agents, the plant and the router all receive the same way — reject what is not a
 classic 11-bit data frame, tell their own frames echoed back (udp_multicast always
 echoes) from a sender impersonating them, ignore DBC frames that are not for them,
-count IDs the DBC does not define, decode with the CRC/DLC/range checks, then run the
-E2E counter check — and they all transmit with a rolling counter per message.
-``NodeIO`` does that once. Every rejection is counted in ``counters`` under its
-cause, its reason kept in ``last_error``, and the first few logged in full.
+count IDs the DBC does not define, decode with the DLC/range checks, then verify the
+MAC and freshness — and they all transmit signed frames with a freshness value per
+message. Every input is a secured frame (the DBC has no E2E-only frame: no CRC, no
+rolling-counter rules). ``NodeIO`` does that once. Every rejection is counted in
+``counters`` under its cause, its reason kept in ``last_error``, and the first few
+logged in full.
 
 Foreign traffic: frames that cannot come from the node's own fleet are counted under
 ``foreign`` and under one of these causes (their data is never used):
@@ -14,32 +16,17 @@ Foreign traffic: frames that cannot come from the node's own fleet are counted u
 * ``impersonation``: a frame on one of the node's own IDs that it did not send;
 * ``foreign_id``: a per-agent DBC frame of an agent outside the run (AGENT_9_MC in a
   4-agent run), when the node knows the fleet size (counted before any decode: no
-  node of the run sends on that ID, whatever its payload);
-* ``counter_jump``: on a cyclic ID the node receives, a counter that steps forward by
-  more than half the modulus (9..15 of 16), i.e. reads as a step backwards: two
-  interleaved sequences. A single sender needs more than 7 consecutive lost frames to
-  do that, and every receiver times a sender out (and resets its tracker) long before
-  (3 MC periods, 5 cycles of the other frames), so a restarted node is not foreign.
-  The tracker re-synchronises on the jumped frame, so a sender that really restarted
-  loses one frame;
-* ``counter_clash``: on a cyclic ID, the last accepted counter again with a different
-  payload (a single sender never repeats a counter with new data).
+  node of the run sends on that ID, whatever its payload).
 
-Untrusted sources (docs/safety-model.md): ``untrusted_after`` (5, as opendbc's safety
-layer) consecutive E2E failures — CRC, DLC, range, ``counter_jump``, ``counter_clash``,
-``auth``, and the range checks a node runs after decoding (``fail``) — on one source ID
-make that ID untrusted for ``untrusted_s`` (1 s at Ts = 10 ms): an alarm
-(``untrusted_sources`` counts the verdicts, logged at warning level, ``last_safety``
-names the ID). An E2E-only frame on an untrusted ID (none in the project's DBC since
-the reports were signed; a DBC may still define one) is then rejected under
-``untrusted`` before decoding. A secured frame is not: its MAC proves its sender frame
-by frame, so the genuine sender's frames keep being used while a forger's keep failing
-(else a forger could silence any sender with five bad frames). A frame accepted before
-the streak reaches the limit resets it; when the time is up the ID starts with a clean
-streak.
-
-ER_Command is an event frame with no timeout, so its counter may legitimately restart
-(a restarted router) at any value: the two counter rules apply to cyclic IDs only.
+Untrusted sources (docs/safety-model.md, RX-13): ``untrusted_after`` (5, as opendbc's
+safety layer) consecutive failures — DLC, range, ``auth``, and the range checks a node
+runs after decoding (``fail``) — on one source ID make that ID untrusted for
+``untrusted_s`` (1 s at Ts = 10 ms): an alarm (``untrusted_sources`` counts the
+verdicts, logged at warning level, ``last_safety`` names the ID). Frames on it are not
+blocked: a secured frame's MAC proves its sender frame by frame, so the genuine
+sender's frames keep being used while a forger's keep failing (else a forger could
+silence any sender with five bad frames). A frame accepted before the streak reaches
+the limit resets it; when the time is up the ID starts with a clean streak.
 
 Authentication (docs/security.md). Secured frames (``contract.SECURED_IDS``: price,
 command, MC, setpoint, status) are signed on ``send`` with the node's key and a
@@ -47,7 +34,7 @@ freshness value Boot ‖ Count per frame ID (the Counter signal is its low 4 bit
 checked on ``receive`` with the claimed sender's verification key from the node's
 ``Keyring``: the full freshness value is rebuilt from the last one accepted on that
 ID (window of 16) and the MAC must verify, else the frame is rejected under ``auth``
-(an E2E cause: it adds to the untrusted streak, and names the claimed sender in
+(a streak cause: it adds to the untrusted streak, and names the claimed sender in
 ``last_safety``). Before the first ``<name>_Sync`` of a sender, its frames are
 rejected under ``unsynced``. Syncs move the state forward only; each node sends
 its own at start, every ``sync_s``, and again when it hears a peer (re)start, so a
@@ -75,7 +62,7 @@ recent freshness value at or below the last accepted one that has its low bits
 only on frames already rejected), unless a frame with that value was accepted (then
 it is a replay or a duplicate: ``auth``, no CMAC). If its MAC verifies there, it is its
 sender's genuine frame delivered late or out of order (skipped as lost, then
-delivered): counted ``stale``, never used, not an E2E failure (no untrusted streak), not
+delivered): counted ``stale``, never used, not a streak cause (no untrusted streak), not
 ``auth``. Only a frame that verifies nowhere, or repeats an accepted one, is ``auth``.
 """
 
@@ -89,15 +76,8 @@ from typing import Any, NamedTuple
 import can
 
 from . import contract
-from .errors import ConfigError
-from .frames import (
-    COUNTER_MODULO,
-    COUNTER_STEP_MAX,
-    CounterTracker,
-    DecodedFrame,
-    FrameCodec,
-    agent_of,
-)
+from .errors import ConfigError, EncodeError
+from .frames import DecodedFrame, FrameCodec, agent_of
 from .secoc import (
     INSECURE_BOOT,
     INSECURE_MASTER,
@@ -119,10 +99,10 @@ ECHO_DEPTH = 4  # own frames remembered to recognise their echo (an agent: BD_EC
 # load an echo came back behind 4 later sends of its ID (a false impersonation, CI
 # 2026-11-27, case 7 on udp_multicast beside stress-ng); 64 ER_Price frames are 3.2 s
 HOST_ECHO_DEPTH = 64
-UNTRUSTED_AFTER = 5   # consecutive E2E failures from one source ID ...
+UNTRUSTED_AFTER = 5   # consecutive receive failures from one source ID ...
 UNTRUSTED_S = 1.0     # ... make it untrusted this long (s; callers stretch it with Ts)
-# the causes that count towards the untrusted streak of the frame's ID
-STREAK_CAUSES = frozenset({"crc", "dlc", "range", "counter_jump", "counter_clash", "auth"})
+# the causes that count towards the untrusted streak of the frame's ID (RX-13)
+STREAK_CAUSES = frozenset({"dlc", "range", "auth"})
 SYNC_S = contract.cycle_ms("ER_Price_Sync") / 1000.0  # a sender's sync cadence (1 s)
 HELLO_FRACTION = 0.1  # re-announce own syncs at most every 0.1 sync_s when a peer (re)starts
 # AUTH-26: after its first own syncs (its hello) a node keeps the newest sync of each sender
@@ -144,7 +124,7 @@ class SyncSchedule(NamedTuple):
 
 
 class NodeIO:
-    """A node's secured receive and transmit path: decode and E2E-check every frame,
+    """A node's secured receive and transmit path: decode and range-check every frame,
     verify its MAC and freshness, recognise its own echo, count every rejection by
     cause, and sign what it sends (docs/firmware-spec.md, RX and AUTH)."""
 
@@ -155,10 +135,11 @@ class NodeIO:
                  sync_s: float = SYNC_S, join_s: float | None = None,
                  echo_depth: int = ECHO_DEPTH) -> None:
         """``own``: the messages this node sends (the last ``echo_depth`` of each ID are
-        remembered: their echo is not an impersonation); ``wanted``: the frame IDs it uses;
+        remembered: their echo is not an impersonation); ``wanted``: the frame IDs it uses
+        (secured ones: ConfigError for any other);
         ``fleet_size``: the agents of the run (None: unknown, per-agent IDs of any agent
         the DBC defines are then not counted as foreign); ``untrusted_after`` consecutive
-        E2E failures on one ID make it untrusted for ``untrusted_s``; ``keys``: this
+        receive failures on one ID make it untrusted for ``untrusted_s``; ``keys``: this
         node's keyring (None: the public ``--insecure`` keys, with a warning); ``sync_s``:
         its sync cadence (the DBC's, stretched like every cycle in a time-scaled run);
         ``join_s``: its join window (AUTH-26; None: JOIN_FRACTION·sync_s, 0: none, for
@@ -187,20 +168,19 @@ class NodeIO:
         self.last_error: dict[str, str] = {}
         self._sent: dict[int, deque[bytes]] = {codec.frame_id(n): deque(maxlen=echo_depth)
                                                for n in own}
-        self.trackers = {fid: CounterTracker() for fid in wanted}
+        wanted = list(dict.fromkeys(wanted))
+        self._inputs = frozenset(wanted)
+        unsecured = sorted(self._inputs - contract.SECURED_IDS)
+        if unsecured:
+            raise ConfigError("inputs", who, "expected secured input IDs (DBC frames with a "
+                              "Mac), but got " + ", ".join(f"0x{f:03X}" for f in unsecured))
         # SecOC, transmit: one message counter per own secured ID under this boot
         self._tx_count = {fid: 0 for fid in self._sent if fid in contract.SECURED_IDS}
         for fid in self._tx_count:
             self._sent[contract.SYNC_OF[fid]] = deque(maxlen=echo_depth)
         # AUTH-28: a link frame is signed with its own key, a broadcast with the node's
-        self._sign_key: dict[int, bytes] = {}
-        for fid in self._tx_count:
-            k = keys.key_for(codec.name_of(fid))
-            if k is None:
-                raise ConfigError("keyring", keys.node, f"expected the key of "
-                                  f"{codec.name_of(fid)} (this node sends it), but the key "
-                                  "file has none: re-provision with bess-ded keys")
-            self._sign_key[fid] = k
+        self._sign_key = {fid: self._key_of(fid, "this node sends it")
+                          for fid in self._tx_count}
         self.boot = keys.new_boot() if self._tx_count else keys.boot
         self.sync_s = sync_s
         self._sync_next: float | None = None      # None: at the first call of syncs()
@@ -211,16 +191,9 @@ class NodeIO:
         # input ID -> the newest sync's FV while joining; None: joined
         self._joining: dict[int, int] | None = {} if self.join_s > 0 else None
         # SecOC, receive: the verification key and freshness state of each secured ID
-        self._verify_key: dict[int, bytes] = {}
-        for fid in self.trackers:
-            if fid in contract.SECURED_IDS:
-                sender = contract.sender_of(codec.name_of(fid))
-                k = keys.key_for(codec.name_of(fid))
-                if k is None:
-                    raise ConfigError("keyring", keys.node, f"expected the verification key "
-                                      f"of {codec.name_of(fid)} (sent by {sender}), but the "
-                                      "key file has none: re-provision with bess-ded keys")
-                self._verify_key[fid] = k
+        self._verify_key = {
+            fid: self._key_of(fid, f"sent by {contract.sender_of(codec.name_of(fid))}",
+                              "verification key") for fid in wanted}
         self._synced_by = {contract.SYNC_OF[fid]: fid for fid in self._verify_key}
         self._fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
         self._lost: set[int] = set()  # secured IDs whose sender timed out
@@ -233,11 +206,23 @@ class NodeIO:
                 self._fv.accept(fid, contract.FRESHNESS.join(INSECURE_BOOT, 0) - 1,
                                 frame=False)
                 self._lost.add(fid)  # a sender already running: its sync, not a forgery
-        self._cyclic = frozenset(fid for fid in self.trackers
-                                 if contract.is_cyclic(codec.name_of(fid)))
-        self._last_data: dict[int, bytes] = {}  # payload of the last accepted frame per ID
         self._known = codec.frame_ids()
-        self._tx: Counter[str] = Counter()
+
+    def _key_of(self, fid: int, why: str, what: str = "key") -> bytes:
+        """The keyring's key of message ``fid`` (AUTH-28: a link frame's own, else its
+        sender's); ConfigError naming ``what`` and ``why`` if the key file has none."""
+        name = self.codec.name_of(fid)
+        k = self.keys.key_for(name)
+        if k is None:
+            raise ConfigError("keyring", self.keys.node, f"expected the {what} of {name} "
+                              f"({why}), but the key file has none: re-provision with "
+                              "bess-ded keys")
+        return k
+
+    @property
+    def inputs(self) -> tuple[int, ...]:
+        """The secured IDs this node uses (``wanted``, in its order)."""
+        return tuple(self._verify_key)
 
     @property
     def joining(self) -> bool:
@@ -267,15 +252,15 @@ class NodeIO:
                     and self.keys.key_for(self.codec.name_of(fid), derive=False)
                     is not None):
                 peers.add(sid)
-        return sorted(set(self._sent) | set(self.trackers) | set(self._synced_by) | peers)
+        return sorted(set(self._sent) | self._inputs | set(self._synced_by) | peers)
 
     def receive(self, msg: can.Message, t: float | None = None,
                 defer_trust: bool = False) -> DecodedFrame | None:
         """The decoded frame if it is for this node and carries new data, else None
-        (and, if it was bad, counted). ``t``: the receive time, for the untrusted-source
-        rule (None: ``msg.timestamp``). A returned frame resets its ID's untrusted streak,
-        unless ``defer_trust``: then the caller, which runs checks of its own, calls
-        ``trusted`` once the frame passed them (or ``fail``)."""
+        (and, if it was bad, counted). ``t``: the receive time, for the freshness and
+        untrusted-source rules (None: ``msg.timestamp``). A returned frame resets its ID's
+        untrusted streak, unless ``defer_trust``: then the caller, which runs checks of its
+        own, calls ``trusted`` once the frame passed them (or ``fail``)."""
         fid = msg.arbitration_id
         if t is None:
             t = msg.timestamp
@@ -295,8 +280,8 @@ class NodeIO:
                 self.foreign("impersonation", f"0x{fid:03X} carries {self.who}'s identity but "
                              "was not sent by it")
             return None
-        tracker = self.trackers.get(fid)
-        if tracker is None:
+        key = self._verify_key.get(fid)
+        if key is None:
             if fid in self._synced_by:
                 self._on_sync(msg, fid, t)
                 return None
@@ -309,16 +294,9 @@ class NodeIO:
                              f"of this run, but got a frame of agent {agent_of(fid)}")
             return None  # a DBC frame that is not for this node
         until = self._untrusted_until.get(fid)
-        if until is not None:
-            if t < until:
-                if fid not in self._verify_key:  # a secured frame proves itself: go on
-                    self.safety_reject("untrusted", fid, f"0x{fid:03X} is untrusted for "
-                                       f"{until - t:.3f} s more (after {self.untrusted_after} "
-                                       "consecutive E2E failures)")
-                    return None
-            else:
-                del self._untrusted_until[fid]
-                log.info("%s trusts 0x%03X again (its untrusted time is over)", self.who, fid)
+        if until is not None and t >= until:  # an untrusted input is not blocked (RX-13)
+            del self._untrusted_until[fid]
+            log.info("%s trusts 0x%03X again (its untrusted time is over)", self.who, fid)
         try:
             frame = self.codec.decode(msg)
         except Exception as e:  # FrameError: its cause names the counter
@@ -327,36 +305,7 @@ class NodeIO:
                 raise
             self.fail(fid, cause, str(e), t)
             return None
-        key = self._verify_key.get(fid)
-        if key is not None:
-            return self._authentic(frame, msg, key, t, defer_trust)
-        last = tracker.last
-        data = bytes(msg.data)
-        if last is not None and fid in self._cyclic:
-            step = (frame.counter - last) % COUNTER_MODULO
-            if step == 0 and data != self._last_data.get(fid):
-                self.counters["foreign"] += 1
-                self.fail(fid, "counter_clash", f"{frame.name}: expected new data under a new "
-                          f"counter, but got counter {last} again with another payload", t)
-                return None
-            if step > COUNTER_STEP_MAX:
-                self.counters["foreign"] += 1
-                self.fail(fid, "counter_jump", f"{frame.name}: expected counter "
-                          f"{(last + 1) % COUNTER_MODULO} (or a few lost), but got "
-                          f"{frame.counter} after {last}", t)
-                tracker.reset()  # re-synchronise: a real restart loses only this frame
-                tracker.update(frame.counter)
-                self._last_data[fid] = data
-                return None
-        status = tracker.update(frame.counter)
-        self.counters["lost_frames"] += status.lost
-        if not status.new_data:
-            self.counters["repeated_counter"] += 1
-            return None
-        self._last_data[fid] = data
-        if not defer_trust:
-            self._streak[fid] = 0
-        return frame
+        return self._authentic(frame, msg, key, t, defer_trust)
 
     # ------------------------------------------------------------ SecOC
 
@@ -398,9 +347,6 @@ class NodeIO:
         self._back.pop(fid, None)  # AUTH-27: a frame of the new boot: the advance was its own
         self._lost.discard(fid)
         self.counters["lost_frames"] += fv - last - 1
-        tracker = self.trackers[fid]
-        tracker.reset()
-        tracker.update(frame.counter)
         if not defer_trust:
             self._streak[fid] = 0
         return frame
@@ -605,11 +551,11 @@ class NodeIO:
         return True
 
     def sender_lost(self, fid: int) -> None:
-        """``fid``'s sender timed out: its counter gap aliases, and a secured ID may need
-        a wider freshness window or its next sync."""
-        self.trackers[fid].reset()
-        if fid in self._verify_key:
-            self._lost.add(fid)
+        """Input ``fid``'s sender timed out: its counter gap aliases, so its next frames
+        get a wider freshness window (LOST_WINDOWS), or wait for its next sync."""
+        if fid not in self._inputs:
+            raise KeyError(fid)
+        self._lost.add(fid)
 
     @property
     def sync_schedule(self) -> SyncSchedule:
@@ -630,8 +576,8 @@ class NodeIO:
 
     def constant_tables(self) -> tuple[object, ...]:
         """The tables that neither a frame nor a tick changes (copies of a node may share
-        them): the known IDs, the cyclic inputs, the verification keys and sync IDs."""
-        return (self._known, self._cyclic, self._verify_key, self._synced_by)
+        them): the known IDs, the verification keys and sync IDs."""
+        return (self._known, self._verify_key, self._synced_by)
 
     def syncs(self, t: float) -> list[can.Message]:
         """The ``<name>_Sync`` frames due at ``t``: all of them at the first call, every
@@ -660,7 +606,7 @@ class NodeIO:
         self._streak[fid] = 0
 
     def fail(self, fid: int, cause: str, reason: str, t: float) -> None:
-        """A frame on ``fid`` rejected under ``cause``; an E2E cause (STREAK_CAUSES) adds
+        """A frame on ``fid`` rejected under ``cause``; a streak cause (STREAK_CAUSES) adds
         to the ID's untrusted streak."""
         self.reject(cause, reason)
         if cause == "auth":
@@ -673,7 +619,7 @@ class NodeIO:
             self._untrusted_until[fid] = t + self.untrusted_s
             self.counters["untrusted_sources"] += 1
             self.last_safety = ("untrusted", fid)
-            log.warning("%s: 0x%03X untrusted for %.3f s after %d consecutive E2E failures "
+            log.warning("%s: 0x%03X untrusted for %.3f s after %d consecutive failures "
                         "(last: %s)", self.who, fid, self.untrusted_s, self.untrusted_after,
                         reason)
 
@@ -707,30 +653,29 @@ class NodeIO:
             log.warning("%s rejected a frame (%s #%d): %s", self.who, cause, n, reason)
 
     def send(self, name: str, raw: Mapping[str, int]) -> can.Message:
-        """Encode with the next rolling counter of ``name`` (a secured frame: its next
-        freshness value, and sign it) and remember it for the echo."""
+        """Encode own secured message ``name`` with its next freshness value, sign it and
+        remember it for the echo (EncodeError for a message this node does not send)."""
         fid = self.codec.frame_id(name)
         count = self._tx_count.get(fid)
         if count is None:
-            msg = self.codec.encode(name, raw, self._tx[name] % COUNTER_MODULO)
-            self._tx[name] += 1
-        else:
-            if count > _COUNT_MAX:  # 2^24 frames on one ID: a new boot, synced at once
-                self.boot = self.keys.new_boot()
-                self._tx_count = dict.fromkeys(self._tx_count, 0)
-                self._sync_next, count = None, 0
-            msg = self.codec.encode(name, raw, count % _FV_WINDOW)
-            sign_frame(self._sign_key[fid], fid, msg.data,
-                       contract.FRESHNESS.join(self.boot, count))
-            self._tx_count[fid] = count + 1
+            raise EncodeError("message", f"a secured message {self.who} sends "
+                              f"({', '.join(self.codec.name_of(f) for f in self._tx_count)})",
+                              name)
+        if count > _COUNT_MAX:  # 2^24 frames on one ID: a new boot, synced at once
+            self.boot = self.keys.new_boot()
+            self._tx_count = dict.fromkeys(self._tx_count, 0)
+            self._sync_next, count = None, 0
+        msg = self.codec.encode(name, raw, count % _FV_WINDOW)
+        sign_frame(self._sign_key[fid], fid, msg.data, contract.FRESHNESS.join(self.boot, count))
+        self._tx_count[fid] = count + 1
         self._sent[fid].append(bytes(msg.data))
         return msg
 
 
 class FleetSender:
     """Frames as any node of a fleet would send them, for tests, tools and HIL rigs:
-    the codec's layout, each secured ID's freshness (Boot ‖ Count) and MAC, its syncs,
-    and each E2E ID's rolling counter.
+    the codec's layout, each secured ID's freshness (Boot ‖ Count) and MAC, and its
+    syncs.
 
     ``keys``: label → signing key (e.g. from ``bess-ded keys``' files); None: the public
     ``--insecure`` keys, at boot 1 as every insecure sender (so an insecure receiver

@@ -1,4 +1,4 @@
-"""The agent runtime: neighbour table, E2E checks, timeouts and the state machine
+"""The agent runtime: neighbour table, receive checks, timeouts and the state machine
 around the pure control core. Implements the Node seam of firmware_py.node.
 
 State machine::
@@ -27,8 +27,8 @@ State machine::
 Timeouts (firmware_py.config): both default to 5 cycles of their frame at the
 controller's Ts (contract.timeout_s), 0.25 s at Ts = 10 ms. A frame is fresh while
 ``now − last accepted ≤ timeout``. Each fresh→stale transition counts one
-``price_timeouts`` / ``status_timeouts`` (whatever the state), logs it and resets that
-frame's E2E counter tracker (an outage's counter gap aliases); ``plant_faults`` counts
+``price_timeouts`` / ``status_timeouts`` (whatever the state), logs it and widens that
+input's freshness window (an outage's counter gap aliases); ``plant_faults`` counts
 rising edges of the over-current/voltage flags.
 
 Cadences come from the DBC: the MC frame every tick (or, with ``[transmit] mode =
@@ -37,7 +37,7 @@ Cadences come from the DBC: the MC frame every tick (or, with ``[transmit] mode 
 at the DBC's cycles), so a node with a longer Ts stretches them all alike. The diagnostics
 rotate over ``DIAG_PAGES``, one page per diag frame.
 
-Safety model (docs/safety-model.md): on top of the E2E checks (and NodeIO's untrusted
+Safety model (docs/safety-model.md): on top of the receive checks (and NodeIO's untrusted
 sources), an accepted price outside ``[rho_min, rho_max]`` or more than
 ``price_step_max`` from the last accepted fresh price is rejected (``implausible_price``)
 (fresh or not) — a new level repeated in ``price_persist`` consecutive frames is accepted
@@ -64,7 +64,7 @@ import can
 
 from . import fixedpoint as fx
 from .config import AgentConfig, DispatchParams
-from .contract import Command, State, cycle_s, every_ticks, is_active, scale
+from .contract import DIAG_RESERVED, Command, State, cycle_s, every_ticks, is_active, scale
 from .controllers import consensus_error, make_controller
 from .errors import FrameError, RangeError
 from .frames import PIN_ON, DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name, status_name
@@ -208,7 +208,7 @@ class AgentRuntime:
             self.io.fail(fid, e.cause, str(e), t)
             return
         if self.io.safety_rejections == rejected:
-            # valid and plausible: the streak of E2E failures is over (a plausibility
+            # valid and plausible: the streak of receive failures is over (a plausibility
             # rejection neither adds to it nor ends it)
             self.io.trusted(fid)
 
@@ -475,21 +475,21 @@ class AgentRuntime:
         last = self.io.last_safety
         return {"Resets": self.cstate.resets, "DeadlineMisses": c["deadline_miss"],
                 "NeighboursAlive": self.neighbours_alive, "State": int(self.state),
-                "RejectedCrc": c["crc"], "RejectedDlc": c["dlc"], "RejectedRange": c["range"],
+                "RejectedDlc": c["dlc"], "RejectedRange": c["range"],
                 "RejectedUnknownId": c["unknown_id"], "RejectedImpersonation": c["impersonation"],
-                "RepeatedCounter": c["repeated_counter"], "LostFrames": c["lost_frames"],
+                "LostFrames": c["lost_frames"],
                 "Saturations": c["saturations"] + self.cstate.saturations,
                 "NeighbourTimeouts": c["neighbour_timeouts"],
                 "PriceTimeouts": c["price_timeouts"], "StatusTimeouts": c["status_timeouts"],
                 "PlantFaults": c["plant_faults"], "ForeignFrames": c["foreign"],
                 "ForeignIds": c["foreign_id"],
-                "InterleavedCounters": c["counter_jump"] + c["counter_clash"],
                 "Untrusted": c["untrusted_sources"], "ImplausiblePrice": c["implausible_price"],
                 "ImplausibleLambda": c["implausible_lambda"],
                 "ImplausibleGains": c["implausible_gains"],
                 "SafetySender": last[1] if last else 0,
                 "SafetyCause": SAFETY_CAUSES.index(last[0]) if last else 0,
-                "RejectedAuth": c["auth"], "Unsynced": c["unsynced"], "Resyncs": c["resyncs"]}
+                "RejectedAuth": c["auth"], "Unsynced": c["unsynced"], "Resyncs": c["resyncs"],
+                **dict.fromkeys(DIAG_RESERVED, 0)}
 
     # AGENT_<i>_Diag pages as the DBC lays them out: page k carries DIAG_PAGES[k]
     DIAG_PAGES = tuple(FrameCodec().pages(diag_name(1)).values())

@@ -43,7 +43,7 @@ from firmware_py.contract import Command, State, is_active
 from firmware_py.controllers import DwellResetPIController, ResetPIController
 from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
-from firmware_py.nodeio import FleetSender
+from firmware_py.nodeio import STREAK_CAUSES, FleetSender
 from firmware_py.runtime import GAIN_DIV, AgentRuntime
 from firmware_py.secoc import Keyring, fleet_nodes
 from sim.model.scenario import load_case
@@ -455,7 +455,7 @@ def _untrusted_after_gt(rt: AgentRuntime) -> None:
         self.reject(cause, reason)
         if cause == "auth":
             self.last_safety = ("auth", fid)
-        if cause not in ("crc", "dlc", "range", "counter_jump", "counter_clash", "auth"):
+        if cause not in STREAK_CAUSES:
             return
         self._streak[fid] += 1
         if self._streak[fid] > self.untrusted_after:

@@ -305,7 +305,7 @@ def _receivers() -> list[tuple[Any, list[int]]]:
     for cfg in agent_configs_from_scenario(CASE):
         a = AgentRuntime(dataclasses.replace(cfg, untrusted_after=10**9), CODEC,
                          rings[f"agent_{cfg.id}"])
-        out.append((a.io, [fid for fid in a.io.trackers if fid in contract.SECURED_IDS]))
+        out.append((a.io, list(a.io.inputs)))
     plant = PlantNode(CASE, keys=rings["plant"])
     plant.io.untrusted_after = 10**9
     out.append((plant.io, [CODEC.frame_id(setpoint_name(i)) for i in range(1, CASE.n + 1)]))

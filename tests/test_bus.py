@@ -71,7 +71,7 @@ def test_virtual_bus_case1_matches_lockstep(tmp_path: Path) -> None:
     worst, end = compare_with_lockstep(sc, tmp_path)
     assert worst < TRANSIENT_TOL and end < FINAL_TOL
     assert m["frames_undecodable"] == {} and m["start_recorded"]
-    assert all(a["RejectedCrc"] == 0 for a in m["node_diagnostics"].values())
+    assert all(a["RejectedAuth"] == 0 for a in m["node_diagnostics"].values())
     assert m["frames_missed_by_recorder"] == 0
     assert all(a["DeadlineMisses"] == 0 for a in m["node_diagnostics"].values())
     names = Counter(f.name for _, f in log_frames(tmp_path))

@@ -665,7 +665,7 @@ def test_c_agent_reports_resets_and_names_every_counter() -> None:
     assert c.resets == py.cstate.resets == 0
     assert c.rt.counter_names == tuple(sorted(c.rt.counter_names, key=c.rt.counter_names.index))
     assert c.rt.lib.bd_counter_name(-1) is None and c.rt.lib.bd_counter_name(99) is None
-    assert set(c.rt.counter_names) >= {"crc", "auth", "unsynced", "deadline_miss"}
+    assert set(c.rt.counter_names) >= {"dlc", "auth", "unsynced", "deadline_miss"}
 
 
 def test_c_agent_in_the_python_loop_counts_inputs_that_are_not_frames() -> None:

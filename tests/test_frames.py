@@ -1,11 +1,8 @@
-"""The DBC and the firmware's frame codec: golden byte traces, E2E checks, SecOC layout,
-rejections.
+"""The DBC and the firmware's frame codec: golden byte traces, SecOC layout, rejections.
 
-Three kinds of frame (``FrameCodec.kind``, tools/gen_dbc.py):
+Two kinds of frame (``FrameCodec.kind``, tools/gen_dbc.py); a DBC message of neither
+(an E2E-only frame: CRC and rolling counter, no Mac) is refused on load:
 
-* **e2e**: byte 0 = CRC, low nibble of byte 1 = Counter; the codec computes and checks
-  the CRC. The project's DBC no longer has such a frame (every frame is secured); the
-  codec still reads one from a DBC that defines it, tested on ``e2e_codec()``'s;
 * **secured** (every frame of the project's DBC: ER_Price, ER_Command, ER_Balance,
   AGENT_<i>_MC, AGENT_<i>_Setpoint, AGENT_<i>_Diag, PLANT_<i>_Status):
   bytes 0..2 = Mac, low nibble of byte 3 = Counter (the truncated freshness value),
@@ -15,20 +12,17 @@ Three kinds of frame (``FrameCodec.kind``, tools/gen_dbc.py):
   Boot 48|16, no Counter.
 
 The expected bytes below were written by hand from the layout in tools/gen_dbc.py
-(Intel order) and cross-checked with cantools' ``Message.encode``; the CRC bytes come
-from the bitwise reference CRC in this file, not from the codec under test.
+(Intel order) and cross-checked with cantools' ``Message.encode``.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 import pickle
 import runpy
 import shutil
 import subprocess
 import sys
-import tempfile
 import timeit
 from pathlib import Path
 from typing import Any
@@ -36,7 +30,6 @@ from typing import Any
 import can
 import cantools
 import pytest
-from crccheck.crc import Crc8SaeJ1850
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -45,7 +38,6 @@ from firmware_py import contract, frames
 from firmware_py.contract import Command
 from firmware_py.errors import (
     ConfigError,
-    CrcError,
     EncodeError,
     FrameError,
     FrameLengthError,
@@ -57,11 +49,9 @@ from firmware_py.frames import (
     N_AGENTS_MAX,
     PIN_OFF,
     PIN_ON,
-    CounterTracker,
     FrameCodec,
     agent_of,
     diag_name,
-    e2e_crc,
     mc_name,
     setpoint_name,
     status_name,
@@ -82,26 +72,7 @@ GEN_DBC = ROOT / "tools" / "gen_dbc.py"
 SYNC_OFFSET = 0x400
 SECURED_TYPES = frozenset({"ER_Price", "ER_Command", "MC", "Setpoint", "Status", "Diag",
                            "ER_Balance"})
-KINDS = ("e2e", "secured", "sync")
-
-
-def ref_crc8_j1850(data: bytes) -> int:
-    """Bitwise CRC-8 SAE J1850 (poly 0x1D, init 0xFF, xorout 0xFF): the test's own oracle."""
-    crc = 0xFF
-    for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
-    return crc ^ 0xFF
-
-
-def ref_frame_crc(frame_id: int, payload_1_7: bytes) -> int:
-    return ref_crc8_j1850(frame_id.to_bytes(2, "little") + payload_1_7)
-
-
-def with_crc(frame_id: int, payload_1_7: bytes) -> bytes:
-    assert len(payload_1_7) == 7
-    return bytes([ref_frame_crc(frame_id, payload_1_7)]) + payload_1_7
+KINDS = ("secured", "sync")
 
 
 def frame(frame_id: int, data: bytes, **kw: Any) -> can.Message:
@@ -118,18 +89,13 @@ def expected_kind(name: str) -> str:
     codec under test)."""
     if name.endswith("_Sync"):
         return "sync"
-    t = msg_type(name)
-    if t == E2E_TEST_MESSAGE:
-        return "e2e"
-    assert t in SECURED_TYPES, name
+    assert msg_type(name) in SECURED_TYPES, name
     return "secured"
 
 
 def protection(kind: str, data: bytes, counter: int) -> dict[str, int]:
     """The raw protection signals a decode of ``data`` reports (Mac as cantools reads it:
     bytes 0..2 little-endian)."""
-    if kind == "e2e":
-        return {"CRC": data[0], "Counter": counter}
     mac = {"Mac": int.from_bytes(data[0:3], "little")}
     return {**mac, "Counter": counter} if kind == "secured" else mac
 
@@ -139,52 +105,12 @@ def codec() -> FrameCodec:
     return FrameCodec()
 
 
-E2E_TEST_MESSAGE = "TEST_E2E"
-E2E_TEST_ID = 0x7FF
-
-
-@functools.lru_cache(maxsize=1)
-def e2e_codec() -> FrameCodec:
-    """A codec of the project's DBC plus one E2E frame (CRC 0|8, Counter 8|4, Value 16|16,
-    Small 32|4 in 0..9): every project frame is secured, but a DBC may define E2E ones."""
-    from cantools.database.can import Message as DbcMessage
-    from cantools.database.can import Signal
-    db = cantools.database.load_file(DBC_PATH, strict=True)
-    assert isinstance(db, cantools.database.can.Database)
-
-    def sig(name: str, start: int, length: int, maximum: int | None = None) -> Signal:
-        return Signal(name, start, length, byte_order="little_endian", minimum=0,
-                      maximum=(1 << length) - 1 if maximum is None else maximum)
-
-    db.messages.append(DbcMessage(E2E_TEST_ID, E2E_TEST_MESSAGE, 8, [
-        sig("CRC", 0, 8), sig("Counter", 8, 4), sig("Value", 16, 16), sig("Small", 32, 4, 9)],
-        senders=["ER"], strict=True))
-    path = Path(tempfile.mkdtemp(prefix="bess-ded-e2e-")) / "e2e.dbc"
-    cantools.database.dump_file(db, str(path))
-    return FrameCodec(path)
-
-
-# --------------------------------------------------------------------------- CRC
-
-
-def test_crc_check_value() -> None:
-    assert ref_crc8_j1850(b"123456789") == 0x4B
-    assert Crc8SaeJ1850.calc(b"123456789") == 0x4B
-
-
-@given(st.integers(0, 0x7FF), st.binary(min_size=8, max_size=8))
-def test_e2e_crc_matches_crccheck_and_reference(frame_id: int, data: bytes) -> None:
-    expected = Crc8SaeJ1850.calc(frame_id.to_bytes(2, "little") + data[1:])
-    assert e2e_crc(frame_id, data) == expected == ref_frame_crc(frame_id, data[1:])
-
-
 # --------------------------------------------------------------------------- golden traces
 
 # (message, counter, raw signals, expected 8 bytes (hex), physical checks)
 # Secured frames: bytes 0..2 = Mac (0: the codec leaves it to NodeIO), byte 3 = Counter |
 # the first payload nibble (bits 28..31) << 4. Sync frames: Mac 0, Count in bytes 3..5,
-# Boot in bytes 6..7 (no Counter: pass 0). E2E frames: byte 0 = CRC, byte 1 = Counter |
-# bits 12..15 << 4.
+# Boot in bytes 6..7 (no Counter: pass 0).
 GOLDEN = [
     # byte3 = 0x55: counter 5 | PriceValid<<4 | Segment 2<<5; Rho = round(0.8·2^24) =
     # 0x00CCCCCD in bytes 4..7
@@ -292,15 +218,11 @@ def test_golden_trace(codec: FrameCodec, name: str, counter: int, raw: dict[str,
     fid = codec.frame_id(name)
     kind = codec.kind(fid)
     assert kind == expected_kind(name)
-    if kind == "e2e":
-        assert expected[0] == ref_frame_crc(fid, expected[1:]), "golden CRC byte"
-        assert expected[1] & 0x0F == counter, "golden Counter nibble (byte 1)"
+    assert expected[0:3] == bytes(3), "golden Mac: the codec leaves it 0 for NodeIO"
+    if kind == "secured":
+        assert expected[3] & 0x0F == counter, "golden Counter nibble (byte 3)"
     else:
-        assert expected[0:3] == bytes(3), "golden Mac: the codec leaves it 0 for NodeIO"
-        if kind == "secured":
-            assert expected[3] & 0x0F == counter, "golden Counter nibble (byte 3)"
-        else:
-            assert counter == 0, "sync frames have no Counter"
+        assert counter == 0, "sync frames have no Counter"
     prot = protection(kind, expected, counter)
 
     msg = codec.encode(name, raw, counter)
@@ -309,7 +231,7 @@ def test_golden_trace(codec: FrameCodec, name: str, counter: int, raw: dict[str,
     assert msg.dlc == 8
     assert bytes(msg.data) == expected
 
-    # cantools agrees on the layout (it computes neither CRC nor MAC: we pass the golden bytes)
+    # cantools agrees on the layout (it computes no MAC: we pass the golden bytes)
     dbc_msg = codec.database.get_message_by_name(name)
     ct = dbc_msg.encode({**raw, **prot}, scaling=False)
     assert bytes(ct) == expected
@@ -369,8 +291,6 @@ def test_encode_phys_matches_raw_encoding(codec: FrameCodec) -> None:
     diag = codec.encode_phys("AGENT_5_Diag", {"Page": 12, "Unsynced": 256, "Resyncs": 65535},
                              13)
     assert bytes(diag.data) == bytes.fromhex("00 00 00 CD 00 01 FF FF")  # Mac: NodeIO's
-    e2e = e2e_codec().encode_phys(E2E_TEST_MESSAGE, {"Value": 0x1234, "Small": 5}, 3)
-    assert bytes(e2e.data) == bytes(valid_e2e().data)  # CRC filled in
     mc = codec.encode_phys("AGENT_2_MC", {"State": "RUNNING", "Lambda": 0.8, "Resets": 0}, 1)
     assert bytes(mc.data[0:3]) == bytes(3) and mc.data[3] == 0x11
     assert codec.decode(mc).raw["Lambda"] == round(0.8 * 2**24)
@@ -440,7 +360,6 @@ def test_frame_kinds(codec: FrameCodec) -> None:
                                        for i in agents}
     assert by_kind["secured"] == secured == contract.SECURED_IDS
     assert by_kind["sync"] == {fid + SYNC_OFFSET for fid in secured}
-    assert by_kind["e2e"] == set()
     assert contract.SYNC_OF == {fid: fid + SYNC_OFFSET for fid in secured}
     assert contract.SYNCED_BY == {fid + SYNC_OFFSET: fid for fid in secured}
     for fid in secured:
@@ -470,42 +389,12 @@ def valid_balance(codec: FrameCodec, counter: int = 3) -> can.Message:
     return codec.encode("ER_Balance", {"Page": 0, "GridPower": -5, "CostRate": 100}, counter)
 
 
-def valid_e2e(_codec: FrameCodec | None = None, counter: int = 3) -> can.Message:
-    """An E2E frame (CRC filled in by the codec), of ``e2e_codec()``'s DBC."""
-    return e2e_codec().encode(E2E_TEST_MESSAGE, {"Value": 0x1234, "Small": 5}, counter)
-
-
 def valid_sync(codec: FrameCodec) -> can.Message:
     return codec.encode(mc_name(2) + "_Sync", {"Count": 5, "Boot": 1}, 0)
 
 
 VALID: dict[str, Any] = {"mc": valid_mc, "diag": valid_diag, "balance": valid_balance,
-                         "sync": valid_sync, "e2e": valid_e2e}
-
-
-def codec_for(which: str, codec: FrameCodec) -> FrameCodec:
-    return e2e_codec() if which == "e2e" else codec
-
-
-@given(st.integers(0, 63))
-def test_any_single_bit_error_fails_the_crc(bit: int) -> None:
-    codec = e2e_codec()
-    msg = valid_e2e()
-    assert codec.kind(msg.arbitration_id) == "e2e"
-    msg.data[bit // 8] ^= 1 << (bit % 8)
-    with pytest.raises(CrcError) as e:
-        codec.decode(msg)
-    assert e.value.cause == "crc"
-    assert "expected CRC 0x" in str(e.value) and "but got 0x" in str(e.value)
-
-
-def test_frame_under_another_id_fails_the_crc() -> None:
-    """The data ID is in the CRC: the same bytes under another ID fail it."""
-    codec = e2e_codec()
-    msg = valid_e2e()
-    assert codec.decode(msg).raw["Value"] == 0x1234
-    crc_under = {fid: e2e_crc(fid, msg.data) for fid in (E2E_TEST_ID, 0x7FE, 0x3FF)}
-    assert len(set(crc_under.values())) == 3 and crc_under[E2E_TEST_ID] == msg.data[0]
+                         "sync": valid_sync}
 
 
 def test_the_project_dbc_has_no_e2e_frame_left(codec: FrameCodec) -> None:
@@ -513,12 +402,30 @@ def test_the_project_dbc_has_no_e2e_frame_left(codec: FrameCodec) -> None:
     assert {codec.kind(fid) for fid in codec.frame_ids()} == {"secured", "sync"}
 
 
-@pytest.mark.parametrize("which", ["mc", "diag", "balance", "sync", "e2e"])
+def test_codec_refuses_a_dbc_with_an_e2e_only_frame(tmp_path: Path) -> None:
+    """A message without Mac (an E2E-only frame: CRC 0|8, Counter 8|4) is neither secured
+    nor sync: the codec has no such path and refuses the DBC on load."""
+    from cantools.database.can import Message as DbcMessage
+    from cantools.database.can import Signal
+    db = cantools.database.load_file(DBC_PATH, strict=True)
+    assert isinstance(db, cantools.database.can.Database)
+    db.messages.append(DbcMessage(0x7FF, "TEST_E2E", 8, [
+        Signal("CRC", 0, 8, byte_order="little_endian"),
+        Signal("Counter", 8, 4, byte_order="little_endian"),
+        Signal("Value", 16, 16, byte_order="little_endian")], senders=["ER"], strict=True))
+    path = tmp_path / "e2e.dbc"
+    cantools.database.dump_file(db, str(path))
+    with pytest.raises(ConfigError, match=r"\[TEST_E2E\] expected the secured frame signal "
+                                          r"Mac 0\|24, but got nothing"):
+        FrameCodec(path)
+
+
+@pytest.mark.parametrize("which", ["mc", "diag", "balance", "sync"])
 @pytest.mark.parametrize("length", [0, 1, 5, 7])
 def test_wrong_dlc(codec: FrameCodec, length: int, which: str) -> None:
     msg = VALID[which](codec)
     with pytest.raises(FrameLengthError, match=f"expected DLC 8, but got {length}") as e:
-        codec_for(which, codec).decode(frame(msg.arbitration_id, bytes(msg.data[:length])))
+        codec.decode(frame(msg.arbitration_id, bytes(msg.data[:length])))
     assert e.value.cause == "dlc"
 
 
@@ -552,8 +459,6 @@ def test_malformed_kinds(codec: FrameCodec, kind: str) -> None:
     assert type(e.value) is FrameError and e.value.cause == "malformed"
 
 
-# All 8 bytes; for E2E frames byte 0 ("--") is replaced by the correct CRC. Secured and
-# sync frames carry an arbitrary Mac: the codec does not check it.
 @pytest.mark.parametrize(("gain_k", "gain_h"), [(0, 0), (3, 0), (16383, 0), (1, 1), (2, 5)])
 def test_a_pin_with_another_gain_is_out_of_range(codec: FrameCodec, gain_k: int,
                                                  gain_h: int) -> None:
@@ -570,6 +475,7 @@ def test_a_pin_with_another_gain_is_out_of_range(codec: FrameCodec, gain_k: int,
     assert e.value.cause == "range"
 
 
+# All 8 bytes; secured and sync frames carry an arbitrary Mac: the codec does not check it.
 @pytest.mark.parametrize(("fid", "hexdata", "signal", "got"), [
     (0x281, "AB CD EF 00 00 00 C9 00", "Soc", 201),          # Soc raw 201 > 200 (100 %)
     (0x281, "00 00 00 00 00 00 FF 00", "Soc", 255),
@@ -582,108 +488,38 @@ def test_a_pin_with_another_gain_is_out_of_range(codec: FrameCodec, gain_k: int,
     (0x305, "00 00 00 10 00 0C 00 00", "State", 12),         # diag page 1 State 12
     (0x305, "00 00 00 B0 00 30 00 00", "SafetyCause", 6),    # diag page 11 cause 6
     (0x3E0, "00 00 00 20 00 00 00 00", "Page", 2),           # balance has pages 0, 1
-    (0x7FF, "-- 00 00 00 0A 00 00 00", "Small", 10),         # e2e_codec()'s E2E frame
 ])
 def test_out_of_range_raw_value(codec: FrameCodec, fid: int, hexdata: str, signal: str,
                                 got: int) -> None:
-    if fid == E2E_TEST_ID:
-        codec = e2e_codec()
-        data = with_crc(fid, bytes.fromhex(hexdata[2:]))
-    else:
-        data = bytes.fromhex(hexdata)
+    data = bytes.fromhex(hexdata)
     with pytest.raises(RangeError, match=rf"\.{signal}: expected a raw value in .*but got {got}"
                        ) as e:
         codec.decode(frame(fid, data))
     assert e.value.cause == "range"
 
 
-def test_rejection_order_id_dlc_crc_range(codec: FrameCodec) -> None:
-    """Unknown ID before DLC before CRC (E2E frames) before range."""
-    e2e = e2e_codec()
-    small_10 = bytes.fromhex("00 00 00 0A 00 00 00")  # Small 10: out of range
-    good_crc = with_crc(E2E_TEST_ID, small_10)
-    bad_range_bad_crc = bytes([good_crc[0] ^ 0x5A]) + small_10
-    with pytest.raises(RangeError):
-        e2e.decode(frame(E2E_TEST_ID, good_crc))
-    with pytest.raises(CrcError):
-        e2e.decode(frame(E2E_TEST_ID, bad_range_bad_crc))
-    with pytest.raises(FrameLengthError):
-        e2e.decode(frame(E2E_TEST_ID, bad_range_bad_crc[:7]))
-    with pytest.raises(UnknownFrameError):
-        e2e.decode(frame(0x521, bad_range_bad_crc[:7]))
-    # a secured frame has no CRC: DLC, then range (the Mac is NodeIO's, after the codec)
+def test_rejection_order_id_dlc_range(codec: FrameCodec) -> None:
+    """Unknown ID before DLC before range (the Mac is NodeIO's, after the codec)."""
     command_0 = bytes.fromhex("FF FF FF 40 00 00 00 00")  # a PIN with GainK 0 (CMD-7)
     with pytest.raises(RangeError, match="ER_Command.GainK"):
         codec.decode(frame(0x020, command_0))
     with pytest.raises(FrameLengthError):
         codec.decode(frame(0x020, command_0[:7]))
+    with pytest.raises(UnknownFrameError):
+        codec.decode(frame(0x521, command_0[:7]))
 
 
-# --------------------------------------------------------------------------- E2E counter
+# --------------------------------------------------------------------------- Counter
 
 
-def test_counter_first_frame_then_in_sequence() -> None:
-    t = CounterTracker()
-    assert t.last is None
-    s = t.update(7)
-    assert (s.new_data, s.lost) == (True, 0)
-    s = t.update(8)
-    assert (s.new_data, s.lost) == (True, 0)
-    assert t.last == 8
-
-
-def test_counter_repeated_is_no_new_data() -> None:
-    t = CounterTracker()
-    t.update(4)
-    s = t.update(4)
-    assert (s.new_data, s.lost) == (False, 0)
-    assert t.update(5).lost == 0  # the repeat did not move the reference
-
-
-def test_counter_skips_are_counted_as_lost() -> None:
-    t = CounterTracker()
-    t.update(2)
-    assert t.update(5).lost == 2
-    assert t.update(4).lost == 14  # (4 - 5 - 1) mod 16: a step back reads as 14 lost
-    t.reset()
-    assert t.update(11).lost == 0
-
-
-def test_counter_wrap_15_to_0_is_not_a_loss() -> None:
-    t = CounterTracker()
-    t.update(15)
-    s = t.update(0)
-    assert (s.new_data, s.lost) == (True, 0)
-    t.update(14)
-    assert t.update(1).lost == 2  # 14 → (15, 0 lost) → 1
-
-
-@given(st.integers(0, 15), st.lists(st.integers(1, 15), max_size=40))
-def test_counter_loss_accounting(start: int, steps: list[int]) -> None:
-    t = CounterTracker()
-    t.update(start)
-    c, lost = start, 0
-    for step in steps:
-        c = (c + step) % 16
-        lost += t.update(c).lost
-    assert lost == sum(steps) - len(steps)
-
-
-def test_counter_rejects_values_outside_4_bits() -> None:
-    with pytest.raises(ValueError):
-        CounterTracker().update(16)
-
-
-@pytest.mark.parametrize(("which", "byte"), [("mc", 3), ("diag", 3), ("e2e", 1)])
-def test_codec_counter_sequence_round_trips(codec: FrameCodec, which: str, byte: int) -> None:
-    """The Counter nibble: byte 3 of a secured frame, byte 1 of an E2E frame."""
-    t = CounterTracker()
+@pytest.mark.parametrize("which", ["mc", "diag"])
+def test_codec_counter_sequence_round_trips(codec: FrameCodec, which: str) -> None:
+    """The Counter nibble (the freshness value's low bits): byte 3 of a secured frame."""
     for n in range(40):
         msg = VALID[which](codec, n % 16)
-        assert msg.data[byte] & 0x0F == n % 16
-        d = codec_for(which, codec).decode(msg)
+        assert msg.data[3] & 0x0F == n % 16
+        d = codec.decode(msg)
         assert d.counter == d.raw["Counter"] == n % 16
-        assert t.update(d.counter).lost == 0
 
 
 # --------------------------------------------------------------------------- encode errors
@@ -727,11 +563,11 @@ def test_encode_errors_name_message_signal_range_and_value(codec: FrameCodec) ->
         codec.encode("ER_Price_Sync", {"Count": 0, "Boot": 1, "Counter": 0}, 0)
     with pytest.raises(EncodeError, match="not in this frame CRC"):
         codec.encode("ER_Balance", {"Page": 0, "GridPower": 0, "CostRate": 0, "CRC": 0}, 0)
+    with pytest.raises(EncodeError, match=r"not in this frame Mac\]"):
+        codec.encode("ER_Balance", {"Page": 0, "GridPower": 0, "CostRate": 0, "Mac": 0}, 0)
     with pytest.raises(EncodeError, match="not in this frame OptimalCostRate"):
         codec.encode("ER_Balance", {"Page": 0, "GridPower": 0, "CostRate": 0,
                                     "OptimalCostRate": 0}, 0)
-    with pytest.raises(EncodeError, match="not in this frame CRC"):
-        e2e_codec().encode(E2E_TEST_MESSAGE, {"Value": 0, "Small": 0, "CRC": 0}, 0)
     with pytest.raises(EncodeError, match=r"AGENT_1_Diag\.Page"):
         codec.encode("AGENT_1_Diag", {"Page": 13}, 0)
     with pytest.raises(EncodeError, match="missing RejectedRange"):
@@ -773,7 +609,7 @@ def test_mc_round_trip(agent: int, raw: dict[str, int], counter: int) -> None:
 
 def draw_raw(draw: st.DrawFn, codec: FrameCodec, msg: Any) -> dict[str, int]:
     """Raw values inside the DBC ranges for every signal the codec's caller supplies."""
-    signals = [s for s in msg.signals if s.name not in ("CRC", "Counter", "Mac")]
+    signals = [s for s in msg.signals if s.name not in ("Counter", "Mac")]
     raw: dict[str, int] = {}
     mux = [s for s in signals if s.is_multiplexer]
     if mux:
@@ -795,7 +631,7 @@ def messages_of_kind(codec: FrameCodec, *kinds: str) -> list[Any]:
 
 @st.composite
 def any_frame(draw: st.DrawFn, kind: str) -> tuple[str, dict[str, int], int]:
-    codec = e2e_codec()
+    codec = FrameCodec()
     msg = draw(st.sampled_from(messages_of_kind(codec, kind)))
     return msg.name, draw_raw(draw, codec, msg), draw(st.integers(0, 15))
 
@@ -804,16 +640,13 @@ def any_frame(draw: st.DrawFn, kind: str) -> tuple[str, dict[str, int], int]:
 @settings(max_examples=300)
 @given(data=st.data())
 def test_every_frame_matches_cantools_layout(kind: str, data: st.DataObject) -> None:
-    codec = e2e_codec()  # the project's frames and one E2E frame
+    codec = FrameCodec()
     name, raw, counter = data.draw(any_frame(kind))
     msg = codec.encode(name, raw, counter)
     fid = msg.arbitration_id
     assert codec.kind(fid) == kind
     wire = bytes(msg.data)
-    if kind == "e2e":
-        assert wire[0] == ref_frame_crc(fid, wire[1:])
-    else:
-        assert wire[0:3] == bytes(3)  # Mac: NodeIO's
+    assert wire[0:3] == bytes(3)  # Mac: NodeIO's
     if kind == "sync":
         counter = 0  # no Counter: the argument is ignored
     prot = protection(kind, wire, counter)
@@ -983,12 +816,7 @@ def test_dbc_loads_strict_with_the_contract() -> None:
         kind = expected_kind(m.name)
         if msg_type(m.name) in LAYOUTS:
             assert layout == LAYOUTS[msg_type(m.name)], m.name
-        if kind == "e2e":
-            assert (layout["CRC"], layout["Counter"]) == ((0, 8), (8, 4))
-            assert "Mac" not in layout
-            e2e_payload = [start for n, (start, _) in layout.items() if n not in ("CRC", "Counter")]
-            assert min(e2e_payload) >= 12
-        elif kind == "secured":
+        if kind == "secured":
             assert (layout["Mac"], layout["Counter"]) == ((0, 24), (24, 4))
             assert "CRC" not in layout
             payload = [start for n, (start, _) in layout.items() if n not in ("Mac", "Counter")]
@@ -1118,14 +946,13 @@ def test_cantools_decode_cli_reads_a_candump_log(codec: FrameCodec, tmp_path: Pa
 # --------------------------------------------------------------------------- speed
 
 
-@pytest.mark.parametrize("which", ["mc", "diag", "e2e"])
+@pytest.mark.parametrize("which", ["mc", "diag"])
 def test_codec_is_fast_enough_for_the_receive_loop(codec: FrameCodec, which: str) -> None:
     """Guard against falling back to a generic per-frame path (tens of µs), for a secured
-    frame, a multiplexed one and an E2E frame (CRC)."""
+    frame and a multiplexed one."""
     msg = VALID[which](codec, 1)
     n = 2000
-    dec = min(timeit.repeat(lambda: codec_for(which, codec).decode(msg), number=n,
-                            repeat=3)) / n
+    dec = min(timeit.repeat(lambda: codec.decode(msg), number=n, repeat=3)) / n
     enc = min(timeit.repeat(lambda: VALID[which](codec, 1), number=n, repeat=3)) / n
     assert dec < 100e-6 and enc < 100e-6, f"decode {dec * 1e6:.1f} µs, encode {enc * 1e6:.1f} µs"
     assert math.isfinite(dec)

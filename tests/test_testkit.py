@@ -43,7 +43,7 @@ def test_a_whole_fleet_on_the_simulated_clock_converges_and_reports(keys: KeySet
         assert abs(mc["Lambda"] - 0.8) < 1e-3 and set(mc.signals) == {"State", "Resets",
                                                                          "Lambda"}
         assert {"Mac", "Counter"} <= set(mc.raw)
-        diag = tester.assert_diagnostics(3, RejectedAuth=0, RejectedCrc=0, Unsynced=0,
+        diag = tester.assert_diagnostics(3, RejectedAuth=0, RejectedDlc=0, Unsynced=0,
                                          DeadlineMisses=0, Resets=lambda n: n >= 1)
         db_msg = tester.codec.database.get_message_by_name("AGENT_3_Diag")
         assert set(diag) == {s.name for s in db_msg.signals   # every counter of every page

@@ -299,6 +299,10 @@ def _plant_status(i: int) -> Message:
 
 # AGENT_<i>_Diag: two 16-bit slots per page (DIAG_SLOT_STARTS), filled in this order; a
 # slot holds one counter, or small signals side by side (name, bits, extra _sig arguments).
+# A slot whose comment starts with "Reserved" is always 0 (firmware_py contract.DIAG_RESERVED
+# reads the mark; firmware_c's diag_value returns 0 for it): it counted a check of the
+# E2E-only frames the DBC no longer has, and stays so that no later slot moves.
+_RESERVED = "Reserved, always 0 (kept for layout compatibility): "
 DIAG_SLOT_STARTS = (32, 48)
 _U16 = 16
 _DIAG_SLOTS: tuple[tuple[tuple[str, int, dict[str, Any]], ...], ...] = (
@@ -307,8 +311,9 @@ _DIAG_SLOTS: tuple[tuple[tuple[str, int, dict[str, Any]], ...], ...] = (
     (("NeighboursAlive", 8, {"comment": "Neighbours currently heard and RUNNING."}),
      ("State", 4, {"minimum": 0, "maximum": 3, "choices": STATE_CHOICES,
                    "comment": "Agent state machine (same as the MC frame)."})),
-    (("RejectedCrc", _U16, {"what": "Received frames dropped for a CRC mismatch (none "
-                                    "since every frame is secured: kept for the layout)."}),),
+    (("RejectedCrc", _U16, {"comment": _RESERVED + "counted frames dropped for a CRC "
+                                       "mismatch; every frame is secured (a corrupted one "
+                                       "counts under RejectedAuth)."}),),
     (("RejectedDlc", _U16, {"what": "Received frames dropped for DLC != 8."}),),
     (("RejectedRange", _U16, {"what": "Received frames dropped for a signal outside its "
                                       "range."}),),
@@ -316,8 +321,9 @@ _DIAG_SLOTS: tuple[tuple[tuple[str, int, dict[str, Any]], ...], ...] = (
                                           "DBC."}),),
     (("RejectedImpersonation", _U16, {"what": "Received frames carrying this agent's own ID "
                                               "that it did not send."}),),
-    (("RepeatedCounter", _U16, {"what": "Received frames with a repeated counter (no new "
-                                        "data)."}),),
+    (("RepeatedCounter", _U16, {"comment": _RESERVED + "counted E2E frames repeating "
+                                           "their rolling counter; a replayed secured frame "
+                                           "counts under RejectedAuth."}),),
     (("LostFrames", _U16, {"what": "Frames inferred lost from counter gaps."}),),
     (("Saturations", _U16, {"what": "Fixed-point results clamped to the int32 range."}),),
     (("NeighbourTimeouts", _U16, {"what": "Neighbours that went silent past their "
@@ -329,16 +335,17 @@ _DIAG_SLOTS: tuple[tuple[tuple[str, int, dict[str, Any]], ...], ...] = (
     (("PlantFaults", _U16, {"what": "Over-current or voltage faults reported by "
                                     "PLANT_<i>_Status (rising edges)."}),),
     (("ForeignFrames", _U16, {"what": "Received frames that cannot come from this agent's "
-                                      "fleet: impersonation, IDs of agents outside the run, "
-                                      "interleaved counter sequences."}),),
+                                      "fleet: impersonation, IDs of agents outside the "
+                                      "run."}),),
     (("ForeignIds", _U16, {"what": "Of ForeignFrames: frames on IDs of agents outside the "
                                    "run."}),),
-    (("InterleavedCounters", _U16, {"what": "Of ForeignFrames: counters that stepped back or "
-                                            "repeated with another payload (two senders on "
-                                            "one ID)."}),),
+    (("InterleavedCounters", _U16, {"comment": _RESERVED + "counted E2E rolling counters "
+                                               "that stepped back or repeated with another "
+                                               "payload; a second sender on a secured ID "
+                                               "counts under RejectedAuth."}),),
     (("Untrusted", _U16, {"what": "Untrusted-source alarms: times a source ID reached 5 "
-                                  "consecutive authentication or E2E failures (untrusted for "
-                                  "1 s; docs/safety-model.md)."}),),
+                                  "consecutive DLC, range or authentication failures "
+                                  "(untrusted for 1 s; docs/safety-model.md)."}),),
     (("ImplausiblePrice", _U16, {"what": "ER_Price frames rejected as implausible (outside "
                                          "rho_min..rho_max, or a step above price_step_max "
                                          "not yet persistent)."}),),

@@ -1,7 +1,7 @@
 /*
  * The receive path (docs/firmware-spec.md section 10, section 12.3-12.5): the frame
  * checks in the spec's order (RX-1..13), echo and impersonation, foreign traffic, the
- * E2E streaks and untrusted sources, SecOC freshness and the MAC window search
+ * failure streaks and untrusted sources, SecOC freshness and the MAC window search
  * (AUTH-9..12, AUTH-25), input and peer syncs (AUTH-13..19, AUTH-21) and the join window
  * (AUTH-26); an authentic input goes to its content rule (agent_rules.c).
  */
@@ -54,7 +54,7 @@ static void foreign(bd_agent *a, int cause, uint32_t id)
     reject(a, cause, id);
 }
 
-/* RX-13: an E2E failure (dlc, range, auth: each adds to the streak) on `id`, an
+/* RX-13: a receive failure (dlc, range, auth: each adds to the streak) on `id`, an
  * input's slot or a sync ID's streak. */
 static void fail(bd_agent *a, bd_rx_slot *slot, uint32_t id, int cause, int64_t t)
 {
@@ -454,7 +454,7 @@ static int decode_and_use(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t
         return 0;
     }
     if (a->safety_rejections == before) {
-        s->streak = 0u;   /* valid and plausible: the E2E streak is over */
+        s->streak = 0u;   /* valid and plausible: the failure streak is over */
     }
     return 1;
 }

@@ -100,7 +100,7 @@ class FuzzInput:
     """One fuzz input for udp_multicast: the datagram, and what every receiver must make
     of it: ``not_a_frame`` or ``invalid_frame`` (dropped and counted under that cause by
     firmware_py.node.GuardedBus), or ``frame``: a CAN frame (``msg``), which the nodes
-    reject by its own cause (unknown_id, malformed, error_frame, crc, dlc, auth, ...)."""
+    reject by its own cause (unknown_id, malformed, error_frame, dlc, range, auth, ...)."""
 
     label: str
     datagram: bytes
@@ -173,7 +173,7 @@ def _exotic(rng: random.Random, codec: FrameCodec) -> can.Message:
 
 def mutate(rng: random.Random, real: can.Message) -> can.Message:
     """A copy of a real frame changed in one way, never left equal to it: one data bit
-    flipped (bad CRC or MAC), its length changed (bad DLC), or made extended, remote or
+    flipped (a bad MAC), its length changed (bad DLC), or made extended, remote or
     FD."""
     data = bytearray(real.data)
     how = rng.randrange(6)

@@ -46,9 +46,9 @@ Physical model, per BESS (units: kW, V, A, s; P > 0 = discharge into the grid)
   - ``FaultOverCurrent``: only by fault injection (the reference is limited to
     I_max and a first-order loop cannot overshoot, so the model never trips by itself).
 
-Setpoint reception (E2E, like the agent runtime): a frame failing decode (CRC,
-DLC, range, ...) is rejected and counted under its cause; a repeated counter is
-no new data (``repeated_counter``); counter gaps count ``lost_frames``. A BESS whose
+Setpoint reception (secured, like the agent runtime: firmware_py.nodeio): a frame failing
+decode (DLC, range, ...) or its MAC and freshness check is rejected and counted under its
+cause; freshness gaps count ``lost_frames``. A BESS whose
 last accepted setpoint is older than ``contract.TIMEOUT_CYCLES`` = 5 setpoint cycles
 (250 ms; the cycle is the DBC's 50 ms at Ts = 10 ms, stretched with Ts in a
 time-scaled run) gets P_ref = 0: the current loop ramps it down with τ.
@@ -319,10 +319,10 @@ class Cyclic:
 class PlantNode(SimNodeClock):
     """Node (firmware_py.node) simulating every BESS of a scenario.
 
-    ``counters`` (a Counter): rejected setpoint frames by cause (``crc``, ``dlc``,
-    ``range``, ``unknown_id``, ``malformed``, ``impersonation``), ``repeated_counter``,
-    ``lost_frames``, ``foreign`` (with ``foreign_id``, ``counter_jump``,
-    ``counter_clash``), ``untrusted`` / ``untrusted_sources`` (firmware_py.nodeio),
+    ``counters`` (a Counter): rejected setpoint frames by cause (``dlc``, ``range``,
+    ``unknown_id``, ``malformed``, ``impersonation``, ``auth``, ``unsynced``, ...),
+    ``lost_frames``, ``foreign`` (with ``foreign_id``), ``untrusted_sources``
+    (firmware_py.nodeio),
     ``setpoint_ramp_limited`` (ramp episodes), ``setpoints`` (accepted),
     ``setpoint_timeouts``, ``status_frames``,
     ``soc_faults`` / ``voltage_faults`` / ``overcurrent_faults`` (rising edges of the

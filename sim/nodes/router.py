@@ -39,8 +39,8 @@ happens while no pinned agent is lost (a fleet starting up, an unpinned agent is
 so a run without a lost pinned agent sends exactly what it sent before.
 ``failover=False`` turns it off (the MC frames are then not taken at all).
 
-Status reception uses the E2E checks of the agent runtime: rejections by cause,
-``repeated_counter``, ``lost_frames``, foreign traffic (firmware_py.nodeio); a BESS
+Status reception uses the receive checks of the agent runtime: rejections by cause,
+``lost_frames``, foreign traffic (firmware_py.nodeio); a BESS
 whose status is older than 5 status cycles (``contract.timeout_s``: 250 ms at Ts =
 10 ms) counts one ``status_timeouts`` (its last power is still used).
 """
@@ -162,10 +162,10 @@ class _StatusSlot:
 class RouterNode(SimNodeClock):
     """Node (firmware_py.node) of the energy router for one scenario.
 
-    ``counters``: rejected status frames by cause (``crc``, ``dlc``, ``range``,
-    ``unknown_id``, ``malformed``, ``impersonation``), ``repeated_counter``,
-    ``lost_frames``, ``foreign`` (with ``impersonation``, ``foreign_id``, ``counter_jump``,
-    ``counter_clash``), ``status_frames`` (accepted), ``status_timeouts``,
+    ``counters``: rejected status frames by cause (``dlc``, ``range``, ``unknown_id``,
+    ``malformed``, ``impersonation``, ``auth``, ``unsynced``, ...), ``lost_frames``,
+    ``foreign`` (with ``impersonation``, ``foreign_id``), ``status_frames`` (accepted),
+    ``status_timeouts``,
     ``price_frames``, ``command_frames``, ``balance_frames`` (pages), ``silenced_frames``,
     ``events`` (scenario events fired), ``failovers`` (agents pinned by the failover),
     ``encode_saturations``, and the loop's

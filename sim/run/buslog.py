@@ -37,7 +37,8 @@ from sim.model.scenario import MAX_AGENT_SAMPLES, Scenario
 from sim.model.trajectory import Trajectory
 from sim.run.monitor import Forged, Monitor, Stale, StaleBoot, SyncJump, cycle_or_inf
 
-# a message silent this long restarts its counter sequence, as the nodes' trackers do
+# a message silent this long restarts its counter sequence, as a node widens a timed-out
+# sender's freshness window (firmware_py.nodeio.LOST_WINDOWS)
 SEQUENCE_TIMEOUT_CYCLES = TIMEOUT_CYCLES
 # a node is silent when a message of its own is missing for SEQUENCE_TIMEOUT_CYCLES of its
 # cycles and at least this many Ts (the agents' price timeout): shorter stalls of a
@@ -336,7 +337,7 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
         kind = codec.kind(f.frame_id)
         if kind == "sync":
             out.syncs += 1
-        if monitor is not None and kind != "e2e":
+        if monitor is not None:
             try:
                 if kind == "sync":
                     monitor.sync(f, msg.data, t)
@@ -386,12 +387,12 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
                 out.series[(f.name, sig)].append((t, f.phys(sig)))
         elif f.name.endswith("_Diag"):
             out.diag[f.agent or 0].update({k: v for k, v in f.raw.items()
-                                           if k not in ("Mac", "CRC", "Counter", "Page")})
+                                           if k not in ("Mac", "Counter", "Page")})
         elif f.name == "ER_Command":
             out.commands.append((t, f.raw["Command"], f.raw["Target"], f.raw["GainK"]))
         elif f.name == "ER_Balance":  # one page's signals
             for sig in f.raw:
-                if sig not in ("Mac", "CRC", "Counter", "Page"):
+                if sig not in ("Mac", "Counter", "Page"):
                     out.series[("balance", sig)].append((t, f.phys(sig)))
     if monitor is not None:
         out.sync_undone.update(monitor.undone)

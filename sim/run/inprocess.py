@@ -99,7 +99,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     simulated clock.
 
     Every node has its own bus instance, so each frame really crosses the bus (encode,
-    CRC, bus, decode, E2E and range checks), but no thread races the wall clock: one
+    MAC, bus, decode, range and freshness checks), but no thread races the wall clock: one
     loop advances t by Ts, hands every node what its bus holds, then ticks every node.
     A frame sent at sample k is read at sample k + 1 (one sample of transport delay, as
     on a bus cycled at Ts), so the run is deterministic and faster than real time; the

@@ -68,8 +68,7 @@ INIT, RUNNING, ISOLATED, SAFE = State.INIT, State.RUNNING, State.ISOLATED, State
 _IMPERSONATION = ("frames on its own IDs that it did not send: another sender speaks as it "
                   "(forged, or a key holder's)")
 # foreign traffic other than impersonation (which ForeignFrames/foreign also count)
-_FOREIGN = ("frames that cannot come from its own fleet (IDs outside the run, interleaved "
-            "counter sequences)")
+_FOREIGN = "frames that cannot come from its own fleet (IDs of agents outside the run)"
 # AGENT_i_Diag counters that a healthy run keeps at 0: (signal, anomaly kind, what)
 _AGENT_FAULT_COUNTERS = (
     ("PriceTimeouts", "price_timeout", "price timeouts (no valid ER_Price for the timeout)"),
@@ -77,13 +76,11 @@ _AGENT_FAULT_COUNTERS = (
     ("PlantFaults", "plant_fault", "plant faults reported by PLANT_i_Status"),
     ("RejectedImpersonation", "impersonation", _IMPERSONATION),
     ("ForeignFrames", "foreign_traffic", _FOREIGN),
-    ("RejectedCrc", "rejected_frames", "frames with a bad CRC"),
     ("RejectedDlc", "rejected_frames", "frames with a bad length"),
     ("RejectedRange", "rejected_frames", "frames with a value out of range"),
     ("RejectedUnknownId", "rejected_frames", "frames with an ID outside the DBC"),
-    ("RepeatedCounter", "stale_frames", "frames repeating the last counter (stale data)"),
     ("Untrusted", "untrusted_source", "untrusted-source alarms (a source ID with 5 "
-     "consecutive authentication or E2E failures)"),
+     "consecutive DLC, range or authentication failures)"),
     ("ImplausiblePrice", "implausible_frames", "prices rejected as implausible (bounds or step)"),
     ("ImplausibleLambda", "implausible_frames", "neighbour λ rejected as implausible (step per "
      "sample)"),
@@ -99,7 +96,6 @@ _SIM_FAULT_COUNTERS = (
     ("status_timeouts", "status_timeout", "status timeouts"),
     ("impersonation", "impersonation", _IMPERSONATION),
     ("foreign", "foreign_traffic", _FOREIGN),
-    ("crc", "rejected_frames", "frames with a bad CRC"),
     ("dlc", "rejected_frames", "frames with a bad length"),
     ("range", "rejected_frames", "frames with a value out of range"),
     ("unknown_id", "rejected_frames", "frames with an ID outside the DBC"),
@@ -112,12 +108,9 @@ _SIM_FAULT_COUNTERS = (
     ("rx_overflow", "recorder_missed_frames", "frames the kernel dropped at its full receive "
      "buffer (a reader the host starved)"),
     ("error_frame", "bus_errors", "CAN error frames"),
-    ("repeated_counter", "stale_frames", "frames repeating the last counter (stale data)"),
     ("send_failure", "send_failure", "frames it failed to send"),
     ("untrusted_sources", "untrusted_source", "untrusted-source alarms (a source ID with 5 "
-     "consecutive authentication or E2E failures)"),
-    ("untrusted", "untrusted_source", "frames rejected from an E2E-only source ID made "
-     "untrusted by consecutive E2E failures"),
+     "consecutive DLC, range or authentication failures)"),
     ("auth", "auth_failed", "secured frames or syncs whose MAC does not verify (forged, "
      "replayed or corrupted)"),
     ("sync_jump", "sync_jump", _SYNC_JUMP),

@@ -1,11 +1,11 @@
 """``Tester``: send and expect frames by message and signal name, as any node of a fleet.
 
-Transmit goes through ``firmware_py.nodeio.FleetSender`` (the codec's layout, the E2E
-counter and CRC, or the SecOC freshness and MAC with the node's key, and the
-``<name>_Sync`` frames a receiver needs first); receive through ``FrameCodec.decode``
-(DLC, CRC, ranges) and the recorder's SecOC monitor (``sim.run.buslog``: MAC and freshness
-with the fleet's keys). A frame that fails a check is never returned, but counted in
-``Tester.rejected`` by cause (and by ID), and named in the timeout error of ``expect``.
+Transmit goes through ``firmware_py.nodeio.FleetSender`` (the codec's layout, the SecOC
+freshness and MAC with the node's key, and the ``<name>_Sync`` frames a receiver needs
+first); receive through ``FrameCodec.decode`` (DLC, ranges) and the recorder's SecOC
+monitor (``sim.run.buslog``: MAC and freshness with the fleet's keys). A frame that
+fails a check is never returned, but counted in ``Tester.rejected`` by cause (and by
+ID), and named in the timeout error of ``expect``.
 
 Bus time: ``Tester.now()``. On a real bus (any python-can interface) it is the wall
 clock, in seconds since the tester was made; on a fleet run in-process on a simulated
@@ -40,7 +40,7 @@ __all__ = ["ExpectationError", "Periodic", "Received", "Tester", "TesterError",
 
 INBOX_DEPTH = 4096   # frames kept per message name for expect (40 s of one MC stream)
 ECHO_DEPTH = 16      # own frames remembered per ID to recognise their echo
-_PROTECTION = ("Mac", "CRC", "Counter")  # filled in by the sender; in ``raw`` only
+_PROTECTION = ("Mac", "Counter")  # filled in by the sender; in ``raw`` only
 POLL_S = 0.02        # wall clock: how often a waiting expect looks at the clock
 
 
@@ -121,7 +121,7 @@ class Received:
     """One received frame that passed every check.
 
     ``signals``: physical values (enum signals as numbers; ``label(name)`` gives the
-    DBC's choice name), Mac, CRC and Counter left out; ``raw``: the raw integers, those
+    DBC's choice name), Mac and Counter left out; ``raw``: the raw integers, those
     included; ``t``:
     bus time of its reception; ``msg``: the python-can message as received."""
 
@@ -417,16 +417,16 @@ class Tester:
         return name
 
     def signal_names(self, name: str) -> list[str]:
-        """The signals ``send`` takes for ``name`` (the DBC's, minus Mac/CRC/Counter)."""
+        """The signals ``send`` takes for ``name`` (the DBC's, minus Mac and Counter)."""
         msg = self.codec.database.get_message_by_name(self._message(name))
-        return [s.name for s in msg.signals if s.name not in ("Mac", "CRC", "Counter")]
+        return [s.name for s in msg.signals if s.name not in _PROTECTION]
 
     def _check_signals(self, name: str, signals: Mapping[str, Any]) -> None:
         self._message(name)
         known = self.signal_names(name)
         unknown = [s for s in signals if s not in known]
         if unknown:
-            protected = [s for s in unknown if s in ("Mac", "CRC", "Counter")]
+            protected = [s for s in unknown if s in _PROTECTION]
             hint = (f" ({', '.join(protected)}: filled in by the tester)" if protected else "")
             raise TesterError(f"{name} signals", f"signals among {', '.join(known)}{hint}",
                               sorted(unknown))
@@ -485,9 +485,9 @@ class Tester:
     def send(self, message: str, signals: Mapping[str, Any] | None = None, *,
              as_node: str | int | None = None, **more: Any) -> can.Message:
         """Send ``message`` once with physical signal values (enum signals also by their
-        choice name: ``Command="ISOLATE"``); every signal but Mac/CRC/Counter, which the
-        tester fills in (a secured frame's freshness and MAC with ``as_node``'s key,
-        after its ``<message>_Sync`` when due; an E2E frame's counter and CRC).
+        choice name: ``Command="ISOLATE"``); every signal but Mac and Counter, which the
+        tester fills in (the frame's freshness and MAC with ``as_node``'s key, after its
+        ``<message>_Sync`` when due).
         A frame received after it counts for the next ``expect`` (a reply to this frame
         is not lost to the time between the two calls). Returns the frame."""
         return self._send(message, {**(signals or {}), **more}, as_node, mark=True)
@@ -775,7 +775,7 @@ def _want_text(want: Any) -> str:
 
 def _signals_text(r: Received) -> str:
     parts: Iterable[str] = (f"{k}={r.label(k) or _num(v)}" for k, v in r.signals.items()
-                            if k not in ("Mac", "CRC", "Counter"))
+                            if k not in _PROTECTION)
     return f"{{{', '.join(parts)}}} at t = {r.t:.3f} s"
 
 

@@ -1,5 +1,5 @@
 /*
- * The agent runtime (docs/firmware-spec.md sections 7-14): receive checks (E2E,
+ * The agent runtime (docs/firmware-spec.md sections 7-14): receive checks (DLC, ranges,
  * SecOC freshness and MAC, echo and impersonation, foreign traffic, untrusted sources),
  * the safety rules, liveness and timeouts, the state machine, commands, the controller
  * step and the frames an agent sends. Bit-exact C99 port of firmware_py/runtime.py and
@@ -114,7 +114,7 @@ typedef struct {
 /* The counters' indices BD_C_* and BD_C_COUNT: bd_contract.h, generated from
  * firmware_py's contract.AGENT_COUNTERS. */
 
-/* The counter's name as firmware_py counts it ("crc", "deadline_miss", ...); NULL if
+/* The counter's name as firmware_py counts it ("dlc", "deadline_miss", ...); NULL if
  * out of range. */
 const char *bd_counter_name(int counter);
 
@@ -136,7 +136,7 @@ typedef struct {
     uint64_t fv;                  /* the last accepted freshness value */
     uint16_t id;                  /* the input's frame ID */
     uint16_t sync_id;             /* its <name>_Sync */
-    uint16_t streak;              /* consecutive E2E failures (RX-12) */
+    uint16_t streak;              /* consecutive receive failures (RX-13) */
     uint16_t seen;                /* bit k: the frame of FV fv - k was accepted (AUTH-25) */
     uint8_t key_index;            /* its sender's verification key, in bd_agent.key */
     uint8_t flags;                /* BD_RX_* */
@@ -182,7 +182,7 @@ typedef struct {
     uint8_t key[BD_MAX_PEERS][BD_KEY_BYTES];
     uint8_t key_label[BD_MAX_PEERS];              /* 1..32 agent, 33 plant, 34 router */
     uint16_t key_floor[BD_MAX_PEERS];             /* AUTH-21: lowest boot of that sender */
-    uint16_t sync_streak[BD_N_SYNC_IDS];          /* E2E streak of each sync ID */
+    uint16_t sync_streak[BD_N_SYNC_IDS];          /* failure streak of each sync ID */
     uint16_t peer_boot[BD_N_SYNC_IDS];            /* a peer's known boot (0: none) */
     uint32_t n_rx;
     uint32_t n_keys;
