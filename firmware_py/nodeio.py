@@ -234,7 +234,7 @@ class NodeIO:
         effect once the node has joined: a DBC frame of its fleet for other nodes. A host
         of agents (firmware_py.host) does not hand those over: ~87 % of what a 32-agent
         bus carries, for each agent."""
-        return (fid not in self._sent and fid not in self.trackers
+        return (fid not in self._sent and fid not in self._inputs
                 and fid not in self._synced_by and fid not in contract.PEER_SYNCED_BY
                 and fid in self._known
                 and (self.fleet_size is None or (agent_of(fid) or 0) <= self.fleet_size))
