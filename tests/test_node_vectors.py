@@ -293,7 +293,7 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
     elif kind == "one_freshness_window_after_a_timeout":
         mp.setattr(nodeio, "LOST_WINDOWS", 1)
     elif kind == "no_boot_bound":  # AUTH-27's bound lifted
-        mp.setattr(nodeio, "SYNC_BOOT_JUMP_MAX", 1 << 16)
+        mp.setattr(nodeio, "beyond_boot_bound", lambda *_a: False)
     elif kind == "no_boot_undo":  # AUTH-27's undo left out
         mp.setattr(nodeio.NodeIO, "_revert", lambda *_a: False)
     elif kind == "no_lambda_plausibility":

@@ -199,7 +199,7 @@ def test_without_the_bound_the_forged_sync_locks_the_fleet_out(
     price for good, the router's restart included, as issue 25 found."""
     from firmware_py.nodeio import NodeIO
 
-    monkeypatch.setattr("firmware_py.nodeio.SYNC_BOOT_JUMP_MAX", 1 << 16)
+    monkeypatch.setattr("firmware_py.nodeio.beyond_boot_bound", lambda *_a: False)
     monkeypatch.setattr(NodeIO, "_revert", lambda *_a: False)
     key = _stolen_router_key(tmp_path)
     m, _, counters = _run(tmp_path / "run", _forged_sync(key, lambda: 65535, 2.0),
