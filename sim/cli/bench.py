@@ -1,5 +1,5 @@
-"""`bess-ded bench [--quick] [--auth]`: how fast the control core and the simulator run,
-and what each authentication scheme costs.
+"""`bess-ded bench [--quick] [--auth | --fleet-load]`: how fast the control core and the
+simulator run, what each authentication scheme costs, and the bus load per fleet size.
 
 Not a test (nothing passes or fails): numbers for docs/performance.md, with the
 machine they were measured on. The benchmarks are the library's: sim/bench/micro.py.
@@ -34,14 +34,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="only the authentication schemes (issue 25): sign/verify µs, bus "
                    "load of cases 1, 7 and a 32-agent ring at Ts = 10 ms, latency, what "
                    "an insider still forges (a few seconds)")
+    p.add_argument("--fleet-load", action="store_true",
+                   help="only the bus load per fleet size (issue 23): 4..64 agents at Ts = "
+                   "10 ms, classic and CAN FD, periodic and event-triggered λ, computed "
+                   "from the DBC, the largest N at ≤ 60 %% (~15 s; --quick: ~10 s)")
     p.add_argument("--png", type=Path, metavar="FILE",
-                   help="also draw the schemes' bus load as a bar chart (PNG)")
+                   help="also draw the schemes' bus load as a bar chart (PNG); with "
+                   "--fleet-load: the load against N, one line per configuration")
     one_line_errors(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from sim.bench.micro import auth_schemes, machine_info, run_benches
+    from sim.bench.micro import auth_schemes, fleet_load, machine_info, run_benches
     from sim.report.textfmt import table, write_json
 
     t0 = time.perf_counter()
@@ -49,8 +54,13 @@ def run(args: argparse.Namespace) -> int:
     if args.auth and args.realtime:
         raise ParameterError("--auth", "no --realtime with it (--auth runs the schemes only)",
                              "--auth --realtime")
+    if args.fleet_load and (args.realtime or args.auth):
+        other = "--realtime" if args.realtime else "--auth"
+        raise ParameterError("--fleet-load", f"no {other} with it (--fleet-load runs the "
+                             "fleet-size table only)", f"--fleet-load {other}")
     print(f"bess-ded bench{' --quick' if args.quick else ''}"
-          f"{' --realtime' if args.realtime else ''}{' --auth' if args.auth else ''}")
+          f"{' --realtime' if args.realtime else ''}{' --auth' if args.auth else ''}"
+          f"{' --fleet-load' if args.fleet_load else ''}")
     print(f"  python {info['python']}, {info['platform']}")
     print(f"  CPU {info['cpu']} ({info['logical_cpus']} logical), numpy {info['numpy']}, "
           f"load average {info['load_average_1min']} at start")
@@ -64,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.flush()
 
     tables = run_benches(args.quick, args.realtime, on_table=show,
-                         only=[auth_schemes] if args.auth else None)
+                         only=[auth_schemes] if args.auth else
+                         [fleet_load] if args.fleet_load else None)
     print()
     print(f"bench took {time.perf_counter() - t0:.1f} s")
     if args.json:
@@ -73,9 +84,14 @@ def run(args: argparse.Namespace) -> int:
             for t in tables]})
         print(f"wrote {args.json}")
     if args.png:
-        from sim.bench.auth import plot
+        if args.fleet_load:
+            from sim.bench.fleetload import plot as plot_fleet
 
-        schemes = [t for t in tables if t.title.startswith("Authentication schemes")]
-        plot(schemes[0].data, args.png)
+            plot_fleet(tables[0].data, args.png)
+        else:
+            from sim.bench.auth import plot
+
+            schemes = [t for t in tables if t.title.startswith("Authentication schemes")]
+            plot(schemes[0].data, args.png)
         print(f"wrote {args.png}")
     return 0
