@@ -141,3 +141,38 @@ def test_cli_fleet_load_writes_its_json(tmp_path: Path,
 def test_cli_refuses_fleet_load_with_auth(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "--fleet-load", "--auth"]) == 2
     assert "bess-ded: error: --fleet-load" in capsys.readouterr().err
+
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "ring64_lockstep.toml"
+
+
+def test_the_64_agent_example_is_the_benchs_ring_and_runs_in_the_lockstep() -> None:
+    from dataclasses import replace
+
+    from sim.model.lockstep import run_lockstep
+    from sim.model.scenario import load_scenario
+
+    sc = load_scenario(EXAMPLE)
+    ring = ring_scenario(64, 150.0)
+    assert (sc.n, sc.ts, sc.duration) == (64, 0.01, 150.0)
+    assert sorted(map(sorted, sc.edges)) == sorted(map(sorted, ring.edges))
+    assert sc.pinned == ring.pinned and sc.batteries == ring.batteries
+    assert sc.lambda0 == ring.lambda0
+    tr = run_lockstep(replace(sc, duration=1.0))
+    assert tr.lam.shape == (101, 64)
+
+
+@pytest.mark.parametrize("argv", [
+    ["deploy", "--insecure"], ["deploy"], ["up"], ["restbus", "--dut", "3"],
+    ["plant", "--interface", "virtual", "--duration", "0.1", "--insecure"],
+    ["router", "--interface", "virtual", "--duration", "0.1", "--insecure"],
+])
+def test_bus_runs_refuse_the_64_agent_example_before_writing(
+        argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    extra = ["--out", str(out)] if argv[0] in ("deploy", "up", "restbus") else []
+    assert main([argv[0], "--case", str(EXAMPLE), *argv[1:], *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bess-ded: ") and "bess-ded: error: " in err
+    assert "expected at most 32 agents on a bus (the DBC's AGENT_1..AGENT_32 frames)" in err
+    assert not out.exists()
