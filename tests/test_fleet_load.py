@@ -176,3 +176,13 @@ def test_bus_runs_refuse_the_64_agent_example_before_writing(
     assert err.startswith("bess-ded: ") and "bess-ded: error: " in err
     assert "expected at most 32 agents on a bus (the DBC's AGENT_1..AGENT_32 frames)" in err
     assert not out.exists()
+
+
+def test_the_id_plan_has_room_for_64_agents() -> None:
+    """The per-agent bases of the DBC (0x100 MC, 0x200 Setpoint, 0x280 Status, 0x300
+    Diag, their syncs 0x500, 0x600, 0x680, 0x700): Setpoint and Status are 0x80 apart, so
+    127 agents fit without moving a base; Diag runs up to ER_Balance (0x3E0)."""
+    room = fleetload.id_plan_room()
+    assert room["AGENT_<i>_Setpoint"] == room["PLANT_<i>_Status"] == 0x80 - 1
+    assert room["AGENT_<i>_MC"] == 0xFF and room["AGENT_<i>_Diag"] == 0x3E0 - 0x300 - 1
+    assert len(room) == 8 and min(room.values()) == 127 >= max(fleetload.SIZES)

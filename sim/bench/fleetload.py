@@ -115,6 +115,27 @@ class EventRatio:
     duration: float         # s of its run
 
 
+def id_plan_room() -> dict[str, int]:
+    """Per family of per-agent frames (``AGENT_<i>_MC``, ..., their syncs), how many agents
+    its 11-bit IDs have room for in the DBC's ID plan: base + 1 .. the next family's base
+    or other frame's ID (or 0x800), exclusive. The fleet size the plan allows without
+    moving a base is the smallest."""
+    from firmware_py.frames import FrameCodec
+
+    codec = FrameCodec()
+    families: dict[str, int] = {}
+    others: set[int] = {0x800}
+    for m in codec.database.messages:
+        a = _AGENT_FRAME.match(m.name)
+        if a is None:
+            others.add(m.frame_id)
+        elif int(a[2]) == 1:
+            families[m.name.replace("_1_", "_<i>_", 1)] = m.frame_id - 1
+    anchors = sorted(others | set(families.values()))
+    return {name: min(x for x in anchors if x > base) - base - 1
+            for name, base in sorted(families.items(), key=lambda kv: kv[1])}
+
+
 def ring_duration(n: int) -> float:
     """Seconds of a ring's event run: 30 s, or 2 s per agent (a ring of 64 settles in
     ~65 s at the default gains): long enough for the periodic run to settle."""
@@ -264,7 +285,7 @@ def run(quick: bool, sizes: tuple[int, ...] = SIZES, cases: bool = True
     data = {
         "ts_s": TS, "nominal_bps": bus.nominal, "fd_data_bps": bus.data,
         "load_limit": LOAD_LIMIT, "dbc_agents": N_AGENTS_MAX, "pack": PACK,
-        "window_ticks": WINDOW_TICKS,
+        "window_ticks": WINDOW_TICKS, "id_plan_room": id_plan_room(),
         "fleets": {f.label: {"agents": f.n, "frames": len(frames[f.label])} for f in fl},
         "configs": {c.key: {"label": c.label, "fd": c.fd, "mc": c.mc} for c in CONFIGS},
         "loads": loads_all, "largest_n": largest, "largest_n_any_periodic": affine,
@@ -280,6 +301,8 @@ def note(data: dict[str, Any]) -> str:
     borrowed = sorted({f"{k} ← {v['measured_on']}" for k, v in data["event_ratio"].items()
                        if v["measured_on"] != k})
     tx = Transmit("event")
+    room = data["id_plan_room"]
+    tight = min(room, key=room.get)
     any_n = ", ".join(f"{data['configs'][k]['label'].split(',')[0]} {v}"
                       for k, v in data["largest_n_any_periodic"].items())
     return (f"computed, not measured: worst-case frames (canframe) at "
@@ -291,6 +314,8 @@ def note(data: dict[str, Any]) -> str:
             f"heartbeat {tx.heartbeat} ticks; heartbeats count), rings run "
             f"max(30 s, 2 s × N)"
             + (f"; ratios taken from another run: {', '.join(borrowed)}" if borrowed else "")
+            + f". The DBC's 11-bit ID plan has room for {room[tight]} agents without moving a"
+            f" base ({tight} the tightest); its frames exist for {data['dbc_agents']}"
             + f". The measured-on-bus figure awaits CAN FD in the nodes ({FD_DATA_RATE} "
             f"bit/s is a named constant, the DBC has no FD attribute)")
 
