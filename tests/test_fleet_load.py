@@ -186,3 +186,14 @@ def test_the_id_plan_has_room_for_64_agents() -> None:
     assert room["AGENT_<i>_Setpoint"] == room["PLANT_<i>_Status"] == 0x80 - 1
     assert room["AGENT_<i>_MC"] == 0xFF and room["AGENT_<i>_Diag"] == 0x3E0 - 0x300 - 1
     assert len(room) == 8 and min(room.values()) == 127 >= max(fleetload.SIZES)
+
+
+def test_docs_table_is_what_the_bench_computes() -> None:
+    """docs/performance.md's table is `bess-ded bench --fleet-load`'s (computed: exact)."""
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "performance.md").read_text()
+    lines = doc.split("| configuration | case 1 (4) |", 1)[1].split("\n\n", 1)[0]
+    table = [[c.strip() for c in ("| configuration | case 1 (4) |" + line if i == 0 else line)
+              .strip().strip("|").split("|")]
+             for i, line in enumerate(lines.splitlines()) if not line.startswith("|---")]
+    headers, rows, _ = fleetload.run(quick=False)
+    assert table == [headers, *rows]
