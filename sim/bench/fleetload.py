@@ -202,9 +202,9 @@ def event_ratios(fl: list[Fleet], quick: bool) -> dict[str, EventRatio]:
             out[f.label] = event_ratio(f.scenario, f.label)
     for f in fl:
         if f.label not in out:
-            donor = max((g for g in fl if g.label in out and g.label.startswith("ring")),
-                        key=lambda g: g.n)
-            out[f.label] = out[donor.label]
+            donors = [g for g in fl if g.label in out and g.label.startswith("ring")]
+            out[f.label] = (out[max(donors, key=lambda g: g.n).label] if donors
+                            else event_ratio(f.scenario, f.label))
     return out
 
 
@@ -280,8 +280,9 @@ def run(quick: bool, sizes: tuple[int, ...] = SIZES, cases: bool = True
             affine[cfg.key] = affine_capacity(loads, fl)
         cells = ["–" if v is None else f"{100 * v['load']:.1f} %"
                  + ("*" if v["load"] > LOAD_LIMIT else "") for v in loads.values()]
+        every = all(v is not None and v["load"] <= LOAD_LIMIT for v in loads.values())
         rows.append([cfg.label, *cells, "none" if big is None else
-                     f"{big}" + (" (all)" if big == max(f.n for f in fl) else "")])
+                     f"{big}" + (" (all)" if every else "")])
     data = {
         "ts_s": TS, "nominal_bps": bus.nominal, "fd_data_bps": bus.data,
         "load_limit": LOAD_LIMIT, "dbc_agents": N_AGENTS_MAX, "pack": PACK,
