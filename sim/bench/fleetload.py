@@ -257,6 +257,7 @@ def affine_capacity(loads: dict[str, dict[str, float] | None], fl: list[Fleet],
 
 
 def title() -> str:
+    """The table's title: Ts, computed from the DBC, how agents above its 32 are modelled."""
     return (f"Bus load per fleet size at Ts = {TS * 1e3:g} ms, computed from the DBC "
             f"(agents {N_AGENTS_MAX + 1}..{max(SIZES)}: agent {N_AGENTS_MAX}'s frames)")
 
