@@ -90,12 +90,13 @@ class Message:
     role: str                      # "agent" | "router" (broadcasts) | "link" | "report"
 
 
-def ring_scenario(n: int = 32) -> Any:
-    """``n`` agents on a ring 1–2–…–n–1 (batteries as ``random_fleet``'s)."""
+def ring_scenario(n: int = 32, duration: float = 30.0) -> Any:
+    """``n`` agents on a ring 1–2–…–n–1 (batteries as ``random_fleet``'s), ``duration``
+    seconds at Ts = 10 ms, one price."""
     from sim.model.generate import random_fleet
     from sim.model.scenario import parse_scenario
 
-    data = random_fleet(n, 2, seed=0)
+    data = random_fleet(n, 2, seed=0, duration=duration)
     data["name"] = data["title"] = f"ring-{n}"
     data["graph"]["edges"] = [[i, i % n + 1] for i in range(1, n + 1)]
     return parse_scenario(data, f"<ring-{n}>")
@@ -246,10 +247,13 @@ def extras(scheme: Scheme, sc: Any, msgs: list[Message], bus: Bus
     return busy, frames
 
 
-def bus_load(scheme: Scheme, sc: Any, bus: Bus | None = None) -> dict[str, float]:
-    """Bus load (fraction of the bus's time) and frames/s of ``sc``'s fleet."""
+def bus_load(scheme: Scheme, sc: Any, bus: Bus | None = None,
+             msgs: list[Message] | None = None) -> dict[str, float]:
+    """Bus load (fraction of the bus's time) and frames/s of ``sc``'s fleet: its
+    ``fleet_messages``, or ``msgs`` (sim.bench.fleetload: more agents than the DBC's,
+    fewer MC frames)."""
     bus = bus or Bus(dbc_bitrate())
-    msgs = fleet_messages(sc)
+    msgs = fleet_messages(sc) if msgs is None else msgs
     busy, frames = extras(scheme, sc, msgs, bus)
     for m in msgs:
         t, k = occurrence(scheme, m, bus)

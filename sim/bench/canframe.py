@@ -1,6 +1,7 @@
 """How long a frame holds the bus: classic CAN and CAN FD, worst-case bit stuffing.
 
-The one place the bench computes frame lengths (``micro.bus_load``, ``auth``).
+The one place the bench computes frame lengths (``micro.bus_load``, ``auth``,
+``fleetload``).
 
 Classic CAN (ISO 11898-1 classic base/extended data frame), the worst-case length of
 Davis, Burns, Bril and Lukkien (Real-Time Systems 35(3), 2007, eq. (1)), the 3-bit

@@ -59,8 +59,9 @@ class Comparison:
                 and self.final_error[1] <= MAX_FINAL_ERROR)
 
 
-def _settled(tr: Trajectory, ts: float) -> np.ndarray:
-    """The samples after each segment's settling instant."""
+def settled_samples(tr: Trajectory, ts: float) -> np.ndarray:
+    """The samples after each segment's settling instant (the periodic run's: "once
+    settled", sim.bench.fleetload too)."""
     out = np.zeros(len(tr.t), dtype=bool)
     for seg, st in zip(np.unique(tr.segment), settling_times(tr), strict=True):
         idx = np.flatnonzero(tr.segment == seg)
@@ -81,7 +82,7 @@ def compare(sc: Scenario, case: int = 0, label: str = "",
     a = run_lockstep(replace(sc, transmit=Transmit()))
     b = run_lockstep(replace(sc, transmit=tx))
     assert a.mc_sent is not None and b.mc_sent is not None
-    settled = _settled(a, sc.ts)
+    settled = settled_samples(a, sc.ts)
     st_a, st_b = settling_times(a), settling_times(b)
     ratio = max((float("inf") if y is None else y / x) if x else (1.0 if not y else
                                                                   float("inf"))

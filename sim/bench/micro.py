@@ -619,6 +619,17 @@ def auth_schemes(quick: bool) -> Table:
                  "its frames, plus its verify on the node (M4 figures cited, ms)")
 
 
+def fleet_load(quick: bool) -> Table:
+    """Bus load per fleet size at Ts = 10 ms (sim.bench.fleetload, issue 23 item 4):
+    classic and CAN FD, periodic and event-triggered λ, rings of 4..64 agents and cases
+    1 and 7, computed from the DBC; the largest N at ≤ 60 %. --quick: the event ratios
+    of rings above 32 agents are ring-32's."""
+    from sim.bench.fleetload import note, run, title
+
+    headers, rows, data = run(quick)
+    return Table(title(), headers, rows, note=note(data), data=data)
+
+
 BENCHES: list[Bench] = [
     controller_step,
     c_controller_step,
@@ -630,6 +641,7 @@ BENCHES: list[Bench] = [
     input_checks,
     bus_load,
     auth_schemes,
+    fleet_load,
     secoc_settling,
     event_transmit,
 ]

@@ -1,4 +1,5 @@
-"""`bess-ded bench [--quick]`: how fast the control core and the simulator run.
+"""`bess-ded bench [--quick] [--auth | --fleet-load | --capacity-only]`: how fast the
+control core and the simulator run.
 
 Not a test (nothing passes or fails): numbers for docs/performance.md, with the
 machine they were measured on. The benchmarks are the library's: sim/bench/micro.py.
@@ -37,8 +38,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="only the authentication schemes (issue 25): sign/verify µs, bus "
                    "load of cases 1, 7 and a 32-agent ring at Ts = 10 ms, latency, what "
                    "an insider still forges (a few seconds)")
+    p.add_argument("--fleet-load", action="store_true",
+                   help="only the bus load per fleet size (issue 23): 4..64 agents at Ts = "
+                   "10 ms, classic and CAN FD, periodic and event-triggered λ, computed "
+                   "from the DBC, the largest N at ≤ 60 %% (~15 s; --quick: ~10 s)")
     p.add_argument("--png", type=Path, metavar="FILE",
-                   help="also draw the schemes' bus load as a bar chart (PNG)")
+                   help="also draw the schemes' bus load as a bar chart (PNG); with "
+                   "--fleet-load: the load against N, one line per configuration")
     add_capacity_arguments(p)
     one_line_errors(p)
     p.set_defaults(func=run)
@@ -53,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     info = machine_info()
     print(f"bess-ded bench{' --quick' if args.quick else ''}"
           f"{' --realtime' if args.realtime else ''}{' --auth' if args.auth else ''}"
+          f"{' --fleet-load' if args.fleet_load else ''}"
           f"{' --capacity-only' if args.capacity_only else ''}")
     print(f"  python {info['python']}, {info['platform']}")
     print(f"  CPU {info['cpu']} ({info['logical_cpus']} logical), numpy {info['numpy']}, "
@@ -75,7 +82,12 @@ def run(args: argparse.Namespace) -> int:
             {"title": t.title, "headers": t.headers, "rows": t.rows, "data": t.data}
             for t in tables]})
         print(f"wrote {args.json}")
-    if args.png:
+    if args.png and args.fleet_load:
+        from sim.bench.fleetload import plot as plot_fleet
+
+        plot_fleet(tables[0].data, args.png)
+        print(f"wrote {args.png}")
+    elif args.png:
         from sim.bench.auth import plot
 
         schemes = [t for t in tables if t.title.startswith("Authentication schemes")]

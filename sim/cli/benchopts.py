@@ -48,18 +48,21 @@ def int_list(text: str) -> tuple[int, ...]:
 def selected(args: argparse.Namespace) -> tuple[list[Bench] | None, CapacityPlan]:
     """(the sections to run, None: the default set; the capacity plan) from the options:
     --auth and --capacity-only each run one section alone."""
-    from sim.bench.micro import auth_schemes, fleet_capacity
+    from sim.bench.micro import auth_schemes, fleet_capacity, fleet_load
     from sim.bench.realtime import CapacityPlan  # noqa: F811 (the type above is for mypy)
 
-    alone = [o for o, on in (("--auth", args.auth), ("--capacity-only", args.capacity_only),
+    alone = [o for o, on in (("--fleet-load", args.fleet_load), ("--auth", args.auth),
+                             ("--capacity-only", args.capacity_only),
                              ("--realtime", args.realtime)) if on]
-    if len(alone) > 1 and (args.auth or args.capacity_only):
-        raise ParameterError(alone[0], "one of --auth, --capacity-only, --realtime "
-                             "(the first two run one section alone)", " ".join(alone))
+    if len(alone) > 1 and alone[0] != "--realtime":
+        raise ParameterError(alone[0], f"no {alone[1]} with it ({alone[0]} runs its section "
+                             "alone)", " ".join(alone))
     plan = CapacityPlan(args.fleet_sizes, args.agents_per_process, args.repeats,
                         args.fleet_seconds, args.fleet_impl, args.channel)
     if args.auth:
         return [auth_schemes], plan
+    if args.fleet_load:
+        return [fleet_load], plan
     if args.capacity_only:
         return [fleet_capacity(plan)], plan
     return None, plan

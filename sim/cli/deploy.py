@@ -63,7 +63,9 @@ def run(args: argparse.Namespace) -> int:
     sc = with_transmit(sc, args.transmit)
     sc = scaled(sc, args.time_scale)
     out: Path = args.out or Path("runs") / f"deploy-{sc.name}"
-    # everything checked before anything is written
+    # everything checked before anything is written (a fleet larger than the DBC's frames
+    # is refused by agent_configs_from_scenario)
+    configs = agent_configs_from_scenario(sc)
     if out.exists() and not out.is_dir():
         raise_out(out)
     if args.keys is not None:
@@ -78,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     (out / "agents").mkdir(parents=True, exist_ok=True)
     (out / "scenario.toml").write_text(to_toml(sc))
     paths = []
-    for cfg in agent_configs_from_scenario(sc):
+    for cfg in configs:
         path = out / "agents" / f"agent_{cfg.id}.toml"
         path.write_text(cfg.to_toml())
         paths.append(path)

@@ -60,10 +60,12 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
 def load_node_scenario(args: argparse.Namespace) -> Any:
     """The scenario the flags name, stretched by --time-scale; sets the default --period
     to its Ts."""
+    from firmware_py.config import agent_configs_from_scenario
     from sim.model.scenario import scaled
     from sim.model.scenario_select import resolve_scenario
 
     sc = resolve_scenario(args.case)
+    agent_configs_from_scenario(sc)  # a fleet larger than the DBC's frames: refused, named
     if args.time_scale != 1.0:
         sc = scaled(sc, args.time_scale)
     if args.period is None:

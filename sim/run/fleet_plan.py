@@ -53,6 +53,7 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
     ``keys``: a key set directory (checked), else ``insecure`` or a fresh set in
     ``out``/keys at the run; ``out``: default runs/<command>-<scenario>; ``transmit``:
     "periodic" or "event" (None: the scenario's, scenario_select.with_transmit)."""
+    from firmware_py.config import agent_configs_from_scenario
     from sim.model.scenario import MAX_AGENT_SAMPLES, scaled
     from sim.model.scenario_select import pick_variant, resolve_scenario, with_transmit
     from sim.run import busrun
@@ -76,6 +77,9 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
             "insist)")
     scale = scale or 1.0
     sc = scaled(sc, scale)
+    # a fleet larger than the DBC's frames (a simulator-only scenario) is refused here,
+    # before the run writes its directory (keys, scenario.toml)
+    agent_configs_from_scenario(sc)
     run_s = sc.duration if duration is None else duration * scale
     if sc.n * run_s / sc.ts > MAX_AGENT_SAMPLES:  # its log could not be analysed
         raise ParameterError("--duration", f"at most {MAX_AGENT_SAMPLES * sc.ts / sc.n / scale:g}"
