@@ -199,6 +199,7 @@ class NodeIO:
         self._lost: set[int] = set()  # secured IDs whose sender timed out
         # AUTH-27: per secured input, the last value before its latest boot advance
         self._back: dict[int, int] = {}
+        self._spoke: set[int] = set()  # secured IDs with a frame taken since their `back`
         self._peer_boot: dict[int, int] = {}  # sync ID of a frame not used -> its boot
         if keys.insecure:  # every insecure sender starts at boot 1, count 0: no sync needed
             self._joining = None  # and no replay protection to join for
@@ -344,7 +345,7 @@ class NodeIO:
                           "(forged, replayed or corrupted)", t)
             return None
         self._fv.accept(fid, fv)
-        self._back.pop(fid, None)  # AUTH-27: a frame of the new boot: the advance was its own
+        self._spoke.add(fid)  # AUTH-27: a frame since the latest boot advance
         self._lost.discard(fid)
         self.counters["lost_frames"] += fv - last - 1
         if not defer_trust:
@@ -435,7 +436,9 @@ class NodeIO:
             if self._boot_jump(name, sync_id, expected, boot, t):
                 return
             if boot > expected:  # AUTH-27: where a forged advance is undone to; a second
-                self._back.setdefault(fid, last)  # one unconfirmed keeps the first's
+                if fid in self._spoke or fid not in self._back:  # with no frame between
+                    self._back[fid] = last  # keeps the first's (forged syncs in a row)
+                self._spoke.discard(fid)
         self._fv.accept(fid, fv - 1, frame=False)  # its next frame uses fv
         self._lost.discard(fid)
         self.counters["resyncs"] += 1

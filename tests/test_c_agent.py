@@ -444,12 +444,12 @@ def test_a_forged_boot_jump_is_refused_or_undone_alike_in_c_and_python() -> None
         (6 << 24)  # the restarted router's first price frame
 
 
-def test_two_forged_advances_are_undone_together_and_a_confirmed_one_for_good() -> None:
+def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once() -> None:
     """AUTH-27, bit for bit: two forged price syncs in a row (boot 5 → 9 → 17, each within
     the bound) while the router is down are both undone by the restarted router's first
-    sync (boot 6): the undo point is the first unconfirmed advance's. A genuine advance
-    confirmed by a frame of its boot is final: a genuine boot-5 sync replayed after it
-    (newer than any boot-5 frame taken) is a replay (`auth`), not an undo."""
+    sync (boot 6): a second advance with no frame taken since the first keeps the
+    first's undo point. The undo point is used once: a genuine boot-5 sync replayed
+    after it (newer than any boot-5 frame taken) is a replay (`auth`), not an undo."""
     keys = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
 
     def ring() -> Keyring:

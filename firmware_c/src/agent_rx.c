@@ -221,8 +221,8 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
         s->seen = seen_after(s, 1, fv, 1u);
         s->fv = fv;
     }
-    /* AUTH-27: a frame of the new boot: the advance was its sender's own */
-    s->flags &= (uint8_t)~(BD_RX_LOST | BD_RX_BACK);
+    s->flags &= (uint8_t)~BD_RX_LOST;
+    s->flags |= BD_RX_SPOKE;   /* AUTH-27: a frame since the latest boot advance */
     uint64_t gap = fv - last - 1u;
     bd_count_add(a, BD_C_LOST_FRAMES, gap > UINT32_MAX ? UINT32_MAX : (uint32_t)gap, f->id);
     return 1;
@@ -318,12 +318,15 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
             fail(a, NULL, f->id, BD_C_AUTH, t);
             return;
         }
-        if (m.boot > expected && (s->flags & BD_RX_BACK) == 0u) {
-            /* AUTH-27: where a forged advance is undone to (a second one before a frame
-             * of the new boot keeps the first's) */
-            s->back_boot = (uint16_t)fv_boot(s->fv);
-            s->back_count = (uint32_t)(s->fv & FV_COUNT_MASK);
-            s->flags |= BD_RX_BACK;
+        if (m.boot > expected) {
+            /* AUTH-27: where a forged advance is undone to; a second one with no frame
+             * taken since the first keeps the first's (forged syncs in a row) */
+            if ((s->flags & BD_RX_SPOKE) != 0u || (s->flags & BD_RX_BACK) == 0u) {
+                s->back_boot = (uint16_t)fv_boot(s->fv);
+                s->back_count = (uint32_t)(s->fv & FV_COUNT_MASK);
+                s->flags |= BD_RX_BACK;
+            }
+            s->flags &= (uint8_t)~BD_RX_SPOKE;
         }
     }
     if (fv - 1u <= FV_MAX) {

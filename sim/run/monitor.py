@@ -57,6 +57,7 @@ class Monitor:
         self.cycle_of = cycle_of or (lambda name: cycle_or_inf(name, MC_CYCLE_S))
         self.t_last: dict[int, float] = {}   # per secured ID: when its state last moved
         self.boots: dict[str, int] = {}  # label -> the boot of its latest verified sync
+        self.spoke: set[int] = set()  # secured IDs with a frame since their `back`
         self.back: dict[int, int] = {}  # per secured ID: its value before its last boot advance
         # syncs that undid a boot advance: their sender carried on in the boot it had left
         self.undone: Counter[str] = Counter()
@@ -98,7 +99,9 @@ class Monitor:
         if verified:
             self.boots[label] = boot
             if last is not None and boot > split(last + 1)[0]:
-                self.back.setdefault(fid, last)  # the first unconfirmed advance's
+                if fid in self.spoke or fid not in self.back:  # as the nodes (AUTH-27)
+                    self.back[fid] = last
+                self.spoke.discard(fid)
             if last is None or fv - 1 > last:
                 self.fv.accept(fid, fv - 1, frame=False)
             if last is None or fv - 1 >= last:
@@ -128,7 +131,7 @@ class Monitor:
         fv = self.fv.search(f.frame_id, f.counter, self.windows(f, t), verifies)
         if fv is not None:
             self.fv.accept(f.frame_id, fv)
-            self.back.pop(f.frame_id, None)  # a frame of the new boot: the advance was real
+            self.spoke.add(f.frame_id)  # a frame since the latest boot advance
             self.t_last[f.frame_id] = t
             return True
         if self.fv.search_late(f.frame_id, f.counter, self.STALE_WINDOWS, verifies):

@@ -131,6 +131,7 @@ typedef void (*bd_event_fn)(void *ctx, int event, uint32_t frame_id, uint32_t de
 #define BD_RX_LOST 0x04u          /* its sender timed out: LOST_WINDOWS windows tried */
 #define BD_RX_JOIN 0x08u          /* joining: fv is the newest sync's FV (AUTH-26) */
 #define BD_RX_BACK 0x10u          /* back is set (AUTH-27) */
+#define BD_RX_SPOKE 0x20u         /* a frame was taken since the latest boot advance (AUTH-27) */
 typedef struct {
     int64_t untrusted_until;
     uint64_t fv;                  /* the last accepted freshness value */
