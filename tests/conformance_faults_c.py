@@ -73,12 +73,15 @@ def _faults_dir() -> Path:
 
 
 def _copy_sources(dest: Path) -> Path:
-    """firmware_c (without build output) and dbc/ under ``dest``, as the Makefile expects
-    them (``../dbc``); the generated sources copied too when a fault build left them."""
+    """firmware_c (without build output), dbc/ and firmware_py/ under ``dest``, as the
+    Makefile and gen_contract.py expect them (``../dbc``, ``../firmware_py``: the contract
+    tables come from this tree's firmware_py, not from whatever version is installed)."""
     src = cimpl.SOURCE_DIR
     shutil.copytree(src, dest / "firmware_c",
                     ignore=shutil.ignore_patterns("build", "__pycache__", "*.o", "*.so"))
     shutil.copytree(src.parent / "dbc", dest / "dbc")
+    shutil.copytree(src.parent / "firmware_py", dest / "firmware_py",
+                    ignore=shutil.ignore_patterns("__pycache__"))
     return dest / "firmware_c"
 
 
