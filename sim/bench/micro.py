@@ -211,46 +211,40 @@ def _median_us(fn: Callable[[], object], n: int, reps: int = 5) -> float:
 
 
 def bus_load(quick: bool) -> Table:
-    """Frames/s and worst-case bus load at the DBC's bit rate from its cycle times.
+    """Frames/s and worst-case bus load of today's protocol, from the DBC: every secured
+    message and sync of the fleet (sim.bench.auth's ``fleet_messages``, scheme "a": one
+    MAC under the sender's key), each cycle at the scenario's Ts as the firmware
+    stretches it; classic 8-byte frames, 135 bits worst case (sim.bench.canframe)."""
+    from dataclasses import replace
 
-    The MC frame goes out every Ts; the other cycles are the DBC's (fixed). Every frame
-    is a classic 8-byte frame with an 11-bit ID: 135 bits worst case (sim.bench.canframe).
-    """
-    from firmware_py.frames import FrameCodec
-    from sim.bench.auth import dbc_bitrate
-    from sim.bench.canframe import classic_frame_time
+    from sim.bench import auth
+    from sim.model.scenario import load_case
 
-    codec = FrameCodec()
-    frame_s = classic_frame_time(8, dbc_bitrate())
-    db = codec.database
-    cycle = {m.name: m.cycle_time for m in db.messages if m.cycle_time}
-    per_agent_fixed = sum(1000 / cycle[name] for name in
-                          ("AGENT_1_Setpoint", "PLANT_1_Status", "AGENT_1_Diag"))
-    # the router sends every ER_Balance page each balance cycle (Diag: one page a cycle)
-    shared = (1000 / cycle["ER_Price"]
-              + len(codec.pages("ER_Balance")) * 1000 / cycle["ER_Balance"])
-    # authentication adds no byte (DLC 8 either way): only the syncs, per secured ID
-    sync_per_agent = sum(1000 / cycle[f"{name}_Sync"] for name in
-                         ("AGENT_1_MC", "AGENT_1_Setpoint", "PLANT_1_Status", "AGENT_1_Diag"))
-    sync_shared = sum(1000 / cycle[f"{name}_Sync"] for name in
-                      ("ER_Price", "ER_Command", "ER_Balance"))
+    today = auth.SCHEMES[0]
+    ring = auth.ring_scenario()
     rows, data = [], {}
-    for label, n, ts_ms in (("cases 1-6", 4, 10), ("case 7", 12, 10),
-                            ("32 agents", 32, 10), ("32 agents", 32, 40)):
-        fps = shared + n * (1000 / ts_ms + per_agent_fixed)
-        fps_auth = fps + sync_shared + n * sync_per_agent
-        load, load_auth = (f * frame_s for f in (fps, fps_auth))
-        rows.append([label, str(n), str(ts_ms), f"{fps:.0f}", f"{100 * load:.1f} %",
-                     f"{fps_auth:.0f}", f"{100 * load_auth:.1f} %"])
-        data[f"{label} Ts={ts_ms}ms"] = {"agents": n, "ts_ms": ts_ms, "frames_per_s": fps,
-                                         "load": load, "frames_per_s_auth": fps_auth,
-                                         "load_auth": load_auth}
-    return Table("CAN bus load (DBC cycle times, 135-bit worst-case frames, 500 kbit/s)",
+    for label, sc in (("cases 1-6", load_case(1)), ("case 7", load_case(7)),
+                      ("32-agent ring", ring), ("32-agent ring", replace(ring, ts=0.04))):
+        msgs = auth.fleet_messages(sc)
+        plain = auth.bus_load(today, sc, msgs=[m for m in msgs
+                                                if not m.name.endswith("_Sync")])
+        secured = auth.bus_load(today, sc, msgs=msgs)
+        ts_ms = round(sc.ts * 1000)
+        rows.append([label, str(sc.n), str(ts_ms), f"{plain['frames_per_s']:.0f}",
+                     f"{100 * plain['load']:.1f} %", f"{secured['frames_per_s']:.0f}",
+                     f"{100 * secured['load']:.1f} %"])
+        data[f"{label} Ts={ts_ms}ms"] = {
+            "agents": sc.n, "ts_ms": ts_ms, "frames_per_s": plain["frames_per_s"],
+            "load": plain["load"], "frames_per_s_auth": secured["frames_per_s"],
+            "load_auth": secured["load"]}
+    return Table("CAN bus load (the DBC's frames and cycles at Ts, 135-bit worst-case "
+                 "frames, the DBC's bit rate)",
                  ["scenario", "agents", "Ts [ms]", "frames/s", "bus load",
                   "frames/s, authenticated", "bus load, authenticated"], rows,
-                 note="32 agents do not fit at Ts = 10 ms; Ts = 40 ms keeps the load < 70 %. "
-                 "Authenticated: + one <name>_Sync per secured ID per second (the MAC "
-                 "replaced the CRC-8 and payload bits: no frame grew)", data=data)
+                 note="32 agents do not fit at Ts = 10 ms on classic CAN; at Ts = 40 ms "
+                 "every cycle is 4x longer. Authenticated: + one <name>_Sync per secured "
+                 "ID per sync period (no frame grew: the MAC is inside DLC 8); "
+                 "bench --fleet-load: CAN FD and larger fleets", data=data)
 
 
 def secoc_cost(quick: bool) -> Table:
