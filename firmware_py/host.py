@@ -6,7 +6,7 @@ decode, a Message) is most of what a Python node spends on a frame it does not u
 K sockets in one process would read each frame K times; one socket reads it once and
 hands it to each agent, which then sees what its own socket would have delivered:
 every frame of the bus, its own echo included, counted and dropped by its own NodeIO.
-Each agent keeps its own NodeIO (echo memory, E2E trackers, counters), its own keys
+Each agent keeps its own NodeIO (echo memory, freshness state, counters), its own keys
 and its own control core; only the scheduling is shared.
 
 On interfaces that do not loop a socket's sends back to itself (socketcan, virtual)
