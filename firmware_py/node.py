@@ -428,7 +428,8 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
     Each node keeps its own release and deadline accounting, exactly ``run_node``'s: a
     node whose turn comes more than Ts/2 after its release (delayed by its own overrun
     or by the nodes before it) counts 1 + floor(late/Ts) misses and skips the periods
-    it missed; it rejoins the others at a later release (all releases are start + n·Ts).
+    it missed; it rejoins the others at a later release (each release is its own running
+    binary64 sum, as LOOP-1 says: one an ulp behind the others ticks at the next pass).
     A bus input that is not a frame is counted by every node (each socket read it).
     ``route(msg)``: the nodes a frame is handed to (default: all; firmware_py.host.Routes
     leaves out those it cannot affect). ``run_node`` is this loop with one node."""
@@ -438,10 +439,10 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
                             f"{[n.period for n in nodes]}")
     stop = stop or StopFlag()
     if not isinstance(bus, GuardedBus):
-        def note_all(cause: str) -> None:
+        def note_all(cause: str) -> None:  # each node's socket would have read it
             for n in nodes:
                 n.note(cause)
-        bus = GuardedBus(bus, nodes[0].note if len(nodes) == 1 else note_all, clock)
+        bus = GuardedBus(bus, note_all, clock)
     period = nodes[0].period
     start = clock()
     releases = [start] * len(nodes)

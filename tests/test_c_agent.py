@@ -413,20 +413,26 @@ def test_a_sync_below_the_boot_floor_is_refused_alike_in_c_and_python() -> None:
     assert py.price == 1 << 23 and py.state == c.state  # the genuine price only
 
 
+def _agent_2_alike() -> tuple[AgentRuntime, CAgent, dict[str, bytes]]:
+    """Agent 2 in firmware_py and in C, each with its own key ring (the node keys of the
+    router, the plant and agents 1 and 3), and every key the tests' senders sign with."""
+    peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
+
+    def ring() -> Keyring:
+        return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
+                       peers=dict(peers), frames=FRAMES)
+    cfg = _cfg()
+    return (AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring()),
+            peers | ALL_FRAMES)
+
+
 def test_a_forged_boot_jump_is_refused_or_undone_alike_in_c_and_python() -> None:
     """AUTH-27, bit for bit (issue 25): with the router's key (which agent 3's key file
     holds), a price sync of boot 5 + 9 is refused (`sync_jump`, `auth`) and the genuine
     price goes on; one of boot 5 + 8 (within the bound) is taken, the genuine price
     then fails (`auth`), and the router's next genuine sync of boot 5 undoes it; the
     router restarted (boot 6) is heard."""
-    peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
-
-    def ring() -> Keyring:
-        return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
-                       peers=peers, frames=FRAMES)
-    cfg = _cfg()
-    py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
-    keys = {n: derive_node_key(MASTER, n) for n in peers} | ALL_FRAMES
+    py, c, keys = _agent_2_alike()
     router = FleetSender(FrameCodec(), keys=keys, boot=5)
     far = FleetSender(FrameCodec(), keys=keys, boot=5 + 9)
     near = FleetSender(FrameCodec(), keys=keys, boot=5 + 8)
@@ -450,14 +456,7 @@ def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once
     sync (boot 6): a second advance with no frame taken since the first keeps the
     first's undo point. The undo point is used once: a genuine boot-5 sync replayed
     after it (newer than any boot-5 frame taken) is a replay (`auth`), not an undo."""
-    keys = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
-
-    def ring() -> Keyring:
-        return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
-                       peers=keys, frames=FRAMES)
-    cfg = _cfg()
-    py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
-    keys |= ALL_FRAMES
+    py, c, keys = _agent_2_alike()
     router = FleetSender(FrameCodec(), keys=keys, boot=5)
     price = {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0}
     script = [router.sync("ER_Price"), router.frame("ER_Price", price)]
