@@ -117,6 +117,8 @@ def contract_header(db: Database) -> tuple[str, str]:
         define(f"BD_STATE_{s.name}", int(s), "AGENT_<i>_MC.State")
     for c in contract.Command:
         define(f"BD_CMD_{c.name}", int(c), "ER_Command.Command")
+    define("BD_TARGET_OFFSET", frames.TARGET_OFFSET,
+           "ER_Command.Target: agent = raw + this (DBC offset)")
     define("BD_PIN_ON", frames.PIN_ON, "ER_Command PIN: GainK to pin (CMD-7)")
     define("BD_PIN_OFF", frames.PIN_OFF, "ER_Command PIN: GainK to unpin (CMD-7)")
     cause = db.get_message_by_name(diag_name(1)).get_signal_by_name("SafetyCause")

@@ -20,6 +20,7 @@ from .host import AcceptedOnly, Routes, host_bus
 from .node import Node, RxTxBus, StopFlag, behind_filter, bus_kwargs, open_bus, run_nodes
 from .nodeargs import (
     add_bus_arguments,
+    add_fd_argument,
     add_filter_argument,
     add_key_arguments,
     add_rt_argument,
@@ -37,6 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "its --key in the same order")
     add_key_arguments(p, repeat=True)
     add_bus_arguments(p)
+    add_fd_argument(p)
     add_filter_argument(p)
     p.add_argument("--duration", type=duration_s(), default=None, metavar="S",
                    help="stop after S seconds")
@@ -60,8 +62,12 @@ def run_agent(args: argparse.Namespace) -> int:
     """Run the agents of --config (one, or a host of several) from parsed flags until
     --duration or SIGINT/SIGTERM; prints each one's summary (and injected faults) to
     stderr at exit. Returns the exit code."""
+    from dbc import dbc_path
+
+    from .frames import FrameCodec
     from .runtime import AgentRuntime
 
+    codec = FrameCodec(dbc_path(args.fd))  # the bus's frame format (--fd: CAN FD)
     configs = [load_agent_config(path) for path in args.config]
     ids = [cfg.id for cfg in configs]
     if len(set(ids)) != len(ids):  # one identity twice: each would call the other forged
@@ -69,7 +75,7 @@ def run_agent(args: argparse.Namespace) -> int:
     if args.key is not None and len(args.key) != len(configs):
         raise ParameterError("--key", f"one key file per --config ({len(configs)})",
                              len(args.key))
-    agents = [AgentRuntime(cfg, keys=keyring_from_args(
+    agents = [AgentRuntime(cfg, codec, keys=keyring_from_args(
         args, f"agent_{cfg.id}", None if args.key is None else args.key[i]))
         for i, cfg in enumerate(configs)]
     faults = RxFaults(args.inject_rx_loss, args.inject_rx_delay, args.inject_rx_jitter,

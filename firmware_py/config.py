@@ -3,7 +3,7 @@
 Example (``bess-ded up`` writes one per agent into DIR/agents/)::
 
     [agent]
-    id = 2                  # 1..N_AGENTS_MAX (32 in the DBC), selects the AGENT_<id>_* frames
+    id = 2                  # 1..N_AGENTS_MAX (64 in the DBC), selects the AGENT_<id>_* frames
     lambda0 = 0.6           # λ(0), cu/kWh
     pinned = false          # hears the price in ξ (b_ii = 1)
     fleet_size = 4          # optional: agents in the run; frames of agents beyond it are

@@ -1,7 +1,7 @@
 """The firmware's frame codec: DBC-driven encode/decode with the secured frame layout.
 
 Why a codec of its own rather than ``cantools`` ``Message.encode``/``decode`` per
-frame: a node decodes every frame on the bus (a few thousand per second with 32
+frame: a node decodes every frame on the bus (a few thousand per second with 64
 agents) in pure Python, and cantools' generic path costs tens of microseconds per
 frame. The DBC is still the only source of the layout: on load
 every message is compiled into flat per-ID tables (shift, mask, sign, raw
@@ -9,7 +9,10 @@ range), and the tests check the result byte for byte against cantools.
 
 Contract (see ``dbc/bess_ded.dbc`` and ``tools/gen_dbc.py``):
 
-* classic CAN, 11-bit IDs, DLC 8, Intel signals, raw integers in the firmware;
+* classic CAN, 11-bit IDs, DLC 8, Intel signals, raw integers in the firmware; or, from
+  the FD twin ``dbc/bess_ded_fd.dbc`` (``FrameCodec(FD_DBC_PATH)``), the same frames as CAN
+  FD frames with the bit-rate switch: a codec sends its DBC's format and rejects the
+  other (LOOP-6, ``malformed``);
 * every frame but the syncs is **secured** (those that can change the dispatch, and
   the diagnostics and balance that report and account): ``Mac`` in bytes 0..2 and the
   truncated freshness value ``Counter`` in the low nibble of byte 3; the codec only
@@ -69,7 +72,9 @@ __all__ = [
     "N_AGENTS_MAX",
     "PIN_OFF",
     "PIN_ON",
+    "format_fault",
     "COUNTER_MODULO",
+    "TARGET_OFFSET",
     "DecodedFrame",
     "FrameCodec",
     "agent_of",
@@ -77,6 +82,8 @@ __all__ = [
     "mc_name",
     "setpoint_name",
     "status_name",
+    "target_agent",
+    "target_raw",
 ]
 
 LAMBDA_Q = 24
@@ -154,6 +161,7 @@ class _Frame:
     frame_id: int
     agent: int | None
     kind: str                           # "secured" or "sync" (_LAYOUTS)
+    fd: bool                            # a CAN FD frame (the DBC's VFrameFormat)
     counter_shift: int                  # start bit of Counter (0 for sync frames: none)
     base: tuple[_Sig, ...]              # decode: every non-multiplexed signal incl. Mac, Counter
     tx_base: tuple[_Sig, ...]           # encode: base minus Mac and Counter
@@ -172,6 +180,8 @@ class _Compiled:
     n_agents: int                  # AGENT_1_MC..AGENT_<n>_MC
     bases: tuple[int, ...]         # ID base of each of _AGENT_MESSAGES (ID = base + i)
     counter_modulo: int            # 2**length of the Counter signal
+    target_offset: int             # ER_Command.Target: agent = raw + this (the DBC's offset)
+    fd: bool                       # every frame CAN FD (the FD twin) or none
 
 
 def _raw_range(sig: Signal) -> tuple[int, int]:
@@ -193,9 +203,9 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
     def bad(problem: str) -> ConfigError:
         return ConfigError(path, m.name, problem)
 
-    if m.is_extended_frame or m.is_fd or m.length != DLC or m.frame_id > 0x7FF:
-        raise bad(f"expected a classic 11-bit frame of {DLC} bytes, but got ID 0x{m.frame_id:X} "
-                  f"length {m.length} extended={m.is_extended_frame} fd={m.is_fd}")
+    if m.is_extended_frame or m.length != DLC or m.frame_id > 0x7FF:
+        raise bad(f"expected an 11-bit frame of {DLC} bytes, but got ID 0x{m.frame_id:X} "
+                  f"length {m.length} extended={m.is_extended_frame}")
     names = {s.name: s for s in m.signals}
     # no third kind: a message without Mac fails the secured layout's check below
     kind = "sync" if m.name.endswith("_Sync") else "secured"
@@ -241,6 +251,7 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
         frame_id=m.frame_id,
         agent=agent,
         kind=kind,
+        fd=bool(m.is_fd),
         counter_shift=names["Counter"].start if "Counter" in names else 0,
         base=tuple(base),
         tx_base=tuple(e for e in base if e[0] not in _PROTECTION),
@@ -330,9 +341,18 @@ def _compile_dbc(path: str) -> _Compiled:
     frames = [_compile_message(path, m) for m in db.messages]
     by_name = {f.name: f for f in frames}
     n, bases = _check_plan(path, by_name)
+    formats = {f.fd for f in frames}
+    if len(formats) != 1:  # a node sends one format and rejects the other (LOOP-6)
+        raise ConfigError(path, "VFrameFormat", "expected every message classic or every "
+                          "message CAN FD, but got both")
     counter_bits = db.get_message_by_name("ER_Price").get_signal_by_name("Counter").length
+    scale, offset = by_name["ER_Command"].scaling["Target"]
+    if scale != 1 or offset != int(offset):
+        raise ConfigError(path, "ER_Command.Target", f"expected factor 1 and an integer offset "
+                          f"(agent = raw + offset), but got factor {scale!r} offset {offset!r}")
     return _Compiled(db=db, by_id={f.frame_id: f for f in frames}, by_name=by_name,
-                     n_agents=n, bases=bases, counter_modulo=1 << counter_bits)
+                     n_agents=n, bases=bases, counter_modulo=1 << counter_bits,
+                     target_offset=int(offset), fd=formats.pop())
 
 
 def _load(dbc_path: str | Path) -> _Compiled:
@@ -359,6 +379,20 @@ frames a recorder sees that it still reads as frames lost (``sim.run.buslog``'s 
 statistics); more reads as a step backwards, i.e. out of sequence."""
 AGENT_BASES = _DEFAULT.bases
 MC_BASE, SETPOINT_BASE, STATUS_BASE, DIAG_BASE = AGENT_BASES[:4]
+TARGET_OFFSET = _DEFAULT.target_offset
+"""ER_Command.Target carries agent − TARGET_OFFSET (the DBC's offset, 1: six bits hold
+agents 1..64 as raw 0..63, CMD-1). The codec works in raw values, so every sender and
+receiver of a command converts with ``target_raw`` / ``target_agent``."""
+
+
+def target_raw(agent: int) -> int:
+    """ER_Command.Target's raw value addressing ``agent``."""
+    return agent - TARGET_OFFSET
+
+
+def target_agent(raw: int) -> int:
+    """The agent an ER_Command's raw Target addresses."""
+    return raw + TARGET_OFFSET
 
 
 # ---------------------------------------------------------------------------- decoded frame
@@ -446,6 +480,16 @@ def _pin_rule(db: Database) -> tuple[int, int] | None:
     return (msg.frame_id, pin[0]) if pin else None
 
 
+def format_fault(msg: can.Message, fd: bool) -> str:
+    """Why ``msg`` is not a data frame of a bus of format ``fd`` (CAN FD or classic): the
+    text of a ``malformed`` rejection (RX-2, LOOP-6)."""
+    want = "a CAN FD data frame" if fd else "a classic CAN data frame"
+    kind = ("an error frame" if msg.is_error_frame else
+            "a remote frame" if msg.is_remote_frame else
+            "a CAN FD frame" if msg.is_fd else "a classic CAN frame")
+    return f"expected {want}, but got {kind}"
+
+
 class FrameCodec:
     """Encode and decode every frame of the DBC, with the layout and raw range checks.
 
@@ -461,6 +505,8 @@ class FrameCodec:
         self._by_name = c.by_name
         self._ids = frozenset(c.by_id)
         self._pin_rule = _pin_rule(c.db)
+        self.fd = c.fd
+        """The bus's frame format: CAN FD (with the bit-rate switch) or classic."""
 
     # ------------------------------------------------------------ lookups
 
@@ -510,7 +556,8 @@ class FrameCodec:
                 for p, sigs in sorted(f.pages.items())}
 
     def scale(self, name: str, signal: str) -> float:
-        """The DBC factor of a signal (phys = raw·factor + offset; every offset is 0 here)."""
+        """The DBC factor of a signal (phys = raw·factor + offset; ER_Command.Target alone
+        has an offset: TARGET_OFFSET)."""
         f = self._frame(name)
         try:
             return f.scaling[signal][0]
@@ -568,9 +615,10 @@ class FrameCodec:
 
     @staticmethod
     def _finish(f: _Frame, body: bytes) -> can.Message:
-        """The frame with its Mac bytes 0 (NodeIO signs it: it holds the keys)."""
+        """The frame with its Mac bytes 0 (NodeIO signs it: it holds the keys); an FD
+        frame with the bit-rate switch (the FD DBC's CANFD_BRS)."""
         return can.Message(arbitration_id=f.frame_id, is_extended_id=False, data=body,
-                           check=True)
+                           is_fd=f.fd, bitrate_switch=f.fd, check=True)
 
     def encode(self, name: str, raw: Mapping[str, int], counter: int) -> can.Message:
         """Build a frame from RAW integer signal values (what the fixed-point firmware holds).
@@ -638,10 +686,8 @@ class FrameCodec:
         if msg.is_extended_id:
             raise UnknownFrameError(f"0x{fid:08X}: expected an 11-bit standard ID, but got an "
                                     "extended (29-bit) frame")
-        if msg.is_error_frame or msg.is_remote_frame or msg.is_fd:
-            kind = ("an error frame" if msg.is_error_frame else
-                    "a remote frame" if msg.is_remote_frame else "a CAN FD frame")
-            raise FrameError(f"0x{fid:03X}: expected a classic CAN data frame, but got {kind}")
+        if msg.is_error_frame or msg.is_remote_frame or msg.is_fd != self.fd:
+            raise FrameError(f"0x{fid:03X}: {format_fault(msg, self.fd)}")
         f = self._by_id.get(fid)
         if f is None:
             raise UnknownFrameError(f"0x{fid:03X}: expected an ID defined in the DBC, but got "

@@ -71,19 +71,22 @@ def host_bus(kw: dict[str, Any], accepted: Sequence[Iterable[int]],
 
 
 class Routes:
-    """The nodes of a host a received frame can affect, in host order: for a classic data
-    frame, those whose NodeIO does not ``ignore`` its ID (cached per ID) and those still
-    joining; anything else (an extended, remote, error or FD frame: counted) goes to all.
+    """The nodes of a host a received frame can affect, in host order: for a data frame of
+    the bus's format (the DBC's: classic or FD), those whose NodeIO does not ``ignore`` its
+    ID (cached per ID) and those still joining; anything else (an extended, remote or
+    error frame, a frame of the other format: counted) goes to all.
     ``ios[i]`` is ``nodes[i]``'s NodeIO."""
 
     def __init__(self, nodes: Sequence[Node], ios: Sequence[NodeIO]) -> None:
         self.nodes, self.ios = list(nodes), list(ios)
+        self._fd = bool(ios) and ios[0].codec.fd
         self._by_id: dict[int, list[Node]] = {}
         self._joined = False
 
     def __call__(self, msg: can.Message) -> Sequence[Node]:
         """The nodes to hand ``msg`` to."""
-        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or msg.is_fd:
+        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame \
+                or msg.is_fd != self._fd:  # the other frame format: every node counts it
             return self.nodes
         fid = msg.arbitration_id
         if not self._joined:

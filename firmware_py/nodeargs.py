@@ -24,6 +24,14 @@ def add_bus_arguments(p: argparse.ArgumentParser) -> None:
                    '\'{"port": 43200}\' (default: $CAN_CONFIG)')
 
 
+def add_fd_argument(p: argparse.ArgumentParser) -> None:
+    """--fd: the bus's frame format (LOOP-6), classic CAN unless given."""
+    p.add_argument("--fd", action="store_true",
+                   help="a CAN FD bus: send every frame as CAN FD with the bit-rate switch "
+                   "(dbc/bess_ded_fd.dbc) and reject classic frames (default: classic CAN, "
+                   "FD frames rejected)")
+
+
 def add_key_arguments(p: argparse.ArgumentParser, repeat: bool = False) -> None:
     """--key FILE | --insecure, one of them required (docs/security.md); ``repeat``:
     --key may be given once per node of the process (a list)."""

@@ -77,7 +77,7 @@ import can
 
 from . import contract
 from .errors import ConfigError, EncodeError
-from .frames import DecodedFrame, FrameCodec, agent_of
+from .frames import DecodedFrame, FrameCodec, agent_of, format_fault
 from .secoc import (
     INSECURE_BOOT,
     INSECURE_MASTER,
@@ -271,9 +271,9 @@ class NodeIO:
             self.reject("unknown_id", f"0x{fid:X}: expected an 11-bit ID, but got an "
                         "extended ID")
             return None
-        if msg.is_remote_frame or msg.is_error_frame or msg.is_fd:
-            self.reject("malformed", f"0x{fid:03X}: expected a classic CAN data frame, but "
-                        "got a remote, error or FD frame")
+        if msg.is_remote_frame or msg.is_error_frame or msg.is_fd != self.codec.fd:
+            # LOOP-6: a bus carries one frame format, the DBC's (classic or its FD twin)
+            self.reject("malformed", f"0x{fid:03X}: {format_fault(msg, self.codec.fd)}")
             return None
         sent = self._sent.get(fid)
         if sent is not None:

@@ -67,7 +67,16 @@ from .config import AgentConfig, DispatchParams
 from .contract import DIAG_RESERVED, Command, State, cycle_s, every_ticks, is_active, scale
 from .controllers import consensus_error, make_controller
 from .errors import FrameError, RangeError
-from .frames import PIN_ON, DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name, status_name
+from .frames import (
+    PIN_ON,
+    DecodedFrame,
+    FrameCodec,
+    diag_name,
+    mc_name,
+    setpoint_name,
+    status_name,
+    target_agent,
+)
 from .nodeio import NodeIO
 from .secoc import Keyring
 
@@ -278,7 +287,7 @@ class AgentRuntime:
         slot.last_rx = t
 
     def _on_command(self, f: DecodedFrame, fid: int) -> None:
-        if f.raw["Target"] != self.cfg.id:
+        if target_agent(f.raw["Target"]) != self.cfg.id:
             return
         cmd = f.raw["Command"]
         self.counters["commands"] += 1

@@ -42,7 +42,15 @@ from firmware_py.config import (
 from firmware_py.contract import Command, State, is_active
 from firmware_py.controllers import DwellResetPIController, ResetPIController
 from firmware_py.errors import ParameterError
-from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
+from firmware_py.frames import (
+    FrameCodec,
+    diag_name,
+    mc_name,
+    setpoint_name,
+    status_name,
+    target_agent,
+    target_raw,
+)
 from firmware_py.nodeio import STREAK_CAUSES, FleetSender
 from firmware_py.runtime import GAIN_DIV, AgentRuntime
 from firmware_py.secoc import Keyring, fleet_nodes
@@ -344,7 +352,7 @@ def _on_command(self: Any, f: Any, fid: int, any_target: bool = False,
     """AgentRuntime._on_command with one slip: the Target not checked, the gain bounds
     exclusive, out-of-bounds gains filed under another cause, ISOLATE only from some
     states."""
-    if f.raw["Target"] != self.cfg.id and not any_target:
+    if target_agent(f.raw["Target"]) != self.cfg.id and not any_target:
         return
     cmd = f.raw["Command"]
     self.counters["commands"] += 1
@@ -431,7 +439,7 @@ def _isolate_keeps_counters(rt: AgentRuntime) -> None:
 def _reconnect_any_state(rt: AgentRuntime) -> None:
     def around(real: Callable[..., None], f: Any, fid: int) -> None:
         real(f, fid)
-        if f.raw["Target"] == rt.cfg.id and f.raw["Command"] == Command.RECONNECT:
+        if target_agent(f.raw["Target"]) == rt.cfg.id and f.raw["Command"] == Command.RECONNECT:
             rt.state = State.INIT
     _wrap(rt, "_on_command", around)
 
@@ -685,7 +693,7 @@ class Rig:
     def command(self, cmd: Command, target: int | None = None, k: float = 0.0,
                 h: float = 0.0) -> can.Message:
         return self.deliver(self.tx.frame("ER_Command", {
-            "Command": int(cmd), "Target": self.cfg.id if target is None else target,
+            "Command": int(cmd), "Target": target_raw(self.cfg.id if target is None else target),
             "GainK": round(k * 1000), "GainH": round(h * 1000)}), 0.6)
 
     def forged(self, msg: can.Message) -> can.Message:

@@ -25,7 +25,14 @@ import numpy as np
 import pytest
 
 from firmware_py import contract, secoc
-from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
+from firmware_py.frames import (
+    FrameCodec,
+    diag_name,
+    mc_name,
+    setpoint_name,
+    status_name,
+    target_raw,
+)
 from firmware_py.nodeio import FleetSender, NodeIO
 from firmware_py.runtime import AgentRuntime
 from sim.model.scenario import PriceStep, load_case
@@ -84,7 +91,7 @@ def forged_command(command: str, **gains: int) -> Callable[[float], list[can.Mes
         k = _tick(t)
         if not ATTACK_FROM_S <= t < ATTACK_FROM_S + 0.5:
             return []
-        return [_forge("ER_Command", {"Command": cmd, "Target": target,
+        return [_forge("ER_Command", {"Command": cmd, "Target": target_raw(target),
                                       "GainK": gains.get("k", 0), "GainH": gains.get("h", 0)},
                        k, rng) for target in range(1, CASE.n + 1)]
     return inject

@@ -26,7 +26,7 @@ from test_node_vectors import VECTORS, keyring, load, replay
 from firmware_py import contract
 from firmware_py.config import agent_configs_from_scenario, parse_agent_config
 from firmware_py.contract import SYNCED_BY
-from firmware_py.frames import FrameCodec
+from firmware_py.frames import FrameCodec, target_raw
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import (
@@ -230,8 +230,8 @@ def run_both(variant: str, events: list[tuple]) -> tuple[AgentRuntime, CAgent]:
                 "FaultOverCurrent": f & 1, "FaultVoltage": f >> 1 & 1, "FaultSoc": f >> 2 & 1,
                 "PowerLimited": f >> 3 & 1, "Power": 0, "Soc": ev[2]}))
         elif kind == "cmd":
-            deliver(senders["router"].frame("ER_Command", {"Command": ev[1], "Target": ev[2],
-                                                           "GainK": ev[3], "GainH": ev[4]}))
+            deliver(senders["router"].frame("ER_Command", {
+                "Command": ev[1], "Target": target_raw(ev[2]), "GainK": ev[3], "GainH": ev[4]}))
         elif kind == "sync":
             deliver(senders[SENDER_OF[ev[1]]].sync(ev[1]))
         elif kind == "restart":

@@ -142,7 +142,7 @@ def _edit(table: str, key: str, value: str) -> str:
 
 
 BAD = [
-    ("agent", "id", "0"), ("agent", "id", "33"), ("agent", "id", '"2"'),
+    ("agent", "id", "0"), ("agent", "id", "65"), ("agent", "id", '"2"'),
     ("agent", "pinned", "1"), ("agent", "fleet_size", "0"), ("agent", "lambda0", "101"),
     ("agent", "lambda0", "inf"), ("agent", "lambda0", "nan"), ("agent", "lambda0", "true"),
     ("agent", "lambda0", "11"), ("agent", "colour", "1"),

@@ -502,9 +502,11 @@ def _sizes(make_output: str) -> dict[str, tuple[int, int, int]]:
 
 def test_cortex_m4_size_of_the_core_and_the_agent(tmp_path: Path) -> None:
     """arm-none-eabi -Os, soft float: the core has no static data and stays small; the
-    whole agent with 31 neighbours (tools/cm4_image.c: core, runtime, codec, SecOC; the
-    board's CAN driver and AES engine stubbed) fits 16 KiB of flash and 4 KiB of RAM, and
-    links no floating-point routine (the make target fails if it does)."""
+    whole agent with 63 neighbours (tools/cm4_image.c: core, runtime, codec, SecOC; the
+    board's CAN driver and AES engine stubbed) fits 20 KiB of flash and 8 KiB of RAM (16
+    and 4 when the DBC stopped at 32 agents: its tables, sized by the DBC's agents, cost
+    ~90 B of flash and ~88 B of RAM per agent), and links no floating-point routine (the
+    make target fails if it does)."""
     _need("make", "arm-none-eabi-gcc", "arm-none-eabi-size")
     sizes = _sizes(_make(tmp_path, "arm-size"))
     text, data, bss = sizes["controller.cm4.o"]
@@ -513,7 +515,7 @@ def test_cortex_m4_size_of_the_core_and_the_agent(tmp_path: Path) -> None:
     assert 0 < text < 2048
     text, data, bss = sizes["agent.cm4.elf"]
     print(f"Cortex-M4 -Os agent: text {text} data {data} bss {bss}")
-    assert text + data < 16 * 1024 and data + bss < 4 * 1024
+    assert text + data < 20 * 1024 and data + bss < 8 * 1024
 
 
 def test_cppcheck_clean(tmp_path: Path) -> None:

@@ -44,7 +44,7 @@ BAD = [
      "a SCHED_FIFO priority in 1..99 or 0, but got -1"),
     (["inject", "forge", "--count", "0"], "--count", "an integer ≥ 1, but got 0"),
     (["inject", "forge", "--count", "1.5"], "--count", "an integer ≥ 1, but got '1.5'"),
-    (["inject", "forge", "--target", "33"], "--target", "an agent number in 1..32, but got 33"),
+    (["inject", "forge", "--target", "65"], "--target", "an agent number in 1..64, but got 65"),
     (["inject", "forge", "--rate", "0"], "--rate",
      "a finite number > 0 and ≤ 1e+06, but got 0"),
     (["inject", "forge", "--seed", "-1"], "--seed", "an integer ≥ 0, but got -1"),

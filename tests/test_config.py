@@ -57,7 +57,7 @@ def test_old_config_without_fleet_size_or_status_s_still_loads(tmp_path: Path) -
 
 
 @pytest.mark.parametrize(("old", "new", "key"), [
-    ("id = 2", "id = 40", "agent.id"),
+    ("id = 2", "id = 65", "agent.id"),
     ("id = 2", 'id = "two"', "agent.id"),
     ("k = 1.0", "k = -1.0", "controller.k"),
     ("ts = 0.01", "ts = 0.0", "controller.ts"),
@@ -68,7 +68,7 @@ def test_old_config_without_fleet_size_or_status_s_still_loads(tmp_path: Path) -
     ("lambda0 = 0.6", "lambda0 = 50.0", "agent.lambda0"),
     ("[[neighbour]]\nid = 1", "[[neighbour]]\nid = 2", "neighbour[1].id"),
     ("fleet_size = 4", "fleet_size = 1", "agent.fleet_size"),
-    ("fleet_size = 4", "fleet_size = 33", "agent.fleet_size"),
+    ("fleet_size = 4", "fleet_size = 65", "agent.fleet_size"),
     ("status_s = 0.25", "status_s = 0.0", "timeouts.status_s"),
     ("ts = 0.01", "ts = 1.5", "controller.ts"),          # Ts in (0, 1] s
     ("k = 1.0", "k = 250.0", "controller.k·ts"),         # k·Ts = 2.5: not Q1.30

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from firmware_py.frames import target_agent
 from sim.model.graph import failover_choice
 from sim.model.lockstep import run_lockstep
 from sim.model.scenario import Event, load_case, load_scenario
@@ -91,7 +92,8 @@ def _router_run(kill_at: float | None = None, isolate_at: float | None = None,
 def test_the_router_pins_the_leaves_when_the_centre_goes_silent() -> None:
     router, commands = _router_run(kill_at=0.5)
     # last frame at 0.49 s; timed out after 3 Ts: noticed at the tick of 0.53 s
-    assert [(round(t, 2), c["Command"], c["Target"], c["GainK"]) for t, c in commands] == [
+    assert [(round(t, 2), c["Command"], target_agent(c["Target"]), c["GainK"])
+             for t, c in commands] == [
         (round(0.53 + d, 2), 0, i, 1) for d in (0.0, 0.01, 0.02) for i in (2, 3, 4)]
     assert router.counters["failovers"] == 3
     assert [(e.lost, e.pinned) for e in router.failover_log] == [((1,), (2, 3, 4))]
@@ -100,6 +102,6 @@ def test_the_router_pins_the_leaves_when_the_centre_goes_silent() -> None:
 
 def test_the_router_fails_over_for_an_isolated_pinned_agent_and_not_without_a_loss() -> None:
     _, commands = _router_run(isolate_at=0.5)
-    assert {c["Target"] for _, c in commands} == {2, 3, 4} and commands[0][0] == 0.5
+    assert {target_agent(c["Target"]) for _, c in commands} == {2, 3, 4} and commands[0][0] == 0.5
     router, commands = _router_run()
     assert commands == [] and router.counters["failovers"] == 0

@@ -31,8 +31,8 @@ def _config(key: str) -> fleetload.Config:
 
 def test_fd_periodic_64_agents_equals_the_dbc_by_hand() -> None:
     """64 agents on a ring, FD periodic, Ts = 10 ms: every frame an 8-byte FD frame with
-    the bit-rate switch (34 bits at 500 kbit/s, 113 at 2 Mbit/s); agents 33..64 send
-    agent 32's frames, so the frames/s are 64 agents' of the DBC's cycle times."""
+    the bit-rate switch (34 bits at 500 kbit/s, 113 at 2 Mbit/s); every agent's frames
+    are the DBC's own (it has 64), so the frames/s are 64 agents' of its cycle times."""
     n, per_s = 64, lambda name: 1000 / contract.cycle_ms(name)
     # header 17 + its 4 stuff bits + tail 13; ESI + DLC 5, 64 data bits, 17 more stuff
     # bits (floor((17 + 5 + 64 - 1)/4) = 21 in all), stuff count 4, CRC-17 and its 6 fixed
@@ -52,7 +52,7 @@ def test_fd_periodic_64_agents_equals_the_dbc_by_hand() -> None:
     assert sum(fleetload.is_mc(m) for m in frames) == n
     names = {m.name for m in frames}
     assert {"AGENT_33_MC", "AGENT_64_MC", "PLANT_64_Status_Sync"} <= names
-    assert N_AGENTS_MAX == 32 and "AGENT_65_MC" not in names
+    assert N_AGENTS_MAX == 64 and "AGENT_65_MC" not in names
     got = fleetload.config_load(_config("fd"), fleet, None, msgs=frames)
     assert got is not None
     assert got["frames_per_s"] == pytest.approx(fps)
@@ -129,7 +129,7 @@ def test_cli_fleet_load_writes_its_json(tmp_path: Path,
     assert main(["bench", "--fleet-load", "--quick", "--json", str(out)]) == 0
     stdout = capsys.readouterr().out
     assert "Bus load per fleet size at Ts = 10 ms" in stdout
-    assert "awaits CAN FD in the nodes" in stdout
+    assert "--measured DIR" in stdout
     tables = json.loads(out.read_text())["tables"]
     assert len(tables) == 1
     data = tables[0]["data"]
@@ -174,8 +174,43 @@ def test_bus_runs_refuse_the_64_agent_example_before_writing(
     assert main([argv[0], "--case", str(EXAMPLE), *argv[1:], *extra]) == 2
     err = capsys.readouterr().err
     assert err.startswith("bess-ded: ") and "bess-ded: error: " in err
-    assert "expected at most 32 agents on a bus (the DBC's AGENT_1..AGENT_32 frames)" in err
+    # its λ every tick: 267 % of a classic bus (every frame of the DBC, computed)
+    assert ("[graph.agents] expected a fleet whose computed bus load on classic CAN at Ts = "
+            "10 ms is at most 100 %, but got 267.3 % for 64 agents (every frame periodic") in err
     assert not out.exists()
+
+
+def test_the_bus_load_check_follows_the_time_scale_and_the_dbc_limit() -> None:
+    """A time scale F stretches every cycle by F: the 64-agent ring's 267 % fits at
+    F = 3 (89 %); a fleet above the DBC's 64 agents is refused by the agent count."""
+    from firmware_py.config import agent_configs_from_scenario
+    from firmware_py.errors import ConfigError
+    from sim.model.generate import random_scenario
+    from sim.model.scenario import load_scenario, scaled
+
+    sc = load_scenario(EXAMPLE)
+    assert fleetload.check_bus_load(scaled(sc, 3.0)) == pytest.approx(2.673 / 3, abs=1e-3)
+    with pytest.raises(ConfigError, match="at most 100 %, but got 133.6 %"):
+        fleetload.check_bus_load(scaled(sc, 2.0))
+    with pytest.raises(ConfigError, match=r"expected at most 64 agents on a bus \(the DBC's "
+                                          r"AGENT_1..AGENT_64 frames\), but got 65"):
+        agent_configs_from_scenario(random_scenario(65, 2, 0))
+
+
+def test_the_64_agent_event_example_fits_fd_only() -> None:
+    """examples/ring64.toml: event-triggered λ (the lockstep's ratio over its run, ~9 %)
+    puts it at ~110 % of a classic bus, refused, and at ~51 % of its FD one."""
+    from dataclasses import replace
+
+    from firmware_py.errors import ConfigError
+    from sim.model.scenario import load_scenario
+
+    sc = load_scenario(EXAMPLE.with_name("ring64.toml"))
+    assert sc.n == 64 and sc.transmit.mode == "event" and sc.fd
+    with pytest.raises(ConfigError, match=r"on classic CAN .* but got 110\.3 % for 64 agents "
+                                          r"\(MC frames event-triggered, 9\.1 % of periodic"):
+        fleetload.check_bus_load(replace(sc, fd=False))
+    assert fleetload.check_bus_load(sc) == pytest.approx(0.508, abs=1e-3)
 
 
 def test_the_id_plan_has_room_for_64_agents() -> None:

@@ -116,12 +116,12 @@ GOLDEN = [
     # 0x00CCCCCD in bytes 4..7
     ("ER_Price", 5, {"PriceValid": 1, "Segment": 2, "Rho": 13421773},
      "00 00 00 55 CD CC CC 00", {"Rho": 13421773 / 2**24, "Segment": 2}),
-    # byte3 = 0x7F: counter 15 | SET_GAINS(3)<<4 | (Target 17 = 0b010001: low bits 01)<<6;
-    # byte4 = (GainK 12345 = 0x3039: low nibble 9)<<4 | Target's high bits 0b0100;
-    # byte5 = GainK bits 4..11 = 0x03; byte6 = GainK bits 12..13 (3) | (GainH 2000 = 0x7D0:
-    # low 6 bits 0x10)<<2 = 0x43; byte7 = 2000 >> 6 = 0x1F
-    ("ER_Command", 15, {"Command": 3, "Target": 17, "GainK": 12345, "GainH": 2000},
-     "00 00 00 7F 94 03 43 1F", {"Target": 17, "GainK": 12.345, "GainH": 2.0}),
+    # byte3 = 0x3F: counter 15 | SET_GAINS(3)<<4 | (agent 17: raw Target 16 = 0b010000 (DBC
+    # offset 1): low bits 00)<<6; byte4 = (GainK 12345 = 0x3039: low nibble 9)<<4 | Target's
+    # high bits 0b0100; byte5 = GainK bits 4..11 = 0x03; byte6 = GainK bits 12..13 (3) |
+    # (GainH 2000 = 0x7D0: low 6 bits 0x10)<<2 = 0x43; byte7 = 2000 >> 6 = 0x1F
+    ("ER_Command", 15, {"Command": 3, "Target": 16, "GainK": 12345, "GainH": 2000},
+     "00 00 00 3F 94 03 43 1F", {"Target": 17, "GainK": 12.345, "GainH": 2.0}),
     # byte3 = 0xD0: counter 0 | RUNNING<<4 | Resets 3<<6; λ = -1.5 → int32 0xFE800000
     ("AGENT_3_MC", 0, {"State": 1, "Resets": 3, "Lambda": -25165824},
      "00 00 00 D0 00 00 80 FE", {"Lambda": -1.5, "Resets": 3}),
@@ -285,7 +285,7 @@ def test_encode_phys_matches_raw_encoding(codec: FrameCodec) -> None:
     assert bytes(phys.data) == bytes.fromhex("00 00 00 AC 88 13 97 00")
     cmd = codec.encode_phys("ER_Command", {"Command": "SET_GAINS", "Target": 17,
                                            "GainK": 12.345, "GainH": 2.0}, 15)
-    assert bytes(cmd.data) == bytes.fromhex("00 00 00 7F 94 03 43 1F")
+    assert bytes(cmd.data) == bytes.fromhex("00 00 00 3F 94 03 43 1F")
     sync = codec.encode_phys("ER_Price_Sync", {"Count": 0x123456, "Boot": 0x0102}, 0)
     assert bytes(sync.data) == bytes.fromhex("00 00 00 56 34 12 02 01")
     diag = codec.encode_phys("AGENT_5_Diag", {"Page": 12, "Unsynced": 256, "Resyncs": 65535},
@@ -312,7 +312,7 @@ def test_encode_phys_matches_raw_encoding(codec: FrameCodec) -> None:
 
 
 def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
-    assert N_AGENTS_MAX == 32
+    assert N_AGENTS_MAX == 64
     assert codec.frame_id("ER_Price") == 0x010
     assert codec.frame_id("ER_Command") == 0x020
     assert codec.frame_id("ER_Balance") == 0x3E0
@@ -320,7 +320,7 @@ def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
     assert codec.frame_id("ER_Price_Sync") == 0x410
     assert codec.frame_id("ER_Command_Sync") == 0x420
     assert frames.AGENT_BASES == (0x100, 0x200, 0x280, 0x300, 0x500, 0x600, 0x680, 0x700)
-    for i in (1, 17, 32):
+    for i in (1, 17, 32, 33, 64):
         assert codec.frame_id(mc_name(i)) == 0x100 + i
         assert codec.frame_id(setpoint_name(i)) == 0x200 + i
         assert codec.frame_id(status_name(i)) == 0x280 + i
@@ -331,20 +331,22 @@ def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
         assert codec.frame_id(diag_name(i) + "_Sync") == 0x700 + i
         for base in (0x100, 0x200, 0x280, 0x300, 0x500, 0x600, 0x680, 0x700):
             assert agent_of(base + i) == i
-    for fid in (0x010, 0x020, 0x3E0, 0x410, 0x420, 0x100, 0x121, 0x2A1, 0x321, 0x500, 0x521,
-                0x600, 0x621, 0x680, 0x6A1, 0x700, 0x721, 0x7E0, 0x7FF):
+    for fid in (0x010, 0x020, 0x3E0, 0x410, 0x420, 0x100, 0x141, 0x2C1, 0x341, 0x500, 0x541,
+                0x600, 0x641, 0x680, 0x6C1, 0x700, 0x741, 0x7E0, 0x7FF):
         assert agent_of(fid) is None
     # 3 ER frames + 4 per agent, and a sync of each (every frame is secured)
-    assert len(codec.frame_ids()) == 2 * (3 + 4 * 32) == 262
-    assert len(codec.database.messages) == 262
+    assert len(codec.frame_ids()) == 2 * (3 + 4 * 64) == 518
+    assert len(codec.database.messages) == 518
     assert codec.name_of(0x120) == "AGENT_32_MC"
     assert codec.name_of(0x520) == "AGENT_32_MC_Sync"
     assert codec.name_of(0x6A0) == "PLANT_32_Status_Sync"
-    for bad in (0, 33, -1, True, 1.0):
+    assert codec.name_of(0x140) == "AGENT_64_MC"
+    assert codec.name_of(0x740) == "AGENT_64_Diag_Sync"
+    for bad in (0, 65, -1, True, 1.0):
         with pytest.raises(EncodeError, match="agent index"):
             mc_name(bad)  # type: ignore[arg-type]
-    with pytest.raises(EncodeError, match="AGENT_33_MC"):
-        codec.frame_id("AGENT_33_MC")
+    with pytest.raises(EncodeError, match="AGENT_65_MC"):
+        codec.frame_id("AGENT_65_MC")
     with pytest.raises(EncodeError, match="AGENT_1_MC_Sync_Sync"):
         codec.frame_id("AGENT_1_MC_Sync_Sync")  # a sync has no sync
 
@@ -366,8 +368,8 @@ def test_frame_kinds(codec: FrameCodec) -> None:
         assert codec.name_of(fid + SYNC_OFFSET) == codec.name_of(fid) + "_Sync"
     assert (contract.MAC_BITS, contract.FV_TX_BITS) == (24, 4)
     assert (contract.FV_COUNT_BITS, contract.FV_BOOT_BITS) == (24, 16)
-    with pytest.raises(UnknownFrameError, match="0x521.*unknown ID") as e:
-        codec.kind(0x521)
+    with pytest.raises(UnknownFrameError, match="0x541.*unknown ID") as e:
+        codec.kind(0x541)
     assert e.value.cause == "unknown_id"
 
 
@@ -429,8 +431,8 @@ def test_wrong_dlc(codec: FrameCodec, length: int, which: str) -> None:
     assert e.value.cause == "dlc"
 
 
-@pytest.mark.parametrize("fid", [0x000, 0x121, 0x2A1, 0x401, 0x430, 0x500, 0x521, 0x600,
-                                 0x6A1, 0x700, 0x7FF])
+@pytest.mark.parametrize("fid", [0x000, 0x141, 0x2C1, 0x401, 0x430, 0x500, 0x541, 0x600,
+                                 0x6C1, 0x700, 0x7FF])
 def test_unknown_id(codec: FrameCodec, fid: int) -> None:
     with pytest.raises(UnknownFrameError, match=f"0x{fid:03X}.*unknown ID") as e:
         codec.decode(frame(fid, bytes(8)))
@@ -475,12 +477,24 @@ def test_a_pin_with_another_gain_is_out_of_range(codec: FrameCodec, gain_k: int,
     assert e.value.cause == "range"
 
 
+def test_every_raw_target_is_an_agent(codec: FrameCodec) -> None:
+    """CMD-1: ER_Command.Target's 6 bits address agents 1..64 as raw 0..63 (the DBC's
+    offset 1), the same for the codec and cantools; no Target is out of range."""
+    db = codec.database.get_message_by_name("ER_Command")
+    assert frames.TARGET_OFFSET == 1
+    for raw in range(64):
+        msg = codec.encode("ER_Command", {"Command": 1, "Target": raw, "GainK": 0,
+                                          "GainH": 0}, 0)
+        d = codec.decode(msg)
+        assert frames.target_agent(d.raw["Target"]) == raw + 1 == d.phys("Target")
+        assert db.decode(bytes(msg.data))["Target"] == raw + 1
+        assert frames.target_raw(raw + 1) == raw
+
+
 # All 8 bytes; secured and sync frames carry an arbitrary Mac: the codec does not check it.
 @pytest.mark.parametrize(("fid", "hexdata", "signal", "got"), [
     (0x281, "AB CD EF 00 00 00 C9 00", "Soc", 201),          # Soc raw 201 > 200 (100 %)
     (0x281, "00 00 00 00 00 00 FF 00", "Soc", 255),
-    (0x020, "00 00 00 20 00 00 00 00", "Target", 0),         # RECONNECT agent 0
-    (0x020, "00 00 00 50 08 00 00 00", "Target", 33),        # ISOLATE agent 33 = 0b100001
     (0x410, "12 34 56 01 00 00 00 00", "Boot", 0),           # ER_Price_Sync boot 0
     (0x6A0, "00 00 00 FF FF FF 00 00", "Boot", 0),           # PLANT_32_Status_Sync boot 0
     (0x305, "00 00 00 D0 00 00 00 00", "Page", 13),          # diag page 13 does not exist
@@ -506,7 +520,7 @@ def test_rejection_order_id_dlc_range(codec: FrameCodec) -> None:
     with pytest.raises(FrameLengthError):
         codec.decode(frame(0x020, command_0[:7]))
     with pytest.raises(UnknownFrameError):
-        codec.decode(frame(0x521, command_0[:7]))
+        codec.decode(frame(0x541, command_0[:7]))
 
 
 # --------------------------------------------------------------------------- Counter
@@ -552,8 +566,8 @@ def test_encode_errors_name_message_signal_range_and_value(codec: FrameCodec) ->
     with pytest.raises(EncodeError, match="Soc"):
         codec.encode("PLANT_1_Status", {"FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0,
                                         "PowerLimited": 0, "Power": 0, "Soc": 201}, 0)
-    with pytest.raises(EncodeError, match=r"ER_Command\.Target: .*1\.\.32, but got 0"):
-        codec.encode("ER_Command", {"Command": 1, "Target": 0, "GainK": 0, "GainH": 0}, 0)
+    with pytest.raises(EncodeError, match=r"ER_Command\.Target: .*0\.\.63, but got 64"):
+        codec.encode("ER_Command", {"Command": 1, "Target": 64, "GainK": 0, "GainH": 0}, 0)
     with pytest.raises(EncodeError, match=r"ER_Price_Sync\.Boot: .*1\.\.65535, but got 0"):
         codec.encode("ER_Price_Sync", {"Count": 0, "Boot": 0}, 0)
     with pytest.raises(EncodeError, match=r"ER_Price_Sync\.Count: .*0\.\.16777215, "
@@ -794,10 +808,10 @@ LAYOUTS = {
 def test_dbc_loads_strict_with_the_contract() -> None:
     db = cantools.database.load_file(DBC_PATH, strict=True)
     assert isinstance(db, cantools.database.can.Database)
-    assert {n.name for n in db.nodes} == {"ER", "PLANT", *(f"AGENT_{i}" for i in range(1, 33))}
+    assert {n.name for n in db.nodes} == {"ER", "PLANT", *(f"AGENT_{i}" for i in range(1, 65))}
     assert db.buses[0].baudrate == 500_000
     assert db.dbc is not None and db.dbc.attributes["BusType"].value == "CAN"
-    assert len(db.messages) == 262
+    assert len(db.messages) == 518
     cycles = {"ER_Price": 50, "ER_Command": None, "AGENT_7_MC": 10, "AGENT_7_Setpoint": 50,
               "PLANT_7_Status": 50, "AGENT_7_Diag": 100, "ER_Balance": 100,
               "ER_Price_Sync": 1000, "ER_Command_Sync": 1000, "AGENT_7_MC_Sync": 1000,
@@ -844,7 +858,7 @@ def test_dbc_loads_strict_with_the_contract() -> None:
     assert command.choices is not None
     assert dict(command.choices) == {0: "PIN", 1: "ISOLATE", 2: "RECONNECT", 3: "SET_GAINS"}
     target = db.get_message_by_name("ER_Command").get_signal_by_name("Target")
-    assert (target.minimum, target.maximum) == (1, 32)
+    assert (target.minimum, target.maximum, target.offset) == (1, 64, 1)
     diag = db.get_message_by_name("AGENT_1_Diag")
     assert diag.is_multiplexed()
     page = diag.get_signal_by_name("Page")

@@ -27,7 +27,7 @@ import pytest
 
 from firmware_py import controllers, nodeio
 from firmware_py.config import parse_agent_config
-from firmware_py.frames import FrameCodec
+from firmware_py.frames import FrameCodec, target_agent
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import INSECURE_MASTER, Keyring, derive_frame_key, derive_node_key
 
@@ -221,7 +221,7 @@ def test_every_state_and_command_appears_in_the_frames(
             if row[0] == "rx" and row[2] == 0x020:
                 with contextlib.suppress(Exception):
                     f = CODEC.decode(message(row))
-                    commands.add((f.raw["Command"], f.raw["Target"] == 2))
+                    commands.add((f.raw["Command"], target_agent(f.raw["Target"]) == 2))
     assert states == {0, 1, 2, 3}
     # INIT→RUNNING, RUNNING→SAFE, SAFE→RUNNING, RUNNING→ISOLATED, ISOLATED→RUNNING (via the
     # INIT of a RECONNECT, invisible on the MC frames: STATE-8)

@@ -29,7 +29,7 @@ from firmware_py.contract import (
     timeout_s,
 )
 from firmware_py.errors import ParameterError
-from firmware_py.frames import FrameCodec, setpoint_name, status_name
+from firmware_py.frames import FrameCodec, setpoint_name, status_name, target_agent
 from firmware_py.node import StopFlag, run_node
 from firmware_py.nodeio import FleetSender
 from firmware_py.secoc import (
@@ -438,7 +438,7 @@ def test_router_sends_case4_commands_three_times_at_event_times() -> None:
     out = run_router(router, 25.0)
     cmd_msgs = [m for _, m in out if m.arbitration_id == 0x020]
     cmds = [(round(t, 3), CODEC.decode(m)) for t, m in out if m.arbitration_id == 0x020]
-    got = [(t, f.raw["Command"], f.raw["Target"]) for t, f in cmds]
+    got = [(t, f.raw["Command"], target_agent(f.raw["Target"])) for t, f in cmds]
     assert got == [(10.0, 1, 2), (10.01, 1, 2), (10.02, 1, 2),
                    (20.0, 2, 2), (20.01, 2, 2), (20.02, 2, 2)]
     assert [f.counter for _, f in cmds] == list(range(6))  # fresh counter per transmission
@@ -456,7 +456,7 @@ def test_send_command_queues_three_frames_and_checks_arguments() -> None:
     router.send_command("set_gains", 3, k=1.5, h=2.25)
     frames = [CODEC.decode(m) for k in range(1, 6) for m in router.tick(T(k))
               if m.arbitration_id == 0x020]
-    assert [(f.raw["Command"], f.raw["Target"], f.raw["GainK"], f.raw["GainH"])
+    assert [(f.raw["Command"], target_agent(f.raw["Target"]), f.raw["GainK"], f.raw["GainH"])
             for f in frames] == [(3, 3, 1500, 2250)] * 3
     with pytest.raises(ParameterError, match="one of isolate"):
         router.send_command("reboot", 1)

@@ -11,7 +11,15 @@ import pytest
 from firmware_py import fixedpoint as fx
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.contract import COUNTER_MODULO, Command, every_ticks, timeout_s
-from firmware_py.frames import PIN_OFF, PIN_ON, FrameCodec, mc_name, setpoint_name, status_name
+from firmware_py.frames import (
+    PIN_OFF,
+    PIN_ON,
+    FrameCodec,
+    mc_name,
+    setpoint_name,
+    status_name,
+    target_raw,
+)
 from firmware_py.node import bus_kwargs, run_node, with_acceptance_filter
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import DIAG_EVERY, AgentRuntime, SetpointMap, State
@@ -179,8 +187,8 @@ def test_isolate_and_reconnect_commands() -> None:
     net.run(5.0)
 
     def command(cmd: int, target: int) -> None:
-        net.deliver(SENDER.frame("ER_Command", {"Command": cmd, "Target": target, "GainK": 0,
-                                                "GainH": 0}, net.k % 16))
+        net.deliver(SENDER.frame("ER_Command", {"Command": cmd, "Target": target_raw(target),
+                                                "GainK": 0, "GainH": 0}, net.k % 16))
 
     command(1, 2)
     command(1, 2)  # repeats are idempotent
@@ -203,7 +211,8 @@ def test_pin_and_unpin_commands() -> None:
     net.run(5.0)
 
     def pin(target: int, gain_k: int) -> None:
-        net.deliver(SENDER.frame("ER_Command", {"Command": int(Command.PIN), "Target": target,
+        net.deliver(SENDER.frame("ER_Command", {"Command": int(Command.PIN),
+                                                "Target": target_raw(target),
                                                 "GainK": gain_k, "GainH": 0}, net.k % 16))
 
     hub, leaf = net.agents[0], net.agents[2]
@@ -223,10 +232,10 @@ def test_pin_and_unpin_commands() -> None:
 
 def test_set_gains_command_and_bad_gains_counted() -> None:
     a = one_agent()
-    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 1, "GainK": 2000,
+    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": target_raw(1), "GainK": 2000,
                                            "GainH": 3000}, 0), 0.0)
     assert (a.ctrl.config.k, a.ctrl.config.h) == (2.0, 3.0)
-    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 1, "GainK": 0,
+    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": target_raw(1), "GainK": 0,
                                            "GainH": 3000}, 1), 0.0)
     # k = 0 is outside the configured bounds (×0.5..×2 of k = 1): the safety model
     # rejects it before the controller's own parameter check would
@@ -235,7 +244,7 @@ def test_set_gains_command_and_bad_gains_counted() -> None:
     # inside the bounds but an invalid controller: still a range error
     bad = replace(a.cfg, k_min=0.0)
     b = AgentRuntime(bad, CODEC)
-    b.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 1, "GainK": 0,
+    b.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": target_raw(1), "GainK": 0,
                                            "GainH": 3000}, 0), 0.0)
     assert b.counters["range"] == 1 and b.ctrl.config.k == 1.0
     assert "k" in b.last_error["range"]

@@ -37,6 +37,7 @@ from firmware_py.frames import (
     mc_name,
     setpoint_name,
     status_name,
+    target_raw,
 )
 from firmware_py.nodeio import FleetSender, NodeIO
 from firmware_py.runtime import DIAG_EVERY, SAFETY_CAUSES, AgentRuntime, State
@@ -395,7 +396,7 @@ def test_timed_out_neighbour_is_accepted_afresh() -> None:
 
 
 def command(counter: int, cmd: int, target: int = 1, k: int = 0, h: int = 0) -> can.Message:
-    return SENDER.frame("ER_Command", {"Command": cmd, "Target": target, "GainK": k,
+    return SENDER.frame("ER_Command", {"Command": cmd, "Target": target_raw(target), "GainK": k,
                                         "GainH": h}, counter)
 
 

@@ -29,7 +29,7 @@ from firmware_py.controllers import (
     make_controller,
 )
 from firmware_py.errors import ConfigError, ParameterError
-from firmware_py.frames import FrameCodec, mc_name, status_name
+from firmware_py.frames import FrameCodec, mc_name, status_name, target_raw
 from firmware_py.node import run_node
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime, State
@@ -86,7 +86,7 @@ def mc_frame(agent: int, lam_raw: int, state: int = 1) -> can.Message:
 
 
 def command(cmd: int, target: int) -> can.Message:
-    return SENDER.frame("ER_Command", {"Command": cmd, "Target": target, "GainK": 0,
+    return SENDER.frame("ER_Command", {"Command": cmd, "Target": target_raw(target), "GainK": 0,
                                        "GainH": 0})
 
 
@@ -173,14 +173,14 @@ def test_unknown_table_is_refused_naming_it() -> None:
 
 
 def test_agent_table_rules() -> None:
-    """CFG-2: id 1..32 required; lambda0 in [−100, 100] required and strictly inside
-    (lambda_min, lambda_max); pinned boolean, default false; fleet_size id..32,
-    optional."""
+    """CFG-2: id 1..64 (the DBC's agents) required; lambda0 in [−100, 100] required and
+    strictly inside (lambda_min, lambda_max); pinned boolean, default false; fleet_size
+    id..64, optional."""
     for key in ("id", "lambda0"):
         doc = base()
         del doc["agent"][key]
         refused(doc, f"agent.{key}")
-    for ident, ok in ((0, False), (1, True), (32, True), (33, False), (True, False)):
+    for ident, ok in ((0, False), (1, True), (64, True), (65, False), (True, False)):
         doc = base()
         doc["agent"]["id"] = ident
         doc["neighbour"] = []
@@ -218,7 +218,7 @@ def test_agent_table_rules() -> None:
 
 
 def test_neighbour_rules() -> None:
-    """CFG-4: neighbour id 1..32, not the own, each at most once; weight in
+    """CFG-4: neighbour id 1..64, not the own, each at most once; weight in
     [0.001, 100], default 1.0; no neighbours is allowed."""
     doc = base()
     doc["neighbour"] = [{"id": 1, "weight": 1.0}, {"id": 3}, {"id": 1, "weight": 0.5}]
@@ -233,7 +233,7 @@ def test_neighbour_rules() -> None:
         else:
             refused(doc, "neighbour[1].weight")
     doc = base()
-    doc["neighbour"] = [{"id": 33}]
+    doc["neighbour"] = [{"id": 65}]
     refused(doc, "neighbour[1].id")
     doc["neighbour"] = [{"id": 3}]
     assert parse(doc).neighbours[0].weight == 1.0
@@ -1059,7 +1059,7 @@ def test_set_gains_zeroes_nu_and_keeps_the_rest_in_any_state() -> None:
     for k in range(5):
         a.tick(k * 0.01)
     s = a.cstate
-    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 2, "GainK": 1500,
+    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": target_raw(2), "GainK": 1500,
                                            "GainH": 3000}), 0.045)
     tsq = fx.to_q30(0.01)
     assert (a.ctrl.kts, a.ctrl.hts) == ((2 * 1500 * tsq + 1000) // 2000,
@@ -1069,7 +1069,7 @@ def test_set_gains_zeroes_nu_and_keeps_the_rest_in_any_state() -> None:
                                    since_reset=s.since_reset, resets=s.resets,
                                    saturations=s.saturations)
     a.on_frame(command(1, 2), 0.046)
-    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": 2, "GainK": 700,
+    a.on_frame(SENDER.frame("ER_Command", {"Command": 3, "Target": target_raw(2), "GainK": 700,
                                            "GainH": 1100}), 0.047)
     assert a.state == State.ISOLATED and a.ctrl.kts == (2 * 700 * tsq + 1000) // 2000
     assert a.cfg.k_min == 0.5 and a.cfg.k_max == 2.0   # the bounds do not move

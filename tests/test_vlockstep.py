@@ -1,6 +1,6 @@
 """The vectorised lockstep (sim.model.vlockstep) is firmware_py's fixed-point core, bit for bit
 (issue 24, deliverable 2): on every golden controller vector it applies to, on every paper
-case and variant, and on random fleets beyond the bus's 32 agents, with isolations and a
+case and variant, and on random fleets of 34-40 agents, with isolations and a
 late start."""
 
 from __future__ import annotations
@@ -80,9 +80,9 @@ def test_a_random_fleet_with_isolations_and_a_late_start_is_bit_exact() -> None:
 
 def test_saturation_is_counted_as_the_loop_counts_it() -> None:
     """An unstable gain (k·Ts = 1.9: |1 − k·Ts·η| > 1 on a 3-regular graph) drives λ until
-    ξ and the state saturate: the same count on both paths. 34 agents: more than a bus
+    ξ and the state saturate: the same count on both paths. 66 agents: more than a bus
     carries, so no agent configuration (SET_GAINS' k ≤ 16.383) is asked of the fleet."""
-    sc = random_scenario(34, 3, seed=1, duration=0.5,
+    sc = random_scenario(66, 3, seed=1, duration=0.5,
                          controller={"kind": "reset", "k": 190.0, "h": 2.0})
     want, got = run_lockstep(sc, impl="py"), run_lockstep(sc, impl="vec")
     assert want.saturations > 0
@@ -111,11 +111,11 @@ def test_what_is_not_vectorisable_stays_on_the_loop() -> None:
 
 def test_random_fleets_reach_the_simulators_limit_but_not_the_bus() -> None:
     """Up to SIM_MAX_AGENTS agents in the simulator; a bus run refuses more than the DBC's
-    32, naming the key and the limit; an impossible degree is refused."""
+    64, naming the key and the limit; an impossible degree is refused."""
     sc = random_scenario(SIM_MAX_AGENTS, 3, seed=0, duration=0.05)
     assert sc.n == SIM_MAX_AGENTS and np.all(sc.adjacency.sum(axis=1) == 3.0)
-    with pytest.raises(ConfigError, match=r"graph.agents.*at most 32 agents on a bus"):
-        agent_configs_from_scenario(random_scenario(33, 4, seed=0, duration=1.0))
+    with pytest.raises(ConfigError, match=r"graph.agents.*at most 64 agents on a bus"):
+        agent_configs_from_scenario(random_scenario(65, 4, seed=0, duration=1.0))
     with pytest.raises(ParameterError, match="n·degree even"):
         random_regular_edges(5, 3, seed=0)
     assert random_regular_edges(6, 2, seed=4) == random_regular_edges(6, 2, seed=4)

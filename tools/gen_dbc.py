@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
-"""Generate ``dbc/bess_ded.dbc``, the single source of truth for every frame on the bus.
+"""Generate ``dbc/bess_ded.dbc``, the single source of truth for every frame on the bus,
+and its CAN FD twin ``dbc/bess_ded_fd.dbc``.
 
 The DBC is built from cantools objects rather than written by hand so that the
-layout rules below are applied uniformly to all 32 agents' frames and cannot
+layout rules below are applied uniformly to all 64 agents' frames and cannot
 drift between copies. The generated file is committed (other tools, C code
 generators and CAN analysers read the DBC, not this script); a test checks that
 the committed file is what this script produces.
@@ -10,6 +11,11 @@ the committed file is what this script produces.
 Layout rules (every frame):
 
 * classic CAN, 11-bit IDs, DLC 8, 500 kbit/s, Intel (little-endian) signals;
+* the FD twin (``bess_ded_fd.dbc``, ``--fd`` on the nodes) is the same database, built by
+  the same code, with every message a CAN FD frame (``VFrameFormat`` StandardCAN_FD,
+  ``CANFD_BRS`` 1: the bit-rate switch), ``BusType`` "CAN FD" and the data phase's
+  ``BaudrateCANFD``; the layouts stay 8 bytes, so IDs, signals and MACs are the same
+  on either bus and only the frame format (and its time on the bus) differs;
 * every frame is **secured** (those that can change the dispatch: price, command, MC,
   setpoint, status; and those that report or account: diagnostics, balance) in the
   style of AUTOSAR SecOC (docs/security.md): bytes 0..2 are ``Mac``
@@ -26,9 +32,9 @@ Layout rules (every frame):
 
 Usage::
 
-    python tools/gen_dbc.py            # (re)write dbc/bess_ded.dbc
-    python tools/gen_dbc.py --check    # exit 1 if the committed file is stale
-    python tools/gen_dbc.py -o FILE    # write elsewhere
+    python tools/gen_dbc.py            # (re)write dbc/bess_ded.dbc and dbc/bess_ded_fd.dbc
+    python tools/gen_dbc.py --check    # exit 1 if a committed file is stale
+    python tools/gen_dbc.py -o FILE    # write the classic DBC elsewhere (--fd-output: the twin)
 """
 
 from __future__ import annotations
@@ -48,8 +54,9 @@ from cantools.database.conversion import BaseConversion
 if TYPE_CHECKING:
     from cantools.typechecking import Choices
 
-N_AGENTS = 32
+N_AGENTS = 64  # the ID plan's per-agent blocks hold 64 (MC 0x101..0x140 .. Diag ..0x340)
 BAUDRATE = 500_000
+FD_BAUDRATE = 2_000_000  # the FD data phase (bit-rate switch); the arbitration stays BAUDRATE
 BUS_NAME = "bess_ded"
 LAMBDA_Q = 24
 Q24 = 2.0**-LAMBDA_Q  # exactly 5.9604644775390625e-08; a power of two, so exact in binary64
@@ -73,6 +80,7 @@ SYNC_CYCLE_MS = 1000
 SYNC_OFFSET = 0x400  # <name>_Sync ID = the secured frame's ID + SYNC_OFFSET
 
 DEFAULT_OUTPUT = Path(__file__).resolve().parent.parent / "dbc" / "bess_ded.dbc"
+DEFAULT_FD_OUTPUT = DEFAULT_OUTPUT.with_name("bess_ded_fd.dbc")
 
 STATE_CHOICES = {0: "INIT", 1: "RUNNING", 2: "ISOLATED", 3: "SAFE"}
 COMMAND_CHOICES = {0: "PIN", 1: "ISOLATE", 2: "RECONNECT", 3: "SET_GAINS"}
@@ -84,7 +92,7 @@ SAFETY_CAUSE_CHOICES = {0: "NONE", 1: "UNTRUSTED", 2: "IMPLAUSIBLE_PRICE",
 
 BUS_COMMENT = (
     "bess-ded: distributed economic dispatch of battery energy storage systems. "
-    "Classic CAN, 500 kbit/s, 11-bit standard IDs, DLC 8, Intel byte order. "
+    "{format}, 11-bit standard IDs, DLC 8, Intel byte order. "
     "Every frame is secured (AUTOSAR SecOC style, "
     "docs/security.md): bytes 0..2 = Mac, the first 3 bytes of CMAC-AES-128 under the "
     "sender's key over data ID (CAN ID, 2 bytes big-endian) + payload (bytes 3..7 with "
@@ -114,6 +122,7 @@ def _sig(
     maximum: float | None = None,
     unit: str | None = None,
     choices: dict[int, str] | None = None,
+    offset: int = 0,
     is_multiplexer: bool = False,
     page: int | None = None,
 ) -> Signal:
@@ -125,9 +134,9 @@ def _sig(
     raw_lo = -(1 << (length - 1)) if signed else 0
     raw_hi = (1 << (length - 1)) - 1 if signed else (1 << length) - 1
     if minimum is None:
-        minimum = raw_lo * scale
+        minimum = raw_lo * scale + offset
     if maximum is None:
-        maximum = raw_hi * scale
+        maximum = raw_hi * scale + offset
     if scale == 1:
         minimum, maximum = int(minimum), int(maximum)
     named_choices = None if choices is None else dict(choices.items())
@@ -137,7 +146,7 @@ def _sig(
         length=length,
         byte_order="little_endian",
         is_signed=signed,
-        conversion=BaseConversion.factory(scale=scale, offset=0, choices=named_choices),  # type: ignore[arg-type]
+        conversion=BaseConversion.factory(scale=scale, offset=offset, choices=named_choices),  # type: ignore[arg-type]
         minimum=minimum,
         maximum=maximum,
         unit=unit,
@@ -243,8 +252,10 @@ def _er_command() -> Message:
                      "it re-enters; SET_GAINS: it adopts GainK and GainH; PIN: it hears the "
                      "price in its consensus error (GainK = 1) or no longer (GainK = 2), "
                      "GainH = 0; any other PIN is out of range."),
-        _sig("Target", 30, 6, minimum=1, maximum=N_AGENTS, receivers=rx,
-             comment="Agent index 1..32 the command is addressed to; other agents ignore it."),
+        # 6 bits hold 64 values and no bit is free beside them: raw 0..63 = agent 1..64
+        _sig("Target", 30, 6, offset=1, minimum=1, maximum=N_AGENTS, receivers=rx,
+             comment=f"Agent index 1..{N_AGENTS} the command is addressed to (raw = index - 1: "
+                     "DBC offset 1); other agents ignore it."),
         _sig("GainK", 36, 14, scale=0.001, receivers=rx,
              comment="Proportional consensus gain k (SET_GAINS); PIN: 1 = pin, 2 = unpin; 0 "
                      "otherwise."),
@@ -415,8 +426,14 @@ def _er_balance() -> Message:
         BALANCE_CYCLE_MS)
 
 
-def build_database() -> Database:
-    """The whole bus as a cantools Database (not yet written)."""
+_FORMATS = {False: "Classic CAN, 500 kbit/s",
+            True: "CAN FD, 500 kbit/s arbitration, 2 Mbit/s data (bit-rate switch), the "
+                  "classic DBC's frames as FD frames"}
+
+
+def build_database(fd: bool = False) -> Database:
+    """The whole bus as a cantools Database (not yet written); ``fd``: the FD twin, every
+    message a CAN FD frame with the bit-rate switch (same IDs and layouts)."""
     nodes = [
         Node("ER", comment="Energy router: broadcasts the price rho(t), sends commands, and "
                            "accounts grid exchange and cost."),
@@ -432,14 +449,23 @@ def build_database() -> Database:
     messages += [_agent_diag(i) for i in range(1, N_AGENTS + 1)]
     messages.append(_er_balance())
     messages += [_sync(m) for m in list(messages) if m.get_signal_by_name("Counter").start == 24]
+    for m in messages:
+        m.is_fd = fd  # cantools writes VFrameFormat (and CANFD_BRS, default 1) for it
 
     bus_type_def = DbcAttributeDefinition("BusType", default_value="CAN", type_name="STRING")
     db_name_def = DbcAttributeDefinition("DBName", default_value="", type_name="STRING")
+    attributes = OrderedDict(BusType=DbcAttribute("CAN FD" if fd else "CAN", bus_type_def),
+                             DBName=DbcAttribute(BUS_NAME, db_name_def))
+    definitions = OrderedDict(BusType=bus_type_def, DBName=db_name_def,
+                              GenMsgSendType=_SEND_TYPE_DEF)
+    if fd:  # the data phase's bit rate (Vector's network attribute; cantools keeps it)
+        fd_rate_def = DbcAttributeDefinition("BaudrateCANFD", default_value=0, type_name="INT",
+                                             minimum=0, maximum=8_000_000)
+        attributes["BaudrateCANFD"] = DbcAttribute(FD_BAUDRATE, fd_rate_def)
+        definitions["BaudrateCANFD"] = fd_rate_def
     specifics = DbcSpecifics(
-        attributes=OrderedDict(BusType=DbcAttribute("CAN", bus_type_def),
-                               DBName=DbcAttribute(BUS_NAME, db_name_def)),
-        attribute_definitions=OrderedDict(BusType=bus_type_def, DBName=db_name_def,
-                                          GenMsgSendType=_SEND_TYPE_DEF),
+        attributes=attributes,
+        attribute_definitions=definitions,
         # Named value tables, for tools that offer them when editing signals.
         value_tables=OrderedDict(AgentState=cast("Choices", OrderedDict(STATE_CHOICES)),
                                  ErCommand=cast("Choices", OrderedDict(COMMAND_CHOICES))),
@@ -447,16 +473,17 @@ def build_database() -> Database:
     return Database(
         messages=messages,
         nodes=nodes,
-        buses=[Bus(BUS_NAME, comment=BUS_COMMENT, baudrate=BAUDRATE)],
+        buses=[Bus(BUS_NAME, comment=BUS_COMMENT.format(format=_FORMATS[fd]), baudrate=BAUDRATE,
+                   fd_baudrate=FD_BAUDRATE if fd else None)],
         version="1.0",
         dbc_specifics=specifics,
         strict=True,
     )
 
 
-def render() -> str:
+def render(fd: bool = False) -> str:
     """The DBC text exactly as committed (cantools' writer; CRLF line ends, ASCII only)."""
-    text = build_database().as_dbc_string()
+    text = build_database(fd).as_dbc_string()
     text.encode("ascii")  # DBC readers assume cp1252; keep comments plain ASCII
     return text
 
@@ -464,18 +491,19 @@ def render() -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("-o", "--output", type=Path, default=DEFAULT_OUTPUT)
+    p.add_argument("--fd-output", type=Path, default=DEFAULT_FD_OUTPUT)
     p.add_argument("--check", action="store_true",
-                   help="do not write; exit 1 if the output file differs from the generator")
+                   help="do not write; exit 1 if an output file differs from the generator")
     args = p.parse_args(argv)
-    text = render()
-    if args.check:
-        current = args.output.read_bytes() if args.output.exists() else b""
-        if current != text.encode("ascii"):
-            sys.stderr.write(f"{args.output} is stale: run python tools/gen_dbc.py\n")
-            return 1
-        return 0
-    args.output.write_bytes(text.encode("ascii"))
-    return 0
+    stale = 0
+    for path, fd in ((args.output, False), (args.fd_output, True)):
+        text = render(fd).encode("ascii")
+        if not args.check:
+            path.write_bytes(text)
+        elif (path.read_bytes() if path.exists() else b"") != text:
+            sys.stderr.write(f"{path} is stale: run python tools/gen_dbc.py\n")
+            stale = 1
+    return stale
 
 
 if __name__ == "__main__":

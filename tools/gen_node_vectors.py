@@ -40,7 +40,13 @@ from gen_vectors import q24, splitmix64, write_or_check  # noqa: E402  (shared w
 
 from firmware_py import contract, frames  # noqa: E402
 from firmware_py.config import parse_agent_config  # noqa: E402
-from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name  # noqa: E402
+from firmware_py.frames import (  # noqa: E402
+    FrameCodec,
+    mc_name,
+    setpoint_name,
+    status_name,
+    target_raw,
+)
 from firmware_py.runtime import AgentRuntime  # noqa: E402
 from firmware_py.secoc import (  # noqa: E402
     INSECURE_MASTER,
@@ -288,7 +294,8 @@ class Scenario:
     def command(self, cmd: str, target: int = AGENT, k: int = 0, h: int = 0,
                 patch: tuple[int, int, int] | None = None, note: str = "") -> can.Message:
         m = self.router.frame("ER_Command", {"Command": int(contract.Command[cmd]),
-                                             "Target": target, "GainK": k, "GainH": h},
+                                             "Target": target_raw(target), "GainK": k,
+                                             "GainH": h},
                               patch=patch)
         self.rx(m, note)
         return m
@@ -702,7 +709,8 @@ def sc_malformed() -> Scenario:
         "Frames the agent must drop and count by cause: extended ID, remote and FD frames, "
         "an ID not in the DBC, AGENT_9_MC of an agent outside the fleet (foreign), "
         "AGENT_4_MC (not a neighbour: ignored), DLC 7 (five in a row: untrusted verdict), "
-        "Soc > 200, Command 0, Target 0 and 33 (range), a price above lambda_max and a "
+        "Soc > 200, Command 0 and a PIN with GainK 3 (range), a command for agent 64 "
+        "(raw Target 63: ignored), a price above lambda_max and a "
         "neighbour lambda below lambda_min (range, after the MAC), a price below rho_min "
         "(implausible_price).",
         ["RX-1", "RX-2", "RX-6", "RX-7", "RX-9", "RX-12", "RX-13", "PRICE-2", "DIAG-1",
@@ -732,8 +740,8 @@ def sc_malformed() -> Scenario:
         "FaultOverCurrent": 0, "FaultVoltage": 0, "FaultSoc": 0, "PowerLimited": 0,
         "Power": 0, "Soc": 200}, patch=(48, 8, 201)), note="Soc raw 201 > 200: range")
     s.command("ISOLATE", patch=(28, 2, 0), note="Command 0: range")
-    s.command("ISOLATE", patch=(30, 6, 0), note="Target 0: range")
-    s.command("ISOLATE", patch=(30, 6, 33), note="Target 33: range")
+    s.command("PIN", k=1, patch=(36, 14, 3), note="PIN with GainK 3: range")
+    s.command("ISOLATE", patch=(30, 6, 63), note="Target raw 63 = agent 64: not this agent")
     s.run(10, price=RHO, nbrs=nb)
     s.price(q24(10.5), note="price 10.5 > lambda_max: range")
     s.mc(1, q24(-10.5), note="lambda -10.5 < lambda_min: range")

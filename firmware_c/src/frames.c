@@ -27,7 +27,7 @@ int bd_decode_command(const uint8_t d[8], bd_command_msg *m)
     (void)bd_dbc_er_command_unpack(&f, d, 8u);
     m->counter = f.counter;
     m->command = f.command;
-    m->target = f.target;
+    m->target = (uint32_t)f.target + BD_TARGET_OFFSET;   /* the agent: raw + DBC offset */
     m->gain_k = f.gain_k;
     m->gain_h = f.gain_h;
     /* CMD-7: a PIN says which way in GainK (BD_PIN_ON / BD_PIN_OFF), with GainH = 0 */

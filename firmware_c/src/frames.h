@@ -10,6 +10,7 @@
 #include <stdint.h>
 
 typedef struct { uint32_t counter, price_valid, segment; int32_t rho; } bd_price_msg;
+/* target: the agent addressed (1..BD_N_AGENTS_MAX), not the raw Target */
 typedef struct { uint32_t counter, command, target, gain_k, gain_h; } bd_command_msg;
 typedef struct { uint32_t counter, state, resets; int32_t lambda; } bd_mc_msg;
 typedef struct {

@@ -1,7 +1,7 @@
 /*
  * A minimal Cortex-M4 image of the agent, to measure what the firmware costs on an MCU
  * (make arm-size; firmware_c/README.md): the core, the runtime, the generated codec and
- * SecOC, an agent with 31 neighbours in .bss, its parameters in flash. The board's side
+ * SecOC, an agent with 63 neighbours (a 64-agent fleet's most) in .bss, its parameters in flash. The board's side
  * of the seam (the CAN controller, a timer, the AES engine behind bd_cmac_aes128) is
  * stood in for by the stubs below, so they are not counted.
  */

@@ -47,6 +47,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+from dbc import FD_DBC_PATH
 from firmware_py import contract, secoc
 from firmware_py.frames import FrameCodec, agent_of
 from sim.bench.canframe import (
@@ -55,7 +56,16 @@ from sim.bench.canframe import (
     fd_frame_time,
 )
 
-FD_DATA_RATE = 2_000_000
+
+def _fd_data_rate() -> int:
+    """The FD data phase's bit rate: the FD twin DBC's BaudrateCANFD attribute, bit/s."""
+    dbc = FrameCodec(FD_DBC_PATH).database.dbc
+    if dbc is None or "BaudrateCANFD" not in dbc.attributes:
+        raise ValueError(f"{FD_DBC_PATH} has no BaudrateCANFD attribute")
+    return int(dbc.attributes["BaudrateCANFD"].value)
+
+
+FD_DATA_RATE = _fd_data_rate()
 """Data-phase bit rate of the CAN FD schemes, bit/s (nominal: the DBC's Baudrate)."""
 SIG_BYTES = 64                       # Ed25519; ECDSA-P256 as raw r ‖ s
 TAG_BYTES = contract.MAC_BITS // 8   # 3: the DBC's Mac signal

@@ -6,11 +6,10 @@ Computed, not measured: every frame of the fleet is the DBC's (``auth.fleet_mess
 length, cycle time at Ts = 10 ms, ER_Balance every page each cycle, a Diag page a cycle,
 every ``<name>_Sync``; the Mac is inside the 8 bytes, today's shared-key scheme "a"),
 its time on the bus the worst case of sim.bench.canframe at the DBC's Baudrate (nominal)
-and ``auth.FD_DATA_RATE`` (the FD data phase). The DBC has frames for agents
-1..N_AGENTS_MAX (32): an agent above is modelled with agent 32's frames (same lengths and
-cycles; its IDs are not in the DBC yet). The fleets are rings 1–2–…–N–1
-(``auth.ring_scenario``) and the paper's cases where N fits (case 1: 4 agents, star;
-case 7: 12, ring).
+and the FD twin's BaudrateCANFD (``auth.FD_DATA_RATE``, the FD data phase). The DBC has
+frames for agents 1..N_AGENTS_MAX (64): every fleet of the table is made of its own
+frames. The fleets are rings 1–2–…–N–1 (``auth.ring_scenario``) and the paper's cases
+where N fits (case 1: 4 agents, star; case 7: 12, ring).
 
 Configurations (``CONFIGS``):
 
@@ -30,7 +29,8 @@ Configurations (``CONFIGS``):
 
 The event ratio of each fleet is measured on it (rings: ``ring_duration`` s, long enough
 for the periodic run to settle; the cases: their own schedule); ``--quick`` measures the
-rings up to 32 agents and takes ring-32's ratios for the larger rings (the table says so).
+rings up to QUICK_MAX agents and takes the largest's ratios for the larger rings (the table
+says so).
 Deterministic (no clock): the tests check the numbers.
 """
 
@@ -47,7 +47,6 @@ import numpy as np
 from firmware_py.config import Transmit
 from firmware_py.frames import N_AGENTS_MAX
 from sim.bench.auth import (
-    FD_DATA_RATE,
     SCHEMES,
     Bus,
     Message,
@@ -56,10 +55,11 @@ from sim.bench.auth import (
     fleet_messages,
     ring_scenario,
 )
-from sim.bench.canframe import FD_MAX
+from sim.bench.canframe import FD_MAX, fd_frame_time
 
 TS = 0.01
 SIZES = (4, 8, 16, 24, 32, 48, 64)
+QUICK_MAX = 32               # --quick: the largest ring whose event ratio is measured
 LOAD_LIMIT = 0.60            # issue 23's acceptance: a 64-agent FD fleet at ≤ 60 %
 WINDOW_TICKS = 10            # the worst window of the event-triggered run: 100 ms
 MC_BYTES = 8
@@ -153,18 +153,8 @@ def fleets(sizes: tuple[int, ...] = SIZES, cases: bool = True) -> list[Fleet]:
 
 
 def fleet_frames(fleet: Fleet, ts: float = TS) -> list[Message]:
-    """Every secured message and sync of ``fleet`` at ``ts`` from the DBC; above
-    N_AGENTS_MAX agents, agents N_AGENTS_MAX+1..n send agent N_AGENTS_MAX's frames
-    (same lengths, cycles and receivers; renamed)."""
-    n = fleet.n
-    if n <= N_AGENTS_MAX:
-        return fleet_messages(fleet.scenario, ts)
-    base = fleet_messages(ring_scenario(N_AGENTS_MAX), ts)
-    last = [m for m in base if (a := _AGENT_FRAME.match(m.name)) and int(a[2]) == N_AGENTS_MAX]
-    clones = [replace(m, name=m.name.replace(f"_{N_AGENTS_MAX}_", f"_{i}_", 1),
-                      sender=m.sender.replace(f"_{N_AGENTS_MAX}", f"_{i}"))
-              for i in range(N_AGENTS_MAX + 1, n + 1) for m in last]
-    return base + clones
+    """Every secured message and sync of ``fleet`` at ``ts`` from the DBC."""
+    return fleet_messages(fleet.scenario, ts)
 
 
 def is_mc(msg: Message) -> bool:
@@ -194,11 +184,11 @@ def event_ratio(sc: Any, source: str, transmit: Transmit | None = None) -> Event
 
 
 def event_ratios(fl: list[Fleet], quick: bool) -> dict[str, EventRatio]:
-    """Each fleet's measured ratio; ``quick``: rings above N_AGENTS_MAX take the ratio of
-    the largest ring measured (ring-32)."""
+    """Each fleet's measured ratio; ``quick``: rings above QUICK_MAX take the ratio of
+    the largest ring measured."""
     out: dict[str, EventRatio] = {}
     for f in fl:
-        if not (quick and f.n > N_AGENTS_MAX):
+        if not (quick and f.n > QUICK_MAX):
             out[f.label] = event_ratio(f.scenario, f.label)
     for f in fl:
         if f.label not in out:
@@ -206,6 +196,120 @@ def event_ratios(fl: list[Fleet], quick: bool) -> dict[str, EventRatio]:
             out[f.label] = (out[max(donors, key=lambda g: g.n).label] if donors
                             else event_ratio(f.scenario, f.label))
     return out
+
+
+BUS_LOAD_MAX = 1.0   # a bus run's fleet must fit: above it frames queue without bound
+
+
+def run_bus_load(sc: Any) -> tuple[float, str]:
+    """The computed load of scenario ``sc``'s fleet on a bus run (classic, or CAN FD for
+    ``[bus] fd``) at its Ts, and how it was computed. Periodic: every frame of the DBC at
+    its cycle. Event-triggered: the MC frames × the ratio event / periodic of ``sc`` in the
+    lockstep over the whole run (its start sends as much as periodic; a short burst above
+    100 % only queues frames), measured only when the periodic load does not fit already
+    (a 64-agent ring: ~3 s)."""
+    fleet, fd = Fleet(sc.name, sc.n, sc), sc.fd
+    cfg = next(c for c in CONFIGS if c.fd == fd and c.mc == "periodic")
+    msgs = fleet_frames(fleet, sc.ts)
+    load = config_load(cfg, fleet, None, msgs=msgs)
+    assert load is not None
+    if sc.transmit.mode != "event" or load["load"] <= BUS_LOAD_MAX:
+        return load["load"], "every frame periodic"
+    ratio = event_ratio(sc, sc.name, sc.transmit)
+    cfg = next(c for c in CONFIGS if c.fd == fd and c.mc == "whole")
+    event = config_load(cfg, fleet, ratio, msgs=msgs)
+    assert event is not None
+    return event["load"], (f"MC frames event-triggered, {100 * ratio.whole:.1f} % of "
+                           "periodic over the run (lockstep)")
+
+
+def check_bus_load(sc: Any) -> float:
+    """``run_bus_load`` of ``sc``, or a ConfigError naming it when it is above
+    BUS_LOAD_MAX: the fleet cannot run on the bus (refused before a run writes anything)."""
+    from firmware_py.errors import ConfigError
+
+    load, how = run_bus_load(sc)
+    fd = sc.fd
+    if load > BUS_LOAD_MAX:
+        kind = "CAN FD" if fd else "classic CAN"
+        raise ConfigError(sc.source, "graph.agents", f"expected a fleet whose computed bus "
+                          f"load on {kind} at Ts = {sc.ts * 1e3:g} ms is at most "
+                          f"{100 * BUS_LOAD_MAX:.0f} %, but got {100 * load:.1f} % for "
+                          f"{sc.n} agents ({how}; sim.bench.fleetload): "
+                          + ("" if fd else "use CAN FD (--fd), ")
+                          + ("" if sc.transmit.mode == "event" else "--transmit event, ")
+                          + "fewer agents or a --time-scale")
+    return load
+
+
+def frame_time(msg: Any, bus: Bus) -> float:
+    """Seconds a recorded frame takes on the bus, worst-case stuffing (canframe): classic,
+    or FD with its data phase at ``bus.data`` when it switched the bit rate."""
+    n = len(msg.data)
+    if not msg.is_fd:
+        return bus.classic(n)
+    return fd_frame_time(n, bus.nominal, bus.data if msg.bitrate_switch else bus.nominal)
+
+
+def measured_run(run: Path) -> dict[str, Any]:
+    """A bus run's load measured from its recording (``run``: a `bess-ded up` directory,
+    its run.log and scenario.toml) beside the computed figure for the same scenario and
+    span. Measured: every recorded frame's time on the bus (``frame_time``: the DBC's
+    bit rates, the frame's own format, length and bit-rate switch) over the recorded
+    span. Computed: ``config_load`` of the scenario's frames, the MC frames × the
+    lockstep's event ratio over the same span (periodic: 1). A time-scaled run (Ts =
+    10 ms·F) has 1/F of the load of the same run at Ts = 10 ms: both figures are also
+    given × F, what the fleet puts on a bus in real time."""
+    import can
+
+    from firmware_py.contract import MC_BASE, MC_CYCLE_S
+    from sim.model.scenario import load_scenario
+
+    sc = load_scenario(run / "scenario.toml")
+    frames = list(can.LogReader(str(run / "run.log")))
+    if len(frames) < 2:
+        raise ValueError(f"{run / 'run.log'}: expected a recording of a run, but got "
+                         f"{len(frames)} frames")
+    bus = Bus(dbc_bitrate())
+    stamps = [m.timestamp for m in frames]
+    span = max(stamps) - min(stamps)
+    busy = sum(frame_time(m, bus) for m in frames)
+    mc = sum(1 for m in frames if MC_BASE < m.arbitration_id <= MC_BASE + sc.n)
+    fleet = Fleet(sc.name, sc.n, replace(sc, duration=span))
+    cfg = next(c for c in CONFIGS if c.fd == sc.fd
+               and c.mc == ("whole" if sc.transmit.mode == "event" else "periodic"))
+    ratio = (event_ratio(fleet.scenario, sc.name, sc.transmit)
+             if sc.transmit.mode == "event" else None)
+    computed = config_load(cfg, fleet, ratio, bus)
+    assert computed is not None
+    scale = sc.ts / MC_CYCLE_S
+    return {
+        "run": str(run), "scenario": sc.name, "agents": sc.n, "fd": sc.fd,
+        "transmit": sc.transmit.mode, "ts_s": sc.ts, "time_scale": scale, "span_s": span,
+        "frames": len(frames), "fd_frames": sum(m.is_fd for m in frames),
+        "frames_per_s": len(frames) / span, "computed_frames_per_s": computed["frames_per_s"],
+        "mc_ratio_measured": mc / (sc.n * span / sc.ts),
+        "mc_ratio_computed": 1.0 if ratio is None else ratio.whole,
+        "load_measured": busy / span, "load_computed": computed["load"],
+        "load_measured_at_10ms": scale * busy / span,
+        "load_computed_at_10ms": scale * computed["load"],
+    }
+
+
+MEASURED_HEADERS = ["run", "agents", "bus, λ", "Ts [ms]", "span [s]", "frames/s meas. / comp.",
+                    "MC ratio meas. / comp.", "load meas. / comp.", "at Ts = 10 ms"]
+
+
+def measured_rows(runs: list[dict[str, Any]]) -> list[list[str]]:
+    """The comparison table's rows (``measured_run`` of each run)."""
+    return [[r["scenario"], str(r["agents"]),
+             f"{'FD' if r['fd'] else 'classic'}, {r['transmit']}", f"{1e3 * r['ts_s']:g}",
+             f"{r['span_s']:.1f}",
+             f"{r['frames_per_s']:.0f} / {r['computed_frames_per_s']:.0f}",
+             f"{r['mc_ratio_measured']:.3f} / {r['mc_ratio_computed']:.3f}",
+             f"{100 * r['load_measured']:.1f} % / {100 * r['load_computed']:.1f} %",
+             f"{100 * r['load_measured_at_10ms']:.1f} % / "
+             f"{100 * r['load_computed_at_10ms']:.1f} %"] for r in runs]
 
 
 def packed(msgs: list[Message]) -> list[Message]:
@@ -257,9 +361,8 @@ def affine_capacity(loads: dict[str, dict[str, float] | None], fl: list[Fleet],
 
 
 def title() -> str:
-    """The table's title: Ts, computed from the DBC, how agents above its 32 are modelled."""
-    return (f"Bus load per fleet size at Ts = {TS * 1e3:g} ms, computed from the DBC "
-            f"(agents {N_AGENTS_MAX + 1}..{max(SIZES)}: agent {N_AGENTS_MAX}'s frames)")
+    """The table's title: Ts, computed from the DBC."""
+    return f"Bus load per fleet size at Ts = {TS * 1e3:g} ms, computed from the DBC"
 
 
 def run(quick: bool, sizes: tuple[int, ...] = SIZES, cases: bool = True
@@ -309,7 +412,7 @@ def note(data: dict[str, Any]) -> str:
                       for k, v in data["largest_n_any_periodic"].items())
     return (f"computed, not measured: worst-case frames (canframe) at "
             f"{data['nominal_bps'] / 1e3:.0f} kbit/s (DBC Baudrate), FD data phase "
-            f"{data['fd_data_bps'] / 1e6:g} Mbit/s (auth.FD_DATA_RATE); * over "
+            f"{data['fd_data_bps'] / 1e6:g} Mbit/s (the FD DBC's BaudrateCANFD); * over "
             f"{100 * LOAD_LIMIT:.0f} % (issue 23's limit); periodic, any N (affine in N): "
             f"largest {any_n}. Event-triggered: MC frames × the "
             f"ratio event/periodic measured in the lockstep (threshold {tx.threshold:g}, "
@@ -318,8 +421,8 @@ def note(data: dict[str, Any]) -> str:
             + (f"; ratios taken from another run: {', '.join(borrowed)}" if borrowed else "")
             + f". The DBC's 11-bit ID plan has room for {room[tight]} agents without moving a"
             f" base ({tight} the tightest); its frames exist for {data['dbc_agents']}"
-            + f". The measured-on-bus figure awaits CAN FD in the nodes ({FD_DATA_RATE} "
-            f"bit/s is a named constant, the DBC has no FD attribute)")
+            + ". Measured on the bus: `bench --fleet-load --measured DIR` of a `bess-ded up "
+            "[--fd]` run")
 
 
 _COLOURS = {"periodic": "C0", "whole": "C1", "settled": "C2", "peak": "C3", "packed": "C4"}

@@ -624,6 +624,23 @@ def fleet_load(quick: bool) -> Table:
     return Table(title(), headers, rows, note=note(data), data=data)
 
 
+def measured_load(runs: list[Path]) -> Bench:
+    """`bench --fleet-load --measured DIR`: the bus load of `bess-ded up` runs measured from
+    their recordings beside the computed figure (sim.bench.fleetload.measured_run)."""
+    def bench(quick: bool) -> Table:
+        from sim.bench.fleetload import MEASURED_HEADERS, measured_rows, measured_run
+
+        data = [measured_run(r) for r in runs]
+        return Table("Bus load measured on the bus (recorded frames) against the computed "
+                     "figure", MEASURED_HEADERS, measured_rows(data), data={"runs": data},
+                     note="measured: each recorded frame's worst-case time at the DBC's bit "
+                     "rates (its own format, length, bit-rate switch) over the recorded span; "
+                     "computed: the scenario's frames from the DBC, event-triggered MC "
+                     "frames × the lockstep's ratio over the same span; a run at Ts = "
+                     "10 ms·F is × F at Ts = 10 ms")
+    return bench
+
+
 BENCHES: list[Bench] = [
     controller_step,
     c_controller_step,

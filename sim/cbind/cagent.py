@@ -22,6 +22,7 @@ from pathlib import Path
 
 import can
 
+from firmware_py import contract
 from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig
 from firmware_py.contract import State, cycle_s, raw_range, scale
@@ -32,7 +33,7 @@ from firmware_py.secoc import Keyring
 from sim.cbind import cimpl
 
 LIB_NAME = "libbessded.so"
-N_AGENTS_MAX = 32
+N_AGENTS_MAX = contract.N_AGENTS_MAX  # include/bessded/agent.h sizes by the DBC's too
 MAX_NEIGHBOURS = N_AGENTS_MAX - 1
 MAX_PEERS = N_AGENTS_MAX + 2
 LABEL_MAX = 32

@@ -42,6 +42,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="only the bus load per fleet size (issue 23): 4..64 agents at Ts = "
                    "10 ms, classic and CAN FD, periodic and event-triggered λ, computed "
                    "from the DBC, the largest N at ≤ 60 %% (~15 s; --quick: ~10 s)")
+    p.add_argument("--measured", type=Path, action="append", default=[], metavar="DIR",
+                   help="with --fleet-load: also the bus load of this `bess-ded up` run "
+                   "measured from its recording (DIR/run.log, DIR/scenario.toml) against the "
+                   "computed figure (repeatable)")
     p.add_argument("--png", type=Path, metavar="FILE",
                    help="also draw the schemes' bus load as a bar chart (PNG); with "
                    "--fleet-load: the load against N, one line per configuration")

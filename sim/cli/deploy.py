@@ -23,6 +23,7 @@ from pathlib import Path
 
 def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.cliargs import time_scale
+    from firmware_py.nodeargs import add_fd_argument
 
     from ._common import add_case_option, add_transmit_argument, one_line_errors
 
@@ -34,6 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="for a scenario with variants (cases 2, 3, 6): which one "
                    "(default: the first)")
     add_transmit_argument(p)
+    add_fd_argument(p)
     p.add_argument("--time-scale", type=time_scale, default=1.0, metavar="F",
                    help="stretch the time axis by F (Ts·F, k/F, h/F²), as `up --time-scale`")
     p.add_argument("--out", type=Path, metavar="DIR",
@@ -54,18 +56,21 @@ def run(args: argparse.Namespace) -> int:
 
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
+    from sim.bench.fleetload import check_bus_load
     from sim.model.scenario import scaled, to_toml
-    from sim.model.scenario_select import pick_variant, resolve_scenario, with_transmit
+    from sim.model.scenario_select import pick_variant, resolve_scenario, with_fd, with_transmit
     from sim.run.keyset import check_key_set, prepare_key_dir, write_key_set
     from sim.run.nodeprocs import RT_PRIORITY
 
     sc, chosen = pick_variant(resolve_scenario(args.case), args.variant, "deploy")
     sc = with_transmit(sc, args.transmit)
+    sc = with_fd(sc, args.fd)
     sc = scaled(sc, args.time_scale)
     out: Path = args.out or Path("runs") / f"deploy-{sc.name}"
     # everything checked before anything is written (a fleet larger than the DBC's frames
-    # is refused by agent_configs_from_scenario)
+    # is refused by agent_configs_from_scenario, one the bus cannot carry by check_bus_load)
     configs = agent_configs_from_scenario(sc)
+    check_bus_load(sc)
     if out.exists() and not out.is_dir():
         raise_out(out)
     if args.keys is not None:
@@ -97,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     print("  run each node on its host, on the fleet's bus (add --interface, --channel):")
     for i, path in enumerate(paths, 1):
         print("    " + shlex.join(["bess-ded", "agent", "--config", str(path),
-                                   *key(f"agent_{i}"), *rt]))
+                                   *key(f"agent_{i}"), *(["--fd"] if sc.fd else []), *rt]))
     for role in ("plant", "router"):  # the router last: its first price frame is t = 0
         print("    " + shlex.join(["bess-ded", role, *scenario, *key(role), *rt]))
     return 0

@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from firmware_py.nodeargs import add_bus_arguments
+from firmware_py.nodeargs import add_bus_arguments, add_fd_argument
 from sim.run.fleet_plan import GUEST_TIME_SCALE
 
 if TYPE_CHECKING:
@@ -28,6 +28,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    help="for a scenario with variants (cases 2, 3, 6): which one to run "
                    "(default: the first)")
     add_bus_arguments(p)
+    add_fd_argument(p)
     p.add_argument("--duration", type=duration_s(), metavar="S",
                    help="seconds of price time (default: the scenario's duration)")
     p.add_argument("--out", type=Path, help="output directory (default: runs/<command>-"
@@ -61,6 +62,7 @@ def add_tolerance_argument(p: argparse.ArgumentParser) -> None:
 
 def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
     """Check the options of a fleet run and print its banner (``nodes``: what runs)."""
+    from sim.bench.fleetload import check_bus_load
     from sim.run import busrun
     from sim.run.fleet_plan import plan_fleet_run
 
@@ -68,7 +70,8 @@ def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
                           bus=busrun.BusOptions(args.interface, args.channel, args.bus_config),
                           duration=args.duration, out=args.out, time_scale=args.time_scale,
                           keys=args.keys, insecure=args.insecure, command=command, nodes=nodes,
-                          transmit=args.transmit)
+                          transmit=args.transmit, fd=args.fd,
+                          check=check_bus_load)  # a fleet the bus cannot carry: refused
 
 
 def print_report(plan: RunPlan, rec: Recording) -> int:

@@ -20,6 +20,7 @@ from firmware_py.cliargs import (
 )
 from firmware_py.nodeargs import (
     add_bus_arguments,
+    add_fd_argument,
     add_filter_argument,
     add_key_arguments,
     add_rt_argument,
@@ -33,6 +34,7 @@ def add_node_arguments(p: argparse.ArgumentParser) -> None:
     add_case_option(p)
     add_key_arguments(p)
     add_bus_arguments(p)
+    add_fd_argument(p)
     add_filter_argument(p)
     add_rt_argument(p)
     p.add_argument("--duration", type=duration_s(), metavar="S",
@@ -61,13 +63,16 @@ def load_node_scenario(args: argparse.Namespace) -> Any:
     """The scenario the flags name, stretched by --time-scale; sets the default --period
     to its Ts."""
     from firmware_py.config import agent_configs_from_scenario
+    from sim.bench.fleetload import check_bus_load
     from sim.model.scenario import scaled
-    from sim.model.scenario_select import resolve_scenario
+    from sim.model.scenario_select import resolve_scenario, with_fd
 
     sc = resolve_scenario(args.case)
     agent_configs_from_scenario(sc)  # a fleet larger than the DBC's frames: refused, named
+    sc = with_fd(sc, args.fd)  # --fd, or the scenario's [bus] fd
     if args.time_scale != 1.0:
         sc = scaled(sc, args.time_scale)
+    check_bus_load(sc)  # and one the bus cannot carry
     if args.period is None:
         args.period = sc.ts
     return sc

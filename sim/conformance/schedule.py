@@ -17,7 +17,7 @@ import can
 from firmware_py import contract, secoc
 from firmware_py.config import AgentConfig, Neighbour, parse_agent_config
 from firmware_py.contract import Command, State
-from firmware_py.frames import FrameCodec, mc_name, status_name
+from firmware_py.frames import FrameCodec, mc_name, status_name, target_raw
 from firmware_py.nodeio import FleetSender
 
 
@@ -329,7 +329,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if name != "ER_Command":  # held back past the DUT's join window (AUTH-11)
             add(0, "start", tx.sync(name), f"sync of {name}")
     add(22.6, "start", tx.frame("ER_Command", {
-        "Command": int(Command.ISOLATE), "Target": other, "GainK": 0, "GainH": 0}),
+        "Command": int(Command.ISOLATE), "Target": target_raw(other), "GainK": 0, "GainH": 0}),
         "a command before its sync, after the join window: unsynced")
     add(25, "start", tx.sync("ER_Command"), "sync of ER_Command")
     first_sync = next(p.msg for p in out if p.note == "sync of ER_Price")
@@ -432,7 +432,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k == fr + 10:  # untrusted_after forged frames in a row on one ID (RX-13)
             for n in range(cfg.untrusted_after):
                 add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Command", {
-                    "Command": int(Command.ISOLATE), "Target": other, "GainK": 0,
+                    "Command": int(Command.ISOLATE), "Target": target_raw(other), "GainK": 0,
                     "GainH": 0})), "forged command")
         if k in (fr + 40, fr + 60) and nbrs:  # a peer's sync: first of its boot, then again
             add(k + 0.6, step, tx.sync(f"AGENT_{nbrs[0]}_Setpoint"),
@@ -488,8 +488,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 (70, Command.RECONNECT, i, 0, 0, "RECONNECT")):
             if k == at["commands"] + tick:
                 add(k + 0.6, step, tx.frame("ER_Command", {
-                    "Command": int(cmd), "Target": target, "GainK": round(kk * 1000),
-                    "GainH": round(hh * 1000)}), note)
+                    "Command": int(cmd), "Target": target_raw(target),
+                    "GainK": round(kk * 1000), "GainH": round(hh * 1000)}), note)
         for tick, cmd, graw, hraw, note in (
                 (5, Command.SET_GAINS, _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))[1],
                  _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))[1], "SET_GAINS at k_max and h_max"),
@@ -509,7 +509,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                  "SET_GAINS one LSB below h_min")):
             if k == at["limits"] + tick and 0 <= min(graw, hraw) and max(graw, hraw) < 16384:
                 add(k + 0.6, step, tx.frame("ER_Command", {
-                    "Command": int(cmd), "Target": i, "GainK": graw, "GainH": hraw}), note)
+                    "Command": int(cmd), "Target": target_raw(i), "GainK": graw,
+                    "GainH": hraw}), note)
         for tick, cmd, note in ((5, Command.RECONNECT, "RECONNECT in RUNNING"),
                                 (40, Command.RECONNECT, "RECONNECT in SAFE"),
                                 (45, Command.ISOLATE, "ISOLATE in SAFE"),
@@ -518,7 +519,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                                 (120, Command.RECONNECT, "RECONNECT, all fresh")):
             if k == st + tick:
                 add(k + 0.6, step, tx.frame("ER_Command", {
-                    "Command": int(cmd), "Target": i, "GainK": 0, "GainH": 0}), note)
+                    "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}), note)
     out.sort(key=lambda p: p.at)
     return out
 

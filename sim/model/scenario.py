@@ -114,6 +114,9 @@ class Scenario:
     # when the agents send their MC frame (``transmit``, ``event_threshold``,
     # ``event_heartbeat``; firmware_py.config.Transmit): every tick unless "event"
     transmit: Transmit = Transmit()
+    # the bus run's frame format (``[bus] fd``): CAN FD frames with the bit-rate switch, the
+    # FD twin of the DBC (dbc/bess_ded_fd.dbc), instead of classic CAN
+    fd: bool = False
 
     # ---- derived views
 
@@ -224,7 +227,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
     r = _Reader(src)
     r.only(data, "", {"name", "title", "ts", "duration", "load_kw", "controller", "graph",
                       "price", "battery", "event", "variant", "limits", "resilient_f",
-                      "transmit", "event_threshold", "event_heartbeat"})
+                      "transmit", "event_threshold", "event_heartbeat", "bus"})
     ts = r.number(data, "ts", lo=1e-4, hi=1.0)
     duration = r.number(data, "duration", lo=ts, hi=1e5)
 
@@ -334,13 +337,21 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         variants.append(Variant(label, overrides))
 
     transmit = r.transmit(data)
+    fd = False
+    if "bus" in data:
+        bus = r.table(data, "bus")
+        r.only(bus, "bus", {"fd"})
+        fd = bus.get("fd", False)
+        if not isinstance(fd, bool):
+            raise ConfigError(src, "bus.fd", f"expected true (CAN FD) or false (classic CAN), "
+                              f"but got {fd!r}")
     sc = Scenario(
         name=str(data.get("name", Path(src).stem)), title=str(data.get("title", "")), source=src,
         ts=ts, duration=duration, load_kw=r.number(data, "load_kw", lo=-1e6, hi=1e6),
         controller=controller, n=n, edges=edges, pinned=pinned, batteries=tuple(batteries),
         lambda0=tuple(lambda0), prices=tuple(prices), events=tuple(events),
         variants=tuple(variants), rho_min=rho_min, rho_max=rho_max,
-        price_step_max=step_max, transmit=transmit,
+        price_step_max=step_max, transmit=transmit, fd=fd,
         resilient_f=int(r.number(data, "resilient_f", lo=0, hi=RESILIENT_F_MAX, integer=True))
         if "resilient_f" in data else 0)
     if n <= MAX_AGENTS:  # a fleet a bus can carry: its agents' configurations load too
@@ -509,6 +520,8 @@ def to_toml(sc: Scenario) -> str:
     if sc.transmit != Transmit():  # periodic scenarios are written as they were
         doc.update(transmit=sc.transmit.mode, event_threshold=sc.transmit.threshold,
                    event_heartbeat=sc.transmit.heartbeat)
+    if sc.fd:  # classic scenarios are written as they were
+        doc["bus"] = {"fd": True}
     if sc.events:
         doc["event"] = [{"t": e.t, "agent": e.agent, "action": e.action} for e in sc.events]
     # the source path may hold anything; keep it out of the comment line's way

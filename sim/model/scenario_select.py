@@ -47,6 +47,12 @@ def pick_variant(sc: Scenario, label: str | None, command: str = "up",
     return run, f" [variant {label}]"
 
 
+def with_fd(sc: Scenario, fd: bool) -> Scenario:
+    """``sc`` on a CAN FD bus when ``fd`` (the command line's --fd), else as the scenario
+    says (its ``[bus] fd``): the flag selects FD, it never turns a scenario's FD off."""
+    return replace(sc, fd=True) if fd and not sc.fd else sc
+
+
 def with_transmit(sc: Scenario, mode: str | None) -> Scenario:
     """``sc`` with its agents sending the MC frame ``mode`` ("periodic" or "event", the
     command line's --transmit; None: as the scenario says). Event mode keeps the scenario's

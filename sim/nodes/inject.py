@@ -19,14 +19,14 @@ import can
 import msgpack
 
 from firmware_py import fixedpoint as fx
-from firmware_py.contract import COUNTER_MODULO, State
-from firmware_py.frames import FrameCodec, mc_name
+from firmware_py.contract import COUNTER_MODULO, Command, State
+from firmware_py.frames import PIN_ON, FrameCodec, mc_name
 
 KINDS = {
     "forge": "ER_Price frames at ρ = 5, a guessed MAC         → every agent: auth",
     "corrupt": "ER_Price frames with ρ's top byte flipped        → every agent: auth",
     "dlc": "ER_Price frames with DLC 5                        → every agent: dlc",
-    "range": "ER_Command frames with Target 40 (no such agent) → every agent: range",
+    "range": "ER_Command PIN frames with GainK 3 (neither way)  → every agent: range",
     "unknown": "frames on IDs the DBC does not define            → every agent: unknown_id",
     "impersonate": "AGENT_<target>_MC frames not sent by it        → the target: impersonation",
     "flood": "random IDs, DLCs and payloads                     → no crash, all counted",
@@ -55,10 +55,14 @@ def frames(kind: str, count: int, target: int = 1, seed: int = 0,
             m = can.Message(arbitration_id=m.arbitration_id, is_extended_id=False,
                             data=m.data[:5])
         elif kind == "range":
-            m = codec.encode("ER_Command", {"Command": 1, "Target": 1, "GainK": 0,
-                                            "GainH": 0}, ctr)
-            x = int.from_bytes(m.data, "little") & ~(0x3F << 30) | 40 << 30
-            m.data[:] = x.to_bytes(8, "little")  # Target 40: past the DBC's 1..32
+            # every 6-bit Target is an agent (1..64), so the out-of-range value is a PIN's
+            # GainK: only 1 (pin) and 2 (unpin) are in range (CMD-7)
+            m = codec.encode("ER_Command", {"Command": int(Command.PIN), "Target": 0,
+                                            "GainK": PIN_ON, "GainH": 0}, ctr)
+            gk = codec.database.get_message_by_name("ER_Command").get_signal_by_name("GainK")
+            start, length = gk.start, gk.length
+            x = int.from_bytes(m.data, "little") & ~(((1 << length) - 1) << start) | 3 << start
+            m.data[:] = x.to_bytes(8, "little")
         elif kind == "unknown":
             m = can.Message(arbitration_id=rng.choice([0x7FF, 0x555, 0x7A0, 0x001]),
                             is_extended_id=False, data=bytes(8))

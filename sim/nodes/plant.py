@@ -97,6 +97,7 @@ from typing import Any
 
 import can
 
+from dbc import dbc_path
 from firmware_py.config import agent_configs_from_scenario, untrusted_s
 from firmware_py.contract import MC_CYCLE_S, cycle_s, mc_name, setpoint_name, status_name, timeout_s
 from firmware_py.errors import ParameterError
@@ -348,7 +349,7 @@ class PlantNode(SimNodeClock):
             raise ParameterError("ramp_full_s", "a time ≥ 0 s (0: no ramp limit)", ramp_full_s)
         self.scenario = scenario
         self.period = period
-        self.codec = codec or FrameCodec()
+        self.codec = codec or FrameCodec(dbc_path(scenario.fd))
         self.units = [BessUnit.create(i, b) for i, b in enumerate(scenario.batteries, start=1)]
         for u in self.units:
             u.ramp_kw_s = (max(abs(u.battery.p_min), u.battery.p_max) / ramp_full_s

@@ -55,10 +55,11 @@ from dataclasses import dataclass, field
 
 import can
 
+from dbc import dbc_path
 from firmware_py.config import agent_configs_from_scenario, untrusted_s
 from firmware_py.contract import Command, State, cycle_s, mc_name, status_name, timeout_s
 from firmware_py.errors import ParameterError
-from firmware_py.frames import LAMBDA_Q, PIN_OFF, PIN_ON, FrameCodec
+from firmware_py.frames import LAMBDA_Q, PIN_OFF, PIN_ON, FrameCodec, target_raw
 from firmware_py.nodeio import HOST_ECHO_DEPTH, NodeIO
 from firmware_py.secoc import Keyring
 from sim.model.cost import expenditure, kkt_optimum
@@ -181,7 +182,7 @@ class RouterNode(SimNodeClock):
             raise ParameterError("period", "a positive number of seconds", period)
         self.scenario = scenario
         self.period = period
-        self.codec = codec or FrameCodec()
+        self.codec = codec or FrameCodec(dbc_path(scenario.fd))
         self.silent = tuple(as_window(w) for w in silent)
 
         c = self.codec
@@ -260,7 +261,7 @@ class RouterNode(SimNodeClock):
             gains["GainK"] = PIN_GAIN_K[key]
         with self._lock:
             self._pending.append(_PendingCommand({"Command": int(COMMANDS[key]),
-                                                  "Target": target,
+                                                  "Target": target_raw(target),
                                                   **gains}))
 
     # ------------------------------------------------------------------ receive

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dbc import dbc_path
 from firmware_py.errors import BessDedError, ConfigError
 from sim.model.scenario import Scenario
 from sim.run.runreport import Recording
@@ -180,11 +181,13 @@ def _json(path: Path) -> Any:
 
 def _demo_signed(log_path: Path, sc: Any, demo: dict[str, bytes]) -> bool:
     """Do the log's secured frames verify with the public demo keys (an --insecure run)?"""
+    from firmware_py.frames import FrameCodec
     from sim.run.buslog import read_log
     from sim.run.verdict import silence_ts
 
     try:
-        log = read_log(log_path, n=sc.n, ts=sc.ts, keys=demo, silence_ts=silence_ts(sc))
+        log = read_log(log_path, FrameCodec(dbc_path(sc.fd)), n=sc.n, ts=sc.ts, keys=demo,
+                       silence_ts=silence_ts(sc))
     except (ValueError, EOFError):
         return False  # report() names the format problem
     return log.syncs > 0 and not log.forged

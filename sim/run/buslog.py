@@ -32,7 +32,7 @@ import numpy as np
 from firmware_py import contract
 from firmware_py.contract import COUNTER_MODULO, MC_CYCLE_S, TIMEOUT_CYCLES, State
 from firmware_py.errors import ConfigError, FrameError
-from firmware_py.frames import COUNTER_STEP_MAX, FrameCodec
+from firmware_py.frames import COUNTER_STEP_MAX, FrameCodec, target_agent
 from sim.model.scenario import MAX_AGENT_SAMPLES, Scenario
 from sim.model.trajectory import Trajectory
 from sim.run.monitor import Forged, Monitor, Stale, StaleBoot, SyncJump, cycle_or_inf
@@ -389,7 +389,8 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
             out.diag[f.agent or 0].update({k: v for k, v in f.raw.items()
                                            if k not in ("Mac", "Counter", "Page")})
         elif f.name == "ER_Command":
-            out.commands.append((t, f.raw["Command"], f.raw["Target"], f.raw["GainK"]))
+            out.commands.append((t, f.raw["Command"], target_agent(f.raw["Target"]),
+                                 f.raw["GainK"]))
         elif f.name == "ER_Balance":  # one page's signals
             for sig in f.raw:
                 if sig not in ("Mac", "Counter", "Page"):

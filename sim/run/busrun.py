@@ -25,6 +25,7 @@ from typing import Any
 
 import can
 
+from dbc import dbc_path
 from firmware_py import contract, secoc
 from firmware_py.faultinject import node_seed
 from firmware_py.frames import FrameCodec
@@ -208,7 +209,7 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
     for role in SIM_NODES:  # a previous run's, in a reused DIR
         counters_path(out, role).unlink(missing_ok=True)
     run_facts_path(out).unlink(missing_ok=True)
-    codec = FrameCodec()
+    codec = FrameCodec(dbc_path(sc.fd))
     key_dir = None if insecure else keys or provision_keys(sc, out / "keys")
     specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority, key_dir,
                        frozenset({dut}) if dut else frozenset(), c_agents, c_node,

@@ -44,7 +44,8 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
                    insecure: bool = False, command: str = "up",
                    nodes: str = "{n} agents + plant + router",
                    say: Callable[[str], None] = print,
-                   transmit: str | None = None) -> RunPlan:
+                   transmit: str | None = None, fd: bool = False,
+                   check: Callable[[Scenario], object] | None = None) -> RunPlan:
     """Check a fleet run of scenario ``case`` (a case number or a .toml) and announce it
     through ``say``, line by line (``nodes``: what runs, ``{n}`` the number of agents).
     ``bus`` must connect processes (not python-can's ``virtual``); a udp_multicast bus
@@ -52,16 +53,20 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
     scenario's); ``time_scale``: default 1, or GUEST_TIME_SCALE under tools/vcan-run;
     ``keys``: a key set directory (checked), else ``insecure`` or a fresh set in
     ``out``/keys at the run; ``out``: default runs/<command>-<scenario>; ``transmit``:
-    "periodic" or "event" (None: the scenario's, scenario_select.with_transmit)."""
+    "periodic" or "event" (None: the scenario's, scenario_select.with_transmit); ``fd``: a
+    CAN FD bus (else the scenario's ``[bus] fd``, scenario_select.with_fd); ``check``: a
+    further check of the fleet as it will run, before anything is announced (the CLI's:
+    its computed bus load, sim.bench.fleetload.check_bus_load)."""
     from firmware_py.config import agent_configs_from_scenario
     from sim.model.scenario import MAX_AGENT_SAMPLES, scaled
-    from sim.model.scenario_select import pick_variant, resolve_scenario, with_transmit
+    from sim.model.scenario_select import pick_variant, resolve_scenario, with_fd, with_transmit
     from sim.run import busrun
     from sim.run.keyset import check_key_set
 
     base = resolve_scenario(case)
     sc, chosen = pick_variant(base, variant, command, say)
     sc = with_transmit(sc, transmit)
+    sc = with_fd(sc, fd)
     bus = bus or busrun.BusOptions()
     kw = bus.resolved()  # checks the JSON (and the keys) before anything starts
     if kw["interface"] in IN_PROCESS_INTERFACES:
@@ -77,9 +82,11 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
             "insist)")
     scale = scale or 1.0
     sc = scaled(sc, scale)
-    # a fleet larger than the DBC's frames (a simulator-only scenario) is refused here,
-    # before the run writes its directory (keys, scenario.toml)
+    # a fleet larger than the DBC's frames (a simulator-only scenario), or one the bus
+    # cannot carry, is refused here, before the run writes its directory
     agent_configs_from_scenario(sc)
+    if check is not None:
+        check(sc)
     run_s = sc.duration if duration is None else duration * scale
     if sc.n * run_s / sc.ts > MAX_AGENT_SAMPLES:  # its log could not be analysed
         raise ParameterError("--duration", f"at most {MAX_AGENT_SAMPLES * sc.ts / sc.n / scale:g}"
@@ -90,8 +97,9 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
     bus, port = busrun.private_port(bus)
     say(f"bess-ded {command}: {sc.title or sc.name}{chosen}: {nodes.format(n=sc.n)} for "
         f"{run_s / scale:g} s" + (f" (run at ×{scale:g}: {run_s:g} s)" if scale != 1 else ""))
-    say(f"  bus: {bus.resolved()}" + (f" (port {port} private to this run; name one with "
-                                       "--bus-config '{\"port\": N}')" if port else ""))
+    say(f"  bus: {bus.resolved()}" + (", CAN FD frames" if sc.fd else "")
+        + (f" (port {port} private to this run; name one with --bus-config "
+           "'{\"port\": N}')" if port else ""))
     for line in sc.analysis().describe()[1:]:
         say(f"  {line}")
     if sc.resilient_f:  # the agents trim: say whether the graph lets it tolerate liars

@@ -16,6 +16,7 @@ from typing import Any
 
 import can
 
+from dbc import dbc_path
 from firmware_py import contract, secoc
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.faultinject import FaultyBus, RxFaults, every_frame, node_seed
@@ -132,7 +133,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     them on a node (``RunFacts.injected_loss``).
     """
     out.mkdir(parents=True, exist_ok=True)
-    codec = FrameCodec()
+    codec = FrameCodec(dbc_path(sc.fd))
     nodes_ = secoc.fleet_nodes(sc.n)
     if insecure:
         rings = {n: secoc.Keyring.insecure_for(n) for n in nodes_}

@@ -93,6 +93,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
         return ["--insecure"] if keys is None else ["--key", str(keys / f"{name}.key")]
 
     rt = ["--rt-priority", str(rt_priority)] if rt_priority else []
+    bus_argv = bus.argv() + (["--fd"] if sc.fd else [])  # every node sends the bus's format
     cfg_dir = out / "agents"
     cfg_dir.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m"]
@@ -108,12 +109,15 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
             if c_node is None or extra.get(name):
                 raise BusRunError(f"{name}: the C agent needs its node program and takes no "
                                   "fault-injection flags")
+            if sc.fd:
+                raise BusRunError(f"{name}: expected a classic CAN bus for the C agent (it "
+                                  "sends classic frames only), but got a CAN FD run")
             specs.append(NodeSpec(name, [str(c_node), "--config", str(path)] + key(name)
                                   + ["--channel", str(bus.resolved().get("channel"))] + rt))
             continue
         if agents_per_process == 1:
             specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)
-                                  + bus.argv() + rt + extra.get(name, [])))
+                                  + bus_argv + rt + extra.get(name, [])))
         elif extra.get(name):
             raise BusRunError(f"{name}: an agent of a host process (agents per process "
                               f"{agents_per_process}) takes no fault-injection flags")
@@ -123,14 +127,14 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
         group = hosted[k:k + agents_per_process]
         specs.append(NodeSpec(f"host_{k // agents_per_process + 1}",
                               py + ["firmware_py"] + [a for _, argv in group for a in argv]
-                              + bus.argv() + rt, members=tuple(n for n, _ in group)))
+                              + bus_argv + rt, members=tuple(n for n, _ in group)))
     for role in SIM_NODES:
         if role in exclude:
             continue
         specs.append(NodeSpec(role, py + ["sim.cli", role, "--case", str(scenario_path),
                                           "--period", repr(sc.ts), "--counters-json",
                                           str(counters_path(out, role))]
-                              + key(role) + bus.argv() + rt + extra.get(role, [])))
+                              + key(role) + bus_argv + rt + extra.get(role, [])))
     return specs
 
 

@@ -22,6 +22,7 @@ from typing import Any
 
 import can
 
+from dbc import dbc_path
 from firmware_py import secoc
 from firmware_py.errors import BessDedError
 from firmware_py.frames import FrameCodec
@@ -271,7 +272,8 @@ class SimFleet:
         rings = (keys.keyrings(secoc.fleet_nodes(sc.n)) if keys is not None else
                  {n: secoc.Keyring.insecure_for(n) for n in secoc.fleet_nodes(sc.n)})
         self._rings = rings
-        factories = busrun.in_process_nodes(sc, FrameCodec(), rings)
+        self.codec = FrameCodec(dbc_path(sc.fd))  # the scenario's frame format ([bus] fd)
+        factories = busrun.in_process_nodes(sc, self.codec, rings)
         self.channel = channel or f"bess-testkit-{os.getpid()}-{next(_channels)}"
         self._bus_kw: dict[str, Any] = {"interface": "virtual", "channel": self.channel,
                                         "receive_own_messages": False,
@@ -358,6 +360,7 @@ class SimFleet:
 
     def tester(self, keys: Any = None, **kw: Any) -> Tester:
         """A ``Tester`` on this fleet's bus and clock (keys: the fleet's by default)."""
+        kw.setdefault("codec", self.codec)
         return Tester(self.open_bus(), self.keys if keys is None else keys, clock=self, **kw)
 
     def _note(self, name: str, cause: str) -> None:

@@ -30,7 +30,7 @@ import can
 
 from firmware_py import contract, secoc
 from firmware_py.errors import BessDedError, FrameError
-from firmware_py.frames import DecodedFrame, FrameCodec, diag_name
+from firmware_py.frames import DecodedFrame, FrameCodec, diag_name, format_fault
 from firmware_py.node import RX_CAUSES, GuardedBus, frame_fault, rx_cause
 from firmware_py.nodeio import SYNC_S, FleetSender
 from sim.run.monitor import Forged, Monitor
@@ -361,9 +361,10 @@ class Tester:
             if echo is not None and data in echo:
                 echo.remove(data)
                 return  # our own frame, echoed back (udp_multicast always echoes)
-            if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or msg.is_fd:
-                self._reject(fid, "malformed", f"0x{fid:X}: expected a classic 11-bit data "
-                             "frame")
+            if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame \
+                    or msg.is_fd != self.codec.fd:
+                self._reject(fid, "malformed", f"0x{fid:X}: expected an 11-bit data frame of "
+                             f"the bus's format ({format_fault(msg, self.codec.fd)})")
                 return
             try:
                 f = self.codec.decode(msg)

@@ -32,7 +32,7 @@ from vcanrun import FINAL_TOL, TIME_SCALE, Run, assert_clean_exit, at, key_set, 
 
 from firmware_py import contract
 from firmware_py import fixedpoint as fx
-from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name
+from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name, target_raw
 from firmware_py.nodeio import FleetSender
 from sim.model.cost import kkt_optimum
 from sim.model.scenario import PriceStep, load_case
@@ -64,9 +64,9 @@ def attack_frames(replayed: list[str]) -> tuple[list[str], set[str]]:
     kinds = [
         (mc_name(2), {"State": 1, "Resets": 0, "Lambda": fx.to_fixed(5.0)}),
         ("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": fx.to_fixed(9.9)}),
-        ("ER_Command", {"Command": int(contract.Command.ISOLATE), "Target": 3, "GainK": 0,
-                        "GainH": 0}),
-        ("ER_Command", {"Command": int(contract.Command.SET_GAINS), "Target": 1,
+        ("ER_Command", {"Command": int(contract.Command.ISOLATE), "Target": target_raw(3),
+                        "GainK": 0, "GainH": 0}),
+        ("ER_Command", {"Command": int(contract.Command.SET_GAINS), "Target": target_raw(1),
                         "GainK": gain_max, "GainH": gain_max}),
         (setpoint_name(3), {"Enable": 1, "PowerSetpoint": p_max}),
     ]

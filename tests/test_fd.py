@@ -1,0 +1,151 @@
+"""CAN FD framing (issue 23 item 3, firmware-spec GEN-1, RX-2, LOOP-6): the FD twin of the
+DBC, the codec and the agent on either format, the scenario key, and FD fleets on the
+simulated-clock virtual bus and on udp_multicast."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import can
+import cantools
+import pytest
+
+from dbc import DBC_PATH, FD_DBC_PATH, dbc_path
+from firmware_py import fixedpoint as fx
+from firmware_py.config import agent_configs_from_scenario
+from firmware_py.errors import ConfigError, FrameError
+from firmware_py.frames import FrameCodec, mc_name
+from firmware_py.nodeio import FleetSender
+from firmware_py.runtime import AgentRuntime
+from sim.model.scenario import load_case, load_scenario, parse_scenario, to_toml
+from sim.run import busrun
+from sim.run.buslog import read_log
+
+ROOT = Path(__file__).resolve().parent.parent
+CLASSIC, FD = FrameCodec(), FrameCodec(FD_DBC_PATH)
+
+
+def _layout(m: cantools.database.can.Message) -> list[tuple[object, ...]]:
+    return [(s.name, s.start, s.length, s.is_signed, s.scale, s.offset, s.minimum, s.maximum,
+             s.multiplexer_ids) for s in m.signals]
+
+
+def test_the_fd_dbc_is_the_classic_one_as_fd_frames() -> None:
+    """GEN-1: the same messages, IDs, senders and 8-byte layouts, every one a CAN FD frame
+    with the bit-rate switch; the bus an FD bus with its data phase's bit rate."""
+    classic = cantools.database.load_file(DBC_PATH, strict=True)
+    fd = cantools.database.load_file(FD_DBC_PATH, strict=True)
+    assert isinstance(classic, cantools.database.can.Database)
+    assert isinstance(fd, cantools.database.can.Database)
+    assert [m.name for m in fd.messages] == [m.name for m in classic.messages]
+    for a, b in zip(classic.messages, fd.messages, strict=True):
+        assert (b.frame_id, b.length, b.senders, b.cycle_time) == \
+            (a.frame_id, a.length, a.senders, a.cycle_time)
+        assert _layout(b) == _layout(a), b.name
+        assert b.is_fd and not a.is_fd
+    assert fd.dbc is not None and classic.dbc is not None
+    assert fd.dbc.attributes["BusType"].value == "CAN FD"
+    assert fd.dbc.attributes["BaudrateCANFD"].value == 2_000_000
+    assert fd.dbc.attribute_definitions["CANFD_BRS"].default_value == "1"
+    assert "BaudrateCANFD" not in classic.dbc.attributes
+    assert (CLASSIC.fd, FD.fd) == (False, True)
+    assert dbc_path(True) == FD_DBC_PATH and dbc_path(False) == DBC_PATH
+
+
+def test_each_codec_sends_its_format_and_rejects_the_other() -> None:
+    """RX-2: the same bytes either way; an FD frame (with the bit-rate switch) from the FD
+    codec, a classic one from the classic codec; each rejects the other's as malformed."""
+    raw = {"State": 1, "Lambda": fx.to_fixed(0.8), "Resets": 2}
+    fd, classic = FD.encode(mc_name(3), raw, 5), CLASSIC.encode(mc_name(3), raw, 5)
+    assert (fd.is_fd, fd.bitrate_switch, classic.is_fd) == (True, True, False)
+    assert bytes(fd.data) == bytes(classic.data) and fd.dlc == 8
+    assert FD.decode(fd).raw == CLASSIC.decode(classic).raw
+    for codec, msg, want, got in ((FD, classic, "a CAN FD", "a classic CAN frame"),
+                                  (CLASSIC, fd, "a classic CAN", "a CAN FD frame")):
+        with pytest.raises(FrameError, match=f"expected {want} data frame, but got {got}") as e:
+            codec.decode(msg)
+        assert e.value.cause == "malformed"
+    # an FD frame without the bit-rate switch is still an FD frame (RX-2)
+    slow = can.Message(arbitration_id=fd.arbitration_id, data=fd.data, is_extended_id=False,
+                       is_fd=True, bitrate_switch=False)
+    assert FD.decode(slow).raw == FD.decode(fd).raw
+
+
+def test_an_agent_on_an_fd_bus_takes_fd_frames_and_counts_classic_ones() -> None:
+    """GEN-1, RX-2: agent 2 of case 1 with the FD codec takes the router's FD price, counts
+    the same price as a classic frame under malformed, and sends FD frames only."""
+    cfg = agent_configs_from_scenario(load_case(1))[1]
+    for codec, other in ((FD, CLASSIC), (CLASSIC, FD)):
+        agent = AgentRuntime(cfg, codec)
+        price = {"PriceValid": 1, "Segment": 0, "Rho": fx.to_fixed(0.8)}
+        agent.on_frame(FleetSender(other).frame("ER_Price", price), 0.0)
+        assert agent.counters["malformed"] == 1
+        agent.on_frame(FleetSender(codec).frame("ER_Price", price), 0.0)
+        assert agent.counters["malformed"] == 1 and sum(agent.counters.values()) == 1
+        sent = [m for k in range(1, 30) for m in agent.tick(k * cfg.controller.ts)]
+        assert sent and all(m.is_fd == codec.fd == m.bitrate_switch for m in sent)
+
+
+def test_the_scenario_key_selects_fd_and_round_trips() -> None:
+    sc = load_case(1)
+    assert not sc.fd and "[bus]" not in to_toml(sc)
+    fd = replace(sc, fd=True)
+    text = to_toml(fd)
+    assert "[bus]\nfd = true" in text
+    import tomllib
+
+    assert parse_scenario(tomllib.loads(text), "fd.toml").fd
+    for bad, why in (({"fd": "yes"}, "bus.fd. expected true .CAN FD. or false"),
+                     ({"fdd": True}, "unknown key")):
+        doc = tomllib.loads(to_toml(sc))
+        doc["bus"] = bad
+        with pytest.raises(ConfigError, match=why):
+            parse_scenario(doc, "bad.toml")
+    ring = load_scenario(ROOT / "examples" / "ring64.toml")
+    assert ring.fd and ring.n == 64 and ring.transmit.mode == "event"
+
+
+@pytest.mark.slow
+def test_case1_on_an_fd_virtual_bus_converges_with_fd_frames_only(tmp_path: Path) -> None:
+    """Every node (agents, plant, router) sends FD frames with the bit-rate switch, the
+    recorder and the analysis read them with the FD DBC: case 1 converges, nothing is
+    rejected or undecodable (simulated clock: deterministic)."""
+    sc = replace(load_case(1), duration=8.0, fd=True)
+    m = busrun.run_in_process(sc, tmp_path, duration=8.0, channel="test-fd-case1")
+    assert m["final_error"] < 1e-3 and m["frames_undecodable"] == {}
+    diag = m["node_diagnostics"]
+    assert all(a["RejectedAuth"] == 0 and a["RejectedDlc"] == 0 for a in diag.values())
+    frames = list(can.LogReader(str(tmp_path / "run.log")))
+    assert len(frames) == m["frames_recorded"] > 1000
+    assert all(f.is_fd and f.bitrate_switch for f in frames)
+    # the classic codec reads none of them
+    assert read_log(tmp_path / "run.log", CLASSIC, n=sc.n).undecodable
+
+
+@pytest.mark.realtime
+def test_udp_multicast_fd_case1_converges(tmp_path: Path, udp_port: int) -> None:
+    """`bess-ded up --fd` on udp_multicast, every node a process: case 1 converges, every
+    node exits 0, every recorded frame is CAN FD with the bit-rate switch and decodes with
+    cantools against the FD DBC. Nothing here depends on the wall clock's pace."""
+    from sim.cli import main
+
+    out = tmp_path / "run"
+    code = main(["up", "--case", "1", "--fd", "--insecure", "--duration", "10", "--no-plot",
+                 "--interface", "udp_multicast", "--bus-config", f'{{"port": {udp_port}}}',
+                 "--out", str(out)])
+    import json
+
+    m = json.loads((out / "metrics.json").read_text())
+    assert code in (0, 3), m["anomalies"]  # 3: converged with anomalies (a starved host)
+    assert all(c == 0 for c in m["exit_codes"].values()), m["exit_codes"]
+    assert m["final_error"] < 1e-3 and m["frames_undecodable"] == {}
+    assert (out / "scenario.toml").read_text().count("[bus]\nfd = true") == 1
+    frames = list(can.LogReader(str(out / "run.log")))
+    assert frames and all(f.is_fd and f.bitrate_switch for f in frames)
+    decoded = subprocess.run([sys.executable, "-m", "cantools", "decode", str(FD_DBC_PATH)],
+                             stdin=(out / "run.log").open(), capture_output=True, text=True,
+                             check=True, cwd=ROOT).stdout
+    assert "Unknown frame" not in decoded and "AGENT_4_MC" in decoded
