@@ -20,6 +20,7 @@ from firmware_py.errors import ConfigError, FrameError
 from firmware_py.frames import FrameCodec, mc_name
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime
+from sim.bench import fleetload
 from sim.model.scenario import load_case, load_scenario, parse_scenario, to_toml
 from sim.run import busrun
 from sim.run.buslog import read_log
@@ -123,6 +124,10 @@ def test_case1_on_an_fd_virtual_bus_converges_with_fd_frames_only(tmp_path: Path
     assert all(f.is_fd and f.bitrate_switch for f in frames)
     # the classic codec reads none of them
     assert read_log(tmp_path / "run.log", CLASSIC, n=sc.n).undecodable
+    # the load of the recorded frames is the computed one: every node ticks on time here
+    run = fleetload.measured_run(tmp_path)
+    assert run["fd_frames"] == run["frames"] and run["time_scale"] == 1.0
+    assert run["load_measured"] == pytest.approx(run["load_computed"], rel=0.03), run
 
 
 @pytest.mark.realtime

@@ -280,7 +280,7 @@ def measured_run(run: Path) -> dict[str, Any]:
                and c.mc == ("whole" if sc.transmit.mode == "event" else "periodic"))
     ratio = (event_ratio(fleet.scenario, sc.name, sc.transmit)
              if sc.transmit.mode == "event" else None)
-    computed = config_load(cfg, fleet, ratio, bus)
+    computed = config_load(cfg, fleet, ratio, bus, fleet_frames(fleet, sc.ts))
     assert computed is not None
     scale = sc.ts / MC_CYCLE_S
     return {
