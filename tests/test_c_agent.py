@@ -23,6 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_node_vectors import VECTORS, keyring, load, replay
 
+from dbc import dbc_path
 from firmware_py import contract
 from firmware_py.config import agent_configs_from_scenario, parse_agent_config
 from firmware_py.contract import SYNCED_BY
@@ -131,7 +132,7 @@ VARIANTS = {"base": ("fleet_size = 4", -100.0, 100.0, False, ""),
                       '\n[transmit]\nmode = "event"\nheartbeat = 6\n')}
 
 
-def _both(variant: str) -> tuple[AgentRuntime, CAgent]:
+def _both(variant: str, fd: bool = False) -> tuple[AgentRuntime, CAgent]:
     fleet, p_min, p_max, insecure, extra = VARIANTS[variant]
     cfg = parse_agent_config(tomllib.loads(CONFIG.format(fleet=fleet, p_min=p_min,
                                                          p_max=p_max) + extra), "random.toml")
@@ -142,7 +143,7 @@ def _both(variant: str) -> tuple[AgentRuntime, CAgent]:
             return Keyring.insecure_for("agent_2")
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
                        peers=peers, frames=FRAMES)
-    return AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
+    return AgentRuntime(cfg, FrameCodec(dbc_path(fd)), keys=ring()), CAgent(cfg, ring(), fd=fd)
 
 
 # the run starts synced and RUNNING: its first tick (its hello), every sender's sync, the
@@ -172,6 +173,18 @@ def test_c_and_python_agents_agree_on_random_traffic(variant: str, events: list[
     run_both(variant, PREAMBLE + events)
 
 
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(variant=st.sampled_from(sorted(VARIANTS)),
+       events=st.lists(TRAFFIC, min_size=20, max_size=200))
+def test_c_and_python_agents_agree_on_an_fd_bus(variant: str, events: list[tuple]) -> None:
+    """GEN-1, RX-2 on a CAN FD bus: every sender's frames FD with the bit-rate switch,
+    both agents send FD frames with it, and count a classic frame (the junk without the
+    FD flag, the forged ones sent classic) as malformed alike."""
+    py, c = run_both(variant, PREAMBLE + events + [("forge", "ER_Price", bytes(8)),
+                                                   ("tick", 1)], fd=True)
+    assert py.counters["malformed"] == c.counters["malformed"] >= 1
+
+
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_a_genuine_frame_out_of_order_is_stale_not_forged_in_both(variant: str) -> None:
     """AUTH-25: neighbour 1's two MC frames swapped on the way: the later one is used,
@@ -185,15 +198,19 @@ def test_a_genuine_frame_out_of_order_is_stale_not_forged_in_both(variant: str) 
     assert py.counters["auth"] == c.counters["auth"] == 1 and py.counters["stale"] == 0
 
 
-def run_both(variant: str, events: list[tuple]) -> tuple[AgentRuntime, CAgent]:
+def run_both(variant: str, events: list[tuple], fd: bool = False
+             ) -> tuple[AgentRuntime, CAgent]:
     """Both runtimes through the same events (EVENT's kinds; ("at", dt): the next frames
-    arrive dt after the last tick, which may go back in time), frames, counters, state
-    and λ compared at every tick."""
-    py, c = _both(variant)
+    arrive dt after the last tick, which may go back in time), frames (their format
+    too), counters, state and λ compared at every tick. ``fd``: a CAN FD bus, every
+    sender's frames FD (the forged ones classic: malformed there)."""
+    py, c = _both(variant, fd)
+    codec = FrameCodec(dbc_path(fd))
     if VARIANTS[variant][3]:   # every insecure sender runs at boot 1 with the public keys
-        senders = {n: FleetSender() for n in LABELS}
+        senders = {n: FleetSender(codec) for n in LABELS}
     else:
-        senders = {n: FleetSender(keys={n: derive_node_key(MASTER, n), **ALL_FRAMES}, boot=b)
+        senders = {n: FleetSender(codec, keys={n: derive_node_key(MASTER, n), **ALL_FRAMES},
+                                  boot=b)
                    for n, b in zip(LABELS, (3, 5, 2, 4, 9), strict=True)}
     history: list[can.Message] = []
     n = 0
@@ -209,8 +226,10 @@ def run_both(variant: str, events: list[tuple]) -> tuple[AgentRuntime, CAgent]:
         if kind == "tick":
             n += ev[1]
             t = n * TS
-            want = [(m.arbitration_id, bytes(m.data)) for m in py.tick(t)]
-            got = [(m.arbitration_id, bytes(m.data)) for m in c.tick(t)]
+            want = [(m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch)
+                    for m in py.tick(t)]
+            got = [(m.arbitration_id, bytes(m.data), m.is_fd, m.bitrate_switch)
+                   for m in c.tick(t)]
             assert got == want, f"tick {n}: frames differ"
             assert c.counters == +py.counters, f"tick {n}: counters differ"
             assert c.state == py.state and c.lambda_q24 == py.lambda_q24

@@ -163,9 +163,9 @@ def test_a_short_id_buffer_gets_some_of_the_accepted_ids_sorted() -> None:
 
 
 @pytest.mark.parametrize("label", [b"gateway", b"agent_", b"agent_0", b"agent_1x",
-                                   b"agent_33", b"agent_12345678901234"])
+                                   b"agent_65", b"agent_12345678901234"])
 def test_a_key_file_peer_that_names_no_node_refuses_the_start(label: bytes) -> None:
-    """CFG-8: a peer label is plant, router or agent_1..agent_32 (digits, no leading 0);
+    """CFG-8: a peer label is plant, router or agent_1..agent_64 (digits, no leading 0);
     anything else refuses the start (the long one would overflow a naive parser)."""
     from sim.cbind.cagent import keyring_from
 

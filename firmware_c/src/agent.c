@@ -534,6 +534,9 @@ size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
     if (n > max) {
         n = max;
     }
+    for (size_t k = 0u; k < n; k++) {   /* GEN-1: the bus's one frame format */
+        buf[k].flags = a->p.fd != 0u ? (uint8_t)(BD_FRAME_FD | BD_FRAME_BRS) : 0u;
+    }
     memcpy(out, buf, n * sizeof buf[0]);
     return n;
 }

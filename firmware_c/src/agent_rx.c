@@ -472,7 +472,9 @@ void bd_agent_rx(bd_agent *a, const bd_frame *f, int64_t t)
         reject(a, BD_C_UNKNOWN_ID, id);
         return;
     }
-    if ((f->flags & (BD_FRAME_RTR | BD_FRAME_ERR | BD_FRAME_FD)) != 0u) {
+    /* RX-2: remote, error, or a data frame of the other format than the bus's (GEN-1) */
+    if ((f->flags & (BD_FRAME_RTR | BD_FRAME_ERR)) != 0u
+        || ((f->flags & BD_FRAME_FD) != 0u) != (a->p.fd != 0u)) {
         reject(a, BD_C_MALFORMED, id);
         return;
     }

@@ -83,8 +83,9 @@ int bd_linux_open(bd_platform *plat, const char *ifname, const uint32_t *ids, si
     }
     can_err_mask_t errors = CAN_ERR_MASK;   /* error frames are counted (LOOP-4) */
     (void)setsockopt(fd, SOL_CAN_RAW, CAN_RAW_ERR_FILTER, &errors, sizeof errors);
-    /* CAN FD frames are read too, so that they are counted (malformed, RX-2) instead of
-     * being dropped unseen by the kernel; the node itself sends classic frames only */
+    /* CAN FD frames are read too, so that a classic node counts them (malformed, RX-2)
+     * instead of the kernel dropping them unseen; an FD node (--fd) sends them, which
+     * needs an FD interface (vcan: mtu 72): else every send fails, counted */
     int fd_frames = 1;
     (void)setsockopt(fd, SOL_CAN_RAW, CAN_RAW_FD_FRAMES, &fd_frames, sizeof fd_frames);
     memset(&addr, 0, sizeof addr);
@@ -137,22 +138,27 @@ int bd_platform_recv(bd_platform *plat, bd_frame *f, int64_t deadline_ns)
     f->flags = (uint8_t)(((cf.can_id & CAN_EFF_FLAG) != 0u ? BD_FRAME_EXT : 0u)
                          | ((cf.can_id & CAN_RTR_FLAG) != 0u ? BD_FRAME_RTR : 0u)
                          | ((cf.can_id & CAN_ERR_FLAG) != 0u ? BD_FRAME_ERR : 0u)
-                         | (n == (ssize_t)CANFD_MTU ? BD_FRAME_FD : 0u));
+                         | (n == (ssize_t)CANFD_MTU ? BD_FRAME_FD : 0u)
+                         | (n == (ssize_t)CANFD_MTU && (cf.flags & CANFD_BRS) != 0u
+                            ? BD_FRAME_BRS : 0u));
     f->id = cf.can_id & ((cf.can_id & CAN_EFF_FLAG) != 0u ? CAN_EFF_MASK : CAN_SFF_MASK);
-    f->len = cf.len <= 8u ? cf.len : 8u;   /* bd_frame holds 8: an FD frame is dropped anyway */
-    memcpy(f->data, cf.data, f->len);
+    f->len = cf.len;   /* up to 64 on FD: its DLC check (RX-7) sees the true length */
+    memcpy(f->data, cf.data, cf.len <= 8u ? cf.len : 8u);   /* bd_frame holds 8 */
     plat->received++;
     return 1;
 }
 
 int bd_platform_send(bd_platform *plat, const bd_frame *f)
 {
-    struct can_frame cf;
+    struct canfd_frame cf;   /* a classic frame is its first CAN_MTU bytes */
+    size_t size = (f->flags & BD_FRAME_FD) != 0u ? CANFD_MTU : CAN_MTU;
+    uint8_t len = f->len <= 8u ? f->len : 8u;
     memset(&cf, 0, sizeof cf);
     cf.can_id = f->id;
-    cf.can_dlc = f->len;
-    memcpy(cf.data, f->data, f->len);
-    if (send(plat->fd, &cf, sizeof cf, MSG_DONTWAIT) != (ssize_t)sizeof cf) {
+    cf.len = len;
+    cf.flags = (f->flags & BD_FRAME_BRS) != 0u ? (uint8_t)CANFD_BRS : 0u;
+    memcpy(cf.data, f->data, len);
+    if (send(plat->fd, &cf, size, MSG_DONTWAIT) != (ssize_t)size) {
         return -1;   /* a full queue or a down interface: counted, never fatal */
     }
     plat->sent++;

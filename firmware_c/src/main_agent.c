@@ -2,7 +2,7 @@
  * bessded-agent: one BESS agent on Linux SocketCAN, the C twin of `bess-ded agent`.
  *
  *   bessded-agent --config agent_3.toml (--key agent_3.key | --insecure) --channel can0
- *                 [--interface socketcan] [--duration S] [--rt-priority N]
+ *                 [--fd] [--interface socketcan] [--duration S] [--rt-priority N]
  *                 [--no-acceptance-filter]
  *
  * The configuration and key files are the ones firmware_py reads (`bess-ded up` and
@@ -28,7 +28,7 @@ static const char *const state_names[] = {"INIT", "RUNNING", "ISOLATED", "SAFE"}
 static int usage(const char *problem)
 {
     (void)fprintf(stderr, "usage: " PROG " --config FILE (--key FILE | --insecure) "
-                  "--channel IFACE [--duration S] [--rt-priority N] "
+                  "--channel IFACE [--fd] [--duration S] [--rt-priority N] "
                   "[--no-acceptance-filter]\n" PROG ": error: %s\n", problem);
     return 2;
 }
@@ -70,6 +70,7 @@ int main(int argc, char **argv)
     const char *channel = NULL;
     int insecure = 0;
     int filter = 1;
+    int fd = 0;
     long rt = 0;
     double duration = 0.0;
     char err[1024];
@@ -83,6 +84,8 @@ int main(int argc, char **argv)
         const char *v = i + 1 < argc ? argv[i + 1] : NULL;
         if (strcmp(a, "--insecure") == 0) {
             insecure = 1;
+        } else if (strcmp(a, "--fd") == 0) {   /* GEN-1: a CAN FD bus */
+            fd = 1;
         } else if (strcmp(a, "--no-acceptance-filter") == 0) {
             filter = 0;
         } else if (strcmp(a, "--acceptance-filter") == 0) {
@@ -127,7 +130,7 @@ int main(int argc, char **argv)
             ++i;
         } else {
             (void)snprintf(err, sizeof err, "expected one of --config, --key, --insecure, "
-                           "--channel, --interface socketcan, --duration, --rt-priority, "
+                           "--fd, --channel, --interface socketcan, --duration, --rt-priority, "
                            "--[no-]acceptance-filter, but got '%s'", a);
             return usage(err);
         }
@@ -139,6 +142,7 @@ int main(int argc, char **argv)
         (void)fprintf(stderr, PROG ": error: %s\n", err);
         return 2;
     }
+    params.fd = (uint32_t)fd;
     char node[BD_LABEL_MAX + 1];
     (void)snprintf(node, sizeof node, "agent_%u", params.id);
     if (insecure) {

@@ -38,7 +38,7 @@ MAX_NEIGHBOURS = N_AGENTS_MAX - 1
 MAX_PEERS = N_AGENTS_MAX + 2
 LABEL_MAX = 32
 TICK_FRAMES_MAX = 6
-FRAME_EXT, FRAME_RTR, FRAME_FD, FRAME_ERR = 0x01, 0x02, 0x04, 0x08
+FRAME_EXT, FRAME_RTR, FRAME_FD, FRAME_ERR, FRAME_BRS = 0x01, 0x02, 0x04, 0x08, 0x10
 
 
 class Params(ctypes.Structure):
@@ -64,7 +64,7 @@ class Params(ctypes.Structure):
         ("gain_k_raw_min", ctypes.c_uint32), ("gain_k_raw_max", ctypes.c_uint32),
         ("gain_h_raw_min", ctypes.c_uint32), ("gain_h_raw_max", ctypes.c_uint32),
         ("tx_event", ctypes.c_uint32), ("tx_threshold", ctypes.c_int32),
-        ("tx_heartbeat", ctypes.c_uint32),
+        ("tx_heartbeat", ctypes.c_uint32), ("fd", ctypes.c_uint32),
     ]
 
 
@@ -380,11 +380,13 @@ class CAgent:
     """An agent on the C runtime, behind firmware_py's node seam (firmware_py.node)."""
 
     def __init__(self, cfg: AgentConfig, keys: Keyring | KeyringC | None = None,
-                 runtime: Runtime | None = None, params: Params | None = None) -> None:
+                 runtime: Runtime | None = None, params: Params | None = None,
+                 fd: bool = False) -> None:
         self.rt = runtime or load()
         self.cfg = cfg
         self.period = cfg.controller.ts
         self.params = params if params is not None else params_of(cfg)
+        self.params.fd = int(fd)  # GEN-1: a CAN FD bus (the DBC's FD twin)
         if keys is None:
             keys = Keyring.insecure_for(f"agent_{cfg.id}")
         self.keys = keys if isinstance(keys, KeyringC) else keyring_from(keys)
@@ -418,7 +420,8 @@ class CAgent:
         self.rx(msg.arbitration_id, bytes(msg.data),
                 (FRAME_EXT if msg.is_extended_id else 0)
                 | (FRAME_RTR if msg.is_remote_frame else 0)
-                | (FRAME_FD if msg.is_fd else 0) | (FRAME_ERR if msg.is_error_frame else 0),
+                | (FRAME_FD if msg.is_fd else 0) | (FRAME_ERR if msg.is_error_frame else 0)
+                | (FRAME_BRS if msg.is_fd and msg.bitrate_switch else 0),
                 ns(t))
 
     def rx(self, frame_id: int, data: bytes, flags: int, t_ns: int) -> None:
@@ -435,9 +438,13 @@ class CAgent:
                 for k in range(n)]
 
     def tick(self, t: float) -> list[can.Message]:
-        """One tick at ``t`` s: the frames to send, as python-can messages."""
-        return [can.Message(arbitration_id=fid, data=data, is_extended_id=False)
-                for fid, data in self.tick_raw(ns(t))]
+        """One tick at ``t`` s: the frames to send, as python-can messages (FD with the
+        bit-rate switch on an FD bus, as the C agent flags them)."""
+        frames = self.tick_raw(ns(t))
+        flags = [self._out[k].flags for k in range(len(frames))]
+        return [can.Message(arbitration_id=fid, data=data, is_extended_id=False,
+                            is_fd=bool(f & FRAME_FD), bitrate_switch=bool(f & FRAME_BRS))
+                for (fid, data), f in zip(frames, flags, strict=True)]
 
     def note(self, event: str, count: int = 1) -> None:
         """Count a runtime event reported by run_node (bd_agent_note)."""

@@ -109,11 +109,9 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
             if c_node is None or extra.get(name):
                 raise BusRunError(f"{name}: the C agent needs its node program and takes no "
                                   "fault-injection flags")
-            if sc.fd:
-                raise BusRunError(f"{name}: expected a classic CAN bus for the C agent (it "
-                                  "sends classic frames only), but got a CAN FD run")
             specs.append(NodeSpec(name, [str(c_node), "--config", str(path)] + key(name)
-                                  + ["--channel", str(bus.resolved().get("channel"))] + rt))
+                                  + ["--channel", str(bus.resolved().get("channel"))]
+                                  + (["--fd"] if sc.fd else []) + rt))
             continue
         if agents_per_process == 1:
             specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)

@@ -84,6 +84,9 @@ typedef struct {
     uint32_t tx_event;
     int32_t tx_threshold;
     uint32_t tx_heartbeat;
+    /* GEN-1, RX-2: 1 on a CAN FD bus (the DBC's FD twin): every frame sent as FD with the
+     * bit-rate switch, classic frames received are malformed; 0: classic CAN */
+    uint32_t fd;
 } bd_agent_params;
 
 /* The node's key material (CFG-8, AUTH-1..3, AUTH-20). */

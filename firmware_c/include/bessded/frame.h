@@ -15,10 +15,11 @@ extern "C" {
 #define BD_FRAME_RTR 0x02u   /* a remote frame */
 #define BD_FRAME_FD 0x04u    /* a CAN FD frame */
 #define BD_FRAME_ERR 0x08u   /* an error frame */
+#define BD_FRAME_BRS 0x10u   /* a CAN FD frame sent with the bit-rate switch */
 
 typedef struct {
     uint32_t id;          /* 11-bit (or 29-bit with BD_FRAME_EXT) identifier */
-    uint8_t len;          /* data length in bytes (the DLC of a classic frame) */
+    uint8_t len;          /* data length in bytes (up to 64 received on FD; data holds 8) */
     uint8_t flags;        /* BD_FRAME_* */
     uint8_t data[8];
 } bd_frame;
