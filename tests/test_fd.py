@@ -154,3 +154,19 @@ def test_udp_multicast_fd_case1_converges(tmp_path: Path, udp_port: int) -> None
                              stdin=(out / "run.log").open(), capture_output=True, text=True,
                              check=True, cwd=ROOT).stdout
     assert "Unknown frame" not in decoded and "AGENT_4_MC" in decoded
+
+
+def test_crafted_frames_on_an_fd_bus_are_counted_by_their_own_cause() -> None:
+    """`bess-ded inject --fd`: the crafted frames are FD frames, so an FD agent counts
+    each under its cause (dlc, range, unknown_id, impersonation), not as malformed."""
+    from sim.nodes.inject import frames
+
+    cfg = agent_configs_from_scenario(load_case(1))[1]
+    for kind, cause in (("dlc", "dlc"), ("range", "range"), ("unknown", "unknown_id"),
+                        ("impersonate", "impersonation")):
+        agent = AgentRuntime(cfg, FD)
+        crafted = list(frames(kind, 4, target=2, codec=FD))
+        assert all(m.is_fd and m.bitrate_switch for m in crafted)
+        for m in crafted:
+            agent.on_frame(m, 0.0)
+        assert agent.counters[cause] == 4 and agent.counters["malformed"] == 0

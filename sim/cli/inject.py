@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from firmware_py.cliargs import float_in, int_in, positive_int
-from firmware_py.nodeargs import add_bus_arguments
+from firmware_py.nodeargs import add_bus_arguments, add_fd_argument
 from sim.model.scenario import MAX_AGENTS
 
 from ._common import one_line_errors
@@ -27,17 +27,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="frames per second (default: 1000)")
     p.add_argument("--seed", type=int_in(0), default=0, metavar="N")
     add_bus_arguments(p)
+    add_fd_argument(p)
     one_line_errors(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from dbc import dbc_path
+    from firmware_py.frames import FrameCodec
     from firmware_py.node import bus_kwargs, open_bus
     from sim.nodes.inject import send
 
     bus = open_bus(**bus_kwargs(args.interface, args.channel, args.bus_config))
     try:
-        n = send(bus, args.kind, args.count, args.target, args.rate, args.seed)
+        n = send(bus, args.kind, args.count, args.target, args.rate, args.seed,
+                 FrameCodec(dbc_path(args.fd)))
     finally:
         bus.shutdown()
     print(f"bess-ded inject: sent {n} {args.kind} frames")

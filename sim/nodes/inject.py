@@ -75,16 +75,19 @@ def frames(kind: str, count: int, target: int = 1, seed: int = 0,
                             data=bytes(rng.getrandbits(8) for _ in range(dlc)))
         else:
             raise ValueError(f"kind: expected one of {', '.join(KINDS)}, but got {kind!r}")
+        if codec.fd:  # the bus's format (GEN-1): else every frame would be only malformed
+            m.is_fd = m.bitrate_switch = True
         yield m
 
 
 def send(bus: can.BusABC, kind: str, count: int, target: int = 1, rate: float = 1000.0,
-         seed: int = 0) -> int:
-    """Send ``count`` frames of ``kind`` at about ``rate`` frames/s; returns frames sent."""
+         seed: int = 0, codec: FrameCodec | None = None) -> int:
+    """Send ``count`` frames of ``kind`` at about ``rate`` frames/s (in ``codec``'s frame
+    format: classic, or FD with the FD DBC's codec); returns frames sent."""
     sent = 0
     period = 1.0 / rate if rate > 0 else 0.0
     next_t = time.monotonic()
-    for m in frames(kind, count, target, seed):
+    for m in frames(kind, count, target, seed, codec):
         bus.send(m, timeout=0.1)
         sent += 1
         next_t += period
