@@ -36,8 +36,8 @@ class CountingCodec(FrameCodec):
     method called it, else the calling function's name) and frame (time, ID, data), and
     by the identity of the message (``by_msg``)."""
 
-    def __init__(self) -> None:
-        super().__init__()
+    def __init__(self, *dbc: Path) -> None:
+        super().__init__(*dbc)
         self.decodes: Counter[tuple[str, tuple[float, int, bytes]]] = Counter()
         self.by_msg: Counter[int] = Counter()
 
@@ -58,8 +58,8 @@ def in_process_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Coun
     out = tmp_path_factory.mktemp("decode-once")
     spy: list[CountingCodec] = []
 
-    def codec() -> CountingCodec:
-        spy.append(CountingCodec())
+    def codec(*dbc: Path) -> CountingCodec:  # the run's DBC (its frame format)
+        spy.append(CountingCodec(*dbc))
         return spy[-1]
 
     with pytest.MonkeyPatch.context() as mp:
