@@ -450,8 +450,8 @@ FAULTS: list[CFault] = [
            DIAG, drive(_short_frames(valid_between=True))),
     CFault("c_fd_taken", "RX-2", "a CAN FD frame is taken as a classical one (only remote "
            "and error frames are malformed)",
-           (("agent_rx.c", "(BD_FRAME_RTR | BD_FRAME_ERR | BD_FRAME_FD)",
-             "(BD_FRAME_RTR | BD_FRAME_ERR)"),), DIAG, drive(_fd_frame)),
+           (("agent_rx.c", "|| ((f->flags & BD_FRAME_FD) != 0u) != (a->p.fd != 0u)",
+             "|| 0"),), DIAG, drive(_fd_frame)),
 ]
 
 
