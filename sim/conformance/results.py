@@ -70,6 +70,9 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "ISOLATE": ("STATE-7", "CMD-3", "CMD-2"),
     "ISOLATE while ISOLATED": ("STATE-7", "STATE-9", "CMD-3"),
     "RECONNECT": ("STATE-8", "CMD-4", "STATE-4"),
+    "PIN with GainK …": ("RX-7", "CMD-7"),
+    "PIN for another agent": ("CMD-1", "CMD-7"),
+    "PIN …": ("CMD-7", "XI-2"),
 }
 
 # The oracle's state changes (``Mismatch.transition``) and what they exercise

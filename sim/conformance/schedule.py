@@ -17,7 +17,7 @@ import can
 from firmware_py import contract, secoc
 from firmware_py.config import AgentConfig, Neighbour, parse_agent_config
 from firmware_py.contract import Command, State
-from firmware_py.frames import FrameCodec, mc_name, status_name
+from firmware_py.frames import PIN_OFF, PIN_ON, FrameCodec, mc_name, status_name
 from firmware_py.nodeio import FleetSender
 
 
@@ -66,9 +66,10 @@ STEPS = (
          ("RX-1", "RX-3", "RX-6", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
           "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
-         "agent, ISOLATE, RECONNECT",
-         ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "STATE-7", "STATE-8", "STATE-9",
-          "STATE-10")),
+         "agent, ISOLATE, RECONNECT; PIN the other way, for another agent, with a GainK "
+         "that is neither way, and back",
+         ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "CMD-7", "STATE-7", "STATE-8",
+          "STATE-9", "STATE-10", "XI-2", "RX-7")),
     Step("timeouts", 710, 910, "a neighbour silent, the price silent (SAFE), a plant "
          "fault (SAFE), each followed by recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
@@ -132,8 +133,6 @@ NOT_ON_BUS: dict[str, str] = {
             "maximum (DIAG-2): as DIAG-2",
     "RX-2": "remote, error and FD frames are counted as malformed, which is on no frame "
             "(DIAG-5); python-can's virtual buses cannot carry error frames",
-    "CMD-7": "the schedule sends no PIN yet (a new command, issue 23.5): the node vector pin "
-             "checks it, replayed by both agents",
     "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
     "WMSR-1": "resilient_f = 0 (off) in the configuration the tester writes: the node "
               "vector resilient_trim and tests/test_resilient.py check it",
@@ -490,6 +489,18 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": target, "GainK": round(kk * 1000),
                     "GainH": round(hh * 1000)}), note)
+        # PIN (CMD-7) flips the DUT's price term, whichever way its configuration starts:
+        # ξ gains or loses (ρ − λ) at the next sample; a PIN for another agent, or with a
+        # GainK that is neither way (range, before authentication), changes nothing
+        for tick, target, way, note in (
+                (80, i, PIN_OFF if cfg.pinned else PIN_ON, "PIN the other way"),
+                (85, other, PIN_ON if cfg.pinned else PIN_OFF, "PIN for another agent"),
+                (90, i, 3, "PIN with GainK 3 (range)"),
+                (100, i, PIN_ON if cfg.pinned else PIN_OFF, "PIN back")):
+            if k == at["commands"] + tick:
+                add(k + 0.6, step, tx.frame("ER_Command", {  # the encoder checks only the
+                    "Command": int(Command.PIN), "Target": target,  # DBC's raw range
+                    "GainK": way, "GainH": 0}), note)
         for tick, cmd, graw, hraw, note in (
                 (5, Command.SET_GAINS, _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))[1],
                  _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))[1], "SET_GAINS at k_max and h_max"),
