@@ -42,7 +42,7 @@ from firmware_py.config import (
 from firmware_py.contract import Command, State, is_active
 from firmware_py.controllers import DwellResetPIController, ResetPIController
 from firmware_py.errors import ParameterError
-from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name
+from firmware_py.frames import PIN_ON, FrameCodec, diag_name, mc_name, setpoint_name, status_name
 from firmware_py.nodeio import STREAK_CAUSES, FleetSender
 from firmware_py.runtime import GAIN_DIV, AgentRuntime
 from firmware_py.secoc import Keyring, fleet_nodes
@@ -369,6 +369,8 @@ def _on_command(self: Any, f: Any, fid: int, any_target: bool = False,
                 self.io.fail(fid, bounds_cause, "gain bounds", self._now)
             return
         self._set_gains(f.raw["GainK"], f.raw["GainH"], k, h)
+    elif cmd == Command.PIN:
+        self.pin = fx.ONE if f.raw["GainK"] == PIN_ON else 0
 
 
 def _on_status(self: Any, f: Any, t: float, soc_fault: bool = False,

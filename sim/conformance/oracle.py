@@ -97,7 +97,9 @@ class Outcome:
 # Which requirements a mismatch on a signal violates (besides the step's)
 SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "MC.Lambda": ("XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1"),
-    "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9"),
+    # and the inputs' rules that decide health (STATE-2): a valid price, a plant fault
+    "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9",
+                 "PRICE-1", "RX-11"),
     "MC.Resets": ("STEP-3", "BAND-3", "TX-1"),
     "Setpoint.Enable": ("TX-2", "SP-3"),
     "Setpoint.PowerSetpoint": ("SP-1", "TX-2"),
@@ -109,7 +111,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.RejectedRange": ("RX-7", "RX-9"),
     "Diag.RejectedUnknownId": ("RX-1", "RX-6"),
     "Diag.RejectedImpersonation": ("RX-3",),
-    "Diag.ImplausiblePrice": ("PRICE-2", "PRICE-4"),
+    "Diag.ImplausiblePrice": ("PRICE-2", "PRICE-3", "PRICE-4"),
     "Diag.ImplausibleLambda": ("LAM-1",),
     "Diag.ImplausibleGains": ("CMD-5",),
     "Diag.NeighbourTimeouts": ("LIVE-3",),

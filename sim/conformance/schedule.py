@@ -201,7 +201,9 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     ctrl = replace(c, ts=ts, k=k, h=h, band=_rounds_up(1.5 * c.band, 24))
     nbrs = tuple(Neighbour(n.id, _rounds_up(1.25 * n.weight, 24)) for n in cfg.neighbours)
     step_max = _rounds_up(0.9 * 10.0 * k * ts, 24)  # below the default 10·k·Ts
-    # a price step of 0.45: the content step's persistent 0.6 stays above it
+    # a price step of 0.45: the content step's persistent 0.6 stays above it; a price
+    # persistence of 2 (the default is 3): a device taking the default accepts a step a
+    # frame late, one counting a frame short accepts it at once: neither looks like the other
     price_step = _rounds_up(min(cfg.price_step_max, 0.45), 24)
     return replace(
         cfg, controller=ctrl, neighbours=nbrs, lambda0=_rounds_up(cfg.lambda0, 24),
@@ -210,9 +212,16 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
         price_timeout_s=round(1.28 * cfg.price_timeout_s, 9),
         status_timeout_s=round(1.16 * cfg.status_timeout_s, 9),
         lambda_min=-9.5, lambda_max=9.5, rho_min=max(cfg.rho_min, -4.5),
-        rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=4,
-        lambda_step_max=step_max, k_min=0.6 * k, k_max=1.8 * k, h_min=0.6 * h,
-        h_max=1.8 * h, untrusted_after=6, source=f"{cfg.source} (conformance)")
+        rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=2,
+        lambda_step_max=step_max, k_min=_milli(0.6 * k), k_max=_milli(1.8 * k),
+        h_min=_milli(0.6 * h), h_max=_milli(1.8 * h), untrusted_after=6,
+        source=f"{cfg.source} (conformance)")
+
+
+def _milli(x: float) -> float:
+    """The gain bound nearest ``x`` that a SET_GAINS meets exactly (CMD-5: raw·0.001 in
+    binary64 equals it), so that the steps at the bounds tell ≤ from <."""
+    return round(x * 1000) * 0.001
 
 
 def written_config(cfg: AgentConfig) -> tuple[str, AgentConfig]:
@@ -404,27 +413,40 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                                         "Resets": 0})
             if lost_nbr and j == nbrs[0]:
                 continue
-            add(k + 0.5, step, msg)
+            lam_note = _lam_note(k - at["limits"]) if j == nbrs[0] else ""
+            if j == nbrs[0] and k - fr == 55:
+                lam_note = "a neighbour's first frame after 25 lost on the bus"
+            elif j == nbrs[0] and nbr_state == State.INIT:
+                lam_note = "a neighbour alive but INIT (not in ξ)"
+            elif j == nbrs[0] and k == at["content"] + 30:
+                lam_note = "a neighbour λ jump above lambda_step_max"
+            elif at["control"] < k < at["authentication"] and (k - at["control"]) % 70 == 0:
+                lam_note = "a neighbour λ square step"  # 0.08: near LAM-1's bound
+            add(k + 0.5, step, msg, lam_note)
             genuine.append(msg)
         if price_every(k) and not silent_price:
-            valid, r = 1, q(ramp(k, price))
+            valid, r, note = 1, q(ramp(k, price)), ""
             if 20 <= k - at["content"] < 25:
                 r = q(6.0)  # above rho_max: implausible
             elif 40 <= k - at["content"] < 70:
                 r = q(price + 0.6)  # a step above price_step_max, persistent
+                note = "a price step above price_step_max, persistent"
             elif at["limits"] <= k < at["freshness"]:
                 valid, r = price_edge(k) or (1, r)
             elif invalid_price:
-                valid = 0
+                valid, note = 0, "a PriceValid = 0 frame in an outage"
             if k == fr + 20:  # 15 frames lost on the bus: this one is 16 values on
                 for _ in range(15):
                     tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0, "Rho": r})
             add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0,
-                                                      "Rho": r}))
+                                                      "Rho": r}),
+                _price_note(k - at["limits"], price_persist=cfg.price_persist)
+                if at["limits"] <= k < at["freshness"] else note)
         if k >= 60 and status_every(k):
             add(k + 0.75, step, tx.frame(status_name(i), {
                 **status, "FaultOverCurrent": int(fault), "FaultSoc": int(soc),
-                "PowerLimited": int(soc)}))
+                "PowerLimited": int(soc)}),
+                "a status with FaultSoc and PowerLimited set" if soc else "")
         if k == fr + 5:  # every sender's periodic sync, in step with its frames
             for name in inputs:
                 add(k + 0.9, step, tx.sync(name), f"periodic sync of {name}")
@@ -532,6 +554,28 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                     "Command": int(cmd), "Target": i, "GainK": 0, "GainH": 0}), note)
     out.sort(key=lambda p: p.at)
     return out
+
+
+def _lam_note(c: int) -> str:
+    """What the first neighbour's frame at tick ``c`` of the limits step exercises
+    (``lam_edge``): LAM-1 at its edges."""
+    return {20: "a neighbour λ step of exactly the LAM-1 bound",
+            21: "a neighbour λ step one LSB beyond the LAM-1 bound",
+            22: "a neighbour λ step back by exactly the LAM-1 bound"}.get(c, "")
+
+
+def _price_note(c: int, price_persist: int) -> str:
+    """What the price frame at tick ``c`` of the limits step exercises (``price_edge``)."""
+    until = 55 + 5 * (price_persist + 1)
+    if c == 30:
+        return "a price step of exactly price_step_max"
+    if c == 60:
+        return "a PriceValid = 0 frame between candidates"
+    if 55 <= c < until:
+        return "a price step one LSB beyond price_step_max (a candidate)"
+    if c == until:
+        return "a price step back by exactly price_step_max"
+    return ""
 
 
 def _copy(msg: can.Message) -> can.Message:
