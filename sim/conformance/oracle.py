@@ -430,9 +430,14 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                     ("ξ = 0 after ξprev ≠ 0", rt.cstate.xi_prev == 0 and xi_prev != 0),
                     ("|ξ| = BAND", abs(rt.cstate.xi_prev) == getattr(rt.ctrl, "band", None)))
                     if hit and rt.state == State.RUNNING)
+                # the DUT gone SAFE where the oracle is not: an input it did not take
+                # a whole timeout ago (STATE-2)
+                since_safe = since - max(cfg.price_timeout_s, cfg.status_timeout_s)
                 for mm in failure[2]:
+                    went_safe = (mm.message, mm.signal, str(mm.got)) == ("MC", "State", "SAFE")
                     mm.moment = tuple(f.note for f in reversed(noted)
-                                      if (since_page if mm.message == "Diag" else since)
+                                      if (since_page if mm.message == "Diag" else
+                                          since_safe if went_safe else since)
                                       <= f.t < t_tick)
                     mm.follows = follows
                     mm.transition = edges + ((went,) if went else ()) + trans

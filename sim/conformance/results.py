@@ -54,6 +54,8 @@ def spec_requirements() -> tuple[str, ...]:
 MOMENTS: dict[str, tuple[str, ...]] = {
     "an earlier run's price sync (AUTH-21)": ("AUTH-21",),
     "sync of …": ("AUTH-9", "AUTH-21", "AUTH-16"),  # at the DUT's boot floors
+    "a command before its sync …": ("AUTH-11", "AUTH-14"),
+    "a price frame 16 freshness …": ("AUTH-12", "AUTH-13", "AUTH-15"),
     "forged MAC": ("RX-8", "AUTH-14", "AUTH-10"),
     "replay of a genuine frame": ("AUTH-12", "AUTH-14", "RX-8"),
     "replay of the first price sync": ("AUTH-16", "AUTH-17"),

@@ -61,15 +61,15 @@ STEPS = (
          "rejected and counted, λ unmoved by them",
          ("RX-8", "AUTH-10", "AUTH-11", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-16",
           "AUTH-17", "AUTH-25", "RX-12", "RX-13", "DIAG-4")),
-    Step("content", 510, 580, "an extended ID, an unknown ID, the DUT's own ID, a short "
+    Step("content", 510, 580, "an extended ID, the DUT's own ID, a short "
          "frame, a price out of bounds, a persistent price step, a neighbour λ jump",
-         ("RX-1", "RX-3", "RX-6", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
+         ("RX-1", "RX-3", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
           "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
          "agent, ISOLATE, RECONNECT; PIN the other way, for another agent, with a GainK "
-         "that is neither way, and back",
+         "that is neither way, and back; an unknown ID",
          ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "CMD-7", "STATE-7", "STATE-8",
-          "STATE-9", "STATE-10", "XI-2", "RX-7")),
+          "STATE-9", "STATE-10", "XI-2", "RX-6", "RX-7")),
     Step("timeouts", 710, 910, "a neighbour silent, the price silent (SAFE), a plant "
          "fault (SAFE), each followed by recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
@@ -438,6 +438,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             if k == fr + 20:  # 15 frames lost on the bus: this one is 16 values on
                 for _ in range(15):
                     tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0, "Rho": r})
+                note = "a price frame 16 freshness values on"
             add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0,
                                                       "Rho": r}),
                 _price_note(k - at["limits"], price_persist=cfg.price_persist)
@@ -487,7 +488,9 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k == at["content"] + 5:
             add(k + 0.6, step, can.Message(arbitration_id=0x100 + i, is_extended_id=True,
                                            data=bytes(8)), "extended ID")
-        if k == at["content"] + 7:
+        # a Diag page (13 of them, 10 ticks apart) after the extended ID, so that the
+        # page's RejectedUnknownId shows each alone (RX-1, RX-6)
+        if k == at["commands"] + 120:
             add(k + 0.6, step, can.Message(arbitration_id=_unknown_id(codec),
                                            is_extended_id=False, data=bytes(8)), "unknown ID")
         if k == at["content"] + 9:
