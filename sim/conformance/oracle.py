@@ -100,13 +100,13 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     # and the inputs' rules that decide health (STATE-2): a valid price, a plant fault
     "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9",
                  "PRICE-1", "RX-11"),
-    "MC.Resets": ("STEP-3", "BAND-3", "TX-1"),
+    "MC.Resets": ("STEP-3", "BAND-3", "TX-1", "STATE-7"),  # ISOLATE zeroes the count
     "Setpoint.Enable": ("TX-2", "SP-3"),
     "Setpoint.PowerSetpoint": ("SP-1", "TX-2"),
     "Diag.RejectedAuth": ("AUTH-14", "AUTH-16", "AUTH-21", "RX-8", "AUTH-25"),
     "Diag.Unsynced": ("AUTH-11", "AUTH-14"),
     "Diag.Resyncs": ("AUTH-16", "AUTH-21"),
-    "Diag.LostFrames": ("AUTH-15",),
+    "Diag.LostFrames": ("AUTH-15", "AUTH-12", "AUTH-13"),  # the candidate taken
     "Diag.RejectedDlc": ("RX-7",),
     "Diag.RejectedRange": ("RX-7", "RX-9"),
     "Diag.RejectedUnknownId": ("RX-1", "RX-6"),
@@ -121,7 +121,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.SafetySender": ("DIAG-4",),
     "Diag.SafetyCause": ("DIAG-4",),
     "Diag.Untrusted": ("RX-13",),
-    "Diag.Resets": ("DIAG-1", "STEP-1"),
+    "Diag.Resets": ("DIAG-1", "STEP-1", "STATE-7"),
     "Diag.NeighboursAlive": ("DIAG-1", "LIVE-2"),
     "Diag.Saturations": ("DIAG-3", "STEP-9"),
     "Sync.frames": ("AUTH-9",),

@@ -147,11 +147,13 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS,
     exp, got = mm.raw
     one_lsb = isinstance(exp, int) and isinstance(got, int) and abs(exp - got) == 1
     # one LSB off is a rounding: of λ(0) from the file (NUM-4) before any control step;
-    # of the gains a SET_GAINS just gave (CMD-5); else of the wire λ (Q54 → Q24)
+    # of the gains a SET_GAINS just gave (CMD-5), or the limits step's (whose ramp to a
+    # large |ξ| is there to show a KTS' one Q30 LSB off); else of the wire λ (Q54 → Q24)
     if key == "MC.Lambda" and one_lsb:
         if mm.step in ("start", "price-only"):
             return ("NUM-4", "NUM-8")
-        if any("CMD-5" in _moment_musts(n, steps) for n in mm.moment):
+        if mm.step == "limits" or any("CMD-5" in _moment_musts(n, steps)
+                                      for n in mm.moment):
             return ("CMD-5", "NUM-8")
         return ("NUM-8",)
     if key == "Setpoint.PowerSetpoint" and one_lsb:
