@@ -43,6 +43,7 @@ from firmware_py.contract import Command, State, is_active
 from firmware_py.controllers import DwellResetPIController, ResetPIController
 from firmware_py.errors import ParameterError
 from firmware_py.frames import (
+    PIN_ON,
     FrameCodec,
     diag_name,
     mc_name,
@@ -377,6 +378,8 @@ def _on_command(self: Any, f: Any, fid: int, any_target: bool = False,
                 self.io.fail(fid, bounds_cause, "gain bounds", self._now)
             return
         self._set_gains(f.raw["GainK"], f.raw["GainH"], k, h)
+    elif cmd == Command.PIN:
+        self.pin = fx.ONE if f.raw["GainK"] == PIN_ON else 0
 
 
 def _on_status(self: Any, f: Any, t: float, soc_fault: bool = False,

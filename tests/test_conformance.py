@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 from conformance_run import DEVIANT, DEVICE_HINT, FIRMWARE_PY, run_conformance
 
+from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig, agent_configs_from_scenario
 from firmware_py.frames import FrameCodec
 from firmware_py.runtime import AgentRuntime
@@ -144,10 +145,12 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     cfg, ring, planned = _setup(1, 3)
     dut = AgentRuntime(cfg, FrameCodec(), keys=ring())
     states = []
+    pins = {dut.pin}
     real_tick = dut.tick
 
     def tick(t: float) -> list:
         frames = real_tick(t)
+        pins.add(dut.pin)
         if not states or states[-1] != dut.state.name:
             states.append(dut.state.name)
         return frames
@@ -168,7 +171,7 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     c = dut.counters
     # 5 in the authentication step, untrusted_after forged commands, one fewer forged prices
     # (untrusted_after = 6 in the configuration the tester writes)
-    assert cfg.untrusted_after == 6 and cfg.price_persist == 4
+    assert cfg.untrusted_after == 6 and cfg.price_persist == 2
     assert c["auth"] == 5 + 6 + 5 and c["untrusted_sources"] == 1
     assert c["dlc"] == 1 and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
@@ -178,15 +181,18 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     # content: a price above rho_max, a persistent step there and back (price_persist − 1
     # candidates each); the step one LSB above the bound: price_persist − 1 candidates,
     # accepted the price_persist-th time
-    assert c["implausible_price"] == 1 + 3 + 3 + 3 and c["price_steps_accepted"] == 2 + 1
+    assert c["implausible_price"] == 1 + 1 + 1 + 1 and c["price_steps_accepted"] == 2 + 1
     assert c["implausible_lambda"] == 2 + 1  # one LSB above LAM-1's bound
     # the neighbour lost on the bus; the PriceValid = 0 outage and the one while ISOLATED
     assert c["neighbour_timeouts"] == 2 and c["price_timeouts"] == 3
     assert c["plant_faults"] == 2  # the second while ISOLATED
     assert c["commands_isolate"] == 4 and c["commands_reconnect"] == 5
-    # in-step syncs are no resyncs; lost: 3, 6 forged commands, 5 forged prices, a price
-    # 16 values on (15), the neighbour's 25 frames lost on the bus
-    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 6 + 5 + 15 + 25
+    # in-step syncs are no resyncs; lost: 3, the PIN refused before authentication (its
+    # freshness value never taken), 6 forged commands, 5 forged prices, a price 16 values
+    # on (15), the neighbour's 25 frames lost on the bus
+    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 1 + 6 + 5 + 15 + 25
+    assert c["range"] == 1  # the PIN whose GainK is neither way (CMD-7, RX-7)
+    assert pins == {0, fx.ONE} and dut.pin == (fx.ONE if cfg.pinned else 0)  # and back
     assert dut.cstate.resets >= 1  # after ISOLATE's reset of the count: resets still happen
 
 
@@ -213,9 +219,10 @@ def _mm(message: str, signal: str, expected: object, got: object, tick: int = 10
 def test_a_difference_names_what_the_step_exercises_at_that_moment() -> None:
     """Expected: a λ difference after a SET_GAINS names CMD-5, a State difference after
     an ISOLATE STATE-7 and after an ISOLATE for another agent CMD-1; a λ one LSB off names
-    the wire rounding (NUM-8, in no signal's list), a missed reset at ξ = 0 the crossing
-    rule (STEP-2); a counter names its own cause, narrowed by the moment where they meet;
-    without a moment, the signal's requirements narrowed by the step's."""
+    a rounding (the gains', λ(0)'s or the wire's: NUM-8, in no signal's list), a missed
+    reset at ξ = 0 the crossing rule (STEP-2), unless the tester just led it there; a
+    counter names its own cause, narrowed by the moment where they meet; without a
+    moment, the signal's requirements narrowed by the step's."""
     a = conf.attribute
     assert a(_mm("MC", "Lambda", 1000, 5000, step="commands",
                  moment=("SET_GAINS in bounds",)))[0] == "CMD-5"
@@ -223,8 +230,22 @@ def test_a_difference_names_what_the_step_exercises_at_that_moment() -> None:
                  moment=("ISOLATE",)))[0] == "STATE-7"
     assert a(_mm("MC", "State", "RUNNING", "ISOLATED", step="commands",
                  moment=("ISOLATE for another agent",))) == ("CMD-1",)
-    assert a(_mm("MC", "Lambda", 1000, 1001, moment=("SET_GAINS in bounds",))) == ("NUM-8",)
+    # one LSB off: the gains' rounding right after a SET_GAINS, λ(0)'s before any
+    # control step, else the wire λ's
+    assert a(_mm("MC", "Lambda", 1000, 1001, moment=("SET_GAINS in bounds",))) == (
+        "CMD-5", "NUM-8")
+    assert a(_mm("MC", "Lambda", 1000, 1001, step="start")) == ("NUM-4", "NUM-8")
+    assert a(_mm("MC", "Lambda", 1000, 1001, moment=("ISOLATE",))) == ("NUM-8",)
     assert a(_mm("MC", "Resets", 2, 1, transition=("ξ = 0 after ξprev ≠ 0",))) == ("STEP-2",)
+    # what the tester just did comes before the edge it led the controller to
+    assert a(_mm("MC", "Resets", 2, 1, moment=("a neighbour alive but INIT (not in ξ)",),
+                 transition=("ξ = 0 after ξprev ≠ 0",)))[0] == "XI-1"
+    # ISOLATED expected: with the idle λ on the wire the ISOLATE was taken (STATE-7) and
+    # the state not kept (STATE-9); with another λ too, the ISOLATE was not taken
+    isolated = _mm("MC", "State", "ISOLATED", "SAFE", step="states",
+                   moment=("ISOLATE in SAFE",))
+    assert a(isolated)[0] == "STATE-9"
+    assert a(isolated, alongside=[isolated, _mm("MC", "Lambda", 1000, 5000)])[0] == "STATE-7"
     assert a(_mm("MC", "State", "INIT", "SAFE", step="start"))[0] == "STATE-5"
     assert a(_mm("Diag", "ImplausibleGains", 1, 0, step="commands",
                  moment=("ISOLATE", "SET_GAINS out of bounds"))) == ("CMD-5",)

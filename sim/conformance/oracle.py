@@ -97,19 +97,21 @@ class Outcome:
 # Which requirements a mismatch on a signal violates (besides the step's)
 SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "MC.Lambda": ("XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1"),
-    "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9"),
-    "MC.Resets": ("STEP-3", "BAND-3", "TX-1"),
+    # and the inputs' rules that decide health (STATE-2): a valid price, a plant fault
+    "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9",
+                 "PRICE-1", "RX-11"),
+    "MC.Resets": ("STEP-3", "BAND-3", "TX-1", "STATE-7"),  # ISOLATE zeroes the count
     "Setpoint.Enable": ("TX-2", "SP-3"),
     "Setpoint.PowerSetpoint": ("SP-1", "TX-2"),
     "Diag.RejectedAuth": ("AUTH-14", "AUTH-16", "AUTH-21", "RX-8", "AUTH-25"),
     "Diag.Unsynced": ("AUTH-11", "AUTH-14"),
     "Diag.Resyncs": ("AUTH-16", "AUTH-21"),
-    "Diag.LostFrames": ("AUTH-15",),
+    "Diag.LostFrames": ("AUTH-15", "AUTH-12", "AUTH-13"),  # the candidate taken
     "Diag.RejectedDlc": ("RX-7",),
     "Diag.RejectedRange": ("RX-7", "RX-9"),
     "Diag.RejectedUnknownId": ("RX-1", "RX-6"),
     "Diag.RejectedImpersonation": ("RX-3",),
-    "Diag.ImplausiblePrice": ("PRICE-2", "PRICE-4"),
+    "Diag.ImplausiblePrice": ("PRICE-2", "PRICE-3", "PRICE-4"),
     "Diag.ImplausibleLambda": ("LAM-1",),
     "Diag.ImplausibleGains": ("CMD-5",),
     "Diag.NeighbourTimeouts": ("LIVE-3",),
@@ -119,7 +121,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.SafetySender": ("DIAG-4",),
     "Diag.SafetyCause": ("DIAG-4",),
     "Diag.Untrusted": ("RX-13",),
-    "Diag.Resets": ("DIAG-1", "STEP-1"),
+    "Diag.Resets": ("DIAG-1", "STEP-1", "STATE-7"),
     "Diag.NeighboursAlive": ("DIAG-1", "LIVE-2"),
     "Diag.Saturations": ("DIAG-3", "STEP-9"),
     "Sync.frames": ("AUTH-9",),
@@ -428,9 +430,14 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                     ("ξ = 0 after ξprev ≠ 0", rt.cstate.xi_prev == 0 and xi_prev != 0),
                     ("|ξ| = BAND", abs(rt.cstate.xi_prev) == getattr(rt.ctrl, "band", None)))
                     if hit and rt.state == State.RUNNING)
+                # the DUT gone SAFE where the oracle is not: an input it did not take
+                # a whole timeout ago (STATE-2)
+                since_safe = since - max(cfg.price_timeout_s, cfg.status_timeout_s)
                 for mm in failure[2]:
+                    went_safe = (mm.message, mm.signal, str(mm.got)) == ("MC", "State", "SAFE")
                     mm.moment = tuple(f.note for f in reversed(noted)
-                                      if (since_page if mm.message == "Diag" else since)
+                                      if (since_page if mm.message == "Diag" else
+                                          since_safe if went_safe else since)
                                       <= f.t < t_tick)
                     mm.follows = follows
                     mm.transition = edges + ((went,) if went else ()) + trans

@@ -54,6 +54,8 @@ def spec_requirements() -> tuple[str, ...]:
 MOMENTS: dict[str, tuple[str, ...]] = {
     "an earlier run's price sync (AUTH-21)": ("AUTH-21",),
     "sync of …": ("AUTH-9", "AUTH-21", "AUTH-16"),  # at the DUT's boot floors
+    "a command before its sync …": ("AUTH-11", "AUTH-14"),
+    "a price frame 16 freshness …": ("AUTH-12", "AUTH-13", "AUTH-15"),
     "forged MAC": ("RX-8", "AUTH-14", "AUTH-10"),
     "replay of a genuine frame": ("AUTH-12", "AUTH-14", "RX-8"),
     "replay of the first price sync": ("AUTH-16", "AUTH-17"),
@@ -66,10 +68,29 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "SET_GAINS in bounds": ("CMD-5", "CMD-2"),
     "SET_GAINS out of bounds": ("CMD-5", "DIAG-4"),
     "SET_GAINS one LSB …": ("CMD-5", "DIAG-4"),
+    "SET_GAINS at …": ("CMD-5", "CMD-2"),
+    "SET_GAINS whose KTS rounds …": ("CMD-5",),
     "ISOLATE for another agent": ("CMD-1",),
     "ISOLATE": ("STATE-7", "CMD-3", "CMD-2"),
     "ISOLATE while ISOLATED": ("STATE-7", "STATE-9", "CMD-3"),
     "RECONNECT": ("STATE-8", "CMD-4", "STATE-4"),
+    "RECONNECT in …": ("STATE-8", "CMD-4"),
+    "RECONNECT, …": ("STATE-8", "CMD-4", "STATE-4"),
+    "ISOLATE in …": ("STATE-7", "CMD-3"),
+    "a neighbour λ step …": ("LAM-1",),
+    "a neighbour λ jump …": ("LIVE-1", "LAM-1"),
+    "a neighbour λ square step": ("LIVE-1", "LAM-1"),
+    "a neighbour's first frame after …": ("AUTH-13", "AUTH-15", "LIVE-2"),
+    "a neighbour alive but INIT …": ("XI-1",),
+    "a price step of exactly …": ("PRICE-3",),
+    "a price step one LSB beyond …": ("PRICE-3", "PRICE-4"),
+    "a price step back …": ("PRICE-3",),
+    "a price step above …": ("PRICE-4", "PRICE-3"),
+    "a PriceValid = 0 frame …": ("PRICE-1", "PRICE-4"),
+    "a status with FaultSoc …": ("RX-11",),
+    "PIN with GainK …": ("RX-7", "CMD-7"),
+    "PIN for another agent": ("CMD-1", "CMD-7"),
+    "PIN …": ("CMD-7", "XI-2"),
 }
 
 # The oracle's state changes (``Mismatch.transition``) and what they exercise
@@ -114,7 +135,8 @@ def _ordered(first: Sequence[str], second: Sequence[str]) -> tuple[str, ...]:
     return tuple(dict.fromkeys((*first, *second)))
 
 
-def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS) -> tuple[str, ...]:
+def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS,
+              alongside: Sequence[Mismatch] = ()) -> tuple[str, ...]:
     """The requirements one difference names, the likeliest first: what the schedule was
     exercising at that moment (a noted frame of the tester: a command, a forged MAC, ...;
     else a state change of the oracle), narrowed by the signal where they meet; else the
@@ -124,17 +146,30 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS) -> tuple[str, ...]:
     sig = SIGNAL_MUSTS.get(key, ())
     exp, got = mm.raw
     one_lsb = isinstance(exp, int) and isinstance(got, int) and abs(exp - got) == 1
-    # one LSB off is a rounding, whatever the moment: the wire λ (Q54 → Q24), the map
+    # one LSB off is a rounding: of λ(0) from the file (NUM-4) before any control step;
+    # of the gains a SET_GAINS just gave (CMD-5), or the limits step's (whose ramp to a
+    # large |ξ| is there to show a KTS' one Q30 LSB off); else of the wire λ (Q54 → Q24)
     if key == "MC.Lambda" and one_lsb:
+        if mm.step in ("start", "price-only"):
+            return ("NUM-4", "NUM-8")
+        if mm.step == "limits" or any("CMD-5" in _moment_musts(n, steps)
+                                      for n in mm.moment):
+            return ("CMD-5", "NUM-8")
         return ("NUM-8",)
     if key == "Setpoint.PowerSetpoint" and one_lsb:
         return ("SP-1",)
     if key == "MC.State":
         sig = _ordered(STATE_RULES.get((str(mm.expected), str(mm.got)), ()), sig)
+        # ISOLATED expected, and the idle λ the ISOLATE gives it (STATE-7) is on the
+        # wire: the command was taken, the state not kept (STATE-9)
+        if str(mm.expected) == "ISOLATED" and not any(
+                (o.message, o.signal) == ("MC", "Lambda") for o in alongside):
+            return _ordered(("STATE-9",), sig)
     step = next((s for s in steps if s.name == mm.step), None)
     step_musts = step.musts if step else ()
-    contexts = [c for c in ([EDGES.get(e, ()) for e in mm.transition]
-                            + [_moment_musts(n, steps) for n in mm.moment]
+    # what the tester just did first: an edge the controller met can be its consequence
+    contexts = [c for c in ([_moment_musts(n, steps) for n in mm.moment]
+                            + [EDGES.get(e, ()) for e in mm.transition]
                             + [TRANSITIONS.get(w, ()) for w in mm.transition]) if c]
     # those the signal can show, of every context, the latest (the most specific) first
     meet = _ordered([m for context in contexts for m in context if m in sig], ())
@@ -196,7 +231,7 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
             continue
         episodes[tick] = (min(mms, key=_primary), len(mms), tick)
     for n_ep, (cause, n, last) in enumerate(episodes.values()):
-        musts = attribute(cause, steps)
+        musts = attribute(cause, steps, by_tick[cause.tick])
         why = _first_divergence(cause, musts, n, last)
         evidence.append((cause.t, n_ep, musts, why))
     for err, t in zip(outcome.auth_errors,

@@ -17,7 +17,7 @@ import can
 from firmware_py import contract, secoc
 from firmware_py.config import AgentConfig, Neighbour, parse_agent_config
 from firmware_py.contract import Command, State
-from firmware_py.frames import FrameCodec, mc_name, status_name, target_raw
+from firmware_py.frames import PIN_OFF, PIN_ON, FrameCodec, mc_name, status_name, target_raw
 from firmware_py.nodeio import FleetSender
 
 
@@ -61,14 +61,15 @@ STEPS = (
          "rejected and counted, λ unmoved by them",
          ("RX-8", "AUTH-10", "AUTH-11", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-16",
           "AUTH-17", "AUTH-25", "RX-12", "RX-13", "DIAG-4")),
-    Step("content", 510, 580, "an extended ID, an unknown ID, the DUT's own ID, a short "
+    Step("content", 510, 580, "an extended ID, the DUT's own ID, a short "
          "frame, a price out of bounds, a persistent price step, a neighbour λ jump",
-         ("RX-1", "RX-3", "RX-6", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
+         ("RX-1", "RX-3", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
           "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
-         "agent, ISOLATE, RECONNECT",
-         ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "STATE-7", "STATE-8", "STATE-9",
-          "STATE-10")),
+         "agent, ISOLATE, RECONNECT; PIN the other way, for another agent, with a GainK "
+         "that is neither way, and back; an unknown ID",
+         ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "CMD-7", "STATE-7", "STATE-8",
+          "STATE-9", "STATE-10", "XI-2", "RX-6", "RX-7")),
     Step("timeouts", 710, 910, "a neighbour silent, the price silent (SAFE), a plant "
          "fault (SAFE), each followed by recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
@@ -132,8 +133,6 @@ NOT_ON_BUS: dict[str, str] = {
             "maximum (DIAG-2): as DIAG-2",
     "RX-2": "remote, error and FD frames are counted as malformed, which is on no frame "
             "(DIAG-5); python-can's virtual buses cannot carry error frames",
-    "CMD-7": "the schedule sends no PIN yet (a new command, issue 23.5): the node vector pin "
-             "checks it, replayed by both agents",
     "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
     "WMSR-1": "resilient_f = 0 (off) in the configuration the tester writes: the node "
               "vector resilient_trim and tests/test_resilient.py check it",
@@ -202,7 +201,9 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     ctrl = replace(c, ts=ts, k=k, h=h, band=_rounds_up(1.5 * c.band, 24))
     nbrs = tuple(Neighbour(n.id, _rounds_up(1.25 * n.weight, 24)) for n in cfg.neighbours)
     step_max = _rounds_up(0.9 * 10.0 * k * ts, 24)  # below the default 10·k·Ts
-    # a price step of 0.45: the content step's persistent 0.6 stays above it
+    # a price step of 0.45: the content step's persistent 0.6 stays above it; a price
+    # persistence of 2 (the default is 3): a device taking the default accepts a step a
+    # frame late, one counting a frame short accepts it at once: neither looks like the other
     price_step = _rounds_up(min(cfg.price_step_max, 0.45), 24)
     return replace(
         cfg, controller=ctrl, neighbours=nbrs, lambda0=_rounds_up(cfg.lambda0, 24),
@@ -211,9 +212,16 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
         price_timeout_s=round(1.28 * cfg.price_timeout_s, 9),
         status_timeout_s=round(1.16 * cfg.status_timeout_s, 9),
         lambda_min=-9.5, lambda_max=9.5, rho_min=max(cfg.rho_min, -4.5),
-        rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=4,
-        lambda_step_max=step_max, k_min=0.6 * k, k_max=1.8 * k, h_min=0.6 * h,
-        h_max=1.8 * h, untrusted_after=6, source=f"{cfg.source} (conformance)")
+        rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=2,
+        lambda_step_max=step_max, k_min=_milli(0.6 * k), k_max=_milli(1.8 * k),
+        h_min=_milli(0.6 * h), h_max=_milli(1.8 * h), untrusted_after=6,
+        source=f"{cfg.source} (conformance)")
+
+
+def _milli(x: float) -> float:
+    """The gain bound nearest ``x`` that a SET_GAINS meets exactly (CMD-5: raw·0.001 in
+    binary64 equals it), so that the steps at the bounds tell ≤ from <."""
+    return round(x * 1000) * 0.001
 
 
 def written_config(cfg: AgentConfig) -> tuple[str, AgentConfig]:
@@ -405,27 +413,41 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                                         "Resets": 0})
             if lost_nbr and j == nbrs[0]:
                 continue
-            add(k + 0.5, step, msg)
+            lam_note = _lam_note(k - at["limits"]) if j == nbrs[0] else ""
+            if j == nbrs[0] and k - fr == 55:
+                lam_note = "a neighbour's first frame after 25 lost on the bus"
+            elif j == nbrs[0] and nbr_state == State.INIT:
+                lam_note = "a neighbour alive but INIT (not in ξ)"
+            elif j == nbrs[0] and k == at["content"] + 30:
+                lam_note = "a neighbour λ jump above lambda_step_max"
+            elif at["control"] < k < at["authentication"] and (k - at["control"]) % 70 == 0:
+                lam_note = "a neighbour λ square step"  # 0.08: near LAM-1's bound
+            add(k + 0.5, step, msg, lam_note)
             genuine.append(msg)
         if price_every(k) and not silent_price:
-            valid, r = 1, q(ramp(k, price))
+            valid, r, note = 1, q(ramp(k, price)), ""
             if 20 <= k - at["content"] < 25:
                 r = q(6.0)  # above rho_max: implausible
             elif 40 <= k - at["content"] < 70:
                 r = q(price + 0.6)  # a step above price_step_max, persistent
+                note = "a price step above price_step_max, persistent"
             elif at["limits"] <= k < at["freshness"]:
                 valid, r = price_edge(k) or (1, r)
             elif invalid_price:
-                valid = 0
+                valid, note = 0, "a PriceValid = 0 frame in an outage"
             if k == fr + 20:  # 15 frames lost on the bus: this one is 16 values on
                 for _ in range(15):
                     tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0, "Rho": r})
+                note = "a price frame 16 freshness values on"
             add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0,
-                                                      "Rho": r}))
+                                                      "Rho": r}),
+                _price_note(k - at["limits"], price_persist=cfg.price_persist)
+                if at["limits"] <= k < at["freshness"] else note)
         if k >= 60 and status_every(k):
             add(k + 0.75, step, tx.frame(status_name(i), {
                 **status, "FaultOverCurrent": int(fault), "FaultSoc": int(soc),
-                "PowerLimited": int(soc)}))
+                "PowerLimited": int(soc)}),
+                "a status with FaultSoc and PowerLimited set" if soc else "")
         if k == fr + 5:  # every sender's periodic sync, in step with its frames
             for name in inputs:
                 add(k + 0.9, step, tx.sync(name), f"periodic sync of {name}")
@@ -466,7 +488,9 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k == at["content"] + 5:
             add(k + 0.6, step, can.Message(arbitration_id=0x100 + i, is_extended_id=True,
                                            data=bytes(8)), "extended ID")
-        if k == at["content"] + 7:
+        # a Diag page (13 of them, 10 ticks apart) after the extended ID, so that the
+        # page's RejectedUnknownId shows each alone (RX-1, RX-6)
+        if k == at["commands"] + 120:
             add(k + 0.6, step, can.Message(arbitration_id=_unknown_id(codec),
                                            is_extended_id=False, data=bytes(8)), "unknown ID")
         if k == at["content"] + 9:
@@ -490,6 +514,18 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": target_raw(target),
                     "GainK": round(kk * 1000), "GainH": round(hh * 1000)}), note)
+        # PIN (CMD-7) flips the DUT's price term, whichever way its configuration starts:
+        # ξ gains or loses (ρ − λ) at the next sample; a PIN for another agent, or with a
+        # GainK that is neither way (range, before authentication), changes nothing
+        for tick, target, way, note in (
+                (80, i, PIN_OFF if cfg.pinned else PIN_ON, "PIN the other way"),
+                (85, other, PIN_ON if cfg.pinned else PIN_OFF, "PIN for another agent"),
+                (90, i, 3, "PIN with GainK 3 (range)"),
+                (100, i, PIN_ON if cfg.pinned else PIN_OFF, "PIN back")):
+            if k == at["commands"] + tick:  # the encoder checks only the DBC's range
+                add(k + 0.6, step, tx.frame("ER_Command", {
+                    "Command": int(Command.PIN), "Target": target_raw(target),
+                    "GainK": way, "GainH": 0}), note)
         for tick, cmd, graw, hraw, note in (
                 (5, Command.SET_GAINS, _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))[1],
                  _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))[1], "SET_GAINS at k_max and h_max"),
@@ -522,6 +558,28 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                     "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}), note)
     out.sort(key=lambda p: p.at)
     return out
+
+
+def _lam_note(c: int) -> str:
+    """What the first neighbour's frame at tick ``c`` of the limits step exercises
+    (``lam_edge``): LAM-1 at its edges."""
+    return {20: "a neighbour λ step of exactly the LAM-1 bound",
+            21: "a neighbour λ step one LSB beyond the LAM-1 bound",
+            22: "a neighbour λ step back by exactly the LAM-1 bound"}.get(c, "")
+
+
+def _price_note(c: int, price_persist: int) -> str:
+    """What the price frame at tick ``c`` of the limits step exercises (``price_edge``)."""
+    until = 55 + 5 * (price_persist + 1)
+    if c == 30:
+        return "a price step of exactly price_step_max"
+    if c == 60:
+        return "a PriceValid = 0 frame between candidates"
+    if 55 <= c < until:
+        return "a price step one LSB beyond price_step_max (a candidate)"
+    if c == until:
+        return "a price step back by exactly price_step_max"
+    return ""
 
 
 def _copy(msg: can.Message) -> can.Message:
