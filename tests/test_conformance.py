@@ -171,7 +171,7 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     c = dut.counters
     # 5 in the authentication step, untrusted_after forged commands, one fewer forged prices
     # (untrusted_after = 6 in the configuration the tester writes)
-    assert cfg.untrusted_after == 6 and cfg.price_persist == 2
+    assert cfg.untrusted_after == 6 and cfg.price_persist == 5
     assert c["auth"] == 5 + 6 + 5 and c["untrusted_sources"] == 1
     assert c["dlc"] == 1 and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
@@ -181,7 +181,7 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     # content: a price above rho_max, a persistent step there and back (price_persist − 1
     # candidates each); the step one LSB above the bound: price_persist − 1 candidates,
     # accepted the price_persist-th time
-    assert c["implausible_price"] == 1 + 1 + 1 + 1 and c["price_steps_accepted"] == 2 + 1
+    assert c["implausible_price"] == 1 + 4 + 4 + 4 and c["price_steps_accepted"] == 2 + 1
     assert c["implausible_lambda"] == 2 + 1  # one LSB above LAM-1's bound
     # the neighbour lost on the bus; the PriceValid = 0 outage and the one while ISOLATED
     assert c["neighbour_timeouts"] == 2 and c["price_timeouts"] == 3

@@ -202,8 +202,8 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     nbrs = tuple(Neighbour(n.id, _rounds_up(1.25 * n.weight, 24)) for n in cfg.neighbours)
     step_max = _rounds_up(0.9 * 10.0 * k * ts, 24)  # below the default 10·k·Ts
     # a price step of 0.45: the content step's persistent 0.6 stays above it; a price
-    # persistence of 2 (the default is 3): a device taking the default accepts a step a
-    # frame late, one counting a frame short accepts it at once: neither looks like the other
+    # persistence of 5, two above the default 3: a device counting one frame short or
+    # long, and one taking the default, each accept a step at another frame
     price_step = _rounds_up(min(cfg.price_step_max, 0.45), 24)
     return replace(
         cfg, controller=ctrl, neighbours=nbrs, lambda0=_rounds_up(cfg.lambda0, 24),
@@ -212,7 +212,7 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
         price_timeout_s=round(1.28 * cfg.price_timeout_s, 9),
         status_timeout_s=round(1.16 * cfg.status_timeout_s, 9),
         lambda_min=-9.5, lambda_max=9.5, rho_min=max(cfg.rho_min, -4.5),
-        rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=2,
+        rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=5,
         lambda_step_max=step_max, k_min=_milli(0.6 * k), k_max=_milli(1.8 * k),
         h_min=_milli(0.6 * h), h_max=_milli(1.8 * h), untrusted_after=6,
         source=f"{cfg.source} (conformance)")
