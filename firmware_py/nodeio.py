@@ -697,10 +697,10 @@ class FleetSender:
     def _key(self, name: str) -> bytes:
         """AUTH-28: a link frame's own key (``keys[name]``), else the sender's."""
         base = name.removesuffix("_Sync")
-        label = base if base in contract.LINK_FRAMES else contract.sender_of(base)
+        label = base if base in contract.KEYED_FRAMES else contract.sender_of(base)
         if label not in self.keys and self.insecure:
             self.keys[label] = (derive_frame_key(INSECURE_MASTER, label)
-                                if base in contract.LINK_FRAMES
+                                if base in contract.KEYED_FRAMES
                                 else derive_node_key(INSECURE_MASTER, label))
         return self.keys[label]
 

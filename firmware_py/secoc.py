@@ -602,7 +602,7 @@ def _frame_senders(frames: Mapping[str, bytes]) -> set[str]:
     """The senders of link frames (their floors may be kept, AUTH-21)."""
     from . import contract  # contract imports this module
 
-    return {contract.sender_of(f) for f in frames if f in contract.LINK_FRAMES}
+    return {contract.sender_of(f) for f in frames if f in contract.KEYED_FRAMES}
 
 
 def save_boot_counter(path: Path | str, boot: int) -> None:
@@ -733,7 +733,7 @@ class Keyring:
         from . import contract  # contract imports this module
 
         base = name.removesuffix("_Sync")
-        if base not in contract.LINK_FRAMES:
+        if base not in contract.KEYED_FRAMES:
             return self.key_of(contract.sender_of(base), derive)
         if self.node not in contract.parties_of(base):
             return None

@@ -231,11 +231,12 @@ INSIDER_FORGERIES = {
 }
 
 
-def insider(name: str, raw: dict[str, int], key: bytes,
-            sent: list[can.Message]) -> Callable[[float], list[can.Message]]:
+def insider(name: str, raw: dict[str, int], key: bytes, sent: list[can.Message],
+            every: int = 5) -> Callable[[float], list[can.Message]]:
     """A key holder's forgery of link frame ``name``: a sync one boot ahead of its sender
     (within AUTH-27's bound, so a right key would move the receiver to it) every second,
-    then ``raw`` at the frame's rate under the next counts, all signed with ``key``."""
+    then ``raw`` every ``every`` ticks (the frame's rate) under the next counts, all
+    signed with ``key``."""
     tx = FleetSender(CODEC, keys={name: key}, boot=2)
 
     def inject(t: float) -> list[can.Message]:
@@ -243,7 +244,7 @@ def insider(name: str, raw: dict[str, int], key: bytes,
         if t < ATTACK_FROM_S:
             return []
         out = [tx.sync(name)] if k % 100 == 0 else []
-        if k % 5 == 0:
+        if k % every == 0:
             out.append(tx.frame(name, raw))
         sent.extend(out)
         return out
@@ -291,6 +292,47 @@ def test_agent_3s_key_file_cannot_forge_agent_1s_status_or_setpoint(
     assert err < 1e-3 and np.max(np.abs(p - p_honest)) < 1.0, (err, p, p_honest)
     assert kinds == {"auth_failed", "impersonation"}, m["anomalies"]
     assert m["verdict"]["exit_code"] == 3  # converged, with anomalies
+
+
+def _forged_at_recorder(m: dict[str, Any], name: str) -> int:
+    """Frames of ``name`` (and its sync) the recorder's analysis found forged."""
+    got = 0
+    for a in m["anomalies"]:
+        hit = re.match(rf"{name}(_Sync)?: (\d+) frames whose MAC does not verify", a["detail"])
+        got += int(hit.group(2)) if a["kind"] == "auth_failed" and hit else 0
+    return got
+
+
+@pytest.mark.parametrize("key_from", ["agent 3's key file", "the genuine Diag key"])
+def test_agent_3s_key_file_cannot_forge_agent_1s_diag(key_from: str, tmp_path: Path) -> None:
+    """AUTH-29, issue 25: agent 3 holds agent 1's node key (to verify its λ), but not
+    AGENT_1_Diag's key. Its forged Diag of agent 1 (200 price timeouts), with a sync one
+    boot ahead, signed with the best key it has (its own Diag's, then agent 1's node key:
+    what signed a Diag before), is forged at the recorder, its one reader, every frame
+    and sync of it, and agent 1 sees its own ID sent by someone else. The control, the
+    same forgery under the genuine Diag key, is taken: its sync moves the recorder to
+    the forged boot (undone by agent 1's next sync, AUTH-27: `sync_jump`)."""
+    keys = tmp_path / "keys"
+    keys.mkdir(mode=0o700)
+    write_key_set(CASE, keys, INSIDER_MASTER)
+    held = secoc.load_node_key(keys / "agent_3.key")
+    name = diag_name(1)
+    assert name not in held.frames and "agent_1" in held.peers
+    raw = {"Page": 6, "PriceTimeouts": 200, "StatusTimeouts": 0}
+    genuine = key_from.startswith("the genuine")
+    tries = ([secoc.derive_frame_key(INSIDER_MASTER, name)] if genuine
+             else [held.frames[diag_name(3)], held.peers["agent_1"]])
+    for key in tries:
+        sent: list[can.Message] = []
+        rings = secoc.Keyring.fleet(INSIDER_MASTER, secoc.fleet_nodes(CASE.n))
+        m, _ = _run(tmp_path / f"run-{key.hex()[:6]}", insider(name, raw, key, sent, every=10),
+                    keyrings=rings)
+        forged = _forged_at_recorder(m, name)
+        if genuine:   # taken: the forged sync moved the recorder, agent 1's undid it
+            assert "sync_jump" in _kinds(m) and forged < len(sent), m["anomalies"]
+            continue
+        assert forged == len(sent) > 50, (forged, len(sent))
+        assert _kinds(m) == {"auth_failed", "impersonation"}, m["anomalies"]
 
 
 def _receivers() -> list[tuple[Any, list[int]]]:

@@ -61,8 +61,9 @@ def test_node_vector_replays_byte_exact_in_c(path) -> None:
 
 MASTER = bytes(range(16))
 # AUTH-28: agent 2's link frames, under keys of their own
-FRAMES = {f: derive_frame_key(MASTER, f) for f in ("AGENT_2_Setpoint", "PLANT_2_Status")}
-ALL_FRAMES = {f: derive_frame_key(MASTER, f) for f in contract.link_frames()}  # the senders'
+FRAMES = {f: derive_frame_key(MASTER, f)
+          for f in ("AGENT_2_Setpoint", "PLANT_2_Status", "AGENT_2_Diag")}
+ALL_FRAMES = {f: derive_frame_key(MASTER, f) for f in contract.keyed_frames()}  # the senders'
 TS = 2.0 ** -7   # every tick time, offset and timeout is exact in binary64 and in ns
 CONFIG = f"""
 [agent]
@@ -530,8 +531,8 @@ def dump_node_vectors(path: Path) -> dict[str, list[tuple[int, int, str]]]:
             i = k["node"].removeprefix("agent_")
             plant = 0 if "plant" in k["peers"] else floors.get("plant", 0)
             lines.append(f"K {k['node']} 0 {k['key']} {k['boot_counter']} {len(k['peers'])} "
-                         f"{peers} 2 {fk[f'AGENT_{i}_Setpoint']} {fk[f'PLANT_{i}_Status']} "
-                         f"{plant}")
+                         f"{peers} 3 {fk[f'AGENT_{i}_Setpoint']} {fk[f'PLANT_{i}_Status']} "
+                         f"{fk[f'AGENT_{i}_Diag']} {plant}")
         if "tx_count" in vec.get("setup", {}):
             lines.append(f"S {vec['setup']['tx_count']}")
         for row in vec["input"]:

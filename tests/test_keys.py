@@ -44,10 +44,12 @@ def test_fleet_for_a_case(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
 
 
 def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path) -> None:
-    """AUTH-28, issue 25 item 5: each key file lists the node keys of the broadcasts it
-    takes and the keys of its own link frames only; agent 3's file yields no key that
-    tags agent 1's setpoint or status (nor any link frame whose parties exclude it), and
-    no file but the plant's, agent 1's and the router's holds PLANT_1_Status's key."""
+    """AUTH-28, AUTH-29, issue 25 item 5: each key file lists the node keys of the
+    broadcasts it takes and the keys of its own link frames and reports only; agent 3's
+    file yields no key that tags agent 1's setpoint, status or Diag, nor the router's
+    ledger (nor any frame whose parties exclude it); no file but the plant's, agent 1's
+    and the router's holds PLANT_1_Status's key, none but agent 1's and the router's
+    AGENT_1_Diag's, none but the router's ER_Balance's."""
     from firmware_py import contract
     from firmware_py.frames import FrameCodec
 
@@ -56,20 +58,26 @@ def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path)
     master = secoc.load_master_key(out / "master.key")
     files = {n: secoc.load_node_key(out / f"{n}.key")
              for n in ["agent_1", "agent_2", "agent_3", "agent_4", "plant", "router"]}
-    links = contract.link_frames(4)
-    assert links == [*(f"AGENT_{i}_Setpoint" for i in range(1, 5)),
-                     *(f"PLANT_{i}_Status" for i in range(1, 5))]
+    assert contract.link_frames(4) == [*(f"AGENT_{i}_Setpoint" for i in range(1, 5)),
+                                       *(f"PLANT_{i}_Status" for i in range(1, 5))]
+    links = contract.keyed_frames(4)
+    assert sorted(links) == sorted([*contract.link_frames(4), "ER_Balance",
+                                    *(f"AGENT_{i}_Diag" for i in range(1, 5))])
     for node, nk in files.items():
         want = [f for f in links if node in contract.parties_of(f)]
         assert sorted(nk.frames) == sorted(want), node
         assert all(k == secoc.derive_frame_key(master, f) for f, k in nk.frames.items())
         assert "plant" not in nk.peers  # the plant sends link frames only
-    assert sorted(files["agent_3"].frames) == ["AGENT_3_Setpoint", "PLANT_3_Status"]
+    assert sorted(files["agent_3"].frames) == ["AGENT_3_Diag", "AGENT_3_Setpoint",
+                                               "PLANT_3_Status"]
+    assert [n for n, nk in files.items() if "AGENT_1_Diag" in nk.frames] == [
+        "agent_1", "router"]
+    assert [n for n, nk in files.items() if "ER_Balance" in nk.frames] == ["router"]
     assert "router" in files["agent_3"].peers and "plant" not in files["agent_3"].peers
     assert [n for n, nk in files.items() if "PLANT_1_Status" in nk.frames] == [
         "agent_1", "plant", "router"]
-    # every key agent 3's file holds fails to tag agent 1's status and setpoint, and
-    # every link frame whose parties exclude agent 3
+    # every key agent 3's file holds fails to tag agent 1's status, setpoint and Diag,
+    # the ledger, and every frame whose parties exclude agent 3
     codec = FrameCodec()
     ring = secoc.Keyring.from_file(out / "agent_3.key")
     held = [ring.key, *files["agent_3"].peers.values(), *files["agent_3"].frames.values()]

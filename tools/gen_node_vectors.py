@@ -40,7 +40,7 @@ from gen_vectors import q24, splitmix64, write_or_check  # noqa: E402  (shared w
 
 from firmware_py import contract, frames  # noqa: E402
 from firmware_py.config import parse_agent_config  # noqa: E402
-from firmware_py.frames import FrameCodec, mc_name, setpoint_name, status_name  # noqa: E402
+from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name  # noqa: E402,E501
 from firmware_py.runtime import AgentRuntime  # noqa: E402
 from firmware_py.secoc import (  # noqa: E402
     INSECURE_MASTER,
@@ -124,7 +124,7 @@ class Sender:
     def key_for(self, name: str) -> bytes:
         """AUTH-28: a link frame's own key (from the fleet master), else the node's."""
         base = name.removesuffix("_Sync")
-        if base not in contract.LINK_FRAMES:
+        if base not in contract.KEYED_FRAMES:
             return self.key
         if self.master is None:
             raise ValueError(f"{self.label}: {base} needs the fleet master key")
@@ -177,7 +177,8 @@ class Scenario:
         node = f"agent_{self.cfg.id}"
         peer_labels = ["router", *(f"agent_{n.id}" for n in self.cfg.neighbours)]
         # AUTH-28: its own setpoint's and status' keys; the plant's node key it needs not
-        frame_names = [setpoint_name(self.cfg.id), status_name(self.cfg.id)]
+        frame_names = [setpoint_name(self.cfg.id), status_name(self.cfg.id),
+                       diag_name(self.cfg.id)]   # AUTH-29: its Diag under its own key
         self.keys_doc: dict[str, Any]
         if insecure:
             keys = None

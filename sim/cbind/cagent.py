@@ -84,7 +84,8 @@ class KeyringC(ctypes.Structure):
         ("peer_key", (ctypes.c_uint8 * 16) * MAX_PEERS),
         ("peer_floor", ctypes.c_uint16 * MAX_PEERS),
         ("has_frame_keys", ctypes.c_int32), ("setpoint_key", ctypes.c_uint8 * 16),
-        ("status_key", ctypes.c_uint8 * 16), ("status_floor", ctypes.c_uint16),
+        ("status_key", ctypes.c_uint8 * 16), ("diag_key", ctypes.c_uint8 * 16),
+        ("status_floor", ctypes.c_uint16),
         ("persist_boot", PERSIST_FN), ("persist_ctx", ctypes.c_void_p),
     ]
 
@@ -318,8 +319,9 @@ def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | No
                insecure: bool = False, floors: Mapping[str, int] | None = None,
                frames: Mapping[str, bytes] | None = None) -> KeyringC:
     """A bd_keyring for the C agent: ``node``'s key and boot, its peers' keys
-    (at most MAX_PEERS) with their boot floors, its link frame keys (``frames``:
-    AGENT_<i>_Setpoint and PLANT_<i>_Status, AUTH-28; others ignored); not persisted
+    (at most MAX_PEERS) with their boot floors, its frame keys (``frames``:
+    AGENT_<i>_Setpoint, PLANT_<i>_Status, AGENT_<i>_Diag, AUTH-28, AUTH-29; others
+    ignored); not persisted
     (see keyring_from)."""
     k = KeyringC()
     k.node = node.encode()
@@ -337,10 +339,12 @@ def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | No
     ix = node.removeprefix("agent_")
     sp = (frames or {}).get(f"AGENT_{ix}_Setpoint")
     st = (frames or {}).get(f"PLANT_{ix}_Status")
-    if sp is not None and st is not None:
+    dg = (frames or {}).get(f"AGENT_{ix}_Diag")
+    if sp is not None and st is not None and dg is not None:
         k.has_frame_keys = 1
         k.setpoint_key[:] = list(sp)
         k.status_key[:] = list(st)
+        k.diag_key[:] = list(dg)
     if "plant" not in peers:
         k.status_floor = (floors or {}).get("plant", 0)
     return k
@@ -355,7 +359,7 @@ def keyring_from(ring: Keyring) -> KeyringC:
         if peer != "plant":    # the agent takes only its link frame from the plant
             ring.key_of(peer)
     i = ring.node.removeprefix("agent_")
-    for name in (f"AGENT_{i}_Setpoint", f"PLANT_{i}_Status"):
+    for name in (f"AGENT_{i}_Setpoint", f"PLANT_{i}_Status", f"AGENT_{i}_Diag"):
         ring.key_for(name)
     k = keyring_of(ring.node, ring.key, ring.boot, ring.listed_keys(), floors=ring.floors,
                    frames=ring.listed_frame_keys())

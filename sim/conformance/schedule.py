@@ -44,7 +44,7 @@ STEPS = (
          "then the command's sync",
          ("GEN-2", "STATE-1", "STATE-10", "TICK-1", "TX-1", "TX-2", "TX-3", "TX-4", "TX-5",
           "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-11",
-          "AUTH-16", "AUTH-21", "AUTH-26", "AUTH-28", "RX-4", "GEN-1", "GEN-4")),
+          "AUTH-16", "AUTH-21", "AUTH-26", "AUTH-28", "AUTH-29", "RX-4", "GEN-1", "GEN-4")),
     Step("price-only", 30, 60, "price and neighbours but no plant status: still INIT",
          ("STATE-2", "STATE-5", "TMO-3", "LIVE-1", "LIVE-2", "PRICE-6", "AUTH-12",
           "AUTH-15")),

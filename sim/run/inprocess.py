@@ -63,7 +63,7 @@ def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
                        and (k := r.key_of(n)) is not None)
         out[n] = held.most_common(1)[0][0] if held else ring.key
     n_agents = sum(label.startswith("agent_") for label in rings)
-    for name in contract.link_frames(n_agents):  # AUTH-28: the key its receivers hold,
+    for name in contract.keyed_frames(n_agents):  # AUTH-28: the key its receivers hold,
         sender = contract.sender_of(name)        # the sender's breaking a tie
         got: Counter[bytes] = Counter()
         for m, r in rings.items():

@@ -71,7 +71,7 @@ def frames_of(sc: Any) -> dict[str, list[str]]:
     two; the router: every PLANT_<i>_Status)."""
     from firmware_py import contract, secoc
 
-    return {node: [f for f in contract.link_frames(sc.n) if node in contract.parties_of(f)]
+    return {node: [f for f in contract.keyed_frames(sc.n) if node in contract.parties_of(f)]
             for node in secoc.fleet_nodes(sc.n)}
 
 
@@ -108,7 +108,7 @@ def derived_keys(master: bytes, n: int) -> dict[str, bytes]:
     from firmware_py import contract, secoc
 
     out = {node: secoc.derive_node_key(master, node) for node in secoc.fleet_nodes(n)}
-    out.update({f: secoc.derive_frame_key(master, f) for f in contract.link_frames(n)})
+    out.update({f: secoc.derive_frame_key(master, f) for f in contract.keyed_frames(n)})
     return out
 
 
@@ -257,7 +257,7 @@ def rotate_node_keys(sc: Any, keys_dir: Path, node: str) -> RotatedKeys:
         raise ParameterError("--rotate", f"a node of the fleet ({', '.join(fleet)})", node)
     check_key_set(keys_dir, sc.n, sc)
     own = secrets.token_bytes(secoc.KEY_BYTES)
-    links = {f: secrets.token_bytes(secoc.KEY_BYTES) for f in contract.link_frames(sc.n)
+    links = {f: secrets.token_bytes(secoc.KEY_BYTES) for f in contract.keyed_frames(sc.n)
              if node in contract.parties_of(f)}
     rewritten, untouched = [], []
     for label in fleet:

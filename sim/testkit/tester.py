@@ -455,7 +455,7 @@ class Tester:
             if fs is None:
                 fs = self._senders[label] = FleetSender(self.codec, {}, boot=self._boot)
             base = name.removesuffix("_Sync")
-            if base in contract.LINK_FRAMES:  # AUTH-28: its own key, held by its parties
+            if base in contract.KEYED_FRAMES:  # AUTH-28, AUTH-29: its own key, held by its parties
                 own = self.keys.get(base) if label == sender else None
                 fs.keys[base] = own if own is not None else self.keys[label]
             else:
