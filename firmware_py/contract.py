@@ -61,6 +61,7 @@ __all__ = [
     "FV_COUNT_BITS",
     "FRESHNESS",
     "FV_TX_BITS",
+    "COMMAND",
     "KEYED_FRAMES",
     "LINK_FRAMES",
     "MAC_BITS",
@@ -75,6 +76,7 @@ __all__ = [
     "Command",
     "State",
     "agent_ids",
+    "command_key_name",
     "cycle_ms",
     "cycle_s",
     "diag_name",
@@ -284,10 +286,24 @@ def _by_id(names: frozenset[str], n: int | None) -> list[str]:
             if n is None or (agent_of(fid) or 0) <= n]
 
 
-def frame_key(keys: Mapping[str, bytes], name: str) -> bytes | None:
+COMMAND = "ER_Command"
+"""AUTH-30: the message addressed to one agent (its Target) and signed with that agent's
+command key (``secoc.derive_command_key``), held by the router and the target only; its
+sync (no Target) keeps the router's node key."""
+
+
+def command_key_name(target: int) -> str:
+    """The name of the command key of agent ``target`` in a monitor's key table."""
+    return f"{COMMAND}@agent_{target}"
+
+
+def frame_key(keys: Mapping[str, bytes], name: str, target: int | None = None) -> bytes | None:
     """The key of message ``name`` (or its ``_Sync``) from a monitor's key table
-    (``label -> node key`` and ``message -> link frame key``, AUTH-28): a link frame's
-    own key, a broadcast's sender's key; None if the table has none."""
+    (``label -> node key``, ``message -> frame key``, ``command_key_name(i) -> command
+    key``): a link frame's or report's own key, an ER_Command's its ``target``'s
+    command key (AUTH-30), a broadcast's sender's key; None if the table has none."""
+    if name == COMMAND:
+        return None if target is None else keys.get(command_key_name(target))
     base = name.removesuffix("_Sync")
     if base in KEYED_FRAMES:
         return keys.get(base)

@@ -23,6 +23,7 @@ from firmware_py.errors import ConfigError
 from firmware_py.secoc import (
     KEY_FILE_HEADER,
     KeyFileError,
+    derive_command_key,
     derive_frame_key,
     derive_node_key,
     fleet_id,
@@ -270,7 +271,8 @@ def test_key_file_frame_keys_load_and_survive_every_boot_rewrite(tmp_path: Path)
     router's and its neighbours' node keys, its two link frame keys and its Diag's, no
     plant key) loads in C with the setpoint's, the status' and the Diag's keys
     firmware_py reads; the C persist keeps [frame_keys] and the plant's floor; the C
-    agent starts with it; a frame key of another agent is refused, a missing one too."""
+    agent starts with it; a frame key of another agent is refused, a missing one too;
+    likewise its command key (AUTH-30)."""
     import tomli_w
 
     from sim.cbind.cagent import CAgent
@@ -289,13 +291,27 @@ def test_key_file_frame_keys_load_and_survive_every_boot_rewrite(tmp_path: Path)
     assert bytes(k.setpoint_key) == derive_frame_key(MASTER, "AGENT_2_Setpoint")
     assert bytes(k.status_key) == derive_frame_key(MASTER, "PLANT_2_Status")
     assert bytes(k.diag_key) == derive_frame_key(MASTER, "AGENT_2_Diag")
+    assert bytes(k.command_key) == derive_command_key(MASTER, "agent_2")
     assert k.persist_boot(k.persist_ctx, 7) == 0
     again = load_node_key(path)
     assert again.boot_counter == 7 and again.frames == ref.frames
+    assert again.commands == ref.commands == {"agent_2": derive_command_key(MASTER, "agent_2")}
     assert dict(again.floors) == {"router": 9, "plant": 5}
     agent = CAgent(agent_configs_from_scenario(sc)[1], load_keyfile(path, "agent_2"))
     assert agent.boot == 8
     doc = tomllib.loads(path.read_text())
+    doc["command_keys"]["agent_1"] = derive_command_key(MASTER, "agent_1").hex()
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    with pytest.raises(CConfigError, match=r"\[command_keys\] expected the key of agent_2 "
+                       r"only, but got 'agent_1'"):
+        load_keyfile(path, "agent_2")
+    del doc["command_keys"]
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    with pytest.raises(CConfigError, match=r"\[command_keys\] expected the key of agent_2, "
+                       r"but got none"):
+        load_keyfile(path, "agent_2")
+    doc = tomllib.loads(path.read_text())
+    doc["command_keys"] = {"agent_2": derive_command_key(MASTER, "agent_2").hex()}
     del doc["frame_keys"]["AGENT_2_Diag"]   # a key file written before AUTH-29
     write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
     with pytest.raises(CConfigError, match=r"\[frame_keys\] expected the keys of "

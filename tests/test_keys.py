@@ -96,6 +96,36 @@ def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path)
             assert not secoc.frame_verifies(genuine, fid, forged, fv), (name, key.hex())
 
 
+def test_key_files_hold_only_the_command_keys_each_node_needs(tmp_path: Path) -> None:
+    """AUTH-30: agent i's file holds the key of the commands to it only, the router's
+    every agent's, the plant's none; no key in agent 3's file tags a command to agent 1
+    (ISOLATE) as agent 1 verifies it, and agent 1's keyring from its file verifies the
+    router's."""
+    from firmware_py import contract
+
+    out = tmp_path / "keys"
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(out)]) == 0
+    master = secoc.load_master_key(out / "master.key")
+    files = {n: secoc.load_node_key(out / f"{n}.key") for n in secoc.fleet_nodes(4)}
+    agents = [f"agent_{i}" for i in range(1, 5)]
+    for node, nk in files.items():
+        want = agents if node == "router" else [node] if node in agents else []
+        assert sorted(nk.commands) == want, node
+        assert all(k == secoc.derive_command_key(master, t) for t, k in nk.commands.items())
+    agent_1 = secoc.Keyring.from_file(out / "agent_1.key")
+    genuine = agent_1.key_for(contract.COMMAND)
+    assert genuine == files["router"].commands["agent_1"]
+    held = [files["agent_3"].key, *files["agent_3"].peers.values(),
+            *files["agent_3"].frames.values(), *files["agent_3"].commands.values()]
+    fid, fv = contract.ER_COMMAND_ID, contract.FRESHNESS.join(1, 3)
+    data = bytearray(8)
+    data[3], data[4] = 0x10, 0x01   # an ISOLATE-like payload; any payload would do
+    for key in held:
+        forged = bytearray(data)
+        secoc.sign_frame(key, fid, forged, fv)
+        assert genuine is not None and not secoc.frame_verifies(genuine, fid, forged, fv)
+
+
 def test_rotating_one_node_rewrites_only_the_files_sharing_its_keys(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Issue 25, item 5: `keys --rotate agent_3` gives agent 3 a new own key and new link

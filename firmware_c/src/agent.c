@@ -208,6 +208,8 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
         int bad = bd_derive_frame_key(a->master, name, a->setpoint_key);
         frame_name("AGENT_", p->id, "_Diag", name);
         bad |= bd_derive_frame_key(a->master, name, a->diag_key);
+        frame_name("agent_", p->id, "", name);   /* AUTH-30: the commands' target */
+        bad |= bd_derive_command_key(a->master, name, a->command_key);
         frame_name("PLANT_", p->id, "_Status", name);
         if (bad != 0 || bd_derive_frame_key(a->master, name, status_key) != 0) {
             return BD_ERR_CRYPTO;
@@ -215,6 +217,7 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     } else if (keys->has_frame_keys) {
         memcpy(a->setpoint_key, keys->setpoint_key, BD_KEY_BYTES);
         memcpy(a->diag_key, keys->diag_key, BD_KEY_BYTES);
+        memcpy(a->command_key, keys->command_key, BD_KEY_BYTES);
         memcpy(status_key, keys->status_key, BD_KEY_BYTES);
     } else {
         return BD_ERR_MISSING_KEY;

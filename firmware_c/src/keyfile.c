@@ -119,6 +119,8 @@ static int persist_boot(void *ctx, uint32_t boot)
         hex_of(k->status_key, BD_KEY_BYTES, hex3);
         ok = fprintf(f, "\n[frame_keys]\n%s = \"%s\"\n%s = \"%s\"\n%s = \"%s\"\n", dg, hex,
                      sp, hex2, st, hex3) > 0;
+        hex_of(k->command_key, BD_KEY_BYTES, hex);   /* AUTH-30 */
+        ok = ok && fprintf(f, "\n[command_keys]\n%s = \"%s\"\n", k->node, hex) > 0;
     }
     int floors = 0;   /* AUTH-21: the peers' boot floors are kept */
     for (uint32_t p = 0u; p < k->n_peers && ok; ++p) {
@@ -294,13 +296,35 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
         }
         got |= which;
     }
-    if (got != 0 && got != 7) {
+    for (int q = 0; q < d.n; ++q) {   /* AUTH-30: the key of the commands to this agent */
+        const toml_entry *pe = &d.e[q];
+        if (strcmp(pe->table, "command_keys") != 0) {
+            continue;
+        }
+        if (strcmp(pe->key, node) != 0) {
+            (void)snprintf(err, errlen, "%s: [command_keys] expected the key of %s only, but "
+                           "got '%s'", path, node, pe->key);
+            return -1;
+        }
+        if (pe->type != TOML_STRING || hex_key(pe->s, k->command_key) != 0) {
+            (void)snprintf(err, errlen, "%s: [command_keys.%s] expected %d hex digits", path,
+                           pe->key, 2 * BD_KEY_BYTES);
+            return -1;
+        }
+        got |= 8;
+    }
+    if (got != 0 && (got & 7) != 7) {
         (void)snprintf(err, errlen, "%s: [frame_keys] expected the keys of %s, %s and %s, "
                        "but one is missing (re-provision with bess-ded keys)", path, sp, stn,
                        dg);
         return -1;
     }
-    k->has_frame_keys = got == 7;
+    if (got != 0 && got != 15) {
+        (void)snprintf(err, errlen, "%s: [command_keys] expected the key of %s, but got none "
+                       "(re-provision with bess-ded keys)", path, node);
+        return -1;
+    }
+    k->has_frame_keys = got == 15;
     for (int q = 0; q < d.n; ++q) {   /* AUTH-21: each peer's lowest boot accepted */
         const toml_entry *pe = &d.e[q];
         if (strcmp(pe->table, "floors") != 0) {

@@ -136,6 +136,9 @@ def fleet_messages(sc: Any, ts: float | None = None) -> list[Message]:
             receivers: tuple[str, ...] = tuple(sorted(dbc_rx)) or ("recorder",)
         else:
             receivers = tuple(sorted(holders - {sender}))
+        if m.name == contract.COMMAND:  # AUTH-30: each command under its target's key,
+            holders = frozenset({sender})  # which only the router shares with the target
+            receivers = tuple(f"agent_{i}" for i in contract.agent_ids(sc.n))
         per_s = 0.0
         if contract.is_cyclic(m.name):
             pages = len(codec.pages(m.name)) if m.name == "ER_Balance" else 1

@@ -66,9 +66,9 @@ STEPS = (
          ("RX-1", "RX-3", "RX-6", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
           "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
-         "agent, ISOLATE, RECONNECT",
+         "agent (under its command key), ISOLATE, RECONNECT",
          ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "STATE-7", "STATE-8", "STATE-9",
-          "STATE-10")),
+          "STATE-10", "AUTH-30")),
     Step("timeouts", 710, 910, "a neighbour silent, the price silent (SAFE), a plant "
          "fault (SAFE), each followed by recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",

@@ -460,6 +460,10 @@ class Tester:
                 fs.keys[base] = own if own is not None else self.keys[label]
             else:
                 fs.keys[sender] = self.keys[label]
+            if name == contract.COMMAND:  # AUTH-30: its target's command key, the router's
+                cname = contract.command_key_name(int(signals["Target"]))
+                own = self.keys.get(cname) if label == sender else None
+                fs.keys[cname] = own if own is not None else self.keys[label]
             out: list[can.Message] = []
             t = self.now()
             if fid in contract.SECURED_IDS:
