@@ -129,8 +129,9 @@ def test_key_files_hold_only_the_command_keys_each_node_needs(tmp_path: Path) ->
 def test_rotating_one_node_rewrites_only_the_files_sharing_its_keys(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Issue 25, item 5: `keys --rotate agent_3` gives agent 3 a new own key and new link
-    frame keys, written into its file and those of the nodes holding one of them (case
-    1: agent 1, its neighbour; the plant; the router), boot counters and floors kept;
+    frame, Diag and command keys, written into its file and those of the nodes holding
+    one of them (case 1: agent 1, its neighbour; the plant; the router), boot counters and
+    floors kept;
     agents 2 and 4's files are untouched byte for byte. The old copy of agent_3.key no
     longer tags agent 3's setpoint or MC as its receivers now verify them; the rotated
     set passes `up`'s check and runs a clean dispatch."""
@@ -160,8 +161,11 @@ def test_rotating_one_node_rewrites_only_the_files_sharing_its_keys(
     plant = secoc.load_node_key(out / "plant.key")
     assert plant.peers["agent_3"] == new.key and plant.floors["agent_3"] == 2
     assert plant.frames["AGENT_3_Setpoint"] == new.frames["AGENT_3_Setpoint"]
-    assert secoc.load_node_key(out / "router.key").frames["PLANT_3_Status"] == \
-        new.frames["PLANT_3_Status"]
+    router = secoc.load_node_key(out / "router.key")
+    assert router.frames["PLANT_3_Status"] == new.frames["PLANT_3_Status"]
+    assert router.frames["AGENT_3_Diag"] == new.frames["AGENT_3_Diag"]  # AUTH-29
+    # AUTH-30: the key of the commands to agent 3, in its file and the router's
+    assert router.commands["agent_3"] == new.commands["agent_3"] != old.commands["agent_3"]
     assert secoc.load_node_key(out / "agent_1.key").peers["agent_3"] == new.key
     codec = FrameCodec()
     for name, old_key, now in (("AGENT_3_Setpoint", old.frames["AGENT_3_Setpoint"],

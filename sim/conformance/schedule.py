@@ -328,8 +328,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     for name in inputs:
         if name != "ER_Command":  # held back past the DUT's join window (AUTH-11)
             add(0, "start", tx.sync(name), f"sync of {name}")
-    add(22.6, "start", tx.frame("ER_Command", {
-        "Command": int(Command.ISOLATE), "Target": other, "GainK": 0, "GainH": 0}),
+    add(22.6, "start", tx.frame("ER_Command", {   # to the DUT: another's is not its input
+        "Command": int(Command.ISOLATE), "Target": i, "GainK": 0, "GainH": 0}),
         "a command before its sync, after the join window: unsynced")
     add(25, "start", tx.sync("ER_Command"), "sync of ER_Command")
     first_sync = next(p.msg for p in out if p.note == "sync of ER_Price")
@@ -429,10 +429,10 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k == fr + 5:  # every sender's periodic sync, in step with its frames
             for name in inputs:
                 add(k + 0.9, step, tx.sync(name), f"periodic sync of {name}")
-        if k == fr + 10:  # untrusted_after forged frames in a row on one ID (RX-13)
-            for n in range(cfg.untrusted_after):
+        if k == fr + 10:  # untrusted_after forged frames in a row on one ID (RX-13), to
+            for n in range(cfg.untrusted_after):  # the DUT (AUTH-30: another's is not its input)
                 add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Command", {
-                    "Command": int(Command.ISOLATE), "Target": other, "GainK": 0,
+                    "Command": int(Command.ISOLATE), "Target": i, "GainK": 0,
                     "GainH": 0})), "forged command")
         if k in (fr + 40, fr + 60) and nbrs:  # a peer's sync: first of its boot, then again
             add(k + 0.6, step, tx.sync(f"AGENT_{nbrs[0]}_Setpoint"),
