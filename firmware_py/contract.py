@@ -61,6 +61,8 @@ __all__ = [
     "FV_COUNT_BITS",
     "FRESHNESS",
     "FV_TX_BITS",
+    "COMMAND",
+    "KEYED_FRAMES",
     "LINK_FRAMES",
     "MAC_BITS",
     "PEER_SYNCED_BY",
@@ -74,6 +76,7 @@ __all__ = [
     "Command",
     "State",
     "agent_ids",
+    "command_key_name",
     "cycle_ms",
     "cycle_s",
     "diag_name",
@@ -81,6 +84,7 @@ __all__ = [
     "frame_key",
     "is_active",
     "is_cyclic",
+    "keyed_frames",
     "link_frames",
     "mc_name",
     "parties_of",
@@ -247,30 +251,61 @@ for it): each is signed with a key of its own, held by its sender and its DBC
 receivers only (``secoc.derive_frame_key``), so no third node can forge it. The other
 secured messages are broadcasts (ER_Price, ER_Command, AGENT_<i>_MC) or reports, signed
 with their sender's node key."""
+REPORT_FRAMES = frozenset(_CODEC.name_of(fid) for fid in REPORT_IDS)
+KEYED_FRAMES = LINK_FRAMES | REPORT_FRAMES
+"""The secured messages signed with a key of their own (``secoc.derive_frame_key``), held
+by their sender and their DBC receivers only: the link frames (AUTH-28) and the reports
+(AUTH-29: AGENT_<i>_Diag, read by the router; ER_Balance, read by no node). The recorder
+derives every key from the master key. The broadcasts (ER_Price, AGENT_<i>_MC) keep
+their sender's node key; ER_Command its target's command key (AUTH-30)."""
 _PARTIES = {_CODEC.name_of(fid): receivers_of(fid)
-            for fid in SECURED_IDS if _CODEC.name_of(fid) in LINK_FRAMES}
+            for fid in SECURED_IDS if _CODEC.name_of(fid) in KEYED_FRAMES}
 
 
 def parties_of(name: str) -> frozenset[str]:
-    """The nodes holding link frame ``name``'s key (AUTH-28): its sender and its DBC
-    receivers."""
+    """The nodes holding frame ``name``'s own key (AUTH-28, AUTH-29): its sender and its
+    DBC receivers."""
     return _PARTIES[name] | {sender_of(name)}
 
 
 def link_frames(n: int | None = None) -> list[str]:
     """The link frames (AUTH-28) of a fleet of ``n`` agents (None: every agent the DBC
     defines), by frame ID."""
-    fids = sorted(_CODEC.frame_id(name) for name in LINK_FRAMES)
+    return _by_id(LINK_FRAMES, n)
+
+
+def keyed_frames(n: int | None = None) -> list[str]:
+    """The messages with a key of their own (link frames and reports, KEYED_FRAMES) of a
+    fleet of ``n`` agents (None: every agent the DBC defines), by frame ID."""
+    return _by_id(KEYED_FRAMES, n)
+
+
+def _by_id(names: frozenset[str], n: int | None) -> list[str]:
+    fids = sorted(_CODEC.frame_id(name) for name in names)
     return [_CODEC.name_of(fid) for fid in fids
             if n is None or (agent_of(fid) or 0) <= n]
 
 
-def frame_key(keys: Mapping[str, bytes], name: str) -> bytes | None:
+COMMAND = "ER_Command"
+"""AUTH-30: the message addressed to one agent (its Target) and signed with that agent's
+command key (``secoc.derive_command_key``), held by the router and the target only; its
+sync (no Target) keeps the router's node key."""
+
+
+def command_key_name(target: int) -> str:
+    """The name of the command key of agent ``target`` in a monitor's key table."""
+    return f"{COMMAND}@agent_{target}"
+
+
+def frame_key(keys: Mapping[str, bytes], name: str, target: int | None = None) -> bytes | None:
     """The key of message ``name`` (or its ``_Sync``) from a monitor's key table
-    (``label -> node key`` and ``message -> link frame key``, AUTH-28): a link frame's
-    own key, a broadcast's sender's key; None if the table has none."""
+    (``label -> node key``, ``message -> frame key``, ``command_key_name(i) -> command
+    key``): a link frame's or report's own key, an ER_Command's its ``target``'s
+    command key (AUTH-30), a broadcast's sender's key; None if the table has none."""
+    if name == COMMAND:
+        return None if target is None else keys.get(command_key_name(target))
     base = name.removesuffix("_Sync")
-    if base in LINK_FRAMES:
+    if base in KEYED_FRAMES:
         return keys.get(base)
     return keys.get(sender_of(base))
 

@@ -77,7 +77,7 @@ import can
 
 from . import contract
 from .errors import ConfigError, EncodeError
-from .frames import DecodedFrame, FrameCodec, agent_of, format_fault
+from .frames import DecodedFrame, FrameCodec, agent_of, format_fault, target_agent
 from .secoc import (
     INSECURE_BOOT,
     INSECURE_MASTER,
@@ -85,6 +85,7 @@ from .secoc import (
     FreshnessVerifier,
     Keyring,
     beyond_boot_bound,
+    derive_command_key,
     derive_frame_key,
     derive_node_key,
     frame_verifies,
@@ -178,9 +179,15 @@ class NodeIO:
         self._tx_count = {fid: 0 for fid in self._sent if fid in contract.SECURED_IDS}
         for fid in self._tx_count:
             self._sent[contract.SYNC_OF[fid]] = deque(maxlen=echo_depth)
-        # AUTH-28: a link frame is signed with its own key, a broadcast with the node's
-        self._sign_key = {fid: self._key_of(fid, "this node sends it")
+        # AUTH-28, AUTH-29: a link frame or report is signed with its own key, a
+        # broadcast with the node's; each sync with its frame's key (AUTH-30: the router's
+        # node key for ER_Command_Sync, its frames take their target's command key)
+        self._sign_key = {fid: self._key_of(fid, "this node sends it", sync=True)
                           for fid in self._tx_count}
+        self._command_keys: dict[int, bytes] = {}
+        if contract.ER_COMMAND_ID in self._tx_count and fleet_size is not None:
+            for i in contract.agent_ids(fleet_size):  # every target's key, at the start
+                self._command_key(i)
         self.boot = keys.new_boot() if self._tx_count else keys.boot
         self.sync_s = sync_s
         self._sync_next: float | None = None      # None: at the first call of syncs()
@@ -194,7 +201,14 @@ class NodeIO:
         self._verify_key = {
             fid: self._key_of(fid, f"sent by {contract.sender_of(codec.name_of(fid))}",
                               "verification key") for fid in wanted}
+        self._sync_key = {
+            fid: self._key_of(fid, f"sent by {contract.sender_of(codec.name_of(fid))}",
+                              "verification key", sync=True) for fid in wanted}
         self._synced_by = {contract.SYNC_OF[fid]: fid for fid in self._verify_key}
+        # AUTH-30: the agent this node is (its commands' Target), None for the plant and
+        # the router
+        self._target = (int(keys.node.removeprefix("agent_"))
+                        if keys.node.startswith("agent_") else None)
         self._fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
         self._lost: set[int] = set()  # secured IDs whose sender timed out
         # AUTH-27: per secured input, the last value before its latest boot advance
@@ -209,15 +223,29 @@ class NodeIO:
                 self._lost.add(fid)  # a sender already running: its sync, not a forgery
         self._known = codec.frame_ids()
 
-    def _key_of(self, fid: int, why: str, what: str = "key") -> bytes:
-        """The keyring's key of message ``fid`` (AUTH-28: a link frame's own, else its
-        sender's); ConfigError naming ``what`` and ``why`` if the key file has none."""
-        name = self.codec.name_of(fid)
+    def _key_of(self, fid: int, why: str, what: str = "key", sync: bool = False) -> bytes:
+        """The keyring's key of message ``fid`` (``sync``: of its ``<name>_Sync``; AUTH-28,
+        AUTH-29: a link frame's or report's own, AUTH-30: ER_Command's this agent's
+        command key, else its sender's); ConfigError naming ``what`` and ``why`` if the
+        key file has none."""
+        name = self.codec.name_of(fid) + ("_Sync" if sync else "")
         k = self.keys.key_for(name)
         if k is None:
             raise ConfigError("keyring", self.keys.node, f"expected the {what} of {name} "
                               f"({why}), but the key file has none: re-provision with "
                               "bess-ded keys")
+        return k
+
+    def _command_key(self, target: int) -> bytes:
+        """AUTH-30: the key of the router's ER_Command to agent ``target``."""
+        k = self._command_keys.get(target)
+        if k is None:
+            k = self.keys.key_for(contract.COMMAND, target=target)
+            if k is None:
+                raise ConfigError("keyring", self.keys.node, f"expected the command key of "
+                                  f"agent_{target} (ER_Command to it), but the key file has "
+                                  "none: re-provision with bess-ded keys")
+            self._command_keys[target] = k
         return k
 
     @property
@@ -250,7 +278,7 @@ class NodeIO:
             sender = contract.sender_of(self.codec.name_of(fid))
             if (sender not in taken and sender != self.keys.node
                     and (self.fleet_size is None or (agent_of(sid) or 0) <= self.fleet_size)
-                    and self.keys.key_for(self.codec.name_of(fid), derive=False)
+                    and self.keys.key_for(self.codec.name_of(sid), derive=False)
                     is not None):
                 peers.add(sid)
         return sorted(set(self._sent) | self._inputs | set(self._synced_by) | peers)
@@ -306,6 +334,9 @@ class NodeIO:
                 raise
             self.fail(fid, cause, str(e), t)
             return None
+        if (fid == contract.ER_COMMAND_ID
+                and target_agent(frame.raw["Target"]) != self._target):
+            return None  # AUTH-30: a command to another agent, under a key it lacks: not for it
         return self._authentic(frame, msg, key, t, defer_trust)
 
     # ------------------------------------------------------------ SecOC
@@ -327,8 +358,10 @@ class NodeIO:
         def verifies(v: int) -> bool:
             return frame_verifies(key, fid, msg.data, v)
 
-        fv = self._fv.search(fid, frame.counter, LOST_WINDOWS if fid in self._lost else 1,
-                             verifies)
+        # AUTH-30: the router's commands to other agents move its count unseen: the wide
+        # search (AUTH-13's) for every command
+        wide = fid in self._lost or fid == contract.ER_COMMAND_ID
+        fv = self._fv.search(fid, frame.counter, LOST_WINDOWS if wide else 1, verifies)
         if fv is None:
             if self._fv.search_late(fid, frame.counter, STALE_WINDOWS, verifies):
                 self.reject("stale", f"{frame.name}: its MAC verifies with a freshness value "
@@ -347,7 +380,8 @@ class NodeIO:
         self._fv.accept(fid, fv)
         self._spoke.add(fid)  # AUTH-27: a frame since the latest boot advance
         self._lost.discard(fid)
-        self.counters["lost_frames"] += fv - last - 1
+        if fid != contract.ER_COMMAND_ID:  # AUTH-30: a gap in commands is others' commands
+            self.counters["lost_frames"] += fv - last - 1
         if not defer_trust:
             self._streak[fid] = 0
         return frame
@@ -364,7 +398,7 @@ class NodeIO:
             return
         boot, count = frame.raw["Boot"], frame.raw["Count"]
         fv = contract.FRESHNESS.join(boot, count)
-        if not frame_verifies(self._verify_key[fid], sync_id, msg.data, fv):
+        if not frame_verifies(self._sync_key[fid], sync_id, msg.data, fv):
             self.fail(sync_id, "auth", f"{frame.name}: expected a MAC that verifies with "
                       f"{contract.sender_of(frame.name)}'s key, but it does not (forged or "
                       "corrupted)", t)
@@ -580,7 +614,7 @@ class NodeIO:
     def constant_tables(self) -> tuple[object, ...]:
         """The tables that neither a frame nor a tick changes (copies of a node may share
         them): the known IDs, the verification keys and sync IDs."""
-        return (self._known, self._verify_key, self._synced_by)
+        return (self._known, self._verify_key, self._sync_key, self._synced_by)
 
     def syncs(self, t: float) -> list[can.Message]:
         """The ``<name>_Sync`` frames due at ``t``: all of them at the first call, every
@@ -669,7 +703,9 @@ class NodeIO:
             self._tx_count = dict.fromkeys(self._tx_count, 0)
             self._sync_next, count = None, 0
         msg = self.codec.encode(name, raw, count % _FV_WINDOW)
-        sign_frame(self._sign_key[fid], fid, msg.data, contract.FRESHNESS.join(self.boot, count))
+        key = (self._command_key(target_agent(raw["Target"])) if fid == contract.ER_COMMAND_ID
+               else self._sign_key[fid])  # AUTH-30: a command under its target's key
+        sign_frame(key, fid, msg.data, contract.FRESHNESS.join(self.boot, count))
         self._tx_count[fid] = count + 1
         self._sent[fid].append(bytes(msg.data))
         return msg
@@ -694,13 +730,20 @@ class FleetSender:
         self.boot = boot
         self._count: dict[int, int] = {}
 
-    def _key(self, name: str) -> bytes:
-        """AUTH-28: a link frame's own key (``keys[name]``), else the sender's."""
+    def _key(self, name: str, target: int | None = None) -> bytes:
+        """AUTH-28, AUTH-29: a link frame's or report's own key (``keys[name]``); AUTH-30:
+        an ER_Command's its target's (``keys[command_key_name(target)]``); else the
+        sender's."""
+        if name == contract.COMMAND and target is not None:
+            label = contract.command_key_name(target)
+            if label not in self.keys and self.insecure:
+                self.keys[label] = derive_command_key(INSECURE_MASTER, f"agent_{target}")
+            return self.keys[label]
         base = name.removesuffix("_Sync")
-        label = base if base in contract.LINK_FRAMES else contract.sender_of(base)
+        label = base if base in contract.KEYED_FRAMES else contract.sender_of(base)
         if label not in self.keys and self.insecure:
             self.keys[label] = (derive_frame_key(INSECURE_MASTER, label)
-                                if base in contract.LINK_FRAMES
+                                if base in contract.KEYED_FRAMES
                                 else derive_node_key(INSECURE_MASTER, label))
         return self.keys[label]
 
@@ -716,7 +759,10 @@ class FleetSender:
         enc = self.codec.encode_phys if phys else self.codec.encode
         msg = enc(name, raw, count % _FV_WINDOW)
         if fid in contract.SECURED_IDS:
-            sign_frame(self._key(name), fid, msg.data,
+            target = None
+            if name == contract.COMMAND:  # the agent: phys is it, raw is it − the offset
+                target = int(raw["Target"]) if phys else target_agent(raw["Target"])
+            sign_frame(self._key(name, target), fid, msg.data,
                        contract.FRESHNESS.join(self.boot, count))
         return msg
 

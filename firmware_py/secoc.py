@@ -26,6 +26,15 @@ Keys
     its DBC receivers hold it (a key file's ``[frame_keys]``), so a third node's key
     file cannot sign it: agent 3 can no longer forge agent 1's status or setpoint.
 
+    ``derive_command_key(master, target)``: the key of the ER_Command frames addressed
+    to agent ``target`` ('agent_3', the frame's Target), AUTH-30::
+
+        K_cmd = PRF(K_master, [1]_32 ‖ COMMAND_LABEL ‖ 0x00 ‖ UTF-8(target) ‖ [128]_32)
+
+    with COMMAND_LABEL = ``b"bess-ded/secoc/command-key/v1"``. Only the router and that
+    agent hold it (a key file's ``[command_keys]``): agent 3 can no longer isolate
+    agent 1. ER_Command_Sync keeps the router's node key (it has no Target).
+
     ``fleet_id(master)`` is a public 64-bit tag of the key set (same KDF, label
     ``b"bess-ded/secoc/fleet-id/v1"``, empty context, L = 64) so that nodes from
     different provisionings can tell.
@@ -87,6 +96,7 @@ FV_WIRE_BYTES = 8                   # FV in the MAC input: always 8 bytes, big-e
 NODE_KEY_LABEL = b"bess-ded/secoc/node-key/v1"
 FLEET_ID_LABEL = b"bess-ded/secoc/fleet-id/v1"
 FRAME_KEY_LABEL = b"bess-ded/secoc/frame-key/v1"
+COMMAND_KEY_LABEL = b"bess-ded/secoc/command-key/v1"
 KEY_FILE_FORMAT = "bess-ded-secoc-node-key/1"
 MASTER_FILE_FORMAT = "bess-ded-secoc-master-key/1"
 KDF_NAME = "NIST SP 800-108 counter mode, CMAC-AES-128"
@@ -153,6 +163,21 @@ def derive_frame_key(master_key: bytes, name: str) -> bytes:
     """The 16-byte CMAC key of link frame ``name`` and of its sync (AUTH-28; the module
     docstring gives the encoding): held only by its sender and its receivers."""
     return _kbkdf(master_key, FRAME_KEY_LABEL, check_frame_name(name).encode(), KEY_BYTES)
+
+
+def check_target(target: str) -> str:
+    """A command's target as a key label: an agent ('agent_3')."""
+    if not isinstance(target, str) or not re.fullmatch(r"agent_[1-9][0-9]?", target):
+        raise SecOCError(f"command target: expected an agent like 'agent_3', but got "
+                         f"{target!r}")
+    return target
+
+
+def derive_command_key(master_key: bytes, target: str) -> bytes:
+    """The 16-byte CMAC key of the ER_Command frames addressed to agent ``target``
+    (AUTH-30; the module docstring gives the encoding): held only by the router and that
+    agent."""
+    return _kbkdf(master_key, COMMAND_KEY_LABEL, check_target(target).encode(), KEY_BYTES)
 
 
 def fleet_id(master_key: bytes) -> str:
@@ -435,6 +460,7 @@ class NodeKey:
     peers: Mapping[str, bytes] = field(default_factory=dict)  # label -> verification key
     floors: Mapping[str, int] = field(default_factory=dict)   # label -> lowest boot accepted
     frames: Mapping[str, bytes] = field(default_factory=dict)  # link frame -> its key
+    commands: Mapping[str, bytes] = field(default_factory=dict)  # target -> command key
 
     def __repr__(self) -> str:  # never print the key
         return (f"NodeKey(node={self.node!r}, fleet_id={self.fleet_id!r}, "
@@ -448,11 +474,13 @@ class NodeKey:
 def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
                       peers: Mapping[str, bytes] | None = None,
                       floors: Mapping[str, int] | None = None,
-                      frames: Mapping[str, bytes] | None = None) -> dict:
+                      frames: Mapping[str, bytes] | None = None,
+                      commands: Mapping[str, bytes] | None = None) -> dict:
     """The TOML document of a node key file. ``peers``: the verification keys of the
     senders of the broadcast frames this node receives (need to know: docs/security.md);
     ``floors``: the lowest boot counter it accepts from each sender (AUTH-21);
-    ``frames``: the keys of the link frames it sends or receives (AUTH-28)."""
+    ``frames``: the keys of the link frames and reports it sends or receives (AUTH-28,
+    AUTH-29); ``commands``: the ER_Command keys per target agent (AUTH-30)."""
     doc = {
         "format": KEY_FILE_FORMAT,
         "node": check_node_name(node),
@@ -466,6 +494,9 @@ def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
     if frames:
         doc["frame_keys"] = {check_frame_name(f): _check_key(k).hex()
                              for f, k in sorted(frames.items())}
+    if commands:
+        doc["command_keys"] = {check_target(t): _check_key(k).hex()
+                               for t, k in sorted(commands.items())}
     if floors:
         doc["floors"] = {check_node_name(p): int(b) for p, b in sorted(floors.items())}
     return doc
@@ -585,6 +616,7 @@ def load_node_key(path: Path | str) -> NodeKey:
                            f"0..{DEFAULT_LAYOUT.max_boot}, but got {boot!r}")
     peers = _key_table(doc, "peers", "node", check_node_name, path)
     frames = _key_table(doc, "frame_keys", "message", check_frame_name, path)
+    commands = _key_table(doc, "command_keys", "target", check_target, path)
     senders = set(peers) | _frame_senders(frames)
     floors = doc.get("floors", {})
     if not isinstance(floors, dict) or any(
@@ -595,14 +627,14 @@ def load_node_key(path: Path | str) -> NodeKey:
                            f"senders of [frame_keys]")
     return NodeKey(node=node, key=_hex_key(doc, "key", path),  # type: ignore[arg-type]
                    fleet_id=fleet, boot_counter=boot, path=path, peers=peers,
-                   floors=dict(floors), frames=frames)
+                   floors=dict(floors), frames=frames, commands=commands)
 
 
 def _frame_senders(frames: Mapping[str, bytes]) -> set[str]:
     """The senders of link frames (their floors may be kept, AUTH-21)."""
     from . import contract  # contract imports this module
 
-    return {contract.sender_of(f) for f in frames if f in contract.LINK_FRAMES}
+    return {contract.sender_of(f) for f in frames if f in contract.KEYED_FRAMES}
 
 
 def save_boot_counter(path: Path | str, boot: int) -> None:
@@ -614,7 +646,7 @@ def save_boot_counter(path: Path | str, boot: int) -> None:
         raise SecOCError(f"{path}: boot counter must not go back ({current.boot_counter} "
                          f"→ {boot})")
     doc = node_key_document(current.node, current.key, current.fleet_id, boot, current.peers,
-                            current.floors, current.frames)
+                            current.floors, current.frames, current.commands)
     write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
@@ -630,7 +662,8 @@ def save_floors(path: Path | str, floors: Mapping[str, int]) -> None:
         if peer in senders:
             merged[peer] = max(merged.get(peer, 0), boot)
     doc = node_key_document(current.node, current.key, current.fleet_id,
-                            current.boot_counter, current.peers, merged, current.frames)
+                            current.boot_counter, current.peers, merged, current.frames,
+                            current.commands)
     write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
@@ -694,7 +727,8 @@ class Keyring:
                  peers: Mapping[str, bytes] | None = None, master: bytes | None = None,
                  insecure: bool = False, fleet: str = "",
                  floors: Mapping[str, int] | None = None,
-                 frames: Mapping[str, bytes] | None = None) -> None:
+                 frames: Mapping[str, bytes] | None = None,
+                 commands: Mapping[str, bytes] | None = None) -> None:
         self.node = check_node_name(node)
         self.key = _check_key(key)
         self.boot = boot
@@ -707,6 +741,7 @@ class Keyring:
         # earlier boot is a replay of an earlier run, or the peer's key file rolled back)
         self.floors = dict(floors or {})
         self._frames = dict(frames or {})  # AUTH-28: link frame -> its key
+        self._commands = dict(commands or {})  # AUTH-30: target agent -> command key
 
     def floor_of(self, node: str) -> int:
         """The lowest boot counter accepted from ``node`` (0: no floor; never insecure)."""
@@ -726,14 +761,30 @@ class Keyring:
             k = self._peers[node] = derive_node_key(self._master, node)
         return k
 
-    def key_for(self, name: str, derive: bool = True) -> bytes | None:
+    def command_key(self, target: str, derive: bool = True) -> bytes | None:
+        """The key of the ER_Command frames to agent ``target`` (AUTH-30): held by the
+        router and that agent only; None for any other node, or if not listed."""
+        if self.node not in (target, "router"):
+            return None
+        k = self._commands.get(target)
+        if k is None and self._master is not None and derive:
+            k = self._commands[target] = derive_command_key(self._master, target)
+        return k
+
+    def key_for(self, name: str, derive: bool = True,
+                target: int | None = None) -> bytes | None:
         """The key that signs and verifies message ``name`` (or its ``_Sync``): a link
-        frame's own key (AUTH-28) if this node is its sender or a receiver, else None; a
-        broadcast frame's sender's key (``key_of``). None: this node does not hold it."""
+        frame's or a report's own key (AUTH-28, AUTH-29) if this node is its sender or a
+        receiver, else None; an ER_Command's, its ``target``'s command key (AUTH-30; by
+        default this agent's own); a broadcast frame's (and ER_Command_Sync's) sender's
+        key (``key_of``). None: this node does not hold it."""
         from . import contract  # contract imports this module
 
+        if name == contract.COMMAND:
+            label = self.node if target is None else f"agent_{target}"
+            return self.command_key(label, derive) if label.startswith("agent_") else None
         base = name.removesuffix("_Sync")
-        if base not in contract.LINK_FRAMES:
+        if base not in contract.KEYED_FRAMES:
             return self.key_of(contract.sender_of(base), derive)
         if self.node not in contract.parties_of(base):
             return None
@@ -745,6 +796,10 @@ class Keyring:
     def listed_frame_keys(self) -> dict[str, bytes]:
         """The link frame keys listed or derived so far (name → key), a copy."""
         return dict(self._frames)
+
+    def listed_command_keys(self) -> dict[str, bytes]:
+        """The command keys listed or derived so far (target → key), a copy."""
+        return dict(self._commands)
 
     def listed_keys(self) -> dict[str, bytes]:
         """The peer keys listed or derived so far (label → key), a copy: what a key file
@@ -778,7 +833,7 @@ class Keyring:
         """The keyring of a node key file (its boots persisted back to the file)."""
         k = load_node_key(path)
         return cls(k.node, k.key, k.boot_counter, k.persist(), peers=k.peers,
-                   fleet=k.fleet_id, floors=k.floors, frames=k.frames)
+                   fleet=k.fleet_id, floors=k.floors, frames=k.frames, commands=k.commands)
 
     @classmethod
     def insecure_for(cls, node: str) -> Keyring:

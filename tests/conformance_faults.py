@@ -347,6 +347,25 @@ def _on_price(self: Any, f: Any, t: float, ge: bool = False, persist_less: int =
     self.price_rx = t
 
 
+class _Anyone(int):
+    """A Target that every agent id equals (a receive path that does not check it)."""
+
+    def __eq__(self, other: object) -> bool:
+        return True
+
+    def __ne__(self, other: object) -> bool:
+        return False
+
+    __hash__ = int.__hash__
+
+
+def _any_target(rt: AgentRuntime) -> None:
+    """The Target checked nowhere: NodeIO passes every command to the MAC check (under
+    the agent's own command key, AUTH-30) and _on_command obeys what verifies."""
+    rt.io._target = _Anyone()
+    _bind(rt, "_on_command", _on_command, any_target=True)
+
+
 def _on_command(self: Any, f: Any, fid: int, any_target: bool = False,
                 exclusive: bool = False, bounds_cause: str = "implausible_gains",
                 isolate_from: tuple[State, ...] | None = None) -> None:
@@ -960,8 +979,9 @@ FAULTS: list[Fault] = [
           lambda rt: _bind(rt, "_on_command", _on_command, bounds_cause="range"), CMDS,
           drive(_seq(lambda r: r.run(2), lambda r: r.command(Command.SET_GAINS, k=3.0,
                                                              h=2.0), lambda r: r.tick()))),
-    Fault("command_any_target", "CMD-1", "a command for another agent is obeyed (Target "
-          "not checked)", lambda rt: _bind(rt, "_on_command", _on_command, any_target=True),
+    Fault("command_any_target", "CMD-1", "a command for another agent is taken as its own "
+          "(Target not checked): verified under its own command key, so `auth` (AUTH-30)",
+          _any_target,
           CMDS, drive(_seq(lambda r: r.run(2), lambda r: r.command(Command.ISOLATE, 1),
                            lambda r: r.tick()))),
     # state entry and exit

@@ -421,7 +421,8 @@ FAULTS: list[CFault] = [
            (("agent_rx.c", "s->seen = (uint16_t)(s->seen | (1u << (s->fv - fv)));",
              "(void)0;"),), FRESH, drive(_late_twice)),
     CFault("c_lost_frames_plus_one", "AUTH-15", "lost_frames += FV − last (one too many)",
-           (("agent_rx.c", "uint64_t gap = fv - last - 1u;", "uint64_t gap = fv - last;"),),
+           (("agent_rx.c", "uint64_t gap = command ? 0u : fv - last - 1u;",
+             "uint64_t gap = command ? 0u : fv - last;"),),
            FRESH, drive(lambda r: r.run(5))),
     CFault("c_in_step_sync_keeps_lost", "AUTH-16", "a sync in step with the sender does not "
            "end the lost state",

@@ -238,11 +238,12 @@ INSIDER_FORGERIES = {
 }
 
 
-def insider(name: str, raw: dict[str, int], key: bytes,
-            sent: list[can.Message]) -> Callable[[float], list[can.Message]]:
+def insider(name: str, raw: dict[str, int], key: bytes, sent: list[can.Message],
+            every: int = 5) -> Callable[[float], list[can.Message]]:
     """A key holder's forgery of link frame ``name``: a sync one boot ahead of its sender
     (within AUTH-27's bound, so a right key would move the receiver to it) every second,
-    then ``raw`` at the frame's rate under the next counts, all signed with ``key``."""
+    then ``raw`` every ``every`` ticks (the frame's rate) under the next counts, all
+    signed with ``key``."""
     tx = FleetSender(CODEC, keys={name: key}, boot=2)
 
     def inject(t: float) -> list[can.Message]:
@@ -250,7 +251,7 @@ def insider(name: str, raw: dict[str, int], key: bytes,
         if t < ATTACK_FROM_S:
             return []
         out = [tx.sync(name)] if k % 100 == 0 else []
-        if k % 5 == 0:
+        if k % every == 0:
             out.append(tx.frame(name, raw))
         sent.extend(out)
         return out
@@ -300,6 +301,103 @@ def test_agent_3s_key_file_cannot_forge_agent_1s_status_or_setpoint(
     assert m["verdict"]["exit_code"] == 3  # converged, with anomalies
 
 
+def _forged_at_recorder(m: dict[str, Any], name: str) -> int:
+    """Frames of ``name`` (and its sync) the recorder's analysis found forged."""
+    got = 0
+    for a in m["anomalies"]:
+        hit = re.match(rf"{name}(_Sync)?: (\d+) frames whose MAC does not verify", a["detail"])
+        got += int(hit.group(2)) if a["kind"] == "auth_failed" and hit else 0
+    return got
+
+
+@pytest.mark.parametrize("key_from", ["agent 3's key file", "the genuine Diag key"])
+def test_agent_3s_key_file_cannot_forge_agent_1s_diag(key_from: str, tmp_path: Path) -> None:
+    """AUTH-29, issue 25: agent 3 holds agent 1's node key (to verify its λ), but not
+    AGENT_1_Diag's key. Its forged Diag of agent 1 (200 price timeouts), with a sync one
+    boot ahead, signed with the best key it has (its own Diag's, then agent 1's node key:
+    what signed a Diag before), is forged at the recorder, its one reader, every frame
+    and sync of it, and agent 1 sees its own ID sent by someone else. The control, the
+    same forgery under the genuine Diag key, is taken: its sync moves the recorder to
+    the forged boot (undone by agent 1's next sync, AUTH-27: `sync_jump`)."""
+    keys = tmp_path / "keys"
+    keys.mkdir(mode=0o700)
+    write_key_set(CASE, keys, INSIDER_MASTER)
+    held = secoc.load_node_key(keys / "agent_3.key")
+    name = diag_name(1)
+    assert name not in held.frames and "agent_1" in held.peers
+    raw = {"Page": 6, "PriceTimeouts": 200, "StatusTimeouts": 0}
+    genuine = key_from.startswith("the genuine")
+    tries = ([secoc.derive_frame_key(INSIDER_MASTER, name)] if genuine
+             else [held.frames[diag_name(3)], held.peers["agent_1"]])
+    for key in tries:
+        sent: list[can.Message] = []
+        rings = secoc.Keyring.fleet(INSIDER_MASTER, secoc.fleet_nodes(CASE.n))
+        m, _ = _run(tmp_path / f"run-{key.hex()[:6]}", insider(name, raw, key, sent, every=10),
+                    keyrings=rings)
+        forged = _forged_at_recorder(m, name)
+        if genuine:   # taken: the forged sync moved the recorder, agent 1's undid it
+            assert "sync_jump" in _kinds(m) and forged < len(sent), m["anomalies"]
+            continue
+        assert forged == len(sent) > 50, (forged, len(sent))
+        assert _kinds(m) == {"auth_failed", "impersonation"}, m["anomalies"]
+
+
+@pytest.mark.parametrize("key_from", ["agent 3's command key", "the router's node key",
+                                      "the genuine command key"])
+def test_agent_3s_key_file_cannot_isolate_agent_1(
+        key_from: str, honest: tuple[dict[str, Any], np.ndarray], tmp_path: Path) -> None:
+    """AUTH-30, issue 25: agent 3's key file holds the router's node key (to verify the
+    price) but not the key of the commands to agent 1. Its ISOLATE for agent 1, at the
+    status rate after an ER_Command_Sync one boot ahead (under the router's node key: a
+    sync it can still forge, AUTH-27), signed with the best key it has (its own command
+    key, or the router's node key that signed every command before), is `auth` at agent
+    1, every frame: agent 1 keeps running, the dispatch is the honest one, and the run
+    names the MAC failures and the impersonation (the router sees its own ID). The
+    control, the same forgery under agent 1's genuine command key, isolates agent 1."""
+    keys = tmp_path / "keys"
+    keys.mkdir(mode=0o700)
+    write_key_set(CASE, keys, INSIDER_MASTER)
+    held = secoc.load_node_key(keys / "agent_3.key")
+    assert list(held.commands) == ["agent_3"] and "router" in held.peers
+    key = {"agent 3's command key": held.commands["agent_3"],
+           "the router's node key": held.peers["router"],
+           "the genuine command key": secoc.derive_command_key(INSIDER_MASTER, "agent_1")}[key_from]
+    tx = FleetSender(CODEC, keys={contract.command_key_name(1): key,
+                                  "router": held.peers["router"]}, boot=2)
+    raw = {"Command": int(contract.Command.ISOLATE), "Target": 1, "GainK": 0, "GainH": 0}
+    sent: list[can.Message] = []
+
+    def inject(t: float) -> list[can.Message]:
+        k = _tick(t)
+        if t < ATTACK_FROM_S:
+            return []
+        out = [tx.sync(contract.COMMAND)] if k % 100 == 0 else []
+        if k % 5 == 0:
+            out.append(tx.frame(contract.COMMAND, raw))
+            sent.append(out[-1])
+        return out
+    counters: dict[str, Any] = {}
+    states: set[str] = set()
+
+    def observe(_t: float, nodes: dict[str, Any]) -> None:
+        if (node := nodes.get("agent_1")) is not None:
+            counters.update(node.io.counters)
+            states.add(node.state.name)
+    rings = secoc.Keyring.fleet(INSIDER_MASTER, secoc.fleet_nodes(CASE.n))
+    m, tr = _run(tmp_path / "run", inject, keyrings=rings, observe=observe)
+    if key_from.startswith("the genuine"):   # the control: agent 1 is isolated
+        assert "ISOLATED" in states and counters["commands_isolate"] > 0, states
+        return
+    # every forged command is auth (and the forged syncs, once the router's undid one)
+    assert counters["auth"] >= len(sent) > 100 and not counters.get("commands"), counters
+    assert "ISOLATED" not in states, states
+    err, p = _final(tr)
+    _, p_honest = _final(honest[1])
+    assert err < 1e-3 and np.max(np.abs(p - p_honest)) < 1.0, (err, p, p_honest)
+    assert {"auth_failed", "impersonation"} <= _kinds(m), m["anomalies"]
+    assert _forged_at_recorder(m, contract.COMMAND) >= len(sent), m["anomalies"]
+
+
 def _receivers() -> list[tuple[Any, list[int]]]:
     """Every receiver of case 1 with the secured IDs it takes (price, command, status,
     MC of its neighbours; the plant: setpoints), built as `up` builds them, with the
@@ -329,8 +427,10 @@ def _sync_all(io: NodeIO, ids: list[int]) -> None:
 def test_100000_random_forged_frames_on_every_dispatch_id_none_accepted() -> None:
     """100,000 random payloads on each of case 1's 14 dispatch IDs (price, command, the
     four MC, setpoint and status IDs), each into a receiver of that ID whose freshness
-    state is set (so every frame that decodes reaches the MAC check): 0 accepted."""
+    state is set (so every frame that decodes reaches the MAC check; a command addressed
+    to the receiver, AUTH-30: one to another agent is not its input): 0 accepted."""
     rng = random.Random(5)
+    target = CODEC.database.get_message_by_name("ER_Command").get_signal_by_name("Target")
     receivers: dict[int, NodeIO] = {}
     for io, ids in _receivers():
         _sync_all(io, ids)
@@ -342,8 +442,14 @@ def test_100000_random_forged_frames_on_every_dispatch_id_none_accepted() -> Non
                                                  for i in range(1, CASE.n + 1))}
     for fid, io in receivers.items():
         before = io.counters["auth"] + io.counters["range"]
+        own = int(io.keys.node.removeprefix("agent_") or 0) if fid == contract.ER_COMMAND_ID \
+            else None
         for _ in range(100_000):
-            msg = can.Message(arbitration_id=fid, is_extended_id=False, data=rng.randbytes(8))
+            data = rng.randbytes(8)
+            if own is not None:
+                x = int.from_bytes(data, "little") & ~(((1 << target.length) - 1) << target.start)
+                data = (x | own << target.start).to_bytes(8, "little")
+            msg = can.Message(arbitration_id=fid, is_extended_id=False, data=data)
             assert io.receive(msg, 0.0) is None
         assert io.counters["auth"] + io.counters["range"] - before == 100_000
 

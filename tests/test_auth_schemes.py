@@ -99,12 +99,15 @@ def test_ring_scenario_is_a_ring() -> None:
 
 def test_what_agent_3s_insider_forges_per_scheme() -> None:
     """Case 1: agent 3 holds the router's and agent 1's node keys, and PLANT_3_Status's
-    link key (the router verifies it too)."""
+    link key (the router verifies it too); no report key but its own Diag's (AUTH-29), no
+    command key but its own (AUTH-30): ER_Command_Sync is all it can forge of commands."""
     sc = load_case(1)
     s = {x.key: x for x in auth.SCHEMES}
     today = auth.insider_forges(s["a"], sc)
-    assert {"ER_Price", "ER_Command", "ER_Balance", mc_name(1), diag_name(1),
-            status_name(3), "ER_Price_Sync"} <= set(today)
+    assert today == {n: "forge" for n in (
+        "ER_Price", "ER_Price_Sync", "ER_Command_Sync", mc_name(1), mc_name(1) + "_Sync",
+        status_name(3), status_name(3) + "_Sync")}
+    assert not {diag_name(1), "ER_Balance", "ER_Command"} & set(today)
     assert not any(n.startswith(("AGENT_2", "AGENT_4", "PLANT_1", "AGENT_3")) for n in today)
     for key in ("b", "c", "e"):
         assert auth.insider_forges(s[key], sc) == {}

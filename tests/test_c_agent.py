@@ -33,6 +33,7 @@ from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import (
     INSECURE_MASTER,
     Keyring,
+    derive_command_key,
     derive_frame_key,
     derive_node_key,
 )
@@ -62,8 +63,12 @@ def test_node_vector_replays_byte_exact_in_c(path) -> None:
 
 MASTER = bytes(range(16))
 # AUTH-28: agent 2's link frames, under keys of their own
-FRAMES = {f: derive_frame_key(MASTER, f) for f in ("AGENT_2_Setpoint", "PLANT_2_Status")}
-ALL_FRAMES = {f: derive_frame_key(MASTER, f) for f in contract.link_frames()}  # the senders'
+FRAMES = {f: derive_frame_key(MASTER, f)
+          for f in ("AGENT_2_Setpoint", "PLANT_2_Status", "AGENT_2_Diag")}
+COMMANDS = {"agent_2": derive_command_key(MASTER, "agent_2")}  # AUTH-30: its commands' key
+ALL_FRAMES = {f: derive_frame_key(MASTER, f) for f in contract.keyed_frames()}  # the senders'
+ALL_FRAMES.update({contract.command_key_name(i): derive_command_key(MASTER, f"agent_{i}")
+                   for i in contract.agent_ids()})   # and the router's, per target
 TS = 2.0 ** -7   # every tick time, offset and timeout is exact in binary64 and in ns
 CONFIG = f"""
 [agent]
@@ -142,7 +147,7 @@ def _both(variant: str, fd: bool = False) -> tuple[AgentRuntime, CAgent]:
         if insecure:
             return Keyring.insecure_for("agent_2")
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
-                       peers=peers, frames=FRAMES)
+                       peers=peers, frames=FRAMES, commands=COMMANDS)
     return AgentRuntime(cfg, FrameCodec(dbc_path(fd)), keys=ring()), CAgent(cfg, ring(), fd=fd)
 
 
@@ -297,9 +302,9 @@ def test_acceptance_filter_ids_are_firmware_pys(peers: tuple[str, ...] | None) -
     else:
         keys = {n: derive_node_key(MASTER, n) for n in peers}
         ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 0, lambda _b: None,
-                       peers=keys, frames=FRAMES)
+                       peers=keys, frames=FRAMES, commands=COMMANDS)
         ring_c = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 0, lambda _b: None,
-                         peers=keys, frames=FRAMES)
+                         peers=keys, frames=FRAMES, commands=COMMANDS)
     assert CAgent(cfg, ring_c).accepted_ids() == AgentRuntime(cfg, keys=ring).io.accepted_ids()
 
 
@@ -333,18 +338,18 @@ def test_boot_is_persisted_before_use_and_a_failure_refuses_the_start() -> None:
     saved: list[int] = []
     peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
     ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, saved.append,
-                   peers=peers, frames=FRAMES)
+                   peers=peers, frames=FRAMES, commands=COMMANDS)
     c = CAgent(_cfg(), ring)
     assert saved == [7] and c.boot == 7 and ring.boot == 7
 
     def refuse(_boot: int) -> None:
         raise OSError("disk full")
     ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, refuse, peers=peers,
-                   frames=FRAMES)
+                   frames=FRAMES, commands=COMMANDS)
     with pytest.raises(ValueError, match="error 12"):
         CAgent(_cfg(), ring)
     ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 65535, saved.append,
-                   peers=peers, frames=FRAMES)
+                   peers=peers, frames=FRAMES, commands=COMMANDS)
     with pytest.raises(ValueError, match="error 12"):   # the boot counter is exhausted
         CAgent(_cfg(), ring)
 
@@ -373,7 +378,7 @@ def test_a_status_under_another_agents_link_key_is_auth_alike_in_c_and_python() 
 
     def ring() -> Keyring:
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
-                       peers=peers, frames=FRAMES)
+                       peers=peers, frames=FRAMES, commands=COMMANDS)
     cfg = _cfg()
     py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
     status = {"Soc": 100, "Power": 0, "PowerLimited": 0, "FaultSoc": 0, "FaultVoltage": 0,
@@ -392,12 +397,40 @@ def test_a_status_under_another_agents_link_key_is_auth_alike_in_c_and_python() 
     assert py.counters["plant_faults"] == 0 and py.state == c.state
 
 
+def test_a_command_under_another_agents_key_is_auth_alike_in_c_and_python() -> None:
+    """AUTH-30, bit for bit: agent 2 holds its own command key only. A genuine command
+    for agent 3 (under agent 3's key) is not its input: ignored, uncounted. An ISOLATE
+    for agent 2 under agent 3's command key (what agent 3's file holds) or the router's
+    node key (what signed every command before) is `auth` on both runtimes and changes
+    nothing. The genuine ISOLATE after 20 commands to others (the router's count moved
+    unseen) is found by the wide search, taken, and no frame is counted lost."""
+    peers = {n: derive_node_key(MASTER, n) for n in ("router", "agent_1", "agent_3")}
+
+    def ring() -> Keyring:
+        return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
+                       peers=peers, frames=FRAMES, commands=COMMANDS)
+    cfg = _cfg()
+    py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
+    router = FleetSender(FrameCodec(), keys={"router": peers["router"], **ALL_FRAMES}, boot=4)
+    isolate = {"Command": int(contract.Command.ISOLATE), "GainK": 0, "GainH": 0}
+    forgers = [FleetSender(FrameCodec(), keys={contract.command_key_name(2): k}, boot=4)
+               for k in (ALL_FRAMES[contract.command_key_name(3)], peers["router"])]
+    script = [router.sync("ER_Command"),
+              router.frame("ER_Command", {**isolate, "Target": 3}),
+              *(f.frame("ER_Command", {**isolate, "Target": 2}, counter=2) for f in forgers)]
+    router.skip("ER_Command", 20)
+    script.append(router.frame("ER_Command", {**isolate, "Target": 2}))
+    _replay_alike(py, c, script)
+    assert py.counters["auth"] == 2 and py.counters["commands"] == 1
+    assert py.counters["lost_frames"] == 0 and py.state == c.state == contract.State.ISOLATED
+
+
 def test_a_count_wrap_at_the_last_boot_stops_the_agent() -> None:
     """AUTH-5 with no boot left: firmware_py raises (the node ends); the C agent sends
     nothing more and reports BD_ERR_BOOT."""
     peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
     ring = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 65534, lambda _b: None,
-                   peers=peers, frames=FRAMES)
+                   peers=peers, frames=FRAMES, commands=COMMANDS)
     c = CAgent(_cfg(), ring)
     c.set_tx_count((1 << 24) - 1, 0)
     assert len(c.tick(0.0)) == 6          # 3 syncs, the last MC count, setpoint, diag
@@ -415,7 +448,7 @@ def test_a_sync_below_the_boot_floor_is_refused_alike_in_c_and_python() -> None:
     def ring() -> Keyring:
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
                        peers=peers, floors={"router": 5, "plant": 3},
-                       frames=FRAMES)
+                       frames=FRAMES, commands=COMMANDS)
     cfg = _cfg()
     py, c = AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring())
     old = FleetSender(FrameCodec(), boot=4,
@@ -439,7 +472,7 @@ def _agent_2_alike() -> tuple[AgentRuntime, CAgent, dict[str, bytes]]:
 
     def ring() -> Keyring:
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
-                       peers=dict(peers), frames=FRAMES)
+                       peers=dict(peers), frames=FRAMES, commands=COMMANDS)
     cfg = _cfg()
     return (AgentRuntime(cfg, FrameCodec(), keys=ring()), CAgent(cfg, ring()),
             peers | ALL_FRAMES)
@@ -549,8 +582,8 @@ def dump_node_vectors(path: Path) -> dict[str, list[tuple[int, int, str]]]:
             i = k["node"].removeprefix("agent_")
             plant = 0 if "plant" in k["peers"] else floors.get("plant", 0)
             lines.append(f"K {k['node']} 0 {k['key']} {k['boot_counter']} {len(k['peers'])} "
-                         f"{peers} 2 {fk[f'AGENT_{i}_Setpoint']} {fk[f'PLANT_{i}_Status']} "
-                         f"{plant}")
+                         f"{peers} 4 {fk[f'AGENT_{i}_Setpoint']} {fk[f'PLANT_{i}_Status']} "
+                         f"{fk[f'AGENT_{i}_Diag']} {k['command_keys'][k['node']]} {plant}")
         if "tx_count" in vec.get("setup", {}):
             lines.append(f"S {vec['setup']['tx_count']}")
         for row in vec["input"]:

@@ -23,6 +23,7 @@ from firmware_py.errors import ConfigError
 from firmware_py.secoc import (
     KEY_FILE_HEADER,
     KeyFileError,
+    derive_command_key,
     derive_frame_key,
     derive_node_key,
     fleet_id,
@@ -266,11 +267,12 @@ def test_key_file_boot_floors_load_and_survive_every_boot_rewrite(tmp_path: Path
 
 
 def test_key_file_frame_keys_load_and_survive_every_boot_rewrite(tmp_path: Path) -> None:
-    """AUTH-28, CFG-8: agent 2's key file as `bess-ded keys` writes it (the router's and
-    its neighbours' node keys, its two link frame keys, no plant key) loads in C with
-    the setpoint's and the status' keys firmware_py reads; the C persist keeps
-    [frame_keys] and the plant's floor; the C agent starts with it; a link frame key of
-    another agent is refused."""
+    """AUTH-28, AUTH-29, CFG-8: agent 2's key file as `bess-ded keys` writes it (the
+    router's and its neighbours' node keys, its two link frame keys and its Diag's, no
+    plant key) loads in C with the setpoint's, the status' and the Diag's keys
+    firmware_py reads; the C persist keeps [frame_keys] and the plant's floor; the C
+    agent starts with it; a frame key of another agent is refused, a missing one too;
+    likewise its command key (AUTH-30)."""
     import tomli_w
 
     from sim.cbind.cagent import CAgent
@@ -281,24 +283,45 @@ def test_key_file_frame_keys_load_and_survive_every_boot_rewrite(tmp_path: Path)
     write_private(path, KEY_FILE_HEADER + tomli_w.dumps(node_document(sc, MASTER, "agent_2", 6)))
     save_floors(path, {"router": 9, "plant": 5})
     ref = load_node_key(path)
-    assert "plant" not in ref.peers and sorted(ref.frames) == ["AGENT_2_Setpoint",
-                                                               "PLANT_2_Status"]
+    assert "plant" not in ref.peers and sorted(ref.frames) == [
+        "AGENT_2_Diag", "AGENT_2_Setpoint", "PLANT_2_Status"]
     assert dict(ref.floors) == {"router": 9, "plant": 5}
     k = load_keyfile(path, "agent_2")
     assert k.has_frame_keys == 1 and k.status_floor == 5
     assert bytes(k.setpoint_key) == derive_frame_key(MASTER, "AGENT_2_Setpoint")
     assert bytes(k.status_key) == derive_frame_key(MASTER, "PLANT_2_Status")
+    assert bytes(k.diag_key) == derive_frame_key(MASTER, "AGENT_2_Diag")
+    assert bytes(k.command_key) == derive_command_key(MASTER, "agent_2")
     assert k.persist_boot(k.persist_ctx, 7) == 0
     again = load_node_key(path)
     assert again.boot_counter == 7 and again.frames == ref.frames
+    assert again.commands == ref.commands == {"agent_2": derive_command_key(MASTER, "agent_2")}
     assert dict(again.floors) == {"router": 9, "plant": 5}
     agent = CAgent(agent_configs_from_scenario(sc)[1], load_keyfile(path, "agent_2"))
     assert agent.boot == 8
     doc = tomllib.loads(path.read_text())
+    doc["command_keys"]["agent_1"] = derive_command_key(MASTER, "agent_1").hex()
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    with pytest.raises(CConfigError, match=r"\[command_keys\] expected the key of agent_2 "
+                       r"only, but got 'agent_1'"):
+        load_keyfile(path, "agent_2")
+    del doc["command_keys"]
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    with pytest.raises(CConfigError, match=r"\[command_keys\] expected the key of agent_2, "
+                       r"but got none"):
+        load_keyfile(path, "agent_2")
+    doc = tomllib.loads(path.read_text())
+    doc["command_keys"] = {"agent_2": derive_command_key(MASTER, "agent_2").hex()}
+    del doc["frame_keys"]["AGENT_2_Diag"]   # a key file written before AUTH-29
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    with pytest.raises(CConfigError, match=r"\[frame_keys\] expected the keys of "
+                       r"AGENT_2_Setpoint, PLANT_2_Status and AGENT_2_Diag, but one is missing"):
+        load_keyfile(path, "agent_2")
     doc["frame_keys"]["PLANT_1_Status"] = derive_frame_key(MASTER, "PLANT_1_Status").hex()
     write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
     with pytest.raises(CConfigError, match=r"\[frame_keys\] expected the keys of "
-                       r"AGENT_2_Setpoint and PLANT_2_Status only, but got 'PLANT_1_Status'"):
+                       r"AGENT_2_Setpoint, PLANT_2_Status and AGENT_2_Diag only, but got "
+                       r"'PLANT_1_Status'"):
         load_keyfile(path, "agent_2")
 
 

@@ -19,7 +19,7 @@ from test_c_agent import JOIN_TICKS, MASTER, PREAMBLE, TS, _cfg, run_both
 
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import FleetSender
-from firmware_py.secoc import Keyring, derive_frame_key, derive_node_key
+from firmware_py.secoc import Keyring, derive_command_key, derive_frame_key, derive_node_key
 from sim.cbind.cagent import TICK_FRAMES_MAX, CAgent, Frame, Runtime, load_faulty
 
 BD_ERR_PARAMS, BD_ERR_BOOT, BD_ERR_CRYPTO = 10, 12, 13   # agent.h
@@ -37,8 +37,9 @@ def faulty() -> Iterator[Runtime]:
 def ring(boot: int = 6) -> Keyring:
     return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), boot, lambda _b: None,
                    peers={n: derive_node_key(MASTER, n) for n in PEERS},
-                   frames={f: derive_frame_key(MASTER, f)   # AUTH-28: its link frames
-                           for f in ("AGENT_2_Setpoint", "PLANT_2_Status")})
+                   frames={f: derive_frame_key(MASTER, f)   # AUTH-28, AUTH-29: its frames
+                           for f in ("AGENT_2_Setpoint", "PLANT_2_Status", "AGENT_2_Diag")},
+                   commands={"agent_2": derive_command_key(MASTER, "agent_2")})  # AUTH-30
 
 
 JOINED = JOIN_TICKS * TS  # after the join window the first tick opened (AUTH-26)

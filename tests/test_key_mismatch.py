@@ -43,12 +43,12 @@ def test_a_node_with_another_key_is_named(tmp_path: Path, whole_file: bool) -> N
     if whole_file:
         ring = secoc.Keyring.fleet(other, ["agent_3"])["agent_3"]
     else:
-        # its signing keys (its own, and its setpoint's link frame key, AUTH-28) are
-        # another provisioning's; it verifies with the fleet's
+        # its signing keys (its own, its setpoint's and its Diag's frame keys, AUTH-28,
+        # AUTH-29) are another provisioning's; it verifies with the fleet's
         ring = secoc.Keyring("agent_3", secoc.derive_node_key(other, "agent_3"), 0,
                              lambda _b: None, master=master, fleet=secoc.fleet_id(master),
-                             frames={"AGENT_3_Setpoint":
-                                     secoc.derive_frame_key(other, "AGENT_3_Setpoint")})
+                             frames={f: secoc.derive_frame_key(other, f)
+                                     for f in ("AGENT_3_Setpoint", "AGENT_3_Diag")})
     m = busrun.run_in_process(SC, tmp_path, SC.duration, channel=f"keys-{whole_file}",
                               keyrings=fleet_with(ring, master))
     v = m["verdict"]

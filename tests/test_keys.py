@@ -44,10 +44,12 @@ def test_fleet_for_a_case(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
 
 
 def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path) -> None:
-    """AUTH-28, issue 25 item 5: each key file lists the node keys of the broadcasts it
-    takes and the keys of its own link frames only; agent 3's file yields no key that
-    tags agent 1's setpoint or status (nor any link frame whose parties exclude it), and
-    no file but the plant's, agent 1's and the router's holds PLANT_1_Status's key."""
+    """AUTH-28, AUTH-29, issue 25 item 5: each key file lists the node keys of the
+    broadcasts it takes and the keys of its own link frames and reports only; agent 3's
+    file yields no key that tags agent 1's setpoint, status or Diag, nor the router's
+    ledger (nor any frame whose parties exclude it); no file but the plant's, agent 1's
+    and the router's holds PLANT_1_Status's key, none but agent 1's and the router's
+    AGENT_1_Diag's, none but the router's ER_Balance's."""
     from firmware_py import contract
     from firmware_py.frames import FrameCodec
 
@@ -56,20 +58,26 @@ def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path)
     master = secoc.load_master_key(out / "master.key")
     files = {n: secoc.load_node_key(out / f"{n}.key")
              for n in ["agent_1", "agent_2", "agent_3", "agent_4", "plant", "router"]}
-    links = contract.link_frames(4)
-    assert links == [*(f"AGENT_{i}_Setpoint" for i in range(1, 5)),
-                     *(f"PLANT_{i}_Status" for i in range(1, 5))]
+    assert contract.link_frames(4) == [*(f"AGENT_{i}_Setpoint" for i in range(1, 5)),
+                                       *(f"PLANT_{i}_Status" for i in range(1, 5))]
+    links = contract.keyed_frames(4)
+    assert sorted(links) == sorted([*contract.link_frames(4), "ER_Balance",
+                                    *(f"AGENT_{i}_Diag" for i in range(1, 5))])
     for node, nk in files.items():
         want = [f for f in links if node in contract.parties_of(f)]
         assert sorted(nk.frames) == sorted(want), node
         assert all(k == secoc.derive_frame_key(master, f) for f, k in nk.frames.items())
         assert "plant" not in nk.peers  # the plant sends link frames only
-    assert sorted(files["agent_3"].frames) == ["AGENT_3_Setpoint", "PLANT_3_Status"]
+    assert sorted(files["agent_3"].frames) == ["AGENT_3_Diag", "AGENT_3_Setpoint",
+                                               "PLANT_3_Status"]
+    assert [n for n, nk in files.items() if "AGENT_1_Diag" in nk.frames] == [
+        "agent_1", "router"]
+    assert [n for n, nk in files.items() if "ER_Balance" in nk.frames] == ["router"]
     assert "router" in files["agent_3"].peers and "plant" not in files["agent_3"].peers
     assert [n for n, nk in files.items() if "PLANT_1_Status" in nk.frames] == [
         "agent_1", "plant", "router"]
-    # every key agent 3's file holds fails to tag agent 1's status and setpoint, and
-    # every link frame whose parties exclude agent 3
+    # every key agent 3's file holds fails to tag agent 1's status, setpoint and Diag,
+    # the ledger, and every frame whose parties exclude agent 3
     codec = FrameCodec()
     ring = secoc.Keyring.from_file(out / "agent_3.key")
     held = [ring.key, *files["agent_3"].peers.values(), *files["agent_3"].frames.values()]
@@ -88,11 +96,42 @@ def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path)
             assert not secoc.frame_verifies(genuine, fid, forged, fv), (name, key.hex())
 
 
+def test_key_files_hold_only_the_command_keys_each_node_needs(tmp_path: Path) -> None:
+    """AUTH-30: agent i's file holds the key of the commands to it only, the router's
+    every agent's, the plant's none; no key in agent 3's file tags a command to agent 1
+    (ISOLATE) as agent 1 verifies it, and agent 1's keyring from its file verifies the
+    router's."""
+    from firmware_py import contract
+
+    out = tmp_path / "keys"
+    assert main(["keys", "--fleet", "--case", "1", "--out", str(out)]) == 0
+    master = secoc.load_master_key(out / "master.key")
+    files = {n: secoc.load_node_key(out / f"{n}.key") for n in secoc.fleet_nodes(4)}
+    agents = [f"agent_{i}" for i in range(1, 5)]
+    for node, nk in files.items():
+        want = agents if node == "router" else [node] if node in agents else []
+        assert sorted(nk.commands) == want, node
+        assert all(k == secoc.derive_command_key(master, t) for t, k in nk.commands.items())
+    agent_1 = secoc.Keyring.from_file(out / "agent_1.key")
+    genuine = agent_1.key_for(contract.COMMAND)
+    assert genuine == files["router"].commands["agent_1"]
+    held = [files["agent_3"].key, *files["agent_3"].peers.values(),
+            *files["agent_3"].frames.values(), *files["agent_3"].commands.values()]
+    fid, fv = contract.ER_COMMAND_ID, contract.FRESHNESS.join(1, 3)
+    data = bytearray(8)
+    data[3], data[4] = 0x10, 0x01   # an ISOLATE-like payload; any payload would do
+    for key in held:
+        forged = bytearray(data)
+        secoc.sign_frame(key, fid, forged, fv)
+        assert genuine is not None and not secoc.frame_verifies(genuine, fid, forged, fv)
+
+
 def test_rotating_one_node_rewrites_only_the_files_sharing_its_keys(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Issue 25, item 5: `keys --rotate agent_3` gives agent 3 a new own key and new link
-    frame keys, written into its file and those of the nodes holding one of them (case
-    1: agent 1, its neighbour; the plant; the router), boot counters and floors kept;
+    frame, Diag and command keys, written into its file and those of the nodes holding
+    one of them (case 1: agent 1, its neighbour; the plant; the router), boot counters and
+    floors kept;
     agents 2 and 4's files are untouched byte for byte. The old copy of agent_3.key no
     longer tags agent 3's setpoint or MC as its receivers now verify them; the rotated
     set passes `up`'s check and runs a clean dispatch."""
@@ -122,8 +161,11 @@ def test_rotating_one_node_rewrites_only_the_files_sharing_its_keys(
     plant = secoc.load_node_key(out / "plant.key")
     assert plant.peers["agent_3"] == new.key and plant.floors["agent_3"] == 2
     assert plant.frames["AGENT_3_Setpoint"] == new.frames["AGENT_3_Setpoint"]
-    assert secoc.load_node_key(out / "router.key").frames["PLANT_3_Status"] == \
-        new.frames["PLANT_3_Status"]
+    router = secoc.load_node_key(out / "router.key")
+    assert router.frames["PLANT_3_Status"] == new.frames["PLANT_3_Status"]
+    assert router.frames["AGENT_3_Diag"] == new.frames["AGENT_3_Diag"]  # AUTH-29
+    # AUTH-30: the key of the commands to agent 3, in its file and the router's
+    assert router.commands["agent_3"] == new.commands["agent_3"] != old.commands["agent_3"]
     assert secoc.load_node_key(out / "agent_1.key").peers["agent_3"] == new.key
     codec = FrameCodec()
     for name, old_key, now in (("AGENT_3_Setpoint", old.frames["AGENT_3_Setpoint"],

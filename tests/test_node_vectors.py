@@ -29,7 +29,13 @@ from firmware_py import controllers, nodeio
 from firmware_py.config import parse_agent_config
 from firmware_py.frames import FrameCodec, target_agent
 from firmware_py.runtime import AgentRuntime
-from firmware_py.secoc import INSECURE_MASTER, Keyring, derive_frame_key, derive_node_key
+from firmware_py.secoc import (
+    INSECURE_MASTER,
+    Keyring,
+    derive_command_key,
+    derive_frame_key,
+    derive_node_key,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 VECTOR_DIR = ROOT / "tests" / "vectors" / "node"
@@ -72,8 +78,12 @@ def keyring(vec: dict[str, Any]) -> Keyring | None:
     for name, hexkey in k["frame_keys"].items():  # AUTH-28: the link frames' own keys
         frames[name] = derive_frame_key(master, name)
         assert frames[name].hex() == hexkey, f"{vec['name']}: {name}'s key"
+    commands = {}
+    for target, hexkey in k["command_keys"].items():  # AUTH-30: its commands' key
+        commands[target] = derive_command_key(master, target)
+        assert commands[target].hex() == hexkey, f"{vec['name']}: {target}'s command key"
     return Keyring(k["node"], key, k["boot_counter"], lambda _b: None, peers=peers,
-                   floors=k.get("floors"), frames=frames)
+                   floors=k.get("floors"), frames=frames, commands=commands)
 
 
 def agent_of(vec: dict[str, Any]) -> AgentRuntime:

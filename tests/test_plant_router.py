@@ -35,6 +35,7 @@ from firmware_py.nodeio import FleetSender
 from firmware_py.secoc import (
     INSECURE_MASTER,
     Keyring,
+    derive_command_key,
     derive_frame_key,
     derive_node_key,
     frame_verifies,
@@ -442,8 +443,11 @@ def test_router_sends_case4_commands_three_times_at_event_times() -> None:
     assert got == [(10.0, 1, 2), (10.01, 1, 2), (10.02, 1, 2),
                    (20.0, 2, 2), (20.01, 2, 2), (20.02, 2, 2)]
     assert [f.counter for _, f in cmds] == list(range(6))  # fresh counter per transmission
-    # ... the low bits of a fresh freshness value: each transmission is signed anew
-    assert all(frame_verifies(ROUTER_KEY, 0x020, m.data, fv(1, k))
+    # ... the low bits of a fresh freshness value: each transmission is signed anew, with
+    # its target's command key (AUTH-30), not the router's node key
+    agent_2 = derive_command_key(INSECURE_MASTER, "agent_2")
+    assert all(frame_verifies(agent_2, 0x020, m.data, fv(1, k))
+               and not frame_verifies(ROUTER_KEY, 0x020, m.data, fv(1, k))
                for k, m in enumerate(cmd_msgs))
     assert len({bytes(m.data) for m in cmd_msgs}) == 6  # no repeat reads as a replay
     assert all(f.raw["GainK"] == f.raw["GainH"] == 0 for _, f in cmds)

@@ -71,8 +71,9 @@ def _fresh_senders() -> None:
 def forger() -> FleetSender:
     """A sender that knows the layouts but not the keys: every frame it signs is forged."""
     labels = ("router", "plant", *(f"agent_{i}" for i in range(1, 9)))
-    links = contract.link_frames(8)   # AUTH-28: setpoints and statuses under their own keys
-    return FleetSender(CODEC, keys=dict.fromkeys([*labels, *links], WRONG_KEY))
+    links = contract.keyed_frames(8)   # AUTH-28..30: frames and commands under their own keys
+    commands = [contract.command_key_name(i) for i in range(1, 9)]
+    return FleetSender(CODEC, keys=dict.fromkeys([*labels, *links, *commands], WRONG_KEY))
 
 
 def tampered(msg: can.Message) -> can.Message:

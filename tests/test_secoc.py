@@ -193,6 +193,30 @@ def test_frame_key_kdf_as_documented_and_separated() -> None:
             secoc.derive_frame_key(master, bad)
 
 
+def test_command_key_kdf_as_documented_and_separated() -> None:
+    """AUTH-30: the key of the commands to agent i is AUTH-1's KDF with its own label over
+    the target's label: one per agent, none equal to a node key or a frame key; only the
+    router and the target hold it (a fleet keyring derives it for them only)."""
+    from firmware_py import contract
+
+    master = bytes(range(16))
+    keys = {i: secoc.derive_command_key(master, f"agent_{i}") for i in range(1, 33)}
+    for i, k in keys.items():
+        assert k == _reference_kbkdf(master, secoc.COMMAND_KEY_LABEL, f"agent_{i}".encode(), 16)
+    others = {derive_node_key(master, n) for n in secoc.fleet_nodes(32)}
+    others |= {secoc.derive_frame_key(master, f) for f in contract.keyed_frames()}
+    assert len(set(keys.values())) == 32 and not others & set(keys.values())
+    rings = secoc.Keyring.fleet(master, secoc.fleet_nodes(4))
+    assert rings["agent_1"].key_for("ER_Command") == keys[1]
+    assert rings["router"].key_for("ER_Command", target=3) == keys[3]
+    assert rings["agent_3"].key_for("ER_Command", target=1) is None
+    assert rings["plant"].key_for("ER_Command", target=1) is None
+    assert rings["agent_3"].key_for("ER_Command_Sync") == derive_node_key(master, "router")
+    for bad in ("", "router", "plant", "agent_0", "agent_1x"):
+        with pytest.raises(SecOCError):
+            secoc.derive_command_key(master, bad)
+
+
 @pytest.mark.parametrize("bad", ["", "Agent_1", "agent 1", "1agent", "a" * 33, "agent-1"])
 def test_bad_node_names(bad: str) -> None:
     with pytest.raises(SecOCError):

@@ -36,6 +36,7 @@ from firmware_py.runtime import AgentRuntime, State
 from firmware_py.secoc import (
     KEY_FILE_HEADER,
     Keyring,
+    derive_command_key,
     derive_frame_key,
     derive_node_key,
     fleet_id,
@@ -367,34 +368,39 @@ def test_limits_order_defaults_and_q24() -> None:
 
 
 def write_key_file(path: Path, node: str, peers: list[str],
-                   frames: list[str] | None = None) -> Path:
+                   frames: list[str] | None = None, commands: bool = True) -> Path:
     """A key file of case 1's fleet: ``node``'s key, its ``peers``' node keys and the keys
-    of ``frames`` (None: every link frame of agents 1..4 it is a party of, AUTH-28)."""
+    of ``frames`` (None: every link frame and report of agents 1..4 it is a party of,
+    AUTH-28, AUTH-29), and its command keys (AUTH-30)."""
     master = bytes(range(16))
     if frames is None:
-        frames = [f for f in contract.link_frames(4) if node in contract.parties_of(f)]
+        frames = [f for f in contract.keyed_frames(4) if node in contract.parties_of(f)]
+    targets = ([f"agent_{i}" for i in range(1, 5)] if node == "router"
+               else [node] if node.startswith("agent_") else []) if commands else []
     doc = node_key_document(node, derive_node_key(master, node), fleet_id(master), 0,
                             {p: derive_node_key(master, p) for p in peers}, None,
-                            {f: derive_frame_key(master, f) for f in frames})
+                            {f: derive_frame_key(master, f) for f in frames},
+                            {t: derive_command_key(master, t) for t in targets})
     write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
     return path
 
 
 def test_a_key_file_lacking_a_senders_key_stops_the_start(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """CFG-8, AUTH-28: agent 2 of case 1 takes ER_* (router), AGENT_1_MC (agent_1) and
-    PLANT_2_Status (its link frame key), and signs AGENT_2_Setpoint (its link frame key):
-    a key file without any one of them stops the start naming it (the agent's command
-    exits 2 before it opens a bus); with all four it starts (and persists its new boot,
-    AUTH-3)."""
+    """CFG-8, AUTH-28..30: agent 2 of case 1 takes ER_Price (router), AGENT_1_MC
+    (agent_1), PLANT_2_Status (its link frame key) and the commands to it (its command
+    key), and signs AGENT_2_Setpoint and AGENT_2_Diag (their own keys): a key file without
+    any one of them stops the start naming it (the agent's command exits 2 before it
+    opens a bus); with all of them it starts (and persists its new boot, AUTH-3)."""
     from firmware_py.__main__ import main
 
     cfg = agent_configs_from_scenario(load_case(1))[1]
     conf = tmp_path / "agent.toml"
     conf.write_text(cfg.to_toml())
     every = ["router", "agent_1"]
-    links = ["AGENT_2_Setpoint", "PLANT_2_Status"]
-    path = write_key_file(tmp_path / "no_status.toml", "agent_2", every, links[:1])
+    links = ["AGENT_2_Setpoint", "PLANT_2_Status", "AGENT_2_Diag"]
+    path = write_key_file(tmp_path / "no_status.toml", "agent_2", every,
+                          [f for f in links if f != "PLANT_2_Status"])
     capsys.readouterr()
     assert main(["--config", str(conf), "--key", str(path), "--interface", "virtual",
                  "--channel", "cfg8-never-opened", "--duration", "0.01"]) == 2
@@ -412,6 +418,9 @@ def test_a_key_file_lacking_a_senders_key_stops_the_start(
         with pytest.raises(ConfigError) as e:
             AgentRuntime(cfg, CODEC, keys=Keyring.from_file(path))
         assert f"key of {missing}" in str(e.value)
+    path = write_key_file(tmp_path / "no_command.toml", "agent_2", every, links, commands=False)
+    with pytest.raises(ConfigError, match="verification key of ER_Command"):
+        AgentRuntime(cfg, CODEC, keys=Keyring.from_file(path))
     path = write_key_file(tmp_path / "all.toml", "agent_2", every, links)
     a = AgentRuntime(cfg, CODEC, keys=Keyring.from_file(path))
     assert a.io.boot == 1 and Keyring.from_file(path).boot == 1

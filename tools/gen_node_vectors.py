@@ -42,6 +42,7 @@ from firmware_py import contract, frames  # noqa: E402
 from firmware_py.config import parse_agent_config  # noqa: E402
 from firmware_py.frames import (  # noqa: E402
     FrameCodec,
+    diag_name,
     mc_name,
     setpoint_name,
     status_name,
@@ -53,6 +54,7 @@ from firmware_py.secoc import (  # noqa: E402
     KDF_NAME,
     MAC_NAME,
     Keyring,
+    derive_command_key,
     derive_frame_key,
     derive_node_key,
     fleet_id,
@@ -127,25 +129,34 @@ class Sender:
         self.label, self.key, self.boot, self.master = label, key, boot, master
         self.count: dict[int, int] = {}
 
-    def key_for(self, name: str) -> bytes:
-        """AUTH-28: a link frame's own key (from the fleet master), else the node's."""
+    def key_for(self, name: str, target: int | None = None) -> bytes:
+        """AUTH-28, AUTH-29: a link frame's or report's own key (from the fleet master);
+        AUTH-30: a command's its target's; else the node's."""
+        if name == contract.COMMAND and target is not None:
+            if self.master is None:
+                raise ValueError(f"{self.label}: {name} needs the fleet master key")
+            return derive_command_key(self.master, f"agent_{target}")
         base = name.removesuffix("_Sync")
-        if base not in contract.LINK_FRAMES:
+        if base not in contract.KEYED_FRAMES:
             return self.key
         if self.master is None:
             raise ValueError(f"{self.label}: {base} needs the fleet master key")
         return derive_frame_key(self.master, base)
 
     def frame(self, name: str, raw: Mapping[str, int], skip: int = 0,
-              patch: tuple[int, int, int] | None = None) -> can.Message:
+              patch: tuple[int, int, int] | None = None,
+              key: bytes | None = None) -> can.Message:
         """The next ``name`` frame (``skip`` counts left out first, as lost frames);
-        ``patch`` = (start bit, length, raw value) written before signing (out of range)."""
+        ``patch`` = (start bit, length, raw value) written before signing (out of range);
+        ``key``: sign with it instead (a forgery)."""
         fid = CODEC.frame_id(name)
         c = self.count.get(fid, 0) + skip
         msg = CODEC.encode(name, raw, c % (1 << contract.FV_TX_BITS))
         if patch is not None:
             set_bits(msg.data, *patch)
-        sign_frame(self.key_for(name), fid, msg.data, contract.FRESHNESS.join(self.boot, c))
+        target = raw.get("Target") if name == contract.COMMAND else None
+        sign_frame(key or self.key_for(name, target), fid, msg.data,
+                   contract.FRESHNESS.join(self.boot, c))
         self.count[fid] = c + 1
         return msg
 
@@ -183,7 +194,8 @@ class Scenario:
         node = f"agent_{self.cfg.id}"
         peer_labels = ["router", *(f"agent_{n.id}" for n in self.cfg.neighbours)]
         # AUTH-28: its own setpoint's and status' keys; the plant's node key it needs not
-        frame_names = [setpoint_name(self.cfg.id), status_name(self.cfg.id)]
+        frame_names = [setpoint_name(self.cfg.id), status_name(self.cfg.id),
+                       diag_name(self.cfg.id)]   # AUTH-29: its Diag under its own key
         self.keys_doc: dict[str, Any]
         if insecure:
             keys = None
@@ -193,14 +205,17 @@ class Scenario:
         else:
             peers = {p: derive_node_key(master, p) for p in peer_labels}
             frames = {f: derive_frame_key(master, f) for f in frame_names}
+            commands = {node: derive_command_key(master, node)}   # AUTH-30
             keys = Keyring(node, derive_node_key(master, node), BOOT_COUNTER, lambda _b: None,
-                           peers=peers, fleet=fleet_id(master), floors=floors, frames=frames)
+                           peers=peers, fleet=fleet_id(master), floors=floors, frames=frames,
+                           commands=commands)
             self.keys_doc = {"insecure": False, "master_key": master.hex(), "kdf": KDF_NAME,
                              "mac": MAC_NAME, "fleet_id": fleet_id(master), "node": node,
                              "key": derive_node_key(master, node).hex(),
                              "boot_counter": BOOT_COUNTER,
                              "peers": {p: k.hex() for p, k in peers.items()},
-                             "frame_keys": {f: k.hex() for f, k in frames.items()}}
+                             "frame_keys": {f: k.hex() for f, k in frames.items()},
+                             "command_keys": {t: k.hex() for t, k in commands.items()}}
             if floors:  # AUTH-21: the key file's [floors]
                 self.keys_doc["floors"] = dict(floors)
             boots = dict(SENDER_BOOTS)
@@ -292,11 +307,12 @@ class Scenario:
         return m
 
     def command(self, cmd: str, target: int = AGENT, k: int = 0, h: int = 0,
-                patch: tuple[int, int, int] | None = None, note: str = "") -> can.Message:
+                patch: tuple[int, int, int] | None = None, note: str = "",
+                key: bytes | None = None) -> can.Message:
         m = self.router.frame("ER_Command", {"Command": int(contract.Command[cmd]),
                                              "Target": target_raw(target), "GainK": k,
                                              "GainH": h},
-                              patch=patch)
+                              patch=patch, key=key)
         self.rx(m, note)
         return m
 
@@ -416,14 +432,15 @@ def sc_start_steady() -> Scenario:
         "its first); INIT until both price and status are fresh (agent 3 INIT for 0.2 s: "
         "alive but not in xi); RUNNING with a pinned price and two neighbours rippling "
         "around the price (zero crossings, resets, the band); MC every tick, Setpoint every "
-        "5, Diag every 10 (pages 0..12 twice, then 0..3; signed like MC), syncs every 1 s.",
+        "5, Diag every 10 (pages 0..12 twice, then 0..3; signed with its own key, AUTH-29), "
+        "syncs every 1 s.",
         ["GEN-1", "GEN-2", "GEN-4", "STATE-1", "STATE-2", "STATE-4", "STATE-10", "TICK-1",
          "TX-1", "TX-2", "TX-3", "TX-4", "TX-5", "SP-1", "SP-3", "DIAG-1",
          "XI-1", "XI-2", "CTRL-1", "CTRL-4", "CTRL-5", "STEP-1", "STEP-2", "STEP-3", "STEP-4",
          "STEP-5", "STEP-6", "STEP-7", "STEP-8", "BAND-1", "BAND-2", "BAND-3", "LIVE-1",
          "LIVE-2", "TMO-1", "TMO-3", "PRICE-6", "RX-8", "RX-10", "RX-11", "AUTH-1", "AUTH-2",
          "AUTH-3", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-10", "AUTH-11",
-         "AUTH-12", "AUTH-15", "AUTH-16", "AUTH-26", "NUM-1"])
+         "AUTH-12", "AUTH-15", "AUTH-16", "AUTH-26", "AUTH-29", "NUM-1"])
     nb = neighbours()
     s.tick()                                   # tick 0: INIT, own syncs, Diag page 0
     s.price(RHO, note="before the router's sync: unsynced")
@@ -565,11 +582,13 @@ def sc_commands() -> Scenario:
         "zeroed), ISOLATE again (counted, no effect), a price outage while ISOLATED (counted, "
         "stays ISOLATED), SET_GAINS while ISOLATED, RECONNECT (INIT at once, RUNNING at the "
         "next tick with a stepped lambda), RECONNECT while RUNNING (counted, no effect), "
-        "commands for agent 3 (ignored), SET_GAINS inside the bounds (nu := 0, new k*Ts, "
+        "commands for agent 3 (under agent 3's key, AUTH-30: ignored, not verified), a "
+        "RECONNECT for this agent under agent 3's command key while ISOLATED (auth: what "
+        "agent 3's key file can sign), SET_GAINS inside the bounds (nu := 0, new k*Ts, "
         "h*Ts), outside (implausible_gains), inside the bounds with h = 0 (h_min = 0 here) "
         "that the controller refuses (range).",
         ["CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "STATE-7", "STATE-8", "STATE-9",
-         "STATE-10", "TMO-2", "DIAG-1", "DIAG-3", "DIAG-4", "RX-10", "XI-1"],
+         "STATE-10", "TMO-2", "DIAG-1", "DIAG-3", "DIAG-4", "RX-10", "XI-1", "AUTH-30"],
         extra_toml="\n[limits]\nh_min = 0.0\n")
     nb = start(s)
     s.run(60, price=RHO, nbrs=nb)
@@ -581,6 +600,9 @@ def sc_commands() -> Scenario:
     s.run(10, price=RHO, nbrs=nb)
     s.command("ISOLATE", note="ISOLATE again: counted, nothing changes")
     s.run(10, price=RHO, nbrs=nb)
+    s.command("RECONNECT", key=derive_command_key(TEST_MASTER, "agent_3"),
+              note="RECONNECT under agent 3's command key (AUTH-30): auth, stays ISOLATED")
+    s.run(5, price=RHO, nbrs=nb)
     s.run(40, price=None, nbrs=nb)      # price lost while ISOLATED
     s.command("SET_GAINS", k=1500, h=3000, note="SET_GAINS k = 1.5, h = 3 while ISOLATED")
     s.run(10, price=RHO, nbrs=nb)

@@ -206,12 +206,18 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
         char name[BD_LABEL_MAX + 1];
         frame_name("AGENT_", p->id, "_Setpoint", name);
         int bad = bd_derive_frame_key(a->master, name, a->setpoint_key);
+        frame_name("AGENT_", p->id, "_Diag", name);
+        bad |= bd_derive_frame_key(a->master, name, a->diag_key);
+        frame_name("agent_", p->id, "", name);   /* AUTH-30: the commands' target */
+        bad |= bd_derive_command_key(a->master, name, a->command_key);
         frame_name("PLANT_", p->id, "_Status", name);
         if (bad != 0 || bd_derive_frame_key(a->master, name, status_key) != 0) {
             return BD_ERR_CRYPTO;
         }
     } else if (keys->has_frame_keys) {
         memcpy(a->setpoint_key, keys->setpoint_key, BD_KEY_BYTES);
+        memcpy(a->diag_key, keys->diag_key, BD_KEY_BYTES);
+        memcpy(a->command_key, keys->command_key, BD_KEY_BYTES);
         memcpy(status_key, keys->status_key, BD_KEY_BYTES);
     } else {
         return BD_ERR_MISSING_KEY;
@@ -376,8 +382,11 @@ static void remember(bd_echo *e, const uint8_t d[8])
 
 static void sign(bd_agent *a, bd_frame *f, uint64_t fv)
 {
+    /* AUTH-28, AUTH-29: the setpoint and the Diag (and their syncs) under their own keys */
     int link = f->id == BD_SETPOINT_BASE + a->p.id || f->id == BD_SETPOINT_SYNC_BASE + a->p.id;
-    if (bd_sign_frame(link ? a->setpoint_key : a->own_key, f->id, f->data, fv) != 0) {
+    int diag = f->id == BD_DIAG_BASE + a->p.id || f->id == BD_DIAG_SYNC_BASE + a->p.id;
+    const uint8_t *key = link ? a->setpoint_key : diag ? a->diag_key : a->own_key;
+    if (bd_sign_frame(key, f->id, f->data, fv) != 0) {
         a->fatal = BD_ERR_CRYPTO;
     }
 }

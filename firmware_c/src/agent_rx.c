@@ -150,6 +150,14 @@ static int verifies(bd_agent *a, const uint8_t *key, uint32_t id, const uint8_t 
     return v == 1;
 }
 
+/* The key a slot's frames verify with: AUTH-30, the command slot's is the agent's
+ * command key (its sync keeps the router's node key, s->key_index); the others' their
+ * sender's or link frame's. */
+static const uint8_t *frame_key(const bd_agent *a, const bd_rx_slot *s)
+{
+    return s == &a->rx[BD_RX_COMMAND] ? a->command_key : a->key[s->key_index];
+}
+
 /* AUTH-25: whether the frame of FV v <= s->fv was accepted (older than 16: yes). */
 static int seen(const bd_rx_slot *s, uint64_t v)
 {
@@ -176,7 +184,7 @@ static int stale(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t counter
         return 0;
     }
     for (uint32_t k = 0u; k < STALE_WINDOWS; ++k, fv -= FV_WINDOW) {
-        if (!seen(s, fv) && verifies(a, a->key[s->key_index], f->id, f->data, fv)) {
+        if (!seen(s, fv) && verifies(a, frame_key(a, s), f->id, f->data, fv)) {
             s->seen = (uint16_t)(s->seen | (1u << (s->fv - fv)));   /* again: a replay */
             return 1;
         }
@@ -195,12 +203,15 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
         reject(a, a->joining ? BD_C_JOINING : BD_C_UNSYNCED, f->id);
         return 0;
     }
-    uint32_t tries = (s->flags & BD_RX_LOST) != 0u ? LOST_WINDOWS : 1u;
+    /* AUTH-30: commands to other agents move the router's count unseen: the wide search
+     * for every command */
+    int command = s == &a->rx[BD_RX_COMMAND];
+    uint32_t tries = ((s->flags & BD_RX_LOST) != 0u || command) ? LOST_WINDOWS : 1u;
     uint64_t fv;
     int found = 0;
     if (bd_fv_candidate(s->fv, counter, BD_FV_TX_BITS, FV_MAX, &fv) == 0) {
         for (; tries > 0u; --tries, fv += FV_WINDOW) {
-            if (verifies(a, a->key[s->key_index], f->id, f->data, fv)) {
+            if (verifies(a, frame_key(a, s), f->id, f->data, fv)) {
                 found = 1;
                 break;
             }
@@ -223,7 +234,7 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
     }
     s->flags &= (uint8_t)~BD_RX_LOST;
     s->flags |= BD_RX_SPOKE;   /* AUTH-27: a frame since the latest boot advance */
-    uint64_t gap = fv - last - 1u;
+    uint64_t gap = command ? 0u : fv - last - 1u;   /* AUTH-30: others' commands, not lost */
     bd_count_add(a, BD_C_LOST_FRAMES, gap > UINT32_MAX ? UINT32_MAX : (uint32_t)gap, f->id);
     return 1;
 }
@@ -418,6 +429,9 @@ static int decode_and_use(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t
     case BD_RX_COMMAND:
         bad = bd_decode_command(f->data, &cm);
         counter = cm.counter;
+        if (bad == 0 && cm.target != a->p.id) {
+            return 0;   /* AUTH-30: a command to another agent, under a key it lacks: not for it */
+        }
         break;
     case BD_RX_STATUS:
         bad = bd_decode_status(f->data, &sm);

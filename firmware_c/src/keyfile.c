@@ -105,16 +105,22 @@ static int persist_boot(void *ctx, uint32_t boot)
         hex_of(k->peer_key[p], BD_KEY_BYTES, hex);
         ok = fprintf(f, "%s = \"%s\"\n", k->peer_label[p], hex) > 0;
     }
-    if (k->has_frame_keys && ok) {   /* AUTH-28: sorted by name, as firmware_py writes */
+    if (k->has_frame_keys && ok) {   /* AUTH-28, AUTH-29: by name, as firmware_py writes */
+        char dg[BD_LABEL_MAX + 1];
         char sp[BD_LABEL_MAX + 1];
         char st[BD_LABEL_MAX + 1];
         char hex2[2 * BD_KEY_BYTES + 1];
+        char hex3[2 * BD_KEY_BYTES + 1];
+        (void)snprintf(dg, sizeof dg, "AGENT_%s_Diag", k->node + 6);
         (void)snprintf(sp, sizeof sp, "AGENT_%s_Setpoint", k->node + 6);
         (void)snprintf(st, sizeof st, "PLANT_%s_Status", k->node + 6);
-        hex_of(k->setpoint_key, BD_KEY_BYTES, hex);
-        hex_of(k->status_key, BD_KEY_BYTES, hex2);
-        ok = fprintf(f, "\n[frame_keys]\n%s = \"%s\"\n%s = \"%s\"\n", sp, hex, st,
-                     hex2) > 0;
+        hex_of(k->diag_key, BD_KEY_BYTES, hex);
+        hex_of(k->setpoint_key, BD_KEY_BYTES, hex2);
+        hex_of(k->status_key, BD_KEY_BYTES, hex3);
+        ok = fprintf(f, "\n[frame_keys]\n%s = \"%s\"\n%s = \"%s\"\n%s = \"%s\"\n", dg, hex,
+                     sp, hex2, st, hex3) > 0;
+        hex_of(k->command_key, BD_KEY_BYTES, hex);   /* AUTH-30 */
+        ok = ok && fprintf(f, "\n[command_keys]\n%s = \"%s\"\n", k->node, hex) > 0;
     }
     int floors = 0;   /* AUTH-21: the peers' boot floors are kept */
     for (uint32_t p = 0u; p < k->n_peers && ok; ++p) {
@@ -263,36 +269,62 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
         memcpy(k->peer_label[k->n_peers], pe->key, strlen(pe->key) + 1u);
         k->n_peers++;
     }
-    char sp[BD_LABEL_MAX + 1];   /* AUTH-28: the agent's two link frames */
+    char sp[BD_LABEL_MAX + 1];   /* AUTH-28, AUTH-29: the agent's three frame keys */
     char stn[BD_LABEL_MAX + 1];
+    char dg[BD_LABEL_MAX + 1];
     (void)snprintf(sp, sizeof sp, "AGENT_%s_Setpoint", k->node + 6);
     (void)snprintf(stn, sizeof stn, "PLANT_%s_Status", k->node + 6);
+    (void)snprintf(dg, sizeof dg, "AGENT_%s_Diag", k->node + 6);
     int got = 0;
     for (int q = 0; q < d.n; ++q) {
         const toml_entry *pe = &d.e[q];
         if (strcmp(pe->table, "frame_keys") != 0) {
             continue;
         }
-        int which = strcmp(pe->key, sp) == 0 ? 1 : strcmp(pe->key, stn) == 0 ? 2 : 0;
+        int which = strcmp(pe->key, sp) == 0 ? 1 : strcmp(pe->key, stn) == 0 ? 2
+                    : strcmp(pe->key, dg) == 0 ? 4 : 0;
         if (which == 0) {
-            (void)snprintf(err, errlen, "%s: [frame_keys] expected the keys of %s and %s "
-                           "only, but got '%s'", path, sp, stn, pe->key);
+            (void)snprintf(err, errlen, "%s: [frame_keys] expected the keys of %s, %s and %s "
+                           "only, but got '%s'", path, sp, stn, dg, pe->key);
             return -1;
         }
-        if (pe->type != TOML_STRING
-            || hex_key(pe->s, which == 1 ? k->setpoint_key : k->status_key) != 0) {
+        uint8_t *out = which == 1 ? k->setpoint_key : which == 2 ? k->status_key : k->diag_key;
+        if (pe->type != TOML_STRING || hex_key(pe->s, out) != 0) {
             (void)snprintf(err, errlen, "%s: [%s] expected %d hex digits", path, pe->key,
                            2 * BD_KEY_BYTES);
             return -1;
         }
         got |= which;
     }
-    if (got != 0 && got != 3) {
-        (void)snprintf(err, errlen, "%s: [frame_keys] expected the keys of %s and %s, but "
-                       "one is missing", path, sp, stn);
+    for (int q = 0; q < d.n; ++q) {   /* AUTH-30: the key of the commands to this agent */
+        const toml_entry *pe = &d.e[q];
+        if (strcmp(pe->table, "command_keys") != 0) {
+            continue;
+        }
+        if (strcmp(pe->key, node) != 0) {
+            (void)snprintf(err, errlen, "%s: [command_keys] expected the key of %s only, but "
+                           "got '%s'", path, node, pe->key);
+            return -1;
+        }
+        if (pe->type != TOML_STRING || hex_key(pe->s, k->command_key) != 0) {
+            (void)snprintf(err, errlen, "%s: [command_keys.%s] expected %d hex digits", path,
+                           pe->key, 2 * BD_KEY_BYTES);
+            return -1;
+        }
+        got |= 8;
+    }
+    if (got != 0 && (got & 7) != 7) {
+        (void)snprintf(err, errlen, "%s: [frame_keys] expected the keys of %s, %s and %s, "
+                       "but one is missing (re-provision with bess-ded keys)", path, sp, stn,
+                       dg);
         return -1;
     }
-    k->has_frame_keys = got == 3;
+    if (got != 0 && got != 15) {
+        (void)snprintf(err, errlen, "%s: [command_keys] expected the key of %s, but got none "
+                       "(re-provision with bess-ded keys)", path, node);
+        return -1;
+    }
+    k->has_frame_keys = got == 15;
     for (int q = 0; q < d.n; ++q) {   /* AUTH-21: each peer's lowest boot accepted */
         const toml_entry *pe = &d.e[q];
         if (strcmp(pe->table, "floors") != 0) {

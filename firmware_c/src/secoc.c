@@ -8,8 +8,9 @@
 
 #define NODE_KEY_LABEL "bess-ded/secoc/node-key/v1"
 #define FLEET_ID_LABEL "bess-ded/secoc/fleet-id/v1"
-#define FRAME_KEY_LABEL "bess-ded/secoc/frame-key/v1"   /* AUTH-28: the longest label */
-#define KDF_MAX (4u + sizeof FRAME_KEY_LABEL + BD_LABEL_MAX + 4u)
+#define FRAME_KEY_LABEL "bess-ded/secoc/frame-key/v1"   /* AUTH-28 */
+#define COMMAND_KEY_LABEL "bess-ded/secoc/command-key/v1"   /* AUTH-30: the longest label */
+#define KDF_MAX (4u + sizeof COMMAND_KEY_LABEL + BD_LABEL_MAX + 4u)
 
 static void put_be32(uint8_t *p, uint32_t v)
 {
@@ -29,7 +30,7 @@ static int kdf(const uint8_t master[BD_KEY_BYTES], const char *label, const char
     size_t nl = strlen(label);
     size_t nc = strlen(context);
     size_t k = 0u;
-    if (nl + 1u > sizeof FRAME_KEY_LABEL || nc > BD_LABEL_MAX || out_len > sizeof tag) {
+    if (nl + 1u > sizeof COMMAND_KEY_LABEL || nc > BD_LABEL_MAX || out_len > sizeof tag) {
         return -1;   /* the message would not fit m (a node label over BD_LABEL_MAX) */
     }
     put_be32(&m[k], 1u);
@@ -64,6 +65,15 @@ int bd_derive_frame_key(const uint8_t master[BD_KEY_BYTES], const char *name,
         return -1;
     }
     return kdf(master, FRAME_KEY_LABEL, name, 8u * BD_KEY_BYTES, out, BD_KEY_BYTES);
+}
+
+int bd_derive_command_key(const uint8_t master[BD_KEY_BYTES], const char *target,
+                          uint8_t out[BD_KEY_BYTES])
+{
+    if (strncmp(target, "agent_", 6) != 0 || target[6] == '\0') {
+        return -1;
+    }
+    return kdf(master, COMMAND_KEY_LABEL, target, 8u * BD_KEY_BYTES, out, BD_KEY_BYTES);
 }
 
 int bd_fleet_id(const uint8_t master[BD_KEY_BYTES], uint8_t out[8])

@@ -6,7 +6,8 @@
  *
  *   V <name> <config TOML as hex>
  *   K <node> <insecure 0/1> <key hex> <boot> <n_peers> [<label> <key hex> <floor>]...
- *     <n_frames 0/2> [<setpoint key hex> <status key hex> <the plant's floor>] (AUTH-28)
+ *     <n_frames 0/4> [<setpoint key hex> <status key hex> <Diag key hex>
+ *     <command key hex> <the plant's floor>] (AUTH-28..30)
  *   S <tx_count>                        (optional: the vector's setup)
  *   R <t_ns> <id> <flags> <data hex or ->
  *   T <t_ns>
@@ -139,17 +140,24 @@ int main(int argc, char **argv)
                 keys.peer_floor[p] = (uint16_t)floor;   /* AUTH-21 */
             }
             keys.n_peers = n_peers;
-            uint32_t n_frames;   /* AUTH-28: 0, or the setpoint's and the status' keys */
-            if (scanf("%" SCNu32, &n_frames) != 1 || (n_frames != 0u && n_frames != 2u)) {
+            /* AUTH-28..30: 0, or the setpoint's, the status', the Diag's and the command
+             * keys */
+            uint32_t n_frames;
+            if (scanf("%" SCNu32, &n_frames) != 1 || (n_frames != 0u && n_frames != 4u)) {
                 printf("BAD INPUT at K frames\n");
                 return 2;
             }
-            if (n_frames == 2u) {
+            if (n_frames == 4u) {
                 char shex[64];
+                char dhex[64];
+                char chex[64];
                 uint32_t floor;
-                if (scanf("%63s %63s %" SCNu32, khex, shex, &floor) != 3 || floor > 65535u
+                if (scanf("%63s %63s %63s %63s %" SCNu32, khex, shex, dhex, chex, &floor) != 5
+                    || floor > 65535u
                     || unhex(khex, keys.setpoint_key, BD_KEY_BYTES, &n) != 0
-                    || unhex(shex, keys.status_key, BD_KEY_BYTES, &n) != 0) {
+                    || unhex(shex, keys.status_key, BD_KEY_BYTES, &n) != 0
+                    || unhex(dhex, keys.diag_key, BD_KEY_BYTES, &n) != 0
+                    || unhex(chex, keys.command_key, BD_KEY_BYTES, &n) != 0) {
                     printf("BAD INPUT at K frames\n");
                     return 2;
                 }

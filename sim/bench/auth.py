@@ -8,8 +8,9 @@ secured message of the fleet and its ``<name>_Sync``, at the DBC's cycle times s
 the scenario's Ts (``contract.cycle_s``), ER_Balance with every page each cycle, a Diag
 frame one page a cycle, ER_Command an event (no periodic load). The receivers that need
 a tag are the nodes that verify the frame today: the holders of its key (the sender's
-node key: ``sim.run.keyset.peers_of``; a link frame's: ``contract.parties_of``), less the
-sender; a report (Diag, ER_Balance) has one, its DBC receiver or the recorder.
+node key: ``sim.run.keyset.peers_of``; a link frame's or a report's:
+``contract.parties_of``), less the sender; a report (Diag, ER_Balance) has one, its DBC
+receiver or the recorder.
 
 How each scheme puts a message on the wire (``Scheme.mode``, ``occurrence``):
 
@@ -134,18 +135,20 @@ def fleet_messages(sc: Any, ts: float | None = None) -> list[Message]:
         base = m.name.removesuffix("_Sync")
         sender = contract.sender_of(base)
         base_id = codec.frame_id(base)
-        if base in contract.LINK_FRAMES:
+        if base in contract.KEYED_FRAMES:  # AUTH-28, AUTH-29: a key of its own
             holders = contract.parties_of(base)
-            role = "link"
+            role = "report" if base_id in contract.REPORT_IDS else "link"
         else:
             holders = frozenset({sender, *(n for n, ps in peers.items() if sender in ps)})
-            role = "report" if base_id in contract.REPORT_IDS else (
-                "router" if sender == "router" else "agent")
+            role = "router" if sender == "router" else "agent"
         if role == "report":
             dbc_rx = contract.receivers_of(base_id)
             receivers: tuple[str, ...] = tuple(sorted(dbc_rx)) or ("recorder",)
         else:
             receivers = tuple(sorted(holders - {sender}))
+        if m.name == contract.COMMAND:  # AUTH-30: each command under its target's key,
+            holders = frozenset({sender})  # which only the router shares with the target
+            receivers = tuple(f"agent_{i}" for i in contract.agent_ids(sc.n))
         per_s = 0.0
         if contract.is_cyclic(m.name):
             pages = len(codec.pages(m.name)) if m.name == "ER_Balance" else 1

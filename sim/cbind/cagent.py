@@ -85,7 +85,8 @@ class KeyringC(ctypes.Structure):
         ("peer_key", (ctypes.c_uint8 * 16) * MAX_PEERS),
         ("peer_floor", ctypes.c_uint16 * MAX_PEERS),
         ("has_frame_keys", ctypes.c_int32), ("setpoint_key", ctypes.c_uint8 * 16),
-        ("status_key", ctypes.c_uint8 * 16), ("status_floor", ctypes.c_uint16),
+        ("status_key", ctypes.c_uint8 * 16), ("diag_key", ctypes.c_uint8 * 16),
+        ("command_key", ctypes.c_uint8 * 16), ("status_floor", ctypes.c_uint16),
         ("persist_boot", PERSIST_FN), ("persist_ctx", ctypes.c_void_p),
     ]
 
@@ -131,6 +132,8 @@ class Runtime:
                                                   ctypes.c_char_p]),
             ("bd_derive_frame_key", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p,
                                                    ctypes.c_char_p]),
+            ("bd_derive_command_key", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p,
+                                                     ctypes.c_char_p]),
             ("bd_fleet_id", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p]),
             ("bd_sign_frame", ctypes.c_int, [ctypes.c_char_p, u32, ctypes.c_char_p,
                                              ctypes.c_uint64]),
@@ -317,10 +320,12 @@ def params_of(cfg: AgentConfig) -> Params:
 
 def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | None = None,
                insecure: bool = False, floors: Mapping[str, int] | None = None,
-               frames: Mapping[str, bytes] | None = None) -> KeyringC:
+               frames: Mapping[str, bytes] | None = None,
+               commands: Mapping[str, bytes] | None = None) -> KeyringC:
     """A bd_keyring for the C agent: ``node``'s key and boot, its peers' keys
-    (at most MAX_PEERS) with their boot floors, its link frame keys (``frames``:
-    AGENT_<i>_Setpoint and PLANT_<i>_Status, AUTH-28; others ignored); not persisted
+    (at most MAX_PEERS) with their boot floors, its frame keys (``frames``:
+    AGENT_<i>_Setpoint, PLANT_<i>_Status, AGENT_<i>_Diag, AUTH-28, AUTH-29; others
+    ignored) and its command key (``commands[node]``, AUTH-30); not persisted
     (see keyring_from)."""
     k = KeyringC()
     k.node = node.encode()
@@ -338,10 +343,14 @@ def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | No
     ix = node.removeprefix("agent_")
     sp = (frames or {}).get(f"AGENT_{ix}_Setpoint")
     st = (frames or {}).get(f"PLANT_{ix}_Status")
-    if sp is not None and st is not None:
+    dg = (frames or {}).get(f"AGENT_{ix}_Diag")
+    cmd = (commands or {}).get(node)
+    if sp is not None and st is not None and dg is not None and cmd is not None:
         k.has_frame_keys = 1
         k.setpoint_key[:] = list(sp)
         k.status_key[:] = list(st)
+        k.diag_key[:] = list(dg)
+        k.command_key[:] = list(cmd)
     if "plant" not in peers:
         k.status_floor = (floors or {}).get("plant", 0)
     return k
@@ -356,10 +365,11 @@ def keyring_from(ring: Keyring) -> KeyringC:
         if peer != "plant":    # the agent takes only its link frame from the plant
             ring.key_of(peer)
     i = ring.node.removeprefix("agent_")
-    for name in (f"AGENT_{i}_Setpoint", f"PLANT_{i}_Status"):
+    for name in (f"AGENT_{i}_Setpoint", f"PLANT_{i}_Status", f"AGENT_{i}_Diag",
+                 "ER_Command"):
         ring.key_for(name)
     k = keyring_of(ring.node, ring.key, ring.boot, ring.listed_keys(), floors=ring.floors,
-                   frames=ring.listed_frame_keys())
+                   frames=ring.listed_frame_keys(), commands=ring.listed_command_keys())
     if ring.master is not None:   # a simulated fleet: any sender's key on demand
         k.has_master = 1
         k.master[:] = list(ring.master)

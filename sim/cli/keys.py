@@ -7,11 +7,13 @@ key is drawn from the OS's random source and written to DIR/master.key, unless
 --master-key FILE gives one (then it is not copied). Every file is created 0600 and
 DIR 0700. An existing key set is not overwritten without --force; re-provisioning
 from a new master key is how a fleet is re-keyed (docs/security.md). Each file holds
-only what its node needs: its own key, the node keys of the broadcasts it takes, and
-the keys of its own link frames (setpoint, status: AUTH-28).
+only what its node needs: its own key, the node keys of the broadcasts it takes, the
+keys of its own link frames and reports (setpoint, status, Diag: AUTH-28, AUTH-29) and
+of the commands to it (AUTH-30; the router: every agent's).
 
 --rotate NODE replaces one node's keys in the key set DIR (a compromised or lost
-node): a new random key for NODE and for each link frame it sends or receives,
+node): a new random key for NODE, for each link frame or report it sends or receives
+and for each command key it holds,
 written into NODE's file and the files of the nodes that hold one of them, every
 boot counter kept; no other file changes. Restart the nodes named.
 Every node signs and verifies its secured frames with its key file:

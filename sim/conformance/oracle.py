@@ -325,9 +325,10 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
         return outcome
     inputs = [f for f in frames if f.sent]
     first_sent = inputs[0].t if inputs else math.inf
-    # AUTH-28: the setpoint under its own link frame key, the broadcasts under the DUT's
+    # AUTH-28, AUTH-29: the setpoint and the Diag under their own keys, the MC under the
+    # DUT's
     keys = {fid: keyring.key_for(codec.name_of(fid)) or dut_key for fid in own}
-    keys = {fid: dut_key if fid != sp_id else keys[fid] for fid in own}
+    keys[mc_id] = dut_key
     _check_auth(codec, keys, frames, syncs, outcome,
                 0.0 if math.isinf(first_sent) else first_sent)
     outcome.filtered = filtered

@@ -44,7 +44,7 @@ STEPS = (
          "then the command's sync",
          ("GEN-2", "STATE-1", "STATE-10", "TICK-1", "TX-1", "TX-2", "TX-3", "TX-4", "TX-5",
           "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-11",
-          "AUTH-16", "AUTH-21", "AUTH-26", "AUTH-28", "RX-4", "GEN-1", "GEN-4")),
+          "AUTH-16", "AUTH-21", "AUTH-26", "AUTH-28", "AUTH-29", "RX-4", "GEN-1", "GEN-4")),
     Step("price-only", 30, 60, "price and neighbours but no plant status: still INIT",
          ("STATE-2", "STATE-5", "TMO-3", "LIVE-1", "LIVE-2", "PRICE-6", "AUTH-12",
           "AUTH-15")),
@@ -66,10 +66,10 @@ STEPS = (
          ("RX-1", "RX-3", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
           "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
-         "agent, ISOLATE, RECONNECT; PIN the other way, for another agent, with a GainK "
-         "that is neither way, and back; an unknown ID",
+         "agent (under its command key), ISOLATE, RECONNECT; PIN the other way, for "
+         "another agent, with a GainK that is neither way, and back; an unknown ID",
          ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "CMD-7", "STATE-7", "STATE-8",
-          "STATE-9", "STATE-10", "XI-2", "RX-6", "RX-7")),
+          "STATE-9", "STATE-10", "XI-2", "RX-6", "RX-7", "AUTH-30")),
     Step("timeouts", 710, 910, "a neighbour silent, the price silent (SAFE), a plant "
          "fault (SAFE), each followed by recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
@@ -336,8 +336,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     for name in inputs:
         if name != "ER_Command":  # held back past the DUT's join window (AUTH-11)
             add(0, "start", tx.sync(name), f"sync of {name}")
-    add(22.6, "start", tx.frame("ER_Command", {
-        "Command": int(Command.ISOLATE), "Target": target_raw(other), "GainK": 0, "GainH": 0}),
+    add(22.6, "start", tx.frame("ER_Command", {   # to the DUT: another's is not its input
+        "Command": int(Command.ISOLATE), "Target": target_raw(i), "GainK": 0, "GainH": 0}),
         "a command before its sync, after the join window: unsynced")
     add(25, "start", tx.sync("ER_Command"), "sync of ER_Command")
     first_sync = next(p.msg for p in out if p.note == "sync of ER_Price")
@@ -451,10 +451,10 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k == fr + 5:  # every sender's periodic sync, in step with its frames
             for name in inputs:
                 add(k + 0.9, step, tx.sync(name), f"periodic sync of {name}")
-        if k == fr + 10:  # untrusted_after forged frames in a row on one ID (RX-13)
-            for n in range(cfg.untrusted_after):
+        if k == fr + 10:  # untrusted_after forged frames in a row on one ID (RX-13), to
+            for n in range(cfg.untrusted_after):  # the DUT (AUTH-30: another's is not its input)
                 add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Command", {
-                    "Command": int(Command.ISOLATE), "Target": target_raw(other), "GainK": 0,
+                    "Command": int(Command.ISOLATE), "Target": target_raw(i), "GainK": 0,
                     "GainH": 0})), "forged command")
         if k in (fr + 40, fr + 60) and nbrs:  # a peer's sync: first of its boot, then again
             add(k + 0.6, step, tx.sync(f"AGENT_{nbrs[0]}_Setpoint"),

@@ -64,7 +64,7 @@ def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
                        and (k := r.key_of(n)) is not None)
         out[n] = held.most_common(1)[0][0] if held else ring.key
     n_agents = sum(label.startswith("agent_") for label in rings)
-    for name in contract.link_frames(n_agents):  # AUTH-28: the key its receivers hold,
+    for name in contract.keyed_frames(n_agents):  # AUTH-28: the key its receivers hold,
         sender = contract.sender_of(name)        # the sender's breaking a tie
         got: Counter[bytes] = Counter()
         for m, r in rings.items():
@@ -72,6 +72,13 @@ def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
                 got[k] += 1 if m == sender else 2
         if got:
             out[name] = got.most_common(1)[0][0]
+    for i in contract.agent_ids(n_agents):  # AUTH-30: the router's, the target's breaking a tie
+        cmd: Counter[bytes] = Counter()
+        for m, r in rings.items():
+            if (k := r.command_key(f"agent_{i}")) is not None:
+                cmd[k] += 2 if m == "router" else 1
+        if cmd:
+            out[contract.command_key_name(i)] = cmd.most_common(1)[0][0]
     return out
 
 

@@ -71,20 +71,32 @@ def frames_of(sc: Any) -> dict[str, list[str]]:
     two; the router: every PLANT_<i>_Status)."""
     from firmware_py import contract, secoc
 
-    return {node: [f for f in contract.link_frames(sc.n) if node in contract.parties_of(f)]
+    return {node: [f for f in contract.keyed_frames(sc.n) if node in contract.parties_of(f)]
+            for node in secoc.fleet_nodes(sc.n)}
+
+
+def commands_of(sc: Any) -> dict[str, list[str]]:
+    """AUTH-30: the targets whose ER_Command keys each node's key file holds (agent i: its
+    own; the router: every agent's; the plant: none)."""
+    from firmware_py import secoc
+
+    agents = [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
+    return {node: agents if node == "router" else [node] if node in agents else []
             for node in secoc.fleet_nodes(sc.n)}
 
 
 def node_document(sc: Any, master: bytes, node: str, boot: int = 0,
                   floors: Mapping[str, int] | None = None) -> dict:
     """``node``'s key file (a TOML document) from the fleet master key: its own key, the
-    node keys of its peers (``peers_of``) and its link frame keys (``frames_of``)."""
+    node keys of its peers (``peers_of``), its link frame and report keys (``frames_of``)
+    and its command keys (``commands_of``)."""
     from firmware_py import secoc
 
     return secoc.node_key_document(
         node, secoc.derive_node_key(master, node), secoc.fleet_id(master), boot,
         {p: secoc.derive_node_key(master, p) for p in peers_of(sc)[node]}, floors,
-        {f: secoc.derive_frame_key(master, f) for f in frames_of(sc)[node]})
+        {f: secoc.derive_frame_key(master, f) for f in frames_of(sc)[node]},
+        {t: secoc.derive_command_key(master, t) for t in commands_of(sc)[node]})
 
 
 def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -> None:
@@ -108,7 +120,9 @@ def derived_keys(master: bytes, n: int) -> dict[str, bytes]:
     from firmware_py import contract, secoc
 
     out = {node: secoc.derive_node_key(master, node) for node in secoc.fleet_nodes(n)}
-    out.update({f: secoc.derive_frame_key(master, f) for f in contract.link_frames(n)})
+    out.update({f: secoc.derive_frame_key(master, f) for f in contract.keyed_frames(n)})
+    out.update({contract.command_key_name(i): secoc.derive_command_key(master, f"agent_{i}")
+                for i in contract.agent_ids(n)})
     return out
 
 
@@ -119,10 +133,14 @@ def load_key_set(keys_dir: Path) -> dict[str, bytes]:
     from firmware_py import secoc
 
     files = [secoc.load_node_key(p) for p in key_files(keys_dir) if p.name != "master.key"]
+    from firmware_py import contract
+
     out: dict[str, bytes] = {}
     for k in files:
         for name, key in k.frames.items():
             out.setdefault(name, key)
+        for target, key in k.commands.items():  # AUTH-30
+            out.setdefault(contract.command_key_name(int(target.removeprefix("agent_"))), key)
     out.update({k.node: k.key for k in files})
     return out
 
@@ -219,6 +237,7 @@ def check_key_set(keys: Path, n: int, sc: Any | None = None) -> str:
         raise ParameterError("--keys", "key files of one fleet", f"fleet ids {sorted(fleets)}")
     sc_peers = peers_of(sc) if sc is not None else {}
     sc_frames = frames_of(sc) if sc is not None else {}
+    sc_commands = commands_of(sc) if sc is not None else {}
     for node, k in loaded.items():
         if missing := [p for p in sc_peers.get(node, []) if p not in k.peers]:
             raise ParameterError("--keys", f"{node}.key with the keys of the nodes it receives "
@@ -227,6 +246,10 @@ def check_key_set(keys: Path, n: int, sc: Any | None = None) -> str:
         if missing := [f for f in sc_frames.get(node, []) if f not in k.frames]:
             raise ParameterError("--keys", f"{node}.key with the keys of its link frames "
                                  f"(AUTH-28: {', '.join(sc_frames[node])})",
+                                 f"none for {', '.join(missing)}")
+        if missing := [t for t in sc_commands.get(node, []) if t not in k.commands]:
+            raise ParameterError("--keys", f"{node}.key with the ER_Command keys of "
+                                 f"{', '.join(sc_commands[node])} (AUTH-30)",
                                  f"none for {', '.join(missing)}")
     return fleets.pop()
 
@@ -242,12 +265,14 @@ class RotatedKeys:
 
 def rotate_node_keys(sc: Any, keys_dir: Path, node: str) -> RotatedKeys:
     """Rotate ``node``'s keys in the key set ``keys_dir`` (issue 25, item 5): a new own key
-    and new keys of every link frame it is a party of (AUTH-28), all fresh from the OS's
-    CSPRNG (not derived from the master key: re-provisioning from the master undoes a
-    rotation). Rewrites ``node``'s file and the files of the nodes that hold one of those
-    keys (its peers that verify its broadcasts, the other parties of its link frames),
-    keeping every boot counter and floor; no other file is touched. An interrupted
-    rotation is finished by running it again (all affected files get newer keys)."""
+    and new keys of every link frame and report it is a party of (AUTH-28, AUTH-29) and
+    of every command key it holds (AUTH-30: an agent's own, the router's all), all
+    fresh from the OS's CSPRNG (not derived from the master key: re-provisioning from the
+    master undoes a rotation). Rewrites ``node``'s file and the files of the nodes that
+    hold one of those keys (its peers that verify its broadcasts, the other parties of its
+    link frames, reports and commands), keeping every boot counter and floor; no other
+    file is touched. An interrupted rotation is finished by running it again (all
+    affected files get newer keys)."""
     import tomli_w
 
     from firmware_py import contract, secoc
@@ -257,8 +282,9 @@ def rotate_node_keys(sc: Any, keys_dir: Path, node: str) -> RotatedKeys:
         raise ParameterError("--rotate", f"a node of the fleet ({', '.join(fleet)})", node)
     check_key_set(keys_dir, sc.n, sc)
     own = secrets.token_bytes(secoc.KEY_BYTES)
-    links = {f: secrets.token_bytes(secoc.KEY_BYTES) for f in contract.link_frames(sc.n)
+    links = {f: secrets.token_bytes(secoc.KEY_BYTES) for f in contract.keyed_frames(sc.n)
              if node in contract.parties_of(f)}
+    cmds = {t: secrets.token_bytes(secoc.KEY_BYTES) for t in commands_of(sc)[node]}
     rewritten, untouched = [], []
     for label in fleet:
         path = keys_dir / f"{label}.key"
@@ -266,11 +292,13 @@ def rotate_node_keys(sc: Any, keys_dir: Path, node: str) -> RotatedKeys:
         key = own if label == node else k.key
         peers = {p: own if p == node else pk for p, pk in k.peers.items()}
         frames = {f: links.get(f, fk) for f, fk in k.frames.items()}
-        if key == k.key and peers == dict(k.peers) and frames == dict(k.frames):
+        commands = {t: cmds.get(t, ck) for t, ck in k.commands.items()}
+        if (key == k.key and peers == dict(k.peers) and frames == dict(k.frames)
+                and commands == dict(k.commands)):
             untouched.append(label)
             continue
         doc = secoc.node_key_document(label, key, k.fleet_id, k.boot_counter, peers,
-                                      k.floors, frames)
+                                      k.floors, frames, commands)
         secoc.write_private(path, secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
         rewritten.append(label)
     return RotatedKeys(node, rewritten, untouched)

@@ -11,7 +11,7 @@ from collections.abc import Callable, Mapping
 
 from firmware_py import contract
 from firmware_py.contract import MC_CYCLE_S
-from firmware_py.frames import DecodedFrame
+from firmware_py.frames import DecodedFrame, target_agent
 from firmware_py.nodeio import LOST_WINDOWS
 from firmware_py.secoc import FreshnessVerifier, beyond_boot_bound, frame_verifies
 
@@ -62,15 +62,18 @@ class Monitor:
         # syncs that undid a boot advance: their sender carried on in the boot it had left
         self.undone: Counter[str] = Counter()
 
-    def _key(self, name: str) -> bytes | None:
-        return contract.frame_key(self.keys, name)  # AUTH-28: a link frame's own key
+    def _key(self, f: DecodedFrame) -> bytes | None:
+        # AUTH-28..30: a link frame's or report's own key, a command's its target's
+        target = f.raw.get("Target")
+        return contract.frame_key(self.keys, f.name,
+                                  None if target is None else target_agent(target))
 
     def sync(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> None:
         """Take a sync frame: its freshness becomes the sender's (raises ``StaleBoot``,
         ``SyncJump``, ``Stale`` or ``Forged`` when it does not verify as the newest). A
         sync that undoes a forged boot advance (AUTH-27) is taken and counted in
         ``undone``."""
-        key = self._key(f.name)
+        key = self._key(f)
         fv = contract.FRESHNESS.join(f.raw["Boot"], f.raw["Count"])
         fid = contract.SYNCED_BY[f.frame_id]
         label = contract.sender_of(f.name.removesuffix("_Sync"))
@@ -122,7 +125,7 @@ class Monitor:
     def check(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> bool:
         """True: authentic and fresh; False: not checkable yet (no sync seen); raises
         ``Stale`` (genuine, late) or ``Forged``."""
-        key = self._key(f.name)
+        key = self._key(f)
         if key is None or self.fv.last(f.frame_id) is None:
             return False
         def verifies(v: int) -> bool:

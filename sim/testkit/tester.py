@@ -456,11 +456,15 @@ class Tester:
             if fs is None:
                 fs = self._senders[label] = FleetSender(self.codec, {}, boot=self._boot)
             base = name.removesuffix("_Sync")
-            if base in contract.LINK_FRAMES:  # AUTH-28: its own key, held by its parties
+            if base in contract.KEYED_FRAMES:  # AUTH-28, AUTH-29: its own key, held by its parties
                 own = self.keys.get(base) if label == sender else None
                 fs.keys[base] = own if own is not None else self.keys[label]
             else:
                 fs.keys[sender] = self.keys[label]
+            if name == contract.COMMAND:  # AUTH-30: its target's command key, the router's
+                cname = contract.command_key_name(int(signals["Target"]))
+                own = self.keys.get(cname) if label == sender else None
+                fs.keys[cname] = own if own is not None else self.keys[label]
             out: list[can.Message] = []
             t = self.now()
             if fid in contract.SECURED_IDS:

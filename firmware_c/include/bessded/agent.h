@@ -102,11 +102,14 @@ typedef struct {
     char peer_label[BD_MAX_PEERS][BD_LABEL_MAX + 1];
     uint8_t peer_key[BD_MAX_PEERS][BD_KEY_BYTES];
     uint16_t peer_floor[BD_MAX_PEERS];    /* AUTH-21: lowest boot accepted (0: none) */
-    /* AUTH-28: the agent's link frame keys, AGENT_<id>_Setpoint's (it signs) and
-     * PLANT_<id>_Status's (it verifies); has_master: derived instead */
+    /* AUTH-28..30: the agent's frame keys, AGENT_<id>_Setpoint's and AGENT_<id>_Diag's
+     * (it signs), PLANT_<id>_Status's and its ER_Command key (it verifies); has_master:
+     * derived instead */
     int32_t has_frame_keys;
     uint8_t setpoint_key[BD_KEY_BYTES];
     uint8_t status_key[BD_KEY_BYTES];
+    uint8_t diag_key[BD_KEY_BYTES];
+    uint8_t command_key[BD_KEY_BYTES];    /* AUTH-30: [command_keys], its own (it verifies) */
     uint16_t status_floor;                /* AUTH-21: the plant's, if not in peer_floor */
     /* Persist a new boot counter before it is used (write-ahead, AUTH-3); 0 on
      * success. NULL: nothing persisted (insecure mode, tests). */
@@ -210,6 +213,8 @@ typedef struct {
     /* transmit side */
     uint8_t own_key[BD_KEY_BYTES];
     uint8_t setpoint_key[BD_KEY_BYTES];   /* AUTH-28: the own setpoint's link frame key */
+    uint8_t diag_key[BD_KEY_BYTES];       /* AUTH-29: the own Diag's frame key */
+    uint8_t command_key[BD_KEY_BYTES];    /* AUTH-30: the key of the commands to it */
     int (*persist_boot)(void *ctx, uint32_t boot);
     void *persist_ctx;
     int64_t sync_next;

@@ -37,6 +37,12 @@ int bd_derive_node_key(const uint8_t master[BD_KEY_BYTES], const char *label,
 int bd_derive_frame_key(const uint8_t master[BD_KEY_BYTES], const char *name,
                         uint8_t out[BD_KEY_BYTES]);
 
+/* AUTH-30: the key of the ER_Command frames to agent `target` ("agent_<i>"):
+ * CMAC(K_master, 00000001 || "bess-ded/secoc/command-key/v1" || 00 || target ||
+ * 00000080). 0 on success. */
+int bd_derive_command_key(const uint8_t master[BD_KEY_BYTES], const char *target,
+                          uint8_t out[BD_KEY_BYTES]);
+
 /* The public fleet tag of a key set (the KDF with label "bess-ded/secoc/fleet-id/v1",
  * empty context, L = 64): 8 bytes. 0 on success. */
 int bd_fleet_id(const uint8_t master[BD_KEY_BYTES], uint8_t out[8]);
