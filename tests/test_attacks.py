@@ -364,7 +364,8 @@ def test_agent_3s_key_file_cannot_isolate_agent_1(
            "the genuine command key": secoc.derive_command_key(INSIDER_MASTER, "agent_1")}[key_from]
     tx = FleetSender(CODEC, keys={contract.command_key_name(1): key,
                                   "router": held.peers["router"]}, boot=2)
-    raw = {"Command": int(contract.Command.ISOLATE), "Target": 1, "GainK": 0, "GainH": 0}
+    raw = {"Command": int(contract.Command.ISOLATE), "Target": target_raw(1), "GainK": 0,
+           "GainH": 0}
     sent: list[can.Message] = []
 
     def inject(t: float) -> list[can.Message]:
@@ -448,7 +449,7 @@ def test_100000_random_forged_frames_on_every_dispatch_id_none_accepted() -> Non
             data = rng.randbytes(8)
             if own is not None:
                 x = int.from_bytes(data, "little") & ~(((1 << target.length) - 1) << target.start)
-                data = (x | own << target.start).to_bytes(8, "little")
+                data = (x | target_raw(own) << target.start).to_bytes(8, "little")
             msg = can.Message(arbitration_id=fid, is_extended_id=False, data=data)
             assert io.receive(msg, 0.0) is None
         assert io.counters["auth"] + io.counters["range"] - before == 100_000

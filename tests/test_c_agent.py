@@ -416,10 +416,11 @@ def test_a_command_under_another_agents_key_is_auth_alike_in_c_and_python() -> N
     forgers = [FleetSender(FrameCodec(), keys={contract.command_key_name(2): k}, boot=4)
                for k in (ALL_FRAMES[contract.command_key_name(3)], peers["router"])]
     script = [router.sync("ER_Command"),
-              router.frame("ER_Command", {**isolate, "Target": 3}),
-              *(f.frame("ER_Command", {**isolate, "Target": 2}, counter=2) for f in forgers)]
+              router.frame("ER_Command", {**isolate, "Target": target_raw(3)}),
+              *(f.frame("ER_Command", {**isolate, "Target": target_raw(2)}, counter=2)
+                for f in forgers)]
     router.skip("ER_Command", 20)
-    script.append(router.frame("ER_Command", {**isolate, "Target": 2}))
+    script.append(router.frame("ER_Command", {**isolate, "Target": target_raw(2)}))
     _replay_alike(py, c, script)
     assert py.counters["auth"] == 2 and py.counters["commands"] == 1
     assert py.counters["lost_frames"] == 0 and py.state == c.state == contract.State.ISOLATED

@@ -459,8 +459,9 @@ def test_up_checks_every_key_file_before_starting_a_node(
     secoc.write_private(keys / "agent_2.key", secoc.KEY_FILE_HEADER + tomli_w.dumps(
         secoc.node_key_document(k.node, k.key, k.fleet_id, 0, k.peers, None,
                                 {f: v for f, v in k.frames.items() if f != "PLANT_2_Status"})))
-    assert ("agent_2.key with the keys of its link frames (AUTH-28: AGENT_2_Setpoint, "
-            "PLANT_2_Status), but got 'none for PLANT_2_Status'") in up()
+    assert ("agent_2.key with the keys of its link frames and reports (AUTH-28, AUTH-29: "
+            "AGENT_2_Setpoint, PLANT_2_Status, AGENT_2_Diag), but got 'none for "
+            "PLANT_2_Status'") in up()
 
     shutil.copy2(saved / "agent_2.key", keys / "agent_2.key")
     (keys / "plant.key").unlink()

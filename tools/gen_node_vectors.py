@@ -46,6 +46,7 @@ from firmware_py.frames import (  # noqa: E402
     mc_name,
     setpoint_name,
     status_name,
+    target_agent,
     target_raw,
 )
 from firmware_py.runtime import AgentRuntime  # noqa: E402
@@ -154,7 +155,8 @@ class Sender:
         msg = CODEC.encode(name, raw, c % (1 << contract.FV_TX_BITS))
         if patch is not None:
             set_bits(msg.data, *patch)
-        target = raw.get("Target") if name == contract.COMMAND else None
+        target = (target_agent(raw["Target"]) if name == contract.COMMAND and "Target" in raw
+                  else None)
         sign_frame(key or self.key_for(name, target), fid, msg.data,
                    contract.FRESHNESS.join(self.boot, c))
         self.count[fid] = c + 1

@@ -245,7 +245,8 @@ def check_key_set(keys: Path, n: int, sc: Any | None = None) -> str:
                                  f"none for {', '.join(missing)}")
         if missing := [f for f in sc_frames.get(node, []) if f not in k.frames]:
             raise ParameterError("--keys", f"{node}.key with the keys of its link frames "
-                                 f"(AUTH-28: {', '.join(sc_frames[node])})",
+                                 f"and reports (AUTH-28, AUTH-29: "
+                                 f"{', '.join(sc_frames[node])})",
                                  f"none for {', '.join(missing)}")
         if missing := [t for t in sc_commands.get(node, []) if t not in k.commands]:
             raise ParameterError("--keys", f"{node}.key with the ER_Command keys of "
