@@ -56,8 +56,9 @@ def attack_frames(replayed: list[str]) -> tuple[list[str], set[str]]:
     """The attacker's file: the replay interleaved with forgeries; and the names of the
     forged messages."""
     codec = FrameCodec()
-    wrong = {n: random.Random(n).randbytes(16)   # AGENT_3_Setpoint: a link frame key
-             for n in ("router", "agent_2", "agent_3", setpoint_name(3))}
+    wrong = {n: random.Random(n).randbytes(16)   # AGENT_3_Setpoint: a link frame key;
+             for n in ("router", "agent_2", "agent_3", setpoint_name(3),  # commands:
+                       contract.command_key_name(1), contract.command_key_name(3))}  # AUTH-30
     forger = FleetSender(codec, keys=wrong)
     p_max = codec.raw_range(setpoint_name(3), "PowerSetpoint")[1]
     gain_max = codec.raw_range("ER_Command", "GainK")[1]
