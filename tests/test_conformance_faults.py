@@ -69,9 +69,8 @@ def test_a_sample_of_faults_fails_conformance_naming_its_requirement(
         assert s.named_first, s.failed
 
 
-# measured (docs/conformance.md): a floor, not a target. a0f85a5, case 1: caught 45,
-# named 41, first 40, by the first difference 39; less command_any_target, no longer
-# named CMD-1 since the command keys (AUTH-30)
+# measured (docs/conformance.md): a floor, not a target. e83b508, case 1 (a0f85a5 had
+# one more named: command_any_target, no longer named CMD-1 since the command keys)
 FLOOR = {"caught": 45, "named": 40, "named_first": 39, "named_by_first_diff": 38}
 
 
