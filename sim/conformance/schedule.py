@@ -347,39 +347,47 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     p_sign = 1 if q(price) + 2 * price_step < q(cfg.rho_max) else -1
     top = q(cfg.lambda_max) - lam_step  # where the ramp of the limits step ends
 
-    def lam_edge(j: int, k: int) -> int:
-        """Neighbour j's λ from the limits step on: held where the schedule left it; for
-        the first neighbour, LAM-1 at its edges (a step of exactly the bound, accepted;
-        one LSB more than the bound from the slot's λ, rejected; back by exactly the
-        bound), then a ramp at 0.9 of the bound per tick to the top of the λ range, so
+    def lam_edge(j: int, k: int) -> tuple[int, str]:
+        """Neighbour j's λ from the limits step on, and what its frame exercises: held
+        where the schedule left it; for the first neighbour, LAM-1 at its edges (a step
+        of exactly the bound, accepted; one LSB more than the bound from the slot's λ,
+        rejected; the slot's λ again, which only a device that took the rejected frame
+        refuses), then a ramp at 0.9 of the bound per tick to the top of the λ range, so
         that |ξ| is large for long (a gain's last KTS bit shows on the wire λ)."""
         hold = lam_j(j, at["limits"])
         c = k - at["limits"]
         if j != nbrs[0] or c < 20:
-            return hold
-        if c == 20 or 22 <= c < 25:
-            return hold + lam_step
+            return hold, ""
+        if c == 20:
+            return hold + lam_step, "a neighbour λ step of exactly the LAM-1 bound"
         if c == 21:
-            return hold + 2 * lam_step + 1
-        return max(hold, min(hold + (c - 24) * (9 * lam_step // 10), top))
+            return (hold + 2 * lam_step + 1,
+                    "a neighbour λ step one LSB beyond the LAM-1 bound")
+        if c == 22:
+            return (hold + lam_step,
+                    "a neighbour λ step back to the slot's λ (the one beyond not taken)")
+        if c < 25:
+            return hold + lam_step, ""
+        return max(hold, min(hold + (c - 24) * (9 * lam_step // 10), top)), ""
 
-    def price_edge(k: int) -> tuple[int, int] | None:
-        """(PriceValid, ρ) of the price at tick k of the limits step: a step of exactly
-        q24(price_step_max) (accepted) and back; then one LSB more (a candidate), a
-        PriceValid = 0 frame (the candidate kept), the candidate price_persist − 1 times
-        more (accepted at the last: the frame after the invalid one must count as the
-        second), then back by exactly the bound."""
+    def price_edge(k: int) -> tuple[int, int, str]:
+        """(PriceValid, ρ, what the frame exercises) of the price at tick k of the limits
+        step: a step of exactly q24(price_step_max) (accepted) and back; then one LSB
+        more (a candidate), a PriceValid = 0 frame (the candidate kept), the candidate
+        price_persist − 1 times more (accepted at the last: the frame after the invalid
+        one must count as the second), then back by exactly the bound."""
         c, base, d = k - at["limits"], q(price), p_sign * price_step
         until = 55 + 5 * (cfg.price_persist + 1)  # the price goes every 5 ticks
         if 30 <= c < 45:
-            return 1, base + d
+            return 1, base + d, "a price step of exactly price_step_max" if c == 30 else ""
         if c == 60:
-            return 0, base
+            return 0, base, "a PriceValid = 0 frame between candidates"
         if 55 <= c < until:
-            return 1, base + d + p_sign
+            return 1, base + d + p_sign, "a price step one LSB beyond price_step_max (a candidate)"
         if until <= c < until + 5:
-            return 1, base + p_sign  # back by exactly the bound
-        return 1, base
+            return (1, base + p_sign,
+                    "a price step back by exactly price_step_max" if c == until else "")
+        return 1, base, ""
 
     # the states step: (tick, command) and the price's and plant's conditions
     st = at["states"]
@@ -400,10 +408,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         for j in nbrs:
             if silent_nbr and j == nbrs[0]:
                 continue
-            if k >= at["limits"]:
-                lam = lam_edge(j, k)
-            else:
-                lam = lam_j(j, k)
+            lam, lam_note = lam_edge(j, k) if k >= at["limits"] else (lam_j(j, k), "")
             if k == at["content"] + 30 and j == nbrs[0]:
                 lam += q(0.5)  # a jump above lambda_step_max per sample: implausible
             nbr_state = State.RUNNING
@@ -413,7 +418,6 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                                         "Resets": 0})
             if lost_nbr and j == nbrs[0]:
                 continue
-            lam_note = _lam_note(k - at["limits"]) if j == nbrs[0] else ""
             if j == nbrs[0] and k - fr == 55:
                 lam_note = "a neighbour's first frame after 25 lost on the bus"
             elif j == nbrs[0] and nbr_state == State.INIT:
@@ -432,7 +436,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 r = q(price + 0.6)  # a step above price_step_max, persistent
                 note = "a price step above price_step_max, persistent"
             elif at["limits"] <= k < at["freshness"]:
-                valid, r = price_edge(k) or (1, r)
+                valid, r, note = price_edge(k)
             elif invalid_price:
                 valid, note = 0, "a PriceValid = 0 frame in an outage"
             if k == fr + 20:  # 15 frames lost on the bus: this one is 16 values on
@@ -440,9 +444,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                     tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0, "Rho": r})
                 note = "a price frame 16 freshness values on"
             add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0,
-                                                      "Rho": r}),
-                _price_note(k - at["limits"], price_persist=cfg.price_persist)
-                if at["limits"] <= k < at["freshness"] else note)
+                                                      "Rho": r}), note)
         if k >= 60 and status_every(k):
             add(k + 0.75, step, tx.frame(status_name(i), {
                 **status, "FaultOverCurrent": int(fault), "FaultSoc": int(soc),
@@ -558,28 +560,6 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                     "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}), note)
     out.sort(key=lambda p: p.at)
     return out
-
-
-def _lam_note(c: int) -> str:
-    """What the first neighbour's frame at tick ``c`` of the limits step exercises
-    (``lam_edge``): LAM-1 at its edges."""
-    return {20: "a neighbour λ step of exactly the LAM-1 bound",
-            21: "a neighbour λ step one LSB beyond the LAM-1 bound",
-            22: "a neighbour λ step back by exactly the LAM-1 bound"}.get(c, "")
-
-
-def _price_note(c: int, price_persist: int) -> str:
-    """What the price frame at tick ``c`` of the limits step exercises (``price_edge``)."""
-    until = 55 + 5 * (price_persist + 1)
-    if c == 30:
-        return "a price step of exactly price_step_max"
-    if c == 60:
-        return "a PriceValid = 0 frame between candidates"
-    if 55 <= c < until:
-        return "a price step one LSB beyond price_step_max (a candidate)"
-    if c == until:
-        return "a price step back by exactly price_step_max"
-    return ""
 
 
 def _copy(msg: can.Message) -> can.Message:
