@@ -230,6 +230,9 @@ class AgentConfig:
     untrusted_s: float | None = None
     resilient_f: int = 0            # W-MSR trimming (controllers.resilient_trim); 0: off
     transmit: Transmit = Transmit()
+    # [security] signed_price (AUTH-31..33): take only the router's signed price (the key
+    # file must hold the router's public price key); firmware_c refuses it
+    signed_price: bool = False
     source: str = "<config>"
 
     def __post_init__(self) -> None:
@@ -270,6 +273,8 @@ class AgentConfig:
         }
         if self.transmit != Transmit():  # periodic files stay as they were
             doc["transmit"] = self.transmit.to_doc()
+        if self.signed_price:  # unsigned files stay as they were
+            doc["security"] = {"signed_price": True}
         # tomli-w inlines short arrays of tables; [[neighbour]] blocks read better when edited
         nbrs = "".join("\n[[neighbour]]\n" + tomli_w.dumps({"id": nb.id, "weight": nb.weight})
                        for nb in self.neighbours)
@@ -338,9 +343,9 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
 
     for k in data:
         if k not in {"agent", "controller", "neighbour", "battery", "timeouts", "limits",
-                     "transmit"}:
+                     "transmit", "security"}:
             raise fail(k, "unknown table; expected agent, controller, neighbour, battery, "
-                       "timeouts, limits or transmit")
+                       "timeouts, limits, transmit or security")
     a = table("agent", {"id", "lambda0", "pinned", "fleet_size", "resilient_f"})
     ident = agent_id(a.get("id"), "agent.id")
     pinned = a.get("pinned", False)
@@ -405,6 +410,11 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
         transmit = Transmit(**tx)
     except ParameterError as e:
         raise fail(f"transmit.{e.name}", f"expected {e.expected}, but got {e.got!r}") from None
+    sec = table("security", {"signed_price"}, required=False)
+    signed_price = sec.get("signed_price", False)
+    if not isinstance(signed_price, bool):
+        raise fail("security.signed_price", f"expected true or false, but got "
+                   f"{signed_price!r}")
     t = table("timeouts", {"neighbour_periods", "price_s", "status_s"}, required=False)
     periods = int(num(t, "timeouts", "neighbour_periods", 1, 100, transmit.neighbour_periods))
     if transmit.event and periods <= transmit.heartbeat:
@@ -427,7 +437,7 @@ def parse_agent_config(data: Mapping[str, Any], src: str) -> AgentConfig:
     cfg = AgentConfig(
         id=ident, lambda0=num(a, "agent", "lambda0", -100, 100), pinned=pinned,
         controller=controller, neighbours=tuple(neighbours), battery=battery,
-        neighbour_timeout_periods=periods, transmit=transmit,
+        neighbour_timeout_periods=periods, transmit=transmit, signed_price=signed_price,
         price_timeout_s=num(t, "timeouts", "price_s", 0.01, 60,
                             timeout_s("ER_Price", controller.ts)),
         status_timeout_s=num(t, "timeouts", "status_s", 0.01, 60,
@@ -492,5 +502,6 @@ def agent_configs_from_scenario(sc: Any) -> list[AgentConfig]:
             rho_min=sc.rho_min, rho_max=sc.rho_max, price_step_max=sc.price_step_max,
             resilient_f=sc.resilient_f, fleet_size=sc.n, transmit=sc.transmit,
             neighbour_timeout_periods=sc.transmit.neighbour_periods,
+            signed_price=getattr(sc, "signed_price", False),
             source=f"{sc.source}#agent{i}"))
     return out

@@ -68,6 +68,7 @@ __all__ = [
     "PEER_SYNCED_BY",
     "REPORT_IDS",
     "SECURED_IDS",
+    "SIGNED_PRICE_COUNTERS",
     "SETPOINT_BASE",
     "SYNCED_BY",
     "SYNC_OF",
@@ -339,6 +340,12 @@ AGENT_COUNTERS: tuple[str, ...] = (
     "joining",  # AUTH-26: frames of the join window
     "sync_jump",  # AUTH-27: syncs refused for a boot jump (also counted under auth)
 )
+
+SIGNED_PRICE_COUNTERS: tuple[str, ...] = ("unsigned_price", "bad_signature", "sig_malformed")
+"""The Python agent's counters of the opt-in signed price (AUTH-32, AUTH-33;
+firmware_py.pricesig): not in AGENT_COUNTERS, since firmware_c refuses a signed_price
+configuration (no BD_C_* of its own); reported in the exit summary and, in-process, in
+the verdict."""
 
 DIAG_RESERVED: frozenset[str] = frozenset(
     s.name for s in _message(diag_name(1)).signals if (s.comment or "").startswith("Reserved"))

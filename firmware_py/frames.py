@@ -102,7 +102,9 @@ _PROTECTION = ("Mac", "Counter")  # filled in by the codec (Mac: by NodeIO)
 _LAYOUTS = {  # frame kind -> its protection signals' (start, length)
     "secured": {"Mac": (0, 24), "Counter": (24, 4)},
     "sync": {"Mac": (0, 24)},
+    "transfer": {},  # ER_PriceSig: authenticated by the signature it carries, no MAC
 }
+TRANSFER_MESSAGES = frozenset({"ER_PriceSig"})  # the DBC's messages of kind "transfer"
 _Q_SIGNALS = {"ER_Price": "Rho"}  # plus Lambda of every AGENT_i_MC
 
 
@@ -160,7 +162,7 @@ class _Frame:
     name: str
     frame_id: int
     agent: int | None
-    kind: str                           # "secured" or "sync" (_LAYOUTS)
+    kind: str                           # "secured", "sync" or "transfer" (_LAYOUTS)
     fd: bool                            # a CAN FD frame (the DBC's VFrameFormat)
     counter_shift: int                  # start bit of Counter (0 for sync frames: none)
     base: tuple[_Sig, ...]              # decode: every non-multiplexed signal incl. Mac, Counter
@@ -207,8 +209,10 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
         raise bad(f"expected an 11-bit frame of {DLC} bytes, but got ID 0x{m.frame_id:X} "
                   f"length {m.length} extended={m.is_extended_frame}")
     names = {s.name: s for s in m.signals}
-    # no third kind: a message without Mac fails the secured layout's check below
-    kind = "sync" if m.name.endswith("_Sync") else "secured"
+    # the transfer messages are named: any other message without Mac fails the secured
+    # layout's check below
+    kind = ("sync" if m.name.endswith("_Sync") else
+            "transfer" if m.name in TRANSFER_MESSAGES else "secured")
     for sname, (start, length) in _LAYOUTS[kind].items():
         s = names.get(sname)
         if s is None or (s.start, s.length) != (start, length):
@@ -532,8 +536,9 @@ class FrameCodec:
         return self._ids
 
     def kind(self, frame_id: int) -> str:
-        """"secured" (MAC and truncated freshness) or "sync" (full freshness under a MAC):
-        how the frame is protected."""
+        """"secured" (MAC and truncated freshness), "sync" (full freshness under a MAC) or
+        "transfer" (no MAC: ER_PriceSig, authenticated by its signature): how the frame is
+        protected."""
         f = self._by_id.get(frame_id)
         if f is None:
             raise UnknownFrameError(f"0x{frame_id:03X}: expected an ID defined in the DBC, "

@@ -70,7 +70,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter, deque
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, NamedTuple
 
 import can
@@ -134,7 +134,7 @@ class NodeIO:
                  untrusted_after: int = UNTRUSTED_AFTER,
                  untrusted_s: float = UNTRUSTED_S, keys: Keyring | None = None,
                  sync_s: float = SYNC_S, join_s: float | None = None,
-                 echo_depth: int = ECHO_DEPTH) -> None:
+                 echo_depth: int = ECHO_DEPTH, transfers: Iterable[int] = ()) -> None:
         """``own``: the messages this node sends (the last ``echo_depth`` of each ID are
         remembered: their echo is not an impersonation); ``wanted``: the frame IDs it uses
         (secured ones: ConfigError for any other);
@@ -144,7 +144,9 @@ class NodeIO:
         node's keyring (None: the public ``--insecure`` keys, with a warning); ``sync_s``:
         its sync cadence (the DBC's, stretched like every cycle in a time-scaled run);
         ``join_s``: its join window (AUTH-26; None: JOIN_FRACTION·sync_s, 0: none, for
-        tests of a receiver alone)."""
+        tests of a receiver alone); ``transfers``: the IDs of transfer frames (no MAC:
+        ER_PriceSig, signed_price) it takes, decoded and handed over unverified (the
+        caller verifies their signature)."""
         own = list(own)
         label = contract.sender_of(own[0])
         if keys is None:
@@ -170,6 +172,10 @@ class NodeIO:
         self._sent: dict[int, deque[bytes]] = {codec.frame_id(n): deque(maxlen=echo_depth)
                                                for n in own}
         wanted = list(dict.fromkeys(wanted))
+        self._transfers = frozenset(transfers)
+        # per input ID, a check of the decoded frame before its MAC and freshness
+        # (signed_price, AUTH-33): a frame it refuses never moves its sender's freshness
+        self._prechecks: dict[int, Callable[[DecodedFrame], tuple[str, str] | None]] = {}
         self._inputs = frozenset(wanted)
         unsecured = sorted(self._inputs - contract.SECURED_IDS)
         if unsecured:
@@ -264,7 +270,8 @@ class NodeIO:
         of agents (firmware_py.host) does not hand those over: ~87 % of what a 32-agent
         bus carries, for each agent."""
         return (fid not in self._sent and fid not in self._inputs
-                and fid not in self._synced_by and fid not in contract.PEER_SYNCED_BY
+                and fid not in self._transfers and fid not in self._synced_by
+                and fid not in contract.PEER_SYNCED_BY
                 and fid in self._known
                 and (self.fleet_size is None or (agent_of(fid) or 0) <= self.fleet_size))
 
@@ -281,7 +288,8 @@ class NodeIO:
                     and self.keys.key_for(self.codec.name_of(sid), derive=False)
                     is not None):
                 peers.add(sid)
-        return sorted(set(self._sent) | self._inputs | set(self._synced_by) | peers)
+        return sorted(set(self._sent) | self._inputs | set(self._synced_by) | peers
+                      | self._transfers)
 
     def receive(self, msg: can.Message, t: float | None = None,
                 defer_trust: bool = False) -> DecodedFrame | None:
@@ -311,6 +319,15 @@ class NodeIO:
             return None
         key = self._verify_key.get(fid)
         if key is None:
+            if fid in self._transfers:  # signed_price: its signature is the caller's to check
+                try:
+                    return self.codec.decode(msg)
+                except Exception as e:  # FrameError: its cause names the counter
+                    cause = getattr(e, "cause", None)
+                    if cause is None:
+                        raise
+                    self.reject("sig_malformed", f"{e} ({cause})")
+                    return None
             if fid in self._synced_by:
                 self._on_sync(msg, fid, t)
                 return None
@@ -337,7 +354,21 @@ class NodeIO:
         if (fid == contract.ER_COMMAND_ID
                 and target_agent(frame.raw["Target"]) != self._target):
             return None  # AUTH-30: a command to another agent, under a key it lacks: not for it
+        precheck = self._prechecks.get(fid)
+        if precheck is not None and (refused := precheck(frame)) is not None:
+            self.reject(*refused)
+            return None
         return self._authentic(frame, msg, key, t, defer_trust)
+
+    def precheck(self, fid: int,
+                 check: Callable[[DecodedFrame], tuple[str, str] | None]) -> None:
+        """Run ``check`` on every decoded frame of input ``fid`` before its MAC and
+        freshness: a (cause, reason) it returns rejects the frame under that cause, its
+        freshness untouched (AUTH-33: a price that is not the signed one cannot move the
+        router's counter ahead of its genuine frames)."""
+        if fid not in self._inputs:
+            raise KeyError(fid)
+        self._prechecks[fid] = check
 
     # ------------------------------------------------------------ SecOC
 
@@ -688,6 +719,16 @@ class NodeIO:
             log.debug("%s rejected a frame (%s #%d): %s", self.who, cause, n, reason)
         elif n <= LOG_FIRST or n % 1000 == 0:
             log.warning("%s rejected a frame (%s #%d): %s", self.who, cause, n, reason)
+
+    def send_transfer(self, name: str, raw: Mapping[str, int]) -> can.Message:
+        """Encode own transfer message ``name`` (no MAC, no counter: ER_PriceSig) and
+        remember it for the echo."""
+        fid = self.codec.frame_id(name)
+        if fid not in self._sent or fid in contract.SECURED_IDS:
+            raise EncodeError("message", f"a transfer message {self.who} sends", name)
+        msg = self.codec.encode(name, raw, 0)
+        self._sent[fid].append(bytes(msg.data))
+        return msg
 
     def send(self, name: str, raw: Mapping[str, int]) -> can.Message:
         """Encode own secured message ``name`` with its next freshness value, sign it and

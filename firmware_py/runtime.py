@@ -62,11 +62,12 @@ from dataclasses import dataclass, replace
 
 import can
 
+from . import contract, pricesig
 from . import fixedpoint as fx
 from .config import AgentConfig, DispatchParams
 from .contract import DIAG_RESERVED, Command, State, cycle_s, every_ticks, is_active, scale
 from .controllers import consensus_error, make_controller
-from .errors import FrameError, RangeError
+from .errors import ConfigError, FrameError, RangeError
 from .frames import (
     PIN_ON,
     DecodedFrame,
@@ -156,13 +157,26 @@ class AgentRuntime:
         self.price_id = c.frame_id("ER_Price")
         self.command_id = c.frame_id("ER_Command")
         self.status_id = c.frame_id(status_name(cfg.id))
+        # signed_price (AUTH-31..33): the router's price signatures, verified here
+        self.sig_id = c.frame_id(pricesig.MESSAGE) if cfg.signed_price else None
         self.io = NodeIO(c, f"agent {cfg.id}",
                          own=(mc_name(cfg.id), setpoint_name(cfg.id), diag_name(cfg.id)),
                          wanted=(self.price_id, self.command_id, self.status_id,
                                  *self.neighbours), fleet_size=cfg.fleet_size,
                          untrusted_after=cfg.untrusted_after,
                          untrusted_s=float(cfg.untrusted_s or 0.0), keys=keys,
-                         sync_s=cycle_s("ER_Price_Sync", cfg.controller.ts))
+                         sync_s=cycle_s("ER_Price_Sync", cfg.controller.ts),
+                         transfers=() if self.sig_id is None else (self.sig_id,))
+        self.price_sig: pricesig.PriceSigReceiver | None = None
+        if cfg.signed_price:
+            public = self.io.keys.price_verify
+            if public is None:
+                raise ConfigError(cfg.source, "security.signed_price", "expected a key file "
+                                  "with the router's public price key ([price_signature] "
+                                  "verify_key), but it has none: re-provision with bess-ded "
+                                  "keys for a signed_price scenario")
+            self.price_sig = pricesig.PriceSigReceiver(public, self.io.keys.fleet_id)
+            self.io.precheck(self.price_id, self._signed_price)
         # safety limits in Q24 (docs/safety-model.md)
         self.rho_min = fx.to_fixed(cfg.rho_min, "rho_min")
         self.rho_max = fx.to_fixed(cfg.rho_max, "rho_max")
@@ -203,6 +217,9 @@ class AgentRuntime:
         if frame is None:
             return
         fid = frame.frame_id
+        if fid == self.sig_id:
+            self._on_price_sig(frame)
+            return
         rejected = self.io.safety_rejections
         try:
             if fid == self.price_id:
@@ -226,6 +243,22 @@ class AgentRuntime:
             raise RangeError(f"{name}: expected a value in [{self.cfg.lambda_min}, "
                              f"{self.cfg.lambda_max}] cu/kWh, but got {fx.to_float(raw):.6g}")
         return raw
+
+    def _on_price_sig(self, f: DecodedFrame) -> None:
+        """An ER_Price_Sig page (AUTH-32): reassembled, the signature verified once."""
+        assert self.price_sig is not None
+        last = self.io.last_freshness(self.price_id)
+        boot = contract.FRESHNESS.split(last)[0] if last is not None else 0
+        bad = self.price_sig.take(f.raw, min_boot=boot)
+        if bad is not None:
+            self.io.reject(*bad)
+
+    def _signed_price(self, f: DecodedFrame) -> tuple[str, str] | None:
+        """AUTH-33: an ER_Price is taken only with the signed segment's price, checked
+        before its MAC and freshness."""
+        assert self.price_sig is not None
+        why = self.price_sig.check(f.raw)
+        return None if why is None else ("unsigned_price", why)
 
     def _on_price(self, f: DecodedFrame, t: float) -> None:
         if not f.raw["PriceValid"]:

@@ -97,6 +97,8 @@ NODE_KEY_LABEL = b"bess-ded/secoc/node-key/v1"
 FLEET_ID_LABEL = b"bess-ded/secoc/fleet-id/v1"
 FRAME_KEY_LABEL = b"bess-ded/secoc/frame-key/v1"
 COMMAND_KEY_LABEL = b"bess-ded/secoc/command-key/v1"
+PRICE_SIGN_KEY_LABEL = b"bess-ded/price-sign-key/v1"  # signed_price: the router's Ed25519 seed
+PRICE_SIGN_BYTES = 32
 KEY_FILE_FORMAT = "bess-ded-secoc-node-key/1"
 MASTER_FILE_FORMAT = "bess-ded-secoc-master-key/1"
 KDF_NAME = "NIST SP 800-108 counter mode, CMAC-AES-128"
@@ -178,6 +180,13 @@ def derive_command_key(master_key: bytes, target: str) -> bytes:
     (AUTH-30; the module docstring gives the encoding): held only by the router and that
     agent."""
     return _kbkdf(master_key, COMMAND_KEY_LABEL, check_target(target).encode(), KEY_BYTES)
+
+
+def derive_price_sign_key(master_key: bytes) -> bytes:
+    """signed_price (AUTH-31): the router's 32-byte Ed25519 private key (RFC 8032 seed),
+    KBKDF of the master key with PRICE_SIGN_KEY_LABEL and context ``router``. Only the
+    router's key file holds it; every other node holds its public key."""
+    return _kbkdf(master_key, PRICE_SIGN_KEY_LABEL, b"router", PRICE_SIGN_BYTES)
 
 
 def fleet_id(master_key: bytes) -> str:
@@ -461,6 +470,8 @@ class NodeKey:
     floors: Mapping[str, int] = field(default_factory=dict)   # label -> lowest boot accepted
     frames: Mapping[str, bytes] = field(default_factory=dict)  # link frame -> its key
     commands: Mapping[str, bytes] = field(default_factory=dict)  # target -> command key
+    price_sign: bytes | None = None    # signed_price: the router's Ed25519 seed (router only)
+    price_verify: bytes | None = None  # signed_price: the router's Ed25519 public key
 
     def __repr__(self) -> str:  # never print the key
         return (f"NodeKey(node={self.node!r}, fleet_id={self.fleet_id!r}, "
@@ -475,7 +486,9 @@ def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
                       peers: Mapping[str, bytes] | None = None,
                       floors: Mapping[str, int] | None = None,
                       frames: Mapping[str, bytes] | None = None,
-                      commands: Mapping[str, bytes] | None = None) -> dict:
+                      commands: Mapping[str, bytes] | None = None,
+                      price_sign: bytes | None = None,
+                      price_verify: bytes | None = None) -> dict:
     """The TOML document of a node key file. ``peers``: the verification keys of the
     senders of the broadcast frames this node receives (need to know: docs/security.md);
     ``floors``: the lowest boot counter it accepts from each sender (AUTH-21);
@@ -499,6 +512,9 @@ def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
                                for t, k in sorted(commands.items())}
     if floors:
         doc["floors"] = {check_node_name(p): int(b) for p, b in sorted(floors.items())}
+    if price_sign is not None or price_verify is not None:  # signed_price (AUTH-31)
+        doc["price_signature"] = ({"sign_key": price_sign.hex()} if price_sign is not None
+                                  else {"verify_key": price_verify.hex()})  # type: ignore[union-attr]
     return doc
 
 
@@ -625,9 +641,33 @@ def load_node_key(path: Path | str) -> NodeKey:
         raise KeyFileError(f"{path}: [floors] expected a table of peer = lowest boot counter "
                            f"(0..{DEFAULT_LAYOUT.max_boot}), for peers listed in [peers] or "
                            f"senders of [frame_keys]")
+    sign, verify = _price_keys(doc, path)
     return NodeKey(node=node, key=_hex_key(doc, "key", path),  # type: ignore[arg-type]
                    fleet_id=fleet, boot_counter=boot, path=path, peers=peers,
-                   floors=dict(floors), frames=frames, commands=commands)
+                   floors=dict(floors), frames=frames, commands=commands,
+                   price_sign=sign, price_verify=verify)
+
+
+def _price_keys(doc: dict, path: Path) -> tuple[bytes | None, bytes | None]:
+    """[price_signature] (signed_price, AUTH-31): sign_key (the router's Ed25519 seed) or
+    verify_key (its public key), 32 bytes hex each; (None, None) without the table."""
+    t = doc.get("price_signature")
+    if t is None:
+        return None, None
+    if not isinstance(t, dict) or len(t) != 1 or not set(t) <= {"sign_key", "verify_key"}:
+        raise KeyFileError(f"{path}: [price_signature] expected exactly one of sign_key, "
+                           "verify_key")
+    (name, value), = t.items()
+    try:
+        raw = bytes.fromhex(value) if isinstance(value, str) else b""
+    except ValueError:
+        raw = b""
+    if len(raw) != PRICE_SIGN_BYTES:
+        raise KeyFileError(f"{path}: [price_signature.{name}] expected {PRICE_SIGN_BYTES} "
+                           "bytes as hex")
+    if name == "sign_key":
+        return raw, None
+    return None, raw
 
 
 def _frame_senders(frames: Mapping[str, bytes]) -> set[str]:
@@ -728,7 +768,9 @@ class Keyring:
                  insecure: bool = False, fleet: str = "",
                  floors: Mapping[str, int] | None = None,
                  frames: Mapping[str, bytes] | None = None,
-                 commands: Mapping[str, bytes] | None = None) -> None:
+                 commands: Mapping[str, bytes] | None = None,
+                 price_sign: bytes | None = None,
+                 price_verify: bytes | None = None) -> None:
         self.node = check_node_name(node)
         self.key = _check_key(key)
         self.boot = boot
@@ -742,6 +784,13 @@ class Keyring:
         self.floors = dict(floors or {})
         self._frames = dict(frames or {})  # AUTH-28: link frame -> its key
         self._commands = dict(commands or {})  # AUTH-30: target agent -> command key
+        # signed_price (AUTH-31): the router's Ed25519 private key (the router only) and
+        # its public key (every node of a signed fleet); None: not a signed fleet
+        self.price_sign = price_sign
+        if price_sign is not None and price_verify is None:
+            from .pricesig import public_key
+            price_verify = public_key(price_sign)
+        self.price_verify = price_verify
 
     def floor_of(self, node: str) -> int:
         """The lowest boot counter accepted from ``node`` (0: no floor; never insecure)."""
@@ -833,7 +882,8 @@ class Keyring:
         """The keyring of a node key file (its boots persisted back to the file)."""
         k = load_node_key(path)
         return cls(k.node, k.key, k.boot_counter, k.persist(), peers=k.peers,
-                   fleet=k.fleet_id, floors=k.floors, frames=k.frames, commands=k.commands)
+                   fleet=k.fleet_id, floors=k.floors, frames=k.frames, commands=k.commands,
+                   price_sign=k.price_sign, price_verify=k.price_verify)
 
     @classmethod
     def insecure_for(cls, node: str) -> Keyring:
@@ -844,11 +894,21 @@ class Keyring:
                    master=INSECURE_MASTER, insecure=True, fleet=fleet_id(INSECURE_MASTER))
 
     @classmethod
-    def fleet(cls, master: bytes, nodes: list[str]) -> dict[str, Keyring]:
+    def fleet(cls, master: bytes, nodes: list[str],
+              signed_price: bool = False) -> dict[str, Keyring]:
         """In-memory keyrings for ``nodes`` (boot counters kept in memory: a node
-        restarted with the same keyring object starts a new boot, as from its file)."""
+        restarted with the same keyring object starts a new boot, as from its file);
+        ``signed_price``: the router gets the price signing key, every other node its
+        public key only (AUTH-31)."""
+        sign = verify = None
+        if signed_price:
+            from .pricesig import public_key
+            sign = derive_price_sign_key(master)
+            verify = public_key(sign)
         return {n: cls(n, derive_node_key(master, n), 0, lambda _b: None, master=master,
-                       fleet=fleet_id(master)) for n in nodes}
+                       fleet=fleet_id(master),
+                       price_sign=sign if n == "router" else None, price_verify=verify)
+                for n in nodes}
 
 
 def frame_payload(data: bytes | bytearray) -> bytes:

@@ -73,6 +73,9 @@ SYNC_OFFSET = 0x400
 SECURED_TYPES = frozenset({"ER_Price", "ER_Command", "MC", "Setpoint", "Status", "Diag",
                            "ER_Balance"})
 KINDS = ("secured", "sync")
+# the transfer messages (no MAC; signed_price, AUTH-32): their golden frames are in
+# tests/test_pricesig.py
+TRANSFER_TYPES = frozenset({"ER_PriceSig"})
 
 
 def frame(frame_id: int, data: bytes, **kw: Any) -> can.Message:
@@ -89,6 +92,8 @@ def expected_kind(name: str) -> str:
     codec under test)."""
     if name.endswith("_Sync"):
         return "sync"
+    if name in TRANSFER_TYPES:
+        return "transfer"
     assert msg_type(name) in SECURED_TYPES, name
     return "secured"
 
@@ -204,7 +209,7 @@ GOLDEN = [
 def test_golden_covers_every_message_type(codec: FrameCodec) -> None:
     types = {msg_type(name) for name, *_ in GOLDEN}
     assert types == SECURED_TYPES | {f"{t}_Sync" for t in SECURED_TYPES}
-    assert {msg_type(m.name) for m in codec.database.messages} == types
+    assert {msg_type(m.name) for m in codec.database.messages} == types | TRANSFER_TYPES
     assert {expected_kind(name) for name, *_ in GOLDEN} == {"secured", "sync"}
     assert {raw["Page"] for name, _, raw, *_ in GOLDEN if name.endswith("_Diag")} == set(
         range(len(AgentRuntime.DIAG_PAGES)))
@@ -334,9 +339,10 @@ def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
     for fid in (0x010, 0x020, 0x3E0, 0x410, 0x420, 0x100, 0x141, 0x2C1, 0x341, 0x500, 0x541,
                 0x600, 0x641, 0x680, 0x6C1, 0x700, 0x741, 0x7E0, 0x7FF):
         assert agent_of(fid) is None
-    # 3 ER frames + 4 per agent, and a sync of each (every frame is secured)
-    assert len(codec.frame_ids()) == 2 * (3 + 4 * 64) == 518
-    assert len(codec.database.messages) == 518
+    # 3 ER frames + 4 per agent, and a sync of each (every frame is secured); and the one
+    # transfer message, ER_PriceSig (signed_price, no MAC, no sync)
+    assert len(codec.frame_ids()) == 2 * (3 + 4 * 64) + 1 == 519
+    assert len(codec.database.messages) == 519
     assert codec.name_of(0x120) == "AGENT_32_MC"
     assert codec.name_of(0x520) == "AGENT_32_MC_Sync"
     assert codec.name_of(0x6A0) == "PLANT_32_Status_Sync"
@@ -353,7 +359,7 @@ def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
 
 def test_frame_kinds(codec: FrameCodec) -> None:
     """Every ID's kind as the contract names it, and every secured frame's sync."""
-    by_kind: dict[str, set[int]] = {k: set() for k in KINDS}
+    by_kind: dict[str, set[int]] = {k: set() for k in (*KINDS, "transfer")}
     for fid in codec.frame_ids():
         assert codec.kind(fid) == expected_kind(codec.name_of(fid))
         by_kind[codec.kind(fid)].add(fid)
@@ -362,6 +368,7 @@ def test_frame_kinds(codec: FrameCodec) -> None:
                                        for i in agents}
     assert by_kind["secured"] == secured == contract.SECURED_IDS
     assert by_kind["sync"] == {fid + SYNC_OFFSET for fid in secured}
+    assert by_kind["transfer"] == {0x008}  # ER_PriceSig
     assert contract.SYNC_OF == {fid: fid + SYNC_OFFSET for fid in secured}
     assert contract.SYNCED_BY == {fid + SYNC_OFFSET: fid for fid in secured}
     for fid in secured:
@@ -400,8 +407,9 @@ VALID: dict[str, Any] = {"mc": valid_mc, "diag": valid_diag, "balance": valid_ba
 
 
 def test_the_project_dbc_has_no_e2e_frame_left(codec: FrameCodec) -> None:
-    """Every frame that reports or accounts is authenticated: no CRC-only frame."""
-    assert {codec.kind(fid) for fid in codec.frame_ids()} == {"secured", "sync"}
+    """Every frame that reports or accounts is authenticated: no CRC-only frame (the one
+    transfer message, ER_PriceSig, is authenticated by the signature it carries)."""
+    assert {codec.kind(fid) for fid in codec.frame_ids()} == {"secured", "sync", "transfer"}
 
 
 def test_codec_refuses_a_dbc_with_an_e2e_only_frame(tmp_path: Path) -> None:
@@ -811,7 +819,7 @@ def test_dbc_loads_strict_with_the_contract() -> None:
     assert {n.name for n in db.nodes} == {"ER", "PLANT", *(f"AGENT_{i}" for i in range(1, 65))}
     assert db.buses[0].baudrate == 500_000
     assert db.dbc is not None and db.dbc.attributes["BusType"].value == "CAN"
-    assert len(db.messages) == 518
+    assert len(db.messages) == 519
     cycles = {"ER_Price": 50, "ER_Command": None, "AGENT_7_MC": 10, "AGENT_7_Setpoint": 50,
               "PLANT_7_Status": 50, "AGENT_7_Diag": 100, "ER_Balance": 100,
               "ER_Price_Sync": 1000, "ER_Command_Sync": 1000, "AGENT_7_MC_Sync": 1000,
@@ -840,6 +848,9 @@ def test_dbc_loads_strict_with_the_contract() -> None:
             assert sync.senders == m.senders
             receivers = {r for s in m.signals for r in s.receivers}
             assert {r for s in sync.signals for r in s.receivers} == receivers
+        elif kind == "transfer":  # ER_PriceSig: Page 0..10, no Mac, Counter or sync
+            assert layout["Page"] == (0, 4) and "Mac" not in layout and "Counter" not in layout
+            assert m.name + "_Sync" not in by_name and m.send_type == "Event"
         else:
             assert set(layout) == {"Mac", "Count", "Boot"}
             assert expected_kind(m.name.removesuffix("_Sync")) == "secured"

@@ -63,6 +63,8 @@ Q24 = 2.0**-LAMBDA_Q  # exactly 5.9604644775390625e-08; a power of two, so exact
 
 ER_PRICE_ID = 0x010
 ER_COMMAND_ID = 0x020
+ER_PRICE_SIG_ID = 0x008  # below ER_Price: queued together, the signature wins arbitration
+PRICE_SIG_PAGES = 11     # ER_PriceSig: page 0 the signed segment, 1..10 the signature
 MC_BASE = 0x100
 SETPOINT_BASE = 0x200
 STATUS_BASE = 0x280
@@ -124,7 +126,7 @@ def _sig(
     choices: dict[int, str] | None = None,
     offset: int = 0,
     is_multiplexer: bool = False,
-    page: int | None = None,
+    page: int | list[int] | None = None,
 ) -> Signal:
     """One Intel integer signal. [min|max] default to the full raw range, scaled.
 
@@ -153,7 +155,7 @@ def _sig(
         comment=comment,
         receivers=list(receivers),
         is_multiplexer=is_multiplexer,
-        multiplexer_ids=None if page is None else [page],
+        multiplexer_ids=None if page is None else [page] if isinstance(page, int) else page,
         multiplexer_signal=None if page is None else "Page",
     )
 
@@ -241,6 +243,37 @@ def _er_price() -> Message:
                      "* 2^-24 exactly (5.9604644775390625e-08), the firmware's native format."),
     ], "Energy router price broadcast: the time-phased price rho(t) every agent pins to.",
         PRICE_CYCLE_MS)
+
+
+def _er_price_sig() -> Message:
+    """The signed price segment (issue 25, item 1, ``signed_price``): no MAC of its own."""
+    rx = _all_agents()
+    sig_pages = list(range(1, PRICE_SIG_PAGES))
+    return _msg(ER_PRICE_SIG_ID, "ER_PriceSig", "ER", [
+        _sig("Page", 0, 4, minimum=0, maximum=PRICE_SIG_PAGES - 1, is_multiplexer=True,
+             receivers=rx,
+             comment="Multiplexer: page 0 = the signed segment, pages 1..10 = the 64-byte "
+                     "Ed25519 signature, 7 bytes a page (page 10: its last byte). Sent 0..10 "
+                     "in one burst before the first ER_Price of a new segment and every "
+                     "second (signed_price only; docs/security.md)."),
+        _sig("PriceValid", 4, 1, receivers=rx, page=0,
+             comment="ER_Price.PriceValid of the signed segment."),
+        _sig("Segment", 5, 3, receivers=rx, page=0,
+             comment="ER_Price.Segment of the signed segment (the low 3 bits of its number)."),
+        _sig("Rho", 8, 32, signed=True, scale=Q24, unit="cu/kWh", receivers=rx, page=0,
+             comment="ER_Price.Rho of the signed segment (int32 Q24)."),
+        _sig("Boot", 40, 16, receivers=rx, page=0,
+             comment="The router's boot counter when it signed the segment."),
+        _sig("SegmentHigh", 56, 8, receivers=rx, page=0,
+             comment="Bits 3..10 of the segment number (mod 2048; it only grows within a "
+                     "boot)."),
+        _sig("Signature", 8, 56, receivers=rx, page=sig_pages,
+             comment="7 bytes of the Ed25519 signature (bytes 1..7 of the frame in order; "
+                     "page 10: 1 byte, the rest 0) over the fleet ID, the boot, the segment "
+                     "number, PriceValid and Rho (firmware_py/pricesig.py)."),
+    ], "Energy router price signature (signed_price): an Ed25519 signature of the price "
+       "segment, multi-frame; no Mac or Counter (the signature authenticates it). Event "
+       "frame: sent at each segment change and every second.", None)
 
 
 def _er_command() -> Message:
@@ -448,7 +481,9 @@ def build_database(fd: bool = False) -> Database:
     messages += [_plant_status(i) for i in range(1, N_AGENTS + 1)]
     messages += [_agent_diag(i) for i in range(1, N_AGENTS + 1)]
     messages.append(_er_balance())
-    messages += [_sync(m) for m in list(messages) if m.get_signal_by_name("Counter").start == 24]
+    messages.append(_er_price_sig())
+    messages += [_sync(m) for m in list(messages)
+                 if any(s.name == "Counter" and s.start == 24 for s in m.signals)]
     for m in messages:
         m.is_fd = fd  # cantools writes VFrameFormat (and CANFD_BRS, default 1) for it
 

@@ -117,6 +117,9 @@ class Scenario:
     # the bus run's frame format (``[bus] fd``): CAN FD frames with the bit-rate switch, the
     # FD twin of the DBC (dbc/bess_ded_fd.dbc), instead of classic CAN
     fd: bool = False
+    # [security] signed_price: the router signs each price segment (Ed25519), the agents
+    # take only the signed price (AUTH-31..33, docs/security.md); firmware_c refuses it
+    signed_price: bool = False
 
     # ---- derived views
 
@@ -227,7 +230,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
     r = _Reader(src)
     r.only(data, "", {"name", "title", "ts", "duration", "load_kw", "controller", "graph",
                       "price", "battery", "event", "variant", "limits", "resilient_f",
-                      "transmit", "event_threshold", "event_heartbeat", "bus"})
+                      "transmit", "event_threshold", "event_heartbeat", "bus", "security"})
     ts = r.number(data, "ts", lo=1e-4, hi=1.0)
     duration = r.number(data, "duration", lo=ts, hi=1e5)
 
@@ -345,13 +348,21 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         if not isinstance(fd, bool):
             raise ConfigError(src, "bus.fd", f"expected true (CAN FD) or false (classic CAN), "
                               f"but got {fd!r}")
+    signed_price = False
+    if "security" in data:
+        sec = r.table(data, "security")
+        r.only(sec, "security", {"signed_price"})
+        signed_price = sec.get("signed_price", False)
+        if not isinstance(signed_price, bool):
+            raise ConfigError(src, "security.signed_price", "expected true (the router signs "
+                              f"each price segment) or false, but got {signed_price!r}")
     sc = Scenario(
         name=str(data.get("name", Path(src).stem)), title=str(data.get("title", "")), source=src,
         ts=ts, duration=duration, load_kw=r.number(data, "load_kw", lo=-1e6, hi=1e6),
         controller=controller, n=n, edges=edges, pinned=pinned, batteries=tuple(batteries),
         lambda0=tuple(lambda0), prices=tuple(prices), events=tuple(events),
         variants=tuple(variants), rho_min=rho_min, rho_max=rho_max,
-        price_step_max=step_max, transmit=transmit, fd=fd,
+        price_step_max=step_max, transmit=transmit, fd=fd, signed_price=signed_price,
         resilient_f=int(r.number(data, "resilient_f", lo=0, hi=RESILIENT_F_MAX, integer=True))
         if "resilient_f" in data else 0)
     if n <= MAX_AGENTS:  # a fleet a bus can carry: its agents' configurations load too
@@ -522,6 +533,8 @@ def to_toml(sc: Scenario) -> str:
                    event_heartbeat=sc.transmit.heartbeat)
     if sc.fd:  # classic scenarios are written as they were
         doc["bus"] = {"fd": True}
+    if sc.signed_price:  # unsigned scenarios are written as they were
+        doc["security"] = {"signed_price": True}
     if sc.events:
         doc["event"] = [{"t": e.t, "agent": e.agent, "action": e.action} for e in sc.events]
     # the source path may hold anything; keep it out of the comment line's way

@@ -58,9 +58,10 @@ import can
 from dbc import dbc_path
 from firmware_py.config import agent_configs_from_scenario, untrusted_s
 from firmware_py.contract import Command, State, cycle_s, mc_name, status_name, timeout_s
-from firmware_py.errors import ParameterError
+from firmware_py.errors import ConfigError, ParameterError
 from firmware_py.frames import LAMBDA_Q, PIN_OFF, PIN_ON, FrameCodec, target_raw
 from firmware_py.nodeio import HOST_ECHO_DEPTH, NodeIO
+from firmware_py.pricesig import SEGMENT_MOD, SignedSegment, pages, sign
 from firmware_py.secoc import Keyring
 from sim.model.cost import expenditure, kkt_optimum
 from sim.model.graph import failover_choice
@@ -210,7 +211,14 @@ class RouterNode(SimNodeClock):
         self.pinned = set(scenario.pinned)      # whom the router counts as pinned
         self._commanded: set[int] = set()       # of those, the ones it pinned itself
         self.failover_log: list[Failover] = []
-        self.io = NodeIO(c, "the router", own=("ER_Price", "ER_Command", "ER_Balance"),
+        # signed_price (AUTH-31): the router signs each price segment with its Ed25519 key
+        self.signed_price = scenario.signed_price
+        if self.signed_price and (keys is None or keys.price_sign is None):
+            raise ConfigError("keyring", "router", "expected the price signing key "
+                              "([price_signature] sign_key) for a signed_price scenario, but "
+                              "the key file has none: re-provision with bess-ded keys")
+        self.io = NodeIO(c, "the router", own=("ER_Price", "ER_Command", "ER_Balance",
+                                               *(("ER_PriceSig",) if self.signed_price else ())),
                          wanted=[*self._status, *self._mc], fleet_size=scenario.n,
                          untrusted_s=untrusted_s(scenario.ts), keys=keys,
                          sync_s=cycle_s("ER_Price_Sync", scenario.ts),
@@ -220,6 +228,10 @@ class RouterNode(SimNodeClock):
         self._rho_lo, self._rho_hi = c.raw_range("ER_Price", "Rho")
         self._segment_hi = c.raw_range("ER_Price", "Segment")[1]  # Segment counts mod 8
         self._kkt_cache: dict[float, float] = {}
+        self.sig_cycle = cycle_s("ER_Price_Sync", scenario.ts)  # the signature's repeat (1 s)
+        self._signed: tuple[SignedSegment, bytes] | None = None  # the last one signed
+        self._sig_sent: SignedSegment | None = None   # the last one sent
+        self._sig_next = 0.0                          # its next repeat (s from the first tick)
 
         self._init_clock()
         self.rho = scenario.prices[0].rho
@@ -300,6 +312,8 @@ class RouterNode(SimNodeClock):
         silent = any(w.active(t_rel) for w in self.silent)
 
         frames: list[tuple[str, dict[str, int]]] = []
+        if self.signed_price:  # before the first ER_Price of a new segment (AUTH-31)
+            frames += self._signature_pages(t_rel, silent)
         if self._price.due(t_rel):
             frames.append(("ER_Price", self._price_raw()))
         while (self._next_event < len(self._events)
@@ -381,12 +395,33 @@ class RouterNode(SimNodeClock):
 
     # ------------------------------------------------------------------ transmit
 
-    def _price_raw(self) -> dict[str, int]:
+    def _rho_raw(self) -> tuple[int, bool]:
+        """ρ as the raw Q24 Rho, and whether it had to be clamped to the DBC's range."""
         raw = round(self.rho * (1 << LAMBDA_Q))
-        if not self._rho_lo <= raw <= self._rho_hi:
+        clamped = min(self._rho_hi, max(self._rho_lo, raw))
+        return clamped, clamped != raw
+
+    def _price_raw(self) -> dict[str, int]:
+        raw, saturated = self._rho_raw()
+        if saturated:
             self.counters["encode_saturations"] += 1
-            raw = min(self._rho_hi, max(self._rho_lo, raw))
         return {"PriceValid": 1, "Rho": raw, "Segment": self.segment % (self._segment_hi + 1)}
+
+    def _signature_pages(self, t_rel: float, silent: bool) -> list[tuple[str, dict[str, int]]]:
+        """signed_price: the ER_PriceSig pages due at ``t_rel``: at a new segment (signed
+        then, before its first ER_Price) and every ``sig_cycle``; a signature that falls
+        due in a silent window goes out at its end."""
+        seg = SignedSegment(self.io.boot, self.segment % SEGMENT_MOD, 1, self._rho_raw()[0])
+        if seg == self._sig_sent and t_rel < self._sig_next - SCHEDULE_EPS_S:
+            return []
+        if self._signed is None or self._signed[0] != seg:
+            self._signed = (seg, sign(self.io.keys.price_sign or b"", self.io.keys.fleet_id,
+                                      seg))
+            self.counters["price_signatures"] += 1
+        if silent:
+            return []
+        self._sig_sent, self._sig_next = seg, t_rel + self.sig_cycle
+        return [("ER_PriceSig", raw) for raw in pages(*self._signed)]
 
     def _balance_raw(self) -> list[dict[str, int]]:
         """Every ER_Balance page, in page order, from the ledger's values now."""
@@ -406,6 +441,9 @@ class RouterNode(SimNodeClock):
         return out
 
     def _send(self, name: str, raw: dict[str, int]) -> can.Message:
+        if name == "ER_PriceSig":
+            self.counters["signature_frames"] += 1
+            return self.io.send_transfer(name, raw)
         msg = self.io.send(name, raw)
         self.counters[{"ER_Price": "price_frames", "ER_Command": "command_frames",
                        "ER_Balance": "balance_frames"}[name]] += 1

@@ -29,7 +29,7 @@ from typing import Any
 import can
 import numpy as np
 
-from firmware_py import contract
+from firmware_py import contract, pricesig
 from firmware_py.contract import COUNTER_MODULO, MC_CYCLE_S, TIMEOUT_CYCLES, State
 from firmware_py.errors import ConfigError, FrameError
 from firmware_py.frames import COUNTER_STEP_MAX, FrameCodec, target_agent
@@ -108,6 +108,9 @@ class LogContents:
     # syncs whose MAC verifies but whose boot jumps more than SYNC_BOOT_JUMP_MAX above the
     # sender's (AUTH-27: a key holder's forgery), by name; refused like the nodes refuse them
     sync_jump: Counter[str] = field(default_factory=Counter)
+    # signed_price: ER_Price frames that are not the signed segment's and ER_PriceSig
+    # pages refused (AUTH-32, AUTH-33), left out as the agents leave them out
+    unsigned: Counter[str] = field(default_factory=Counter)
     # genuine syncs that undid such a forged advance within the bound (AUTH-27), by name
     sync_undone: Counter[str] = field(default_factory=Counter)
     syncs: int = 0
@@ -309,6 +312,10 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     monitor = (Monitor(keys, boot_floors, lambda name: cycle_or_inf(name, ts or MC_CYCLE_S))
                if keys else None)
     out.keys_checked = monitor is not None
+    price_sig = None
+    if keys and pricesig.MONITOR_PUBLIC in keys:  # signed_price: the price as agents take it
+        price_sig = pricesig.PriceSigReceiver(keys[pricesig.MONITOR_PUBLIC],
+                                              keys[pricesig.MONITOR_FLEET].hex())
     segment_raw: int | None = None
     segment = 0
     segment_mod = codec.raw_range("ER_Price", "Segment")[1] + 1
@@ -335,8 +342,18 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
             out.outside_run[f.name] += 1
             continue
         kind = codec.kind(f.frame_id)
+        if kind == "transfer":  # ER_PriceSig (signed_price): checked, never a series
+            if price_sig is not None:
+                bad = price_sig.take(f.raw)
+                if bad is not None:
+                    out.unsigned[f.name] += 1
+            continue
         if kind == "sync":
             out.syncs += 1
+        if (price_sig is not None and f.name == "ER_Price"
+                and price_sig.check(f.raw) is not None):
+            out.unsigned[f.name] += 1  # AUTH-33: not the signed price, as at the agents
+            continue
         if monitor is not None:
             try:
                 if kind == "sync":

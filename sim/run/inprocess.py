@@ -17,7 +17,7 @@ from typing import Any
 import can
 
 from dbc import dbc_path
-from firmware_py import contract, secoc
+from firmware_py import contract, pricesig, secoc
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.faultinject import FaultyBus, RxFaults, every_frame, node_seed
 from firmware_py.frames import FrameCodec
@@ -79,6 +79,8 @@ def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
                 cmd[k] += 2 if m == "router" else 1
         if cmd:
             out[contract.command_key_name(i)] = cmd.most_common(1)[0][0]
+    for ring in rings.values():  # signed_price: the router's public price key
+        out.update(pricesig.monitor_entries(ring.price_verify, ring.fleet_id))
     return out
 
 
@@ -148,7 +150,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
         rings = dict(keyrings)
     else:  # a fresh key set, written to DIR/keys as `up` does (for `analyze` later)
         master = secrets.token_bytes(secoc.KEY_BYTES)
-        rings = secoc.Keyring.fleet(master, nodes_)
+        rings = secoc.Keyring.fleet(master, nodes_, signed_price=sc.signed_price)
         key_dir = out / "keys"
         if key_dir.exists():
             shutil.rmtree(key_dir)
@@ -217,6 +219,12 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
             bus.shutdown()
     counters = {role: {"ticks": node.ticks, "counters": dict(node.counters)}
                 for role, node in zip(SIM_NODES, nodes[-2:], strict=True)}
+    if sc.signed_price:  # AUTH-32, AUTH-33: the agents' signature causes (no Diag slot)
+        for name, node in zip(names, nodes, strict=True):
+            if name.startswith("agent_"):
+                c = {k: node.counters[k] for k in (*pricesig.CAUSES, "deadline_miss")
+                     if node.counters.get(k)}
+                counters[name] = {"ticks": node.ticks, "counters": c}
     dropped = {k: v for k, v in recorder.counters.items() if v}
     # left as `up` leaves them, so `analyze DIR` judges this run as it is judged here
     (out / "scenario.toml").write_text(to_toml(sc))

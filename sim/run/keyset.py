@@ -90,13 +90,21 @@ def node_document(sc: Any, master: bytes, node: str, boot: int = 0,
     """``node``'s key file (a TOML document) from the fleet master key: its own key, the
     node keys of its peers (``peers_of``), its link frame and report keys (``frames_of``)
     and its command keys (``commands_of``)."""
-    from firmware_py import secoc
+    from firmware_py import pricesig, secoc
 
+    sign = verify = None
+    if getattr(sc, "signed_price", False):  # AUTH-31: only the router can sign a price
+        seed = secoc.derive_price_sign_key(master)
+        if node == "router":
+            sign = seed
+        else:
+            verify = pricesig.public_key(seed)
     return secoc.node_key_document(
         node, secoc.derive_node_key(master, node), secoc.fleet_id(master), boot,
         {p: secoc.derive_node_key(master, p) for p in peers_of(sc)[node]}, floors,
         {f: secoc.derive_frame_key(master, f) for f in frames_of(sc)[node]},
-        {t: secoc.derive_command_key(master, t) for t in commands_of(sc)[node]})
+        {t: secoc.derive_command_key(master, t) for t in commands_of(sc)[node]},
+        price_sign=sign, price_verify=verify)
 
 
 def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -> None:
@@ -142,6 +150,10 @@ def load_key_set(keys_dir: Path) -> dict[str, bytes]:
         for target, key in k.commands.items():  # AUTH-30
             out.setdefault(contract.command_key_name(int(target.removeprefix("agent_"))), key)
     out.update({k.node: k.key for k in files})
+    from firmware_py import pricesig  # signed_price: the recorder checks the price too
+
+    for k in files:
+        out.update(pricesig.monitor_entries(k.price_verify, k.fleet_id))
     return out
 
 
@@ -299,7 +311,8 @@ def rotate_node_keys(sc: Any, keys_dir: Path, node: str) -> RotatedKeys:
             untouched.append(label)
             continue
         doc = secoc.node_key_document(label, key, k.fleet_id, k.boot_counter, peers,
-                                      k.floors, frames, commands)
+                                      k.floors, frames, commands, k.price_sign,
+                                      k.price_verify)
         secoc.write_private(path, secoc.KEY_FILE_HEADER + tomli_w.dumps(doc))
         rewritten.append(label)
     return RotatedKeys(node, rewritten, untouched)

@@ -56,8 +56,8 @@ _LATE_KINDS = ("deadline_misses", "price_timeout", "status_timeout", "setpoint_t
 # the anomaly kinds most likely to explain a run that did not converge, most likely first
 _CAUSES = ("wrong_keys", "key_mismatch", "node_died", "node_not_started", "no_price",
            "setpoint_inconsistent", "lambda_outlier", "insecure_keys", "impersonation",
-           "auth_failed", "sync_jump", "untrusted_source", "foreign_traffic",
-           "host_overloaded", "agent_safe_at_end",
+           "unsigned_price", "bad_signature", "auth_failed", "sync_jump", "untrusted_source",
+           "foreign_traffic", "host_overloaded", "agent_safe_at_end",
            "agent_init_at_end", "agent_isolated_at_end", "agent_silent", "node_silent",
            "plant_fault", "price_timeout", "status_timeout", "setpoint_timeout",
            "deadline_misses", "bus_silence", "agent_safe", "power_limit")
@@ -114,6 +114,13 @@ _SIM_FAULT_COUNTERS = (
     ("auth", "auth_failed", "secured frames or syncs whose MAC does not verify (forged, "
      "replayed or corrupted)"),
     ("sync_jump", "sync_jump", _SYNC_JUMP),
+    # signed_price (AUTH-32, AUTH-33): an agent's counters, in-process runs
+    ("unsigned_price", "unsigned_price", "ER_Price frames with a valid MAC whose price is not "
+     "the router's signed segment (a key holder's forgery, or before the first signature)"),
+    ("bad_signature", "bad_signature", "ER_PriceSig transfers whose Ed25519 signature does "
+     "not verify, or older than the one held (a replay)"),
+    ("sig_malformed", "rejected_frames", "malformed ER_PriceSig pages (out of order, "
+     "repeated with other bytes, a bad length or range)"),
 )
 
 
