@@ -357,6 +357,8 @@ def test_node_program_refuses_bad_input_with_exit_2(tmp_path: Path) -> None:
     key = _key_file(tmp_path)
     agent_1 = tmp_path / "agent_1.toml"
     agent_1.write_text(BASE)
+    signed = tmp_path / "signed.toml"
+    signed.write_text(cfg.read_text() + "\n[security]\nsigned_price = true\n")
     cases = [
         ((), "expected --config, --channel and exactly one of --key or --insecure"),
         (("--config", str(cfg), "--insecure", "--key", str(key), "--channel", "vcan0"),
@@ -373,6 +375,9 @@ def test_node_program_refuses_bad_input_with_exit_2(tmp_path: Path) -> None:
         (("--config", str(agent_1), "--key", str(key), "--channel", "no-such-can9"),
          "expected the key file of agent_1"),
         (("--config", str(cfg), "--insecure", "--channel", "no-such-can9"), "error: "),
+        # AUTH-31: the signed price is firmware_py's only; never run unsigned
+        (("--config", str(signed), "--insecure", "--channel", "vcan0"),
+         "[security.signed_price] signed_price is not supported by firmware_c yet"),
     ]
     for argv, message in cases:
         res = _node(*argv)

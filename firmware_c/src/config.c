@@ -323,6 +323,15 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
         return -1;
     }
     memset(p, 0, sizeof *p);
+    /* AUTH-31: [security] signed_price is firmware_py's only: refused, never run unsigned */
+    for (int k = 0; k < d.n; ++k) {
+        if (strcmp(d.e[k].table, "security") == 0) {
+            return bd_toml_errorf(&d, "security.signed_price", "signed_price is not "
+                                  "supported by firmware_c yet (the router's signed price, "
+                                  "AUTH-31..33: run this agent with firmware_py, or the "
+                                  "scenario without [security] signed_price)");
+        }
+    }
     /* CFG-1: the tables */
     static const char *const tables[] = {"agent", "controller", "neighbour", "battery",
                                          "timeouts", "limits", "transmit", NULL};

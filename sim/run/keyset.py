@@ -219,7 +219,7 @@ def check_key_set(keys: Path, n: int, sc: Any | None = None) -> str:
     too), format, one fleet, a boot counter left to start with, and the keys of the peers
     it receives from (with ``sc``, whose graph says who that is), so a bad set is a
     ParameterError (--keys) here, never a node refusing its file mid-start; the fleet id."""
-    from firmware_py import secoc
+    from firmware_py import pricesig, secoc
 
     if not keys.is_dir():
         raise ParameterError("--keys", "a key set directory (bess-ded keys --fleet ... --out "
@@ -264,6 +264,18 @@ def check_key_set(keys: Path, n: int, sc: Any | None = None) -> str:
             raise ParameterError("--keys", f"{node}.key with the ER_Command keys of "
                                  f"{', '.join(sc_commands[node])} (AUTH-30)",
                                  f"none for {', '.join(missing)}")
+    if getattr(sc, "signed_price", False):  # AUTH-31: the router signs, the others verify
+        router = loaded["router"]
+        if router.price_sign is None:
+            raise ParameterError("--keys", "router.key with the price signing key of a "
+                                 "signed_price scenario ([price_signature] sign_key; bess-ded "
+                                 "keys --fleet SCENARIO)", "none")
+        public = pricesig.public_key(router.price_sign)
+        if wrong := [node for node, k in loaded.items()
+                     if node != "router" and k.price_verify != public]:
+            raise ParameterError("--keys", "every other key file with the router's public "
+                                 "price key ([price_signature] verify_key, AUTH-31)",
+                                 f"none or another one in {', '.join(wrong)}")
     return fleets.pop()
 
 
