@@ -570,6 +570,13 @@ def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
         out.append(Anomaly("auth_failed", "bus", f"{name}: {k} frames whose MAC does not "
                            "verify with its sender's key (forged, or replayed from an earlier "
                            "window or run); the analysis left them out"))
+    for name, k in sorted(log.unsigned.items()):  # signed_price (AUTH-32, AUTH-33)
+        what = ("frames with a valid layout whose price is not the router's signed segment "
+                "(before the first signature, or a key holder's forgery)"
+                if name == "ER_Price" else "pages refused (malformed, a signature that does "
+                "not verify, or an older one)")
+        out.append(Anomaly("unsigned_price" if name == "ER_Price" else "bad_signature", "bus",
+                           f"{name}: {k} {what}; the analysis left them out"))
     for name, k in sorted(log.sync_jump.items()):
         out.append(Anomaly("sync_jump", "bus", f"{name}: {k} syncs with a valid MAC whose boot "
                            f"counter jumps more than {SYNC_BOOT_JUMP_MAX} above its sender's "

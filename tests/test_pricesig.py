@@ -1,0 +1,241 @@
+"""The router's signed price (``[security] signed_price``; issue 25, item 1, step d-min;
+docs/security.md, firmware-spec AUTH-31..33).
+
+Real parts only: the DBC's ER_PriceSig through the codec, Ed25519 from `cryptography`, the
+key files `bess-ded keys` writes, and whole runs of case 1 on the in-process bus with a
+simulated clock (an insider with agent 3's key file sends on a bus instance of its own).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+from firmware_py import contract, pricesig, secoc
+from firmware_py.frames import FrameCodec
+from firmware_py.nodeio import FleetSender
+from firmware_py.pricesig import PriceSigReceiver, SignedSegment
+from sim.model.scenario import load_case, parse_scenario, to_toml
+from sim.run.busrun import run_in_process
+from sim.run.keyset import check_key_set, write_key_set
+
+CASE = dataclasses.replace(load_case(1), signed_price=True)
+CODEC = FrameCodec()
+MASTER = bytes(range(16))
+DURATION_S = 10.0
+FLEET = secoc.fleet_id(MASTER)
+SEED = secoc.derive_price_sign_key(MASTER)
+PUBLIC = pricesig.public_key(SEED)
+SIG_ID = CODEC.frame_id(pricesig.MESSAGE)
+
+
+def _pages(seg: SignedSegment, signature: bytes) -> list[can.Message]:
+    return [CODEC.encode(pricesig.MESSAGE, raw, 0) for raw in pricesig.pages(seg, signature)]
+
+
+def _feed(rx: PriceSigReceiver, msgs: list[can.Message]) -> list[str]:
+    return [bad[0] for m in msgs if (bad := rx.take(CODEC.decode(m).raw)) is not None]
+
+
+# --------------------------------------------------------------------------- the frames
+
+
+def test_er_price_sig_pages_golden() -> None:
+    """Page 0 carries the signed segment, pages 1..10 the signature 7 bytes each (the last
+    one byte), Intel order, no MAC: the bytes on the wire, fixed here."""
+    seg = SignedSegment(boot=3, number=0x15A, valid=1, rho=round(0.8 * (1 << 24)))
+    signature = bytes(range(64))
+    msgs = _pages(seg, signature)
+    assert [m.arbitration_id for m in msgs] == [0x008] * 11 and all(m.dlc == 8 for m in msgs)
+    # Page 0 | PriceValid << 4 | Segment (0x15A & 7 = 2) << 5; Rho LE; Boot LE; 0x15A >> 3
+    assert msgs[0].data.hex(" ") == "50 cd cc cc 00 03 00 2b"
+    assert msgs[1].data.hex(" ") == "01 00 01 02 03 04 05 06"
+    assert msgs[10].data.hex(" ") == "0a 3f 00 00 00 00 00 00"
+    assert CODEC.kind(0x008) == "transfer" and 0x008 not in contract.SECURED_IDS
+    # the signed bytes: label, fleet, boot, number, valid, ρ (AUTH-31)
+    assert seg.message(FLEET) == (pricesig.SIG_LABEL + bytes.fromhex(FLEET) + b"\x00\x03"
+                                  + b"\x01\x5a" + b"\x01" + b"\x00\xcc\xcc\xcd")
+
+
+def test_a_signature_verifies_once_and_binds_the_price() -> None:
+    rx = PriceSigReceiver(PUBLIC, FLEET)
+    seg = SignedSegment(1, 0, 1, round(0.8 * (1 << 24)))
+    price = {"PriceValid": 1, "Rho": seg.rho, "Segment": 0}
+    assert rx.check(price) is not None  # nothing signed yet
+    assert _feed(rx, _pages(seg, pricesig.sign(SEED, FLEET, seg))) == []
+    assert rx.current == seg and rx.verifications == 1
+    assert rx.check(price) is None
+    assert rx.check({**price, "Rho": seg.rho + 1}) is not None
+    assert rx.check({**price, "Segment": 1}) is not None
+    assert rx.check({**price, "PriceValid": 0}) is not None
+    # the once-a-second repeat costs no verify
+    assert _feed(rx, _pages(seg, pricesig.sign(SEED, FLEET, seg))) == []
+    assert rx.verifications == 1
+    # a newer segment replaces it; the older one replayed is refused (bad_signature)
+    seg2 = SignedSegment(1, 1, 1, seg.rho + 100)
+    assert _feed(rx, _pages(seg2, pricesig.sign(SEED, FLEET, seg2))) == []
+    assert _feed(rx, _pages(seg, pricesig.sign(SEED, FLEET, seg))) == ["bad_signature"]
+    assert rx.current == seg2
+    # a signature of an earlier boot than the router's known one: a replay
+    seg0 = SignedSegment(0, 9, 1, seg.rho)
+    assert [b[0] for m in _pages(seg0, pricesig.sign(SEED, FLEET, seg0))
+            if (b := rx.take(CODEC.decode(m).raw, min_boot=1))] == ["bad_signature"]
+
+
+def test_bad_and_malformed_signatures_are_counted_never_raised() -> None:
+    rx = PriceSigReceiver(PUBLIC, FLEET)
+    seg = SignedSegment(1, 0, 1, 1 << 24)
+    good = pricesig.sign(SEED, FLEET, seg)
+    # another key's signature (e.g. an agent's own Ed25519 key), and a bit flipped
+    other = pricesig.sign(bytes(32), FLEET, seg)
+    assert _feed(rx, _pages(seg, other)) == ["bad_signature"]
+    flipped = bytes([good[0] ^ 1]) + good[1:]
+    assert _feed(rx, _pages(seg, flipped)) == ["bad_signature"]
+    # a valid signature of one segment under another's header
+    lie = SignedSegment(1, 0, 1, 2 << 24)
+    assert _feed(rx, _pages(lie, good)) == ["bad_signature"]
+    assert rx.current is None
+    msgs = _pages(seg, good)
+    # a page without its header; a page repeated with other bytes; a last page too long
+    assert _feed(rx, msgs[1:3]) == ["sig_malformed", "sig_malformed"]
+    other_page = CODEC.encode(pricesig.MESSAGE, {"Page": 2, "Signature": 12345}, 0)
+    assert _feed(rx, [msgs[0], msgs[1], msgs[2], other_page]) == ["sig_malformed"]
+    long_last = CODEC.encode(pricesig.MESSAGE, {"Page": 10, "Signature": 0x1FF}, 0)
+    assert _feed(rx, [msgs[0], long_last]) == ["sig_malformed"]
+    assert rx.current is None
+    assert _feed(rx, msgs) == [] and rx.current == seg  # the genuine transfer still works
+
+
+# --------------------------------------------------------------------------- keys
+
+
+def test_keys_give_the_router_alone_the_signing_key(tmp_path: Path) -> None:
+    """`bess-ded keys` for a signed_price scenario: the router's file holds the Ed25519
+    private key, every other file only its public key; an unsigned scenario's files have
+    neither (as before). Rotation keeps them; `up --keys` checks them."""
+    keys = tmp_path / "keys"
+    keys.mkdir(mode=0o700)
+    write_key_set(CASE, keys, MASTER)
+    router = secoc.load_node_key(keys / "router.key")
+    assert router.price_sign == SEED and router.price_verify is None
+    for node in secoc.fleet_nodes(CASE.n)[:-1]:
+        k = secoc.load_node_key(keys / f"{node}.key")
+        assert k.price_sign is None and k.price_verify == PUBLIC
+        assert SEED.hex() not in (keys / f"{node}.key").read_text()
+    ring = secoc.Keyring.from_file(keys / "agent_3.key")
+    assert ring.price_sign is None and ring.price_verify == PUBLIC
+    check_key_set(keys, CASE.n, CASE)
+    plain = tmp_path / "plain"
+    plain.mkdir(mode=0o700)
+    write_key_set(load_case(1), plain, MASTER)
+    assert "price_signature" not in (plain / "router.key").read_text()
+    with pytest.raises(Exception, match="price signing key"):
+        check_key_set(plain, CASE.n, CASE)
+    # the scenario switch round-trips through its TOML, and reaches every agent's file
+    assert parse_scenario(__import__("tomllib").loads(to_toml(CASE)), "x").signed_price
+    from firmware_py.config import agent_configs_from_scenario, parse_agent_config
+    cfg = agent_configs_from_scenario(CASE)[2]
+    assert "[security]\nsigned_price = true" in cfg.to_toml()
+    assert parse_agent_config(__import__("tomllib").loads(cfg.to_toml()), "x").signed_price
+
+
+# --------------------------------------------------------------------------- runs
+
+
+def _stolen(tmp: Path) -> secoc.NodeKey:
+    keys = tmp / "keys"
+    keys.mkdir(mode=0o700)
+    write_key_set(CASE, keys, MASTER)
+    return secoc.load_node_key(keys / "agent_3.key")
+
+
+def _run(tmp: Path, inject: Callable[[float], list[can.Message]] | None = None
+         ) -> tuple[dict[str, Any], np.ndarray, dict[str, dict[str, int]]]:
+    counters: dict[str, dict[str, int]] = {}
+
+    def observe(t: float, nodes: dict[str, Any]) -> None:
+        for name, node in nodes.items():
+            counters[name] = dict(node.counters)
+
+    rings = secoc.Keyring.fleet(MASTER, secoc.fleet_nodes(CASE.n), signed_price=True)
+    m = run_in_process(CASE, tmp, DURATION_S, channel=f"pricesig-{tmp.name}",
+                       inject=inject, observe=observe, keyrings=rings)
+    return m, np.genfromtxt(tmp / "trajectory.csv", delimiter=",", names=True), counters
+
+
+def _final(tr: np.ndarray) -> tuple[float, np.ndarray]:
+    last = tr[-1]
+    lam = np.array([last[f"lam_{i}"] for i in range(1, CASE.n + 1)])
+    p = np.array([last[f"p_{i}"] for i in range(1, CASE.n + 1)])
+    return float(np.max(np.abs(lam - last["rho"]))), p
+
+
+@pytest.fixture(scope="module")
+def honest(tmp_path_factory: pytest.TempPathFactory) -> np.ndarray:
+    """A healthy signed run of case 1: converged, exit 0, no rejection of any kind."""
+    m, tr, counters = _run(tmp_path_factory.mktemp("honest"))
+    assert m["verdict"]["exit_code"] == 0 and m["verdict"]["converged"], m["verdict"]
+    assert m["anomalies"] == []
+    for i in range(1, CASE.n + 1):
+        c = counters[f"agent_{i}"]
+        assert not any(c.get(k) for k in pricesig.CAUSES), c
+    assert counters["router"]["price_signatures"] == len({p.rho for p in CASE.prices})
+    assert counters["router"]["signature_frames"] >= 11 * DURATION_S
+    return _final(tr)[1]
+
+
+def test_a_healthy_signed_run_converges_with_no_rejection(honest: np.ndarray) -> None:
+    assert honest.shape == (CASE.n,)
+
+
+def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
+                                                       honest: np.ndarray) -> None:
+    """The insider of issue 25 with agent 3's key file: an ER_Price ramp towards ρ = 3
+    under the router's node key (a valid MAC), and ER_PriceSig transfers signed with an
+    Ed25519 key of its own (its file has the router's public key only), plus malformed
+    pages. Every agent refuses every forged price (unsigned_price) and every forged
+    signature (bad_signature, sig_malformed), nothing crashes, the dispatch is the honest
+    run's, and the verdict names the anomalies."""
+    stolen = _stolen(tmp_path)
+    assert stolen.price_sign is None
+    forger = FleetSender(CODEC, keys={"router": stolen.peers["router"]}, boot=1)
+    forger.skip("ER_Price", 2)  # just ahead of the router's count: a MAC that verifies
+    fake = SignedSegment(1, 1, 1, 3 << 24)
+    fake_pages = _pages(fake, pricesig.sign(secoc.derive_price_sign_key(bytes(16)),
+                                            stolen.fleet_id, fake))
+    junk = [CODEC.encode(pricesig.MESSAGE, {"Page": 7, "Signature": 1}, 0),
+            can.Message(arbitration_id=SIG_ID, is_extended_id=False, data=b"\x00\x01")]
+
+    def inject(t: float) -> list[can.Message]:
+        k = round(t / CASE.ts)
+        if t < 2.0:
+            return []
+        out: list[can.Message] = []
+        if k % 100 == 0:
+            out += fake_pages + junk
+        if k % 5 == 0:
+            rho = min(3.0, 0.8 + 0.05 * (k - 200) / 5)
+            out.append(forger.frame("ER_Price", {"PriceValid": 1, "Segment": 1,
+                                                 "Rho": round(rho * (1 << 24))}))
+        return out
+
+    m, tr, counters = _run(tmp_path / "run", inject)
+    for i in range(1, CASE.n + 1):
+        c = counters[f"agent_{i}"]
+        assert c["unsigned_price"] >= 150 and c["bad_signature"] >= 8, c
+        assert c["sig_malformed"] >= 16, c
+        assert c.get("implausible_price", 0) == 0  # refused before the safety model
+    err, p = _final(tr)
+    assert err < 1e-3
+    assert np.max(np.abs(p - honest)) < 1.0, (p, honest)
+    named = {(a["kind"], a["node"]) for a in m["anomalies"]}
+    assert {("unsigned_price", f"agent_{i}") for i in range(1, CASE.n + 1)} <= named
+    assert {("bad_signature", f"agent_{i}") for i in range(1, CASE.n + 1)} <= named
+    assert ("unsigned_price", "bus") in named and ("impersonation", "router") in named
+    assert m["verdict"]["converged"] and m["verdict"]["exit_code"] != 0, m["verdict"]
