@@ -239,3 +239,15 @@ def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
     assert {("bad_signature", f"agent_{i}") for i in range(1, CASE.n + 1)} <= named
     assert ("unsigned_price", "bus") in named and ("impersonation", "router") in named
     assert m["verdict"]["converged"] and m["verdict"]["exit_code"] != 0, m["verdict"]
+
+
+def test_price_sign_key_kdf_as_documented() -> None:
+    """AUTH-31: the seed is AUTH-1's KDF for 256 bits (two CMAC blocks, counters 1 and 2)
+    under its own label, and its public key is what every other file holds."""
+    fixed = b"bess-ded/price-sign-key/v1" + b"\x00" + b"router" + (256).to_bytes(4, "big")
+    blocks = [secoc.cmac_aes128(MASTER, i.to_bytes(4, "big") + fixed) for i in (1, 2)]
+    assert SEED == b"".join(blocks)
+    assert SEED[:16] not in {secoc.derive_node_key(MASTER, n)
+                             for n in secoc.fleet_nodes(CASE.n)}
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+    assert PUBLIC == Ed25519PrivateKey.from_private_bytes(SEED).public_key().public_bytes_raw()
