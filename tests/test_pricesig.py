@@ -33,6 +33,7 @@ FLEET = secoc.fleet_id(MASTER)
 SEED = secoc.derive_price_sign_key(MASTER)
 PUBLIC = pricesig.public_key(SEED)
 SIG_ID = CODEC.frame_id(pricesig.MESSAGE)
+ROUTER_NEXT = [0]  # the router's next ER_Price count (observe), for a forger in step with it
 
 
 def _pages(seg: SignedSegment, signature: bytes) -> list[can.Message]:
@@ -162,6 +163,7 @@ def _run(tmp: Path, inject: Callable[[float], list[can.Message]] | None = None
     def observe(t: float, nodes: dict[str, Any]) -> None:
         for name, node in nodes.items():
             counters[name] = dict(node.counters)
+        ROUTER_NEXT[0] = nodes["router"].io._tx_count[contract.ER_PRICE_ID]
 
     rings = secoc.Keyring.fleet(MASTER, secoc.fleet_nodes(CASE.n), signed_price=True)
     m = run_in_process(CASE, tmp, DURATION_S, channel=f"pricesig-{tmp.name}",
@@ -205,7 +207,7 @@ def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
     stolen = _stolen(tmp_path)
     assert stolen.price_sign is None
     forger = FleetSender(CODEC, keys={"router": stolen.peers["router"]}, boot=1)
-    forger.skip("ER_Price", 2)  # just ahead of the router's count: a MAC that verifies
+    forged: list[can.Message] = []
     fake = SignedSegment(1, 1, 1, 3 << 24)
     fake_pages = _pages(fake, pricesig.sign(secoc.derive_price_sign_key(bytes(16)),
                                             stolen.fleet_id, fake))
@@ -221,11 +223,19 @@ def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
             out += fake_pages + junk
         if k % 5 == 0:
             rho = min(3.0, 0.8 + 0.05 * (k - 200) / 5)
+            # the router's next count, with its boot: what an unsigned receiver would take
+            forger._count[contract.ER_PRICE_ID] = ROUTER_NEXT[0] - 1
             out.append(forger.frame("ER_Price", {"PriceValid": 1, "Segment": 1,
                                                  "Rho": round(rho * (1 << 24))}))
+            forged.append(out[-1])
         return out
 
     m, tr, counters = _run(tmp_path / "run", inject)
+    # each forged price carries a MAC under the router's node key and the freshness
+    # value the router's next frame takes (boot 1 in this key set's first run)
+    last = forged[-1]
+    fv = contract.FRESHNESS.join(1, forger._count[contract.ER_PRICE_ID])
+    assert secoc.frame_verifies(stolen.peers["router"], contract.ER_PRICE_ID, last.data, fv)
     for i in range(1, CASE.n + 1):
         c = counters[f"agent_{i}"]
         assert c["unsigned_price"] >= 150 and c["bad_signature"] >= 8, c
