@@ -85,6 +85,7 @@ class SignedSegment:
         return (self.number - other.number) % SEGMENT_MOD < SEGMENT_MOD // 2
 
     def describe(self) -> str:
+        """The segment in words, for a log line."""
         return (f"boot {self.boot}, segment {self.number}, PriceValid {self.valid}, "
                 f"ρ {self.rho / (1 << 24):.6g}")
 

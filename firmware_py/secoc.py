@@ -686,7 +686,8 @@ def save_boot_counter(path: Path | str, boot: int) -> None:
         raise SecOCError(f"{path}: boot counter must not go back ({current.boot_counter} "
                          f"→ {boot})")
     doc = node_key_document(current.node, current.key, current.fleet_id, boot, current.peers,
-                            current.floors, current.frames, current.commands)
+                            current.floors, current.frames, current.commands,
+                            current.price_sign, current.price_verify)
     write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
@@ -703,7 +704,7 @@ def save_floors(path: Path | str, floors: Mapping[str, int]) -> None:
             merged[peer] = max(merged.get(peer, 0), boot)
     doc = node_key_document(current.node, current.key, current.fleet_id,
                             current.boot_counter, current.peers, merged, current.frames,
-                            current.commands)
+                            current.commands, current.price_sign, current.price_verify)
     write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 

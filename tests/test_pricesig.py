@@ -131,6 +131,11 @@ def test_keys_give_the_router_alone_the_signing_key(tmp_path: Path) -> None:
         assert SEED.hex() not in (keys / f"{node}.key").read_text()
     ring = secoc.Keyring.from_file(keys / "agent_3.key")
     assert ring.price_sign is None and ring.price_verify == PUBLIC
+    # every rewrite of a file (a start's boot counter, `up`'s floors) keeps them
+    secoc.Keyring.from_file(keys / "router.key").new_boot()
+    secoc.save_floors(keys / "agent_3.key", {"router": 2})
+    assert secoc.load_node_key(keys / "router.key").price_sign == SEED
+    assert secoc.load_node_key(keys / "agent_3.key").price_verify == PUBLIC
     check_key_set(keys, CASE.n, CASE)
     plain = tmp_path / "plain"
     plain.mkdir(mode=0o700)
