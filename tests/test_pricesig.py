@@ -266,3 +266,27 @@ def test_price_sign_key_kdf_as_documented() -> None:
                              for n in secoc.fleet_nodes(CASE.n)}
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
     assert PUBLIC == Ed25519PrivateKey.from_private_bytes(SEED).public_key().public_bytes_raw()
+
+
+def test_each_price_segment_is_signed_before_its_first_price(tmp_path: Path) -> None:
+    """Case 1 with case 5's price steps (0.8, 1.0 at 3 s, 0.6 at 6 s): the router signs
+    each segment once and sends it before that segment's first ER_Price, so no agent
+    refuses a genuine price at a step, and the run converges at the last price."""
+    sc = dataclasses.replace(CASE, prices=(
+        dataclasses.replace(CASE.prices[0]), *(dataclasses.replace(CASE.prices[0], t=t, rho=r)
+                                              for t, r in ((3.0, 1.0), (6.0, 0.6)))))
+    counters: dict[str, dict[str, int]] = {}
+
+    def observe(t: float, nodes: dict[str, Any]) -> None:
+        for name, node in nodes.items():
+            counters[name] = dict(node.counters)
+
+    rings = secoc.Keyring.fleet(MASTER, secoc.fleet_nodes(sc.n), signed_price=True)
+    m = run_in_process(sc, tmp_path, DURATION_S, channel=f"pricesig-steps-{tmp_path.name}",
+                       observe=observe, keyrings=rings)
+    assert m["verdict"]["exit_code"] == 0, (m["verdict"], m["anomalies"])
+    assert counters["router"]["price_signatures"] == 3
+    for i in range(1, sc.n + 1):
+        assert not any(counters[f"agent_{i}"].get(k) for k in pricesig.CAUSES)
+    err, _ = _final(np.genfromtxt(tmp_path / "trajectory.csv", delimiter=",", names=True))
+    assert err < 1e-3
