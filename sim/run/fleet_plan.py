@@ -111,6 +111,10 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
         fleet = check_key_set(keys, sc.n, sc)
         say(f"  keys: {keys}/ (fleet id {fleet})")
     elif insecure:
+        if sc.signed_price:  # AUTH-31: the demo keys hold no price signing key
+            raise ParameterError("--insecure", "a key set for a [security] signed_price "
+                                 "scenario (the router's price signing key is in its key "
+                                 "file): drop --insecure", "--insecure")
         say("  keys: INSECURE (--insecure): the public demo key, anyone on the bus can "
             "forge frames")
     else:
