@@ -161,8 +161,8 @@ def _stolen(tmp: Path) -> secoc.NodeKey:
     return secoc.load_node_key(keys / "agent_3.key")
 
 
-def _run(tmp: Path, inject: Callable[[float], list[can.Message]] | None = None
-         ) -> tuple[dict[str, Any], np.ndarray, dict[str, dict[str, int]]]:
+def _run(tmp: Path, inject: Callable[[float], list[can.Message]] | None = None,
+         signed: bool = True) -> tuple[dict[str, Any], np.ndarray, dict[str, dict[str, int]]]:
     counters: dict[str, dict[str, int]] = {}
 
     def observe(t: float, nodes: dict[str, Any]) -> None:
@@ -170,8 +170,9 @@ def _run(tmp: Path, inject: Callable[[float], list[can.Message]] | None = None
             counters[name] = dict(node.counters)
         ROUTER_NEXT[0] = nodes["router"].io._tx_count[contract.ER_PRICE_ID]
 
-    rings = secoc.Keyring.fleet(MASTER, secoc.fleet_nodes(CASE.n), signed_price=True)
-    m = run_in_process(CASE, tmp, DURATION_S, channel=f"pricesig-{tmp.name}",
+    sc = CASE if signed else load_case(1)
+    rings = secoc.Keyring.fleet(MASTER, secoc.fleet_nodes(CASE.n), signed_price=signed)
+    m = run_in_process(sc, tmp, DURATION_S, channel=f"pricesig-{tmp.name}",
                        inject=inject, observe=observe, keyrings=rings)
     return m, np.genfromtxt(tmp / "trajectory.csv", delimiter=",", names=True), counters
 
@@ -201,6 +202,18 @@ def test_a_healthy_signed_run_converges_with_no_rejection(honest: np.ndarray) ->
     assert honest.shape == (CASE.n,)
 
 
+def _ramp(forger: FleetSender, forged: list[can.Message]) -> list[can.Message]:
+    """The forged price ramp's frame of this sample: from ρ = 0.8 at 2 s towards 3
+    cu/kWh, +0.05 per price cycle, under the router's node key with the freshness value
+    of the router's next frame (what an unsigned receiver takes)."""
+    k = len(forged)
+    rho = min(3.0, 0.8 + 0.05 * k)
+    forger._count[contract.ER_PRICE_ID] = ROUTER_NEXT[0] - 1
+    forged.append(forger.frame("ER_Price", {"PriceValid": 1, "Segment": 1,
+                                            "Rho": round(rho * (1 << 24))}))
+    return [forged[-1]]
+
+
 def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
                                                        honest: np.ndarray) -> None:
     """The insider of issue 25 with agent 3's key file: an ER_Price ramp towards ρ = 3
@@ -227,12 +240,7 @@ def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
         if k % 100 == 0:
             out += fake_pages + junk
         if k % 5 == 0:
-            rho = min(3.0, 0.8 + 0.05 * (k - 200) / 5)
-            # the router's next count, with its boot: what an unsigned receiver would take
-            forger._count[contract.ER_PRICE_ID] = ROUTER_NEXT[0] - 1
-            out.append(forger.frame("ER_Price", {"PriceValid": 1, "Segment": 1,
-                                                 "Rho": round(rho * (1 << 24))}))
-            forged.append(out[-1])
+            out += _ramp(forger, forged)
         return out
 
     m, tr, counters = _run(tmp_path / "run", inject)
@@ -290,3 +298,21 @@ def test_each_price_segment_is_signed_before_its_first_price(tmp_path: Path) -> 
         assert not any(counters[f"agent_{i}"].get(k) for k in pricesig.CAUSES)
     err, _ = _final(np.genfromtxt(tmp_path / "trajectory.csv", delimiter=",", names=True))
     assert err < 1e-3
+
+
+def test_without_signed_price_the_same_ramp_is_taken(tmp_path: Path,
+                                                     honest: np.ndarray) -> None:
+    """The control: the same forged ramp against an unsigned fleet (the default) is taken
+    by the agents (its MAC and freshness hold), and the batteries leave the honest
+    dispatch by far more than 1 kW (issue 25's forged price)."""
+    stolen = _stolen(tmp_path)
+    forger = FleetSender(CODEC, keys={"router": stolen.peers["router"]}, boot=1)
+    forged: list[can.Message] = []
+
+    def inject(t: float) -> list[can.Message]:
+        return _ramp(forger, forged) if t >= 2.0 and round(t / CASE.ts) % 5 == 0 else []
+
+    _, tr, counters = _run(tmp_path / "run", inject, signed=False)
+    assert not any(counters["agent_1"].get(k) for k in pricesig.CAUSES)
+    _, p = _final(tr)
+    assert np.max(np.abs(p - honest)) > 10.0, (p, honest)
