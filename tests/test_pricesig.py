@@ -276,11 +276,13 @@ def test_price_sign_key_kdf_as_documented() -> None:
     assert PUBLIC == Ed25519PrivateKey.from_private_bytes(SEED).public_key().public_bytes_raw()
 
 
-def test_each_price_segment_is_signed_before_its_first_price(tmp_path: Path) -> None:
+@pytest.mark.parametrize("fd", [False, True], ids=["classic", "fd"])
+def test_each_price_segment_is_signed_before_its_first_price(tmp_path: Path, fd: bool) -> None:
     """Case 1 with case 5's price steps (0.8, 1.0 at 3 s, 0.6 at 6 s): the router signs
     each segment once and sends it before that segment's first ER_Price, so no agent
-    refuses a genuine price at a step, and the run converges at the last price."""
-    sc = dataclasses.replace(CASE, prices=(
+    refuses a genuine price at a step, and the run converges at the last price; on
+    classic CAN and on the FD twin (the same 8-byte pages as FD frames)."""
+    sc = dataclasses.replace(CASE, fd=fd, prices=(
         dataclasses.replace(CASE.prices[0]), *(dataclasses.replace(CASE.prices[0], t=t, rho=r)
                                               for t, r in ((3.0, 1.0), (6.0, 0.6)))))
     counters: dict[str, dict[str, int]] = {}
