@@ -63,6 +63,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"bess-ded keys: {len(nodes)} node keys for {sc.name} ({sc.n} agents, plant, "
           f"router), fleet id {ks.fleet_id}, in {out}/")
     print(f"  {', '.join(f'{n}.key' for n in nodes)} (0600, directory 0700)")
+    if getattr(sc, "signed_price", False):  # AUTH-31
+        print("  signed_price: router.key holds the Ed25519 price signing key, every other "
+              "file only its public key")
     if stale:
         print(f"  removed {len(stale)} key file(s) of the previous set: "
               + ", ".join(p.name for p in stale))
