@@ -262,6 +262,8 @@ def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
     assert {("bad_signature", f"agent_{i}") for i in range(1, CASE.n + 1)} <= named
     assert ("unsigned_price", "bus") in named and ("impersonation", "router") in named
     assert m["verdict"]["converged"] and m["verdict"]["exit_code"] != 0, m["verdict"]
+    for line in m["node_summaries"][:CASE.n]:  # each agent's exit summary says it too
+        assert "bad_signature=8" in line and "unsigned_price=" in line, line
 
 
 def test_price_sign_key_kdf_as_documented() -> None:
