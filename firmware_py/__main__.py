@@ -11,6 +11,7 @@ import argparse
 import logging
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from .cliargs import duration_s, float_in, int_in, probability
 from .config import load_agent_config
@@ -28,6 +29,9 @@ from .nodeargs import (
     set_realtime,
 )
 
+if TYPE_CHECKING:
+    from .runtime import AgentRuntime
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The agent program's flags: --config, the key, bus and filter flags,
@@ -42,6 +46,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_filter_argument(p)
     p.add_argument("--duration", type=duration_s(), default=None, metavar="S",
                    help="stop after S seconds")
+    p.add_argument("--counters-dir", default=None, metavar="DIR",
+                   help="at exit, write each agent's signed-price counters (signed_price: "
+                   "unsigned_price, bad_signature, sig_malformed; no Diag slot), its "
+                   "deadline misses and ticks to DIR/agent_<id>.counters.json, for the run's "
+                   "verdict")
     add_rt_argument(p)
     t = p.add_argument_group("fault injection on received MC frames (tests and HIL rigs)")
     t.add_argument("--inject-rx-loss", type=probability, default=0.0, metavar="P",
@@ -105,6 +114,8 @@ def run_agent(args: argparse.Namespace) -> int:
         bus.shutdown()
         for agent in agents:
             print(agent.summary(), file=sys.stderr, flush=True)
+        if args.counters_dir is not None:
+            _write_counters(agents, args.counters_dir)
         if len(agents) > 1:  # what a host costs, for sizing K (docs/performance.md)
             wall, cpu = time.monotonic() - wall, time.process_time() - cpu
             print(f"host of agents {', '.join(str(c.id) for c in configs)}: {cpu:.1f} s of "
@@ -113,6 +124,21 @@ def run_agent(args: argparse.Namespace) -> int:
         if isinstance(node_bus, FaultyBus):
             print(node_bus.summary(f"agent {configs[0].id}"), file=sys.stderr, flush=True)
     return 0
+
+
+def _write_counters(agents: list[AgentRuntime], directory: str) -> None:
+    """The counters the verdict cannot read from AGENT_<i>_Diag (the signed price's) and
+    the deadline misses, with the ticks, as DIR/agent_<id>.counters.json."""
+    import json
+    from pathlib import Path
+
+    from .contract import SIGNED_PRICE_COUNTERS
+
+    for agent in agents:
+        c = {k: agent.counters[k] for k in (*SIGNED_PRICE_COUNTERS, "deadline_miss")
+             if agent.counters.get(k)}
+        Path(directory, f"agent_{agent.cfg.id}.counters.json").write_text(
+            json.dumps({"ticks": agent.ticks, "counters": c}) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:

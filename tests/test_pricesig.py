@@ -320,3 +320,40 @@ def test_without_signed_price_the_same_ramp_is_taken(tmp_path: Path,
     assert not any(counters["agent_1"].get(k) for k in pricesig.CAUSES)
     _, p = _final(tr)
     assert np.max(np.abs(p - honest)) > 10.0, (p, honest)
+
+
+def test_process_runs_carry_the_agents_signature_counters_to_the_verdict(
+        tmp_path: Path) -> None:
+    """`up` starts each Python agent of a signed scenario with --counters-dir DIR/logs (no
+    Diag slot carries these counters); the files it writes at exit are read back with the
+    plant's and router's, and the verdict names the causes per agent. An unsigned scenario's
+    argv is as before."""
+    import json
+
+    from firmware_py.__main__ import _write_counters
+    from firmware_py.config import agent_configs_from_scenario
+    from firmware_py.runtime import AgentRuntime
+    from sim.run.buslog import LogContents
+    from sim.run.busopts import BusOptions
+    from sim.run.nodeprocs import node_specs, sim_node_counters
+    from sim.run.verdict import RunFacts, _counters
+
+    bus = BusOptions("udp_multicast")
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    signed = node_specs(CASE, tmp_path / "s.toml", tmp_path, bus, rt_priority=0)
+    plain = node_specs(load_case(1), tmp_path / "s.toml", tmp_path, bus, rt_priority=0)
+    for spec in signed:
+        assert ("--counters-dir" in spec.argv) == spec.name.startswith("agent_"), spec
+    assert not any("--counters-dir" in spec.argv for spec in plain)
+    ring = secoc.Keyring.fleet(MASTER, ["agent_2"], signed_price=True)["agent_2"]
+    agent = AgentRuntime(agent_configs_from_scenario(CASE)[1], CODEC, keys=ring)
+    agent.counters["unsigned_price"] += 7
+    agent.counters["auth"] += 1  # a Diag counter: not written (the Diag carries it)
+    _write_counters([agent], str(logs))
+    read = sim_node_counters(tmp_path)
+    assert read == {"agent_2": {"ticks": 0, "counters": {"unsigned_price": 7}}}
+    assert json.loads((logs / "agent_2.counters.json").read_text())["ticks"] == 0
+    found: list[Any] = []
+    _counters(CASE, LogContents(), RunFacts(node_counters=read), found)
+    assert [(a.kind, a.node) for a in found] == [("unsigned_price", "agent_2")]

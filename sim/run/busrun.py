@@ -208,6 +208,8 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
     logdir.mkdir(exist_ok=True)
     for role in SIM_NODES:  # a previous run's, in a reused DIR
         counters_path(out, role).unlink(missing_ok=True)
+    for path in logdir.glob("agent_*.counters.json"):  # signed_price's (--counters-dir)
+        path.unlink()
     run_facts_path(out).unlink(missing_ok=True)
     codec = FrameCodec(dbc_path(sc.fd))
     key_dir = None if insecure else keys or provision_keys(sc, out / "keys")

@@ -97,6 +97,8 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
     cfg_dir = out / "agents"
     cfg_dir.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m"]
+    # signed_price: the agents' counters of it have no Diag slot, so they write them at exit
+    counters = ["--counters-dir", str(out / "logs")] if sc.signed_price else []
     specs = []
     hosted: list[tuple[str, list[str]]] = []   # (agent, its --config and key flags)
     for cfg in agent_configs_from_scenario(sc):
@@ -115,7 +117,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
             continue
         if agents_per_process == 1:
             specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)
-                                  + bus_argv + rt + extra.get(name, [])))
+                                  + bus_argv + rt + counters + extra.get(name, [])))
         elif extra.get(name):
             raise BusRunError(f"{name}: an agent of a host process (agents per process "
                               f"{agents_per_process}) takes no fault-injection flags")
@@ -125,7 +127,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
         group = hosted[k:k + agents_per_process]
         specs.append(NodeSpec(f"host_{k // agents_per_process + 1}",
                               py + ["firmware_py"] + [a for _, argv in group for a in argv]
-                              + bus_argv + rt, members=tuple(n for n, _ in group)))
+                              + bus_argv + rt + counters, members=tuple(n for n, _ in group)))
     for role in SIM_NODES:
         if role in exclude:
             continue
@@ -144,8 +146,12 @@ def counters_path(out: Path, role: str) -> Path:
 def sim_node_counters(out: Path) -> dict[str, Any]:
     """The plant's and router's ticks and counters, for those that wrote them (a node
     that was SIGKILLed did not)."""
-    return {role: json.loads(path.read_text()) for role in SIM_NODES
+    out_ = {role: json.loads(path.read_text()) for role in SIM_NODES
             if (path := counters_path(out, role)).is_file()}
+    # signed_price: the Python agents' counters of it (firmware_py --counters-dir)
+    for path in sorted((out / "logs").glob("agent_*.counters.json")):
+        out_[path.name.removesuffix(".counters.json")] = json.loads(path.read_text())
+    return out_
 
 
 def start(spec: NodeSpec, logdir: Path) -> None:
