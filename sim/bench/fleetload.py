@@ -317,28 +317,22 @@ SCENARIO_HEADERS = ["scenario", "agents", "λ", "Ts [ms]", "run [s]", "MC ratio 
 
 
 def scenario_load(sc: Any) -> dict[str, Any]:
-    """The computed bus load of scenario ``sc``'s fleet at its Ts on classic CAN and on
-    CAN FD: every frame of the DBC at its cycle, the MC frames × the lockstep's ratio
-    event / periodic of ``sc`` over its whole run for ``transmit = "event"`` (as
-    ``run_bus_load``, which measures the ratio only when the periodic load does not fit).
-    ``load`` is the figure on the scenario's own bus (``[bus] fd``)."""
-    fleet = Fleet(sc.name, sc.n, sc)
-    msgs = fleet_frames(fleet, sc.ts)
-    event = sc.transmit.mode == "event"
-    ratio = event_ratio(sc, sc.name, sc.transmit) if event else None
+    """Scenario ``sc``'s fleet at its Ts on classic CAN and CAN FD (``load``: on its own
+    bus): every DBC frame at its cycle, for ``transmit = "event"`` the MC frames × ``sc``'s
+    lockstep ratio over its run (``run_bus_load`` measures it only when needed)."""
+    fleet, event = Fleet(sc.name, sc.n, sc), sc.transmit.mode == "event"
+    msgs, ratio = fleet_frames(fleet, sc.ts), (event_ratio(sc, sc.name, sc.transmit)
+                                               if event else None)
     loads = {}
-    for fd in (False, True):
-        cfg = next(c for c in CONFIGS if c.fd == fd
-                   and c.mc == ("whole" if event else "periodic"))
+    for cfg in (c for c in CONFIGS if c.mc == ("whole" if event else "periodic")):
         got = config_load(cfg, fleet, ratio, msgs=msgs)
         assert got is not None
-        loads["fd" if fd else "classic"] = got["load"]
+        loads["fd" if cfg.fd else "classic"] = got["load"]
     own = loads["fd" if sc.fd else "classic"]
     return {"scenario": sc.name, "source": str(sc.source), "agents": sc.n, "fd": sc.fd,
             "transmit": sc.transmit.mode, "ts_s": sc.ts, "duration_s": sc.duration,
-            "mc_ratio": 1.0 if ratio is None else ratio.whole,
-            "load_classic": loads["classic"], "load_fd": loads["fd"], "load": own,
-            "fits": own <= LOAD_LIMIT}
+            "mc_ratio": 1.0 if ratio is None else ratio.whole, "load_classic":
+            loads["classic"], "load_fd": loads["fd"], "load": own, "fits": own <= LOAD_LIMIT}
 
 
 def scenario_rows(runs: list[dict[str, Any]]) -> list[list[str]]:
@@ -347,9 +341,8 @@ def scenario_rows(runs: list[dict[str, Any]]) -> list[list[str]]:
         return f"{100 * x:.1f} %" + ("*" if x > LOAD_LIMIT else "")
     return [[r["scenario"], str(r["agents"]), r["transmit"], f"{1e3 * r['ts_s']:g}",
              f"{r['duration_s']:g}", f"{r['mc_ratio']:.3f}", pct(r["load_classic"]),
-             pct(r["load_fd"]),
-             f"{'FD' if r['fd'] else 'classic'}: {'yes' if r['fits'] else 'no'}"]
-            for r in runs]
+             pct(r["load_fd"]), f"{'FD' if r['fd'] else 'classic'}: "
+             + ("yes" if r["fits"] else "no")] for r in runs]
 
 
 def packed(msgs: list[Message]) -> list[Message]:
