@@ -186,14 +186,15 @@ def log_format(path: Path) -> bool | None:
     frames, False when all classic; None when it has none, mixes them, or is not a log
     (``report`` then names the problem)."""
     import itertools
+    from collections import Counter
 
-    import can
+    from sim.run.buslog import read_frames
 
     try:
         frames = [m.is_fd for m in itertools.islice(
-            (m for m in can.LogReader(str(path))
+            (m for m in read_frames(path, Counter())
              if not (m.is_error_frame or m.is_remote_frame)), FORMAT_PEEK)]
-    except (OSError, ValueError, EOFError):  # report() reads it again and names it
+    except (OSError, ConfigError):  # report() reads it again and names it
         return None
     return frames[0] if frames and len(set(frames)) == 1 else None
 
