@@ -112,6 +112,7 @@ JOIN_FRACTION = 2 * HELLO_FRACTION
 LOST_WINDOWS = 8      # freshness windows tried after a sender timed out (8·16 frames)
 STALE_WINDOWS = 1     # past windows tried before a frame is called forged (16 values)
 _FV_WINDOW = 1 << contract.FV_TX_BITS
+LOST_SEARCH_COUNTS = LOST_WINDOWS * _FV_WINDOW  # the counts a receiver's widest search covers
 _COUNT_MAX = contract.FRESHNESS.max_counter
 
 
@@ -201,6 +202,8 @@ class NodeIO:
         self._hello_due = False
         self.join_s = JOIN_FRACTION * sync_s if join_s is None else join_s
         self._join_until: float | None = None      # None: before its hello
+        self._resync_after: dict[int, int] = {}    # own ID -> counts that make a sync due
+        self._count_at_sync = dict(self._tx_count)
         # input ID -> the newest sync's FV while joining; None: joined
         self._joining: dict[int, int] | None = {} if self.join_s > 0 else None
         # SecOC, receive: the verification key and freshness state of each secured ID
@@ -647,10 +650,22 @@ class NodeIO:
         them): the known IDs, the verification keys and sync IDs."""
         return (self._known, self._verify_key, self._sync_key, self._synced_by)
 
+    def resync_after(self, name: str, counts: int) -> None:
+        """Make this node's syncs due as soon as own message ``name`` has been sent
+        ``counts`` times since its last sync: for a frame receivers verify only in part
+        (AUTH-30: an agent checks the commands to it only, so the router's count moves
+        unseen in between and must be re-announced before it passes the receivers'
+        LOST_WINDOWS search)."""
+        self._resync_after[self.codec.frame_id(name)] = counts
+
     def syncs(self, t: float) -> list[can.Message]:
         """The ``<name>_Sync`` frames due at ``t``: all of them at the first call, every
-        ``sync_s``, and when a peer (re)started (at most every HELLO_FRACTION·sync_s)."""
+        ``sync_s``, when a peer (re)started (at most every HELLO_FRACTION·sync_s), and
+        when an own message sent ``resync_after`` times since the last sync."""
         due = self._sync_next is None or t >= self._sync_next
+        if any(self._tx_count[f] - self._count_at_sync[f] >= n
+               for f, n in self._resync_after.items()):
+            due = True
         if self._hello_due and t >= self._hello_after:
             due = True
         if self._join_until is None:
@@ -658,6 +673,7 @@ class NodeIO:
         if not due:
             return []
         self.syncs_sent_at(t)
+        self._count_at_sync = dict(self._tx_count)
         out = []
         for fid, count in self._tx_count.items():
             sync_id = contract.SYNC_OF[fid]
@@ -742,6 +758,7 @@ class NodeIO:
         if count > _COUNT_MAX:  # 2^24 frames on one ID: a new boot, synced at once
             self.boot = self.keys.new_boot()
             self._tx_count = dict.fromkeys(self._tx_count, 0)
+            self._count_at_sync = dict(self._tx_count)
             self._sync_next, count = None, 0
         msg = self.codec.encode(name, raw, count % _FV_WINDOW)
         key = (self._command_key(target_agent(raw["Target"])) if fid == contract.ER_COMMAND_ID

@@ -633,6 +633,7 @@ def load_node_key(path: Path | str) -> NodeKey:
     peers = _key_table(doc, "peers", "node", check_node_name, path)
     frames = _key_table(doc, "frame_keys", "message", check_frame_name, path)
     commands = _key_table(doc, "command_keys", "target", check_target, path)
+    _check_own_keys(node, frames, commands, path)  # type: ignore[arg-type]
     senders = set(peers) | _frame_senders(frames)
     floors = doc.get("floors", {})
     if not isinstance(floors, dict) or any(
@@ -668,6 +669,28 @@ def _price_keys(doc: dict, path: Path) -> tuple[bytes | None, bytes | None]:
     if name == "sign_key":
         return raw, None
     return None, raw
+
+
+def _check_own_keys(node: str, frames: Mapping[str, bytes], commands: Mapping[str, bytes],
+                    path: Path) -> None:
+    """A node's file holds only the frame keys of the frames it sends or receives
+    (AUTH-28, AUTH-29) and the command keys of the commands to itself (the router: to
+    every agent; AUTH-30), as firmware_c's loader checks: a key beyond them would let the
+    node speak for another, so a file with one is refused, not trimmed silently."""
+    from . import contract  # contract imports this module
+
+    foreign = sorted(f for f in frames if f not in contract.KEYED_FRAMES
+                     or node not in contract.parties_of(f))
+    if foreign:
+        raise KeyFileError(f"{path}: [frame_keys] expected the keys of the frames {node} "
+                           f"sends or receives only, but got {', '.join(foreign)} "
+                           "(re-provision with bess-ded keys)")
+    others = sorted(t for t in commands if node not in (t, "router"))
+    if others:
+        raise KeyFileError(f"{path}: [command_keys] expected "
+                           f"{'the key of ' + node if node.startswith('agent_') else 'none'} "
+                           f"only, but got {', '.join(others)} (re-provision with "
+                           "bess-ded keys)")
 
 
 def _frame_senders(frames: Mapping[str, bytes]) -> set[str]:

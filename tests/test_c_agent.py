@@ -529,13 +529,15 @@ def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once
 # --------------------------------------------------------------------------- conformance
 
 
-@pytest.mark.parametrize("case,dut,jitter,filtered", [(1, 3, 0.0, False), (1, 1, 0.9, True),
-                                                      (7, 5, 0.5, False)])
+@pytest.mark.parametrize("case,dut,jitter,filtered,fd", [(1, 3, 0.0, False, False),
+                                                         (1, 1, 0.9, True, True),
+                                                         (7, 5, 0.5, False, False)])
 def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter: float,
-                                                     filtered: bool) -> None:
+                                                     filtered: bool, fd: bool) -> None:
     """`bess-ded conformance`'s whole schedule (sim.conformance: 1350 ticks, the
     requirements) played against the C agent on a simulated clock, with late ticks and
-    frames, and behind its acceptance filter: every requirement passes."""
+    frames, and behind its acceptance filter: every requirement passes; on a CAN FD bus
+    too (``fd``: `bess-ded conformance --fd`, the C agent's --fd)."""
     from sim import conformance as conf
     from sim.model.scenario import load_case
 
@@ -550,10 +552,13 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     def ring() -> Keyring:
         return Keyring(node, keys[node], 0, lambda _b: None, master=MASTER)
 
-    planned = conf.plan(cfg, keys, sc.prices[0].rho)
+    codec = FrameCodec(dbc_path(fd))
+    planned = conf.plan(cfg, keys, sc.prices[0].rho, codec=codec)
     frames = conf.simulate(cfg, ring(), planned, jitter=jitter, seed=dut, filtered=filtered,
-                           make_dut=lambda c, _codec, k: CAgent(c, k, params=params))
-    outcome = conf.check(cfg, ring(), keys[node], frames)
+                           codec=codec,
+                           make_dut=lambda c, _codec, k: CAgent(c, k, params=params, fd=fd))
+    assert all(f.msg.is_fd == f.msg.bitrate_switch == fd for f in frames)
+    outcome = conf.check(cfg, ring(), keys[node], frames, codec)
     results = conf.verdict(outcome)
     assert not outcome.mismatches, outcome.mismatches[:3]
     assert not outcome.auth_errors and not outcome.problems

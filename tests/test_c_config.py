@@ -271,8 +271,8 @@ def test_key_file_frame_keys_load_and_survive_every_boot_rewrite(tmp_path: Path)
     router's and its neighbours' node keys, its two link frame keys and its Diag's, no
     plant key) loads in C with the setpoint's, the status' and the Diag's keys
     firmware_py reads; the C persist keeps [frame_keys] and the plant's floor; the C
-    agent starts with it; a frame key of another agent is refused, a missing one too;
-    likewise its command key (AUTH-30)."""
+    agent starts with it; a frame key of another agent is refused (by both loaders), a
+    missing one too; likewise its command key (AUTH-30)."""
     import tomli_w
 
     from sim.cbind.cagent import CAgent
@@ -305,6 +305,9 @@ def test_key_file_frame_keys_load_and_survive_every_boot_rewrite(tmp_path: Path)
     with pytest.raises(CConfigError, match=r"\[command_keys\] expected the key of agent_2 "
                        r"only, but got 'agent_1'"):
         load_keyfile(path, "agent_2")
+    with pytest.raises(KeyFileError, match=r"\[command_keys\] expected the key of agent_2 "
+                       r"only, but got agent_1"):   # firmware_py refuses it too
+        load_node_key(path)
     del doc["command_keys"]
     write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
     with pytest.raises(CConfigError, match=r"\[command_keys\] expected the key of agent_2, "
@@ -323,6 +326,9 @@ def test_key_file_frame_keys_load_and_survive_every_boot_rewrite(tmp_path: Path)
                        r"AGENT_2_Setpoint, PLANT_2_Status and AGENT_2_Diag only, but got "
                        r"'PLANT_1_Status'"):
         load_keyfile(path, "agent_2")
+    with pytest.raises(KeyFileError, match=r"\[frame_keys\] expected the keys of the frames "
+                       r"agent_2 sends or receives only, but got PLANT_1_Status"):
+        load_node_key(path)
 
 
 def test_key_file_refusals(tmp_path: Path) -> None:

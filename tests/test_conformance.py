@@ -13,10 +13,13 @@ import re
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import can
 import pytest
 from conformance_run import DEVIANT, DEVICE_HINT, FIRMWARE_PY, run_conformance
 
+from dbc import FD_DBC_PATH
 from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig, agent_configs_from_scenario
 from firmware_py.frames import FrameCodec
@@ -28,11 +31,12 @@ from sim.model.scenario import load_case
 from sim.testkit.tester import fleet_keys
 
 MASTER = bytes(range(16))
+FD_CODEC = FrameCodec(FD_DBC_PATH)
 KEYS = fleet_keys(MASTER, 12)  # node keys and link frame keys (AUTH-28)
 
 
-def _setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyring],
-                                         list[conf.Planned]]:
+def _setup(case: int, dut: int, fd: bool = False
+           ) -> tuple[AgentConfig, Callable[[], Keyring], list[conf.Planned]]:
     sc = load_case(case)
     # the configuration the tester writes, as the reference parser reads it
     _, cfg = conf.written_config(agent_configs_from_scenario(sc)[dut - 1])
@@ -42,27 +46,60 @@ def _setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyring],
         return Keyring(node, KEYS[node], 0, lambda _b: None, master=MASTER,
                        floors={n: 2 for n in KEYS if n != node})
 
-    return cfg, ring, conf.plan(cfg, KEYS, sc.prices[0].rho, boot=2)
+    return cfg, ring, conf.plan(cfg, KEYS, sc.prices[0].rho, boot=2,
+                                codec=FD_CODEC if fd else None)
 
 
-def _judge(cfg: AgentConfig, ring: Callable[[], Keyring], frames: list[conf.Frame]
-           ) -> tuple[conf.Outcome, list[conf.Result]]:
+def _judge(cfg: AgentConfig, ring: Callable[[], Keyring], frames: list[conf.Frame],
+           codec: FrameCodec | None = None) -> tuple[conf.Outcome, list[conf.Result]]:
     key = KEYS[f"agent_{cfg.id}"]
-    outcome = conf.check(cfg, ring(), key, frames)
-    conf.explain(cfg, ring(), key, frames, outcome)
+    outcome = conf.check(cfg, ring(), key, frames, codec)
+    conf.explain(cfg, ring(), key, frames, outcome, codec)
     return outcome, conf.verdict(outcome)
 
 
-@pytest.mark.parametrize("case,dut,jitter,seed", [(1, 3, 0.0, 0), (1, 1, 0.95, 2),
-                                                  (7, 5, 0.5, 1)])
+@pytest.mark.parametrize("fd", [True, False])
+def test_a_device_sending_the_other_frame_format_fails_gen_1_alone(fd: bool) -> None:
+    """A DUT that sends classic frames on a CAN FD bus (or FD frames on a classic one)
+    fails GEN-1, once, naming the first such frame; its frames are judged by their
+    content otherwise, so nothing else fails, and the checker does not crash on them."""
+    cfg, ring, planned = _setup(1, 3, fd)
+    codec = FD_CODEC if fd else None
+
+    def other_format(rt: AgentRuntime) -> None:
+        send = rt.io.send
+
+        def wrong(name: str, raw: dict[str, int], *a: Any, **k: Any) -> can.Message:
+            msg = send(name, raw, *a, **k)
+            msg.is_fd = msg.bitrate_switch = not fd
+            return msg
+
+        rt.io.send = wrong  # type: ignore[method-assign]
+
+    frames = conf.simulate(cfg, ring(), planned, other_format, codec=codec)
+    outcome, results = _judge(cfg, ring, frames, codec)
+    assert [r.must for r in results if r.failed] == ["GEN-1"], \
+        [r for r in results if r.failed]
+    detail = next(r.detail for r in results if r.must == "GEN-1")
+    assert ("but got a classic CAN frame" if fd else "but got a CAN FD frame") in detail
+    assert "more frames in the wrong format" in detail
+
+
+@pytest.mark.parametrize("case,dut,jitter,seed,fd", [(1, 3, 0.0, 0, False),
+                                                     (1, 1, 0.95, 2, True),
+                                                     (7, 5, 0.5, 1, False)])
 def test_firmware_py_passes_every_requirement_at_any_timing(
-        case: int, dut: int, jitter: float, seed: int) -> None:
+        case: int, dut: int, jitter: float, seed: int, fd: bool) -> None:
     """Expected: with the device's ticks and the tester's frames each up to 0.95 Ts late,
     every requirement passes and the whole schedule was checked (the oracle found the
-    order of events that explains every frame)."""
-    cfg, ring, planned = _setup(case, dut)
-    frames = conf.simulate(cfg, ring(), planned, jitter=jitter, seed=seed)
-    outcome, results = _judge(cfg, ring, frames)
+    order of events that explains every frame); on a CAN FD bus too (``fd``: every
+    frame of the schedule, the hand-made ones included, an FD frame with the bit-rate
+    switch)."""
+    cfg, ring, planned = _setup(case, dut, fd)
+    codec = FD_CODEC if fd else None
+    assert all(p.msg.is_fd == p.msg.bitrate_switch == fd for p in planned)
+    frames = conf.simulate(cfg, ring(), planned, jitter=jitter, seed=seed, codec=codec)
+    outcome, results = _judge(cfg, ring, frames, codec)
     assert not outcome.mismatches, outcome.mismatches[:3]
     assert not outcome.auth_errors and not outcome.problems
     assert outcome.steps_seen == {s.name for s in conf.STEPS}
@@ -343,10 +380,16 @@ def test_the_requirement_list_shipped_with_sim_is_the_specs() -> None:
 
 @pytest.mark.realtime
 def test_firmware_py_agent_process_passes_on_udp_multicast(tmp_path: Path) -> None:
-    """Expected (any load): exit 0, every requirement PASS, JUnit without failures."""
-    code, log = run_conformance(tmp_path, FIRMWARE_PY)
+    """Expected (any load): exit 0, every requirement PASS, JUnit without failures; on
+    CAN FD (`--fd`: the device is started with --fd, every frame on the bus, the
+    tester's and the device's, is FD with the bit-rate switch). The classic bus runs in
+    tools/wheel-check's conformance and in the next test."""
+    code, log = run_conformance(tmp_path, FIRMWARE_PY, ["--fd"])
     assert code == 0, log
     assert "bess-ded conformance: PASS" in log and "FAIL" not in log
+    assert "CAN FD frames" in log and " --fd " in log
+    frames = list(can.LogReader(str(tmp_path / "cf" / "conformance.log")))
+    assert frames and all(f.is_fd and f.bitrate_switch for f in frames)
     suite = ET.parse(tmp_path / "junit.xml").getroot().find("testsuite")
     assert suite is not None and suite.get("failures") == "0"
     assert int(suite.get("tests") or 0) == len({m for s in conf.STEPS for m in s.musts})

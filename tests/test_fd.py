@@ -23,6 +23,7 @@ from firmware_py.runtime import AgentRuntime
 from sim.bench import fleetload
 from sim.model.scenario import load_case, load_scenario, parse_scenario, to_toml
 from sim.run import busrun
+from sim.run.analysis import prepare_analysis
 from sim.run.buslog import read_log
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -128,6 +129,12 @@ def test_case1_on_an_fd_virtual_bus_converges_with_fd_frames_only(tmp_path: Path
     run = fleetload.measured_run(tmp_path)
     assert run["fd_frames"] == run["frames"] and run["time_scale"] == 1.0
     assert run["load_measured"] == pytest.approx(run["load_computed"], rel=0.03), run
+    # `bess-ded analyze run.log --case 1` (a classic scenario) reads the log's format
+    notes: list[str] = []
+    rec = prepare_analysis(tmp_path / "run.log", "1", out=tmp_path / "an",
+                           say=notes.append).run(plot=False)
+    assert any("CAN FD frames: read with the FD DBC" in n for n in notes), notes
+    assert rec.metrics["frames_undecodable"] == {} and rec.metrics["final_error"] < 1e-3
 
 
 @pytest.mark.realtime

@@ -18,6 +18,9 @@ from sim.bench.auth import ring_scenario
 from sim.bench.canframe import fd_frame_bits, fd_frame_time
 from sim.cli import main
 
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "ring64_lockstep.toml"
+TORUS = EXAMPLE.with_name("torus64.toml")   # issue 23's 64-agent fleet that converges
+
 
 @pytest.fixture(scope="module")
 def small() -> tuple[list[str], list[list[str]], dict[str, Any]]:
@@ -126,12 +129,21 @@ def test_quick_borrows_the_largest_measured_ring_and_says_so() -> None:
 def test_cli_fleet_load_writes_its_json(tmp_path: Path,
                                        capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "fleet.json"
-    assert main(["bench", "--fleet-load", "--quick", "--json", str(out)]) == 0
+    assert main(["bench", "--fleet-load", "--quick", "--json", str(out),
+                 "--case", str(TORUS), "--scenario", "1"]) == 0
     stdout = capsys.readouterr().out
     assert "Bus load per fleet size at Ts = 10 ms" in stdout
-    assert "--measured DIR" in stdout
+    assert "--measured DIR" in stdout and "--case CASE" in stdout
     tables = json.loads(out.read_text())["tables"]
-    assert len(tables) == 1
+    assert len(tables) == 2
+    # --case: each scenario's fleet at its Ts, on both buses (the torus: the lockstep's
+    # ratio over its 20 s; case 1: periodic)
+    torus, case1 = tables[1]["data"]["scenarios"]
+    assert (torus["scenario"], torus["fd"], torus["transmit"]) == ("torus64", True, "event")
+    assert torus["load"] == torus["load_fd"] == pytest.approx(0.538, abs=2e-3)
+    assert torus["fits"] and torus["load_classic"] == pytest.approx(1.166, abs=2e-3)
+    assert (case1["mc_ratio"], case1["load"]) == (1.0, pytest.approx(0.178, abs=1e-3))
+    assert "torus64       64     event" in stdout
     data = tables[0]["data"]
     assert set(data["largest_n"]) == {c.key for c in fleetload.CONFIGS}
     assert data["fleets"]["ring-64"]["agents"] == 64
@@ -141,9 +153,8 @@ def test_cli_fleet_load_writes_its_json(tmp_path: Path,
 def test_cli_refuses_fleet_load_with_auth(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "--fleet-load", "--auth"]) == 2
     assert "bess-ded: error: --fleet-load" in capsys.readouterr().err
-
-
-EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "ring64_lockstep.toml"
+    assert main(["bench", "--case", "1"]) == 2
+    assert "bess-ded: error: --case: expected --fleet-load with it" in capsys.readouterr().err
 
 
 def test_the_64_agent_example_is_the_benchs_ring_and_runs_in_the_lockstep() -> None:
@@ -211,6 +222,39 @@ def test_the_64_agent_event_example_fits_fd_only() -> None:
                                           r"\(MC frames event-triggered, 9\.1 % of periodic"):
         fleetload.check_bus_load(replace(sc, fd=False))
     assert fleetload.check_bus_load(sc) == pytest.approx(0.508, abs=1e-3)
+
+
+def test_the_64_agent_torus_converges_in_the_lockstep_on_60_percent_of_an_fd_bus() -> None:
+    """examples/torus64.toml, issue 23's acceptance in the lockstep: 64 agents on an 8 × 8
+    torus (4-regular, 16 pinned), event-triggered λ on CAN FD at Ts = 10 ms, reach
+    max|λ−ρ| ≤ 1e-3 well within 15 s (6.4 s) with the reset-PI regular and stable at Ts,
+    and its computed FD bus load over the run is ≤ 60 % (53.8 %; 116.6 % classic,
+    refused). Deterministic: the vectorised lockstep, the DBC's frames."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from firmware_py.errors import ConfigError
+    from sim.model.lockstep import run_lockstep
+    from sim.model.scenario import load_scenario
+
+    sc = load_scenario(TORUS)
+    assert (sc.n, sc.ts, sc.fd, sc.transmit.mode) == (64, 0.01, True, "event")
+    assert len(sc.edges) == 128 and sorted(len(sc.neighbours(i)) for i in (1, 64)) == [4, 4]
+    assert len(sc.pinned) == 16
+    ring = load_scenario(EXAMPLE.with_name("ring64.toml"))   # the same fleet, another graph
+    assert sc.batteries == ring.batteries and sc.lambda0 == ring.lambda0
+    report = sc.analysis()
+    assert report.regular and report.discrete_stable
+    tr = run_lockstep(sc)
+    err = np.max(np.abs(tr.lam - tr.rho[:, None]), axis=1)
+    late = np.flatnonzero(err > 1e-3)
+    converged_at = (late[-1] + 1) * sc.ts if len(late) else 0.0
+    assert err[-1] <= 1e-3 and converged_at <= 10.0, (err[-1], converged_at)
+    load = fleetload.check_bus_load(sc)
+    assert load <= fleetload.LOAD_LIMIT and load == pytest.approx(0.538, abs=2e-3)
+    with pytest.raises(ConfigError, match=r"on classic CAN .* but got 116\.6 % for 64 agents"):
+        fleetload.check_bus_load(replace(sc, fd=False))
 
 
 def test_the_id_plan_has_room_for_64_agents() -> None:

@@ -854,3 +854,35 @@ def test_node_cli_time_scale_stretches_the_scenario_and_the_period() -> None:
     assert args.period == pytest.approx(0.04) == sc.ts
     args = p.parse_args(["plant", "--case", "1", "--insecure", "--period", "0.02"])
     assert load_node_scenario(args).ts == 0.01 and args.period == 0.02
+
+
+def test_a_burst_of_commands_to_others_is_re_announced_before_it_outruns_an_agents_search(
+        ) -> None:
+    """AUTH-30: agent 1 verifies only the commands to it, so the router's ER_Command count
+    moves unseen while it commands others. 60 commands to agent 2 (180 frames in 30 ms,
+    beyond the 128 counts of an agent's widest search) and then one to agent 1: the
+    router re-announces its count (ER_Command_Sync) every 64 command frames, so agent 1
+    takes its command at once, well before the once-a-second sync."""
+    from firmware_py.config import agent_configs_from_scenario
+    from firmware_py.runtime import AgentRuntime
+
+    sc = load_case(1)
+    router = RouterNode(sc)
+    agent = AgentRuntime(agent_configs_from_scenario(sc)[0], CODEC,
+                         keys=Keyring.insecure_for("agent_1"))
+    sync_id = CODEC.frame_id("ER_Command_Sync")
+    sync_counts = []
+    for k in range(40):
+        if k == 1:
+            for _ in range(60):
+                router.send_command("set_gains", 2, k=1.0, h=2.0)
+        if k == 5:
+            router.send_command("set_gains", 1, k=1.5, h=2.5)
+        for m in router.tick(T(k)):
+            if m.arbitration_id == sync_id:
+                sync_counts.append(CODEC.decode(m).raw["Count"])
+            agent.on_frame(m, T(k))
+    # the first sync (count 0), then one each time 64 command frames went out since
+    assert sync_counts == [0, 64, 128], sync_counts
+    assert agent.counters["commands"] == 3, agent.counters   # its command's three frames
+    assert agent.io.counters["auth"] == 0, agent.io.counters

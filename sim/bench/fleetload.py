@@ -312,6 +312,39 @@ def measured_rows(runs: list[dict[str, Any]]) -> list[list[str]]:
              f"{100 * r['load_computed_at_10ms']:.1f} %"] for r in runs]
 
 
+SCENARIO_HEADERS = ["scenario", "agents", "λ", "Ts [ms]", "run [s]", "MC ratio (run)",
+                    "classic", "FD", f"its bus ≤ {100 * LOAD_LIMIT:.0f} %"]
+
+
+def scenario_load(sc: Any) -> dict[str, Any]:
+    """Scenario ``sc``'s fleet at its Ts on classic CAN and CAN FD (``load``: on its own
+    bus): every DBC frame at its cycle, for ``transmit = "event"`` the MC frames × ``sc``'s
+    lockstep ratio over its run (``run_bus_load`` measures it only when needed)."""
+    fleet, event = Fleet(sc.name, sc.n, sc), sc.transmit.mode == "event"
+    msgs, ratio = fleet_frames(fleet, sc.ts), (event_ratio(sc, sc.name, sc.transmit)
+                                               if event else None)
+    loads = {}
+    for cfg in (c for c in CONFIGS if c.mc == ("whole" if event else "periodic")):
+        got = config_load(cfg, fleet, ratio, msgs=msgs)
+        assert got is not None
+        loads["fd" if cfg.fd else "classic"] = got["load"]
+    own = loads["fd" if sc.fd else "classic"]
+    return {"scenario": sc.name, "source": str(sc.source), "agents": sc.n, "fd": sc.fd,
+            "transmit": sc.transmit.mode, "ts_s": sc.ts, "duration_s": sc.duration,
+            "mc_ratio": 1.0 if ratio is None else ratio.whole, "load_classic":
+            loads["classic"], "load_fd": loads["fd"], "load": own, "fits": own <= LOAD_LIMIT}
+
+
+def scenario_rows(runs: list[dict[str, Any]]) -> list[list[str]]:
+    """The rows of ``scenario_load`` results (* over LOAD_LIMIT)."""
+    def pct(x: float) -> str:
+        return f"{100 * x:.1f} %" + ("*" if x > LOAD_LIMIT else "")
+    return [[r["scenario"], str(r["agents"]), r["transmit"], f"{1e3 * r['ts_s']:g}",
+             f"{r['duration_s']:g}", f"{r['mc_ratio']:.3f}", pct(r["load_classic"]),
+             pct(r["load_fd"]), f"{'FD' if r['fd'] else 'classic'}: "
+             + ("yes" if r["fits"] else "no")] for r in runs]
+
+
 def packed(msgs: list[Message]) -> list[Message]:
     """``msgs`` with the MC frames packed PACK to a 64-byte FD frame (not in the
     protocol: the ``fd-packed`` line)."""
@@ -421,7 +454,8 @@ def note(data: dict[str, Any]) -> str:
             + (f"; ratios taken from another run: {', '.join(borrowed)}" if borrowed else "")
             + f". The DBC's 11-bit ID plan has room for {room[tight]} agents without moving a"
             f" base ({tight} the tightest); its frames exist for {data['dbc_agents']}"
-            + ". Measured on the bus: `bench --fleet-load --measured DIR` of a `bess-ded up "
+            + ". A scenario's own fleet at its Ts: `bench --fleet-load --case CASE`; "
+            "measured on the bus: `bench --fleet-load --measured DIR` of a `bess-ded up "
             "[--fd]` run")
 
 

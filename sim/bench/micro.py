@@ -641,6 +641,23 @@ def measured_load(runs: list[Path]) -> Bench:
     return bench
 
 
+def scenario_loads(specs: list[str]) -> Bench:
+    """`bench --fleet-load --case CASE`: the computed bus load of each scenario's fleet at
+    its Ts, classic and FD (sim.bench.fleetload.scenario_load)."""
+    def bench(quick: bool) -> Table:
+        from sim.bench.fleetload import SCENARIO_HEADERS, scenario_load, scenario_rows
+        from sim.model.scenario_select import resolve_scenario
+
+        data = [scenario_load(resolve_scenario(s)) for s in specs]
+        return Table("Bus load of the scenarios' fleets, computed from the DBC",
+                     SCENARIO_HEADERS, scenario_rows(data), data={"scenarios": data},
+                     note="each scenario at its own Ts: every frame of the DBC at its "
+                     "cycle; event-triggered MC frames × the lockstep's ratio event/periodic "
+                     "over the scenario's run; * over 60 % (issue 23's limit); its bus: "
+                     "[bus] fd")
+    return bench
+
+
 BENCHES: list[Bench] = [
     controller_step,
     c_controller_step,

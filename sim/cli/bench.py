@@ -46,6 +46,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --fleet-load: also the bus load of this `bess-ded up` run "
                    "measured from its recording (DIR/run.log, DIR/scenario.toml) against the "
                    "computed figure (repeatable)")
+    p.add_argument("--case", "--scenario", dest="case", action="append", default=[],
+                   metavar="CASE",
+                   help="with --fleet-load: also the computed bus load of this scenario's "
+                   "fleet at its Ts, classic and FD (event-triggered: the lockstep's ratio "
+                   "over its run); a case number or a scenario .toml (repeatable)")
     p.add_argument("--png", type=Path, metavar="FILE",
                    help="also draw the schemes' bus load as a bar chart (PNG); with "
                    "--fleet-load: the load against N, one line per configuration")

@@ -48,7 +48,13 @@ def int_list(text: str) -> tuple[int, ...]:
 def selected(args: argparse.Namespace) -> tuple[list[Bench] | None, CapacityPlan]:
     """(the sections to run, None: the default set; the capacity plan) from the options:
     --auth and --capacity-only each run one section alone."""
-    from sim.bench.micro import auth_schemes, fleet_capacity, fleet_load, measured_load
+    from sim.bench.micro import (
+        auth_schemes,
+        fleet_capacity,
+        fleet_load,
+        measured_load,
+        scenario_loads,
+    )
     from sim.bench.realtime import CapacityPlan  # noqa: F811 (the type above is for mypy)
 
     alone = [o for o, on in (("--fleet-load", args.fleet_load), ("--auth", args.auth),
@@ -62,9 +68,11 @@ def selected(args: argparse.Namespace) -> tuple[list[Bench] | None, CapacityPlan
     if args.auth:
         return [auth_schemes], plan
     if args.fleet_load:
-        return [fleet_load, *([measured_load(args.measured)] if args.measured else [])], plan
-    if args.measured:
-        raise ParameterError("--measured", "--fleet-load with it", "--measured alone")
+        return [fleet_load, *([scenario_loads(args.case)] if args.case else []),
+                *([measured_load(args.measured)] if args.measured else [])], plan
+    for flag, given in (("--measured", args.measured), ("--case", args.case)):
+        if given:
+            raise ParameterError(flag, "--fleet-load with it", f"{flag} alone")
     if args.capacity_only:
         return [fleet_capacity(plan)], plan
     return None, plan

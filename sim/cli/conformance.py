@@ -66,6 +66,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--wait", type=duration_s(), default=60.0, metavar="S",
                    help="how long to wait for the device (default: 60 s)")
     p.add_argument("--junit", type=Path, metavar="FILE", help="write JUnit XML here")
+    p.add_argument("--fd", action="store_true",
+                   help="a CAN FD bus: the tester's frames and the device's must be FD "
+                        "frames with the bit-rate switch (the device runs with --fd; "
+                        "default: the scenario's [bus] fd, else classic CAN)")
     p.add_argument("--quick", action="store_true",
                    help="play the first steps only (start to commands, about half the "
                         "schedule), for development: the later steps' requirements are "
@@ -88,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
         args.case, args.dut, variant=args.variant,
         bus=busrun.BusOptions(args.interface, args.channel, args.bus_config),
         time_scale=args.time_scale, out=args.out, keys=args.keys, insecure=args.insecure,
-        rt_priority=args.rt_priority, wait=args.wait, say=_say, quick=args.quick)
+        rt_priority=args.rt_priority, wait=args.wait, say=_say, quick=args.quick,
+        fd=args.fd)
     try:
         frames, late = setup.drive(args.wait, args.rt_priority, progress=_progress)
     except TimeoutError as e:

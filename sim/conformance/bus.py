@@ -19,7 +19,7 @@ import json
 import os
 import shlex
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -27,6 +27,7 @@ from firmware_py.errors import ParameterError
 
 if TYPE_CHECKING:
     from firmware_py.config import AgentConfig
+    from firmware_py.frames import FrameCodec
     from firmware_py.secoc import Keyring
     from sim.conformance import Frame, Outcome, Planned, Result
     from sim.model.scenario import Scenario
@@ -53,19 +54,27 @@ class ConformanceSetup:
         """The DUT's node label, e.g. "agent_2"."""
         return f"agent_{self.dut}"
 
+    @property
+    def codec(self) -> FrameCodec:
+        """The bus's codec: the DBC of the scenario's frame format (``[bus] fd``, --fd)."""
+        from dbc import dbc_path
+        from firmware_py.frames import FrameCodec
+
+        return FrameCodec(dbc_path(self.sc.fd))
+
     def drive(self, wait: float, rt_priority: int = 0,
               progress: Callable[[str], None] | None = None) -> tuple[list[Frame], float]:
         """Wait up to ``wait`` s for the device's Diag frame, then play the schedule (under
         SCHED_FIFO ``rt_priority``, if given): the frames on the bus and how late the
         tester sent any of its own (s). A TimeoutError if the device is not heard."""
         from firmware_py import contract
-        from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name
+        from firmware_py.frames import diag_name, mc_name, setpoint_name
         from firmware_py.node import open_bus
         from firmware_py.nodeargs import set_realtime
         from sim import conformance as conf
         from sim.run import busrun
 
-        codec = FrameCodec()
+        codec = self.codec
         i = self.dut
         dut_ids = {codec.frame_id(n(i)) for n in (mc_name, setpoint_name, diag_name)}
         dut_ids |= {contract.SYNC_OF[codec.frame_id(n(i))] for n in (mc_name, setpoint_name,
@@ -87,7 +96,6 @@ class ConformanceSetup:
         (``say`` announces the check): the outcome and the verdict per requirement."""
         import can
 
-        from firmware_py.frames import FrameCodec
         from sim import conformance as conf
 
         with can.Logger(str(self.out / "conformance.log")) as log:
@@ -95,10 +103,11 @@ class ConformanceSetup:
                 log.on_message_received(can.Message(
                     timestamp=f.t, arbitration_id=f.msg.arbitration_id,
                     is_extended_id=f.msg.is_extended_id, data=bytes(f.msg.data),
-                    dlc=len(f.msg.data)))
+                    dlc=len(f.msg.data), is_fd=f.msg.is_fd,
+                    bitrate_switch=f.msg.bitrate_switch))
         say(f"  the tester sent each frame at most {late * 1000:.1f} ms late; checking the "
             f"device's frames against firmware_py ...")
-        codec = FrameCodec()
+        codec = self.codec
         ts = self.cfg.controller.ts
         # firmware_py's agent filters on SocketCAN (GEN-5): model that first there
         outcome = conf.check(self.cfg, self.ring, self.dut_key, frames, codec,
@@ -119,16 +128,19 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
                         out: Path | None = None, keys: Path | None = None,
                         insecure: bool = False, rt_priority: int = 0,
                         wait: float = 60.0, say: Callable[[str], None] = print,
-                        quick: bool = False) -> ConformanceSetup:
+                        quick: bool = False, fd: bool = False) -> ConformanceSetup:
     """Set up a conformance run of scenario ``case`` with the device in agent ``dut``'s
     place ("1".."N") on ``bus`` (one that connects processes): its configuration and
     key file (from ``keys``, a fresh set in ``out``/keys, or ``insecure``) in ``out``
     (default runs/conformance-<scenario>-agent<I>). ``say`` announces the run and the
     command that starts the device (at ``rt_priority``, and the ``wait`` it has).
-    ``quick``: play the steps of ``QUICK`` only (the others' requirements "not run")."""
+    ``quick``: play the steps of ``QUICK`` only (the others' requirements "not run");
+    ``fd``: on a CAN FD bus (as the scenario's ``[bus] fd``): every frame of the tester
+    and of the device an FD frame with the bit-rate switch (GEN-1)."""
+    from dbc import dbc_path
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
-    from firmware_py.frames import diag_name
+    from firmware_py.frames import FrameCodec, diag_name
     from sim import conformance as conf
     from sim.model.scenario import scaled
     from sim.model.scenario_select import pick_variant, resolve_scenario
@@ -149,7 +161,7 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     scale = time_scale
     if scale is None:
         scale = GUEST_TIME_SCALE if os.environ.get("VCAN_RUN_GUEST") == "1" else 1.0
-    sc = scaled(sc, scale)
+    sc = scaled(replace(sc, fd=True) if fd else sc, scale)
     # the scenario's agent with every key the schedule observes off its default
     # (conf.conformance_config): the DUT reads the file, the oracle reads it too, with
     # the reference parser (a device that misreads it fails a CFG-n requirement)
@@ -182,7 +194,8 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     ts = cfg.controller.ts
     # the tester plays every sender at a boot the DUT's floors accept (AUTH-21)
     boot = max([secoc.INSECURE_BOOT, *ring.floors.values()])
-    planned = conf.plan(cfg, tester_keys, sc.prices[0].rho, boot=boot, quick=quick)
+    planned = conf.plan(cfg, tester_keys, sc.prices[0].rho, boot=boot, quick=quick,
+                        codec=FrameCodec(dbc_path(sc.fd)))
     played = conf.played_steps(planned)
     length = played[-1].end * ts
     say(f"bess-ded conformance: {sc.title or sc.name}{chosen}, device under test: {node} "
@@ -190,10 +203,12 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
         f"schedule takes {length:.1f} s"
         + (f" (a quick run: steps {played[0].name} to {played[-1].name} of "
            f"{conf.STEPS[-1].end * ts:.1f} s)" if quick else ""))
-    say(f"  bus: {bus.resolved()}" + (f" (port {port} private to this run)" if port else ""))
+    say(f"  bus: {bus.resolved()}" + (f" (port {port} private to this run)" if port else "")
+        + (", CAN FD frames" if sc.fd else ""))
     # the device at the tester's --rt-priority, else as `up` runs its nodes (SCHED_FIFO)
     rt = ["--rt-priority", str(rt_priority or busrun.RT_PRIORITY)]
-    cmd = ["bess-ded", "agent", "--config", str(cfg_path), *key_argv, *bus.argv(), *rt]
+    cmd = ["bess-ded", "agent", "--config", str(cfg_path), *key_argv, *bus.argv(),
+           *(["--fd"] if sc.fd else []), *rt]
     say(f"  start the device with its configuration and key, e.g.: {shlex.join(cmd)}")
     say(f"  waiting up to {wait:g} s for its {diag_name(i)} frame ...")
     return ConformanceSetup(sc, i, cfg, ring, dut_key, bus, out, planned, quick, text)
@@ -217,7 +232,8 @@ def write_report(outcome: Outcome, results: Sequence[Result], out: Path,
                      "detail": r.detail}
                     for r in results],
         "mismatches": [str(m) for m in outcome.mismatches],
-        "auth_errors": outcome.auth_errors}
+        "auth_errors": outcome.auth_errors,
+        "format_errors": [what for _, what in outcome.format_errors]}
     (out / "conformance.json").write_text(json.dumps(doc, indent=1, ensure_ascii=False))
     written = [out / "conformance.log", out / "conformance.json"]
     if junit_path is not None:

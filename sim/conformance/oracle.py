@@ -26,7 +26,14 @@ from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig
 from firmware_py.contract import State
 from firmware_py.errors import BessDedError
-from firmware_py.frames import DecodedFrame, FrameCodec, diag_name, mc_name, setpoint_name
+from firmware_py.frames import (
+    DecodedFrame,
+    FrameCodec,
+    diag_name,
+    format_fault,
+    mc_name,
+    setpoint_name,
+)
 from firmware_py.nodeio import SyncSchedule
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
@@ -90,6 +97,10 @@ class Outcome:
     problems: list[str] = field(default_factory=list)  # the run itself (not the DUT)
     filtered: bool = False  # the DUT filters foreign IDs in its CAN controller (GEN-5)
     auth_times: list[float] = field(default_factory=list)  # of auth_errors, from the start
+    # DUT frames not in the bus's format (GEN-1: classic on an FD bus, FD on a classic
+    # one, FD without the bit-rate switch): (time from the start, what); each is then
+    # judged by its content as if sent in the bus's format
+    format_errors: list[tuple[float, str]] = field(default_factory=list)
     stopped: str = ""  # why the check stopped before the end of the record, if it did
     differing_ticks: int = 0  # ticks with a difference (mismatches keeps the first ones)
 
@@ -280,7 +291,19 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
     more is the verdict. After a difference the oracle takes what the DUT's frames show
     (λ, state, counters) and checks on to the end of the record; ``max_mismatches``:
     stop after that many ticks with a difference (``Outcome.stopped`` says so)."""
+    frames, wrong = _in_bus_format(codec or FrameCodec(), frames)
     codec = cast(FrameCodec, _DutFrames(codec or FrameCodec(), frames))
+    outcome = _check_either(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
+                            filtered_first)
+    outcome.format_errors = wrong
+    return outcome
+
+
+def _check_either(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
+                  codec: FrameCodec, deviation: Callable[[AgentRuntime], None] | None,
+                  max_mismatches: int | None, filtered_first: bool) -> Outcome:
+    """``check`` with the DUT's frames in the bus's format: the model with the acceptance
+    filter or without, whichever explains more."""
     first = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
                    filtered_first)
     if not first.mismatches:
@@ -296,6 +319,30 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
         return _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
                       not filtered_first)
     return first
+
+
+def _in_bus_format(codec: FrameCodec, frames: Sequence[Frame]
+                   ) -> tuple[list[Frame], list[tuple[float, str]]]:
+    """The record with each DUT frame of another format than the bus's (GEN-1) put in
+    the bus's, and what was wrong with each (time from the tester's first frame): a
+    format slip fails GEN-1 once per frame, not every signal check after it."""
+    t0 = next((f.t for f in frames if f.sent), frames[0].t if frames else 0.0)
+    out: list[Frame] = []
+    wrong: list[tuple[float, str]] = []
+    for f in frames:
+        m = f.msg
+        if f.sent or (m.is_fd == codec.fd and m.bitrate_switch == codec.fd):
+            out.append(f)
+            continue
+        what = (format_fault(m, codec.fd) if m.is_fd != codec.fd
+                else "expected the bit-rate switch, but got a CAN FD frame without it")
+        name = (codec.name_of(m.arbitration_id) if m.arbitration_id in codec.frame_ids()
+                else f"0x{m.arbitration_id:03X}")
+        wrong.append((f.t - t0, f"t = {f.t:.3f} s: {name}: {what}"))
+        out.append(replace(f, msg=can.Message(
+            timestamp=m.timestamp, arbitration_id=m.arbitration_id, is_extended_id=False,
+            data=bytes(m.data), is_fd=codec.fd, bitrate_switch=codec.fd)))
+    return out, wrong
 
 
 MOMENT_TICKS = 10

@@ -238,6 +238,12 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
                       [*outcome.auth_times, *[math.inf] * len(outcome.auth_errors)],
                       strict=False):
         evidence.append((t, len(evidence), ("AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8"), err))
+    if outcome.format_errors:  # GEN-1: one report for every frame in the wrong format
+        t, first = outcome.format_errors[0]
+        n = len(outcome.format_errors)
+        evidence.append((t, len(evidence), ("GEN-1",),
+                         f"{first}" + (f" ({n - 1} more frames in the wrong format)"
+                                       if n > 1 else "")))
     evidence.sort(key=lambda e: (e[0], e[1]))
     failed: dict[str, list[str]] = {}
     for _, _, musts, why in evidence:
@@ -247,7 +253,8 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
         first = str(outcome.mismatches[0])
         failed = {must: [f"the DUT behaves as if {what} (first difference: {first})"]
                   for must, what in outcome.explained_by.items()} | {
-                 must: why for must, why in failed.items() if must.startswith("AUTH-")}
+                 must: why for must, why in failed.items()
+                 if must.startswith("AUTH-") or must == "GEN-1"}
     results = [Result(must, False, why[0]) for must, why in failed.items()]
     for must in sorted(exercised, key=_must_order):
         if must in failed:

@@ -496,21 +496,24 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             add(k + 0.6, step, held[0], "a genuine frame delivered 3 ticks late")
         if k == at["content"] + 5:
             add(k + 0.6, step, can.Message(arbitration_id=0x100 + i, is_extended_id=True,
-                                           data=bytes(8)), "extended ID")
+                                           data=bytes(8), **_format(codec)), "extended ID")
         # a Diag page (13 of them, 10 ticks apart) after the extended ID, so that the
         # page's RejectedUnknownId shows each alone (RX-1, RX-6)
         if k == at["commands"] + 120:
             add(k + 0.6, step, can.Message(arbitration_id=_unknown_id(codec),
-                                           is_extended_id=False, data=bytes(8)), "unknown ID")
+                                           is_extended_id=False, data=bytes(8),
+                                           **_format(codec)), "unknown ID")
         if k == at["content"] + 9:
             add(k + 0.6, step, can.Message(arbitration_id=codec.frame_id(mc_name(i)),
-                                           is_extended_id=False, data=bytes(range(8))),
+                                           is_extended_id=False, data=bytes(range(8)),
+                                           **_format(codec)),
                 "the DUT's own MC ID")
         if k == at["content"] + 11 and nbrs:
             short = tx.frame(mc_name(nbrs[0]), {"State": int(State.RUNNING),
                                                  "Lambda": lam_j(nbrs[0], k), "Resets": 0})
             add(k + 0.6, step, can.Message(arbitration_id=short.arbitration_id,
-                                           is_extended_id=False, data=short.data[:7]),
+                                           is_extended_id=False, data=short.data[:7],
+                                           **_format(codec)),
                 "DLC 7")
         for tick, cmd, target, kk, hh, note in (
                 (10, Command.SET_GAINS, i, 1.5 * k_gain, 1.5 * h_gain, "SET_GAINS in bounds"),
@@ -569,9 +572,16 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     return out
 
 
+def _format(codec: FrameCodec) -> dict[str, bool]:
+    """The bus's frame format (GEN-1): a hand-made frame of the schedule is malformed,
+    extended or unknown for its own reason, not for its format."""
+    return {"is_fd": codec.fd, "bitrate_switch": codec.fd}
+
+
 def _copy(msg: can.Message) -> can.Message:
     return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False,
-                       data=bytes(msg.data))
+                       data=bytes(msg.data), is_fd=msg.is_fd,
+                       bitrate_switch=msg.bitrate_switch)
 
 
 def _forged(msg: can.Message) -> can.Message:

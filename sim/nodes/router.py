@@ -60,7 +60,7 @@ from firmware_py.config import agent_configs_from_scenario, untrusted_s
 from firmware_py.contract import Command, State, cycle_s, mc_name, status_name, timeout_s
 from firmware_py.errors import ConfigError, ParameterError
 from firmware_py.frames import LAMBDA_Q, PIN_OFF, PIN_ON, FrameCodec, target_raw
-from firmware_py.nodeio import HOST_ECHO_DEPTH, NodeIO
+from firmware_py.nodeio import HOST_ECHO_DEPTH, LOST_SEARCH_COUNTS, NodeIO
 from firmware_py.pricesig import SEGMENT_MOD, SignedSegment, pages, sign
 from firmware_py.secoc import Keyring
 from sim.model.cost import expenditure, kkt_optimum
@@ -223,6 +223,9 @@ class RouterNode(SimNodeClock):
                          untrusted_s=untrusted_s(scenario.ts), keys=keys,
                          sync_s=cycle_s("ER_Price_Sync", scenario.ts),
                          echo_depth=HOST_ECHO_DEPTH)
+        # AUTH-30: an agent sees only the commands to it; the count is re-announced
+        # halfway through the windows its search covers (a burst of commands to others)
+        self.io.resync_after("ER_Command", LOST_SEARCH_COUNTS // 2)
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         self._rho_lo, self._rho_hi = c.raw_range("ER_Price", "Rho")
@@ -332,7 +335,11 @@ class RouterNode(SimNodeClock):
         if silent:
             self.counters["silenced_frames"] += len(frames)
             return []
-        return self.io.syncs(t) + [self._send(name, raw) for name, raw in frames]
+        out = self.io.syncs(t)
+        for name, raw in frames:  # a burst of commands re-announces its count mid-way
+            out += self.io.syncs(t) if name == "ER_Command" else []
+            out.append(self._send(name, raw))
+        return out
 
     def _failover(self, t: float, t_rel: float) -> None:
         """Agents up or lost by their MC frames; if a pinned agent is lost, pin one agent

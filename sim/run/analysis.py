@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -129,6 +129,12 @@ def prepare_analysis(log: Path, case: str | None = None, variant: str | None = N
     else:
         sc, chosen = pick_variant(resolve_scenario(case), variant, "analyze", say)
         sc = scaled(with_transmit(sc, transmit), scale)
+        fd = log_format(log_path)
+        if fd is not None and fd != sc.fd:  # the log shows the bus the fleet ran on
+            say(f"note: the log's frames are {'CAN FD' if fd else 'classic CAN'} frames: "
+                f"read with the {'FD' if fd else 'classic'} DBC (the scenario says "
+                f"{'FD' if sc.fd else 'classic'})")
+            sc = replace(sc, fd=fd)
     keys_dir = keys or run_dir / "keys"
     if keys is not None and not keys_dir.is_dir():
         raise ConfigError(str(keys_dir), "--keys", "expected a key set directory "
@@ -169,6 +175,28 @@ def load_node_counters(path: Path) -> dict[str, Any]:
                           "\"counters\": {name: N} (N integers ≥ 0), but got "
                           f"{json.dumps(doc)[:80]}")
     return doc
+
+
+FORMAT_PEEK = 200
+"""Data frames ``log_format`` reads from the start of a log to tell its frame format."""
+
+
+def log_format(path: Path) -> bool | None:
+    """True when the first FORMAT_PEEK data frames of the log at ``path`` are all CAN FD
+    frames, False when all classic; None when it has none, mixes them, or is not a log
+    (``report`` then names the problem)."""
+    import itertools
+    from collections import Counter
+
+    from sim.run.buslog import read_frames
+
+    try:
+        frames = [m.is_fd for m in itertools.islice(
+            (m for m in read_frames(path, Counter())
+             if not (m.is_error_frame or m.is_remote_frame)), FORMAT_PEEK)]
+    except (OSError, ConfigError):  # report() reads it again and names it
+        return None
+    return frames[0] if frames and len(set(frames)) == 1 else None
 
 
 def _json(path: Path) -> Any:

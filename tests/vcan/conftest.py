@@ -13,10 +13,13 @@ from __future__ import annotations
 import os
 import shutil
 import socket
+from pathlib import Path
 
 import pytest
 
 CHANNEL = "vcan0"
+FD_CHANNEL = "vcan1"   # CAN FD: mtu 72 (tools/vcan-run brings it up beside vcan0)
+CANFD_MTU = 72
 
 
 def _in_ci() -> bool:
@@ -52,6 +55,19 @@ def vcan_channel() -> str:
     if problem:
         _unavailable(problem)
     return CHANNEL
+
+
+@pytest.fixture(scope="session")
+def vcan_fd_channel() -> str:
+    """The tier's CAN FD channel (a vcan with mtu 72); fails (CI) or skips like vcan0."""
+    problem = _vcan_problem(FD_CHANNEL)
+    if problem is None:
+        mtu = int(Path(f"/sys/class/net/{FD_CHANNEL}/mtu").read_text())
+        if mtu < CANFD_MTU:
+            problem = f"{FD_CHANNEL} carries no CAN FD frames (mtu {mtu}, expected {CANFD_MTU})"
+    if problem:
+        _unavailable(problem)
+    return FD_CHANNEL
 
 
 @pytest.fixture(autouse=True)

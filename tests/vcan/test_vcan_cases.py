@@ -23,8 +23,10 @@ must fit CI's 35 min (it cost 154 s of the guest, and once ended at 1.01e-3):
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import replace
 
+import can
 import pytest
 from vcanrun import (
     FINAL_TOL,
@@ -36,7 +38,9 @@ from vcanrun import (
     run_on_vcan,
 )
 
+from dbc import FD_DBC_PATH
 from firmware_py.contract import State
+from firmware_py.frames import FrameCodec
 from sim.cbind.cagent import node_program
 from sim.model.lockstep import run_lockstep
 from sim.model.metrics import worst_error
@@ -53,12 +57,14 @@ REJECTIONS = {"rejected_frames", "foreign_traffic", "implausible_frames",
 
 
 @pytest.fixture(scope="module")
-def case1(vcan_channel: str, tmp_path_factory: pytest.TempPathFactory) -> Run:
+def case1(vcan_fd_channel: str, tmp_path_factory: pytest.TempPathFactory) -> Run:
     """Case 1 (4 agents, star, ρ = 0.8), 8 s instead of 20 s (lockstep settles in 2.54 s
     and is at 1.4e-4 at 8 s), a mixed fleet: agent 3 runs firmware_c's node program, the
-    others firmware_py."""
-    sc = replace(load_case(1), duration=8.0)
-    return run_on_vcan(sc, tmp_path_factory.mktemp("case1"), vcan_channel,
+    others firmware_py; on CAN FD (``[bus] fd``, vcan1 with mtu 72: issue 23.3), so the
+    C and the Python agents both send and take FD frames on SocketCAN. The classic
+    SocketCAN path runs in the other cases and in the interop, attack and fuzz runs."""
+    sc = replace(load_case(1), duration=8.0, fd=True)
+    return run_on_vcan(sc, tmp_path_factory.mktemp("case1"), vcan_fd_channel,
                        c_agents=frozenset({3}), c_node=node_program())
 
 
@@ -118,6 +124,17 @@ def test_log_decodes_against_the_dbc(run: Run) -> None:
 
 def test_nodes_exit_cleanly(run: Run) -> None:
     assert_clean_exit(run)
+
+
+def test_case1_on_can_fd_sends_fd_frames_only(case1: Run) -> None:
+    """Every frame of the FD run (the C agent's too) is CAN FD with the bit-rate switch,
+    and each sender was heard: the format is the scenario's, end to end (issue 23.3)."""
+    frames = list(can.LogReader(str(case1.out / "run.log")))
+    assert frames and all(f.is_fd and f.bitrate_switch for f in frames), \
+        Counter((f.is_fd, f.bitrate_switch) for f in frames)
+    codec = FrameCodec(FD_DBC_PATH)
+    heard = {codec.name_of(f.arbitration_id) for f in frames}
+    assert {"AGENT_3_MC", "AGENT_3_Setpoint", "AGENT_1_MC", "ER_Price"} <= heard, heard
 
 
 @pytest.mark.parametrize("name", ["case1", "case7"])
