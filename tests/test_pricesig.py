@@ -16,6 +16,7 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from test_attacks import _final  # max|λ−ρ| and the powers at the end of a case-1 run
 
 from firmware_py import contract, pricesig, secoc
 from firmware_py.frames import FrameCodec
@@ -175,13 +176,6 @@ def _run(tmp: Path, inject: Callable[[float], list[can.Message]] | None = None,
     m = run_in_process(sc, tmp, DURATION_S, channel=f"pricesig-{tmp.name}",
                        inject=inject, observe=observe, keyrings=rings)
     return m, np.genfromtxt(tmp / "trajectory.csv", delimiter=",", names=True), counters
-
-
-def _final(tr: np.ndarray) -> tuple[float, np.ndarray]:
-    last = tr[-1]
-    lam = np.array([last[f"lam_{i}"] for i in range(1, CASE.n + 1)])
-    p = np.array([last[f"p_{i}"] for i in range(1, CASE.n + 1)])
-    return float(np.max(np.abs(lam - last["rho"]))), p
 
 
 @pytest.fixture(scope="module")

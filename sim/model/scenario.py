@@ -340,22 +340,9 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         variants.append(Variant(label, overrides))
 
     transmit = r.transmit(data)
-    fd = False
-    if "bus" in data:
-        bus = r.table(data, "bus")
-        r.only(bus, "bus", {"fd"})
-        fd = bus.get("fd", False)
-        if not isinstance(fd, bool):
-            raise ConfigError(src, "bus.fd", f"expected true (CAN FD) or false (classic CAN), "
-                              f"but got {fd!r}")
-    signed_price = False
-    if "security" in data:
-        sec = r.table(data, "security")
-        r.only(sec, "security", {"signed_price"})
-        signed_price = sec.get("signed_price", False)
-        if not isinstance(signed_price, bool):
-            raise ConfigError(src, "security.signed_price", "expected true (the router signs "
-                              f"each price segment) or false, but got {signed_price!r}")
+    fd = r.switch(data, "bus", "fd", "true (CAN FD) or false (classic CAN)")
+    signed_price = r.switch(data, "security", "signed_price",
+                            "true (the router signs each price segment) or false")
     sc = Scenario(
         name=str(data.get("name", Path(src).stem)), title=str(data.get("title", "")), source=src,
         ts=ts, duration=duration, load_kw=r.number(data, "load_kw", lo=-1e6, hi=1e6),
@@ -402,6 +389,18 @@ class _Reader:
             if key not in allowed:
                 raise self.fail(f"{where}.{key}" if where else key,
                                 f"unknown key; expected one of {', '.join(sorted(allowed))}")
+
+    def switch(self, data: Mapping[str, Any], table: str, key: str, what: str) -> bool:
+        """An optional table holding one optional boolean ``key`` (``[bus] fd``,
+        ``[security] signed_price``): False when absent."""
+        if table not in data:
+            return False
+        t = self.table(data, table)
+        self.only(t, table, {key})
+        value = t.get(key, False)
+        if not isinstance(value, bool):
+            raise ConfigError(self.src, f"{table}.{key}", f"expected {what}, but got {value!r}")
+        return value
 
     def table(self, data: Mapping[str, Any], key: str) -> Mapping[str, Any]:
         if key not in data:
