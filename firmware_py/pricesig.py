@@ -34,6 +34,8 @@ from typing import Any
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
+from . import contract
+
 MESSAGE = "ER_PriceSig"
 SIG_LABEL = b"bess-ded/price-signature/v1"
 SIGN_KEY_LABEL = b"bess-ded/price-sign-key/v1"
@@ -43,9 +45,12 @@ SIG_BYTES = 64
 PAGE_BYTES = 7            # signature bytes per page (bits 8..63)
 SIG_PAGES = -(-SIG_BYTES // PAGE_BYTES)   # 10: pages 1..10
 PAGES = SIG_PAGES + 1     # with the header, page 0
-SEGMENT_BITS = 11         # the segment number: Segment (3 bits) ‖ SegmentHigh (8 bits)
-SEGMENT_MOD = 1 << SEGMENT_BITS
-CAUSES = ("unsigned_price", "bad_signature", "sig_malformed")  # contract.SIGNED_PRICE_COUNTERS
+# the segment number: ER_Price.Segment (its low bits) ‖ ER_PriceSig.SegmentHigh, as wide
+# as the DBC makes them (3 + 8 bits: mod 2048)
+SEGMENT_LOW_BITS = contract.raw_range("ER_Price", "Segment")[1].bit_length()
+SEGMENT_LOW_MOD = 1 << SEGMENT_LOW_BITS
+SEGMENT_MOD = SEGMENT_LOW_MOD << contract.raw_range(MESSAGE, "SegmentHigh")[1].bit_length()
+CAUSES = contract.SIGNED_PRICE_COUNTERS
 # a monitor's key table (label -> bytes): the router's public price key and the fleet ID
 MONITOR_PUBLIC = "@price_verify"
 MONITOR_FLEET = "@fleet_id"
@@ -75,7 +80,7 @@ class SignedSegment:
     def matches(self, raw: dict[str, int]) -> bool:
         """Whether an ER_Price (its raw signals) is this segment's."""
         return (raw["PriceValid"] == self.valid and raw["Rho"] == self.rho
-                and raw["Segment"] == self.number % 8)
+                and raw["Segment"] == self.number % SEGMENT_LOW_MOD)
 
     def after(self, other: SignedSegment) -> bool:
         """Newer than ``other`` or the same: a later boot, or a segment number at or after
@@ -111,8 +116,9 @@ def verifies(public: bytes, fleet: str, seg: SignedSegment, signature: bytes) ->
 
 def pages(seg: SignedSegment, signature: bytes) -> list[dict[str, int]]:
     """The raw signals of every ER_PriceSig page, in order (0: the segment)."""
-    out = [{"Page": 0, "PriceValid": seg.valid, "Segment": seg.number % 8,
-            "SegmentHigh": (seg.number % SEGMENT_MOD) >> 3, "Rho": seg.rho, "Boot": seg.boot}]
+    out = [{"Page": 0, "PriceValid": seg.valid, "Segment": seg.number % SEGMENT_LOW_MOD,
+            "SegmentHigh": (seg.number % SEGMENT_MOD) >> SEGMENT_LOW_BITS, "Rho": seg.rho,
+            "Boot": seg.boot}]
     for k in range(SIG_PAGES):
         chunk = signature[k * PAGE_BYTES:(k + 1) * PAGE_BYTES]
         out.append({"Page": k + 1, "Signature": int.from_bytes(chunk, "little")})
@@ -139,7 +145,8 @@ class PriceSigReceiver:
         a replay of an earlier boot)."""
         page = raw["Page"]
         if page == 0:
-            self._header = SignedSegment(raw["Boot"], raw["Segment"] | raw["SegmentHigh"] << 3,
+            self._header = SignedSegment(raw["Boot"],
+                                         raw["Segment"] | raw["SegmentHigh"] << SEGMENT_LOW_BITS,
                                          raw["PriceValid"], raw["Rho"])
             self._parts = {}
             return None
