@@ -132,13 +132,9 @@ def _write_counters(agents: list[AgentRuntime], directory: str) -> None:
     import json
     from pathlib import Path
 
-    from .contract import SIGNED_PRICE_COUNTERS
-
     for agent in agents:
-        c = {k: agent.counters[k] for k in (*SIGNED_PRICE_COUNTERS, "deadline_miss")
-             if agent.counters.get(k)}
         Path(directory, f"agent_{agent.cfg.id}.counters.json").write_text(
-            json.dumps({"ticks": agent.ticks, "counters": c}) + "\n")
+            json.dumps(agent.verdict_counters()) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:

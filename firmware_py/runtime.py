@@ -580,6 +580,15 @@ class AgentRuntime:
         """The agent's λ on the wire, as a real value (cu/kWh)."""
         return fx.to_float(self.lambda_q24)
 
+    def verdict_counters(self) -> dict[str, object]:
+        """What the run's verdict cannot read from AGENT_<i>_Diag: the signed price's
+        counters (no Diag slot) and the deadline misses, with the ticks (those not zero;
+        ``--counters-dir``'s file, an in-process run's counters)."""
+        return {"ticks": self.ticks,
+                "counters": {k: self.counters[k]
+                             for k in (*contract.SIGNED_PRICE_COUNTERS, "deadline_miss")
+                             if self.counters.get(k)}}
+
     def summary(self) -> str:
         """The one-line summary the agent prints at exit: state, λ, resets, ticks
         and every non-zero counter."""

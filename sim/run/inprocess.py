@@ -222,9 +222,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     if sc.signed_price:  # AUTH-32, AUTH-33: the agents' signature causes (no Diag slot)
         for name, node in zip(names, nodes, strict=True):
             if name.startswith("agent_"):
-                c = {k: node.counters[k] for k in (*pricesig.CAUSES, "deadline_miss")
-                     if node.counters.get(k)}
-                counters[name] = {"ticks": node.ticks, "counters": c}
+                counters[name] = node.verdict_counters()
     dropped = {k: v for k, v in recorder.counters.items() if v}
     # left as `up` leaves them, so `analyze DIR` judges this run as it is judged here
     (out / "scenario.toml").write_text(to_toml(sc))
