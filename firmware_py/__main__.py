@@ -18,7 +18,17 @@ from .config import load_agent_config
 from .errors import BessDedError, ParameterError
 from .faultinject import FaultyBus, RxFaults, every_frame, neighbour_mc
 from .host import AcceptedOnly, Routes, host_bus
-from .node import Node, RxTxBus, StopFlag, behind_filter, bus_kwargs, open_bus, run_nodes
+from .node import (
+    Node,
+    RxTxBus,
+    StopFlag,
+    behind_filter,
+    bus_kwargs,
+    freeze_startup_objects,
+    open_bus,
+    run_nodes,
+    spread_phases,
+)
 from .nodeargs import (
     add_bus_arguments,
     add_fd_argument,
@@ -106,10 +116,12 @@ def run_agent(args: argparse.Namespace) -> int:
         node_bus = FaultyBus(node_bus, faults)
     nodes: list[Node] = [AcceptedOnly(a, a.io.accepted_ids()) if own_filters else a
                          for a in agents]
+    freeze_startup_objects()
     wall, cpu = time.monotonic(), time.process_time()
     try:
         run_nodes(nodes, node_bus, duration=args.duration, stop=stop,
-                  route=Routes(nodes, [a.io for a in agents]) if len(agents) > 1 else None)
+                  route=Routes(nodes, [a.io for a in agents]) if len(agents) > 1 else None,
+                  phases=spread_phases(len(nodes), agents[0].io.sync_s))
     finally:
         bus.shutdown()
         for agent in agents:

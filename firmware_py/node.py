@@ -15,6 +15,7 @@ burst of late control steps is worse for the consensus than one skipped sample).
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import os
@@ -392,6 +393,30 @@ def _deliver(nodes: Sequence[Node], msg: can.Message, clock: Callable[[], float]
             node.on_frame(msg, clock())
 
 
+def spread_phases(k: int, span: float) -> list[float]:
+    """The starts of ``k`` nodes of one host spread evenly over ``span`` seconds (a sync
+    period, AUTH-9): each ticks at its own instant within Ts, and each sends its syncs
+    at its own tick, as k separate nodes started one after the other would, instead of
+    k ticks in a row at every release (the k-th up to k ticks late) and k nodes' syncs
+    in one burst each second that every receiver on the bus must take at once."""
+    return [i * span / k for i in range(k)]
+
+
+def _started(nodes: Sequence[Node], waiting: set[int]) -> Sequence[Node]:
+    """``nodes`` but those whose first release is still to come (they are not on yet)."""
+    return nodes if not waiting else [n for n in nodes if id(n) not in waiting]
+
+
+def freeze_startup_objects() -> None:
+    """In a node's process, before its loop: move everything allocated so far (the DBC,
+    keys, configs: long-lived) out of the collector's reach. A full collection over it
+    takes ~0.1 s, which the loop would take as a burst of deadline misses (measured: 125
+    ms, 16 agents of a host late at once); what the loop allocates is collected as
+    usual."""
+    gc.collect()
+    gc.freeze()
+
+
 def _send(node: Node, frames: Iterable[can.Message], bus: RxTxBus, period: float) -> None:
     for frame in frames:
         try:
@@ -403,13 +428,15 @@ def _send(node: Node, frames: Iterable[can.Message], bus: RxTxBus, period: float
 
 def run_node(node: Node, bus: RxTxBus, *, duration: float | None = None,
              stop: StopFlag | None = None, clock: Callable[[], float] = time.monotonic,
-             on_tick: Callable[[float], None] | None = None) -> None:
-    """Drive ``node`` on ``bus`` until ``duration`` elapses or ``stop`` is set.
+             on_tick: Callable[[float], None] | None = None, phase: float = 0.0) -> None:
+    """Drive ``node`` on ``bus`` until ``duration`` elapses or ``stop`` is set, its first
+    release ``phase`` seconds after the start.
 
     Send failures (bus buffer full, interface down) are counted by the node
     (``note("send_failure")``) and logged; they never end the loop.
     """
-    run_nodes([node], bus, duration=duration, stop=stop, clock=clock, on_tick=on_tick)
+    run_nodes([node], bus, duration=duration, stop=stop, clock=clock, on_tick=on_tick,
+              phases=[phase])
 
 
 class NodesOnOneBus(BessDedError, ValueError):
@@ -419,7 +446,8 @@ class NodesOnOneBus(BessDedError, ValueError):
 def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = None,
               stop: StopFlag | None = None, clock: Callable[[], float] = time.monotonic,
               on_tick: Callable[[float], None] | None = None,
-              route: Callable[[can.Message], Sequence[Node]] | None = None) -> None:
+              route: Callable[[can.Message], Sequence[Node]] | None = None,
+              phases: Sequence[float] | None = None) -> None:
     """Drive several nodes of one period on one loop and one ``bus`` (a multi-agent host:
     one process, one socket, instead of one of each per node). Every frame read goes to
     every node; every release ticks them one after the other, each at the clock of its
@@ -432,7 +460,9 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
     binary64 sum, as LOOP-1 says: one an ulp behind the others ticks at the next pass).
     A bus input that is not a frame is counted by every node (each socket read it).
     ``route(msg)``: the nodes a frame is handed to (default: all; firmware_py.host.Routes
-    leaves out those it cannot affect). ``run_node`` is this loop with one node."""
+    leaves out those it cannot affect). ``phases[i]``: node i's first release after the
+    start (default: all at the start; ``spread_phases``: spread over the period, so that
+    no node waits behind the others' ticks). ``run_node`` is this loop with one node."""
     nodes = list(nodes)
     if not nodes or any(n.period != nodes[0].period for n in nodes):
         raise NodesOnOneBus(f"one loop drives nodes of one period, but got periods "
@@ -445,7 +475,12 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
         bus = GuardedBus(bus, note_all, clock)
     period = nodes[0].period
     start = clock()
-    releases = [start] * len(nodes)
+    phases = [0.0] * len(nodes) if phases is None else list(phases)
+    if len(phases) != len(nodes) or any(not 0.0 <= p for p in phases):
+        raise NodesOnOneBus(f"expected a phase >= 0 per node, but got {phases}")
+    releases = [start + p for p in phases]
+    # a node hears the bus from its own start (its first release) on
+    waiting = {id(n) for n, r in zip(nodes, releases, strict=True) if r > start}
     while not stop.is_set():
         now = clock()
         if duration is not None and now - start >= duration:
@@ -454,7 +489,8 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
         if now < release:
             msg = bus.recv(timeout=min(release - now, 0.05))
             if msg is not None:
-                _deliver(nodes if route is None else route(msg), msg, clock)
+                _deliver(_started(nodes if route is None else route(msg), waiting),
+                         msg, clock)
             continue
         # Take what is already queued before ticking: a node whose ticks overrun Ts
         # would otherwise never get back to the branch above and never read its inputs.
@@ -462,11 +498,17 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
             msg = bus.recv(timeout=0)
             if msg is None:
                 break
-            _deliver(nodes if route is None else route(msg), msg, clock)
+            _deliver(_started(nodes if route is None else route(msg), waiting), msg,
+                     clock)
+        for i, node in enumerate(nodes):  # those starting now hear from here on
+            if releases[i] <= now:
+                waiting.discard(id(node))
+        first = True
         for i, node in enumerate(nodes):
             if releases[i] > now:
-                continue  # it skipped ahead: it ticks at a later release
-            t = now if i == 0 else clock()
+                continue  # not yet released (a later phase, or it skipped ahead)
+            t = now if first else clock()
+            first = False
             late = t - releases[i]
             if late > period / 2:
                 skipped = int(late // period)

@@ -48,6 +48,8 @@ BAD = [
     (["inject", "forge", "--rate", "0"], "--rate",
      "a finite number > 0 and ≤ 1e+06, but got 0"),
     (["inject", "forge", "--seed", "-1"], "--seed", "an integer ≥ 0, but got -1"),
+    (["bench", "--capacity-only", "--fleet-transmit", "sometimes"], "--fleet-transmit",
+     "periodic, event or periodic,event, but got 'sometimes'"),
 ]
 
 

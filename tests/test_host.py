@@ -16,7 +16,7 @@ from firmware_py import fixedpoint as fx
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.frames import mc_name, status_name
 from firmware_py.host import AcceptedOnly, Routes, host_bus
-from firmware_py.node import NodesOnOneBus, run_node, run_nodes
+from firmware_py.node import NodesOnOneBus, run_node, run_nodes, spread_phases
 from firmware_py.runtime import AgentRuntime
 from sim.model.scenario import load_case
 from sim.run import busrun
@@ -72,6 +72,48 @@ def test_an_agent_in_a_host_sends_what_it_sends_alone() -> None:
         assert sent_by(host, agent) == sent_by(alone, solo) and sent_by(alone, solo)
         assert agent.counters == solo.counters and solo.state == agent.state
     assert together[0].counters["impersonation"] > 0  # the script's own-ID frames
+
+
+def test_agents_started_apart_in_a_host_send_what_each_sends_alone_from_its_start() -> None:
+    """Case 1's agents started a quarter of their sync period apart in one host
+    (spread_phases, as the agents' command line does) send, frame for frame and at the
+    same instants, what each sends alone started at its own phase: each ticks at its own
+    release, sends its syncs at its own first tick, and hears nothing before its start."""
+    frames = script(1.5)
+    together = agents()
+    phases = spread_phases(len(together), together[0].io.sync_s)
+    assert phases == pytest.approx([0.0, 0.25, 0.5, 0.75])
+    clock = Clock()
+    host = FakeBus(clock, [(t, copy.copy(m)) for t, m in frames])
+    run_nodes(together, host, duration=1.5, clock=clock,
+              route=Routes(together, [a.io for a in together]), phases=phases)
+    for i, agent in enumerate(together):
+        clock = Clock()
+        alone = FakeBus(clock, [(t, copy.copy(m)) for t, m in frames])
+        solo = agents()[i]
+        run_node(solo, alone, duration=1.5, clock=clock, phase=phases[i])
+        sent = sent_by(host, agent)
+        assert sent == sent_by(alone, solo) and sent[0][0] == pytest.approx(phases[i])
+        assert agent.counters == solo.counters and solo.state == agent.state
+    # started later, heard less: the last agent missed the first 0.75 s of the script
+    assert together[3].counters["impersonation"] < together[0].counters["impersonation"]
+
+
+def test_a_node_hears_the_bus_from_its_first_release_on() -> None:
+    """A node whose phase puts its start after a frame does not get that frame; one
+    started already does; a phase that is not a non-negative number per node is
+    refused."""
+    clock = Clock()
+    early, late = Recorder(clock), Recorder(clock)
+    run_nodes([early, late], FakeBus(clock, [(1.5 * T, msg()), (3.5 * T, msg())]),
+              duration=6 * T, clock=clock, phases=[0.0, 2.5 * T])
+    assert [t for e, t in early.events if e == "rx"] == [1.5 * T, 3.5 * T]
+    assert [t for e, t in late.events if e == "rx"] == [3.5 * T]
+    assert late.ticks() == pytest.approx([2.5 * T, 3.5 * T, 4.5 * T, 5.5 * T])
+    assert early.counters == late.counters == {}
+    for bad in ([0.0], [0.0, -T]):
+        with pytest.raises(NodesOnOneBus):
+            run_nodes([early, late], FakeBus(clock), duration=T, clock=clock, phases=bad)
 
 
 def test_deadlines_are_per_node_in_a_host() -> None:

@@ -13,6 +13,7 @@ its missed ticks (issue 24).
 
 from __future__ import annotations
 
+import itertools
 import statistics
 import tempfile
 from collections.abc import Callable
@@ -64,10 +65,10 @@ WARMUP_S = 2.0        # after the first price: processes still starting, not cou
 
 @dataclass(frozen=True)
 class CapacityPlan:
-    """Which fleets `bench --realtime` sizes up: ``sizes`` agents on a random 4-regular
-    graph (sim.model.generate), each run with the Python agents ``per_process`` to a
-    process (1: a process each), ``repeats`` times, ``seconds`` of price time at Ts =
-    10 ms. ``impl`` "c": firmware_c's node program, a process per agent, on SocketCAN
+    """Which fleets `bench --realtime` sizes up: ``sizes`` agents (``fleet_scenario``),
+    each run with the Python agents ``per_process`` to a process (1: a process each) and
+    each ``transmit`` mode of the MC frames, ``repeats`` times, ``seconds`` of price
+    time at Ts = 10 ms. ``impl`` "c": firmware_c's node program, a process per agent, on SocketCAN
     ``channel`` (its only bus)."""
 
     sizes: tuple[int, ...] = (16, 32)
@@ -76,49 +77,66 @@ class CapacityPlan:
     seconds: float = 14.0
     impl: str = "py"
     channel: str = "vcan0"
+    transmit: tuple[str, ...] = ("periodic", "event")
 
 
-def steady_misses(log_path: Path, n: int, t_first_price: float
-                  ) -> dict[int, tuple[int, int]]:
+def steady_misses(log_path: Path, n: int, t_first_price: float, ts: float = 0.01,
+                  fd: bool = False) -> dict[int, tuple[int, int]]:
     """Per agent, (deadline misses, ticks) from WARMUP_S after the first price to the end,
-    read from the recording: AGENT_i_Diag page 0's DeadlineMisses and the MC frames."""
+    read from the recording: the growth of AGENT_i_Diag page 0's DeadlineMisses between
+    the agent's first and last such page, over the periods of ``ts`` between them (so an
+    event-triggered fleet, which sends no MC frame on most ticks, is counted alike)."""
     import can
 
-    from firmware_py.frames import FrameCodec, diag_name, mc_name
+    from dbc import dbc_path
+    from firmware_py.frames import FrameCodec, diag_name
 
-    codec = FrameCodec()
+    codec = FrameCodec(dbc_path(fd))
     diag = {codec.frame_id(diag_name(i)): i for i in range(1, n + 1)}
-    mc = {codec.frame_id(mc_name(i)): i for i in range(1, n + 1)}
     start = t_first_price + WARMUP_S
-    first: dict[int, int] = {}
-    last: dict[int, int] = {}
-    ticks = dict.fromkeys(range(1, n + 1), 0)
+    first: dict[int, tuple[float, int]] = {}
+    last: dict[int, tuple[float, int]] = {}
     for msg in can.LogReader(str(log_path)):
-        if msg.timestamp < start or msg.is_error_frame:
-            continue
-        i = mc.get(msg.arbitration_id)
-        if i is not None:
-            ticks[i] += 1
+        if msg.timestamp < start or msg.is_error_frame or msg.is_fd != fd:
             continue
         i = diag.get(msg.arbitration_id)
         if i is not None:
             f = codec.decode(msg)
             if f.raw["Page"] == 0:
-                first.setdefault(i, f.raw["DeadlineMisses"])
-                last[i] = f.raw["DeadlineMisses"]
-    return {i: (last.get(i, 0) - first.get(i, 0), ticks[i]) for i in range(1, n + 1)}
+                first.setdefault(i, (msg.timestamp, f.raw["DeadlineMisses"]))
+                last[i] = (msg.timestamp, f.raw["DeadlineMisses"])
+    out = {}
+    for i in range(1, n + 1):
+        (t0, m0), (t1, m1) = first.get(i, (0.0, 0)), last.get(i, (0.0, 0))
+        out[i] = (m1 - m0, round((t1 - t0) / ts))
+    return out
 
 
-def capacity_run(n: int, per_process: int, plan: CapacityPlan, seed: int = 0
-                 ) -> dict[str, Any]:
+def fleet_scenario(n: int, transmit: str, seconds: float, seed: int = 0) -> Any:
+    """The capacity runs' fleet: ``n`` agents on a random 4-regular graph (fewer for
+    n < 5), one in eight pinned (so that 32 agents settle within a run), its MC frames
+    ``transmit``ted (periodic or event), on classic CAN if its computed load fits there,
+    else on CAN FD (32 periodic agents: 134 % of classic CAN at Ts = 10 ms)."""
+    from sim.bench.fleetload import BUS_LOAD_MAX, run_bus_load
+    from sim.model.generate import random_fleet
+    from sim.model.scenario import parse_scenario
+
+    data = random_fleet(n, degree=max(1, min(4, n - 1)), seed=seed, pinned=max(1, n // 8),
+                        duration=seconds)
+    data["transmit"] = transmit
+    sc = parse_scenario(data, f"<{data['name']}>")
+    if run_bus_load(sc)[0] > BUS_LOAD_MAX:
+        sc = parse_scenario({**data, "bus": {"fd": True}}, f"<{data['name']}>")
+    return sc
+
+
+def capacity_run(n: int, per_process: int, plan: CapacityPlan, seed: int = 0,
+                 transmit: str = "periodic") -> dict[str, Any]:
     """One fleet of ``n`` agents for ``plan.seconds``: its agents' missed ticks in steady
     state (all of them together, and the worst agent's), the plant's and router's over
     the whole run, the final error and the exit code; ``did_not_run`` if it never
     started (a router starved before its first price counts as 100 % missed)."""
-    from sim.model.generate import random_scenario
-
-    sc = random_scenario(n, degree=max(1, min(4, n - 1)), seed=seed,
-                         duration=plan.seconds)
+    sc = fleet_scenario(n, transmit, plan.seconds, seed)
     c = plan.impl == "c"
     if c:
         from sim.cbind.cagent import node_program
@@ -127,7 +145,8 @@ def capacity_run(n: int, per_process: int, plan: CapacityPlan, seed: int = 0
     else:
         bus, _ = busrun.private_port(busrun.BusOptions("udp_multicast"))
     out: dict[str, Any] = {"impl": plan.impl, "agents": n, "per_process": per_process,
-                           "seconds": plan.seconds}
+                           "seconds": plan.seconds, "transmit": transmit,
+                           "bus": "FD" if sc.fd else "classic"}
     with tempfile.TemporaryDirectory(prefix=f"bess-ded-capacity-{plan.impl}{n}x") as tmp:
         try:
             rec = busrun.record(sc, Path(tmp), bus, duration=plan.seconds, quiet=True,
@@ -136,8 +155,9 @@ def capacity_run(n: int, per_process: int, plan: CapacityPlan, seed: int = 0
                                 c_node=node_program() if c else None)
         except busrun.BusRunError as e:
             return {**out, "fleet_miss_pct": 100.0, "worst_agent_miss_pct": 100.0,
-                    "did_not_run": str(e).splitlines()[0]}
-        steady = steady_misses(Path(tmp) / "run.log", n, rec.log.t_first_price or 0.0)
+                    "did_not_run": " ".join(str(e).split())[:300]}
+        steady = steady_misses(Path(tmp) / "run.log", n, rec.log.t_first_price or 0.0,
+                               sc.ts, sc.fd)
     m = rec.metrics
     misses, ticks = sum(x for x, _ in steady.values()), sum(t for _, t in steady.values())
     whole = {k: 100.0 * m["deadline_misses"][k] / max(t, 1)
@@ -151,21 +171,23 @@ def capacity_run(n: int, per_process: int, plan: CapacityPlan, seed: int = 0
 
 def capacity(plan: CapacityPlan, on_run: Callable[[dict[str, Any]], None] | None = None
              ) -> list[dict[str, Any]]:
-    """Every fleet size of ``plan`` with each agents-per-process, ``plan.repeats`` times:
-    per (size, K) the runs, the median and the worst of the fleet's missed-tick share."""
+    """Every fleet size of ``plan`` with each agents-per-process and transmit mode,
+    ``plan.repeats`` times: per (size, K, mode) the runs, the median and the worst of the
+    fleet's missed-tick share."""
     out = []
-    for n in plan.sizes:
-        for k in (1,) if plan.impl == "c" else plan.per_process:
-            runs = []
-            for r in range(plan.repeats):
-                runs.append(capacity_run(n, k, plan, seed=r))
-                if on_run is not None:
-                    on_run(runs[-1])
-            pct = [x["fleet_miss_pct"] for x in runs]
-            out.append({"impl": plan.impl, "agents": n, "per_process": k, "runs": runs,
-                        "median_miss_pct": statistics.median(pct), "worst_miss_pct": max(pct),
-                        "worst_agent_miss_pct": max(x["worst_agent_miss_pct"] for x in runs),
-                        "real_time": statistics.median(pct) < MISS_LIMIT_PCT})
+    for n, k, mode in itertools.product(
+            plan.sizes, (1,) if plan.impl == "c" else plan.per_process, plan.transmit):
+        runs = []
+        for r in range(plan.repeats):
+            runs.append(capacity_run(n, k, plan, seed=r, transmit=mode))
+            if on_run is not None:
+                on_run(runs[-1])
+        pct = [x["fleet_miss_pct"] for x in runs]
+        out.append({"impl": plan.impl, "agents": n, "per_process": k, "transmit": mode,
+                    "bus": runs[0]["bus"], "runs": runs,
+                    "median_miss_pct": statistics.median(pct), "worst_miss_pct": max(pct),
+                    "worst_agent_miss_pct": max(x["worst_agent_miss_pct"] for x in runs),
+                    "real_time": statistics.median(pct) < MISS_LIMIT_PCT})
     return out
 
 
@@ -181,13 +203,15 @@ def capacity_table(quick: bool, plan: CapacityPlan | None = None,
     for r in capacity(plan, on_run):
         data.append(r)
         exits = sorted({str(x.get("exit_code", "-")) for x in r["runs"]})
-        rows.append([r["impl"], str(r["agents"]), str(r["per_process"]),
+        rows.append([r["impl"], str(r["agents"]), str(r["per_process"]), r["transmit"],
+                     r["bus"],
                      str(len(r["runs"])), f"{r['median_miss_pct']:.3f} %",
                      f"{r['worst_miss_pct']:.3f} %", f"{r['worst_agent_miss_pct']:.2f} %",
                      "yes" if r["real_time"] else "no", ",".join(exits)])
     return Table(f"Fleet capacity at Ts = 10 ms ({plan.seconds:g} s per run, "
                  f"{'udp_multicast' if plan.impl == 'py' else plan.channel})",
-                 ["impl", "agents", "per process", "runs", "missed (median)",
+                 ["impl", "agents", "per process", "MC frames", "bus", "runs",
+                  "missed (median)",
                   "missed (worst run)", "worst agent", f"< {MISS_LIMIT_PCT} %", "exit"],
                  rows, note=f"missed: the fleet's agents' deadline misses over their ticks "
                  f"from {WARMUP_S:g} s after the first price (AGENT_i_Diag, MC frames); "
@@ -196,7 +220,8 @@ def capacity_table(quick: bool, plan: CapacityPlan | None = None,
 
 def print_run(r: dict[str, Any]) -> None:
     """One capacity run as a progress line."""
-    what = (f"  {r['impl']} {r['agents']} agents, {r['per_process']} per process: ")
+    what = (f"  {r['impl']} {r['agents']} agents, {r['per_process']} per process, "
+            f"{r['transmit']} on {r['bus']}: ")
     if "did_not_run" in r:
         print(what + f"did not run: {r['did_not_run']}", flush=True)
         return

@@ -25,12 +25,26 @@ def add_capacity_arguments(p: argparse.ArgumentParser) -> None:
                    help="runs per fleet and K (default: 3)")
     f.add_argument("--fleet-seconds", type=float_in(4.0, 3600.0), default=14.0, metavar="S",
                    help="price time per run (default: 14: 12 s of steady state)")
+    f.add_argument("--fleet-transmit", type=transmit_list, default=("periodic", "event"),
+                   metavar="MODE,...",
+                   help="the MC frames' transmission, each fleet run with each: periodic, "
+                   "event (default: periodic,event); a fleet runs on classic CAN where its "
+                   "load fits, else on CAN FD")
     f.add_argument("--fleet-impl", choices=("py", "c"), default="py",
                    help="firmware_py agents on udp_multicast (default), or firmware_c's node "
                    "program, a process per agent, on SocketCAN --channel")
     f.add_argument("--channel", default="vcan0", help="SocketCAN channel of --fleet-impl c")
     f.add_argument("--capacity-only", action="store_true",
                    help="the fleet capacity alone: no micro-benchmarks, no cases")
+
+
+def transmit_list(text: str) -> tuple[str, ...]:
+    """"periodic,event" → ("periodic", "event"): the MC frames' transmission modes."""
+    out = tuple(x.strip() for x in text.split(",") if x.strip())
+    if not out or not set(out) <= {"periodic", "event"}:
+        raise argparse.ArgumentTypeError(f"expected periodic, event or periodic,event, but "
+                                         f"got {text!r}")
+    return out
 
 
 def int_list(text: str) -> tuple[int, ...]:
@@ -64,7 +78,8 @@ def selected(args: argparse.Namespace) -> tuple[list[Bench] | None, CapacityPlan
         raise ParameterError(alone[0], f"no {alone[1]} with it ({alone[0]} runs its section "
                              "alone)", " ".join(alone))
     plan = CapacityPlan(args.fleet_sizes, args.agents_per_process, args.repeats,
-                        args.fleet_seconds, args.fleet_impl, args.channel)
+                        args.fleet_seconds, args.fleet_impl, args.channel,
+                        args.fleet_transmit)
     if args.auth:
         return [auth_schemes], plan
     if args.fleet_load:

@@ -87,6 +87,7 @@ def serve(node: Any, args: argparse.Namespace) -> int:
         StopFlag,
         behind_filter,
         bus_kwargs,
+        freeze_startup_objects,
         open_bus,
         run_node,
         with_acceptance_filter,
@@ -107,6 +108,7 @@ def serve(node: Any, args: argparse.Namespace) -> int:
             node_bus = injector = FaultyBus(node_bus, RxFaults(
                 args.inject_rx_loss, seed=args.inject_seed, match=every_frame,
                 spare_own=True))
+        freeze_startup_objects()
         run_node(node, node_bus, duration=args.duration, stop=stop)
     finally:
         try:
