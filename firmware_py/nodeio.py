@@ -76,7 +76,7 @@ from typing import Any, NamedTuple
 import can
 
 from . import contract
-from .errors import ConfigError, EncodeError
+from .errors import ConfigError, EncodeError, FrameError
 from .frames import DecodedFrame, FrameCodec, agent_of, format_fault, target_agent
 from .secoc import (
     INSECURE_BOOT,
@@ -323,14 +323,11 @@ class NodeIO:
         key = self._verify_key.get(fid)
         if key is None:
             if fid in self._transfers:  # signed_price: its signature is the caller's to check
-                try:
-                    return self.codec.decode(msg)
-                except Exception as e:  # FrameError: its cause names the counter
-                    cause = getattr(e, "cause", None)
-                    if cause is None:
-                        raise
-                    self.reject("sig_malformed", f"{e} ({cause})")
+                page = self._decoded(msg)
+                if isinstance(page, FrameError):
+                    self.reject("sig_malformed", f"{page} ({page.cause})")
                     return None
+                return page
             if fid in self._synced_by:
                 self._on_sync(msg, fid, t)
                 return None
@@ -346,13 +343,9 @@ class NodeIO:
         if until is not None and t >= until:  # an untrusted input is not blocked (RX-13)
             del self._untrusted_until[fid]
             log.info("%s trusts 0x%03X again (its untrusted time is over)", self.who, fid)
-        try:
-            frame = self.codec.decode(msg)
-        except Exception as e:  # FrameError: its cause names the counter
-            cause = getattr(e, "cause", None)
-            if cause is None:
-                raise
-            self.fail(fid, cause, str(e), t)
+        frame = self._decoded(msg)
+        if isinstance(frame, FrameError):
+            self.fail(fid, frame.cause, str(frame), t)
             return None
         if (fid == contract.ER_COMMAND_ID
                 and target_agent(frame.raw["Target"]) != self._target):
@@ -362,6 +355,14 @@ class NodeIO:
             self.reject(*refused)
             return None
         return self._authentic(frame, msg, key, t, defer_trust)
+
+    def _decoded(self, msg: can.Message) -> DecodedFrame | FrameError:
+        """``msg`` decoded, or the FrameError that refused it (its cause names the
+        counter); any other exception is a bug and propagates."""
+        try:
+            return self.codec.decode(msg)
+        except FrameError as e:
+            return e
 
     def precheck(self, fid: int,
                  check: Callable[[DecodedFrame], tuple[str, str] | None]) -> None:
