@@ -5,6 +5,10 @@ transmit modes. The figures themselves are measured, not asserted
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+
 import pytest
 
 from sim.bench.fleetload import BUS_LOAD_MAX, run_bus_load
@@ -36,3 +40,20 @@ def test_a_capacity_run_counts_every_agents_ticks_in_either_mode(transmit: str) 
     assert r["steady_ticks"] >= 4 * 200, r
     assert 0 <= r["steady_misses"] <= r["steady_ticks"]
     assert r["exit_code"] in (0, 3), r  # converged; 3: only anomalies such as misses
+    stalls = r["machine_stalls"]  # what the machine took away meanwhile, beside the fleet
+    assert stalls is not None and stalls["stalls"] >= 0 and stalls["seconds"] == 3600
+
+
+def test_the_stall_probe_stops_when_its_input_closes_and_reports_json() -> None:
+    """The probe runs until the run it watches closes its stdin, then prints one JSON
+    line; bad arguments are exit 2 with the expectation named."""
+    p = subprocess.run([sys.executable, "-m", "sim.bench.stallprobe", "3600"], input="",
+                       capture_output=True, text=True, timeout=30)
+    assert p.returncode == 0, p.stderr
+    got = json.loads(p.stdout)
+    assert set(got) == {"seconds", "realtime", "stalls", "stalled_s", "worst_s"}
+    assert got["stalls"] >= 0 and got["worst_s"] >= 0
+    bad = subprocess.run([sys.executable, "-m", "sim.bench.stallprobe", "0"],
+                         capture_output=True, text=True, timeout=30)
+    assert bad.returncode == 2 and bad.stderr.startswith("bess-ded: error: stallprobe: "
+                                                         "expected SECONDS in (0, 3600]")

@@ -14,7 +14,10 @@ its missed ticks (issue 24).
 from __future__ import annotations
 
 import itertools
+import json
 import statistics
+import subprocess
+import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -147,7 +150,8 @@ def capacity_run(n: int, per_process: int, plan: CapacityPlan, seed: int = 0,
     out: dict[str, Any] = {"impl": plan.impl, "agents": n, "per_process": per_process,
                            "seconds": plan.seconds, "transmit": transmit,
                            "bus": "FD" if sc.fd else "classic"}
-    with tempfile.TemporaryDirectory(prefix=f"bess-ded-capacity-{plan.impl}{n}x") as tmp:
+    with tempfile.TemporaryDirectory(prefix=f"bess-ded-capacity-{plan.impl}{n}x") as tmp, \
+            _StallProbe() as probe:
         try:
             rec = busrun.record(sc, Path(tmp), bus, duration=plan.seconds, quiet=True,
                                 plot=False, agents_per_process=per_process,
@@ -166,7 +170,31 @@ def capacity_run(n: int, per_process: int, plan: CapacityPlan, seed: int = 0,
             "steady_misses": misses, "steady_ticks": ticks,
             "worst_agent_miss_pct": max(100.0 * x / max(t, 1) for x, t in steady.values()),
             "plant_miss_pct": whole.get("plant"), "router_miss_pct": whole.get("router"),
-            "final_error": m.get("final_error"), "exit_code": m["verdict"]["exit_code"]}
+            "final_error": m.get("final_error"), "exit_code": m["verdict"]["exit_code"],
+            "machine_stalls": probe.result}
+
+
+class _StallProbe:
+    """sim.bench.stallprobe beside a run (a process above the nodes' priority): what
+    the machine itself took away while the run ran. ``result``: its JSON, or None if it
+    could not run."""
+
+    def __init__(self) -> None:
+        self.result: dict[str, Any] | None = None
+
+    def __enter__(self) -> _StallProbe:
+        self.proc = subprocess.Popen([sys.executable, "-m", "sim.bench.stallprobe", "3600"],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.DEVNULL, text=True)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            out, _ = self.proc.communicate(input="", timeout=10)  # closes its stdin
+            self.result = json.loads(out) if self.proc.returncode == 0 else None
+        except (subprocess.TimeoutExpired, ValueError):
+            self.proc.kill()
+            self.proc.wait()
 
 
 def capacity(plan: CapacityPlan, on_run: Callable[[dict[str, Any]], None] | None = None
@@ -207,15 +235,25 @@ def capacity_table(quick: bool, plan: CapacityPlan | None = None,
                      r["bus"],
                      str(len(r["runs"])), f"{r['median_miss_pct']:.3f} %",
                      f"{r['worst_miss_pct']:.3f} %", f"{r['worst_agent_miss_pct']:.2f} %",
-                     "yes" if r["real_time"] else "no", ",".join(exits)])
+                     "yes" if r["real_time"] else "no", ",".join(exits), _stalls(r["runs"])])
     return Table(f"Fleet capacity at Ts = 10 ms ({plan.seconds:g} s per run, "
                  f"{'udp_multicast' if plan.impl == 'py' else plan.channel})",
                  ["impl", "agents", "per process", "MC frames", "bus", "runs",
                   "missed (median)",
-                  "missed (worst run)", "worst agent", f"< {MISS_LIMIT_PCT} %", "exit"],
+                  "missed (worst run)", "worst agent", f"< {MISS_LIMIT_PCT} %", "exit",
+                  "machine stalls"],
                  rows, note=f"missed: the fleet's agents' deadline misses over their ticks "
-                 f"from {WARMUP_S:g} s after the first price (AGENT_i_Diag, MC frames); "
-                 "a did-not-start run counts 100 %", data={"fleets": data})
+                 f"from {WARMUP_S:g} s after the first price (AGENT_i_Diag page 0); "
+                 "a did-not-start run counts 100 %; machine stalls: per run, the wake-ups a "
+                 "real-time probe above the nodes got more than 3 ms late, and the longest "
+                 "(sim.bench.stallprobe): the machine's, not the fleet's", data={"fleets": data})
+
+
+def _stalls(runs: list[dict[str, Any]]) -> str:
+    """The stall probe's counts of ``runs`` ("-" where it did not run)."""
+    seen = [r.get("machine_stalls") for r in runs]
+    return ",".join("-" if s is None else f"{s['stalls']} ({1e3 * s['worst_s']:.0f} ms)"
+                    for s in seen)
 
 
 def print_run(r: dict[str, Any]) -> None:
