@@ -291,6 +291,44 @@ def test_running_agent_counts_hostile_datagrams_and_reads_on(tmp_path: Path,
     assert "impersonation" not in counters and "rx_error" not in counters, counters
 
 
+def test_running_agent_on_an_fd_bus_sends_fd_frames(tmp_path: Path, udp_port: int) -> None:
+    """--fd on udp_multicast (GEN-1) on the IPv6 group: every frame the agent sends is an
+    FD datagram with the bit-rate switch, python-can reads it as such, and a classic
+    frame sent to it is counted malformed (RX-2). At any load: the frames heard within
+    the deadline are all FD, the classic ones sent are counted (at most as many)."""
+    from can.interfaces.udp_multicast import UdpMulticastBus
+
+    group = UdpMulticastBus.DEFAULT_GROUP_IPv6
+    cfg = next(c for c in agent_configs_from_scenario(load_case(1)) if c.id == 1)
+    path = tmp_path / "agent_1.toml"
+    path.write_text(cfg.to_toml())
+    bus = can.Bus(interface="udp_multicast", channel=group, port=udp_port)
+    proc = subprocess.Popen([str(node_program()), "--config", str(path), "--insecure",
+                             "--interface", "udp_multicast", "--channel", group, "--port",
+                             str(udp_port), "--fd"], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT)
+    heard: list[can.Message] = []
+    try:
+        deadline = time.monotonic() + LOAD_TOLERANT_S
+        while len(heard) < 20:
+            assert proc.poll() is None and time.monotonic() < deadline, heard
+            if (msg := bus.recv(0.5)) is not None:
+                heard.append(msg)
+        for _ in range(3):
+            bus.send(can.Message(arbitration_id=0x7F3, is_extended_id=False, data=bytes(8)))
+            time.sleep(0.05)
+        time.sleep(0.3)
+    finally:
+        bus.shutdown()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=LOAD_TOLERANT_S)
+    log = out.decode(errors="replace")
+    assert proc.returncode == 0, log[-2000:]
+    assert all(m.is_fd and m.bitrate_switch and m.dlc == 8 for m in heard), heard
+    assert 1 <= summary_counters(log).get("malformed", 0) <= 3, log[-2000:]
+
+
 def test_up_passes_the_bus_to_the_c_agent_or_refuses_it(capsys: pytest.CaptureFixture[str]
                                                        ) -> None:
     """The C agent's flags of a bus: python-can's default group and port where none is
