@@ -36,7 +36,7 @@ from can.interfaces.udp_multicast.utils import pack_message, unpack_message
 
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.node import frame_fault
-from sim.cbind.cagent import UDP_DATAGRAM_MAX, node_program, udp_datagram, udp_frame
+from sim.cbind.cagent import UDP_DATAGRAM_MAX, built, node_program, udp_datagram, udp_frame
 from sim.model.scenario import load_case
 
 SEED = 20261127
@@ -217,6 +217,19 @@ def test_c_reader_takes_nothing_python_can_refuses_on_fuzzed_datagrams() -> None
             assert verdict in ("not_a_frame", "invalid_frame"), verdict
             refused += 1
     assert taken > 50 and refused > 3000, (taken, refused)
+
+
+def test_c_reader_under_address_sanitizer_fuzz_loop() -> None:
+    """firmware_c/tools/udp_fuzz.c (`make udp-fuzz`: AddressSanitizer and UBSan): half a
+    million random and mutated datagrams, each in a heap buffer of exactly its length;
+    a read past one, or any undefined behaviour, aborts it."""
+    res = subprocess.run([str(built("udp_fuzz")), "500000", str(SEED)], capture_output=True,
+                         text=True, timeout=600, check=False)
+    assert res.returncode == 0, res.stdout + res.stderr
+    counts = dict(zip(res.stdout.split()[::2], map(int, res.stdout.split()[1::2]),
+                      strict=True))
+    assert sum(counts.values()) == 500000 and counts["frame"] > 0, counts
+    assert counts["not_a_frame"] > 0 and counts["invalid_frame"] > 0, counts
 
 
 # --------------------------------------------------------------------------- a running agent

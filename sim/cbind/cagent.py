@@ -288,8 +288,8 @@ RUNNER_NAME = "node_runner"
 
 
 def built(name: str) -> Path:
-    """A program of firmware_c's Makefile (``bessded-agent``, ``node_runner``) from the
-    cache, built on first use."""
+    """A program of firmware_c's Makefile (``bessded-agent``, ``node_runner``,
+    ``udp_fuzz``) from the cache, built on first use."""
     path = cimpl.cache_dir() / name
     if not path.exists():
         tmp = path.parent.with_name(f"{path.parent.name}.{name}{os.getpid()}")
@@ -301,7 +301,7 @@ def built(name: str) -> Path:
 
 
 def node_program() -> Path:
-    """firmware_c's node program (Linux SocketCAN)."""
+    """firmware_c's node program (Linux: SocketCAN or python-can's udp_multicast)."""
     return built(NODE_NAME)
 
 
