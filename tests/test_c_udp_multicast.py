@@ -304,6 +304,42 @@ def test_running_agent_counts_hostile_datagrams_and_reads_on(tmp_path: Path,
     assert "impersonation" not in counters and "rx_error" not in counters, counters
 
 
+def test_acceptance_filter_on_udp_multicast_is_asked_for(tmp_path: Path,
+                                                        udp_port: int) -> None:
+    """--acceptance-filter on udp_multicast: the frames the kernel's filter would drop are
+    dropped in user space, uncounted (firmware_py's AcceptanceBus); a datagram that is no
+    frame is still counted. (Without it, the default there, the agent counts them:
+    test_running_agent_counts_hostile_datagrams_and_reads_on's unknown_id.)"""
+    cfg = next(c for c in agent_configs_from_scenario(load_case(1)) if c.id == 1)
+    path = tmp_path / "agent_1.toml"
+    path.write_text(cfg.to_toml())
+    bus = can.Bus(interface="udp_multicast", channel=GROUP4, port=udp_port)
+    proc = subprocess.Popen([str(node_program()), "--config", str(path), "--insecure",
+                             "--interface", "udp_multicast", "--channel", GROUP4, "--port",
+                             str(udp_port), "--acceptance-filter"], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + LOAD_TOLERANT_S
+        while bus.recv(0.5) is None:
+            assert proc.poll() is None and time.monotonic() < deadline, "agent 1 not heard"
+        for _ in range(5):
+            bus.send(can.Message(arbitration_id=0x1ABCDEF, is_extended_id=True, data=bytes(8)))
+            bus.send(can.Message(arbitration_id=0x7F3, is_extended_id=False, data=bytes(8)))
+            bus._multicast._socket.sendto(b"\xc1", (GROUP4, udp_port))  # not msgpack
+            time.sleep(0.05)
+        time.sleep(0.3)
+    finally:
+        bus.shutdown()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=LOAD_TOLERANT_S)
+    log = out.decode(errors="replace")
+    assert proc.returncode == 0, log[-2000:]
+    counters = summary_counters(log)
+    assert 1 <= counters.get("not_a_frame", 0) <= 5, counters
+    assert "unknown_id" not in counters and "impersonation" not in counters, counters
+
+
 def test_running_agent_on_an_fd_bus_sends_fd_frames(tmp_path: Path, udp_port: int) -> None:
     """--fd on udp_multicast (GEN-1) on the IPv6 group: every frame the agent sends is an
     FD datagram with the bit-rate switch, python-can reads it as such, and a classic

@@ -24,6 +24,8 @@ struct bd_platform {
     uint64_t sent;
     struct sockaddr_storage group;   /* udp_multicast: where every frame is sent */
     socklen_t group_len;
+    uint32_t ids[BD_LINUX_FILTERS_MAX];   /* udp_multicast: its acceptance filter in user */
+    size_t n_ids;                         /* space, sorted (0: none) */
 };
 
 void bd_linux_close(bd_platform *plat);

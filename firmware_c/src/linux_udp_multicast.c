@@ -4,8 +4,9 @@
  * msgpack map (udp_msgpack.c), so the node shares the bus with firmware_py's nodes, the
  * recorder and any python-can program. What a datagram holds instead of a frame is
  * handed up as BD_RECV_NOT_A_FRAME / BD_RECV_INVALID_FRAME (the loop counts it, as
- * firmware_py.node's GuardedBus does). No acceptance filter: the interface has none
- * below the process (firmware_py installs none on it either), the agent sees every frame.
+ * firmware_py.node's GuardedBus does). No acceptance filter by default: the interface has
+ * none below the process (firmware_py installs none on it either), the agent sees every
+ * frame; asked for one, it drops in user space what the kernel's would have.
  * The clock, the wait and the stop flag are linux_platform.c's.
  */
 #define _GNU_SOURCE
@@ -32,7 +33,33 @@ static int fail(int fd, char *err, size_t errlen, const char *what, const char *
     return -1;
 }
 
-int bd_udp_open(bd_platform *plat, const char *group, long port, char *err, size_t errlen)
+/* the acceptance filter (bd_udp_open): 1 if f passes */
+static int accepted(const bd_platform *plat, const bd_frame *f)
+{
+    if (plat->n_ids == 0u || (f->flags & BD_FRAME_ERR) != 0u) {
+        return 1;
+    }
+    if ((f->flags & BD_FRAME_EXT) != 0u) {
+        return 0;
+    }
+    size_t lo = 0u;
+    size_t hi = plat->n_ids;
+    while (lo < hi) {
+        size_t mid = lo + (hi - lo) / 2u;
+        if (plat->ids[mid] == f->id) {
+            return 1;
+        }
+        if (plat->ids[mid] < f->id) {
+            lo = mid + 1u;
+        } else {
+            hi = mid;
+        }
+    }
+    return 0;
+}
+
+int bd_udp_open(bd_platform *plat, const char *group, long port, const uint32_t *ids,
+                size_t n_ids, char *err, size_t errlen)
 {
     struct addrinfo hints;
     struct addrinfo *ai = NULL;
@@ -117,6 +144,11 @@ int bd_udp_open(bd_platform *plat, const char *group, long port, char *err, size
             return fail(fd, err, errlen, "join", group);
         }
     }
+    plat->n_ids = n_ids < BD_LINUX_FILTERS_MAX ? n_ids : BD_LINUX_FILTERS_MAX;
+    // cppcheck-suppress knownConditionTrueFalse ; n_ids may be 1..512 (a false positive)
+    if (plat->n_ids > 0u) {
+        memcpy(plat->ids, ids, plat->n_ids * sizeof ids[0]);
+    }
     plat->fd = fd;
     return 0;
 }
@@ -135,7 +167,7 @@ int bd_udp_recv(bd_platform *plat, bd_frame *f)
     }
     switch (bd_udp_decode(buf, (size_t)n, f, NULL)) {
     case BD_UDP_FRAME:
-        return 1;
+        return accepted(plat, f) ? 1 : 0;   /* filtered: as if nothing came */
     case BD_UDP_INVALID_FRAME:
         return BD_RECV_INVALID_FRAME;
     default:

@@ -6,10 +6,14 @@
  *                 [--no-acceptance-filter]
  *   bessded-agent --config agent_3.toml (--key ... | --insecure) --interface udp_multicast
  *                 [--channel GROUP] [--port N] [--fd] [--duration S] [--rt-priority N]
+ *                 [--acceptance-filter]
  *
  * SocketCAN (the default) on a CAN interface; or python-can's udp_multicast bus (the
  * project's default bus), GROUP an IPv6 or IPv4 multicast address (default python-can's
- * ff15:7079:7468:6f6e:6465:6d6f:6d63:6173), port N (default 43113).
+ * ff15:7079:7468:6f6e:6465:6d6f:6d63:6173), port N (default 43113). The acceptance
+ * filter is on by default on SocketCAN (the kernel's), off on udp_multicast (no filter
+ * below the process there: --acceptance-filter drops the frames in user space, uncounted,
+ * as firmware_py's does).
  *
  * The configuration and key files are the ones firmware_py reads (`bess-ded up` and
  * `bess-ded keys` write them). Bad input: "bessded-agent: error: ..." and exit 2. On
@@ -39,7 +43,7 @@ static int usage(const char *problem)
                   "[--rt-priority N] [--no-acceptance-filter]\n"
                   "       " PROG " --config FILE (--key FILE | --insecure) "
                   "--interface udp_multicast [--channel GROUP] [--port N] [--fd] "
-                  "[--duration S] [--rt-priority N]\n" PROG ": error: %s\n", problem);
+                  "[--duration S] [--rt-priority N] [--acceptance-filter]\n" PROG ": error: %s\n", problem);
     return 2;
 }
 
@@ -81,7 +85,7 @@ int main(int argc, char **argv)
     int insecure = 0;
     int udp = 0;
     long port = -1;
-    int filter = 1;
+    int filter = -1;   /* the bus's default: on for socketcan, off for udp_multicast */
     int fd = 0;
     long rt = 0;
     double duration = 0.0;
@@ -196,9 +200,12 @@ int main(int argc, char **argv)
         return 2;
     }
     uint32_t ids[BD_LINUX_FILTERS_MAX];
+    if (filter < 0) {
+        filter = !udp;
+    }
     size_t n_ids = filter ? bd_agent_accepted_ids(&agent, ids, BD_LINUX_FILTERS_MAX) : 0u;
-    if ((udp ? bd_udp_open(&plat, channel, port >= 0 ? port : BD_UDP_DEFAULT_PORT, err,
-                           sizeof err)
+    if ((udp ? bd_udp_open(&plat, channel, port >= 0 ? port : BD_UDP_DEFAULT_PORT, ids, n_ids,
+                           err, sizeof err)
              : bd_linux_open(&plat, channel, ids, n_ids, err, sizeof err)) != 0) {
         (void)fprintf(stderr, PROG ": error: %s\n", err);
         return 2;
