@@ -1,43 +1,23 @@
 /*
  * The platform seam on Linux SocketCAN (platform.h): a raw CAN socket with the agent's
  * acceptance filter installed before it is bound (no gap for foreign frames, GEN-5),
- * error frames and CAN FD frames on (to count them), the monotonic clock, ppoll for the
- * deadline, SIGINT/SIGTERM to stop.
+ * error frames and CAN FD frames on (to count them); the clock, the wait and the stop
+ * flag are linux_platform.c's.
  */
 #define _GNU_SOURCE
 #include "linux_socketcan.h"
 
 #include <errno.h>
 #include <net/if.h>
-#include <poll.h>
-#include <signal.h>
 #include <stdio.h>
 #include <string.h>
 #include <sys/ioctl.h>
 #include <sys/socket.h>
-#include <time.h>
 #include <unistd.h>
 
 #include <linux/can.h>
 #include <linux/can/error.h>
 #include <linux/can/raw.h>
-
-static volatile sig_atomic_t stop_requested;
-
-static void on_signal(int sig)
-{
-    (void)sig;
-    stop_requested = 1;
-}
-
-void bd_linux_install_signal_handlers(void)
-{
-    struct sigaction sa;
-    memset(&sa, 0, sizeof sa);
-    sa.sa_handler = on_signal;
-    (void)sigaction(SIGINT, &sa, NULL);
-    (void)sigaction(SIGTERM, &sa, NULL);
-}
 
 int bd_linux_open(bd_platform *plat, const char *ifname, const uint32_t *ids, size_t n_ids,
                   char *err, size_t errlen)
@@ -46,6 +26,7 @@ int bd_linux_open(bd_platform *plat, const char *ifname, const uint32_t *ids, si
     struct sockaddr_can addr;
     int fd = socket(PF_CAN, SOCK_RAW, CAN_RAW);
     memset(plat, 0, sizeof *plat);
+    plat->kind = BD_LINUX_SOCKETCAN;
     plat->fd = -1;
     if (fd < 0) {
         (void)snprintf(err, errlen, "cannot open a CAN_RAW socket: %s", strerror(errno));
@@ -100,35 +81,8 @@ int bd_linux_open(bd_platform *plat, const char *ifname, const uint32_t *ids, si
     return 0;
 }
 
-void bd_linux_close(bd_platform *plat)
+int bd_socketcan_recv(bd_platform *plat, bd_frame *f)
 {
-    if (plat->fd >= 0) {
-        (void)close(plat->fd);
-        plat->fd = -1;
-    }
-}
-
-int64_t bd_platform_now_ns(bd_platform *plat)
-{
-    struct timespec ts;
-    (void)plat;
-    (void)clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
-}
-
-int bd_platform_recv(bd_platform *plat, bd_frame *f, int64_t deadline_ns)
-{
-    struct pollfd p = {plat->fd, POLLIN, 0};
-    int64_t wait = deadline_ns - bd_platform_now_ns(plat);
-    struct timespec ts = {0, 0};
-    if (wait > 0) {
-        ts.tv_sec = (time_t)(wait / 1000000000);
-        ts.tv_nsec = (long)(wait % 1000000000);
-    }
-    int r = ppoll(&p, 1u, &ts, NULL);
-    if (r <= 0) {
-        return (r < 0 && errno != EINTR) ? -1 : 0;
-    }
     struct canfd_frame cf;   /* a classic frame fills its first CAN_MTU bytes */
     ssize_t n = recv(plat->fd, &cf, sizeof cf, MSG_DONTWAIT);
     if (n != (ssize_t)CAN_MTU && n != (ssize_t)CANFD_MTU) {
@@ -148,7 +102,7 @@ int bd_platform_recv(bd_platform *plat, bd_frame *f, int64_t deadline_ns)
     return 1;
 }
 
-int bd_platform_send(bd_platform *plat, const bd_frame *f)
+int bd_socketcan_send(bd_platform *plat, const bd_frame *f)
 {
     struct canfd_frame cf;   /* a classic frame is its first CAN_MTU bytes */
     size_t size = (f->flags & BD_FRAME_FD) != 0u ? CANFD_MTU : CAN_MTU;
@@ -163,10 +117,4 @@ int bd_platform_send(bd_platform *plat, const bd_frame *f)
     }
     plat->sent++;
     return 0;
-}
-
-int bd_platform_should_stop(bd_platform *plat)
-{
-    (void)plat;
-    return stop_requested != 0;
 }

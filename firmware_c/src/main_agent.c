@@ -1,9 +1,19 @@
 /*
- * bessded-agent: one BESS agent on Linux SocketCAN, the C twin of `bess-ded agent`.
+ * bessded-agent: one BESS agent on Linux, the C twin of `bess-ded agent`.
  *
  *   bessded-agent --config agent_3.toml (--key agent_3.key | --insecure) --channel can0
  *                 [--fd] [--interface socketcan] [--duration S] [--rt-priority N]
  *                 [--no-acceptance-filter]
+ *   bessded-agent --config agent_3.toml (--key ... | --insecure) --interface udp_multicast
+ *                 [--channel GROUP] [--port N] [--fd] [--duration S] [--rt-priority N]
+ *                 [--acceptance-filter]
+ *
+ * SocketCAN (the default) on a CAN interface; or python-can's udp_multicast bus (the
+ * project's default bus), GROUP an IPv6 or IPv4 multicast address (default python-can's
+ * ff15:7079:7468:6f6e:6465:6d6f:6d63:6173), port N (default 43113). The acceptance
+ * filter is on by default on SocketCAN (the kernel's), off on udp_multicast (no filter
+ * below the process there: --acceptance-filter drops the frames in user space, uncounted,
+ * as firmware_py's does).
  *
  * The configuration and key files are the ones firmware_py reads (`bess-ded up` and
  * `bess-ded keys` write them). Bad input: "bessded-agent: error: ..." and exit 2. On
@@ -19,6 +29,7 @@
 #include "bessded/config.h"
 #include "bessded/platform.h"
 #include "linux_socketcan.h"
+#include "linux_udp_multicast.h"
 
 #define PROG "bessded-agent"
 #define LOG_FIRST 5u   /* rejections logged per cause, then every 1000th (as firmware_py) */
@@ -28,8 +39,11 @@ static const char *const state_names[] = {"INIT", "RUNNING", "ISOLATED", "SAFE"}
 static int usage(const char *problem)
 {
     (void)fprintf(stderr, "usage: " PROG " --config FILE (--key FILE | --insecure) "
-                  "--channel IFACE [--fd] [--duration S] [--rt-priority N] "
-                  "[--no-acceptance-filter]\n" PROG ": error: %s\n", problem);
+                  "[--interface socketcan] --channel IFACE [--fd] [--duration S] "
+                  "[--rt-priority N] [--no-acceptance-filter]\n"
+                  "       " PROG " --config FILE (--key FILE | --insecure) "
+                  "--interface udp_multicast [--channel GROUP] [--port N] [--fd] "
+                  "[--duration S] [--rt-priority N] [--acceptance-filter]\n" PROG ": error: %s\n", problem);
     return 2;
 }
 
@@ -69,7 +83,9 @@ int main(int argc, char **argv)
     const char *key = NULL;
     const char *channel = NULL;
     int insecure = 0;
-    int filter = 1;
+    int udp = 0;
+    long port = -1;
+    int filter = -1;   /* the bus's default: on for socketcan, off for udp_multicast */
     int fd = 0;
     long rt = 0;
     double duration = 0.0;
@@ -106,9 +122,20 @@ int main(int argc, char **argv)
             channel = v;
             ++i;
         } else if (strcmp(a, "--interface") == 0) {   /* bess-ded agent's bus flags */
-            if (strcmp(v, "socketcan") != 0) {
-                (void)snprintf(err, sizeof err, "--interface: expected socketcan (this node "
-                               "runs on Linux SocketCAN only), but got '%s'", v);
+            if (strcmp(v, "socketcan") != 0 && strcmp(v, "udp_multicast") != 0) {
+                (void)snprintf(err, sizeof err, "--interface: expected socketcan or "
+                               "udp_multicast (the buses this node runs on), but got '%s'", v);
+                return usage(err);
+            }
+            udp = strcmp(v, "udp_multicast") == 0;
+            ++i;
+        } else if (strcmp(a, "--port") == 0) {
+            char *end = NULL;
+            errno = 0;
+            port = strtol(v, &end, 10);
+            if (end == v || *end != '\0' || errno != 0 || port < 1 || port > 65535) {
+                (void)snprintf(err, sizeof err, "--port: expected a UDP port 1..65535, but "
+                               "got '%s'", v);
                 return usage(err);
             }
             ++i;
@@ -130,13 +157,21 @@ int main(int argc, char **argv)
             ++i;
         } else {
             (void)snprintf(err, sizeof err, "expected one of --config, --key, --insecure, "
-                           "--fd, --channel, --interface socketcan, --duration, --rt-priority, "
-                           "--[no-]acceptance-filter, but got '%s'", a);
+                           "--fd, --channel, --interface socketcan|udp_multicast, --port, "
+                           "--duration, --rt-priority, --[no-]acceptance-filter, but got "
+                           "'%s'", a);
             return usage(err);
         }
     }
+    if (udp && channel == NULL) {
+        channel = BD_UDP_DEFAULT_GROUP;   /* python-can's default group */
+    }
     if (config == NULL || channel == NULL || (key == NULL) == (insecure == 0)) {
         return usage("expected --config, --channel and exactly one of --key or --insecure");
+    }
+    if (!udp && port >= 0) {
+        return usage("--port: expected only with --interface udp_multicast (a SocketCAN "
+                     "interface has no port)");
     }
     if (bd_config_load(config, &params, err, sizeof err) != 0) {
         (void)fprintf(stderr, PROG ": error: %s\n", err);
@@ -165,8 +200,13 @@ int main(int argc, char **argv)
         return 2;
     }
     uint32_t ids[BD_LINUX_FILTERS_MAX];
+    if (filter < 0) {
+        filter = !udp;
+    }
     size_t n_ids = filter ? bd_agent_accepted_ids(&agent, ids, BD_LINUX_FILTERS_MAX) : 0u;
-    if (bd_linux_open(&plat, channel, ids, n_ids, err, sizeof err) != 0) {
+    if ((udp ? bd_udp_open(&plat, channel, port >= 0 ? port : BD_UDP_DEFAULT_PORT, ids, n_ids,
+                           err, sizeof err)
+             : bd_linux_open(&plat, channel, ids, n_ids, err, sizeof err)) != 0) {
         (void)fprintf(stderr, PROG ": error: %s\n", err);
         return 2;
     }

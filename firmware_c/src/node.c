@@ -16,14 +16,20 @@ static void deliver(bd_agent *a, bd_platform *plat, const bd_frame *f)
 }
 
 /* One receive: 1 if a frame was delivered, -1 after a receive error (counted as rx_error,
- * LOOP-6: the loop goes on), 0 if nothing came. */
+ * LOOP-6: the loop goes on), 0 if nothing came; what the bus handed up instead of a frame
+ * is counted (not_a_frame, invalid_frame) and returns 1 too: something was read. */
 static int receive(bd_agent *a, bd_platform *plat, bd_frame *f, int64_t deadline_ns)
 {
     int r = bd_platform_recv(plat, f, deadline_ns);
     if (r == 1) {
         deliver(a, plat, f);
-    }
-    if (r < 0) {
+    } else if (r == BD_RECV_NOT_A_FRAME) {
+        bd_agent_note(a, BD_C_NOT_A_FRAME, 1u);
+        r = 1;
+    } else if (r == BD_RECV_INVALID_FRAME) {
+        bd_agent_note(a, BD_C_INVALID_FRAME, 1u);
+        r = 1;
+    } else if (r < 0) {
         bd_agent_note(a, BD_C_RX_ERROR, 1u);
     }
     return r;

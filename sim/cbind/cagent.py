@@ -147,6 +147,10 @@ class Runtime:
                                                ctypes.POINTER(ctypes.c_uint64)]),
             ("bd_fv_past", ctypes.c_int, [ctypes.c_uint64, u32, ctypes.c_uint,
                                           ctypes.POINTER(ctypes.c_uint64)]),
+            ("bd_udp_encode", sz, [ctypes.POINTER(Frame), ctypes.c_double, ctypes.c_char_p,
+                                   sz]),
+            ("bd_udp_decode", ctypes.c_int, [ctypes.c_char_p, sz, ctypes.POINTER(Frame),
+                                             ctypes.c_char_p]),
         ):
             fn = getattr(lib, name)
             fn.restype = res
@@ -162,6 +166,46 @@ class Runtime:
         while (name := lib.bd_counter_name(len(names))) is not None:
             names.append(name.decode())
         self.counter_names = tuple(names)
+
+
+# bd_udp_decode's verdicts (src/udp_msgpack.h BD_UDP_*), as the node counts them
+UDP_VERDICTS = ("frame", "not_a_frame", "invalid_frame")
+UDP_DATAGRAM_MAX = 512
+
+
+def udp_datagram(msg: can.Message, timestamp: float = 0.0,
+                 runtime: Runtime | None = None) -> bytes:
+    """bd_udp_encode: the datagram the C node sends for ``msg`` on udp_multicast (its first
+    8 data bytes; the node's frames carry timestamp 0.0, as firmware_py's)."""
+    rt = runtime or load()
+    f = Frame(msg.arbitration_id, min(len(msg.data), 8),
+              (FRAME_EXT if msg.is_extended_id else 0) | (FRAME_RTR if msg.is_remote_frame
+                                                          else 0)
+              | (FRAME_ERR if msg.is_error_frame else 0) | (FRAME_FD if msg.is_fd else 0)
+              | (FRAME_BRS if msg.bitrate_switch else 0))
+    f.data[:len(msg.data[:8])] = list(msg.data[:8])
+    buf = ctypes.create_string_buffer(UDP_DATAGRAM_MAX)
+    n = rt.lib.bd_udp_encode(ctypes.byref(f), timestamp, buf, len(buf))
+    return buf.raw[:n]
+
+
+def udp_frame(datagram: bytes, runtime: Runtime | None = None
+              ) -> tuple[str, can.Message | None]:
+    """bd_udp_decode: what the C node reads in a udp_multicast datagram (UDP_VERDICTS) and
+    the frame, every data byte (up to 64 on FD), if it is one."""
+    rt = runtime or load()
+    f = Frame()
+    data = ctypes.create_string_buffer(64)
+    verdict = UDP_VERDICTS[rt.lib.bd_udp_decode(datagram, len(datagram), ctypes.byref(f),
+                                                data)]
+    if verdict != "frame":
+        return verdict, None
+    rtr = bool(f.flags & FRAME_RTR)
+    return verdict, can.Message(arbitration_id=f.id, is_extended_id=bool(f.flags & FRAME_EXT),
+                                is_remote_frame=rtr, is_error_frame=bool(f.flags & FRAME_ERR),
+                                is_fd=bool(f.flags & FRAME_FD),
+                                bitrate_switch=bool(f.flags & FRAME_BRS), dlc=f.len,
+                                data=b"" if rtr else data.raw[:f.len])
 
 
 class CConfigError(ValueError):
@@ -244,8 +288,8 @@ RUNNER_NAME = "node_runner"
 
 
 def built(name: str) -> Path:
-    """A program of firmware_c's Makefile (``bessded-agent``, ``node_runner``) from the
-    cache, built on first use."""
+    """A program of firmware_c's Makefile (``bessded-agent``, ``node_runner``,
+    ``udp_fuzz``) from the cache, built on first use."""
     path = cimpl.cache_dir() / name
     if not path.exists():
         tmp = path.parent.with_name(f"{path.parent.name}.{name}{os.getpid()}")
@@ -257,7 +301,7 @@ def built(name: str) -> Path:
 
 
 def node_program() -> Path:
-    """firmware_c's node program (Linux SocketCAN)."""
+    """firmware_c's node program (Linux: SocketCAN or python-can's udp_multicast)."""
     return built(NODE_NAME)
 
 

@@ -39,10 +39,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     c = p.add_mutually_exclusive_group()
     c.add_argument("--agent-impl", choices=("py", "c"), default="py",
                    help="the agents' firmware: firmware_py (default) or firmware_c's node "
-                   "program (SocketCAN only: --interface socketcan --channel vcan0)")
+                   "program (on udp_multicast, the default bus, or --interface socketcan "
+                   "--channel vcan0)")
     c.add_argument("--c-agents", metavar="I,J,...",
                    help="run these agents on firmware_c, the others on firmware_py "
-                   "(SocketCAN only)")
+                   "(udp_multicast or socketcan)")
     p.add_argument("--agents-per-process", type=int_in(1), default=1, metavar="K",
                    help="run the Python agents K to a process, on one loop and one bus "
                    "socket each (firmware_py.host): more agents than cores in real time "
@@ -71,16 +72,21 @@ def add_loss_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import json
+
     from sim.run import busrun
+    from sim.run.busopts import C_BUS_EXPECTED, c_node_bus_argv
     from sim.run.fleet_plan import c_node_program
 
     c_flag, c_ids = c_agent_choice(args)
     if c_flag:
-        kw = busrun.BusOptions(args.interface, args.channel, args.bus_config).resolved()
-        if kw["interface"] != "socketcan" or not kw.get("channel"):
-            raise ParameterError(c_flag, "--interface socketcan with a --channel (the C agent "
-                                 "is a Linux SocketCAN program: vcan0, can0, ...)",
-                                 f"{kw['interface']} {kw.get('channel') or ''}".strip())
+        bus = busrun.BusOptions(args.interface, args.channel, args.bus_config)
+        if c_node_bus_argv(bus) is None:
+            kw = bus.resolved()
+            raise ParameterError(c_flag, C_BUS_EXPECTED,
+                                 " ".join(str(kw.pop(k)) for k in ("interface", "channel")
+                                          if k in kw)
+                                 + (f" {json.dumps(kw)}" if kw else ""))
     plan = plan_run(args, "up", "{n} agents + plant + router")
     c_agents: frozenset[int] = frozenset()
     c_node = None

@@ -57,6 +57,38 @@ class BusOptions:
 
 
 
+# firmware_c's node program (bessded-agent) speaks these; python-can's udp_multicast
+# defaults (can/interfaces/udp_multicast/bus.py) are its own too
+C_INTERFACES = ("socketcan", "udp_multicast")
+C_BUS_EXPECTED = ("--interface socketcan with a --channel (vcan0, can0, ...) or "
+                  "--interface udp_multicast (a multicast group --channel, a port in "
+                  "--bus-config, no other setting): the buses firmware_c's node program "
+                  "runs on")
+UDP_DEFAULT_PORT = 43113
+UDP_SETTINGS_C = frozenset({"interface", "channel", "port", "fd", "hop_limit"})
+
+
+def c_node_bus_argv(bus: BusOptions) -> list[str] | None:
+    """The bus as flags for firmware_c's node program: ``--channel IFACE`` on socketcan,
+    ``--interface udp_multicast --channel GROUP --port N`` on udp_multicast (python-can's
+    default group and port where none is named); None for a bus it cannot speak (another
+    interface, a socketcan one without a channel, udp_multicast settings it does not
+    take: anything but a port, and a hop limit other than python-can's 1)."""
+    kw = bus.resolved()
+    if kw["interface"] == "socketcan":
+        return ["--channel", str(kw["channel"])] if kw.get("channel") else None
+    if kw["interface"] != "udp_multicast" or set(kw) - UDP_SETTINGS_C \
+            or kw.get("hop_limit", 1) != 1:
+        return None
+    from can.interfaces.udp_multicast import UdpMulticastBus
+
+    port = kw.get("port", UDP_DEFAULT_PORT)
+    channel = kw.get("channel") or UdpMulticastBus.DEFAULT_GROUP_IPv6
+    if type(port) is not int or not isinstance(channel, str):
+        return None
+    return ["--interface", "udp_multicast", "--channel", channel, "--port", str(port)]
+
+
 PRIVATE_PORTS = (30000, 43000)  # below the test sessions' blocks (tests/conftest.py: 43200+)
 
 

@@ -21,7 +21,7 @@ from typing import Any
 
 from firmware_py.config import agent_configs_from_scenario
 from sim.model.scenario import Scenario
-from sim.run.busopts import BusOptions, BusRunError
+from sim.run.busopts import C_BUS_EXPECTED, BusOptions, BusRunError, c_node_bus_argv
 
 STOP_GRACE_S = 5.0     # SIGTERM → SIGKILL
 # nodes must be up (router speaking) by then. In tools/vcan-run's emulated guest a node
@@ -80,7 +80,8 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
     every node runs ``--insecure``. ``exclude``: nodes not started here (a device under
     test takes their place: `bess-ded restbus`); an agent's configuration file is still
     written, for the device. ``c_agents``: the agents that run the C firmware's node
-    program ``c_node`` (firmware_c's bessded-agent, SocketCAN only) from the same
+    program ``c_node`` (firmware_c's bessded-agent, on socketcan or udp_multicast:
+    busopts.c_node_bus_argv) from the same
     configuration and key files. ``agents_per_process``: K > 1 runs the Python agents K
     to a process (``host_1``, ``host_2``, ...: one loop and one bus socket each,
     firmware_py.host), in agent order; they then take no fault-injection flags."""
@@ -111,9 +112,12 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
             if c_node is None or extra.get(name):
                 raise BusRunError(f"{name}: the C agent needs its node program and takes no "
                                   "fault-injection flags")
+            c_bus = c_node_bus_argv(bus)
+            if c_bus is None:
+                raise BusRunError(f"{name}: the C agent's bus: expected {C_BUS_EXPECTED}, "
+                                  f"but got {bus.resolved()}")
             specs.append(NodeSpec(name, [str(c_node), "--config", str(path)] + key(name)
-                                  + ["--channel", str(bus.resolved().get("channel"))]
-                                  + (["--fd"] if sc.fd else []) + rt))
+                                  + c_bus + (["--fd"] if sc.fd else []) + rt))
             continue
         if agents_per_process == 1:
             specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)
