@@ -28,14 +28,19 @@ def test_a_capacity_fleet_runs_on_classic_can_where_it_fits_else_on_fd(
 
 
 @pytest.mark.realtime
-@pytest.mark.parametrize("transmit", ["periodic", "event"])
-def test_a_capacity_run_counts_every_agents_ticks_in_either_mode(transmit: str) -> None:
-    """Four agents, two to a host, for 6 s: every agent's ticks over the steady window
-    are counted from its Diag pages (an event-triggered agent sends no MC frame on most
-    ticks, so MC frames cannot count them), and its misses are at most its ticks."""
-    r = capacity_run(4, 2, CapacityPlan(seconds=6.0), transmit=transmit)
+@pytest.mark.parametrize(("impl", "transmit"), [("py", "periodic"), ("py", "event"),
+                                                ("c", "event")])
+def test_a_capacity_run_counts_every_agents_ticks_in_either_mode(impl: str,
+                                                                 transmit: str) -> None:
+    """Four agents (Python two to a host, or C a process each, on udp_multicast) for 6 s:
+    every agent's ticks over the steady window are counted from its Diag pages (an
+    event-triggered agent sends no MC frame on most ticks, so MC frames cannot count
+    them), and its misses are at most its ticks."""
+    k = 2 if impl == "py" else 1
+    r = capacity_run(4, k, CapacityPlan(seconds=6.0, impl=impl), transmit=transmit)
     assert "did_not_run" not in r, r
-    assert (r["transmit"], r["bus"], r["per_process"]) == (transmit, "classic", 2)
+    assert (r["impl"], r["transmit"], r["bus"], r["per_process"]) == (impl, transmit,
+                                                                      "classic", k)
     # 4 agents × at least 2 s of steady window at Ts = 10 ms (start-up at any load aside)
     assert r["steady_ticks"] >= 4 * 200, r
     assert 0 <= r["steady_misses"] <= r["steady_ticks"]

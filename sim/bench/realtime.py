@@ -71,15 +71,15 @@ class CapacityPlan:
     """Which fleets `bench --realtime` sizes up: ``sizes`` agents (``fleet_scenario``),
     each run with the Python agents ``per_process`` to a process (1: a process each) and
     each ``transmit`` mode of the MC frames, ``repeats`` times, ``seconds`` of price
-    time at Ts = 10 ms. ``impl`` "c": firmware_c's node program, a process per agent, on SocketCAN
-    ``channel`` (its only bus)."""
+    time at Ts = 10 ms, on a private udp_multicast port, or on SocketCAN ``channel``.
+    ``impl`` "c": firmware_c's node program, a process per agent."""
 
     sizes: tuple[int, ...] = (16, 32)
     per_process: tuple[int, ...] = (1, 16)
     repeats: int = 3
     seconds: float = 14.0
     impl: str = "py"
-    channel: str = "vcan0"
+    channel: str | None = None
     transmit: tuple[str, ...] = ("periodic", "event")
 
 
@@ -143,7 +143,7 @@ def capacity_run(n: int, per_process: int, plan: CapacityPlan, seed: int = 0,
     c = plan.impl == "c"
     if c:
         from sim.cbind.cagent import node_program
-
+    if plan.channel is not None:
         bus = busrun.BusOptions("socketcan", plan.channel)
     else:
         bus, _ = busrun.private_port(busrun.BusOptions("udp_multicast"))
@@ -237,7 +237,7 @@ def capacity_table(quick: bool, plan: CapacityPlan | None = None,
                      f"{r['worst_miss_pct']:.3f} %", f"{r['worst_agent_miss_pct']:.2f} %",
                      "yes" if r["real_time"] else "no", ",".join(exits), _stalls(r["runs"])])
     return Table(f"Fleet capacity at Ts = 10 ms ({plan.seconds:g} s per run, "
-                 f"{'udp_multicast' if plan.impl == 'py' else plan.channel})",
+                 f"{'udp_multicast' if plan.channel is None else plan.channel})",
                  ["impl", "agents", "per process", "MC frames", "bus", "runs",
                   "missed (median)",
                   "missed (worst run)", "worst agent", f"< {MISS_LIMIT_PCT} %", "exit",

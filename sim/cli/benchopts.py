@@ -31,9 +31,11 @@ def add_capacity_arguments(p: argparse.ArgumentParser) -> None:
                    "event (default: periodic,event); a fleet runs on classic CAN where its "
                    "load fits, else on CAN FD")
     f.add_argument("--fleet-impl", choices=("py", "c"), default="py",
-                   help="firmware_py agents on udp_multicast (default), or firmware_c's node "
-                   "program, a process per agent, on SocketCAN --channel")
-    f.add_argument("--channel", default="vcan0", help="SocketCAN channel of --fleet-impl c")
+                   help="firmware_py agents (default), or firmware_c's node program, a "
+                   "process per agent")
+    f.add_argument("--channel", default=None,
+                   help="run the fleets on this SocketCAN channel (e.g. vcan0) instead of a "
+                   "private udp_multicast port")
     f.add_argument("--capacity-only", action="store_true",
                    help="the fleet capacity alone: no micro-benchmarks, no cases")
 
