@@ -161,7 +161,11 @@ int main(int argc, char **argv)
                       "sender of this agent's inputs (the router, the plant and each "
                       "neighbour), but the key file lacks one: re-provision with bess-ded keys"
                       : rc == BD_ERR_BOOT ? "cannot advance the boot counter (exhausted, or "
-                      "the key file cannot be rewritten)" : "the agent refused its parameters");
+                      "the key file cannot be rewritten)"
+                      : rc == BD_ERR_PRICE_KEY ? "[security.signed_price] expected a key file "
+                      "with the router's public price key ([price_signature] verify_key), but "
+                      "it has none: re-provision with bess-ded keys for a signed_price "
+                      "scenario" : "the agent refused its parameters");
         return 2;
     }
     uint32_t ids[BD_LINUX_FILTERS_MAX];
