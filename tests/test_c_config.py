@@ -464,3 +464,27 @@ def test_key_file_price_key_loads_and_survives_every_boot_rewrite(tmp_path: Path
     write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
     with pytest.raises(ValueError, match="signed_price without the router's public price key"):
         CAgent(cfg, load_keyfile(path, "agent_2"))
+
+
+def test_a_build_without_the_signed_price_refuses_it(tmp_path: Path) -> None:
+    """`make SIGNED_PRICE=0` (what the Cortex-M4 image is: no libsodium): the node links
+    no libsodium, and refuses [security] signed_price = true naming the key (exit 2),
+    never running unsigned; signed_price = false still starts as before."""
+    from sim.cbind.cimpl import SOURCE_DIR, make_argv
+
+    build = tmp_path / "build"
+    proc = subprocess.run(make_argv(SOURCE_DIR, build, str(build / "bessded-agent"))
+                          + ["SIGNED_PRICE=0"], capture_output=True, text=True, timeout=300,
+                          check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert "-DBD_SIGNED_PRICE=0" in proc.stdout and "-lsodium" not in proc.stdout
+    cfg = tmp_path / "agent_2.toml"
+    base = json.loads(VECTORS[0].read_text())["config"]
+    for value, rc, message in (("true", 2, "[security.signed_price] expected false: this "
+                                           "firmware_c build has no signed price"),
+                               ("false", 2, "runs --insecure")):   # past the loader
+        cfg.write_text(base + f"\n[security]\nsigned_price = {value}\n")
+        res = subprocess.run([str(build / "bessded-agent"), "--config", str(cfg), "--insecure",
+                              "--channel", "no-such-can9"], capture_output=True, text=True,
+                             timeout=60, check=False)
+        assert res.returncode == rc and message in res.stderr, (value, res.stderr)

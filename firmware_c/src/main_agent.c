@@ -3,11 +3,13 @@
  *
  *   bessded-agent --config agent_3.toml (--key agent_3.key | --insecure) --channel can0
  *                 [--fd] [--interface socketcan] [--duration S] [--rt-priority N]
- *                 [--no-acceptance-filter]
+ *                 [--no-acceptance-filter] [--counters-dir DIR]
  *
  * The configuration and key files are the ones firmware_py reads (`bess-ded up` and
  * `bess-ded keys` write them). Bad input: "bessded-agent: error: ..." and exit 2. On
- * SIGTERM/SIGINT it stops, prints a summary line with every non-zero counter, exits 0.
+ * SIGTERM/SIGINT it stops, prints a summary line with every non-zero counter, exits 0;
+ * --counters-dir DIR: and writes DIR/agent_<id>.counters.json as firmware_py's
+ * --counters-dir does (the signed price's counters, no Diag slot, and deadline_miss).
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -29,7 +31,8 @@ static int usage(const char *problem)
 {
     (void)fprintf(stderr, "usage: " PROG " --config FILE (--key FILE | --insecure) "
                   "--channel IFACE [--fd] [--duration S] [--rt-priority N] "
-                  "[--no-acceptance-filter]\n" PROG ": error: %s\n", problem);
+                  "[--no-acceptance-filter] [--counters-dir DIR]\n" PROG ": error: %s\n",
+                  problem);
     return 2;
 }
 
@@ -63,11 +66,43 @@ static int parse_seconds(const char *s, double *out)
     return 0;
 }
 
+/* firmware_py's --counters-dir file (AgentRuntime.verdict_counters, json.dumps' layout):
+ * the ticks and the non-zero counters the verdict cannot read from AGENT_<i>_Diag. */
+static int write_counters(const char *dir, uint32_t id, const bd_agent *agent)
+{
+    static const int which[] = {BD_C_UNSIGNED_PRICE, BD_C_BAD_SIGNATURE, BD_C_SIG_MALFORMED,
+                                BD_C_DEADLINE_MISS};
+    char path[4200];
+    (void)snprintf(path, sizeof path, "%s/agent_%u.counters.json", dir, id);
+    FILE *f = fopen(path, "w");
+    if (f == NULL) {
+        (void)fprintf(stderr, PROG ": error: %s: %s\n", path, strerror(errno));
+        return -1;
+    }
+    int ok = fprintf(f, "{\"ticks\": %u, \"counters\": {", agent->ticks) > 0;
+    int any = 0;
+    for (size_t k = 0u; k < sizeof which / sizeof which[0]; ++k) {
+        uint32_t v = bd_agent_counter(agent, which[k]);
+        if (v != 0u) {
+            ok = ok && fprintf(f, "%s\"%s\": %u", any ? ", " : "", bd_counter_name(which[k]),
+                               v) > 0;
+            any = 1;
+        }
+    }
+    ok = ok && fprintf(f, "}}\n") > 0;
+    ok = (fclose(f) == 0) && ok;
+    if (!ok) {
+        (void)fprintf(stderr, PROG ": error: %s: cannot write the counters\n", path);
+    }
+    return ok ? 0 : -1;
+}
+
 int main(int argc, char **argv)
 {
     const char *config = NULL;
     const char *key = NULL;
     const char *channel = NULL;
+    const char *counters_dir = NULL;
     int insecure = 0;
     int filter = 1;
     int fd = 0;
@@ -105,6 +140,9 @@ int main(int argc, char **argv)
         } else if (strcmp(a, "--channel") == 0) {
             channel = v;
             ++i;
+        } else if (strcmp(a, "--counters-dir") == 0) {   /* as firmware_py's */
+            counters_dir = v;
+            ++i;
         } else if (strcmp(a, "--interface") == 0) {   /* bess-ded agent's bus flags */
             if (strcmp(v, "socketcan") != 0) {
                 (void)snprintf(err, sizeof err, "--interface: expected socketcan (this node "
@@ -131,7 +169,7 @@ int main(int argc, char **argv)
         } else {
             (void)snprintf(err, sizeof err, "expected one of --config, --key, --insecure, "
                            "--fd, --channel, --interface socketcan, --duration, --rt-priority, "
-                           "--[no-]acceptance-filter, but got '%s'", a);
+                           "--[no-]acceptance-filter, --counters-dir, but got '%s'", a);
             return usage(err);
         }
     }
@@ -200,6 +238,9 @@ int main(int argc, char **argv)
         }
     }
     (void)fprintf(stderr, "%s\n", any ? "" : "none");
+    if (counters_dir != NULL && write_counters(counters_dir, params.id, &agent) != 0) {
+        return 1;
+    }
     if (fatal != 0) {
         (void)fprintf(stderr, PROG ": error: stopped: %s\n", fatal == BD_ERR_BOOT
                       ? "no boot counter left at a message-count wrap (re-provision the keys)"

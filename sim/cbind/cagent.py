@@ -527,6 +527,14 @@ class CAgent:
         """The boot counter the agent signs under (AUTH-3)."""
         return int(self.rt.lib.bd_agent_boot(self._buf))
 
+    def verdict_counters(self) -> dict[str, object]:
+        """As firmware_py's AgentRuntime.verdict_counters: the signed price's counters (no
+        Diag slot) and the deadline misses, with the ticks (those not zero)."""
+        c = self.counters
+        return {"ticks": self.ticks,
+                "counters": {k: c[k] for k in (*contract.SIGNED_PRICE_COUNTERS, "deadline_miss")
+                             if c.get(k)}}
+
     def summary(self) -> str:
         """The one-line summary at exit, as firmware_py's agent prints it."""
         c = ", ".join(f"{k}={v}" for k, v in sorted(self.counters.items())) or "none"
