@@ -423,6 +423,13 @@ def test_acceptance_filter_ids_are_firmware_pys(peers: tuple[str, ...] | None) -
     assert CAgent(cfg, ring_c).accepted_ids() == AgentRuntime(cfg, keys=ring).io.accepted_ids()
 
 
+def test_acceptance_filter_passes_the_price_signature_in_signed_mode() -> None:
+    """AUTH-32: with signed_price the filter passes ER_PriceSig (0x008) too, as NodeIO's."""
+    py, c = _both("signed")
+    assert c.accepted_ids() == py.io.accepted_ids()
+    assert FrameCodec().frame_id(pricesig.MESSAGE) in c.accepted_ids()
+
+
 def test_loop_events_are_counted_and_reported_on_the_diag_frame() -> None:
     py, c = _both("base")
     for agent in (py, c):
