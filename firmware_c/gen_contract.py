@@ -38,7 +38,7 @@ import cantools  # noqa: E402
 from cantools.database.can import Database  # noqa: E402
 
 from dbc import DBC_PATH  # noqa: E402
-from firmware_py import contract, frames  # noqa: E402
+from firmware_py import contract, frames, pricesig  # noqa: E402
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name  # noqa: E402
 from firmware_py.runtime import AgentRuntime  # noqa: E402
 
@@ -48,6 +48,13 @@ DB_NAME = "bd_dbc"
 TEMPLATES = ("ER_Price", "ER_Command", "ER_Price_Sync", "ER_Command_Sync", mc_name(1),
              setpoint_name(1), status_name(1), mc_name(1) + "_Sync",
              setpoint_name(1) + "_Sync", status_name(1) + "_Sync")
+# the agent's counters: firmware_py's, then the signed price's (AUTH-32, AUTH-33)
+COUNTERS = (*contract.AGENT_COUNTERS, *contract.SIGNED_PRICE_COUNTERS)
+# ER_PriceSig's layout as src/agent_sig.c unpacks it: signal -> (start, length, signed),
+# little endian, Page the multiplexer (page 0: the segment, pages 1..: Signature)
+PRICE_SIG_LAYOUT = {"Page": (0, 4, False), "PriceValid": (4, 1, False),
+                    "Segment": (5, 3, False), "Rho": (8, 32, True), "Boot": (40, 16, False),
+                    "SegmentHigh": (56, 8, False), "Signature": (8, 56, False)}
 PER_AGENT = {"MC": mc_name, "SETPOINT": setpoint_name, "STATUS": status_name,
              "DIAG": diag_name}
 
@@ -66,6 +73,20 @@ def check_templates(db: Database) -> None:
             if _layout(m) != _layout(t) or m.length != t.length:
                 sys.exit(f"gen_contract: {m.name} does not have {t.name}'s layout: the C "
                          "firmware packs every agent's frames with agent 1's code")
+
+
+def check_price_sig(db: Database) -> None:
+    """ER_PriceSig has the layout src/agent_sig.c unpacks by hand (PRICE_SIG_LAYOUT), every
+    signal's full raw range but Page's (0..SIG_PAGES) and the segment's widths pricesig's."""
+    m = db.get_message_by_name(pricesig.MESSAGE)
+    got = {s.name: (s.start, s.length, s.is_signed) for s in m.signals
+           if s.byte_order == "little_endian"}
+    page = m.get_signal_by_name("Page")
+    if (got != PRICE_SIG_LAYOUT or m.length != 8 or (page.minimum, page.maximum)
+            != (0, pricesig.SIG_PAGES) or pricesig.SEGMENT_LOW_BITS != 3
+            or pricesig.SEGMENT_MOD != 1 << 11 or pricesig.PAGE_BYTES != 7):
+        sys.exit(f"gen_contract: {pricesig.MESSAGE} is not the layout src/agent_sig.c "
+                 "unpacks (PRICE_SIG_LAYOUT): update both")
 
 
 def generate_codec(db: Database, out: Path) -> None:
@@ -96,8 +117,15 @@ def contract_header(db: Database) -> tuple[str, str]:
 
     define("BD_N_AGENTS_MAX", contract.N_AGENTS_MAX, "agents the DBC defines")
     define("BD_DLC", 8, "every frame is a classic 8-byte frame")
-    for name in ("ER_Price", "ER_Command", "ER_Balance", "ER_Price_Sync", "ER_Command_Sync"):
+    for name in ("ER_Price", "ER_Command", "ER_Balance", "ER_Price_Sync", "ER_Command_Sync",
+                 pricesig.MESSAGE):
         define(f"BD_{name.upper()}_ID", codec.frame_id(name), name)
+    # signed_price (AUTH-31..33): ER_PriceSig as src/agent_sig.c reads it
+    check_price_sig(db)
+    define("BD_SIG_PAGES", pricesig.SIG_PAGES, "ER_PriceSig signature pages (1..n)")
+    define("BD_SIG_PAGE_BYTES", pricesig.PAGE_BYTES, "signature bytes a page")
+    define("BD_SIG_SEGMENT_LOW_BITS", pricesig.SEGMENT_LOW_BITS, "ER_Price.Segment's bits")
+    define("BD_SIG_SEGMENT_MOD", pricesig.SEGMENT_MOD, "the signed segment number's modulus")
     for key, make in PER_AGENT.items():
         pattern = make(1).replace("_1_", "_<i>_")
         define(f"BD_{key}_BASE", _id_base(make), f"{pattern} = base + i")
@@ -182,6 +210,8 @@ def contract_header(db: Database) -> tuple[str, str]:
     for name, value, why in d:
         text = f"0x{value:03X}" if name.endswith(("_ID", "_BASE")) else str(value)
         h.append(f"#define {name} {text}" + (f"  /* {why} */" if why else ""))
+    h.append(f'#define BD_SIG_LABEL "{pricesig.SIG_LABEL.decode()}"  /* the signed message\'s '
+             'label (AUTH-32) */')
     h += ["", "/* One signal of an AGENT_<i>_Diag page: which (BD_DIAG_SIG_*), where, and the",
           " * maximum the agent saturates it at (the DBC's). */",
           "typedef struct { uint8_t signal, start, length; uint32_t max; } bd_diag_field;",
@@ -194,8 +224,9 @@ def contract_header(db: Database) -> tuple[str, str]:
           "extern const uint16_t bd_sync_ids[BD_N_SYNC_IDS];",
           "extern const uint16_t bd_synced_by[BD_N_SYNC_IDS];",
           "", "/* An agent's counters (spec section 13), indexed by BD_C_*; the names are",
-          " * firmware_py's (contract.AGENT_COUNTERS, the one list). */", "enum {",
-          *(f"    BD_C_{n.upper()}," for n in contract.AGENT_COUNTERS), "    BD_C_COUNT", "};",
+          " * firmware_py's (contract.AGENT_COUNTERS, then the signed price's",
+          " * contract.SIGNED_PRICE_COUNTERS: no Diag slot). */", "enum {",
+          *(f"    BD_C_{n.upper()}," for n in COUNTERS), "    BD_C_COUNT", "};",
           "extern const char *const bd_counter_names[BD_C_COUNT];",
           "", "#endif /* BD_CONTRACT_H */", ""]
     bitmap = [0] * 256
@@ -221,7 +252,7 @@ def contract_header(db: Database) -> tuple[str, str]:
     c += ["};", "const uint8_t bd_diag_page_signals[BD_DIAG_PAGES] = {",
           "    " + ", ".join(f"{len(names)}u" for names in pages.values()) + ",", "};", "",
           "const char *const bd_counter_names[BD_C_COUNT] = {",
-          *(f'    "{n}",' for n in contract.AGENT_COUNTERS), "};", ""]
+          *(f'    "{n}",' for n in COUNTERS), "};", ""]
     return "\n".join(h), "\n".join(c)
 
 

@@ -231,7 +231,7 @@ class AgentConfig:
     resilient_f: int = 0            # W-MSR trimming (controllers.resilient_trim); 0: off
     transmit: Transmit = Transmit()
     # [security] signed_price (AUTH-31..33): take only the router's signed price (the key
-    # file must hold the router's public price key); firmware_c refuses it
+    # file must hold the router's public price key); firmware_c too (src/agent_sig.c)
     signed_price: bool = False
     source: str = "<config>"
 

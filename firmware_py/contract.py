@@ -342,10 +342,11 @@ AGENT_COUNTERS: tuple[str, ...] = (
 )
 
 SIGNED_PRICE_COUNTERS: tuple[str, ...] = ("unsigned_price", "bad_signature", "sig_malformed")
-"""The Python agent's counters of the opt-in signed price (AUTH-32, AUTH-33;
-firmware_py.pricesig): not in AGENT_COUNTERS, since firmware_c refuses a signed_price
-configuration (no BD_C_* of its own); reported in the exit summary and in the verdict
-(in-process from the agents; in `up` from ``--counters-dir``'s files)."""
+"""An agent's counters of the opt-in signed price (AUTH-32, AUTH-33;
+firmware_py.pricesig, firmware_c/src/agent_sig.c): not in AGENT_COUNTERS (no Diag slot);
+firmware_c's BD_C_* list them after AGENT_COUNTERS' (firmware_c/gen_contract.py).
+Reported in the exit summary and in the verdict (in-process from the agents; in `up`
+from ``--counters-dir``'s files)."""
 
 DIAG_RESERVED: frozenset[str] = frozenset(
     s.name for s in _message(diag_name(1)).signals if (s.comment or "").startswith("Reserved"))

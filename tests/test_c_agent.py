@@ -24,7 +24,7 @@ from hypothesis import strategies as st
 from test_node_vectors import VECTORS, keyring, load, replay
 
 from dbc import dbc_path
-from firmware_py import contract
+from firmware_py import contract, pricesig
 from firmware_py.config import agent_configs_from_scenario, parse_agent_config
 from firmware_py.contract import SYNCED_BY
 from firmware_py.frames import FrameCodec, target_raw
@@ -36,6 +36,8 @@ from firmware_py.secoc import (
     derive_command_key,
     derive_frame_key,
     derive_node_key,
+    derive_price_sign_key,
+    fleet_id,
 )
 from sim.cbind.cagent import CAgent, keyring_from, ns, params_of, parse_config
 from sim.cbind.cimpl import SOURCE_DIR as SOURCE
@@ -137,8 +139,18 @@ VARIANTS = {"base": ("fleet_size = 4", -100.0, 100.0, False, ""),
                       '\n[transmit]\nmode = "event"\nheartbeat = 6\n')}
 
 
+# AUTH-31..33: the signed price, the router's Ed25519 key derived from MASTER as `bess-ded
+# keys` derives it; agent 2's key file holds the public key
+SIGNED = {"signed": ("fleet_size = 4", -100.0, 100.0, False,
+                     "\n[security]\nsigned_price = true\n")}
+SEED = derive_price_sign_key(MASTER)
+PUBLIC = pricesig.public_key(SEED)
+FLEET = fleet_id(MASTER)
+
+
 def _both(variant: str, fd: bool = False) -> tuple[AgentRuntime, CAgent]:
-    fleet, p_min, p_max, insecure, extra = VARIANTS[variant]
+    fleet, p_min, p_max, insecure, extra = {**VARIANTS, **SIGNED}[variant]
+    signed = variant in SIGNED
     cfg = parse_agent_config(tomllib.loads(CONFIG.format(fleet=fleet, p_min=p_min,
                                                          p_max=p_max) + extra), "random.toml")
     peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
@@ -147,7 +159,8 @@ def _both(variant: str, fd: bool = False) -> tuple[AgentRuntime, CAgent]:
         if insecure:
             return Keyring.insecure_for("agent_2")
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
-                       peers=peers, frames=FRAMES, commands=COMMANDS)
+                       peers=peers, frames=FRAMES, commands=COMMANDS, fleet=FLEET,
+                       price_verify=PUBLIC if signed else None)
     return AgentRuntime(cfg, FrameCodec(dbc_path(fd)), keys=ring()), CAgent(cfg, ring(), fd=fd)
 
 
@@ -190,6 +203,60 @@ def test_c_and_python_agents_agree_on_an_fd_bus(variant: str, events: list[tuple
     assert py.counters["malformed"] == c.counters["malformed"] >= 1
 
 
+# AUTH-32: an ER_PriceSig transfer: the segment number's step from the last one (1500:
+# back), the boot's from the router's, PriceValid, ρ, who signs (the router; another key;
+# the router's with a bit flipped) and what happens to the pages on the way
+SIG_EVENT = st.tuples(st.just("sig"), st.sampled_from((0, 1, 1, 2, 7, 1500)),
+                      st.sampled_from((0, 0, 0, -1, 1, -3)), st.integers(0, 1),
+                      st.sampled_from((13_421_773, 13_000_000, -5, 1 << 30)),
+                      st.sampled_from(("router", "router", "router", "other", "flip")),
+                      st.sampled_from(("whole", "whole", "whole", "drop", "dup", "tail",
+                                       "no_header", "reversed", "junk", "short")),
+                      st.integers(1, pricesig.SIG_PAGES))
+SIGNED_TRAFFIC = st.one_of(TRAFFIC, SIG_EVENT, SIG_EVENT,
+                           st.tuples(st.just("sprice"), st.booleans()))
+# the first transfer: the segment the preamble's prices carry (number 0, boot 3: the
+# router's), so the signed agent starts RUNNING as the others do
+SIGNED_PREAMBLE = ([("tick", 1)] + [("sync", name) for name in sorted(SENDER_OF)]
+                   + [("tick", JOIN_TICKS), ("sig", 0, 0, 1, 13_421_773, "router", "whole", 1)]
+                   + PREAMBLE[1 + len(SENDER_OF) + 1:])
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(events=st.lists(SIGNED_TRAFFIC, min_size=20, max_size=250))
+def test_c_and_python_agents_agree_on_signed_price_traffic(events: list[tuple]) -> None:
+    """AUTH-31..33 in both runtimes: ER_PriceSig transfers genuine, under another key,
+    with a bit flipped, of older or newer segments and boots (replays), with pages lost,
+    repeated with other bytes, reordered, without their header, a last page too long,
+    pages out of range and short; ER_Prices of the signed segment or not, among the
+    random traffic of the other tests. Every frame sent, every counter (unsigned_price,
+    bad_signature, sig_malformed by name), the state, λ and the number of signatures
+    verified agree at every tick."""
+    py, c = run_both("signed", SIGNED_PREAMBLE + events)
+    assert py.price_sig is not None and py.price_sig.verifications >= 1
+
+
+def test_signed_price_attack_is_refused_alike_in_c_and_python() -> None:
+    """The forged-price attack of tests/test_pricesig.py, frame for frame on both
+    runtimes: agent 3's key file forges ER_Prices under the router's node key (a valid
+    MAC) and ER_PriceSig transfers under an Ed25519 key of its own, plus malformed
+    pages; both agents refuse each alike and keep the signed price."""
+    attack = []
+    for k in range(12):
+        attack += [("sig", 0, 0, 1, 50_331_648, "other", "whole", 1),   # ρ = 3 forged
+                   ("price", 50_331_648, True, 0), ("price", 13_421_774 + k, True, 0),
+                   ("sig", 0, 0, 1, 13_421_773, "router", "junk", 3),
+                   ("sig", 0, 0, 1, 13_421_773, "router", "tail", 1),
+                   ("sprice", True), ("tick", 1)]
+    py, c = run_both("signed", SIGNED_PREAMBLE + attack)
+    assert c.counters["unsigned_price"] == py.counters["unsigned_price"] == 24
+    assert c.counters["bad_signature"] == py.counters["bad_signature"] == 12
+    assert c.counters["sig_malformed"] == py.counters["sig_malformed"] >= 24
+    assert c.counters.get("implausible_price", 0) == 0
+    assert py.price_sig is not None and c.sig_verifications == py.price_sig.verifications == 13
+    assert py.state == c.state
+
+
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_a_genuine_frame_out_of_order_is_stale_not_forged_in_both(variant: str) -> None:
     """AUTH-25: neighbour 1's two MC frames swapped on the way: the later one is used,
@@ -211,7 +278,7 @@ def run_both(variant: str, events: list[tuple], fd: bool = False
     sender's frames FD (the forged ones classic: malformed there)."""
     py, c = _both(variant, fd)
     codec = FrameCodec(dbc_path(fd))
-    if VARIANTS[variant][3]:   # every insecure sender runs at boot 1 with the public keys
+    if {**VARIANTS, **SIGNED}[variant][3]:   # every insecure sender: boot 1, public keys
         senders = {n: FleetSender(codec) for n in LABELS}
     else:
         senders = {n: FleetSender(codec, keys={n: derive_node_key(MASTER, n), **ALL_FRAMES},
@@ -220,6 +287,7 @@ def run_both(variant: str, events: list[tuple], fd: bool = False
     history: list[can.Message] = []
     n = 0
     t_rx = TS / 2
+    signed: list[Any] = [None, 0]   # the segment the router last signed, its number
 
     def deliver(msg: can.Message) -> None:
         history.append(msg)
@@ -238,6 +306,8 @@ def run_both(variant: str, events: list[tuple], fd: bool = False
             assert got == want, f"tick {n}: frames differ"
             assert c.counters == +py.counters, f"tick {n}: counters differ"
             assert c.state == py.state and c.lambda_q24 == py.lambda_q24
+            assert c.sig_verifications == (py.price_sig.verifications if py.price_sig
+                                           else 0), f"tick {n}: verifications differ"
             t_rx = t + TS / 2
         elif kind == "at":
             t_rx = n * TS + ev[1]
@@ -272,12 +342,57 @@ def run_both(variant: str, events: list[tuple], fd: bool = False
         elif kind == "forge":
             fid = FrameCodec().frame_id(ev[1])
             deliver(can.Message(arbitration_id=fid, data=ev[2], is_extended_id=False))
+        elif kind == "sig":
+            for msg in _sig_transfer(ev, senders["router"].boot, signed, codec):
+                deliver(msg)
+        elif kind == "sprice" and signed[0] is not None:   # the segment last signed
+            seg = signed[0]
+            deliver(senders["router"].frame("ER_Price", {
+                "PriceValid": seg.valid, "Segment": seg.number % pricesig.SEGMENT_LOW_MOD,
+                "Rho": seg.rho if ev[1] else seg.rho + 1}))
         elif kind == "junk":
             fid, data, flags = ev[1], ev[2], ev[3]
             deliver(can.Message(arbitration_id=fid, data=data, dlc=len(data), check=False,
                                 is_extended_id=bool(flags & 1), is_remote_frame=bool(flags & 2),
                                 is_fd=bool(flags & 4)))
     return py, c
+
+
+def _sig_transfer(ev: tuple, boot: int, signed: list[Any], codec: FrameCodec
+                  ) -> list[can.Message]:
+    """SIG_EVENT's ER_PriceSig pages (``signed``: [the router's last signed segment, the
+    segment number], updated)."""
+    _, step, dboot, valid, rho, who, how, k = ev
+    number = (signed[1] + step) % pricesig.SEGMENT_MOD
+    signed[1] = number
+    seg = pricesig.SignedSegment(min(max(boot + dboot, 0), 0xFFFF), number, valid, rho)
+    sig = pricesig.sign(SEED if who != "other" else bytes(32), FLEET, seg)
+    if who == "flip":
+        sig = sig[:k] + bytes([sig[k] ^ 0x10]) + sig[k + 1:]
+    elif who == "router":
+        signed[0] = seg
+    raws = pricesig.pages(seg, sig)
+    if how == "drop":
+        del raws[k]
+    elif how == "dup":
+        raws.insert(k + 1, {**raws[k], "Signature": raws[k]["Signature"] ^ 1})
+    elif how == "tail":
+        raws[-1] = {**raws[-1], "Signature": raws[-1]["Signature"] | 1 << (8 * k % 56 or 8)}
+    elif how == "no_header":
+        raws = raws[1:]
+    elif how == "reversed":
+        raws = raws[:1] + raws[:0:-1]
+    msgs = [codec.encode(pricesig.MESSAGE, raw, 0) for raw in raws]
+    if how == "junk":   # a page beyond the DBC's range, mid-transfer
+        data = bytearray(msgs[k].data)
+        data[0] = (data[0] & 0xF0) | (11 + k % 5)
+        msgs.insert(k, can.Message(arbitration_id=msgs[k].arbitration_id, data=bytes(data),
+                                   is_extended_id=False, is_fd=msgs[k].is_fd))
+    elif how == "short":   # a page of 5 bytes
+        msgs.insert(k, can.Message(arbitration_id=msgs[k].arbitration_id,
+                                   data=bytes(msgs[k].data[:5]), is_extended_id=False,
+                                   is_fd=msgs[k].is_fd))
+    return msgs
 
 
 # --------------------------------------------------------------------------- edges
@@ -306,6 +421,13 @@ def test_acceptance_filter_ids_are_firmware_pys(peers: tuple[str, ...] | None) -
         ring_c = Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 0, lambda _b: None,
                          peers=keys, frames=FRAMES, commands=COMMANDS)
     assert CAgent(cfg, ring_c).accepted_ids() == AgentRuntime(cfg, keys=ring).io.accepted_ids()
+
+
+def test_acceptance_filter_passes_the_price_signature_in_signed_mode() -> None:
+    """AUTH-32: with signed_price the filter passes ER_PriceSig (0x008) too, as NodeIO's."""
+    py, c = _both("signed")
+    assert c.accepted_ids() == py.io.accepted_ids()
+    assert FrameCodec().frame_id(pricesig.MESSAGE) in c.accepted_ids()
 
 
 def test_loop_events_are_counted_and_reported_on_the_diag_frame() -> None:
@@ -577,6 +699,8 @@ def dump_node_vectors(path: Path) -> dict[str, list[tuple[int, int, str]]]:
         vec = load(p)
         k = vec["keys"]
         lines.append(f"V {vec['name']} {vec['config'].encode().hex()}")
+        if "price_verify_key" in k:   # signed_price (AUTH-31): before K, which starts it
+            lines.append(f"P {k['price_verify_key']} {k['fleet_id']}")
         if k["insecure"]:
             key = derive_node_key(INSECURE_MASTER, k["node"])
             lines.append(f"K {k['node']} 1 {key.hex()} 0 0 0")

@@ -9,6 +9,7 @@ the boot counter C persists loads back in firmware_py.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -161,6 +162,8 @@ BAD = [
     ("limits", "h_max", "199"), ("limits", "untrusted_after", "1001"),
     ("limits", "untrusted_s", "-1"), ("limits", "lambda_step_max", "0"),
     ("limits", "speed", "1"), ("extra", "x", "1"),
+    ("security", "signed_price", "1"), ("security", "signed_price", '"yes"'),
+    ("security", "other", "true"),
 ]
 
 
@@ -391,12 +394,107 @@ def test_node_program_refuses_bad_input_with_exit_2(tmp_path: Path) -> None:
         (("--config", str(agent_1), "--key", str(key), "--channel", "no-such-can9"),
          "expected the key file of agent_1"),
         (("--config", str(cfg), "--insecure", "--channel", "no-such-can9"), "error: "),
-        # AUTH-31: the signed price is firmware_py's only; never run unsigned
+        # AUTH-31: a signed_price agent needs the router's public key: never run unsigned
         (("--config", str(signed), "--insecure", "--channel", "vcan0"),
-         "[security.signed_price] signed_price is not supported by firmware_c yet"),
+         "[security.signed_price] expected a key file with the router's public price key"),
     ]
     for argv, message in cases:
         res = _node(*argv)
         assert res.returncode == 2, (argv, res.stderr)
         assert "bessded-agent: error: " in res.stderr and message in res.stderr, \
             (argv, res.stderr)
+
+
+# --------------------------------------------------------------------------- signed_price
+
+
+@pytest.mark.parametrize("value", ["true", "false"])
+def test_c_loader_takes_signed_price_as_firmware_py_does(value: str) -> None:
+    """AUTH-31: [security] signed_price loads in C to firmware_py's flag (no refusal)."""
+    text = _edit("security", "signed_price", value)
+    cfg = parse_agent_config(tomllib.loads(text), "agent.toml")
+    p = parse_config(text, "agent.toml")
+    assert p.signed_price == int(value == "true") == int(cfg.signed_price)
+    assert params_dict(p) == params_dict(params_of(cfg))
+
+
+def test_key_file_price_key_loads_and_survives_every_boot_rewrite(tmp_path: Path) -> None:
+    """AUTH-31, CFG-8: a signed_price fleet's agent key file (`bess-ded keys`: the
+    router's public price key in [price_signature] verify_key) loads in C with the key and
+    the fleet ID firmware_py reads; the C persist keeps the table; the C agent starts with
+    it; a malformed table is refused by both loaders; a router's sign_key loads as its
+    public key."""
+    import tomli_w
+
+    from firmware_py import pricesig
+    from firmware_py.secoc import derive_price_sign_key
+    from sim.cbind.cagent import CAgent
+    from sim.run.keyset import node_document
+
+    sc = dataclasses.replace(load_case(1), signed_price=True)
+    path = tmp_path / "agent_2.key"
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(node_document(sc, MASTER, "agent_2", 6)))
+    ref = load_node_key(path)
+    public = pricesig.public_key(derive_price_sign_key(MASTER))
+    assert ref.price_verify == public and ref.price_sign is None
+    k = load_keyfile(path, "agent_2")
+    assert k.has_price_key == 1 and bytes(k.price_key) == public
+    assert bytes(k.fleet_id) == bytes.fromhex(ref.fleet_id)
+    assert k.persist_boot(k.persist_ctx, 7) == 0
+    again = load_node_key(path)
+    assert again.boot_counter == 7 and again.price_verify == public
+    cfg = agent_configs_from_scenario(sc)[1]
+    assert cfg.signed_price
+    agent = CAgent(cfg, load_keyfile(path, "agent_2"))
+    assert agent.boot == 8 and agent.sig_verifications == 0
+    assert load_node_key(path).price_verify == public   # kept by the C agent's new boot
+    doc = tomllib.loads(path.read_text())
+    for bad, message in (({"verify_key": public.hex(), "sign_key": public.hex()},
+                          r"\[price_signature\] expected exactly one of sign_key, verify_key"),
+                         ({}, r"\[price_signature\] expected exactly one of"),
+                         ({"public": public.hex()}, r"\[price_signature\] expected exactly one"),
+                         ({"verify_key": public.hex()[:-2]},
+                          r"\[price_signature.verify_key\] expected 32 bytes as hex"),
+                         ({"verify_key": "zz" * 32},
+                          r"\[price_signature.verify_key\] expected 32 bytes as hex")):
+        doc["price_signature"] = bad
+        write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+        with pytest.raises(CConfigError, match=message):
+            load_keyfile(path, "agent_2")
+        with pytest.raises(KeyFileError, match=message):
+            load_node_key(path)
+    seed = derive_price_sign_key(MASTER)
+    doc["price_signature"] = {"sign_key": seed.hex()}
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    k = load_keyfile(path, "agent_2")
+    assert k.has_price_key == 1 and bytes(k.price_key) == public
+    assert k.persist_boot(k.persist_ctx, 9) == 0
+    assert load_node_key(path).price_sign == seed
+    del doc["price_signature"]
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    with pytest.raises(ValueError, match="signed_price without the router's public price key"):
+        CAgent(cfg, load_keyfile(path, "agent_2"))
+
+
+def test_a_build_without_the_signed_price_refuses_it(tmp_path: Path) -> None:
+    """`make SIGNED_PRICE=0` (what the Cortex-M4 image is: no libsodium): the node links
+    no libsodium, and refuses [security] signed_price = true naming the key (exit 2),
+    never running unsigned; signed_price = false still starts as before."""
+    from sim.cbind.cimpl import SOURCE_DIR, make_argv
+
+    build = tmp_path / "build"
+    proc = subprocess.run(make_argv(SOURCE_DIR, build, str(build / "bessded-agent"))
+                          + ["SIGNED_PRICE=0"], capture_output=True, text=True, timeout=300,
+                          check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert "-DBD_SIGNED_PRICE=0" in proc.stdout and "-lsodium" not in proc.stdout
+    cfg = tmp_path / "agent_2.toml"
+    base = json.loads(VECTORS[0].read_text())["config"]
+    for value, rc, message in (("true", 2, "[security.signed_price] expected false: this "
+                                           "firmware_c build has no signed price"),
+                               ("false", 2, "runs --insecure")):   # past the loader
+        cfg.write_text(base + f"\n[security]\nsigned_price = {value}\n")
+        res = subprocess.run([str(build / "bessded-agent"), "--config", str(cfg), "--insecure",
+                              "--channel", "no-such-can9"], capture_output=True, text=True,
+                             timeout=60, check=False)
+        assert res.returncode == rc and message in res.stderr, (value, res.stderr)

@@ -111,5 +111,5 @@ def test_every_counter_the_python_agent_counts_is_in_the_one_list() -> None:
                         and isinstance(n.args[pos], ast.Constant):
                     used.add(n.args[pos].value)
     assert len(used) >= 15  # the walk found the agent's counting
-    # the signed price's causes are Python's only: firmware_c refuses signed_price (AUTH-31)
+    # the signed price's causes (AUTH-32, AUTH-33): BD_C_* after AGENT_COUNTERS' in firmware_c
     assert used - set(contract.AGENT_COUNTERS) - set(contract.SIGNED_PRICE_COUNTERS) == set()

@@ -25,7 +25,7 @@ from typing import Any
 import can
 import pytest
 
-from firmware_py import controllers, nodeio
+from firmware_py import controllers, nodeio, pricesig
 from firmware_py.config import parse_agent_config
 from firmware_py.frames import FrameCodec, target_agent
 from firmware_py.runtime import AgentRuntime
@@ -35,6 +35,7 @@ from firmware_py.secoc import (
     derive_command_key,
     derive_frame_key,
     derive_node_key,
+    derive_price_sign_key,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -82,8 +83,13 @@ def keyring(vec: dict[str, Any]) -> Keyring | None:
     for target, hexkey in k["command_keys"].items():  # AUTH-30: its commands' key
         commands[target] = derive_command_key(master, target)
         assert commands[target].hex() == hexkey, f"{vec['name']}: {target}'s command key"
+    price = None
+    if "price_verify_key" in k:  # signed_price (AUTH-31): the router's public price key
+        price = pricesig.public_key(derive_price_sign_key(master))
+        assert price.hex() == k["price_verify_key"], f"{vec['name']}: the price key"
     return Keyring(k["node"], key, k["boot_counter"], lambda _b: None, peers=peers,
-                   floors=k.get("floors"), frames=frames, commands=commands)
+                   floors=k.get("floors"), frames=frames, commands=commands,
+                   fleet=k["fleet_id"], price_verify=price)
 
 
 def agent_of(vec: dict[str, Any]) -> AgentRuntime:
@@ -148,6 +154,11 @@ def replay(vec: dict[str, Any], make: Callable[[dict[str, Any]], Any] = agent_of
         et, eid, edata = expected[i]
         raise NodeVectorMismatch(f"{name}: frame #{i} missing: expected t = {et} 0x{eid:03X} "
                                  f"{edata} ({describe(eid, edata)})")
+    # signed_price (AUTH-32, AUTH-33): its counters have no Diag slot; the vector states them
+    got = {k: agent.counters.get(k, 0) for k in vec.get("counters", {})}
+    if got != vec.get("counters", {}):
+        raise NodeVectorMismatch(f"{name}: counters at the end: expected {vec['counters']}, "
+                                 f"got {got}")
     return i
 
 
@@ -185,9 +196,6 @@ def test_a_changed_byte_is_reported_with_time_id_and_signals(
 # --------------------------------------------------------------------------- coverage
 
 
-SIGNED_PRICE_ONLY = frozenset({"AUTH-31", "AUTH-32", "AUTH-33"})
-
-
 def spec_requirements(sections: tuple[int, ...]) -> set[str]:
     """The requirement IDs (``- **STATE-3**``) defined in the spec's numbered sections."""
     text = SPEC.read_text(encoding="utf-8")
@@ -204,10 +212,6 @@ def test_vectors_cover_every_state_transition_command_and_auth_requirement(
     required = spec_requirements((7, 8, 11, 12))
     assert len(required) >= 40  # STATE-*, LIVE-*, TMO-*, PRICE-*, LAM-*, CMD-*, AUTH-*
     covered = set().union(*(v["covers"] for v in vectors.values()))
-    # the opt-in signed price (AUTH-31..33) is firmware_py's only: firmware_c refuses it
-    # (tests/test_c_config.py), so no vector can play it bit for bit in both;
-    # tests/test_pricesig.py covers it
-    required -= SIGNED_PRICE_ONLY
     assert not required - covered, f"no node vector covers {sorted(required - covered)}"
 
 
@@ -326,6 +330,8 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
         mp.setattr(controllers, "resilient_trim", lambda lam, nb, f: list(nb))
     elif kind == "trim_ties_by_smaller_weight":
         mp.setattr(controllers, "resilient_trim", _trim_smaller_weight_first)
+    elif kind == "unsigned_price_taken":  # AUTH-33 broken: any ER_Price with a valid MAC
+        mp.setattr(AgentRuntime, "_signed_price", lambda self, f: None)
     elif kind == "pin_ignored":           # CMD-7 broken: a PIN counted, nothing else
         mp.setattr(AgentRuntime, "_on_command", _ignore_pin(AgentRuntime._on_command))
     else:
@@ -341,7 +347,8 @@ MUTATIONS: dict[str, list[str]] = {
     "band_rearms_at_reset": [
         "auth_forgery_replay", "boot_floors", "commands", "event_transmit", "init_wait_status",
         "malformed_foreign", "neighbour_timeout", "peer_restart", "pin", "price_timeout_safe",
-        "resilient_trim", "start_steady", "status_fault_timeout", "sync_boot_jump"],
+        "resilient_trim", "signed_price", "start_steady", "status_fault_timeout",
+        "sync_boot_jump"],
     # every vector: each sends Diag pages
     "diag_without_mac": [p.stem for p in VECTORS],
     "one_freshness_window_after_a_timeout": ["price_timeout_safe"],
@@ -354,6 +361,7 @@ MUTATIONS: dict[str, list[str]] = {
     "trim_ties_by_smaller_weight": ["resilient_trim"],
     "mc_every_tick": ["event_transmit"],
     "pin_ignored": ["pin"],
+    "unsigned_price_taken": ["signed_price"],
 }
 
 

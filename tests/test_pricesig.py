@@ -163,7 +163,8 @@ def _stolen(tmp: Path) -> secoc.NodeKey:
 
 
 def _run(tmp: Path, inject: Callable[[float], list[can.Message]] | None = None,
-         signed: bool = True) -> tuple[dict[str, Any], np.ndarray, dict[str, dict[str, int]]]:
+         signed: bool = True, c_agents: tuple[int, ...] = ()
+         ) -> tuple[dict[str, Any], np.ndarray, dict[str, dict[str, int]]]:
     counters: dict[str, dict[str, int]] = {}
 
     def observe(t: float, nodes: dict[str, Any]) -> None:
@@ -174,7 +175,7 @@ def _run(tmp: Path, inject: Callable[[float], list[can.Message]] | None = None,
     sc = CASE if signed else load_case(1)
     rings = secoc.Keyring.fleet(MASTER, secoc.fleet_nodes(CASE.n), signed_price=signed)
     m = run_in_process(sc, tmp, DURATION_S, channel=f"pricesig-{tmp.name}",
-                       inject=inject, observe=observe, keyrings=rings)
+                       inject=inject, observe=observe, keyrings=rings, c_agents=c_agents)
     return m, np.genfromtxt(tmp / "trajectory.csv", delimiter=",", names=True), counters
 
 
@@ -208,15 +209,15 @@ def _ramp(forger: FleetSender, forged: list[can.Message]) -> list[can.Message]:
     return [forged[-1]]
 
 
-def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
-                                                       honest: np.ndarray) -> None:
+def _attack(tmp: Path, c_agents: tuple[int, ...] = ()) -> tuple[
+        dict[str, Any], np.ndarray, dict[str, dict[str, int]], list[can.Message],
+        FleetSender, secoc.NodeKey]:
     """The insider of issue 25 with agent 3's key file: an ER_Price ramp towards ρ = 3
     under the router's node key (a valid MAC), and ER_PriceSig transfers signed with an
     Ed25519 key of its own (its file has the router's public key only), plus malformed
-    pages. Every agent refuses every forged price (unsigned_price) and every forged
-    signature (bad_signature, sig_malformed), nothing crashes, the dispatch is the honest
-    run's, and the verdict names the anomalies."""
-    stolen = _stolen(tmp_path)
+    pages (``c_agents``: the agents on firmware_c's runtime)."""
+    tmp.mkdir(parents=True, exist_ok=True)
+    stolen = _stolen(tmp)
     assert stolen.price_sign is None
     forger = FleetSender(CODEC, keys={"router": stolen.peers["router"]}, boot=1)
     forged: list[can.Message] = []
@@ -237,7 +238,16 @@ def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
             out += _ramp(forger, forged)
         return out
 
-    m, tr, counters = _run(tmp_path / "run", inject)
+    m, tr, counters = _run(tmp / "run", inject, c_agents=c_agents)
+    return m, tr, counters, forged, forger, stolen
+
+
+def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
+                                                       honest: np.ndarray) -> None:
+    """The insider of issue 25 (_attack). Every agent refuses every forged price
+    (unsigned_price) and every forged signature (bad_signature, sig_malformed), nothing
+    crashes, the dispatch is the honest run's, and the verdict names the anomalies."""
+    m, tr, counters, forged, forger, stolen = _attack(tmp_path)
     # each forged price carries a MAC under the router's node key and the freshness
     # value the router's next frame takes (boot 1 in this key set's first run)
     last = forged[-1]
@@ -258,6 +268,26 @@ def test_agent_3s_key_file_cannot_forge_a_signed_price(tmp_path: Path,
     assert m["verdict"]["converged"] and m["verdict"]["exit_code"] != 0, m["verdict"]
     for line in m["node_summaries"][:CASE.n]:  # each agent's exit summary says it too
         assert "bad_signature=8" in line and "unsigned_price=" in line, line
+
+
+def test_c_agents_refuse_the_forgery_bit_for_bit_as_the_python_agents(tmp_path: Path) -> None:
+    """The same attack with every agent on firmware_c's runtime (libsodium verifying the
+    signatures; sim.cbind.cagent through run_in_process): the run is the Python agents'
+    one sample for sample (the same trajectory, the same frames on the bus), every agent
+    counts the same unsigned_price, bad_signature and sig_malformed, the verdict names
+    the same anomalies and the C agents' exit summaries say it."""
+    py = _attack(tmp_path / "py")
+    c = _attack(tmp_path / "c", c_agents=tuple(range(1, CASE.n + 1)))
+    assert np.array_equal(c[1], py[1])
+    for i in range(1, CASE.n + 1):
+        want = {k: v for k, v in py[2][f"agent_{i}"].items() if v}
+        assert c[2][f"agent_{i}"] == want, (i, c[2][f"agent_{i}"], want)
+        assert c[2][f"agent_{i}"]["bad_signature"] >= 8
+    assert c[0]["verdict"] == py[0]["verdict"]
+    assert c[0]["anomalies"] == py[0]["anomalies"]
+    assert [f.data for f in c[3]] == [f.data for f in py[3]]
+    for line in c[0]["node_summaries"][:CASE.n]:
+        assert "(C)" in line and "bad_signature=8" in line and "unsigned_price=" in line, line
 
 
 def test_price_sign_key_kdf_as_documented() -> None:
@@ -318,10 +348,10 @@ def test_without_signed_price_the_same_ramp_is_taken(tmp_path: Path,
 
 def test_process_runs_carry_the_agents_signature_counters_to_the_verdict(
         tmp_path: Path) -> None:
-    """`up` starts each Python agent of a signed scenario with --counters-dir DIR/logs (no
-    Diag slot carries these counters); the files it writes at exit are read back with the
-    plant's and router's, and the verdict names the causes per agent. An unsigned scenario's
-    argv is as before."""
+    """`up` starts each agent of a signed scenario (Python or C) with --counters-dir
+    DIR/logs (no Diag slot carries these counters); the files it writes at exit are read
+    back with the plant's and router's, and the verdict names the causes per agent. An
+    unsigned scenario's argv is as before."""
     import json
 
     from firmware_py.__main__ import _write_counters
@@ -340,6 +370,12 @@ def test_process_runs_carry_the_agents_signature_counters_to_the_verdict(
     for spec in signed:
         assert ("--counters-dir" in spec.argv) == spec.name.startswith("agent_"), spec
     assert not any("--counters-dir" in spec.argv for spec in plain)
+    # a C agent (bessded-agent) writes the same file (firmware_c/src/main_agent.c)
+    mixed = node_specs(CASE, tmp_path / "s.toml", tmp_path, bus, rt_priority=0,
+                       c_agents=frozenset({2}), c_node=Path("/opt/bessded-agent"))
+    c_spec = next(spec for spec in mixed if spec.name == "agent_2")
+    assert c_spec.argv[0] == "/opt/bessded-agent"
+    assert c_spec.argv[-2:] == ["--counters-dir", str(tmp_path / "logs")]
     ring = secoc.Keyring.fleet(MASTER, ["agent_2"], signed_price=True)["agent_2"]
     agent = AgentRuntime(agent_configs_from_scenario(CASE)[1], CODEC, keys=ring)
     agent.counters["unsigned_price"] += 7

@@ -38,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).parent))  # tools/gen_vectors.py
 
 from gen_vectors import q24, splitmix64, write_or_check  # noqa: E402  (shared with the controller's)
 
-from firmware_py import contract, frames  # noqa: E402
+from firmware_py import contract, frames, pricesig  # noqa: E402
 from firmware_py.config import parse_agent_config  # noqa: E402
 from firmware_py.frames import (  # noqa: E402
     FrameCodec,
@@ -58,6 +58,7 @@ from firmware_py.secoc import (  # noqa: E402
     derive_command_key,
     derive_frame_key,
     derive_node_key,
+    derive_price_sign_key,
     fleet_id,
     sign_frame,
 )
@@ -186,7 +187,8 @@ class Scenario:
 
     def __init__(self, name: str, description: str, covers: list[str], extra_toml: str = "",
                  insecure: bool = False, tx_count: int | None = None,
-                 toml: str | None = None, floors: dict[str, int] | None = None) -> None:
+                 toml: str | None = None, floors: dict[str, int] | None = None,
+                 signed: bool = False) -> None:
         self.name, self.description, self.covers = name, description, covers
         self.toml = toml if toml is not None else BASE_TOML.format(extra=extra_toml)
         self.cfg = parse_agent_config(tomllib.loads(self.toml), f"{name}.json")
@@ -208,9 +210,12 @@ class Scenario:
             peers = {p: derive_node_key(master, p) for p in peer_labels}
             frames = {f: derive_frame_key(master, f) for f in frame_names}
             commands = {node: derive_command_key(master, node)}   # AUTH-30
+            # signed_price (AUTH-31): the router's public price key, as `bess-ded keys`
+            # derives the router's signing key from the fleet master
+            price = pricesig.public_key(derive_price_sign_key(master)) if signed else None
             keys = Keyring(node, derive_node_key(master, node), BOOT_COUNTER, lambda _b: None,
                            peers=peers, fleet=fleet_id(master), floors=floors, frames=frames,
-                           commands=commands)
+                           commands=commands, price_verify=price)
             self.keys_doc = {"insecure": False, "master_key": master.hex(), "kdf": KDF_NAME,
                              "mac": MAC_NAME, "fleet_id": fleet_id(master), "node": node,
                              "key": derive_node_key(master, node).hex(),
@@ -220,6 +225,8 @@ class Scenario:
                              "command_keys": {t: k.hex() for t, k in commands.items()}}
             if floors:  # AUTH-21: the key file's [floors]
                 self.keys_doc["floors"] = dict(floors)
+            if price is not None:  # AUTH-31: the key file's [price_signature] verify_key
+                self.keys_doc["price_verify_key"] = price.hex()
             boots = dict(SENDER_BOOTS)
         self.agent = AgentRuntime(self.cfg, CODEC, keys=keys)
         self.setup: dict[str, Any] = {}
@@ -231,6 +238,8 @@ class Scenario:
                         for lbl in SENDER_BOOTS}
         self.keys_doc["sender_boots"] = {lbl: s.boot for lbl, s in self.senders.items()}
         self.router, self.plant = self.senders["router"], self.senders["plant"]
+        self.signed = signed
+        self.price_seed = derive_price_sign_key(master)   # the router's (signed_price)
         self.inputs: list[list[Any]] = []
         self.outputs: list[list[Any]] = []
         self.last_t = -1.0
@@ -318,6 +327,21 @@ class Scenario:
         self.rx(m, note)
         return m
 
+    def price_sig(self, number: int, rho: int, valid: int = 1, boot: int | None = None,
+                  seed: bytes | None = None, note: str = "",
+                  pages: Callable[[list[can.Message]], list[can.Message]] | None = None
+                  ) -> pricesig.SignedSegment:
+        """The router's ER_PriceSig transfer of segment ``number`` (AUTH-32): signed with
+        its price key (``seed``: another key, a forgery), at its boot (or ``boot``);
+        ``pages``: what happens to the 11 pages on the way."""
+        seg = pricesig.SignedSegment(self.router.boot if boot is None else boot, number,
+                                     valid, rho)
+        sig = pricesig.sign(seed or self.price_seed, self.keys_doc["fleet_id"], seg)
+        msgs = [CODEC.encode(pricesig.MESSAGE, raw, 0) for raw in pricesig.pages(seg, sig)]
+        for k, m in enumerate(pages(msgs) if pages is not None else msgs):
+            self.rx(m, note if k == 0 else "")
+        return seg
+
     def sync(self, label: str, name: str, note: str = "", **kw: int) -> can.Message:
         m = self.senders[label].sync(name, **kw)
         self.rx(m, note)
@@ -370,6 +394,8 @@ class Scenario:
             "keys": self.keys_doc}
         if self.setup:
             vec["setup"] = self.setup
+        if self.signed:  # AUTH-32, AUTH-33: no Diag slot, so the vector states them at the end
+            vec["counters"] = {k: self.agent.counters[k] for k in contract.SIGNED_PRICE_COUNTERS}
         vec["input"] = self.inputs
         vec["output"] = self.outputs
         return vec
@@ -1048,11 +1074,95 @@ def sc_pin() -> Scenario:
     return s
 
 
+def sc_signed_price() -> Scenario:
+    s = Scenario(
+        "signed_price",
+        "The signed price ([security] signed_price, the router's public price key in the key "
+        "file): an ER_Price before any signature is unsigned_price; the router's ER_PriceSig "
+        "transfer (11 pages, no MAC) verified once, its prices taken (RUNNING); the "
+        "once-a-second repeat (no verify); a price other than the signed one under the "
+        "router's valid MAC and its next count (unsigned_price, refused before its "
+        "freshness: the genuine price of that count is still taken); transfers signed with "
+        "another key and with a bit flipped (bad_signature, the price held); pages without "
+        "their page 0, repeated with other bytes, a last page too long, out of range, of "
+        "5 bytes (sig_malformed); a new segment (its Segment bits) and its price; the old "
+        "segment's price (unsigned_price) and its transfer replayed (bad_signature: older), "
+        "a genuine signature of the router's previous boot (bad_signature: replay); the "
+        "segment number stepping 1 → 1000 → 2000 → 0 (each newer: mod 2048).",
+        ["AUTH-31", "AUTH-32", "AUTH-33", "PRICE-6"], extra_toml="\n[security]\n"
+        "signed_price = true\n", signed=True)
+    price_id = CODEC.frame_id("ER_Price")
+    nb = neighbours()
+    s.tick()
+    s.sync_all()
+    s.join()
+    s.price(RHO, note="before any signature: unsigned_price")
+    seg0 = s.price_sig(0, RHO, note="the router's signed segment 0: verified")
+    for j, f in nb.items():
+        s.mc(j, f(0)[1], 1)
+    s.price(RHO, note="the signed segment's price: taken")
+    s.status()
+    s.run(30, price=RHO, nbrs=nb)
+    s.price_sig(0, RHO, note="the once-a-second repeat: no verify")
+    forged = s.router.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": q24(3.0)})
+    s.router.count[price_id] -= 1   # its count is the router's next genuine one
+    s.rx(forged, note="ρ = 3 under the router's MAC and next count: unsigned_price")
+    s.price(RHO, note="the genuine price of that count: taken (its freshness untouched)")
+    s.run(10, price=RHO, nbrs=nb)
+    s.price_sig(1, q24(3.0), seed=bytes(32), note="segment 1 (ρ = 3) under another key: "
+                "bad_signature")
+    s.price_sig(1, RHO, pages=lambda m: [m[0], *m[1:3],
+                                         can.Message(arbitration_id=m[3].arbitration_id,
+                                                     data=bytes([m[3].data[0]])
+                                                     + bytes([m[3].data[1] ^ 4])
+                                                     + bytes(m[3].data[2:]),
+                                                     is_extended_id=False), *m[4:]],
+                note="a bit flipped in page 3: bad_signature")
+    s.run(5, price=RHO, nbrs=nb)
+
+    def malformed(m: list[can.Message]) -> list[can.Message]:
+        page2 = bytearray(m[2].data)
+        page2[3] ^= 0x40
+        last = bytearray(m[10].data)
+        last[2] = 1
+        high = bytearray(m[5].data)
+        high[0] = (high[0] & 0xF0) | 12
+        short = can.Message(arbitration_id=m[4].arbitration_id, data=bytes(m[4].data[:5]),
+                            dlc=5, is_extended_id=False, check=False)
+        return [m[1], m[0], m[1], m[2],
+                can.Message(arbitration_id=m[2].arbitration_id, data=bytes(page2),
+                            is_extended_id=False),
+                m[3], can.Message(arbitration_id=m[5].arbitration_id, data=bytes(high),
+                                  is_extended_id=False), short,
+                m[0], *m[1:10], can.Message(arbitration_id=m[10].arbitration_id,
+                                            data=bytes(last), is_extended_id=False)]
+    s.price_sig(1, RHO, pages=malformed, note="pages 1 without page 0, page 2 repeated with "
+                "other bytes, page 12, 5 bytes, a last page too long: sig_malformed")
+    s.run(5, price=RHO, nbrs=nb)
+    rho1 = RHO + 1000
+    s.price_sig(1, rho1, note="segment 1: verified")
+    s.run(10, price=None, nbrs=nb,
+          hook=lambda n: s.price(rho1, segment=1) if n % 5 == 0 else None)
+    s.price(RHO, note="segment 0's price: unsigned_price")
+    s.price_sig(seg0.number, seg0.rho, note="segment 0's transfer replayed: bad_signature")
+    s.price_sig(7, rho1, boot=s.router.boot - 1, note="a genuine signature of the router's "
+                "previous boot: bad_signature")
+    s.run(10, price=None, nbrs=nb,
+          hook=lambda n: s.price(rho1, segment=1) if n % 5 == 0 else None)
+    for number in (1000, 2000):   # steps below half the range: newer
+        s.price_sig(number, rho1, note=f"segment {number}: verified")
+        s.run(10, price=None, nbrs=nb,
+              hook=lambda n, k=number: s.price(rho1, segment=k % 8) if n % 5 == 0 else None)
+    s.price_sig(0, RHO, note="segment 2048 = 0 (mod 2048): newer, verified")
+    s.run(20, price=RHO, nbrs=nb)
+    return s
+
+
 SCENARIOS: tuple[Callable[[], Scenario], ...] = (
     sc_start_steady, sc_init_wait, sc_neighbour_timeout, sc_price_timeout, sc_status,
     sc_commands, sc_auth, sc_peer_restart, sc_malformed, sc_price_steps, sc_tx_wrap,
     sc_insecure, sc_boot_floors, sc_boot_jump,
-    sc_resilient, sc_event_transmit, sc_pin)
+    sc_resilient, sc_event_transmit, sc_pin, sc_signed_price)
 
 
 def render_all() -> dict[str, str]:

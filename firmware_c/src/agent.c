@@ -266,6 +266,17 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
             s->fv = fv_join(INSECURE_BOOT, 0u) - 1u;
         }
     }
+    if (p->signed_price != 0u) {   /* AUTH-31: the router's public key verifies its price */
+#if BD_SIGNED_PRICE
+        if (!keys->has_price_key) {
+            return BD_ERR_PRICE_KEY;
+        }
+        memcpy(a->sig.key, keys->price_key, sizeof a->sig.key);
+        memcpy(a->sig.fleet, keys->fleet_id, sizeof a->sig.fleet);
+#else
+        return BD_ERR_PRICE_KEY;   /* built without the signed price */
+#endif
+    }
     /* the peer syncs the acceptance filter passes: keys held beyond the inputs' senders */
     a->n_listed = a->derive ? 0u : a->n_keys;
     init_echo(&a->echo[ECHO_MC], BD_MC_BASE + p->id);

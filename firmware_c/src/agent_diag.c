@@ -162,6 +162,9 @@ size_t bd_agent_accepted_ids(const bd_agent *a, uint32_t *ids, size_t max)
         insert_sorted(ids, &n, max, a->rx[r].id);
         insert_sorted(ids, &n, max, a->rx[r].sync_id);
     }
+    if (a->p.signed_price != 0u) {   /* AUTH-32: the router's price signatures */
+        insert_sorted(ids, &n, max, BD_ER_PRICESIG_ID);
+    }
     for (int k = 0; k < BD_N_SYNC_IDS; ++k) {   /* peers: keys held beyond the inputs' */
         uint32_t sid = bd_sync_ids[k];
         uint32_t sender = bd_id_sender(sid);

@@ -55,4 +55,12 @@ int bd_on_mc(bd_agent *a, uint32_t j, const bd_mc_msg *m, uint32_t id, int64_t t
 int bd_on_command(bd_agent *a, const bd_command_msg *m, uint32_t id);
 void bd_on_status(bd_agent *a, const bd_status_msg *m, uint32_t id, int64_t t);
 
+#if BD_SIGNED_PRICE
+/* agent_sig.c (AUTH-31..33): one ER_PriceSig page (AUTH-32: reassembled, the signature
+ * verified once per transfer), and whether a decoded ER_Price is the signed segment's
+ * (AUTH-33) */
+void bd_sig_page(bd_agent *a, const bd_frame *f);
+int bd_sig_price_ok(const bd_agent *a, const bd_price_msg *m);
+#endif
+
 #endif /* BESSDED_AGENT_INTERNAL_H */

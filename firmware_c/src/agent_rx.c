@@ -446,6 +446,14 @@ static int decode_and_use(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t
         fail(a, s, f->id, BD_C_RANGE, t);
         return 0;
     }
+#if BD_SIGNED_PRICE
+    if (r == BD_RX_PRICE && a->p.signed_price != 0u && !bd_sig_price_ok(a, &pm)) {
+        /* AUTH-33: not the signed segment's price, refused before its MAC and freshness
+         * (it cannot move the router's counter ahead of its genuine frames) */
+        reject(a, BD_C_UNSIGNED_PRICE, f->id);
+        return 0;
+    }
+#endif
     if (!authentic(a, s, f, counter, t)) {
         return 0;
     }
@@ -499,6 +507,12 @@ void bd_agent_rx(bd_agent *a, const bd_frame *f, int64_t t)
         }
         return;
     }
+#if BD_SIGNED_PRICE
+    if (id == BD_ER_PRICESIG_ID && a->p.signed_price != 0u) {
+        bd_sig_page(a, f);   /* AUTH-32: no MAC of its own, the signature is checked */
+        return;
+    }
+#endif
     bd_rx_slot *s = slot_of(a, id);
     if (s == NULL) {
         bd_rx_slot *synced = slot_synced_by(a, id);

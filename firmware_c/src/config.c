@@ -323,18 +323,10 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
         return -1;
     }
     memset(p, 0, sizeof *p);
-    /* AUTH-31: [security] signed_price is firmware_py's only: refused, never run unsigned */
-    for (int k = 0; k < d.n; ++k) {
-        if (strcmp(d.e[k].table, "security") == 0) {
-            return bd_toml_errorf(&d, "security.signed_price", "signed_price is not "
-                                  "supported by firmware_c yet (the router's signed price, "
-                                  "AUTH-31..33: run this agent with firmware_py, or the "
-                                  "scenario without [security] signed_price)");
-        }
-    }
     /* CFG-1: the tables */
     static const char *const tables[] = {"agent", "controller", "neighbour", "battery",
-                                         "timeouts", "limits", "transmit", NULL};
+                                         "timeouts", "limits", "transmit", "security",
+                                         NULL};
     for (int k = 0; k < d.n; ++k) {
         int ok = 0;
         for (const char *const *t = tables; *t != NULL; ++t) {
@@ -343,7 +335,7 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
         if (!ok) {
             return bd_toml_errorf(&d, d.e[k].table[0] != '\0' ? d.e[k].table : d.e[k].key,
                                   "unknown table; expected agent, controller, neighbour, "
-                                  "battery, timeouts, limits or transmit");
+                                  "battery, timeouts, limits, transmit or security");
         }
     }
     for (int k = 0; k < d.n_tables; ++k) {
@@ -353,8 +345,8 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
         }
         if (!ok) {
             return bd_toml_errorf(&d, d.tables[k], "unknown table; expected agent, "
-                                  "controller, neighbour, battery, timeouts, limits or "
-                                  "transmit");
+                                  "controller, neighbour, battery, timeouts, limits, "
+                                  "transmit or security");
         }
     }
     /* CFG-2 */
@@ -511,6 +503,24 @@ int bd_config_parse(const char *text, const char *src, bd_agent_params *p, char 
     }
     (void)q24(threshold, &p->tx_threshold);
     p->tx_heartbeat = (uint32_t)heartbeat;
+    /* AUTH-31: [security] signed_price, only the router's signed price taken */
+    static const char *const security_keys[] = {"signed_price", NULL};
+    if (check_keys(&d, "security", security_keys, "signed_price") != 0) {
+        return -1;
+    }
+    e = bd_toml_find(&d, "security", -1, "signed_price");
+    if (e != NULL && e->type != TOML_BOOL) {
+        return bd_toml_errorf(&d, "security.signed_price", "expected true or false, but got "
+                              "%s", bd_toml_repr(e, got, sizeof got));
+    }
+    p->signed_price = (e != NULL && e->i != 0) ? 1u : 0u;
+#if !BD_SIGNED_PRICE
+    if (p->signed_price != 0u) {   /* compiled out: refused, never run unsigned */
+        return bd_toml_errorf(&d, "security.signed_price", "expected false: this firmware_c "
+                              "build has no signed price (BD_SIGNED_PRICE 0, no Ed25519 "
+                              "verification; build it with libsodium: make SIGNED_PRICE=1)");
+    }
+#endif
     /* CFG-6, CFG-7 */
     static const char *const timeout_keys[] = {"neighbour_periods", "price_s", "status_s", NULL};
     static const char *const limit_keys[] = {

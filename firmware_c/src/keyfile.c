@@ -29,20 +29,27 @@ typedef struct {
     char fleet_id[17];
     char kdf[STR_MAX];
     char mac[STR_MAX];
+    /* AUTH-31: [price_signature] as the file has it (sign_key or verify_key), rewritten
+     * with the boot counter ("" if none) */
+    char price_name[NAME_MAX_];
+    char price_hex[2 * BD_ED25519_PUBLIC_BYTES + 1];
     bd_keyring *ring;
 } key_file;
 
 static key_file key_file_state;   /* the persist callback's context (one node per process) */
 
-static int hex_key(const char *s, uint8_t out[BD_KEY_BYTES])
+static void hex_of(const uint8_t *b, size_t n, char *out);
+
+/* n bytes of hex (either case) into out; -1 if s is not exactly that */
+static int hex_bytes(const char *s, uint8_t *out, size_t n)
 {
-    if (strlen(s) != 2u * BD_KEY_BYTES) {
+    if (strlen(s) != 2u * n) {
         return -1;
     }
-    for (int k = 0; k < BD_KEY_BYTES; ++k) {
+    for (size_t k = 0u; k < n; ++k) {
         unsigned v = 0u;
         for (int j = 0; j < 2; ++j) {
-            char c = (char)tolower((unsigned char)s[2 * k + j]);
+            char c = (char)tolower((unsigned char)s[2u * k + (size_t)j]);
             if (!isxdigit((unsigned char)c)) {
                 return -1;
             }
@@ -50,6 +57,62 @@ static int hex_key(const char *s, uint8_t out[BD_KEY_BYTES])
         }
         out[k] = (uint8_t)v;
     }
+    return 0;
+}
+
+static int hex_key(const char *s, uint8_t out[BD_KEY_BYTES])
+{
+    return hex_bytes(s, out, BD_KEY_BYTES);
+}
+
+/* AUTH-31: [price_signature] (firmware_py secoc._price_keys): exactly one of sign_key
+ * (the router's Ed25519 seed: its public key is derived) or verify_key (the public key),
+ * 32 bytes hex; none: not a signed fleet. 0, or -1 with err written. */
+static int price_keys(toml_doc *d, const char *path, key_file *kf, bd_keyring *k,
+                      char *err, size_t errlen)
+{
+    int n = 0;
+    const toml_entry *one = NULL;
+    for (int q = 0; q < d->n; ++q) {
+        if (strcmp(d->e[q].table, "price_signature") == 0) {
+            one = &d->e[q];
+            n++;
+        }
+    }
+    int table = bd_toml_has_table(d, "price_signature");
+    if (!table && n == 0 && bd_toml_find(d, "", -1, "price_signature") == NULL) {
+        return 0;
+    }
+    if (n != 1 || one == NULL || (strcmp(one->key, "sign_key") != 0
+                                  && strcmp(one->key, "verify_key") != 0)) {
+        (void)snprintf(err, errlen, "%s: [price_signature] expected exactly one of sign_key, "
+                       "verify_key", path);
+        return -1;
+    }
+    uint8_t raw[BD_ED25519_PUBLIC_BYTES];
+    if (one->type != TOML_STRING || hex_bytes(one->s, raw, sizeof raw) != 0) {
+        (void)snprintf(err, errlen, "%s: [price_signature.%s] expected %d bytes as hex", path,
+                       one->key, BD_ED25519_PUBLIC_BYTES);
+        return -1;
+    }
+    if (strcmp(one->key, "sign_key") == 0) {
+#if BD_SIGNED_PRICE
+        if (bd_ed25519_public(raw, k->price_key) != 0) {
+            (void)snprintf(err, errlen, "%s: [price_signature.sign_key] cannot derive its "
+                           "public key", path);
+            return -1;
+        }
+#else
+        (void)snprintf(err, errlen, "%s: [price_signature.sign_key] expected verify_key: "
+                       "this build has no signed price (BD_SIGNED_PRICE 0)", path);
+        return -1;
+#endif
+    } else {
+        memcpy(k->price_key, raw, sizeof raw);
+    }
+    k->has_price_key = 1;
+    memcpy(kf->price_name, one->key, strlen(one->key) + 1u);   /* sign_key or verify_key */
+    hex_of(raw, sizeof raw, kf->price_hex);
     return 0;
 }
 
@@ -136,6 +199,10 @@ static int persist_boot(void *ctx, uint32_t boot)
     if (k->status_floor != 0u && ok) {   /* the plant's, a sender of [frame_keys] only */
         ok = fprintf(f, "%splant = %u\n", floors == 0 ? "\n[floors]\n" : "",
                      (unsigned)k->status_floor) > 0;
+    }
+    if (kf->price_name[0] != '\0' && ok) {   /* AUTH-31: kept as the file had it */
+        ok = fprintf(f, "\n[price_signature]\n%s = \"%s\"\n", kf->price_name,
+                     kf->price_hex) > 0;
     }
     ok = ok && fflush(f) == 0 && fsync(fileno(f)) == 0;
     ok = (fclose(f) == 0) && ok;
@@ -227,6 +294,13 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
         (void)snprintf(err, errlen, "%s: [fleet_id] expected 16 hex digits", path);
         return -1;
     }
+    for (int q = 0; q < 16; ++q) {   /* lowercase hex, as firmware_py's check */
+        if (!isdigit((unsigned char)e->s[q]) && !(e->s[q] >= 'a' && e->s[q] <= 'f')) {
+            (void)snprintf(err, errlen, "%s: [fleet_id] expected 16 hex digits", path);
+            return -1;
+        }
+    }
+    (void)hex_bytes(e->s, k->fleet_id, sizeof k->fleet_id);
     memcpy(kf->fleet_id, e->s, 17u);
     e = bd_toml_find(&d, "", -1, "kdf");
     (void)snprintf(kf->kdf, sizeof kf->kdf, "%s", e != NULL && e->type == TOML_STRING ? e->s
@@ -350,6 +424,10 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
             return -1;
         }
         k->peer_floor[p] = (uint16_t)pe->i;
+    }
+    kf->price_name[0] = '\0';
+    if (price_keys(&d, path, kf, k, err, errlen) != 0) {
+        return -1;
     }
     (void)snprintf(kf->path, sizeof kf->path, "%s", path);
     kf->ring = k;

@@ -3,10 +3,10 @@
  *
  *   bessded-agent --config agent_3.toml (--key agent_3.key | --insecure) --channel can0
  *                 [--fd] [--interface socketcan] [--duration S] [--rt-priority N]
- *                 [--no-acceptance-filter]
+ *                 [--no-acceptance-filter] [--counters-dir DIR]
  *   bessded-agent --config agent_3.toml (--key ... | --insecure) --interface udp_multicast
  *                 [--channel GROUP] [--port N] [--fd] [--duration S] [--rt-priority N]
- *                 [--acceptance-filter]
+ *                 [--acceptance-filter] [--counters-dir DIR]
  *
  * SocketCAN (the default) on a CAN interface; or python-can's udp_multicast bus (the
  * project's default bus), GROUP an IPv6 or IPv4 multicast address (default python-can's
@@ -17,7 +17,9 @@
  *
  * The configuration and key files are the ones firmware_py reads (`bess-ded up` and
  * `bess-ded keys` write them). Bad input: "bessded-agent: error: ..." and exit 2. On
- * SIGTERM/SIGINT it stops, prints a summary line with every non-zero counter, exits 0.
+ * SIGTERM/SIGINT it stops, prints a summary line with every non-zero counter, exits 0;
+ * --counters-dir DIR: and writes DIR/agent_<id>.counters.json as firmware_py's
+ * --counters-dir does (the signed price's counters, no Diag slot, and deadline_miss).
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -40,10 +42,11 @@ static int usage(const char *problem)
 {
     (void)fprintf(stderr, "usage: " PROG " --config FILE (--key FILE | --insecure) "
                   "[--interface socketcan] --channel IFACE [--fd] [--duration S] "
-                  "[--rt-priority N] [--no-acceptance-filter]\n"
+                  "[--rt-priority N] [--no-acceptance-filter] [--counters-dir DIR]\n"
                   "       " PROG " --config FILE (--key FILE | --insecure) "
                   "--interface udp_multicast [--channel GROUP] [--port N] [--fd] "
-                  "[--duration S] [--rt-priority N] [--acceptance-filter]\n" PROG ": error: %s\n", problem);
+                  "[--duration S] [--rt-priority N] [--acceptance-filter] "
+                  "[--counters-dir DIR]\n" PROG ": error: %s\n", problem);
     return 2;
 }
 
@@ -77,11 +80,43 @@ static int parse_seconds(const char *s, double *out)
     return 0;
 }
 
+/* firmware_py's --counters-dir file (AgentRuntime.verdict_counters, json.dumps' layout):
+ * the ticks and the non-zero counters the verdict cannot read from AGENT_<i>_Diag. */
+static int write_counters(const char *dir, uint32_t id, const bd_agent *agent)
+{
+    static const int which[] = {BD_C_UNSIGNED_PRICE, BD_C_BAD_SIGNATURE, BD_C_SIG_MALFORMED,
+                                BD_C_DEADLINE_MISS};
+    char path[4200];
+    (void)snprintf(path, sizeof path, "%s/agent_%u.counters.json", dir, id);
+    FILE *f = fopen(path, "w");
+    if (f == NULL) {
+        (void)fprintf(stderr, PROG ": error: %s: %s\n", path, strerror(errno));
+        return -1;
+    }
+    int ok = fprintf(f, "{\"ticks\": %u, \"counters\": {", agent->ticks) > 0;
+    int any = 0;
+    for (size_t k = 0u; k < sizeof which / sizeof which[0]; ++k) {
+        uint32_t v = bd_agent_counter(agent, which[k]);
+        if (v != 0u) {
+            ok = ok && fprintf(f, "%s\"%s\": %u", any ? ", " : "", bd_counter_name(which[k]),
+                               v) > 0;
+            any = 1;
+        }
+    }
+    ok = ok && fprintf(f, "}}\n") > 0;
+    ok = (fclose(f) == 0) && ok;
+    if (!ok) {
+        (void)fprintf(stderr, PROG ": error: %s: cannot write the counters\n", path);
+    }
+    return ok ? 0 : -1;
+}
+
 int main(int argc, char **argv)
 {
     const char *config = NULL;
     const char *key = NULL;
     const char *channel = NULL;
+    const char *counters_dir = NULL;
     int insecure = 0;
     int udp = 0;
     long port = -1;
@@ -121,6 +156,9 @@ int main(int argc, char **argv)
         } else if (strcmp(a, "--channel") == 0) {
             channel = v;
             ++i;
+        } else if (strcmp(a, "--counters-dir") == 0) {   /* as firmware_py's */
+            counters_dir = v;
+            ++i;
         } else if (strcmp(a, "--interface") == 0) {   /* bess-ded agent's bus flags */
             if (strcmp(v, "socketcan") != 0 && strcmp(v, "udp_multicast") != 0) {
                 (void)snprintf(err, sizeof err, "--interface: expected socketcan or "
@@ -158,8 +196,8 @@ int main(int argc, char **argv)
         } else {
             (void)snprintf(err, sizeof err, "expected one of --config, --key, --insecure, "
                            "--fd, --channel, --interface socketcan|udp_multicast, --port, "
-                           "--duration, --rt-priority, --[no-]acceptance-filter, but got "
-                           "'%s'", a);
+                           "--duration, --rt-priority, --[no-]acceptance-filter, "
+                           "--counters-dir, but got '%s'", a);
             return usage(err);
         }
     }
@@ -196,7 +234,11 @@ int main(int argc, char **argv)
                       "sender of this agent's inputs (the router, the plant and each "
                       "neighbour), but the key file lacks one: re-provision with bess-ded keys"
                       : rc == BD_ERR_BOOT ? "cannot advance the boot counter (exhausted, or "
-                      "the key file cannot be rewritten)" : "the agent refused its parameters");
+                      "the key file cannot be rewritten)"
+                      : rc == BD_ERR_PRICE_KEY ? "[security.signed_price] expected a key file "
+                      "with the router's public price key ([price_signature] verify_key), but "
+                      "it has none: re-provision with bess-ded keys for a signed_price "
+                      "scenario" : "the agent refused its parameters");
         return 2;
     }
     uint32_t ids[BD_LINUX_FILTERS_MAX];
@@ -236,6 +278,9 @@ int main(int argc, char **argv)
         }
     }
     (void)fprintf(stderr, "%s\n", any ? "" : "none");
+    if (counters_dir != NULL && write_counters(counters_dir, params.id, &agent) != 0) {
+        return 1;
+    }
     if (fatal != 0) {
         (void)fprintf(stderr, PROG ": error: stopped: %s\n", fatal == BD_ERR_BOOT
                       ? "no boot counter left at a message-count wrap (re-provision the keys)"

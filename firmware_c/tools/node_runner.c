@@ -5,6 +5,7 @@
  * the text dump tests/test_c_agent.py writes, one vector after the other:
  *
  *   V <name> <config TOML as hex>
+ *   P <price key hex> <fleet ID hex>    (optional, before K: signed_price, AUTH-31)
  *   K <node> <insecure 0/1> <key hex> <boot> <n_peers> [<label> <key hex> <floor>]...
  *     <n_frames 0/4> [<setpoint key hex> <status key hex> <Diag key hex>
  *     <command key hex> <the plant's floor>] (AUTH-28..30)
@@ -103,6 +104,9 @@ int main(int argc, char **argv)
     char err[1024];
     bd_agent_params params;
     int failed = 0;
+    int has_price = 0;
+    uint8_t price_key[BD_ED25519_PUBLIC_BYTES];
+    uint8_t fleet[8];
 
     while (scanf("%1s", tag) == 1) {
         if (tag[0] == 'V') {
@@ -117,6 +121,18 @@ int main(int argc, char **argv)
                 printf("FAIL %s: %s\n", name, err);
                 failed = 1;
             }
+        } else if (tag[0] == 'P') {   /* AUTH-31: the router's public key, the fleet ID */
+            char phex[2 * BD_ED25519_PUBLIC_BYTES + 2];
+            char fhex[20];
+            size_t n;
+            size_t m;
+            if (scanf("%65s %19s", phex, fhex) != 2
+                || unhex(phex, price_key, sizeof price_key, &n) != 0 || n != sizeof price_key
+                || unhex(fhex, fleet, sizeof fleet, &m) != 0 || m != sizeof fleet) {
+                printf("BAD INPUT at P\n");
+                return 2;
+            }
+            has_price = 1;
         } else if (tag[0] == 'K') {
             char khex[64];
             int insecure;
@@ -163,6 +179,12 @@ int main(int argc, char **argv)
                 }
                 keys.has_frame_keys = 1;
                 keys.status_floor = (uint16_t)floor;
+            }
+            if (has_price) {
+                keys.has_price_key = 1;
+                memcpy(keys.price_key, price_key, sizeof price_key);
+                memcpy(keys.fleet_id, fleet, sizeof fleet);
+                has_price = 0;
             }
             int rc = bd_agent_init(&agent, &params, &keys, NULL, NULL);
             if (rc != BD_OK) {

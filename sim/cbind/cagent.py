@@ -41,6 +41,7 @@ MAX_NEIGHBOURS = N_AGENTS_MAX - 1
 MAX_PEERS = N_AGENTS_MAX + 2
 LABEL_MAX = 32
 TICK_FRAMES_MAX = 6
+PRICE_KEY_ERROR = 14   # BD_ERR_PRICE_KEY (include/bessded/agent.h)
 FRAME_EXT, FRAME_RTR, FRAME_FD, FRAME_ERR, FRAME_BRS = 0x01, 0x02, 0x04, 0x08, 0x10
 
 
@@ -68,6 +69,7 @@ class Params(ctypes.Structure):
         ("gain_h_raw_min", ctypes.c_uint32), ("gain_h_raw_max", ctypes.c_uint32),
         ("tx_event", ctypes.c_uint32), ("tx_threshold", ctypes.c_int32),
         ("tx_heartbeat", ctypes.c_uint32), ("fd", ctypes.c_uint32),
+        ("signed_price", ctypes.c_uint32),
     ]
 
 
@@ -91,6 +93,9 @@ class KeyringC(ctypes.Structure):
         ("status_key", ctypes.c_uint8 * 16), ("diag_key", ctypes.c_uint8 * 16),
         ("command_key", ctypes.c_uint8 * 16), ("status_floor", ctypes.c_uint16),
         ("persist_boot", PERSIST_FN), ("persist_ctx", ctypes.c_void_p),
+        # signed_price (AUTH-31): the router's Ed25519 public key and the fleet ID
+        ("has_price_key", ctypes.c_int32), ("price_key", ctypes.c_uint8 * 32),
+        ("fleet_id", ctypes.c_uint8 * 8),
     ]
 
 
@@ -125,6 +130,7 @@ class Runtime:
             ("bd_agent_resets", u32, [vp]),
             ("bd_agent_boot", u32, [vp]),
             ("bd_agent_fatal", ctypes.c_int32, [vp]),
+            ("bd_agent_sig_verifications", u32, [vp]),
             ("bd_counter_name", ctypes.c_char_p, [ctypes.c_int]),
             ("bd_config_parse", ctypes.c_int, [ctypes.c_char_p, ctypes.c_char_p,
                                                ctypes.POINTER(Params), ctypes.c_char_p, sz]),
@@ -362,6 +368,7 @@ def params_of(cfg: AgentConfig) -> Params:
     p.tx_event = int(cfg.transmit.event)
     p.tx_threshold = cfg.transmit.threshold_q24
     p.tx_heartbeat = cfg.transmit.heartbeat
+    p.signed_price = int(cfg.signed_price)
     return p
 
 
@@ -420,6 +427,10 @@ def keyring_from(ring: Keyring) -> KeyringC:
     if ring.master is not None:   # a simulated fleet: any sender's key on demand
         k.has_master = 1
         k.master[:] = list(ring.master)
+    if ring.price_verify is not None:   # signed_price (AUTH-31)
+        k.has_price_key = 1
+        k.price_key[:] = list(ring.price_verify)
+        k.fleet_id[:] = list(bytes.fromhex(ring.fleet_id))
 
     def persist(_ctx: int | None, boot: int) -> int:
         try:
@@ -452,6 +463,9 @@ class CAgent:
         self._on_event = EVENT_FN(self._event)
         err = self.rt.lib.bd_agent_init(self._buf, ctypes.byref(self.params),
                                         ctypes.byref(self.keys), self._on_event, None)
+        if err == PRICE_KEY_ERROR:
+            raise ValueError(f"bd_agent_init refused agent {cfg.id}: signed_price without "
+                             "the router's public price key ([price_signature] verify_key)")
         if err:
             raise ValueError(f"bd_agent_init refused agent {cfg.id}: error {err}")
         self._out = (Frame * TICK_FRAMES_MAX)()
@@ -548,9 +562,22 @@ class CAgent:
         return int(self.rt.lib.bd_agent_fatal(self._buf))
 
     @property
+    def sig_verifications(self) -> int:
+        """The router's price signatures the agent verified (signed_price, AUTH-32)."""
+        return int(self.rt.lib.bd_agent_sig_verifications(self._buf))
+
+    @property
     def boot(self) -> int:
         """The boot counter the agent signs under (AUTH-3)."""
         return int(self.rt.lib.bd_agent_boot(self._buf))
+
+    def verdict_counters(self) -> dict[str, object]:
+        """As firmware_py's AgentRuntime.verdict_counters: the signed price's counters (no
+        Diag slot) and the deadline misses, with the ticks (those not zero)."""
+        c = self.counters
+        return {"ticks": self.ticks,
+                "counters": {k: c[k] for k in (*contract.SIGNED_PRICE_COUNTERS, "deadline_miss")
+                             if c.get(k)}}
 
     def summary(self) -> str:
         """The one-line summary at exit, as firmware_py's agent prints it."""

@@ -149,13 +149,15 @@ NOT_ON_BUS: dict[str, str] = {
                "but the default run has a key file",
     "AUTH-27": "a boot jump is not yet a step: tests/test_c_agent.py plays it against the "
                "C agent and firmware_py bit for bit, tests/test_selfmon.py against a fleet",
-    "AUTH-31": "signed_price is opt-in: the schedule runs the default (unsigned) protocol, "
-               "and firmware_c refuses a signed configuration; tests/test_pricesig.py "
-               "(keys, the refusal in tests/test_c_config.py)",
+    "AUTH-31": "signed_price is opt-in: the schedule runs the default (unsigned) protocol; "
+               "tests/test_pricesig.py (keys), tests/test_c_config.py (the C loaders), "
+               "node vector signed_price",
     "AUTH-32": "signed_price is opt-in and not in the schedule: tests/test_pricesig.py "
-               "plays the signature pages, bad and malformed ones, against firmware_py",
+               "plays the signature pages, bad and malformed ones, against firmware_py, "
+               "tests/test_c_agent.py against the C agent and firmware_py bit for bit",
     "AUTH-33": "signed_price is opt-in and not in the schedule: tests/test_pricesig.py "
-               "plays a key holder's price ramp against a firmware_py fleet",
+               "plays a key holder's price ramp against a fleet of firmware_py agents and "
+               "of C agents, bit for bit; node vector signed_price",
     "CFG-1": "the DUT reads the configuration the tester writes, whose tables are all "
              "allowed: a refused file never starts (LOOP-5); unit tests (test_config.py)",
     "CFG-2": "id, lambda0 and pinned are the scenario's (no default to take instead; "

@@ -118,7 +118,7 @@ class Scenario:
     # FD twin of the DBC (dbc/bess_ded_fd.dbc), instead of classic CAN
     fd: bool = False
     # [security] signed_price: the router signs each price segment (Ed25519), the agents
-    # take only the signed price (AUTH-31..33, docs/security.md); firmware_c refuses it
+    # take only the signed price (AUTH-31..33, docs/security.md; firmware_py and firmware_c)
     signed_price: bool = False
 
     # ---- derived views

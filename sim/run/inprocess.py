@@ -10,7 +10,7 @@ import json
 import secrets
 import shutil
 from collections import Counter
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,18 +35,26 @@ def _note(nodes: list[Any], i: int, cause: str) -> None:
 
 
 def in_process_nodes(sc: Scenario, codec: FrameCodec, rings: Mapping[str, secoc.Keyring],
-                     plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = ()
-                     ) -> dict[str, Callable[[], Any]]:
+                     plant_faults: tuple[Any, ...] = (), router_silent: tuple[Any, ...] = (),
+                     c_agents: Collection[int] = ()) -> dict[str, Callable[[], Any]]:
     """Node name (as in `up`) → a factory of that node as an in-process object (``on_frame(msg,
     t)``, ``tick(t)`` → frames), agents first, then the plant and the router: what
-    ``run_in_process`` steps, and ``sim.testkit.SimFleet`` for any subset of them."""
+    ``run_in_process`` steps, and ``sim.testkit.SimFleet`` for any subset of them.
+    ``c_agents``: the agent IDs that run firmware_c's runtime (sim.cbind.cagent.CAgent,
+    the same node seam) instead of firmware_py's."""
     from firmware_py.runtime import AgentRuntime
     from sim.nodes.plant import PlantNode
     from sim.nodes.router import RouterNode
 
-    factories: dict[str, Callable[[], Any]] = {
-        f"agent_{c.id}": functools.partial(AgentRuntime, c, codec, rings[f"agent_{c.id}"])
-        for c in agent_configs_from_scenario(sc)}
+    factories: dict[str, Callable[[], Any]] = {}
+    for c in agent_configs_from_scenario(sc):
+        ring = rings[f"agent_{c.id}"]
+        if c.id in c_agents:
+            from sim.cbind.cagent import CAgent
+
+            factories[f"agent_{c.id}"] = functools.partial(CAgent, c, ring, fd=sc.fd)
+        else:
+            factories[f"agent_{c.id}"] = functools.partial(AgentRuntime, c, codec, ring)
     factories["plant"] = lambda: PlantNode(sc, period=sc.ts, faults=plant_faults,
                                            keys=rings["plant"])
     factories["router"] = lambda: RouterNode(sc, period=sc.ts, silent=router_silent,
@@ -104,7 +112,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
                    inject: Callable[[float], Sequence[can.Message]] | None = None,
                    observe: Callable[[float, dict[str, Any]], None] | None = None,
                    tolerance: float = TOLERANCE, loss: float = 0.0,
-                   loss_seed: int = 0) -> dict[str, Any]:
+                   loss_seed: int = 0, c_agents: Collection[int] = ()) -> dict[str, Any]:
     """The same nodes as `up` on python-can's in-process ``virtual`` bus, stepped on a
     simulated clock.
 
@@ -133,6 +141,9 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     ``observe(t, nodes)``: called after every sample with the live nodes by name (a
     test's window on state the bus does not carry, e.g. an agent's neighbours alive).
 
+    ``c_agents``: the agent IDs that run firmware_c's runtime through its Python binding
+    (sim.cbind.cagent.CAgent) instead of firmware_py's (in_process_nodes).
+
     ``loss``: the random-loss fault mode (docs/faults.md): every node (agents, plant,
     router) loses each frame it receives, of every kind, with probability ``loss``,
     drawn from its own generator seeded from ``loss_seed`` and its name
@@ -159,7 +170,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     # each node's boot at this start, as `up` reads it from the key files (the recorder's
     # floors: a sync of an earlier boot is from an earlier run, AUTH-21)
     boot_floors = None if insecure else {n: r.boot + 1 for n, r in rings.items()}
-    factories = in_process_nodes(sc, codec, rings, plant_faults, router_silent)
+    factories = in_process_nodes(sc, codec, rings, plant_faults, router_silent, c_agents)
     names = list(factories)
     nodes: list[Any] = [make() for make in factories.values()]
     down = {name: (t_down, t_up) for name, t_down, t_up in restarts}

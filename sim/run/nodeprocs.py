@@ -99,6 +99,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
     cfg_dir.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m"]
     # signed_price: the agents' counters of it have no Diag slot, so they write them at exit
+    # (firmware_py and firmware_c's bessded-agent alike)
     counters = ["--counters-dir", str(out / "logs")] if sc.signed_price else []
     specs = []
     hosted: list[tuple[str, list[str]]] = []   # (agent, its --config and key flags)
@@ -117,7 +118,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
                 raise BusRunError(f"{name}: the C agent's bus: expected {C_BUS_EXPECTED}, "
                                   f"but got {bus.resolved()}")
             specs.append(NodeSpec(name, [str(c_node), "--config", str(path)] + key(name)
-                                  + c_bus + (["--fd"] if sc.fd else []) + rt))
+                                  + c_bus + (["--fd"] if sc.fd else []) + rt + counters))
             continue
         if agents_per_process == 1:
             specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)
@@ -152,7 +153,8 @@ def sim_node_counters(out: Path) -> dict[str, Any]:
     that was SIGKILLed did not)."""
     out_ = {role: json.loads(path.read_text()) for role in SIM_NODES
             if (path := counters_path(out, role)).is_file()}
-    # signed_price: the Python agents' counters of it (firmware_py --counters-dir)
+    # signed_price: the agents' counters of it (firmware_py's and bessded-agent's
+    # --counters-dir)
     for path in sorted((out / "logs").glob("agent_*.counters.json")):
         out_[path.name.removesuffix(".counters.json")] = json.loads(path.read_text())
     return out_

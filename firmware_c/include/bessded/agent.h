@@ -27,6 +27,13 @@
 extern "C" {
 #endif
 
+/* The signed price (AUTH-31..33): 1 on a host, where libsodium verifies the router's
+ * Ed25519 signatures (src/crypto_sodium.c); 0 compiles it out (the Cortex-M4 image,
+ * `make arm-size`: no libsodium there), and bd_agent_init then refuses signed_price. */
+#ifndef BD_SIGNED_PRICE
+#define BD_SIGNED_PRICE 1
+#endif
+
 #define BD_MAX_NEIGHBOURS (BD_N_AGENTS_MAX - 1)
 #define BD_RESILIENT_F_MAX ((BD_N_AGENTS_MAX - 1) / 2) /* 2F trimmed leave one (WMSR-1) */
 #define BD_MAX_PEERS (BD_N_AGENTS_MAX + 2)       /* every agent, the plant, the router */
@@ -38,6 +45,8 @@ extern "C" {
 #define BD_ERR_MISSING_KEY 11   /* CFG-8: no verification key of a sender of an input */
 #define BD_ERR_BOOT 12          /* boot counter exhausted, or persisting it failed */
 #define BD_ERR_CRYPTO 13        /* the CMAC primitive failed */
+#define BD_ERR_PRICE_KEY 14     /* AUTH-31: signed_price without the router's public key, or
+                                   a build without the signed price (BD_SIGNED_PRICE 0) */
 
 /* Every configuration value as the runtime uses it (spec sections 3, 4, 9.1, 10, 11),
  * integers only. Times in ns: rne(seconds * 1e9) of the binary64 values. */
@@ -87,6 +96,8 @@ typedef struct {
     /* GEN-1, RX-2: 1 on a CAN FD bus (the DBC's FD twin): every frame sent as FD with the
      * bit-rate switch, classic frames received are malformed; 0: classic CAN */
     uint32_t fd;
+    /* AUTH-31..33: 1 takes only the router's signed price ([security] signed_price) */
+    uint32_t signed_price;
 } bd_agent_params;
 
 /* The node's key material (CFG-8, AUTH-1..3, AUTH-20). */
@@ -115,6 +126,12 @@ typedef struct {
      * success. NULL: nothing persisted (insecure mode, tests). */
     int (*persist_boot)(void *ctx, uint32_t boot);
     void *persist_ctx;
+    /* AUTH-31: the router's Ed25519 public key ([price_signature] of the key file: its
+     * verify_key, or the public key of its sign_key) and the key set's fleet ID, which
+     * the signed message covers */
+    int32_t has_price_key;
+    uint8_t price_key[BD_ED25519_PUBLIC_BYTES];
+    uint8_t fleet_id[8];
 } bd_keyring;
 
 /* The counters' indices BD_C_* and BD_C_COUNT: bd_contract.h, generated from
@@ -167,6 +184,30 @@ typedef struct {
     uint8_t n;                    /* frames remembered (<= BD_ECHO_DEPTH) */
     uint8_t next;
 } bd_echo;
+
+#if BD_SIGNED_PRICE
+/* AUTH-32: one price segment as the router signs it (raw wire values) */
+typedef struct {
+    int32_t rho;                  /* ER_Price.Rho */
+    uint16_t boot;                /* the router's boot when it signed */
+    uint16_t number;              /* the segment number, mod BD_SIG_SEGMENT_MOD */
+    uint8_t valid;                /* ER_Price.PriceValid */
+} bd_signed_segment;
+
+/* AUTH-32: the ER_PriceSig transfer being reassembled and the newest verified segment
+ * (firmware_py pricesig.PriceSigReceiver) */
+typedef struct {
+    uint64_t part[BD_SIG_PAGES];  /* pages 1..BD_SIG_PAGES: their Signature values */
+    bd_signed_segment header;     /* page 0 of the transfer under way */
+    bd_signed_segment current;    /* the newest verified signed segment */
+    uint16_t have;                /* bit k - 1: page k held */
+    uint8_t has_header, has_current;
+    uint8_t signature[BD_ED25519_SIG_BYTES];   /* current's */
+    uint8_t key[BD_ED25519_PUBLIC_BYTES];      /* the router's public key */
+    uint8_t fleet[8];                          /* the key set's fleet ID */
+    uint32_t verifications;       /* signatures verified (a repeat costs none) */
+} bd_price_sig;
+#endif
 
 #define BD_RX_PRICE 0
 #define BD_RX_COMMAND 1
@@ -232,6 +273,9 @@ typedef struct {
     bd_echo echo[BD_N_ECHO];
     bd_event_fn on_event;
     void *event_ctx;
+#if BD_SIGNED_PRICE
+    bd_price_sig sig;             /* AUTH-31..33: used if p.signed_price */
+#endif
 } bd_agent;
 
 /* Start an agent (spec 3, 4, AUTH-3): params must be valid (src/config.c checks them);
@@ -268,6 +312,8 @@ uint32_t bd_agent_counter(const bd_agent *a, int counter);
 uint32_t bd_agent_state(const bd_agent *a);
 uint32_t bd_agent_resets(const bd_agent *a);
 uint32_t bd_agent_boot(const bd_agent *a);   /* the boot counter the agent signs under */
+/* AUTH-32: the price signatures the agent verified so far (0 without the signed price) */
+uint32_t bd_agent_sig_verifications(const bd_agent *a);
 /* 0, or the BD_ERR_* that stopped the agent: no boot counter left at a count wrap
  * (AUTH-5), or the CMAC primitive failed. The node must stop (the reference raises). */
 int32_t bd_agent_fatal(const bd_agent *a);

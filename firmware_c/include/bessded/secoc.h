@@ -5,8 +5,9 @@
  *
  * The only cryptographic primitive is CMAC-AES-128, and it is the crypto seam:
  * bd_cmac_aes128 is implemented by src/crypto_mbedtls.c (mbedTLS) on Linux; an MCU
- * port links its own (a hardware AES, an HSM/SHE) instead. Nothing here is hand-written
- * cryptography.
+ * port links its own (a hardware AES, an HSM/SHE) instead. The opt-in signed price adds
+ * a second seam, Ed25519 verification (bd_ed25519_verify, src/crypto_sodium.c:
+ * libsodium). Nothing here is hand-written cryptography.
  */
 #ifndef BESSDED_SECOC_H
 #define BESSDED_SECOC_H
@@ -25,6 +26,19 @@ extern "C" {
  * Returns 0 on success, nonzero if the platform's primitive failed. */
 int bd_cmac_aes128(const uint8_t key[BD_KEY_BYTES], const uint8_t *msg, size_t len,
                    uint8_t tag[16]);
+
+/* The signed price's seam (AUTH-31, AUTH-32; BD_SIGNED_PRICE builds only): Ed25519
+ * (RFC 8032) by src/crypto_sodium.c (libsodium) on Linux. bd_ed25519_verify: 1 if sig is
+ * the holder of public key pk's signature of msg[0..len-1], 0 if not (a malformed key or
+ * signature included). bd_ed25519_public: the public key of a 32-byte private key (its
+ * seed), 0 on success. */
+#define BD_ED25519_PUBLIC_BYTES 32
+#define BD_ED25519_SEED_BYTES 32
+#define BD_ED25519_SIG_BYTES 64
+int bd_ed25519_verify(const uint8_t sig[BD_ED25519_SIG_BYTES], const uint8_t *msg, size_t len,
+                      const uint8_t pk[BD_ED25519_PUBLIC_BYTES]);
+int bd_ed25519_public(const uint8_t seed[BD_ED25519_SEED_BYTES],
+                      uint8_t pk[BD_ED25519_PUBLIC_BYTES]);
 
 /* AUTH-1: K_node = CMAC(K_master, 00000001 || "bess-ded/secoc/node-key/v1" || 00 ||
  * label || 00000080). label: NUL-terminated, 1..32 characters. 0 on success. */
