@@ -494,12 +494,23 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
             continue
         # Take what is already queued before ticking: a node whose ticks overrun Ts
         # would otherwise never get back to the branch above and never read its inputs.
+        # In a host, what is queued only for nodes not due now is theirs after the due
+        # ones have ticked (it is not the ticking nodes' input, and a burst of the
+        # others' frames, such as a plant's syncs, would hold every tick behind it).
+        due = {id(n) for n, r in zip(nodes, releases, strict=True) if r <= now}
+        later: list[tuple[list[Node], can.Message]] = []
         for _ in range(DRAIN_MAX):
             msg = bus.recv(timeout=0)
             if msg is None:
                 break
-            _deliver(_started(nodes if route is None else route(msg), waiting), msg,
-                     clock)
+            targets = _started(nodes if route is None else route(msg), waiting)
+            if len(due) == len(nodes):
+                _deliver(targets, msg, clock)
+                continue
+            _deliver([n for n in targets if id(n) in due], msg, clock)
+            rest = [n for n in targets if id(n) not in due]
+            if rest:
+                later.append((rest, msg))
         for i, node in enumerate(nodes):  # those starting now hear from here on
             if releases[i] <= now:
                 waiting.discard(id(node))
@@ -516,5 +527,7 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
                 releases[i] += skipped * period
             _send(node, node.tick(t), bus, period)
             releases[i] += period
+        for rest, msg in later:
+            _deliver(rest, msg, clock)
         if on_tick is not None:
             on_tick(now - start)
