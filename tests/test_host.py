@@ -116,6 +116,27 @@ def test_a_node_hears_the_bus_from_its_first_release_on() -> None:
             run_nodes([early, late], FakeBus(clock), duration=T, clock=clock, phases=bad)
 
 
+def test_what_is_queued_only_for_agents_not_due_waits_until_the_due_ones_ticked() -> None:
+    """A frame queued at a release for an agent that is not due then is its input
+    after the due agent's tick, not before it: a burst of other agents' frames (the
+    plant's syncs) never holds a tick. The agent it is for still hears it before its
+    own next tick; a frame for the due agent is handed over before that agent ticks."""
+    clock = Clock()
+    a, b = Recorder(clock, {2: 0.1}), Recorder(clock, {1: 0.6})  # b's 1.5T tick overruns
+    for_b, for_a = msg(), can.Message(arbitration_id=0x011, data=bytes(8),
+                                      is_extended_id=False)
+    frames = [(2.05 * T, for_b), (2.06 * T, for_a)]
+    run_nodes([a, b], FakeBus(clock, frames), duration=3 * T, clock=clock,
+              route=lambda m: [b] if m.arbitration_id == 0x010 else [a],
+              phases=[0.0, 0.5 * T])
+    # b's tick at 1.5T ran to 2.1T; a is due at 2T, b at 2.5T: a hears its frame at
+    # once and ticks at 2.1T (0.1T of work), and only then does b hear its own
+    assert a.ticks() == pytest.approx([0, T, 2.1 * T])
+    assert [t for e, t in a.events if e == "rx"] == pytest.approx([2.1 * T])
+    assert [t for e, t in b.events if e == "rx"] == pytest.approx([2.2 * T])
+    assert b.ticks() == pytest.approx([0.5 * T, 1.5 * T, 2.5 * T])
+
+
 def test_deadlines_are_per_node_in_a_host() -> None:
     """Each node of a host keeps run_node's accounting of its own releases: a node whose
     turn comes > Ts/2 late (delayed by the node before it) counts 1 + floor(late/Ts)
