@@ -24,7 +24,7 @@ def test_a_capacity_fleet_runs_on_classic_can_where_it_fits_else_on_fd(
     sc = fleet_scenario(n, transmit, 14.0)
     assert (sc.n, sc.transmit.mode, sc.fd) == (n, transmit, fd)
     assert run_bus_load(sc)[0] <= BUS_LOAD_MAX
-    assert len(sc.pinned) == max(1, n // 8)
+    assert len(sc.pinned) == max(1, n // 4)
 
 
 @pytest.mark.realtime

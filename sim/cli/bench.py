@@ -31,9 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="also run cases 1 and 7 as node processes on the bus (~1 min; "
                    "--quick: ~25 s): rates, deadline misses, silences, settling; and the "
-                   "fleet capacity (~8 min; --quick: ~2 min): the agents' missed ticks by "
-                   "fleet size and agents per process, each run --repeats times (median "
-                   "and worst)")
+                   "fleet capacity (~16 min; --quick: ~3 min): the agents' missed ticks by "
+                   "fleet size, agents per process and transmit mode, each run --repeats "
+                   "times (median and worst), beside the machine's own stalls")
     p.add_argument("--auth", action="store_true",
                    help="only the authentication schemes (issue 25): sign/verify µs, bus "
                    "load of cases 1, 7 and a 32-agent ring at Ts = 10 ms, latency, what "
