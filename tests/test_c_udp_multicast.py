@@ -247,6 +247,42 @@ def summary_counters(log: str) -> dict[str, int]:
         k: int(v) for k, v in (item.split("=") for item in m.group(3).split(", "))}
 
 
+class Agent1:
+    """Case 1's agent 1 as the C node program on a private udp_multicast group and port,
+    beside a python-can ``bus`` there; on exit, the bus shut and the agent stopped
+    (SIGTERM), its exit code and its output in ``returncode`` and ``log``."""
+
+    def __init__(self, tmp_path: Path, group: str, port: int, *flags: str) -> None:
+        cfg = next(c for c in agent_configs_from_scenario(load_case(1)) if c.id == 1)
+        self.path = tmp_path / "agent_1.toml"
+        self.path.write_text(cfg.to_toml())
+        self.argv = [str(node_program()), "--config", str(self.path), "--insecure",
+                     "--interface", "udp_multicast", "--channel", group, "--port", str(port),
+                     *flags]
+        self.group, self.port = group, port
+        self.log = ""
+        self.returncode: int | None = None
+
+    def __enter__(self) -> Agent1:
+        self.bus = can.Bus(interface="udp_multicast", channel=self.group, port=self.port)
+        self.proc = subprocess.Popen(self.argv, stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT)
+        return self
+
+    def heard(self) -> None:
+        """Wait until the agent is heard (only it is on this group and port)."""
+        deadline = time.monotonic() + LOAD_TOLERANT_S
+        while self.bus.recv(0.5) is None:
+            assert self.proc.poll() is None and time.monotonic() < deadline, "agent 1 not heard"
+
+    def __exit__(self, *exc: object) -> None:
+        self.bus.shutdown()
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        out, _ = self.proc.communicate(timeout=LOAD_TOLERANT_S)
+        self.log, self.returncode = out.decode(errors="replace"), self.proc.returncode
+
+
 def test_running_agent_counts_hostile_datagrams_and_reads_on(tmp_path: Path,
                                                             udp_port: int) -> None:
     """Agent 1 of case 1, alone on a private IPv4 group and port. Once it is heard, the
@@ -256,20 +292,12 @@ def test_running_agent_counts_hostile_datagrams_and_reads_on(tmp_path: Path,
     under not_a_frame and invalid_frame (no more than were sent of each: the kernel may
     drop some of a starved reader's), the extended frames after them (unknown_id) and no
     impersonation: its own frames came back as its echo."""
-    cfg = next(c for c in agent_configs_from_scenario(load_case(1)) if c.id == 1)
-    path = tmp_path / "agent_1.toml"
-    path.write_text(cfg.to_toml())
-    bus = can.Bus(interface="udp_multicast", channel=GROUP4, port=udp_port)
-    proc = subprocess.Popen([str(node_program()), "--config", str(path), "--insecure",
-                             "--interface", "udp_multicast", "--channel", GROUP4, "--port",
-                             str(udp_port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
     sent = {"not_a_frame": 0, "invalid_frame": 0}
-    try:
-        deadline = time.monotonic() + LOAD_TOLERANT_S
-        while bus.recv(0.5) is None:   # only the agent is on this group and port
-            assert proc.poll() is None and time.monotonic() < deadline, "agent 1 not heard"
+    with Agent1(tmp_path, GROUP4, udp_port) as agent:
+        proc, bus = agent.proc, agent.bus
+        agent.heard()
         cases = hostile()
         rng = random.Random(SEED + 3)
         cases += [("random", rng.randbytes(rng.randrange(0, 400))) for _ in range(40)]
@@ -288,15 +316,9 @@ def test_running_agent_counts_hostile_datagrams_and_reads_on(tmp_path: Path,
             time.sleep(0.05)
         time.sleep(0.3)
         assert proc.poll() is None, "the agent died"
-    finally:
-        tx.close()
-        bus.shutdown()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=LOAD_TOLERANT_S)
-    log = out.decode(errors="replace")
-    assert proc.returncode == 0, log[-2000:]
-    counters = summary_counters(log)
+    tx.close()
+    assert agent.returncode == 0, agent.log[-2000:]
+    counters = summary_counters(agent.log)
     print(f"sent {sent}, agent 1 counted {counters}")
     for cause, n in sent.items():
         assert 1 <= counters.get(cause, 0) <= n, (cause, counters)
@@ -310,32 +332,17 @@ def test_acceptance_filter_on_udp_multicast_is_asked_for(tmp_path: Path,
     dropped in user space, uncounted (firmware_py's AcceptanceBus); a datagram that is no
     frame is still counted. (Without it, the default there, the agent counts them:
     test_running_agent_counts_hostile_datagrams_and_reads_on's unknown_id.)"""
-    cfg = next(c for c in agent_configs_from_scenario(load_case(1)) if c.id == 1)
-    path = tmp_path / "agent_1.toml"
-    path.write_text(cfg.to_toml())
-    bus = can.Bus(interface="udp_multicast", channel=GROUP4, port=udp_port)
-    proc = subprocess.Popen([str(node_program()), "--config", str(path), "--insecure",
-                             "--interface", "udp_multicast", "--channel", GROUP4, "--port",
-                             str(udp_port), "--acceptance-filter"], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT)
-    try:
-        deadline = time.monotonic() + LOAD_TOLERANT_S
-        while bus.recv(0.5) is None:
-            assert proc.poll() is None and time.monotonic() < deadline, "agent 1 not heard"
+    with Agent1(tmp_path, GROUP4, udp_port, "--acceptance-filter") as agent:
+        bus = agent.bus
+        agent.heard()
         for _ in range(5):
             bus.send(can.Message(arbitration_id=0x1ABCDEF, is_extended_id=True, data=bytes(8)))
             bus.send(can.Message(arbitration_id=0x7F3, is_extended_id=False, data=bytes(8)))
             bus._multicast._socket.sendto(b"\xc1", (GROUP4, udp_port))  # not msgpack
             time.sleep(0.05)
         time.sleep(0.3)
-    finally:
-        bus.shutdown()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=LOAD_TOLERANT_S)
-    log = out.decode(errors="replace")
-    assert proc.returncode == 0, log[-2000:]
-    counters = summary_counters(log)
+    assert agent.returncode == 0, agent.log[-2000:]
+    counters = summary_counters(agent.log)
     assert 1 <= counters.get("not_a_frame", 0) <= 5, counters
     assert "unknown_id" not in counters and "impersonation" not in counters, counters
 
@@ -347,17 +354,9 @@ def test_running_agent_on_an_fd_bus_sends_fd_frames(tmp_path: Path, udp_port: in
     the deadline are all FD, the classic ones sent are counted (at most as many)."""
     from can.interfaces.udp_multicast import UdpMulticastBus
 
-    group = UdpMulticastBus.DEFAULT_GROUP_IPv6
-    cfg = next(c for c in agent_configs_from_scenario(load_case(1)) if c.id == 1)
-    path = tmp_path / "agent_1.toml"
-    path.write_text(cfg.to_toml())
-    bus = can.Bus(interface="udp_multicast", channel=group, port=udp_port)
-    proc = subprocess.Popen([str(node_program()), "--config", str(path), "--insecure",
-                             "--interface", "udp_multicast", "--channel", group, "--port",
-                             str(udp_port), "--fd"], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT)
     heard: list[can.Message] = []
-    try:
+    with Agent1(tmp_path, UdpMulticastBus.DEFAULT_GROUP_IPv6, udp_port, "--fd") as agent:
+        proc, bus = agent.proc, agent.bus
         deadline = time.monotonic() + LOAD_TOLERANT_S
         while len(heard) < 20:
             assert proc.poll() is None and time.monotonic() < deadline, heard
@@ -367,15 +366,9 @@ def test_running_agent_on_an_fd_bus_sends_fd_frames(tmp_path: Path, udp_port: in
             bus.send(can.Message(arbitration_id=0x7F3, is_extended_id=False, data=bytes(8)))
             time.sleep(0.05)
         time.sleep(0.3)
-    finally:
-        bus.shutdown()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=LOAD_TOLERANT_S)
-    log = out.decode(errors="replace")
-    assert proc.returncode == 0, log[-2000:]
+    assert agent.returncode == 0, agent.log[-2000:]
     assert all(m.is_fd and m.bitrate_switch and m.dlc == 8 for m in heard), heard
-    assert 1 <= summary_counters(log).get("malformed", 0) <= 3, log[-2000:]
+    assert 1 <= summary_counters(agent.log).get("malformed", 0) <= 3, agent.log[-2000:]
 
 
 def test_up_passes_the_bus_to_the_c_agent_or_refuses_it(capsys: pytest.CaptureFixture[str]
