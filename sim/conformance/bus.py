@@ -20,6 +20,7 @@ import os
 import shlex
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -54,9 +55,10 @@ class ConformanceSetup:
         """The DUT's node label, e.g. "agent_2"."""
         return f"agent_{self.dut}"
 
-    @property
+    @cached_property
     def codec(self) -> FrameCodec:
-        """The bus's codec: the DBC of the scenario's frame format (``[bus] fd``, --fd)."""
+        """The bus's codec: the DBC of the scenario's frame format (``[bus] fd``, --fd);
+        built once (a DBC load)."""
         from dbc import dbc_path
         from firmware_py.frames import FrameCodec
 
