@@ -232,10 +232,11 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
                     derived_keys(secoc.INSECURE_MASTER, sc.n))
     writer = Cutoff(can.Logger(str(out / "run.log")))
     progress = Progress(codec, sc.n)
-    # above the real-time nodes on udp_multicast, where 14 nodes' datagrams fill one
-    # socket buffer while they take both CPUs; on SocketCAN (a vcan guest, a HIL rig) at
-    # normal priority, where a real-time recorder took the CPU of the nodes it recorded
-    # (the QEMU guest's case runs missed their ticks and did not converge)
+    # real-time on udp_multicast (the rig's priority; the agents run one above), where
+    # 14 nodes' datagrams fill one socket buffer while they take both CPUs; on SocketCAN
+    # (a vcan guest, a HIL rig) at normal priority, where a real-time recorder took the
+    # CPU of the nodes it recorded (the QEMU guest's case runs missed their ticks and did
+    # not converge)
     udp = bus.resolved().get("interface") == "udp_multicast"
     notifier = Recorder(watch, [writer, progress], rt_priority if udp else 0)
     deaths: list[tuple[str, float, int]] = []
