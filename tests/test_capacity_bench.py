@@ -41,8 +41,8 @@ def test_a_capacity_run_counts_every_agents_ticks_in_either_mode(impl: str,
     assert "did_not_run" not in r, r
     assert (r["impl"], r["transmit"], r["bus"], r["per_process"]) == (impl, transmit,
                                                                       "classic", k)
-    # 4 agents × at least 2 s of steady window at Ts = 10 ms (start-up at any load aside)
-    assert r["steady_ticks"] >= 4 * 200, r
+    # 4 agents × at least one Diag page cycle (page 0 every ~1.3 s) of the 4 s window
+    assert r["steady_ticks"] >= 4 * 100, r
     assert 0 <= r["steady_misses"] <= r["steady_ticks"]
     assert r["exit_code"] in (0, 3), r  # converged; 3: only anomalies such as misses
     stalls = r["machine_stalls"]  # what the machine took away meanwhile, beside the fleet
