@@ -461,8 +461,9 @@ def run_nodes(nodes: Sequence[Node], bus: RxTxBus, *, duration: float | None = N
     A bus input that is not a frame is counted by every node (each socket read it).
     ``route(msg)``: the nodes a frame is handed to (default: all; firmware_py.host.Routes
     leaves out those it cannot affect). ``phases[i]``: node i's first release after the
-    start (default: all at the start; ``spread_phases``: spread over the period, so that
-    no node waits behind the others' ticks). ``run_node`` is this loop with one node."""
+    start (default: all at the start; ``spread_phases``: spread over a sync period, so
+    that no node waits behind the others' ticks and syncs); a node hears nothing before
+    it. ``run_node`` is this loop with one node."""
     nodes = list(nodes)
     if not nodes or any(n.period != nodes[0].period for n in nodes):
         raise NodesOnOneBus(f"one loop drives nodes of one period, but got periods "
