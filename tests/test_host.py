@@ -273,6 +273,13 @@ def test_node_specs_put_the_python_agents_k_to_a_host(tmp_path: Path) -> None:
     assert [Path(c).stem for c in configs] == [Path(k).stem for k in keys] == \
         list(specs[1].members)
     assert specs[3].nodes == ("plant",) and specs[0].nodes == specs[0].members
+    # a host one SCHED_FIFO priority above the rig's plant and router; alone, an agent
+    # at theirs (a process each above the rig starved it)
+    priority = {s.name: s.argv[s.argv.index("--rt-priority") + 1] for s in specs}
+    assert priority == {"host_1": "11", "host_2": "11", "host_3": "11", "plant": "10",
+                        "router": "10"}
+    alone = node_specs(sc, scenario, tmp_path, bus, keys=tmp_path / "keys")
+    assert {s.argv[s.argv.index("--rt-priority") + 1] for s in alone} == {"10"}
     with pytest.raises(BusRunError, match="takes no fault-injection flags"):
         node_specs(sc, scenario, tmp_path, bus, extra={"agent_2": ["--inject-rx-loss", "0.1"]},
                    agents_per_process=2)

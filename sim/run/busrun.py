@@ -245,7 +245,8 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
         with _sigterm_interrupts():
             try:
                 _run_nodes(specs, logdir, progress, duration, quiet, actions, deaths,
-                           _dut_ids(sc, dut) if dut else frozenset(), dut_wait_s)
+                           _dut_ids(sc, dut) if dut else frozenset(), dut_wait_s,
+                           _hosted_ids(specs))
             except KeyboardInterrupt:
                 interrupted = True
                 if not quiet:
@@ -317,18 +318,23 @@ def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration
                quiet: bool,
                actions: Sequence[tuple[float, Callable[[list[NodeSpec], Path], None]]],
                deaths: list[tuple[str, float, int]],
-               dut_ids: frozenset[int] = frozenset(), dut_wait_s: float = 60.0) -> None:
+               dut_ids: frozenset[int] = frozenset(), dut_wait_s: float = 60.0,
+               hosted_ids: frozenset[int] = frozenset()) -> None:
     # All at once (the router last): started one after the other, each would start
     # while the others already run, which in the QEMU guest took ~40 s per node (a router
     # held until the plant was heard came up 41 s after it there, beside the running
     # real-time nodes). With a device under test, the router waits until the device is
-    # heard.
-    held = [s for s in specs if dut_ids and s.name == "router"]
+    # heard; with hosts of agents, until every hosted agent is.
+    held = [s for s in specs if (dut_ids or hosted_ids) and s.name == "router"]
     for s in specs:
         if s.delay == 0 and s not in held:
             start(s, logdir)
     if held:
-        _await_device(specs, logdir, progress, dut_ids, dut_wait_s, quiet)
+        if dut_ids:
+            _await_device(specs, logdir, progress, dut_ids, dut_wait_s, quiet)
+        if hosted_ids:
+            _await_device(specs, logdir, progress, hosted_ids, START_TIMEOUT_S, quiet,
+                          "the agents of the hosts")
         start(held[0], logdir)
     t_start = time.monotonic()
     while progress.t_first_price is None:
@@ -369,6 +375,14 @@ def _run_nodes(specs: list[NodeSpec], logdir: Path, progress: Progress, duration
         print(file=sys.stderr)
 
 
+def _hosted_ids(specs: list[NodeSpec]) -> frozenset[int]:
+    """The MC frames of the agents of hosts (several agents a process): a host starts
+    them one after the other over a sync period (firmware_py.node.spread_phases), and
+    the price must not begin before the last one is on (it would be INIT, an anomaly)."""
+    return frozenset(contract.MC_BASE + int(m.removeprefix("agent_"))
+                     for s in specs if len(s.members) > 1 for m in s.members)
+
+
 def _dut_ids(sc: Scenario, dut: str) -> frozenset[int]:
     """The frames a device under test must be heard sending before t = 0."""
     if dut == "plant":
@@ -378,7 +392,8 @@ def _dut_ids(sc: Scenario, dut: str) -> frozenset[int]:
 
 
 def _await_device(specs: list[NodeSpec], logdir: Path, progress: Progress,
-                  ids: frozenset[int], wait_s: float, quiet: bool) -> None:
+                  ids: frozenset[int], wait_s: float, quiet: bool,
+                  who: str = "the device under test") -> None:
     t_start = time.monotonic()
     last_note = t_start
     while True:
@@ -388,12 +403,12 @@ def _await_device(specs: list[NodeSpec], logdir: Path, progress: Progress,
             return
         now = time.monotonic()
         if now - t_start > wait_s:
-            raise BusRunError(f"the device under test sent no "
+            raise BusRunError(f"{who} sent no "
                               f"{', '.join(f'0x{i:03X}' for i in sorted(missing))} within "
                               f"{wait_s:g} s: is it on this bus, with this run's key file?")
         if not quiet and now - last_note >= 5.0:
             last_note = now
-            print(f"  waiting for the device under test ({now - t_start:.0f} s): no "
+            print(f"  waiting for {who} ({now - t_start:.0f} s): no "
                   f"{', '.join(f'0x{i:03X}' for i in sorted(missing))} yet",
                   file=sys.stderr, flush=True)
         check_alive(specs, logdir)

@@ -75,7 +75,8 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
     """Argv for every node. Agents and plant first; the router last, since its first
     price frame is t = 0 of the schedule. Every node runs under SCHED_FIFO
     ``rt_priority`` where the OS allows it (0: not), as firmware on an embedded Linux
-    would; plant and router too, or the agents starve them on an overloaded host.
+    would; plant and router too, or the agents starve them on an overloaded host; a
+    host of several agents one above (the rig must not hold all its agents' ticks).
     ``keys``: the key set directory (each node gets ``--key DIR/<node>.key``); None:
     every node runs ``--insecure``. ``exclude``: nodes not started here (a device under
     test takes their place: `bess-ded restbus`); an agent's configuration file is still
@@ -94,10 +95,12 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
         return ["--insecure"] if keys is None else ["--key", str(keys / f"{name}.key")]
 
     rt = ["--rt-priority", str(rt_priority)] if rt_priority else []
-    # the agents (the devices) one above the rig's simulated plant and router: a host of
-    # agents waited up to 9 ms for a CPU while both ran bursts of frames at the same
-    # priority (FIFO does not preempt its equals), and missed those ticks
-    rt_agent = ["--rt-priority", str(min(rt_priority + 1, 99))] if rt_priority else []
+    # a host of agents one above the rig's simulated plant and router: its loop is the
+    # latency of all its agents, and it waited up to 9 ms for a CPU while both ran
+    # bursts of frames at the same priority (FIFO does not preempt its equals). Not a
+    # process per agent: twelve of them above the rig starved it beside a CPU hog (the
+    # plant lost frames past its freshness window and failed their MACs).
+    rt_host = ["--rt-priority", str(min(rt_priority + 1, 99))] if rt_priority else []
     bus_argv = bus.argv() + (["--fd"] if sc.fd else [])  # every node sends the bus's format
     cfg_dir = out / "agents"
     cfg_dir.mkdir(parents=True, exist_ok=True)
@@ -122,11 +125,11 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
                 raise BusRunError(f"{name}: the C agent's bus: expected {C_BUS_EXPECTED}, "
                                   f"but got {bus.resolved()}")
             specs.append(NodeSpec(name, [str(c_node), "--config", str(path)] + key(name)
-                                  + c_bus + (["--fd"] if sc.fd else []) + rt_agent + counters))
+                                  + c_bus + (["--fd"] if sc.fd else []) + rt + counters))
             continue
         if agents_per_process == 1:
             specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)
-                                  + bus_argv + rt_agent + counters + extra.get(name, [])))
+                                  + bus_argv + rt + counters + extra.get(name, [])))
         elif extra.get(name):
             raise BusRunError(f"{name}: an agent of a host process (agents per process "
                               f"{agents_per_process}) takes no fault-injection flags")
@@ -136,7 +139,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
         group = hosted[k:k + agents_per_process]
         specs.append(NodeSpec(f"host_{k // agents_per_process + 1}",
                               py + ["firmware_py"] + [a for _, argv in group for a in argv]
-                              + bus_argv + rt_agent + counters,
+                              + bus_argv + rt_host + counters,
                               members=tuple(n for n, _ in group)))
     for role in SIM_NODES:
         if role in exclude:
