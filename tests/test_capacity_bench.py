@@ -44,7 +44,9 @@ def test_a_capacity_run_counts_every_agents_ticks_in_either_mode(impl: str,
     # 4 agents × at least one Diag page cycle (page 0 every ~1.3 s) of the 4 s window
     assert r["steady_ticks"] >= 4 * 100, r
     assert 0 <= r["steady_misses"] <= r["steady_ticks"]
-    assert r["exit_code"] in (0, 3), r  # converged; 3: only anomalies such as misses
+    # a verdict, never a usage error: whether 6 s sufficed to settle is the load's (at
+    # any load a run is judged, converged or not: bench reports it, docs/performance.md)
+    assert r["exit_code"] in (0, 1, 3), r
     stalls = r["machine_stalls"]  # what the machine took away meanwhile, beside the fleet
     assert stalls is not None and stalls["stalls"] >= 0 and stalls["seconds"] == 3600
 
