@@ -40,6 +40,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from collections import OrderedDict
 from pathlib import Path
@@ -94,7 +95,7 @@ SAFETY_CAUSE_CHOICES = {0: "NONE", 1: "UNTRUSTED", 2: "IMPLAUSIBLE_PRICE",
 
 BUS_COMMENT = (
     "bess-ded: distributed economic dispatch of battery energy storage systems. "
-    "{format}, 11-bit standard IDs, DLC 8, Intel byte order. "
+    "{format}, 11-bit standard IDs, {dlc}, Intel byte order. "
     "Every frame is secured (AUTOSAR SecOC style, "
     "docs/security.md): bytes 0..2 = Mac, the first 3 bytes of CMAC-AES-128 under the "
     "sender's key over data ID (CAN ID, 2 bytes big-endian) + payload (bytes 3..7 with "
@@ -178,6 +179,46 @@ def _secoc(receivers: list[str]) -> list[Signal]:
         _sig("Mac", 0, 24, comment=SECOC_MAC_COMMENT, receivers=receivers),
         _sig("Counter", 24, 4, comment=SECOC_COUNTER_COMMENT, receivers=receivers),
     ]
+
+
+# CAN FD: AGENT_i_MC and its sync carry a 24-bit tag per receiver (AUTH-34, issue 25):
+# the classic 8 bytes, then TAG_SLOTS slots of (receiver code, tag), 4 bytes each.
+TAG_SLOTS = 6
+TAG_SLOT_START = 64  # bit of the first slot (byte 8)
+TAG_RX_PLANT, TAG_RX_ROUTER = 0xFE, 0xFF  # receiver codes; an agent's is its index
+FD_MC_BYTES = 8 + 4 * TAG_SLOTS  # a CAN FD payload size (32)
+TAG_RX_COMMENT = (
+    "Receiver of slot {k}'s tag: agent j = j (1..64), the plant = 254, the router = 255, "
+    "0 = an empty slot. A sender fills the slots with its neighbours by index, then the "
+    "plant, then the router (AUTH-34).")
+TAG_COMMENT = (
+    "Slot {k}'s tag: the first 3 bytes of CMAC-AES-128 under the key of the pair (this "
+    "sender, slot {k}'s receiver) over the same input as a Mac (data ID, bytes 3..7 with "
+    "bits 24..27 zeroed, the full freshness value), in bytes {b}, {b1}, {b2} in that "
+    "order (the Intel value is their little-endian reading). 0 in an empty slot.")
+
+
+def _tag_slots(receivers: list[str]) -> list[Signal]:
+    out = []
+    for k in range(TAG_SLOTS):
+        start = TAG_SLOT_START + 32 * k
+        b = start // 8 + 1
+        out += [_sig(f"TagRx{k}", start, 8, receivers=receivers,
+                     comment=TAG_RX_COMMENT.format(k=k)),
+                _sig(f"Tag{k}", start + 8, 24, receivers=receivers,
+                     comment=TAG_COMMENT.format(k=k, b=b, b1=b + 1, b2=b + 2))]
+    return out
+
+
+def _with_tags(m: Message) -> Message:
+    """The FD twin's AGENT_i_MC or its sync: the same signals and the receivers' tags
+    (AUTH-34); its Mac is 0 (a tag per receiver replaces the sender's one MAC)."""
+    rx = sorted({r for s in m.signals for r in s.receivers})
+    return Message(frame_id=m.frame_id, name=m.name, length=FD_MC_BYTES,
+                   signals=[*m.signals, *_tag_slots(rx)],
+                   comment=f"{m.comment} CAN FD: a 24-bit tag per receiver (AUTH-34); Mac 0.",
+                   senders=m.senders, cycle_time=m.cycle_time, send_type=m.send_type,
+                   dbc_specifics=m.dbc, is_extended_frame=False, strict=True)
 
 
 def _sync(secured: Message) -> Message:
@@ -459,9 +500,11 @@ def _er_balance() -> Message:
         BALANCE_CYCLE_MS)
 
 
+_MC_NAME = re.compile(r"AGENT_[0-9]+_MC(_Sync)?")
 _FORMATS = {False: "Classic CAN, 500 kbit/s",
             True: "CAN FD, 500 kbit/s arbitration, 2 Mbit/s data (bit-rate switch), the "
-                  "classic DBC's frames as FD frames"}
+                  "classic DBC's frames as FD frames, AGENT_i_MC and its sync with a tag per "
+                  "receiver in 32 bytes"}
 
 
 def build_database(fd: bool = False) -> Database:
@@ -484,6 +527,8 @@ def build_database(fd: bool = False) -> Database:
     messages.append(_er_price_sig())
     messages += [_sync(m) for m in list(messages)
                  if any(s.name == "Counter" and s.start == 24 for s in m.signals)]
+    if fd:  # λ and its sync carry a tag per receiver (AUTH-34)
+        messages = [_with_tags(m) if _MC_NAME.fullmatch(m.name) else m for m in messages]
     for m in messages:
         m.is_fd = fd  # cantools writes VFrameFormat (and CANFD_BRS, default 1) for it
 
@@ -508,7 +553,9 @@ def build_database(fd: bool = False) -> Database:
     return Database(
         messages=messages,
         nodes=nodes,
-        buses=[Bus(BUS_NAME, comment=BUS_COMMENT.format(format=_FORMATS[fd]), baudrate=BAUDRATE,
+        buses=[Bus(BUS_NAME, comment=BUS_COMMENT.format(
+                       format=_FORMATS[fd], dlc=f"DLC 8 (AGENT_i_MC and its sync {FD_MC_BYTES})"
+                       if fd else "DLC 8"), baudrate=BAUDRATE,
                    fd_baudrate=FD_BAUDRATE if fd else None)],
         version="1.0",
         dbc_specifics=specifics,
