@@ -19,10 +19,12 @@ from sim.bench.realtime import CapacityPlan, capacity_run, fleet_scenario
     (16, "periodic", False), (32, "periodic", True), (32, "event", False)])
 def test_a_capacity_fleet_runs_on_classic_can_where_it_fits_else_on_fd(
         n: int, transmit: str, fd: bool) -> None:
-    """32 periodic agents need 134 % of classic CAN at Ts = 10 ms: the bench runs them on
-    CAN FD (a bus run refuses a fleet over 100 %); event-triggered ones fit classic."""
+    """32 periodic agents need 134 % of classic CAN at Ts = 10 ms and 101.5 % of CAN FD
+    with λ tags (AUTH-34): the bench runs them on CAN FD without the tags (a bus run
+    refuses a fleet over 100 %); event-triggered ones fit classic."""
     sc = fleet_scenario(n, transmit, 14.0)
     assert (sc.n, sc.transmit.mode, sc.fd) == (n, transmit, fd)
+    assert sc.lambda_tags is not fd  # the tags are only left out where they do not fit
     assert run_bus_load(sc)[0] <= BUS_LOAD_MAX
     assert len(sc.pinned) == max(1, n // 4)
 

@@ -207,9 +207,18 @@ def spec_requirements(sections: tuple[int, ...]) -> set[str]:
     return found
 
 
+# The node vectors are classic CAN frames; what only a CAN FD bus has is compared C against
+# Python elsewhere, bit for bit
+NOT_IN_NODE_VECTORS = {
+    "AUTH-34": "λ tags exist on CAN FD only: tests/test_c_agent.py "
+               "test_c_and_python_agents_agree_on_an_fd_bus replays random FD traffic, "
+               "tagged λ included, into both and compares every frame",
+}
+
+
 def test_vectors_cover_every_state_transition_command_and_auth_requirement(
         vectors: dict[str, dict[str, Any]]) -> None:
-    required = spec_requirements((7, 8, 11, 12))
+    required = spec_requirements((7, 8, 11, 12)) - set(NOT_IN_NODE_VECTORS)
     assert len(required) >= 40  # STATE-*, LIVE-*, TMO-*, PRICE-*, LAM-*, CMD-*, AUTH-*
     covered = set().union(*(v["covers"] for v in vectors.values()))
     assert not required - covered, f"no node vector covers {sorted(required - covered)}"

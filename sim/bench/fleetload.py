@@ -33,6 +33,9 @@ for the periodic run to settle; the cases: their own schedule); ``--quick`` meas
 rings up to QUICK_MAX agents and takes the largest's ratios for the larger rings (the table
 says so).
 Deterministic (no clock): the tests check the numbers.
+
+About 500 lines: one table and what it is compared with (its configurations, the event
+ratios it needs, the measured runs, a scenario's own load and the plot) read together.
 """
 
 from __future__ import annotations

@@ -376,7 +376,8 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     # DUT's
     keys = {fid: keyring.key_for(codec.name_of(fid)) or dut_key for fid in own}
     keys[mc_id] = dut_key
-    _check_auth(codec, keys, frames, syncs, outcome,
+    verifiers = {fid: _verifier(codec, keyring, keys[fid], fid) for fid in own}
+    _check_auth(codec, verifiers, frames, syncs, outcome,
                 0.0 if math.isinf(first_sent) else first_sent)
     outcome.filtered = filtered
     if filtered:
@@ -742,7 +743,25 @@ def _adopt_syncs(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame]) ->
         io.follow_tx_count(synced, count + sum(g.msg.arbitration_id == synced for g in group))
 
 
-def _check_auth(codec: FrameCodec, keys: Mapping[int, bytes], frames: Sequence[Frame],
+Verifier = Callable[[int, bytes | bytearray, int], bool]
+"""Whether a DUT frame's bytes verify for a data ID at a freshness value."""
+
+
+def _verifier(codec: FrameCodec, keyring: Keyring, key: bytes, fid: int) -> Verifier:
+    """How the DUT's frames of ``fid`` (and its sync) verify: the Mac under ``key``, or on
+    a tagged FD bus every receiver's tag of its λ under the pair's key (AUTH-34)."""
+    name = codec.name_of(fid)
+    if not codec.tag_slots(name):
+        return lambda data_id, data, fv: secoc.frame_verifies(key, data_id, data, fv)
+    sender = contract.sender_of(name)
+
+    def pair_key(label: str) -> bytes | None:
+        sender, receiver = label.split(">")
+        return keyring.tag_key(sender, receiver)
+    return lambda data_id, data, fv: secoc.tags_verify(pair_key, sender, data_id, data, fv)
+
+
+def _check_auth(codec: FrameCodec, keys: Mapping[int, Verifier], frames: Sequence[Frame],
                 syncs: Mapping[int, int], outcome: Outcome, t0: float = 0.0) -> None:
     """Every secured DUT frame verifies at the freshness its syncs announce, +1 per
     frame (AUTH-4, AUTH-6..8). ``t0``: the schedule's start (``auth_times``)."""
@@ -762,7 +781,7 @@ def _check_auth(codec: FrameCodec, keys: Mapping[int, bytes], frames: Sequence[F
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {e}")
                 continue
             fv = contract.FRESHNESS.join(s["Boot"], s["Count"])
-            if not secoc.frame_verifies(keys[syncs[fid]], fid, f.msg.data, fv):
+            if not keys[syncs[fid]](fid, f.msg.data, fv):
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} MAC does "
                                            f"not verify at Boot {s['Boot']} Count {s['Count']}")
             elif syncs[fid] in nxt and fv != nxt[syncs[fid]]:
@@ -780,8 +799,7 @@ def _check_auth(codec: FrameCodec, keys: Mapping[int, bytes], frames: Sequence[F
             if counter is not None and counter != want:
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} Counter "
                                            f"{counter}, expected {want}")
-            elif counter is not None and not secoc.frame_verifies(keys[fid], fid, f.msg.data,
-                                                                   fv):
+            elif counter is not None and not keys[fid](fid, f.msg.data, fv):
                 outcome.auth_errors.append(f"t = {f.t:.3f} s: {codec.name_of(fid)} MAC does "
                                            f"not verify at freshness {fv:#x}")
             nxt[fid] = fv + 1
