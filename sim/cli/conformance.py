@@ -70,6 +70,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="a CAN FD bus: the tester's frames and the device's must be FD "
                         "frames with the bit-rate switch (the device runs with --fd; "
                         "default: the scenario's [bus] fd, else classic CAN)")
+    p.add_argument("--no-lambda-tags", action="store_true",
+                   help="with --fd (or an FD scenario): λ under its sender's node key, 8 "
+                        "bytes (the device runs with --no-lambda-tags), not a tag per "
+                        "receiver (AUTH-34)")
     p.add_argument("--quick", action="store_true",
                    help="play the first steps only (start to commands, about half the "
                         "schedule), for development: the later steps' requirements are "
@@ -93,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         bus=busrun.BusOptions(args.interface, args.channel, args.bus_config),
         time_scale=args.time_scale, out=args.out, keys=args.keys, insecure=args.insecure,
         rt_priority=args.rt_priority, wait=args.wait, say=_say, quick=args.quick,
-        fd=args.fd)
+        fd=args.fd, no_lambda_tags=args.no_lambda_tags)
     try:
         frames, late = setup.drive(args.wait, args.rt_priority, progress=_progress)
     except TimeoutError as e:

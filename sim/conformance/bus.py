@@ -19,7 +19,7 @@ import json
 import os
 import shlex
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -131,7 +131,8 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
                         out: Path | None = None, keys: Path | None = None,
                         insecure: bool = False, rt_priority: int = 0,
                         wait: float = 60.0, say: Callable[[str], None] = print,
-                        quick: bool = False, fd: bool = False) -> ConformanceSetup:
+                        quick: bool = False, fd: bool = False,
+                        no_lambda_tags: bool = False) -> ConformanceSetup:
     """Set up a conformance run of scenario ``case`` with the device in agent ``dut``'s
     place ("1".."N") on ``bus`` (one that connects processes): its configuration and
     key file (from ``keys``, a fresh set in ``out``/keys, or ``insecure``) in ``out``
@@ -139,14 +140,15 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     command that starts the device (at ``rt_priority``, and the ``wait`` it has).
     ``quick``: play the steps of ``QUICK`` only (the others' requirements "not run");
     ``fd``: on a CAN FD bus (as the scenario's ``[bus] fd``): every frame of the tester
-    and of the device an FD frame with the bit-rate switch (GEN-1)."""
+    and of the device an FD frame with the bit-rate switch (GEN-1); ``no_lambda_tags``:
+    λ under its sender's node key there, not a tag per receiver (AUTH-34)."""
     from dbc import dbc_path
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
     from firmware_py.frames import FrameCodec, diag_name
     from sim import conformance as conf
     from sim.model.scenario import scaled
-    from sim.model.scenario_select import pick_variant, resolve_scenario
+    from sim.model.scenario_select import pick_variant, resolve_scenario, with_fd
     from sim.run import busrun
     from sim.run.fleet_plan import GUEST_TIME_SCALE, IN_PROCESS_INTERFACES
     from sim.run.keyset import check_key_set, load_key_set
@@ -164,7 +166,7 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     scale = time_scale
     if scale is None:
         scale = GUEST_TIME_SCALE if os.environ.get("VCAN_RUN_GUEST") == "1" else 1.0
-    sc = scaled(replace(sc, fd=True) if fd else sc, scale)
+    sc = scaled(with_fd(sc, fd, no_lambda_tags), scale)
     # the scenario's agent with every key the schedule observes off its default
     # (conf.conformance_config): the DUT reads the file, the oracle reads it too, with
     # the reference parser (a device that misreads it fails a CFG-n requirement)
