@@ -411,23 +411,12 @@ static int peer_sync(bd_agent *a, const bd_frame *f, int64_t t, int k)
         return 0;   /* AUTH-28: another agent's link frame, under a key it does not hold */
     }
     uint32_t label = bd_id_sender(f->id);
-    uint8_t tag_key[BD_KEY_BYTES];
+    /* AUTH-34: another agent's MC sync on CAN FD verifies under the key of its tags to
+     * this agent: its peer only if it has a slot for it and the key is held (derived in a
+     * simulated fleet; a key file holds its neighbours' only, whose syncs are inputs) */
     int tagged = bd_frame_len(a, f->id) != 8u;
-    if (tagged) {
-        /* AUTH-34: another agent's MC sync on CAN FD, under the key of its tags to this
-         * agent: its peer only if it has a slot for it and the key is held (derived in a
-         * simulated fleet; a key file holds its neighbours' only, whose syncs are inputs) */
-        char from[BD_LABEL_MAX + 1];
-        char to[BD_LABEL_MAX + 1];
-        if (!a->derive || f->len != BD_FD_MC_BYTES || tag_of(a, f) == NULL) {
-            return 0;
-        }
-        bd_label_text(label, from);
-        bd_label_text(a->p.id, to);
-        if (bd_derive_lambda_tag_key(a->master, from, to, tag_key) != 0) {
-            a->fatal = BD_ERR_CRYPTO;
-            return 1;
-        }
+    if (tagged && (!a->derive || f->len != BD_FD_MC_BYTES || tag_of(a, f) == NULL)) {
+        return 0;
     }
     int key = (label == a->p.id) ? -2 : bd_key_of(a, label);   /* and its floor */
     if (key == -1) {
@@ -441,7 +430,21 @@ static int peer_sync(bd_agent *a, const bd_frame *f, int64_t t, int k)
         return 1;
     }
     uint64_t fv = fv_join(m.boot, m.count);
-    const uint8_t *kk = tagged ? tag_key : (key == -2) ? a->own_key : a->key[key];
+    uint8_t tag_key[BD_KEY_BYTES];
+    const uint8_t *kk = a->own_key;
+    if (tagged) {
+        char from[BD_LABEL_MAX + 1];
+        char to[BD_LABEL_MAX + 1];
+        bd_label_text(label, from);
+        bd_label_text(a->p.id, to);
+        if (bd_derive_lambda_tag_key(a->master, from, to, tag_key) != 0) {
+            a->fatal = BD_ERR_CRYPTO;
+            return 1;
+        }
+        kk = tag_key;
+    } else if (key >= 0) {
+        kk = a->key[key];
+    }
     if (!verifies(a, kk, f, fv)
         || (key >= 0 && m.boot < a->key_floor[key])) {   /* AUTH-21 */
         fail(a, NULL, f->id, BD_C_AUTH, t);

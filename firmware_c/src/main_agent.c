@@ -216,6 +216,13 @@ int main(int argc, char **argv)
         return 2;
     }
     params.fd = (uint32_t)fd;
+    if (fd && params.n_neighbours > BD_FD_NEIGHBOURS_MAX) {
+        (void)fprintf(stderr, PROG ": error: %s: [[neighbour]] expected at most %d neighbours "
+                      "on a CAN FD bus (--fd: AUTH-34's λ tag slots, %d with the plant's and "
+                      "the router's), but got %u\n", config, BD_FD_NEIGHBOURS_MAX,
+                      BD_TAG_SLOTS, (unsigned)params.n_neighbours);
+        return 2;
+    }
     char node[BD_LABEL_MAX + 1];
     (void)snprintf(node, sizeof node, "agent_%u", params.id);
     if (insecure) {
