@@ -184,10 +184,11 @@ def tagged(msg: can.Message, fv: int, master: bytes, slots: tuple[str, ...],
     data = bytearray(msg.data)
     data[0:3] = bytes(3)
     data[8:] = bytes(len(data) - 8)
+    payload = bytes((data[3] & 0xF0,)) + bytes(data[4:8])   # AUTH-7's
     for k, r in enumerate(slots):
         tk = key if key is not None else tag_key(master, sender, r)
         data[8 + 4 * k] = tag_code(r)
-        data[9 + 4 * k:12 + 4 * k] = cmac_aes128(tk, auth_data(msg.arbitration_id, data,
+        data[9 + 4 * k:12 + 4 * k] = cmac_aes128(tk, auth_data(msg.arbitration_id, payload,
                                                                 fv))[:3]
     return can.Message(arbitration_id=msg.arbitration_id, data=bytes(data),
                        is_extended_id=False, is_fd=True, bitrate_switch=True)

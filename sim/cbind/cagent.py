@@ -96,14 +96,14 @@ class KeyringC(ctypes.Structure):
         ("has_frame_keys", ctypes.c_int32), ("setpoint_key", ctypes.c_uint8 * 16),
         ("status_key", ctypes.c_uint8 * 16), ("diag_key", ctypes.c_uint8 * 16),
         ("command_key", ctypes.c_uint8 * 16), ("status_floor", ctypes.c_uint16),
-        ("persist_boot", PERSIST_FN), ("persist_ctx", ctypes.c_void_p),
-        # signed_price (AUTH-31): the router's Ed25519 public key and the fleet ID
-        ("has_price_key", ctypes.c_int32), ("price_key", ctypes.c_uint8 * 32),
-        ("fleet_id", ctypes.c_uint8 * 8),
         # AUTH-34 (CAN FD): the λ tag pair keys, each pair as TagRx codes
         ("n_tags", ctypes.c_uint32), ("tag_pair", (ctypes.c_uint8 * 2) * TAG_KEYS_MAX),
         ("tag_key", (ctypes.c_uint8 * 16) * TAG_KEYS_MAX),
         ("tag_floor", ctypes.c_uint16 * TAG_KEYS_MAX),
+        ("persist_boot", PERSIST_FN), ("persist_ctx", ctypes.c_void_p),
+        # signed_price (AUTH-31): the router's Ed25519 public key and the fleet ID
+        ("has_price_key", ctypes.c_int32), ("price_key", ctypes.c_uint8 * 32),
+        ("fleet_id", ctypes.c_uint8 * 8),
     ]
 
 
