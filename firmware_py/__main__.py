@@ -36,6 +36,7 @@ from .nodeargs import (
     add_key_arguments,
     add_rt_argument,
     keyring_from_args,
+    lambda_tags_of,
     set_realtime,
 )
 
@@ -86,7 +87,8 @@ def run_agent(args: argparse.Namespace) -> int:
     from .frames import FrameCodec
     from .runtime import AgentRuntime
 
-    codec = FrameCodec(dbc_path(args.fd))  # the bus's frame format (--fd: CAN FD)
+    # the bus's frame format (--fd: CAN FD, λ tagged unless --no-lambda-tags)
+    codec = FrameCodec(dbc_path(args.fd, lambda_tags_of(args)))
     configs = [load_agent_config(path) for path in args.config]
     ids = [cfg.id for cfg in configs]
     if len(set(ids)) != len(ids):  # one identity twice: each would call the other forged

@@ -86,6 +86,7 @@ __all__ = [
     "is_active",
     "is_cyclic",
     "keyed_frames",
+    "lambda_receivers",
     "link_frames",
     "mc_name",
     "parties_of",
@@ -291,6 +292,12 @@ COMMAND = "ER_Command"
 """AUTH-30: the message addressed to one agent (its Target) and signed with that agent's
 command key (``secoc.derive_command_key``), held by the router and the target only; its
 sync (no Target) keeps the router's node key."""
+
+
+def lambda_receivers(neighbours: list[int]) -> list[str]:
+    """The receivers of an agent's λ tags in slot order (AUTH-34, CAN FD): its neighbours
+    by index, then the plant, then the router."""
+    return [*(f"agent_{j}" for j in sorted(neighbours)), "plant", "router"]
 
 
 def command_key_name(target: int) -> str:

@@ -99,6 +99,20 @@ _AGENT_MESSAGES = ("AGENT_{}_MC", "AGENT_{}_Setpoint", "PLANT_{}_Status", "AGENT
 _AGENT_NAME = re.compile(r"^(?:AGENT|PLANT)_([1-9][0-9]*)_(?:MC|Setpoint|Status|Diag)(?:_Sync)?$")
 _ER_MESSAGES = ("ER_Price", "ER_Command", "ER_Balance")
 _PROTECTION = ("Mac", "Counter")  # filled in by the codec (Mac: by NodeIO)
+# AUTH-34: on CAN FD, AGENT_i_MC and its sync carry a tag per receiver after the classic 8
+# bytes: slot k = TagRx<k> (8 bits at TAG_SLOT_START + 32k) and Tag<k> (24 bits after it)
+TAG_SLOT_START = 64
+TAG_SLOT_BITS = 32
+TAG_RX_EMPTY, TAG_RX_PLANT, TAG_RX_ROUTER = 0, 0xFE, 0xFF  # checked against the DBC's choices
+_TAG_RX_CHOICES = {TAG_RX_EMPTY: "EMPTY", TAG_RX_PLANT: "PLANT", TAG_RX_ROUTER: "ROUTER"}
+_TAG_SIGNAL = re.compile(r"Tag(?:Rx)?[0-9]+")
+
+
+def _is_protection(name: str) -> bool:
+    """Filled in by the sender's codec and NodeIO, not by the caller: Mac, Counter, tags."""
+    return name in _PROTECTION or _TAG_SIGNAL.fullmatch(name) is not None
+
+
 _LAYOUTS = {  # frame kind -> its protection signals' (start, length)
     "secured": {"Mac": (0, 24), "Counter": (24, 4)},
     "sync": {"Mac": (0, 24)},
@@ -165,6 +179,8 @@ class _Frame:
     kind: str                           # "secured", "sync" or "transfer" (_LAYOUTS)
     fd: bool                            # a CAN FD frame (the DBC's VFrameFormat)
     counter_shift: int                  # start bit of Counter (0 for sync frames: none)
+    length: int                         # payload bytes (DLC 8; 32 for a tagged FD frame)
+    tag_slots: int                      # AUTH-34: receivers' tag slots (0: one Mac)
     base: tuple[_Sig, ...]              # decode: every non-multiplexed signal incl. Mac, Counter
     tx_base: tuple[_Sig, ...]           # encode: base minus Mac and Counter
     mux: str | None                     # multiplexer signal name, if any
@@ -205,10 +221,23 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
     def bad(problem: str) -> ConfigError:
         return ConfigError(path, m.name, problem)
 
-    if m.is_extended_frame or m.length != DLC or m.frame_id > 0x7FF:
-        raise bad(f"expected an 11-bit frame of {DLC} bytes, but got ID 0x{m.frame_id:X} "
-                  f"length {m.length} extended={m.is_extended_frame}")
     names = {s.name: s for s in m.signals}
+    tag_slots = sum(1 for n in names if n.startswith("TagRx"))
+    n_bytes = DLC + TAG_SLOT_BITS // 8 * tag_slots
+    if m.is_extended_frame or m.length != n_bytes or m.frame_id > 0x7FF \
+            or (tag_slots and not m.is_fd):
+        raise bad(f"expected an 11-bit frame of {n_bytes} bytes (8, and 4 per tag slot on CAN "
+                  f"FD), but got ID 0x{m.frame_id:X} length {m.length} "
+                  f"extended={m.is_extended_frame} fd={m.is_fd}")
+    for k in range(tag_slots):
+        start = TAG_SLOT_START + TAG_SLOT_BITS * k
+        for sname, want in ((f"TagRx{k}", (start, 8)), (f"Tag{k}", (start + 8, 24))):
+            s = names.get(sname)
+            if s is None or (s.start, s.length) != want \
+                    or (sname.startswith("TagRx") and dict(s.choices or {}) != _TAG_RX_CHOICES):
+                raise bad(f"expected the tag slot signal {sname} {want[0]}|{want[1]} (TagRx "
+                          f"with the choices {_TAG_RX_CHOICES}), but got "
+                          f"{'nothing' if s is None else f'{s.start}|{s.length}'}")
     # the transfer messages are named: any other message without Mac fails the secured
     # layout's check below
     kind = ("sync" if m.name.endswith("_Sync") else
@@ -248,6 +277,7 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
             base.append(entry)
     # Mac and Counter first, then by start bit: the order raw dicts and errors list them in.
     base.sort(key=lambda e: (_PROTECTION.index(e[0]) if e[0] in _PROTECTION else 3, e[1]))
+    # (the tag slots sort by their start bit, after the payload)
     named = _AGENT_NAME.match(m.name)
     agent = int(named.group(1)) if named else None
     return _Frame(
@@ -257,8 +287,10 @@ def _compile_message(path: str, m: DbcMessage) -> _Frame:
         kind=kind,
         fd=bool(m.is_fd),
         counter_shift=names["Counter"].start if "Counter" in names else 0,
+        length=n_bytes,
+        tag_slots=tag_slots,
         base=tuple(base),
-        tx_base=tuple(e for e in base if e[0] not in _PROTECTION),
+        tx_base=tuple(e for e in base if not _is_protection(e[0])),
         mux=mux,
         pages={p: tuple(sigs) for p, sigs in pages.items()},
         scaling=scaling,
@@ -404,7 +436,7 @@ def target_agent(raw: int) -> int:
 
 @dataclass(frozen=True, slots=True)
 class DecodedFrame:
-    """A received frame that passed every check of the codec: known ID, DLC 8, raw ranges
+    """A received frame that passed every check of the codec: known ID, DLC, raw ranges
     (the MAC and freshness are NodeIO's).
 
     ``raw`` holds every signal present (including ``Mac`` and ``Counter``; for
@@ -431,6 +463,11 @@ class DecodedFrame:
         if scale == 1 and offset == 0:
             return v
         return v * scale + offset
+
+    @property
+    def tag_slots(self) -> int:
+        """Its receivers' tag slots (AUTH-34: a λ frame or its sync on CAN FD), else 0."""
+        return self._frame.tag_slots
 
     def label(self, signal: str) -> str | None:
         """The DBC choice name of an enum signal's value (e.g. State → "RUNNING"), else None."""
@@ -545,6 +582,11 @@ class FrameCodec:
                                     "but got an unknown ID")
         return f.kind
 
+    def tag_slots(self, name: str) -> int:
+        """The receivers' tag slots of message ``name`` (AUTH-34: AGENT_i_MC and its sync
+        on CAN FD); 0: it carries one Mac."""
+        return self._frame(name).tag_slots
+
     def name_of(self, frame_id: int) -> str:
         """The DBC message name of ``frame_id``; UnknownFrameError if it has none."""
         f = self._by_id.get(frame_id)
@@ -654,7 +696,7 @@ class FrameCodec:
             if v < lo or v > hi:
                 raise EncodeError(f"{name}.{sname}", f"a raw integer in {lo}..{hi}", v)
             x |= (v & mask) << shift
-        return self._finish(f, x.to_bytes(DLC, "little"))
+        return self._finish(f, x.to_bytes(f.length, "little"))
 
     def encode_phys(self, name: str, values: Mapping[str, Any], counter: int) -> can.Message:
         """Build a frame from PHYSICAL values (simulator side), scaled by cantools.
@@ -669,7 +711,7 @@ class FrameCodec:
         self._signal_set_error(f, sigs, values)
         msg = self._db.get_message_by_name(name)
         try:
-            prot = {s: 0 for s in _LAYOUTS[f.kind]}
+            prot = {s[0]: 0 for s in f.base if _is_protection(s[0])}
             if "Counter" in prot:
                 prot["Counter"] = counter
             body = msg.encode({**values, **prot}, scaling=True,
@@ -698,9 +740,10 @@ class FrameCodec:
             raise UnknownFrameError(f"0x{fid:03X}: expected an ID defined in the DBC, but got "
                                     "an unknown ID")
         data = msg.data
-        if msg.dlc != DLC or len(data) != DLC:
+        if msg.dlc != f.length or len(data) != f.length:
             got = msg.dlc if msg.dlc == len(data) else f"{msg.dlc} with {len(data)} data bytes"
-            raise FrameLengthError(f"{f.name} (0x{fid:03X}): expected DLC {DLC}, but got {got}")
+            raise FrameLengthError(f"{f.name} (0x{fid:03X}): expected DLC {f.length}, but got "
+                                   f"{got}")
         x = int.from_bytes(data, "little")
         raw: dict[str, int] = {}
         _unpack(f.name, f.base, x, raw)

@@ -11,6 +11,7 @@ import os
 import sys
 
 from .cliargs import RT_PRIORITY
+from .errors import ParameterError
 from .node import BusConfigError
 from .secoc import KeyFileError, Keyring
 
@@ -30,6 +31,24 @@ def add_fd_argument(p: argparse.ArgumentParser) -> None:
                    help="a CAN FD bus: send every frame as CAN FD with the bit-rate switch "
                    "(dbc/bess_ded_fd.dbc) and reject classic frames (default: classic CAN, "
                    "FD frames rejected)")
+    p.add_argument("--no-lambda-tags", action="store_true",
+                   help="with --fd: λ under its sender's node key in 8 bytes "
+                   "(dbc/bess_ded_fd_untagged.dbc, a scenario's [security] lambda_tags = "
+                   "false) instead of a 24-bit tag per receiver (AUTH-34, the default on FD)")
+
+
+def lambda_tags_of(args: argparse.Namespace) -> bool:
+    """Whether λ carries a tag per receiver on this node's bus (AUTH-34): on CAN FD unless
+    --no-lambda-tags; ParameterError for --no-lambda-tags without --fd."""
+    if args.no_lambda_tags and not args.fd:
+        raise ParameterError("--no-lambda-tags", "it only with --fd (classic CAN has no room "
+                             "for the tags)", "a classic bus")
+    return not args.no_lambda_tags
+
+
+def fd_argv(fd: bool, lambda_tags: bool) -> list[str]:
+    """The node flags of a bus format: --fd, and --no-lambda-tags for FD without tags."""
+    return (["--fd"] + ([] if lambda_tags else ["--no-lambda-tags"])) if fd else []
 
 
 def add_key_arguments(p: argparse.ArgumentParser, repeat: bool = False) -> None:

@@ -70,7 +70,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter, deque
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import can
@@ -88,8 +88,11 @@ from .secoc import (
     derive_command_key,
     derive_frame_key,
     derive_node_key,
+    frame_tag,
     frame_verifies,
     sign_frame,
+    sign_tags,
+    tag_code,
 )
 
 log = logging.getLogger(__name__)
@@ -135,7 +138,8 @@ class NodeIO:
                  untrusted_after: int = UNTRUSTED_AFTER,
                  untrusted_s: float = UNTRUSTED_S, keys: Keyring | None = None,
                  sync_s: float = SYNC_S, join_s: float | None = None,
-                 echo_depth: int = ECHO_DEPTH, transfers: Iterable[int] = ()) -> None:
+                 echo_depth: int = ECHO_DEPTH, transfers: Iterable[int] = (),
+                 tag_receivers: Sequence[str] = ()) -> None:
         """``own``: the messages this node sends (the last ``echo_depth`` of each ID are
         remembered: their echo is not an impersonation); ``wanted``: the frame IDs it uses
         (secured ones: ConfigError for any other);
@@ -147,7 +151,8 @@ class NodeIO:
         ``join_s``: its join window (AUTH-26; None: JOIN_FRACTION·sync_s, 0: none, for
         tests of a receiver alone); ``transfers``: the IDs of transfer frames (no MAC:
         ER_PriceSig, signed_price) it takes, decoded and handed over unverified (the
-        caller verifies their signature)."""
+        caller verifies their signature); ``tag_receivers``: on CAN FD, the receivers of
+        its λ in slot order (AUTH-34: its neighbours by index, the plant, the router)."""
         own = list(own)
         label = contract.sender_of(own[0])
         if keys is None:
@@ -189,8 +194,15 @@ class NodeIO:
         # AUTH-28, AUTH-29: a link frame or report is signed with its own key, a
         # broadcast with the node's; each sync with its frame's key (AUTH-30: the router's
         # node key for ER_Command_Sync, its frames take their target's command key)
+        # AUTH-34: on CAN FD the λ frames and their syncs carry a tag per receiver, each
+        # under the pair key of (sender, receiver): no key of a third node tags them
+        self._tagged = frozenset(f for f in codec.frame_ids()
+                                 if codec.tag_slots(codec.name_of(f)))
+        self._tag_code = tag_code(keys.node)
         self._sign_key = {fid: self._key_of(fid, "this node sends it", sync=True)
                           for fid in self._tx_count}
+        self._tag_keys = {fid: self._tags_for(fid, list(tag_receivers))
+                          for fid in self._tx_count if fid in self._tagged}
         self._command_keys: dict[int, bytes] = {}
         if contract.ER_COMMAND_ID in self._tx_count and fleet_size is not None:
             for i in contract.agent_ids(fleet_size):  # every target's key, at the start
@@ -232,13 +244,40 @@ class NodeIO:
                 self._lost.add(fid)  # a sender already running: its sync, not a forgery
         self._known = codec.frame_ids()
 
+    def _tags_for(self, fid: int, receivers: list[str]) -> list[tuple[int, bytes]]:
+        """AUTH-34: (receiver code, pair key) for each receiver of own tagged frame
+        ``fid``, in slot order; ConfigError if they do not fit its slots or a key is
+        missing."""
+        name = self.codec.name_of(fid)
+        slots = self.codec.tag_slots(name)
+        if not 0 < len(receivers) <= slots:
+            raise ConfigError("neighbours", self.who, f"expected 1..{slots} receivers of "
+                              f"{name}'s tags on CAN FD ({slots - 2} neighbours at most, the "
+                              f"plant and the router), but got {len(receivers)}")
+        out = []
+        for r in receivers:
+            k = self.keys.tag_key(self.keys.node, r)
+            if k is None:
+                raise ConfigError("keyring", self.keys.node, f"expected the λ tag key "
+                                  f"{self.keys.node}>{r} ({name} on CAN FD), but the key "
+                                  "file has none: re-provision with bess-ded keys")
+            out.append((tag_code(r), k))
+        return out
+
+    def _code_for(self, fid: int) -> int | None:
+        """AUTH-34: this node's receiver code if input ``fid`` is tagged, else None."""
+        return self._tag_code if fid in self._tagged else None
+
     def _key_of(self, fid: int, why: str, what: str = "key", sync: bool = False) -> bytes:
         """The keyring's key of message ``fid`` (``sync``: of its ``<name>_Sync``; AUTH-28,
         AUTH-29: a link frame's or report's own, AUTH-30: ER_Command's this agent's
-        command key, else its sender's); ConfigError naming ``what`` and ``why`` if the
-        key file has none."""
+        command key, AUTH-34: a tagged λ's pair key of its sender and this node, else its
+        sender's); ConfigError naming ``what`` and ``why`` if the key file has none."""
         name = self.codec.name_of(fid) + ("_Sync" if sync else "")
-        k = self.keys.key_for(name)
+        if fid in self._tagged and fid not in self._tx_count:  # a λ it receives
+            k = self.keys.tag_key(contract.sender_of(self.codec.name_of(fid)), self.keys.node)
+        else:
+            k = self.keys.key_for(name)
         if k is None:
             raise ConfigError("keyring", self.keys.node, f"expected the {what} of {name} "
                               f"({why}), but the key file has none: re-provision with "
@@ -390,8 +429,10 @@ class NodeIO:
                 self.reject("unsynced", f"{frame.name}: expected a {frame.name}_Sync first "
                             "(no freshness value of its sender known yet)")
             return None
+        code = self._code_for(fid)
+
         def verifies(v: int) -> bool:
-            return frame_verifies(key, fid, msg.data, v)
+            return frame_verifies(key, fid, msg.data, v, code)
 
         # AUTH-30: the router's commands to other agents move its count unseen: the wide
         # search (AUTH-13's) for every command
@@ -433,7 +474,8 @@ class NodeIO:
             return
         boot, count = frame.raw["Boot"], frame.raw["Count"]
         fv = contract.FRESHNESS.join(boot, count)
-        if not frame_verifies(self._sync_key[fid], sync_id, msg.data, fv):
+        if not frame_verifies(self._sync_key[fid], sync_id, msg.data, fv,
+                              self._code_for(sync_id)):
             self.fail(sync_id, "auth", f"{frame.name}: expected a MAC that verifies with "
                       f"{contract.sender_of(frame.name)}'s key, but it does not (forged or "
                       "corrupted)", t)
@@ -559,9 +601,13 @@ class NodeIO:
         if self.fleet_size is not None and (agent or 0) > self.fleet_size:
             return False
         name = self.codec.name_of(sync_id)
-        key = self.keys.key_for(name)  # None: not held, or a link frame of others (AUTH-28)
-        if key is None:
-            return False
+        code = self._code_for(sync_id)
+        # None: not held, or a link frame of others (AUTH-28), or a λ not tagged for it
+        key = (self.keys.key_for(name) if code is None else
+               self.keys.tag_key(contract.sender_of(name.removesuffix("_Sync")),
+                                 self.keys.node))
+        if key is None or (code is not None and frame_tag(msg.data, code) is None):
+            return False  # (AUTH-34: a λ sync with no tag for this node is not for it)
         try:
             frame = self.codec.decode(msg)
         except Exception as e:
@@ -572,7 +618,7 @@ class NodeIO:
         fv = contract.FRESHNESS.join(boot, frame.raw["Count"])
         if self._peer_boot.get(sync_id) == boot:
             return True  # that boot is known: nothing to check or do
-        if not frame_verifies(key, sync_id, msg.data, fv):
+        if not frame_verifies(key, sync_id, msg.data, fv, code):
             self.fail(sync_id, "auth", f"{name}: expected a MAC that verifies with "
                       f"{contract.sender_of(name)}'s key, but it does not (forged or "
                       "corrupted)", t)
@@ -680,7 +726,7 @@ class NodeIO:
             sync_id = contract.SYNC_OF[fid]
             msg = self.codec.encode(self.codec.name_of(sync_id),
                                     {"Count": count, "Boot": self.boot}, 0)
-            sign_frame(self._sign_key[fid], sync_id, msg.data,
+            self._sign(fid, sync_id, msg, self._sign_key[fid],
                        contract.FRESHNESS.join(self.boot, count))
             self._sent[sync_id].append(bytes(msg.data))
             out.append(msg)
@@ -747,6 +793,15 @@ class NodeIO:
         self._sent[fid].append(bytes(msg.data))
         return msg
 
+    def _sign(self, fid: int, data_id: int, msg: can.Message, key: bytes, fv: int) -> None:
+        """Sign own frame ``msg`` (``data_id``: it or its sync) of own ID ``fid``: its Mac,
+        or on CAN FD a tag per receiver of its λ (AUTH-34)."""
+        tags = self._tag_keys.get(fid)
+        if tags is None:
+            sign_frame(key, data_id, msg.data, fv)
+        else:
+            sign_tags(tags, data_id, msg.data, fv)
+
     def send(self, name: str, raw: Mapping[str, int]) -> can.Message:
         """Encode own secured message ``name`` with its next freshness value, sign it and
         remember it for the echo (EncodeError for a message this node does not send)."""
@@ -764,7 +819,7 @@ class NodeIO:
         msg = self.codec.encode(name, raw, count % _FV_WINDOW)
         key = (self._command_key(target_agent(raw["Target"])) if fid == contract.ER_COMMAND_ID
                else self._sign_key[fid])  # AUTH-30: a command under its target's key
-        sign_frame(key, fid, msg.data, contract.FRESHNESS.join(self.boot, count))
+        self._sign(fid, fid, msg, key, contract.FRESHNESS.join(self.boot, count))
         self._tx_count[fid] = count + 1
         self._sent[fid].append(bytes(msg.data))
         return msg

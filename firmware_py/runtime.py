@@ -166,7 +166,8 @@ class AgentRuntime:
                          untrusted_after=cfg.untrusted_after,
                          untrusted_s=float(cfg.untrusted_s or 0.0), keys=keys,
                          sync_s=cycle_s("ER_Price_Sync", cfg.controller.ts),
-                         transfers=() if self.sig_id is None else (self.sig_id,))
+                         transfers=() if self.sig_id is None else (self.sig_id,),
+                         tag_receivers=contract.lambda_receivers([n.id for n in cfg.neighbours]))
         self.price_sig: pricesig.PriceSigReceiver | None = None
         if cfg.signed_price:
             public = self.io.keys.price_verify

@@ -35,6 +35,14 @@ Keys
     agent hold it (a key file's ``[command_keys]``): agent 3 can no longer isolate
     agent 1. ER_Command_Sync keeps the router's node key (it has no Target).
 
+    ``derive_lambda_tag_key(master, sender, receiver)``: on CAN FD, the key of the
+    pair (agent i, one receiver of its λ) whose 24-bit tag the receiver verifies in
+    ``AGENT_i_MC`` and its sync (AUTH-34)::
+
+        K_tag = PRF(K_master, [1]_32 ‖ TAG_LABEL ‖ 0x00 ‖ UTF-8("agent_i>" ‖ receiver) ‖ [128]_32)
+
+    with TAG_LABEL = ``b"bess-ded/secoc/lambda-tag-key/v1"`` (a key file's
+    ``[lambda_tag_keys]``): only agent i and that receiver hold it.
     ``fleet_id(master)`` is a public 64-bit tag of the key set (same KDF, label
     ``b"bess-ded/secoc/fleet-id/v1"``, empty context, L = 64) so that nodes from
     different provisionings can tell.
@@ -97,6 +105,7 @@ NODE_KEY_LABEL = b"bess-ded/secoc/node-key/v1"
 FLEET_ID_LABEL = b"bess-ded/secoc/fleet-id/v1"
 FRAME_KEY_LABEL = b"bess-ded/secoc/frame-key/v1"
 COMMAND_KEY_LABEL = b"bess-ded/secoc/command-key/v1"
+LAMBDA_TAG_KEY_LABEL = b"bess-ded/secoc/lambda-tag-key/v1"  # AUTH-34 (CAN FD)
 PRICE_SIGN_KEY_LABEL = b"bess-ded/price-sign-key/v1"  # signed_price: the router's Ed25519 seed
 PRICE_SIGN_BYTES = 32
 KEY_FILE_FORMAT = "bess-ded-secoc-node-key/1"
@@ -180,6 +189,43 @@ def derive_command_key(master_key: bytes, target: str) -> bytes:
     (AUTH-30; the module docstring gives the encoding): held only by the router and that
     agent."""
     return _kbkdf(master_key, COMMAND_KEY_LABEL, check_target(target).encode(), KEY_BYTES)
+
+
+_PAIR_RE = re.compile(r"(agent_[1-9][0-9]?)>(agent_[1-9][0-9]?|plant|router)")
+
+
+def pair_label(sender: str, receiver: str) -> str:
+    """A λ tag key's label (AUTH-34): ``"agent_1>agent_3"``, ``"agent_1>plant"``."""
+    return check_pair(f"{sender}>{receiver}")
+
+
+def check_pair(label: str) -> str:
+    """A λ tag key's label, checked: an agent, '>', and an agent, the plant or the router."""
+    m = _PAIR_RE.fullmatch(label) if isinstance(label, str) else None
+    if m is None or m.group(1) == m.group(2):
+        raise SecOCError(f"lambda tag key: expected 'agent_i>RECEIVER' (an agent other than "
+                         f"agent_i, plant or router), but got {label!r}")
+    return label
+
+
+def derive_lambda_tag_key(master_key: bytes, sender: str, receiver: str) -> bytes:
+    """The 16-byte CMAC key of the tags agent ``sender``'s λ frames (and their sync) carry
+    for ``receiver`` on CAN FD (AUTH-34; the module docstring gives the encoding): held
+    only by the two of them."""
+    return _kbkdf(master_key, LAMBDA_TAG_KEY_LABEL, pair_label(sender, receiver).encode(),
+                  KEY_BYTES)
+
+
+def tag_code(node: str) -> int:
+    """The receiver code of ``node`` in a tag slot (AUTH-34, the FD DBC's TagRx choices):
+    agent j → j, the plant → 0xFE, the router → 0xFF."""
+    from .frames import TAG_RX_PLANT, TAG_RX_ROUTER  # frames imports this module's users
+
+    if node == "plant":
+        return TAG_RX_PLANT
+    if node == "router":
+        return TAG_RX_ROUTER
+    return int(check_node_name(node).removeprefix("agent_"))
 
 
 def derive_price_sign_key(master_key: bytes) -> bytes:
@@ -470,6 +516,7 @@ class NodeKey:
     floors: Mapping[str, int] = field(default_factory=dict)   # label -> lowest boot accepted
     frames: Mapping[str, bytes] = field(default_factory=dict)  # link frame -> its key
     commands: Mapping[str, bytes] = field(default_factory=dict)  # target -> command key
+    tags: Mapping[str, bytes] = field(default_factory=dict)  # 'agent_i>r' -> λ tag key
     price_sign: bytes | None = None    # signed_price: the router's Ed25519 seed (router only)
     price_verify: bytes | None = None  # signed_price: the router's Ed25519 public key
 
@@ -488,12 +535,14 @@ def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
                       frames: Mapping[str, bytes] | None = None,
                       commands: Mapping[str, bytes] | None = None,
                       price_sign: bytes | None = None,
-                      price_verify: bytes | None = None) -> dict:
+                      price_verify: bytes | None = None,
+                      tags: Mapping[str, bytes] | None = None) -> dict:
     """The TOML document of a node key file. ``peers``: the verification keys of the
     senders of the broadcast frames this node receives (need to know: docs/security.md);
     ``floors``: the lowest boot counter it accepts from each sender (AUTH-21);
     ``frames``: the keys of the link frames and reports it sends or receives (AUTH-28,
-    AUTH-29); ``commands``: the ER_Command keys per target agent (AUTH-30)."""
+    AUTH-29); ``commands``: the ER_Command keys per target agent (AUTH-30); ``tags``: the
+    λ tag keys of the pairs it is one of (AUTH-34, CAN FD)."""
     doc = {
         "format": KEY_FILE_FORMAT,
         "node": check_node_name(node),
@@ -510,6 +559,9 @@ def node_key_document(node: str, key: bytes, fleet: str, boot_counter: int = 0,
     if commands:
         doc["command_keys"] = {check_target(t): _check_key(k).hex()
                                for t, k in sorted(commands.items())}
+    if tags:
+        doc["lambda_tag_keys"] = {check_pair(t): _check_key(k).hex()
+                                  for t, k in sorted(tags.items())}
     if floors:
         doc["floors"] = {check_node_name(p): int(b) for p, b in sorted(floors.items())}
     if price_sign is not None or price_verify is not None:  # signed_price (AUTH-31)
@@ -633,7 +685,13 @@ def load_node_key(path: Path | str) -> NodeKey:
     peers = _key_table(doc, "peers", "node", check_node_name, path)
     frames = _key_table(doc, "frame_keys", "message", check_frame_name, path)
     commands = _key_table(doc, "command_keys", "target", check_target, path)
+    tags = _key_table(doc, "lambda_tag_keys", "pair", check_pair, path)
     _check_own_keys(node, frames, commands, path)  # type: ignore[arg-type]
+    not_ours = sorted(t for t in tags if node not in t.split(">"))
+    if not_ours:
+        raise KeyFileError(f"{path}: [lambda_tag_keys] expected the pairs {node} is one of "
+                           f"only, but got {', '.join(not_ours)} (re-provision with "
+                           "bess-ded keys)")
     senders = set(peers) | _frame_senders(frames)
     floors = doc.get("floors", {})
     if not isinstance(floors, dict) or any(
@@ -645,7 +703,7 @@ def load_node_key(path: Path | str) -> NodeKey:
     sign, verify = _price_keys(doc, path)
     return NodeKey(node=node, key=_hex_key(doc, "key", path),  # type: ignore[arg-type]
                    fleet_id=fleet, boot_counter=boot, path=path, peers=peers,
-                   floors=dict(floors), frames=frames, commands=commands,
+                   floors=dict(floors), frames=frames, commands=commands, tags=tags,
                    price_sign=sign, price_verify=verify)
 
 
@@ -794,7 +852,8 @@ class Keyring:
                  frames: Mapping[str, bytes] | None = None,
                  commands: Mapping[str, bytes] | None = None,
                  price_sign: bytes | None = None,
-                 price_verify: bytes | None = None) -> None:
+                 price_verify: bytes | None = None,
+                 tags: Mapping[str, bytes] | None = None) -> None:
         self.node = check_node_name(node)
         self.key = _check_key(key)
         self.boot = boot
@@ -808,6 +867,7 @@ class Keyring:
         self.floors = dict(floors or {})
         self._frames = dict(frames or {})  # AUTH-28: link frame -> its key
         self._commands = dict(commands or {})  # AUTH-30: target agent -> command key
+        self._tags = dict(tags or {})  # AUTH-34: 'agent_i>receiver' -> λ tag key
         # signed_price (AUTH-31): the router's Ed25519 private key (the router only) and
         # its public key (every node of a signed fleet); None: not a signed fleet
         self.price_sign = price_sign
@@ -843,6 +903,22 @@ class Keyring:
         if k is None and self._master is not None and derive:
             k = self._commands[target] = derive_command_key(self._master, target)
         return k
+
+    def tag_key(self, sender: str, receiver: str, derive: bool = True) -> bytes | None:
+        """The key of the tags ``sender``'s λ frames carry for ``receiver`` on CAN FD
+        (AUTH-34): held by the two of them only; None for any other node, or if not
+        listed."""
+        if self.node not in (sender, receiver):
+            return None
+        label = pair_label(sender, receiver)
+        k = self._tags.get(label)
+        if k is None and self._master is not None and derive:
+            k = self._tags[label] = derive_lambda_tag_key(self._master, sender, receiver)
+        return k
+
+    def listed_tag_keys(self) -> dict[str, bytes]:
+        """The λ tag keys listed or derived so far (pair label → key), a copy."""
+        return dict(self._tags)
 
     def key_for(self, name: str, derive: bool = True,
                 target: int | None = None) -> bytes | None:
@@ -907,7 +983,7 @@ class Keyring:
         k = load_node_key(path)
         return cls(k.node, k.key, k.boot_counter, k.persist(), peers=k.peers,
                    fleet=k.fleet_id, floors=k.floors, frames=k.frames, commands=k.commands,
-                   price_sign=k.price_sign, price_verify=k.price_verify)
+                   price_sign=k.price_sign, price_verify=k.price_verify, tags=k.tags)
 
     @classmethod
     def insecure_for(cls, node: str) -> Keyring:
@@ -952,7 +1028,66 @@ def sign_frame(key: bytes, frame_id: int, data: bytearray, freshness: int) -> No
     data[0:MAC_BITS // 8] = mac.to_bytes(MAC_BITS // 8, "big")
 
 
-def frame_verifies(key: bytes, frame_id: int, data: bytes | bytearray, freshness: int) -> bool:
+TAG_SLOT_BYTES = 4  # AUTH-34: a slot is its receiver's code (1 byte) and its tag (3)
+_TAGS_AT = 8        # the first slot's byte: after the classic 8 bytes
+
+
+def frame_tag(data: bytes | bytearray, code: int) -> int | None:
+    """The tag of the first slot of a tagged frame whose receiver is ``code`` (AUTH-34),
+    None if it has none."""
+    for at in range(_TAGS_AT, len(data) - TAG_SLOT_BYTES + 1, TAG_SLOT_BYTES):
+        if data[at] == code:
+            return int.from_bytes(data[at + 1:at + TAG_SLOT_BYTES], "big")
+    return None
+
+
+def sign_tags(tags: list[tuple[int, bytes]], frame_id: int, data: bytearray,
+              freshness: int) -> None:
+    """Write the slots of a tagged frame (AUTH-34): for each (receiver code, pair key) in
+    order its code and tag, over the same input as a Mac; the Mac bytes stay 0."""
+    payload = frame_payload(data)
+    for k, (code, key) in enumerate(tags):
+        at = _TAGS_AT + TAG_SLOT_BYTES * k
+        tag = authenticator(key, frame_id, payload, freshness, MAC_BITS)
+        data[at] = code
+        data[at + 1:at + TAG_SLOT_BYTES] = tag.to_bytes(MAC_BITS // 8, "big")
+
+
+def tag_label(code: int) -> str | None:
+    """The node a tag slot's receiver code names (AUTH-34), None for an empty slot or a
+    code no node has."""
+    from .frames import N_AGENTS_MAX, TAG_RX_PLANT, TAG_RX_ROUTER
+
+    if code == TAG_RX_PLANT:
+        return "plant"
+    if code == TAG_RX_ROUTER:
+        return "router"
+    return f"agent_{code}" if 1 <= code <= N_AGENTS_MAX else None
+
+
+def tags_verify(key_of: Callable[[str], bytes | None], sender: str, frame_id: int,
+                data: bytes | bytearray, freshness: int) -> bool:
+    """A monitor's check of a tagged frame (AUTH-34; it holds every pair key): at least
+    one slot, and every non-empty slot's tag verifies under ``key_of(pair label)``."""
+    payload, slots = frame_payload(data), 0
+    for at in range(_TAGS_AT, len(data) - TAG_SLOT_BYTES + 1, TAG_SLOT_BYTES):
+        if data[at] == 0:
+            continue
+        receiver = tag_label(data[at])
+        key = None if receiver is None or receiver == sender else key_of(
+            pair_label(sender, receiver))
+        mac = int.from_bytes(data[at + 1:at + TAG_SLOT_BYTES], "big")
+        if key is None or not verify(key, frame_id, payload, freshness, mac, MAC_BITS):
+            return False
+        slots += 1
+    return slots > 0
+
+
+def frame_verifies(key: bytes, frame_id: int, data: bytes | bytearray, freshness: int,
+                   tag_code: int | None = None) -> bool:
     """True when the MAC in ``data`` verifies for ``frame_id`` with ``key`` at
-    ``freshness``."""
-    return verify(key, frame_id, frame_payload(data), freshness, frame_mac(data), MAC_BITS)
+    ``freshness``; ``tag_code``: a tagged frame's (AUTH-34), whose slot for that receiver
+    must verify instead (False if it has none)."""
+    mac = frame_mac(data) if tag_code is None else frame_tag(data, tag_code)
+    return mac is not None and verify(key, frame_id, frame_payload(data), freshness, mac,
+                                      MAC_BITS)

@@ -37,17 +37,29 @@ def _layout(m: cantools.database.can.Message) -> list[tuple[object, ...]]:
 
 def test_the_fd_dbc_is_the_classic_one_as_fd_frames() -> None:
     """GEN-1: the same messages, IDs, senders and 8-byte layouts, every one a CAN FD frame
-    with the bit-rate switch; the bus an FD bus with its data phase's bit rate."""
+    with the bit-rate switch, but λ and its sync: the classic layout, then 6 slots of a
+    receiver code and its 24-bit tag (AUTH-34), 32 bytes; the bus an FD bus with its data
+    phase's bit rate."""
     classic = cantools.database.load_file(DBC_PATH, strict=True)
     fd = cantools.database.load_file(FD_DBC_PATH, strict=True)
     assert isinstance(classic, cantools.database.can.Database)
     assert isinstance(fd, cantools.database.can.Database)
     assert [m.name for m in fd.messages] == [m.name for m in classic.messages]
+    tagged = 0
     for a, b in zip(classic.messages, fd.messages, strict=True):
-        assert (b.frame_id, b.length, b.senders, b.cycle_time) == \
+        slots = [s for s in b.signals if s.name.startswith("Tag")]
+        assert (b.frame_id, b.length - 4 * len(slots) // 2, b.senders, b.cycle_time) == \
             (a.frame_id, a.length, a.senders, a.cycle_time)
-        assert _layout(b) == _layout(a), b.name
+        assert _layout(b)[:len(a.signals)] == _layout(a), b.name
         assert b.is_fd and not a.is_fd
+        if slots:
+            tagged += 1
+            assert b.name.endswith(("_MC", "_MC_Sync")) and b.length == 32
+            assert [(s.name, s.start, s.length) for s in slots] == [
+                (f"Tag{'Rx' if j % 2 == 0 else ''}{j // 2}", 64 + 8 * (j % 2) + 32 * (j // 2),
+                 8 if j % 2 == 0 else 24) for j in range(12)]
+            assert slots[0].choices == {0: "EMPTY", 254: "PLANT", 255: "ROUTER"}
+    assert tagged == 2 * 64  # every agent's MC and MC_Sync
     assert fd.dbc is not None and classic.dbc is not None
     assert fd.dbc.attributes["BusType"].value == "CAN FD"
     assert fd.dbc.attributes["BaudrateCANFD"].value == 2_000_000
@@ -63,8 +75,15 @@ def test_each_codec_sends_its_format_and_rejects_the_other() -> None:
     raw = {"State": 1, "Lambda": fx.to_fixed(0.8), "Resets": 2}
     fd, classic = FD.encode(mc_name(3), raw, 5), CLASSIC.encode(mc_name(3), raw, 5)
     assert (fd.is_fd, fd.bitrate_switch, classic.is_fd) == (True, True, False)
-    assert bytes(fd.data) == bytes(classic.data) and fd.dlc == 8
-    assert FD.decode(fd).raw == CLASSIC.decode(classic).raw
+    # λ: the classic bytes, then its 6 tag slots (empty until NodeIO signs it, AUTH-34)
+    assert bytes(fd.data) == bytes(classic.data) + bytes(24) and fd.dlc == 32
+    sp = {"Enable": 1, "PowerSetpoint": 1234}
+    assert bytes(FD.encode("AGENT_3_Setpoint", sp, 5).data) == \
+        bytes(CLASSIC.encode("AGENT_3_Setpoint", sp, 5).data)
+    got = FD.decode(fd).raw
+    assert {k: v for k, v in got.items() if not k.startswith("Tag")} == \
+        CLASSIC.decode(classic).raw
+    assert [got[f"TagRx{k}"] for k in range(6)] == [0] * 6
     for codec, msg, want, got in ((FD, classic, "a CAN FD", "a classic CAN frame"),
                                   (CLASSIC, fd, "a classic CAN", "a CAN FD frame")):
         with pytest.raises(FrameError, match=f"expected {want} data frame, but got {got}") as e:

@@ -34,8 +34,9 @@ def _config(key: str) -> fleetload.Config:
 
 def test_fd_periodic_64_agents_equals_the_dbc_by_hand() -> None:
     """64 agents on a ring, FD periodic, Ts = 10 ms: every frame an 8-byte FD frame with
-    the bit-rate switch (34 bits at 500 kbit/s, 113 at 2 Mbit/s); every agent's frames
-    are the DBC's own (it has 64), so the frames/s are 64 agents' of its cycle times."""
+    the bit-rate switch (34 bits at 500 kbit/s, 113 at 2 Mbit/s) but λ and its sync, 32
+    bytes with their receivers' tags (AUTH-34: 34 + 358 bits); every agent's frames are
+    the DBC's own (it has 64), so the frames/s are 64 agents' of its cycle times."""
     n, per_s = 64, lambda name: 1000 / contract.cycle_ms(name)
     # header 17 + its 4 stuff bits + tail 13; ESI + DLC 5, 64 data bits, 17 more stuff
     # bits (floor((17 + 5 + 64 - 1)/4) = 21 in all), stuff count 4, CRC-17 and its 6 fixed
@@ -43,6 +44,10 @@ def test_fd_periodic_64_agents_equals_the_dbc_by_hand() -> None:
     assert fd_frame_bits(8) == (17 + 4 + 13, 5 + 64 + 17 + 4 + 17 + 6) == (34, 113)
     frame_s = 34 / 500_000 + 113 / 2_000_000
     assert fd_frame_time(8, 500_000, 2_000_000) == pytest.approx(frame_s)
+    # 256 data bits, 65 more stuff bits (floor((17 + 5 + 256 - 1)/4) = 69 in all), CRC-21
+    # and its 7 fixed stuff bits
+    assert fd_frame_bits(32) == (34, 5 + 256 + 65 + 4 + 21 + 7) == (34, 358)
+    tagged_s = 34 / 500_000 + 358 / 2_000_000
     agent = sum(per_s(f(1)) for f in (mc_name, setpoint_name, status_name, diag_name))
     router = per_s("ER_Price") + 2 * per_s("ER_Balance")       # ER_Balance: 2 pages
     syncs = 4 * n + 3        # one <name>_Sync a second per secured ID: 4 per agent + 3
@@ -59,7 +64,8 @@ def test_fd_periodic_64_agents_equals_the_dbc_by_hand() -> None:
     got = fleetload.config_load(_config("fd"), fleet, None, msgs=frames)
     assert got is not None
     assert got["frames_per_s"] == pytest.approx(fps)
-    assert got["load"] == pytest.approx(fps * frame_s)
+    tagged = n * per_s(mc_name(1)) + n  # λ every tick and its sync every second
+    assert got["load"] == pytest.approx((fps - tagged) * frame_s + tagged * tagged_s)
     # the same fleet's frames on classic CAN: 135 bits each
     classic = fleetload.config_load(_config("classic"), fleet, None, msgs=frames)
     assert classic is not None and classic["load"] == pytest.approx(fps * 135 / 500_000)

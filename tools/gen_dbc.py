@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Generate ``dbc/bess_ded.dbc``, the single source of truth for every frame on the bus,
-and its CAN FD twin ``dbc/bess_ded_fd.dbc``.
+and its CAN FD twins ``dbc/bess_ded_fd.dbc`` and ``dbc/bess_ded_fd_untagged.dbc``.
 
 The DBC is built from cantools objects rather than written by hand so that the
 layout rules below are applied uniformly to all 64 agents' frames and cannot
@@ -15,7 +15,12 @@ Layout rules (every frame):
   the same code, with every message a CAN FD frame (``VFrameFormat`` StandardCAN_FD,
   ``CANFD_BRS`` 1: the bit-rate switch), ``BusType`` "CAN FD" and the data phase's
   ``BaudrateCANFD``; the layouts stay 8 bytes, so IDs, signals and MACs are the same
-  on either bus and only the frame format (and its time on the bus) differs;
+  on either bus and only the frame format (and its time on the bus) differs, but for
+  ``AGENT_<i>_MC`` and its sync: 32 bytes, the classic 8 and six slots of a receiver code
+  and its 24-bit tag (AUTH-34: a tag per receiver under the pair's key, so that no key
+  but the sender's own tags its λ); ``bess_ded_fd_untagged.dbc`` (``[security]
+  lambda_tags = false``, ``--no-lambda-tags``) keeps λ at 8 bytes under its sender's
+  node key, for a bus that cannot afford the tags;
 * every frame is **secured** (those that can change the dispatch: price, command, MC,
   setpoint, status; and those that report or account: diagnostics, balance) in the
   style of AUTOSAR SecOC (docs/security.md): bytes 0..2 are ``Mac``
@@ -32,7 +37,7 @@ Layout rules (every frame):
 
 Usage::
 
-    python tools/gen_dbc.py            # (re)write dbc/bess_ded.dbc and dbc/bess_ded_fd.dbc
+    python tools/gen_dbc.py            # (re)write the three DBC files
     python tools/gen_dbc.py --check    # exit 1 if a committed file is stale
     python tools/gen_dbc.py -o FILE    # write the classic DBC elsewhere (--fd-output: the twin)
 """
@@ -84,6 +89,7 @@ SYNC_OFFSET = 0x400  # <name>_Sync ID = the secured frame's ID + SYNC_OFFSET
 
 DEFAULT_OUTPUT = Path(__file__).resolve().parent.parent / "dbc" / "bess_ded.dbc"
 DEFAULT_FD_OUTPUT = DEFAULT_OUTPUT.with_name("bess_ded_fd.dbc")
+DEFAULT_FD_UNTAGGED_OUTPUT = DEFAULT_OUTPUT.with_name("bess_ded_fd_untagged.dbc")
 
 STATE_CHOICES = {0: "INIT", 1: "RUNNING", 2: "ISOLATED", 3: "SAFE"}
 COMMAND_CHOICES = {0: "PIN", 1: "ISOLATE", 2: "RECONNECT", 3: "SET_GAINS"}
@@ -186,6 +192,7 @@ def _secoc(receivers: list[str]) -> list[Signal]:
 TAG_SLOTS = 6
 TAG_SLOT_START = 64  # bit of the first slot (byte 8)
 TAG_RX_PLANT, TAG_RX_ROUTER = 0xFE, 0xFF  # receiver codes; an agent's is its index
+TAG_RX_CHOICES = {0: "EMPTY", TAG_RX_PLANT: "PLANT", TAG_RX_ROUTER: "ROUTER"}
 FD_MC_BYTES = 8 + 4 * TAG_SLOTS  # a CAN FD payload size (32)
 TAG_RX_COMMENT = (
     "Receiver of slot {k}'s tag: agent j = j (1..64), the plant = 254, the router = 255, "
@@ -203,7 +210,7 @@ def _tag_slots(receivers: list[str]) -> list[Signal]:
     for k in range(TAG_SLOTS):
         start = TAG_SLOT_START + 32 * k
         b = start // 8 + 1
-        out += [_sig(f"TagRx{k}", start, 8, receivers=receivers,
+        out += [_sig(f"TagRx{k}", start, 8, receivers=receivers, choices=TAG_RX_CHOICES,
                      comment=TAG_RX_COMMENT.format(k=k)),
                 _sig(f"Tag{k}", start + 8, 24, receivers=receivers,
                      comment=TAG_COMMENT.format(k=k, b=b, b1=b + 1, b2=b + 2))]
@@ -501,15 +508,20 @@ def _er_balance() -> Message:
 
 
 _MC_NAME = re.compile(r"AGENT_[0-9]+_MC(_Sync)?")
-_FORMATS = {False: "Classic CAN, 500 kbit/s",
-            True: "CAN FD, 500 kbit/s arbitration, 2 Mbit/s data (bit-rate switch), the "
+_FORMATS = {
+    (False, False): "Classic CAN, 500 kbit/s",
+    (True, True): "CAN FD, 500 kbit/s arbitration, 2 Mbit/s data (bit-rate switch), the "
                   "classic DBC's frames as FD frames, AGENT_i_MC and its sync with a tag per "
-                  "receiver in 32 bytes"}
+                  "receiver in 32 bytes",
+    (True, False): "CAN FD, 500 kbit/s arbitration, 2 Mbit/s data (bit-rate switch), the "
+                   "classic DBC's frames as FD frames (lambda_tags = false: every frame 8 "
+                   "bytes, lambda under its sender's node key)"}
 
 
-def build_database(fd: bool = False) -> Database:
+def build_database(fd: bool = False, tags: bool = True) -> Database:
     """The whole bus as a cantools Database (not yet written); ``fd``: the FD twin, every
-    message a CAN FD frame with the bit-rate switch (same IDs and layouts)."""
+    message a CAN FD frame with the bit-rate switch (same IDs and layouts; with ``tags``,
+    λ and its sync 32 bytes with a tag per receiver, AUTH-34)."""
     nodes = [
         Node("ER", comment="Energy router: broadcasts the price rho(t), sends commands, and "
                            "accounts grid exchange and cost."),
@@ -527,7 +539,7 @@ def build_database(fd: bool = False) -> Database:
     messages.append(_er_price_sig())
     messages += [_sync(m) for m in list(messages)
                  if any(s.name == "Counter" and s.start == 24 for s in m.signals)]
-    if fd:  # λ and its sync carry a tag per receiver (AUTH-34)
+    if fd and tags:  # λ and its sync carry a tag per receiver (AUTH-34)
         messages = [_with_tags(m) if _MC_NAME.fullmatch(m.name) else m for m in messages]
     for m in messages:
         m.is_fd = fd  # cantools writes VFrameFormat (and CANFD_BRS, default 1) for it
@@ -554,8 +566,9 @@ def build_database(fd: bool = False) -> Database:
         messages=messages,
         nodes=nodes,
         buses=[Bus(BUS_NAME, comment=BUS_COMMENT.format(
-                       format=_FORMATS[fd], dlc=f"DLC 8 (AGENT_i_MC and its sync {FD_MC_BYTES})"
-                       if fd else "DLC 8"), baudrate=BAUDRATE,
+                       format=_FORMATS[fd, fd and tags],
+                       dlc=f"DLC 8 (AGENT_i_MC and its sync {FD_MC_BYTES})" if fd and tags
+                       else "DLC 8"), baudrate=BAUDRATE,
                    fd_baudrate=FD_BAUDRATE if fd else None)],
         version="1.0",
         dbc_specifics=specifics,
@@ -563,9 +576,9 @@ def build_database(fd: bool = False) -> Database:
     )
 
 
-def render(fd: bool = False) -> str:
+def render(fd: bool = False, tags: bool = True) -> str:
     """The DBC text exactly as committed (cantools' writer; CRLF line ends, ASCII only)."""
-    text = build_database(fd).as_dbc_string()
+    text = build_database(fd, tags).as_dbc_string()
     text.encode("ascii")  # DBC readers assume cp1252; keep comments plain ASCII
     return text
 
@@ -574,12 +587,14 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("-o", "--output", type=Path, default=DEFAULT_OUTPUT)
     p.add_argument("--fd-output", type=Path, default=DEFAULT_FD_OUTPUT)
+    p.add_argument("--fd-untagged-output", type=Path, default=DEFAULT_FD_UNTAGGED_OUTPUT)
     p.add_argument("--check", action="store_true",
                    help="do not write; exit 1 if an output file differs from the generator")
     args = p.parse_args(argv)
     stale = 0
-    for path, fd in ((args.output, False), (args.fd_output, True)):
-        text = render(fd).encode("ascii")
+    for path, fd, tags in ((args.output, False, False), (args.fd_output, True, True),
+                           (args.fd_untagged_output, True, False)):
+        text = render(fd, tags).encode("ascii")
         if not args.check:
             path.write_bytes(text)
         elif (path.read_bytes() if path.exists() else b"") != text:

@@ -20,8 +20,9 @@ Configurations (``CONFIGS``):
   whole run, once settled (the samples after the periodic run's settling instant), and
   in the worst ``WINDOW_TICKS`` window (the transient: all λ move at once). The other
   frames (Setpoint, Status, Diag, syncs, the router's) are periodic either way;
-- FD, periodic / event-triggered: the same frames, same 8-byte payload, as CAN FD
-  frames with the bit-rate switch;
+- FD, periodic / event-triggered: the same frames as CAN FD frames with the bit-rate
+  switch, at the FD DBC's lengths (8 bytes; λ and its sync 32, a tag per receiver:
+  AUTH-34);
 - FD, packed (not in the protocol): ``PACK`` agents' MC frames (8 bytes each, Mac and
   counter included) in one 64-byte FD frame each tick, the other frames as FD periodic:
   what a 64-byte payload would allow a packing node (a relay, one more tick of delay,
@@ -345,6 +346,16 @@ def scenario_rows(runs: list[dict[str, Any]]) -> list[list[str]]:
              + ("yes" if r["fits"] else "no")] for r in runs]
 
 
+def fd_lengths(msgs: list[Message]) -> list[Message]:
+    """``msgs`` at the FD DBC's lengths: λ and its sync carry a tag per receiver there
+    (AUTH-34: 32 bytes), every other frame its classic 8."""
+    from dbc import FD_DBC_PATH
+    from firmware_py.frames import FrameCodec
+
+    length = {m.name: m.length for m in FrameCodec(FD_DBC_PATH).database.messages}
+    return [replace(m, length=length.get(m.name, m.length)) for m in msgs]
+
+
 def packed(msgs: list[Message]) -> list[Message]:
     """``msgs`` with the MC frames packed PACK to a 64-byte FD frame (not in the
     protocol: the ``fd-packed`` line)."""
@@ -364,6 +375,8 @@ def config_load(cfg: Config, fleet: Fleet, ratio: EventRatio | None,
     it needs was not measured, a run that never settled)."""
     bus = bus or Bus(dbc_bitrate())
     msgs = fleet_frames(fleet) if msgs is None else msgs
+    if cfg.fd:
+        msgs = fd_lengths(msgs)
     if cfg.mc == "packed":
         msgs = packed(msgs)
     elif cfg.mc != "periodic":

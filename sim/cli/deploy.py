@@ -56,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
 
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
+    from firmware_py.nodeargs import fd_argv
     from sim.bench.fleetload import check_bus_load
     from sim.model.scenario import scaled, to_toml
     from sim.model.scenario_select import pick_variant, resolve_scenario, with_fd, with_transmit
@@ -64,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
 
     sc, chosen = pick_variant(resolve_scenario(args.case), args.variant, "deploy")
     sc = with_transmit(sc, args.transmit)
-    sc = with_fd(sc, args.fd)
+    sc = with_fd(sc, args.fd, args.no_lambda_tags)
     sc = scaled(sc, args.time_scale)
     out: Path = args.out or Path("runs") / f"deploy-{sc.name}"
     # everything checked before anything is written (a fleet larger than the DBC's frames
@@ -102,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     print("  run each node on its host, on the fleet's bus (add --interface, --channel):")
     for i, path in enumerate(paths, 1):
         print("    " + shlex.join(["bess-ded", "agent", "--config", str(path),
-                                   *key(f"agent_{i}"), *(["--fd"] if sc.fd else []), *rt]))
+                                   *key(f"agent_{i}"), *fd_argv(sc.fd, sc.lambda_tags), *rt]))
     for role in ("plant", "router"):  # the router last: its first price frame is t = 0
         print("    " + shlex.join(["bess-ded", role, *scenario, *key(role), *rt]))
     return 0

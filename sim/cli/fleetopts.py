@@ -71,6 +71,7 @@ def plan_run(args: argparse.Namespace, command: str, nodes: str) -> RunPlan:
                           duration=args.duration, out=args.out, time_scale=args.time_scale,
                           keys=args.keys, insecure=args.insecure, command=command, nodes=nodes,
                           transmit=args.transmit, fd=args.fd,
+                          no_lambda_tags=args.no_lambda_tags,
                           check=check_bus_load)  # a fleet the bus cannot carry: refused
 
 

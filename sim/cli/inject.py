@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from firmware_py.cliargs import float_in, int_in, positive_int
-from firmware_py.nodeargs import add_bus_arguments, add_fd_argument
+from firmware_py.nodeargs import add_bus_arguments, add_fd_argument, lambda_tags_of
 from sim.model.scenario import MAX_AGENTS
 
 from ._common import one_line_errors
@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     bus = open_bus(**bus_kwargs(args.interface, args.channel, args.bus_config))
     try:
         n = send(bus, args.kind, args.count, args.target, args.rate, args.seed,
-                 FrameCodec(dbc_path(args.fd)))
+                 FrameCodec(dbc_path(args.fd, lambda_tags_of(args))))
     finally:
         bus.shutdown()
     print(f"bess-ded inject: sent {n} {args.kind} frames")

@@ -69,7 +69,7 @@ def load_node_scenario(args: argparse.Namespace) -> Any:
 
     sc = resolve_scenario(args.case)
     agent_configs_from_scenario(sc)  # a fleet larger than the DBC's frames: refused, named
-    sc = with_fd(sc, args.fd)  # --fd, or the scenario's [bus] fd
+    sc = with_fd(sc, args.fd, args.no_lambda_tags)  # --fd, or the scenario's [bus] fd
     if args.time_scale != 1.0:
         sc = scaled(sc, args.time_scale)
     check_bus_load(sc)  # and one the bus cannot carry

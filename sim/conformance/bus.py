@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from firmware_py.errors import ParameterError
+from firmware_py.nodeargs import fd_argv
 
 if TYPE_CHECKING:
     from firmware_py.config import AgentConfig
@@ -62,7 +63,7 @@ class ConformanceSetup:
         from dbc import dbc_path
         from firmware_py.frames import FrameCodec
 
-        return FrameCodec(dbc_path(self.sc.fd))
+        return FrameCodec(dbc_path(self.sc.fd, self.sc.lambda_tags))
 
     def drive(self, wait: float, rt_priority: int = 0,
               progress: Callable[[str], None] | None = None) -> tuple[list[Frame], float]:
@@ -197,7 +198,7 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     # the tester plays every sender at a boot the DUT's floors accept (AUTH-21)
     boot = max([secoc.INSECURE_BOOT, *ring.floors.values()])
     planned = conf.plan(cfg, tester_keys, sc.prices[0].rho, boot=boot, quick=quick,
-                        codec=FrameCodec(dbc_path(sc.fd)))
+                        codec=FrameCodec(dbc_path(sc.fd, sc.lambda_tags)))
     played = conf.played_steps(planned)
     length = played[-1].end * ts
     say(f"bess-ded conformance: {sc.title or sc.name}{chosen}, device under test: {node} "
@@ -210,7 +211,7 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     # the device at the tester's --rt-priority, else as `up` runs its nodes (SCHED_FIFO)
     rt = ["--rt-priority", str(rt_priority or busrun.RT_PRIORITY)]
     cmd = ["bess-ded", "agent", "--config", str(cfg_path), *key_argv, *bus.argv(),
-           *(["--fd"] if sc.fd else []), *rt]
+           *fd_argv(sc.fd, sc.lambda_tags), *rt]
     say(f"  start the device with its configuration and key, e.g.: {shlex.join(cmd)}")
     say(f"  waiting up to {wait:g} s for its {diag_name(i)} frame ...")
     return ConformanceSetup(sc, i, cfg, ring, dut_key, bus, out, planned, quick, text)

@@ -114,12 +114,16 @@ class Scenario:
     # when the agents send their MC frame (``transmit``, ``event_threshold``,
     # ``event_heartbeat``; firmware_py.config.Transmit): every tick unless "event"
     transmit: Transmit = Transmit()
-    # the bus run's frame format (``[bus] fd``): CAN FD frames with the bit-rate switch, the
-    # FD twin of the DBC (dbc/bess_ded_fd.dbc), instead of classic CAN
+    # the bus run's frame format (``[bus] fd``): CAN FD frames with the bit-rate switch, an
+    # FD twin of the DBC (dbc/bess_ded_fd.dbc, ``lambda_tags``), instead of classic CAN
     fd: bool = False
     # [security] signed_price: the router signs each price segment (Ed25519), the agents
     # take only the signed price (AUTH-31..33, docs/security.md; firmware_py and firmware_c)
     signed_price: bool = False
+    # [security] lambda_tags (CAN FD only): λ and its sync carry a 24-bit tag per receiver
+    # under the pair's key (AUTH-34, dbc/bess_ded_fd.dbc); false: λ under its sender's node
+    # key, 8 bytes (dbc/bess_ded_fd_untagged.dbc), for a bus that cannot afford the tags
+    lambda_tags: bool = True
 
     # ---- derived views
 
@@ -341,8 +345,17 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
 
     transmit = r.transmit(data)
     fd = r.switch(data, "bus", "fd", "true (CAN FD) or false (classic CAN)")
+    security = frozenset({"signed_price", "lambda_tags"})
     signed_price = r.switch(data, "security", "signed_price",
-                            "true (the router signs each price segment) or false")
+                            "true (the router signs each price segment) or false",
+                            others=security)
+    lambda_tags = r.switch(data, "security", "lambda_tags", "true (on CAN FD, λ carries a "
+                           "tag per receiver, AUTH-34) or false (λ under its sender's node "
+                           "key)", default=True, others=security)
+    if not lambda_tags and not fd:
+        raise ConfigError(src, "security.lambda_tags", "expected it only with [bus] fd = true "
+                          "(classic CAN has no room for the tags: λ is always under its "
+                          "sender's node key there), but got false on a classic bus")
     sc = Scenario(
         name=str(data.get("name", Path(src).stem)), title=str(data.get("title", "")), source=src,
         ts=ts, duration=duration, load_kw=r.number(data, "load_kw", lo=-1e6, hi=1e6),
@@ -350,6 +363,7 @@ def parse_scenario(data: Mapping[str, Any], src: str) -> Scenario:
         lambda0=tuple(lambda0), prices=tuple(prices), events=tuple(events),
         variants=tuple(variants), rho_min=rho_min, rho_max=rho_max,
         price_step_max=step_max, transmit=transmit, fd=fd, signed_price=signed_price,
+        lambda_tags=lambda_tags,
         resilient_f=int(r.number(data, "resilient_f", lo=0, hi=RESILIENT_F_MAX, integer=True))
         if "resilient_f" in data else 0)
     if n <= MAX_AGENTS:  # a fleet a bus can carry: its agents' configurations load too
@@ -390,14 +404,15 @@ class _Reader:
                 raise self.fail(f"{where}.{key}" if where else key,
                                 f"unknown key; expected one of {', '.join(sorted(allowed))}")
 
-    def switch(self, data: Mapping[str, Any], table: str, key: str, what: str) -> bool:
-        """An optional table holding one optional boolean ``key`` (``[bus] fd``,
-        ``[security] signed_price``): False when absent."""
+    def switch(self, data: Mapping[str, Any], table: str, key: str, what: str,
+               default: bool = False, others: frozenset[str] = frozenset()) -> bool:
+        """An optional table holding the optional boolean ``key`` (``[bus] fd``,
+        ``[security] signed_price``) and ``others``: ``default`` when absent."""
         if table not in data:
-            return False
+            return default
         t = self.table(data, table)
-        self.only(t, table, {key})
-        value = t.get(key, False)
+        self.only(t, table, {key, *others})
+        value = t.get(key, default)
         if not isinstance(value, bool):
             raise ConfigError(self.src, f"{table}.{key}", f"expected {what}, but got {value!r}")
         return value
@@ -534,6 +549,8 @@ def to_toml(sc: Scenario) -> str:
         doc["bus"] = {"fd": True}
     if sc.signed_price:  # unsigned scenarios are written as they were
         doc["security"] = {"signed_price": True}
+    if sc.fd and not sc.lambda_tags:
+        doc.setdefault("security", {})["lambda_tags"] = False
     if sc.events:
         doc["event"] = [{"t": e.t, "agent": e.agent, "action": e.action} for e in sc.events]
     # the source path may hold anything; keep it out of the comment line's way

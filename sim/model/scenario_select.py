@@ -9,7 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from firmware_py.config import TRANSMIT_MODES, Transmit
-from firmware_py.errors import ConfigError
+from firmware_py.errors import ConfigError, ParameterError
 from sim.model.scenario import SCENARIO_DIR, Scenario, load_case, load_scenario
 
 
@@ -47,10 +47,19 @@ def pick_variant(sc: Scenario, label: str | None, command: str = "up",
     return run, f" [variant {label}]"
 
 
-def with_fd(sc: Scenario, fd: bool) -> Scenario:
+def with_fd(sc: Scenario, fd: bool, no_lambda_tags: bool = False) -> Scenario:
     """``sc`` on a CAN FD bus when ``fd`` (the command line's --fd), else as the scenario
-    says (its ``[bus] fd``): the flag selects FD, it never turns a scenario's FD off."""
-    return replace(sc, fd=True) if fd and not sc.fd else sc
+    says (its ``[bus] fd``): the flag selects FD, it never turns a scenario's FD off;
+    ``no_lambda_tags`` (--no-lambda-tags): λ under its sender's node key on that FD bus
+    (ParameterError on a classic one)."""
+    if fd and not sc.fd:
+        sc = replace(sc, fd=True)
+    if no_lambda_tags:
+        if not sc.fd:
+            raise ParameterError("--no-lambda-tags", "it with --fd or a scenario's [bus] fd "
+                                 "(classic CAN has no room for the tags)", "a classic bus")
+        sc = replace(sc, lambda_tags=False)
+    return sc
 
 
 def with_transmit(sc: Scenario, mode: str | None) -> Scenario:

@@ -349,7 +349,7 @@ class PlantNode(SimNodeClock):
             raise ParameterError("ramp_full_s", "a time ≥ 0 s (0: no ramp limit)", ramp_full_s)
         self.scenario = scenario
         self.period = period
-        self.codec = codec or FrameCodec(dbc_path(scenario.fd))
+        self.codec = codec or FrameCodec(dbc_path(scenario.fd, scenario.lambda_tags))
         self.units = [BessUnit.create(i, b) for i, b in enumerate(scenario.batteries, start=1)]
         for u in self.units:
             u.ramp_kw_s = (max(abs(u.battery.p_min), u.battery.p_max) / ramp_full_s

@@ -183,7 +183,7 @@ class RouterNode(SimNodeClock):
             raise ParameterError("period", "a positive number of seconds", period)
         self.scenario = scenario
         self.period = period
-        self.codec = codec or FrameCodec(dbc_path(scenario.fd))
+        self.codec = codec or FrameCodec(dbc_path(scenario.fd, scenario.lambda_tags))
         self.silent = tuple(as_window(w) for w in silent)
 
         c = self.codec

@@ -214,7 +214,8 @@ def _demo_signed(log_path: Path, sc: Any, demo: dict[str, bytes]) -> bool:
     from sim.run.verdict import silence_ts
 
     try:
-        log = read_log(log_path, FrameCodec(dbc_path(sc.fd)), n=sc.n, ts=sc.ts, keys=demo,
+        log = read_log(log_path, FrameCodec(dbc_path(sc.fd, sc.lambda_tags)), n=sc.n,
+                       ts=sc.ts, keys=demo,
                        silence_ts=silence_ts(sc))
     except (ValueError, EOFError):
         return False  # report() names the format problem

@@ -211,7 +211,7 @@ def _record(sc: Scenario, out: Path, bus: BusOptions, watch: can.BusABC,
     for path in logdir.glob("agent_*.counters.json"):  # signed_price's (--counters-dir)
         path.unlink()
     run_facts_path(out).unlink(missing_ok=True)
-    codec = FrameCodec(dbc_path(sc.fd))
+    codec = FrameCodec(dbc_path(sc.fd, sc.lambda_tags))
     key_dir = None if insecure else keys or provision_keys(sc, out / "keys")
     specs = node_specs(sc, scenario_path, out, bus, extra, rt_priority, key_dir,
                        frozenset({dut}) if dut else frozenset(), c_agents, c_node,

@@ -44,7 +44,7 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
                    insecure: bool = False, command: str = "up",
                    nodes: str = "{n} agents + plant + router",
                    say: Callable[[str], None] = print,
-                   transmit: str | None = None, fd: bool = False,
+                   transmit: str | None = None, fd: bool = False, no_lambda_tags: bool = False,
                    check: Callable[[Scenario], object] | None = None) -> RunPlan:
     """Check a fleet run of scenario ``case`` (a case number or a .toml) and announce it
     through ``say``, line by line (``nodes``: what runs, ``{n}`` the number of agents).
@@ -66,7 +66,7 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
     base = resolve_scenario(case)
     sc, chosen = pick_variant(base, variant, command, say)
     sc = with_transmit(sc, transmit)
-    sc = with_fd(sc, fd)
+    sc = with_fd(sc, fd, no_lambda_tags)
     bus = bus or busrun.BusOptions()
     kw = bus.resolved()  # checks the JSON (and the keys) before anything starts
     if kw["interface"] in IN_PROCESS_INTERFACES:
@@ -97,7 +97,9 @@ def plan_fleet_run(case: str, *, variant: str | None = None, bus: BusOptions | N
     bus, port = busrun.private_port(bus)
     say(f"bess-ded {command}: {sc.title or sc.name}{chosen}: {nodes.format(n=sc.n)} for "
         f"{run_s / scale:g} s" + (f" (run at ×{scale:g}: {run_s:g} s)" if scale != 1 else ""))
-    say(f"  bus: {bus.resolved()}" + (", CAN FD frames" if sc.fd else "")
+    say(f"  bus: {bus.resolved()}" + ((", CAN FD frames" + ("" if sc.lambda_tags else
+                                                              ", λ untagged"))
+                                      if sc.fd else "")
         + (f" (port {port} private to this run; name one with --bus-config "
            "'{\"port\": N}')" if port else ""))
     for line in sc.analysis().describe()[1:]:

@@ -87,6 +87,12 @@ def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
                 cmd[k] += 2 if m == "router" else 1
         if cmd:
             out[contract.command_key_name(i)] = cmd.most_common(1)[0][0]
+    agents = [n for n in rings if n.startswith("agent_")]
+    for a in agents:  # AUTH-34: each λ tag under the key its receiver holds
+        for receiver, ring_rx in rings.items():
+            if receiver != a and (k := ring_rx.tag_key(a, receiver)
+                                  or rings[a].tag_key(a, receiver)) is not None:
+                out[secoc.pair_label(a, receiver)] = k
     for ring in rings.values():  # signed_price: the router's public price key
         out.update(pricesig.monitor_entries(ring.price_verify, ring.fleet_id))
     return out
@@ -153,7 +159,7 @@ def run_in_process(sc: Scenario, out: Path, duration: float, channel: str = "bes
     them on a node (``RunFacts.injected_loss``).
     """
     out.mkdir(parents=True, exist_ok=True)
-    codec = FrameCodec(dbc_path(sc.fd))
+    codec = FrameCodec(dbc_path(sc.fd, sc.lambda_tags))
     nodes_ = secoc.fleet_nodes(sc.n)
     if insecure:
         rings = {n: secoc.Keyring.insecure_for(n) for n in nodes_}

@@ -57,11 +57,30 @@ def peers_of(sc: Any) -> dict[str, list[str]]:
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
 
-    out = {f"agent_{c.id}": ["router", *(f"agent_{n.id}" for n in c.neighbours)]
+    fd = getattr(sc, "fd", False)  # AUTH-34: on CAN FD, λ is tagged per receiver
+    out = {f"agent_{c.id}": ["router", *([] if fd else (f"agent_{n.id}" for n in c.neighbours))]
            for c in agent_configs_from_scenario(sc)}
-    agents = [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
+    agents = [] if fd else [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
     out["plant"] = [*agents, "router"]
     out["router"] = list(agents)
+    return out
+
+
+def tags_of(sc: Any) -> dict[str, list[str]]:
+    """AUTH-34, a CAN FD fleet only: the λ tag keys each node's key file holds, the pairs
+    it is one of (agent i: its own to each receiver of its λ, each neighbour's to it; the
+    plant and the router: every agent's to them). A classic fleet's: none."""
+    from firmware_py import contract, secoc
+    from firmware_py.config import agent_configs_from_scenario
+
+    out: dict[str, list[str]] = {node: [] for node in secoc.fleet_nodes(sc.n)}
+    if not getattr(sc, "fd", False):
+        return out
+    for c in agent_configs_from_scenario(sc):
+        me = f"agent_{c.id}"
+        for r in contract.lambda_receivers([n.id for n in c.neighbours]):
+            out[me].append(secoc.pair_label(me, r))
+            out.setdefault(r, []).append(secoc.pair_label(me, r))
     return out
 
 
@@ -104,7 +123,9 @@ def node_document(sc: Any, master: bytes, node: str, boot: int = 0,
         {p: secoc.derive_node_key(master, p) for p in peers_of(sc)[node]}, floors,
         {f: secoc.derive_frame_key(master, f) for f in frames_of(sc)[node]},
         {t: secoc.derive_command_key(master, t) for t in commands_of(sc)[node]},
-        price_sign=sign, price_verify=verify)
+        price_sign=sign, price_verify=verify,
+        tags={t: secoc.derive_lambda_tag_key(master, *t.split(">"))
+              for t in tags_of(sc)[node]})
 
 
 def write_key_set(sc: Any, out: Path, master: bytes, with_master: bool = True) -> None:
@@ -131,6 +152,9 @@ def derived_keys(master: bytes, n: int) -> dict[str, bytes]:
     out.update({f: secoc.derive_frame_key(master, f) for f in contract.keyed_frames(n)})
     out.update({contract.command_key_name(i): secoc.derive_command_key(master, f"agent_{i}")
                 for i in contract.agent_ids(n)})
+    agents = [f"agent_{i}" for i in contract.agent_ids(n)]  # AUTH-34: every λ tag pair
+    out.update({secoc.pair_label(a, r): secoc.derive_lambda_tag_key(master, a, r)
+                for a in agents for r in (*agents, "plant", "router") if r != a})
     return out
 
 
@@ -149,6 +173,8 @@ def load_key_set(keys_dir: Path) -> dict[str, bytes]:
             out.setdefault(name, key)
         for target, key in k.commands.items():  # AUTH-30
             out.setdefault(contract.command_key_name(int(target.removeprefix("agent_"))), key)
+        for pair, key in k.tags.items():  # AUTH-34
+            out.setdefault(pair, key)
     out.update({k.node: k.key for k in files})
     from firmware_py import pricesig  # signed_price: the recorder checks the price too
 

@@ -13,7 +13,12 @@ from firmware_py import contract
 from firmware_py.contract import MC_CYCLE_S
 from firmware_py.frames import DecodedFrame, target_agent
 from firmware_py.nodeio import LOST_WINDOWS
-from firmware_py.secoc import FreshnessVerifier, beyond_boot_bound, frame_verifies
+from firmware_py.secoc import (
+    FreshnessVerifier,
+    beyond_boot_bound,
+    frame_verifies,
+    tags_verify,
+)
 
 
 def cycle_or_inf(name: str, ts: float) -> float:
@@ -68,17 +73,29 @@ class Monitor:
         return contract.frame_key(self.keys, f.name,
                                   None if target is None else target_agent(target))
 
+    def _verifier(self, f: DecodedFrame, data: bytes | bytearray
+                  ) -> Callable[[int], bool] | None:
+        """Whether ``data`` verifies at a freshness value: its Mac under the frame's key,
+        or on CAN FD every receiver's tag of a λ frame (AUTH-34); None: no key."""
+        if f.tag_slots:
+            sender = contract.sender_of(f.name.removesuffix("_Sync"))
+            return lambda v: tags_verify(self.keys.get, sender, f.frame_id, data, v)
+        key = self._key(f)
+        if key is None:
+            return None
+        return lambda v: frame_verifies(key, f.frame_id, data, v)
+
     def sync(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> None:
         """Take a sync frame: its freshness becomes the sender's (raises ``StaleBoot``,
         ``SyncJump``, ``Stale`` or ``Forged`` when it does not verify as the newest). A
         sync that undoes a forged boot advance (AUTH-27) is taken and counted in
         ``undone``."""
-        key = self._key(f)
+        verifies = self._verifier(f, data)
         fv = contract.FRESHNESS.join(f.raw["Boot"], f.raw["Count"])
         fid = contract.SYNCED_BY[f.frame_id]
         label = contract.sender_of(f.name.removesuffix("_Sync"))
         floor = max(self.boot_floors.get(label, 0), self.boots.get(label, 0))
-        verified = key is not None and frame_verifies(key, f.frame_id, data, fv)
+        verified = verifies is not None and verifies(fv)
         boot = f.raw["Boot"]
         last, back = self.fv.last(fid), self.back.get(fid)
         split = contract.FRESHNESS.split
@@ -125,12 +142,9 @@ class Monitor:
     def check(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> bool:
         """True: authentic and fresh; False: not checkable yet (no sync seen); raises
         ``Stale`` (genuine, late) or ``Forged``."""
-        key = self._key(f)
-        if key is None or self.fv.last(f.frame_id) is None:
+        verifies = self._verifier(f, data)
+        if verifies is None or self.fv.last(f.frame_id) is None:
             return False
-        def verifies(v: int) -> bool:
-            return frame_verifies(key, f.frame_id, data, v)
-
         fv = self.fv.search(f.frame_id, f.counter, self.windows(f, t), verifies)
         if fv is not None:
             self.fv.accept(f.frame_id, fv)

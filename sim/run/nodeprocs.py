@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from firmware_py.config import agent_configs_from_scenario
+from firmware_py.nodeargs import fd_argv
 from sim.model.scenario import Scenario
 from sim.run.busopts import C_BUS_EXPECTED, BusOptions, BusRunError, c_node_bus_argv
 
@@ -101,7 +102,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
     # process per agent: twelve of them above the rig starved it beside a CPU hog (the
     # plant lost frames past its freshness window and failed their MACs).
     rt_host = ["--rt-priority", str(min(rt_priority + 1, 99))] if rt_priority else []
-    bus_argv = bus.argv() + (["--fd"] if sc.fd else [])  # every node sends the bus's format
+    bus_argv = bus.argv() + fd_argv(sc.fd, sc.lambda_tags)  # every node the bus's format
     cfg_dir = out / "agents"
     cfg_dir.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m"]
@@ -125,7 +126,7 @@ def node_specs(sc: Scenario, scenario_path: Path, out: Path, bus: BusOptions,
                 raise BusRunError(f"{name}: the C agent's bus: expected {C_BUS_EXPECTED}, "
                                   f"but got {bus.resolved()}")
             specs.append(NodeSpec(name, [str(c_node), "--config", str(path)] + key(name)
-                                  + c_bus + (["--fd"] if sc.fd else []) + rt + counters))
+                                  + c_bus + fd_argv(sc.fd, sc.lambda_tags) + rt + counters))
             continue
         if agents_per_process == 1:
             specs.append(NodeSpec(name, py + ["firmware_py", "--config", str(path)] + key(name)

@@ -56,7 +56,8 @@ def report(sc: Scenario, log_path: Path, out: Path, facts: RunFacts | None = Non
     to ρ every dispatching agent's final λ must be for the run to converge (cu/kWh)."""
     facts = facts or RunFacts()
     out.mkdir(parents=True, exist_ok=True)
-    codec = codec or FrameCodec(dbc_path(sc.fd))  # the frame format the run's bus had
+    # the frame format the run's bus had
+    codec = codec or FrameCodec(dbc_path(sc.fd, sc.lambda_tags))
     log = buslog.read_log(log_path, codec, n=sc.n, ts=sc.ts, keys=keys,
                           boot_floors=boot_floors, silence_ts=silence_ts(sc))
     tr = buslog.trajectory_from_log(sc, log) if log.t_first_price is not None else None

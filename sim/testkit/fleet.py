@@ -272,7 +272,8 @@ class SimFleet:
         rings = (keys.keyrings(secoc.fleet_nodes(sc.n)) if keys is not None else
                  {n: secoc.Keyring.insecure_for(n) for n in secoc.fleet_nodes(sc.n)})
         self._rings = rings
-        self.codec = FrameCodec(dbc_path(sc.fd))  # the scenario's frame format ([bus] fd)
+        # the scenario's frame format ([bus] fd, [security] lambda_tags)
+        self.codec = FrameCodec(dbc_path(sc.fd, sc.lambda_tags))
         factories = busrun.in_process_nodes(sc, self.codec, rings)
         self.channel = channel or f"bess-testkit-{os.getpid()}-{next(_channels)}"
         self._bus_kw: dict[str, Any] = {"interface": "virtual", "channel": self.channel,
