@@ -194,22 +194,24 @@ def tagged(msg: can.Message, fv: int, master: bytes, slots: tuple[str, ...],
                        is_extended_id=False, is_fd=True, bitrate_switch=True)
 
 
-def _both(variant: str, fd: bool = False) -> tuple[AgentRuntime, CAgent]:
+def _both(variant: str, fd: bool = False, tags: bool = True) -> tuple[AgentRuntime, CAgent]:
     fleet, p_min, p_max, insecure, extra = {**VARIANTS, **SIGNED}[variant]
     signed = variant in SIGNED
     cfg = parse_agent_config(tomllib.loads(CONFIG.format(fleet=fleet, p_min=p_min,
                                                          p_max=p_max) + extra), "random.toml")
     # AUTH-34: on CAN FD no other agent's node key, the λ tag keys instead
+    tags = fd and tags
     peers = {n: derive_node_key(MASTER, n)
-             for n in ("router", "plant") + (() if fd else ("agent_1", "agent_3"))}
+             for n in ("router", "plant") + (() if tags else ("agent_1", "agent_3"))}
 
     def ring() -> Keyring:
         if insecure:
             return Keyring.insecure_for("agent_2")
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
                        peers=peers, frames=FRAMES, commands=COMMANDS, fleet=FLEET,
-                       price_verify=PUBLIC if signed else None, **({"tags": TAGS} if fd else {}))
-    return AgentRuntime(cfg, FrameCodec(dbc_path(fd)), keys=ring()), CAgent(cfg, ring(), fd=fd)
+                       price_verify=PUBLIC if signed else None, tags=TAGS if tags else None)
+    return (AgentRuntime(cfg, FrameCodec(dbc_path(fd, tags)), keys=ring()),
+            CAgent(cfg, ring(), fd=fd, lambda_tags=tags))
 
 
 # the run starts synced and RUNNING: its first tick (its hello), every sender's sync, the
@@ -246,16 +248,18 @@ LFORGE = st.tuples(st.just("lforge"), st.sampled_from(("pair_3", "node_1", "pair
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(variant=st.sampled_from(sorted(VARIANTS)),
+@given(variant=st.sampled_from(sorted(VARIANTS)), tags=st.booleans(),
        events=st.lists(st.one_of(TRAFFIC, LFORGE), min_size=20, max_size=200))
-def test_c_and_python_agents_agree_on_an_fd_bus(variant: str, events: list[tuple]) -> None:
+def test_c_and_python_agents_agree_on_an_fd_bus(variant: str, tags: bool,
+                                                events: list[tuple]) -> None:
     """GEN-1, RX-2 on a CAN FD bus: every sender's frames FD with the bit-rate switch,
     both agents send FD frames with it, and count a classic frame (the junk without the
     FD flag, the forged ones sent classic) as malformed alike. AUTH-34: the λ frames and
     their syncs 32 bytes with a tag per receiver, both agents' own tagged alike (frame for
-    frame), forged λ tags among the traffic."""
+    frame), forged λ tags among the traffic; without the tags (``--no-lambda-tags``) λ in
+    8 bytes under its sender's node key, as on classic CAN."""
     py, c = run_both(variant, PREAMBLE + events + [("forge", "ER_Price", bytes(8)),
-                                                   ("tick", 1)], fd=True)
+                                                   ("tick", 1)], fd=True, tags=tags)
     assert py.counters["malformed"] == c.counters["malformed"] >= 1
 
 
@@ -377,14 +381,16 @@ def test_a_genuine_frame_out_of_order_is_stale_not_forged_in_both(variant: str) 
     assert py.counters["auth"] == c.counters["auth"] == 1 and py.counters["stale"] == 0
 
 
-def run_both(variant: str, events: list[tuple], fd: bool = False
+def run_both(variant: str, events: list[tuple], fd: bool = False, tags: bool = True
              ) -> tuple[AgentRuntime, CAgent]:
     """Both runtimes through the same events (EVENT's kinds; ("at", dt): the next frames
     arrive dt after the last tick, which may go back in time), frames (their format
     too), counters, state and λ compared at every tick. ``fd``: a CAN FD bus, every
-    sender's frames FD (the forged ones classic: malformed there)."""
-    py, c = _both(variant, fd)
-    codec = FrameCodec(dbc_path(fd))
+    sender's frames FD (the forged ones classic: malformed there); ``tags``: with λ tags
+    (AUTH-34) there, else λ in 8 bytes under its sender's node key."""
+    py, c = _both(variant, fd, tags)
+    codec = FrameCodec(dbc_path(fd, tags))
+    tagging = fd and tags
     if {**VARIANTS, **SIGNED}[variant][3]:   # every insecure sender: boot 1, public keys
         senders = {n: FleetSender(codec) for n in LABELS}
     else:
@@ -407,7 +413,7 @@ def run_both(variant: str, events: list[tuple], fd: bool = False
         """Agent j's MC (``name``), tagged on CAN FD (AUTH-34; ``key``, ``slots``: forged)."""
         sender = senders[SENDER_OF[name]]
         msg = sender.frame(name, raw)
-        if not fd:
+        if not tagging:
             return msg
         fv = contract.FRESHNESS.join(sender.boot, sender._count[msg.arbitration_id])
         return tagged(msg, fv, master, slots or TAG_RX[SENDER_OF[name]], key)
@@ -451,7 +457,7 @@ def run_both(variant: str, events: list[tuple], fd: bool = False
                 "Command": ev[1], "Target": target_raw(ev[2]), "GainK": ev[3], "GainH": ev[4]}))
         elif kind == "sync":
             msg = senders[SENDER_OF[ev[1]]].sync(ev[1])
-            if fd and ev[1].endswith("_MC"):   # AUTH-34: FV = Boot:Count of the sync
+            if tagging and ev[1].endswith("_MC"):   # AUTH-34: FV = Boot:Count of the sync
                 d = int.from_bytes(msg.data[:8], "little")
                 msg = tagged(msg, contract.FRESHNESS.join(d >> 48, d >> 24 & 0xFFFFFF),
                              master, TAG_RX[SENDER_OF[ev[1]]])

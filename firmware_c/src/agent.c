@@ -60,7 +60,7 @@ uint32_t bd_id_sender(uint32_t id)
 uint8_t bd_frame_len(const bd_agent *a, uint32_t id)
 {
     int mc = in_block(id, BD_MC_BASE) || in_block(id, BD_MC_SYNC_BASE);
-    return (uint8_t)(a->p.fd != 0u && mc ? BD_FD_MC_BYTES : 8u);
+    return (uint8_t)(lambda_tagged(&a->p) && mc ? BD_FD_MC_BYTES : 8u);
 }
 
 /* ------------------------------------------------------------------ keys */
@@ -250,7 +250,7 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     if (p->id < 1u || p->id > BD_N_AGENTS_MAX || p->n_neighbours > BD_MAX_NEIGHBOURS
         || p->fleet_size > BD_N_AGENTS_MAX || p->period_ns <= 0
         || bd_ctrl_config_check(&p->ctrl) != BD_OK || keys->n_peers > BD_MAX_PEERS
-        || (p->fd != 0u && p->n_neighbours > BD_FD_NEIGHBOURS_MAX)) {   /* AUTH-34 */
+        || (lambda_tagged(p) && p->n_neighbours > BD_FD_NEIGHBOURS_MAX)) {   /* AUTH-34 */
         return BD_ERR_PARAMS;
     }
     a->p = *p;
@@ -319,7 +319,7 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     if (status_floor > a->key_floor[plant]) {
         a->key_floor[plant] = status_floor;
     }
-    if (p->fd != 0u) {
+    if (lambda_tagged(p)) {
         int err = init_tags(a, keys);
         if (err != BD_OK) {
             return err;

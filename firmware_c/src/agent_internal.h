@@ -30,6 +30,12 @@ static inline uint32_t fv_boot(uint64_t fv)
     return (uint32_t)(fv >> BD_FV_COUNT_BITS);
 }
 
+/* AUTH-34: λ and its sync carry a tag per receiver (a CAN FD bus with the tags) */
+static inline int lambda_tagged(const bd_agent_params *p)
+{
+    return p->fd != 0u && p->no_lambda_tags == 0u;
+}
+
 static inline int active(uint32_t state)
 {
     return state == BD_STATE_RUNNING;

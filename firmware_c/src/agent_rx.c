@@ -174,7 +174,7 @@ static int verifies(bd_agent *a, const uint8_t *key, const bd_frame *f, uint64_t
 static const uint8_t *frame_key(const bd_agent *a, const bd_rx_slot *s, int sync)
 {
     uint32_t r = (uint32_t)(s - a->rx);
-    if (r >= BD_RX_MC0 && a->p.fd != 0u) {
+    if (r >= BD_RX_MC0 && lambda_tagged(&a->p)) {
         return a->tag_rx_key[r - BD_RX_MC0];
     }
     return s == &a->rx[BD_RX_COMMAND] && !sync ? a->command_key : a->key[s->key_index];

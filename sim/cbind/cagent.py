@@ -73,6 +73,7 @@ class Params(ctypes.Structure):
         ("gain_h_raw_min", ctypes.c_uint32), ("gain_h_raw_max", ctypes.c_uint32),
         ("tx_event", ctypes.c_uint32), ("tx_threshold", ctypes.c_int32),
         ("tx_heartbeat", ctypes.c_uint32), ("fd", ctypes.c_uint32),
+        ("no_lambda_tags", ctypes.c_uint32),
         ("signed_price", ctypes.c_uint32),
     ]
 
@@ -449,7 +450,7 @@ def keyring_from(ring: Keyring) -> KeyringC:
                  "ER_Command"):
         ring.key_for(name)
     # AUTH-34: a key file's λ tag keys (a fleet's master derives them in C)
-    tags = getattr(ring, "listed_tag_keys", dict)() if ring.master is None else {}
+    tags = ring.listed_tag_keys() if ring.master is None else {}
     k = keyring_of(ring.node, ring.key, ring.boot, ring.listed_keys(), floors=ring.floors,
                    frames=ring.listed_frame_keys(), commands=ring.listed_command_keys(),
                    tags=tags)
@@ -478,12 +479,13 @@ class CAgent:
 
     def __init__(self, cfg: AgentConfig, keys: Keyring | KeyringC | None = None,
                  runtime: Runtime | None = None, params: Params | None = None,
-                 fd: bool = False) -> None:
+                 fd: bool = False, lambda_tags: bool = True) -> None:
         self.rt = runtime or load()
         self.cfg = cfg
         self.period = cfg.controller.ts
         self.params = params if params is not None else params_of(cfg)
         self.params.fd = int(fd)  # GEN-1: a CAN FD bus (the DBC's FD twin)
+        self.params.no_lambda_tags = int(not lambda_tags)  # AUTH-34: FD without λ tags
         if keys is None:
             keys = Keyring.insecure_for(f"agent_{cfg.id}")
         self.keys = keys if isinstance(keys, KeyringC) else keyring_from(keys)

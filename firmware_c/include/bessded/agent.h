@@ -100,6 +100,10 @@ typedef struct {
     /* GEN-1, RX-2: 1 on a CAN FD bus (the DBC's FD twin): every frame sent as FD with the
      * bit-rate switch, classic frames received are malformed; 0: classic CAN */
     uint32_t fd;
+    /* AUTH-34: 0 on an FD bus is the default, AGENT_<i>_MC and its sync with a λ tag per
+     * receiver (32 bytes); 1: without them, 8 bytes under the node key as on classic CAN
+     * (--no-lambda-tags, [security] lambda_tags = false: dbc/bess_ded_fd_untagged.dbc) */
+    uint32_t no_lambda_tags;
     /* AUTH-31..33: 1 takes only the router's signed price ([security] signed_price) */
     uint32_t signed_price;
 } bd_agent_params;
