@@ -156,6 +156,33 @@ def test_case1_on_an_fd_virtual_bus_converges_with_fd_frames_only(tmp_path: Path
     assert rec.metrics["frames_undecodable"] == {} and rec.metrics["final_error"] < 1e-3
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("lambda_tags", [True, False])
+def test_case1_on_an_fd_bus_with_c_agents_converges(tmp_path: Path, lambda_tags: bool) -> None:
+    """AUTH-34 across both runtimes: case 1 on an FD virtual bus (simulated clock) with
+    agents 2 and 4 on firmware_c (sim.cbind CAgent) beside firmware_py's: every λ they
+    send is 32 bytes with a tag per receiver (none: 8 bytes with ``--no-lambda-tags``),
+    each side verifies the other's tags, nothing is rejected, case 1 converges."""
+    from firmware_py.config import agent_configs_from_scenario as configs
+
+    sc = replace(load_case(1), duration=8.0, fd=True, lambda_tags=lambda_tags)
+    m = busrun.run_in_process(sc, tmp_path, duration=8.0, channel=f"test-fd-c-{lambda_tags}",
+                              c_agents=(2, 4))
+    assert m["final_error"] < 1e-3 and m["frames_undecodable"] == {}
+    diag = m["node_diagnostics"]
+    assert all(a["RejectedAuth"] == 0 and a["RejectedDlc"] == 0 for a in diag.values()), diag
+    frames = list(can.LogReader(str(tmp_path / "run.log")))
+    for i in (2, 4):   # C agents' MC, then a Python agent's for the same form
+        mc = [f for f in frames if f.arbitration_id == 0x100 + i]
+        want = sorted(n.id for n in configs(sc)[i - 1].neighbours) + [0xFE, 0xFF]
+        assert mc and all(f.is_fd and f.bitrate_switch for f in mc)
+        if lambda_tags:
+            assert all(len(f.data) == 32 and f.data[:3] == bytes(3)
+                       and list(f.data[8::4]) == want + [0] * (6 - len(want)) for f in mc)
+        else:
+            assert all(len(f.data) == 8 for f in mc)
+
+
 @pytest.mark.realtime
 def test_udp_multicast_fd_case1_converges(tmp_path: Path, udp_port: int) -> None:
     """`bess-ded up --fd` on udp_multicast, every node a process: case 1 converges, every
