@@ -451,10 +451,13 @@ def test_up_case1_every_agent_in_c_on_udp_multicast(tmp_path: Path, udp_port: in
 
 
 @pytest.mark.realtime
-def test_up_case1_mixed_fleet_on_udp_multicast(tmp_path: Path, udp_port: int) -> None:
+@pytest.mark.parametrize("fd", [(), ("--fd",)], ids=["classic", "fd"])
+def test_up_case1_mixed_fleet_on_udp_multicast(tmp_path: Path, udp_port: int,
+                                               fd: tuple[str, ...]) -> None:
     """`--c-agents 2,4`: agents 2 and 4 in C, 1 and 3 on firmware_py, one bus: at any load
-    it converges and blames no node."""
-    run = _up(tmp_path, udp_port, "--c-agents", "2,4")
+    it converges and blames no node; on CAN FD too (``--fd``: λ tagged per receiver under
+    the key files' [lambda_tag_keys], AUTH-34)."""
+    run = _up(tmp_path, udp_port, "--c-agents", "2,4", *fd)
     assert "agents in C: 2, 4 (bessded-agent)" in run["stdout"]
     assert SUMMARY.search(run["logs"]["agent_2"]) and SUMMARY.search(run["logs"]["agent_4"])
     assert not SUMMARY.search(run["logs"]["agent_1"])
