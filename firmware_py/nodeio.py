@@ -87,9 +87,11 @@ from .secoc import (
     beyond_boot_bound,
     derive_command_key,
     derive_frame_key,
+    derive_lambda_tag_key,
     derive_node_key,
     frame_tag,
     frame_verifies,
+    pair_label,
     sign_frame,
     sign_tags,
     tag_code,
@@ -837,12 +839,36 @@ class FleetSender:
     that skips counters makes the receiver count lost frames, as on a bus)."""
 
     def __init__(self, codec: FrameCodec | None = None,
-                 keys: Mapping[str, bytes] | None = None, boot: int = INSECURE_BOOT) -> None:
+                 keys: Mapping[str, bytes] | None = None, boot: int = INSECURE_BOOT,
+                 tag_receivers: Mapping[int, Sequence[str]] | None = None) -> None:
+        """``tag_receivers``: on a codec whose λ is tagged (AUTH-34), agent i → the
+        receivers of its λ in slot order (``contract.lambda_receivers``); their pair keys
+        are ``keys["agent_i>receiver"]``."""
         self.codec = codec or FrameCodec()
         self.keys = dict(keys or {})
         self.insecure = keys is None
         self.boot = boot
+        self.tag_receivers = dict(tag_receivers or {})
         self._count: dict[int, int] = {}
+
+    def _sign(self, name: str, data_id: int, msg: can.Message, fv: int,
+              target: int | None = None) -> None:
+        """Its Mac, or a tagged λ's tag per receiver (AUTH-34)."""
+        if not self.codec.tag_slots(name):
+            sign_frame(self._key(name, target), data_id, msg.data, fv)
+            return
+        sender = contract.sender_of(name.removesuffix("_Sync"))
+        receivers = self.tag_receivers.get(int(sender.removeprefix("agent_")))
+        if receivers is None:
+            raise EncodeError("tag_receivers", f"the receivers of {sender}'s λ tags (CAN FD, "
+                              "AUTH-34)", sorted(self.tag_receivers))
+        tags = []
+        for r in receivers:
+            label = pair_label(sender, r)
+            if label not in self.keys and self.insecure:
+                self.keys[label] = derive_lambda_tag_key(INSECURE_MASTER, sender, r)
+            tags.append((tag_code(r), self.keys[label]))
+        sign_tags(tags, data_id, msg.data, fv)
 
     def _key(self, name: str, target: int | None = None) -> bytes:
         """AUTH-28, AUTH-29: a link frame's or report's own key (``keys[name]``); AUTH-30:
@@ -876,8 +902,7 @@ class FleetSender:
             target = None
             if name == contract.COMMAND:  # the agent: phys is it, raw is it − the offset
                 target = int(raw["Target"]) if phys else target_agent(raw["Target"])
-            sign_frame(self._key(name, target), fid, msg.data,
-                       contract.FRESHNESS.join(self.boot, count))
+            self._sign(name, fid, msg, contract.FRESHNESS.join(self.boot, count), target)
         return msg
 
     def sync(self, name: str) -> can.Message:
@@ -887,7 +912,8 @@ class FleetSender:
         sync_id = contract.SYNC_OF[fid]
         msg = self.codec.encode(self.codec.name_of(sync_id), {"Count": count,
                                                               "Boot": self.boot}, 0)
-        sign_frame(self._key(name), sync_id, msg.data, contract.FRESHNESS.join(self.boot, count))
+        self._sign(self.codec.name_of(sync_id), sync_id, msg,
+                   contract.FRESHNESS.join(self.boot, count))
         return msg
 
     def restart(self) -> None:

@@ -79,6 +79,7 @@ class Config:
     label: str
     fd: bool
     mc: str   # "periodic" | "whole" | "settled" | "peak" (EventRatio's) | "packed"
+    tags: bool = True  # on FD: λ and its sync with a tag per receiver (AUTH-34), 32 bytes
 
 
 CONFIGS = (
@@ -87,13 +88,24 @@ CONFIGS = (
     Config("classic-event-settled", "classic, event-triggered, once settled", False,
            "settled"),
     Config("classic-event-peak", "classic, event-triggered, worst 100 ms", False, "peak"),
-    Config("fd", "FD, periodic (8-byte frames, BRS)", True, "periodic"),
+    Config("fd", "FD, periodic (λ tagged: 32 bytes, the rest 8; BRS)", True, "periodic"),
     Config("fd-event", "FD, event-triggered (whole run)", True, "whole"),
     Config("fd-event-settled", "FD, event-triggered, once settled", True, "settled"),
     Config("fd-event-peak", "FD, event-triggered, worst 100 ms", True, "peak"),
-    Config("fd-packed", f"FD, {PACK} MC per 64-byte frame (not in the protocol)", True,
-           "packed"),
+    Config("fd-untagged", "FD, λ untagged (8 bytes), periodic", True, "periodic", False),
+    Config("fd-untagged-event", "FD, λ untagged, event-triggered (whole run)", True, "whole",
+           False),
+    Config("fd-untagged-event-settled", "FD, λ untagged, event-triggered, once settled", True,
+           "settled", False),
+    Config("fd-packed", f"FD, {PACK} untagged MC per 64-byte frame (not in the protocol)",
+           True, "packed", False),
 )
+
+
+def own_config(sc: Any, mc: str) -> Config:
+    """The line of ``sc``'s own bus (classic, FD with or without λ tags) for ``mc``."""
+    return next(c for c in CONFIGS if c.fd == sc.fd and c.mc == mc
+                and (not c.fd or c.tags == sc.lambda_tags))
 
 
 @dataclass(frozen=True)
@@ -209,16 +221,15 @@ def run_bus_load(sc: Any) -> tuple[float, str]:
     lockstep over the whole run (its start sends as much as periodic; a short burst above
     100 % only queues frames), measured only when the periodic load does not fit already
     (a 64-agent ring: ~3 s)."""
-    fleet, fd = Fleet(sc.name, sc.n, sc), sc.fd
-    cfg = next(c for c in CONFIGS if c.fd == fd and c.mc == "periodic")
+    fleet = Fleet(sc.name, sc.n, sc)
+    cfg = own_config(sc, "periodic")
     msgs = fleet_frames(fleet, sc.ts)
     load = config_load(cfg, fleet, None, msgs=msgs)
     assert load is not None
     if sc.transmit.mode != "event" or load["load"] <= BUS_LOAD_MAX:
         return load["load"], "every frame periodic"
     ratio = event_ratio(sc, sc.name, sc.transmit)
-    cfg = next(c for c in CONFIGS if c.fd == fd and c.mc == "whole")
-    event = config_load(cfg, fleet, ratio, msgs=msgs)
+    event = config_load(own_config(sc, "whole"), fleet, ratio, msgs=msgs)
     assert event is not None
     return event["load"], (f"MC frames event-triggered, {100 * ratio.whole:.1f} % of "
                            "periodic over the run (lockstep)")
@@ -277,8 +288,7 @@ def measured_run(run: Path) -> dict[str, Any]:
     busy = sum(frame_time(m, bus) for m in frames)
     mc = sum(1 for m in frames if MC_BASE < m.arbitration_id <= MC_BASE + sc.n)
     fleet = Fleet(sc.name, sc.n, replace(sc, duration=span))
-    cfg = next(c for c in CONFIGS if c.fd == sc.fd
-               and c.mc == ("whole" if sc.transmit.mode == "event" else "periodic"))
+    cfg = own_config(sc, "whole" if sc.transmit.mode == "event" else "periodic")
     ratio = (event_ratio(fleet.scenario, sc.name, sc.transmit)
              if sc.transmit.mode == "event" else None)
     computed = config_load(cfg, fleet, ratio, bus, fleet_frames(fleet, sc.ts))
@@ -325,7 +335,8 @@ def scenario_load(sc: Any) -> dict[str, Any]:
     msgs, ratio = fleet_frames(fleet, sc.ts), (event_ratio(sc, sc.name, sc.transmit)
                                                if event else None)
     loads = {}
-    for cfg in (c for c in CONFIGS if c.mc == ("whole" if event else "periodic")):
+    for cfg in (c for c in CONFIGS if c.mc == ("whole" if event else "periodic")
+                and (not c.fd or c.tags == sc.lambda_tags)):  # its own FD format
         got = config_load(cfg, fleet, ratio, msgs=msgs)
         assert got is not None
         loads["fd" if cfg.fd else "classic"] = got["load"]
@@ -375,7 +386,7 @@ def config_load(cfg: Config, fleet: Fleet, ratio: EventRatio | None,
     it needs was not measured, a run that never settled)."""
     bus = bus or Bus(dbc_bitrate())
     msgs = fleet_frames(fleet) if msgs is None else msgs
-    if cfg.fd:
+    if cfg.fd and cfg.tags:
         msgs = fd_lengths(msgs)
     if cfg.mc == "packed":
         msgs = packed(msgs)

@@ -149,6 +149,10 @@ NOT_ON_BUS: dict[str, str] = {
                "but the default run has a key file",
     "AUTH-27": "a boot jump is not yet a step: tests/test_c_agent.py plays it against the "
                "C agent and firmware_py bit for bit, tests/test_selfmon.py against a fleet",
+    "AUTH-34": "the schedule's default bus is classic CAN (no tags); on --fd every "
+               "neighbour λ the tester sends carries the DUT's tag and every λ the DUT "
+               "sends is checked frame for frame, tags included, against the oracle's; "
+               "tests/test_lambda_tags.py (slots, keys, an insider's forged λ)",
     "AUTH-31": "signed_price is opt-in: the schedule runs the default (unsigned) protocol; "
                "tests/test_pricesig.py (keys), tests/test_c_config.py (the C loaders), "
                "node vector signed_price",
@@ -286,9 +290,13 @@ def played_steps(planned: Sequence[Planned]) -> tuple[Step, ...]:
 def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
           codec: FrameCodec | None, boot: int) -> list[Planned]:
     codec = codec or FrameCodec()
-    tx = FleetSender(codec, keys, boot=boot if keys is not None else secoc.INSECURE_BOOT)
     ts, i = cfg.controller.ts, cfg.id
     nbrs = [n.id for n in cfg.neighbours]
+    # on a tagged FD bus (AUTH-34) each neighbour's λ carries the DUT's tag (the other
+    # receivers are the tester's own roles: the plant and the router)
+    tags = {j: [f"agent_{i}", "plant", "router"] for j in nbrs}
+    tx = FleetSender(codec, keys, boot=boot if keys is not None else secoc.INSECURE_BOOT,
+                     tag_receivers=tags)
     out: list[Planned] = []
     price_every, status_every = _tick_of("ER_Price"), _tick_of(status_name(i))
     k_gain, h_gain = cfg.controller.k, cfg.controller.h
@@ -587,8 +595,11 @@ def _copy(msg: can.Message) -> can.Message:
 
 
 def _forged(msg: can.Message) -> can.Message:
-    """``msg`` with its first byte changed: its MAC no longer verifies."""
+    """``msg`` with its first byte changed: its MAC no longer verifies (a tagged λ's
+    first slot, the DUT's tag, too: AUTH-34)."""
     msg.data[0] ^= 0x5A
+    if len(msg.data) > 9:
+        msg.data[9] ^= 0x5A
     return msg
 
 

@@ -57,13 +57,18 @@ def peers_of(sc: Any) -> dict[str, list[str]]:
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
 
-    fd = getattr(sc, "fd", False)  # AUTH-34: on CAN FD, λ is tagged per receiver
+    fd = tagged_lambda(sc)  # AUTH-34: on CAN FD, λ is tagged per receiver
     out = {f"agent_{c.id}": ["router", *([] if fd else (f"agent_{n.id}" for n in c.neighbours))]
            for c in agent_configs_from_scenario(sc)}
     agents = [] if fd else [n for n in secoc.fleet_nodes(sc.n) if n.startswith("agent_")]
     out["plant"] = [*agents, "router"]
     out["router"] = list(agents)
     return out
+
+
+def tagged_lambda(sc: Any) -> bool:
+    """λ tagged per receiver in ``sc``'s fleet: CAN FD unless ``lambda_tags = false``."""
+    return bool(getattr(sc, "fd", False) and getattr(sc, "lambda_tags", True))
 
 
 def tags_of(sc: Any) -> dict[str, list[str]]:
@@ -74,7 +79,7 @@ def tags_of(sc: Any) -> dict[str, list[str]]:
     from firmware_py.config import agent_configs_from_scenario
 
     out: dict[str, list[str]] = {node: [] for node in secoc.fleet_nodes(sc.n)}
-    if not getattr(sc, "fd", False):
+    if not tagged_lambda(sc):
         return out
     for c in agent_configs_from_scenario(sc):
         me = f"agent_{c.id}"

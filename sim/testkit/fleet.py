@@ -23,9 +23,10 @@ from typing import Any
 import can
 
 from dbc import dbc_path
-from firmware_py import secoc
+from firmware_py import contract, secoc
+from firmware_py.config import agent_configs_from_scenario
 from firmware_py.errors import BessDedError
-from firmware_py.frames import FrameCodec
+from firmware_py.frames import FrameCodec, mc_name
 from firmware_py.node import GuardedBus
 from sim.model.scenario import Scenario, load_scenario, scaled, to_toml
 from sim.run import busrun
@@ -362,6 +363,9 @@ class SimFleet:
     def tester(self, keys: Any = None, **kw: Any) -> Tester:
         """A ``Tester`` on this fleet's bus and clock (keys: the fleet's by default)."""
         kw.setdefault("codec", self.codec)
+        if self.codec.tag_slots(mc_name(1)):  # AUTH-34: who hears each agent's λ here
+            kw.setdefault("tag_receivers", {c.id: contract.lambda_receivers(
+                [n.id for n in c.neighbours]) for c in agent_configs_from_scenario(self.scenario)})
         return Tester(self.open_bus(), self.keys if keys is None else keys, clock=self, **kw)
 
     def _note(self, name: str, cause: str) -> None:

@@ -21,7 +21,7 @@ import math
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -30,7 +30,7 @@ import can
 
 from firmware_py import contract, secoc
 from firmware_py.errors import BessDedError, FrameError
-from firmware_py.frames import DecodedFrame, FrameCodec, diag_name, format_fault
+from firmware_py.frames import DecodedFrame, FrameCodec, agent_of, diag_name, format_fault
 from firmware_py.node import RX_CAUSES, GuardedBus, frame_fault, rx_cause
 from firmware_py.nodeio import SYNC_S, FleetSender
 from sim.run.monitor import Forged, Monitor
@@ -263,8 +263,11 @@ class Tester:
 
     def __init__(self, bus: can.BusABC, keys: Any = None, *, as_node: str | int | None = None,
                  clock: Clock | None = None, codec: FrameCodec | None = None,
-                 boot: int = secoc.INSECURE_BOOT, sync_s: float = SYNC_S) -> None:
+                 boot: int = secoc.INSECURE_BOOT, sync_s: float = SYNC_S,
+                 tag_receivers: Mapping[int, Sequence[str]] | None = None) -> None:
         self.bus = bus
+        # on a tagged FD bus (AUTH-34), agent j → the receivers of its λ in slot order
+        self.tag_receivers = dict(tag_receivers or {})
         self.codec = codec or FrameCodec()
         node_keys = _resolve_keys(keys)
         self.insecure = node_keys is None
@@ -454,13 +457,19 @@ class Tester:
             # forgery the receivers must reject, which leaves the genuine one intact)
             fs = self._senders.get(label)
             if fs is None:
-                fs = self._senders[label] = FleetSender(self.codec, {}, boot=self._boot)
+                fs = self._senders[label] = FleetSender(self.codec, {}, boot=self._boot,
+                                                        tag_receivers=self.tag_receivers)
             base = name.removesuffix("_Sync")
             if base in contract.KEYED_FRAMES:  # AUTH-28, AUTH-29: its own key, held by its parties
                 own = self.keys.get(base) if label == sender else None
                 fs.keys[base] = own if own is not None else self.keys[label]
             else:
                 fs.keys[sender] = self.keys[label]
+            for r in self.tag_receivers.get(agent_of(fid) or 0, ()):  # AUTH-34: as itself,
+                pair = secoc.pair_label(sender, r)                    # its pair keys
+                key = self.keys.get(pair) if label == sender else self.keys[label]
+                if key is not None:
+                    fs.keys[pair] = key
             if name == contract.COMMAND:  # AUTH-30: its target's command key, the router's
                 cname = contract.command_key_name(int(signals["Target"]))
                 own = self.keys.get(cname) if label == sender else None
