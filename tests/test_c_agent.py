@@ -391,11 +391,15 @@ def run_both(variant: str, events: list[tuple], fd: bool = False, tags: bool = T
     py, c = _both(variant, fd, tags)
     codec = FrameCodec(dbc_path(fd, tags))
     tagging = fd and tags
+    # AUTH-34: the senders tag their λ for TAG_RX's receivers (firmware_py's FleetSender,
+    # checked below against this module's tags computed from the spec)
+    receivers = {int(s.removeprefix("agent_")): rx for s, rx in TAG_RX.items()}
+    pairs = {f"{s}>{r}": tag_key(MASTER, s, r) for s, rx in TAG_RX.items() for r in rx}
     if {**VARIANTS, **SIGNED}[variant][3]:   # every insecure sender: boot 1, public keys
-        senders = {n: FleetSender(codec) for n in LABELS}
+        senders = {n: FleetSender(codec, tag_receivers=receivers) for n in LABELS}
     else:
-        senders = {n: FleetSender(codec, keys={n: derive_node_key(MASTER, n), **ALL_FRAMES},
-                                  boot=b)
+        senders = {n: FleetSender(codec, keys={n: derive_node_key(MASTER, n), **ALL_FRAMES,
+                                               **pairs}, boot=b, tag_receivers=receivers)
                    for n, b in zip(LABELS, (3, 5, 2, 4, 9), strict=True)}
     history: list[can.Message] = []
     n = 0
@@ -416,6 +420,9 @@ def run_both(variant: str, events: list[tuple], fd: bool = False, tags: bool = T
         if not tagging:
             return msg
         fv = contract.FRESHNESS.join(sender.boot, sender._count[msg.arbitration_id])
+        assert msg.data == tagged(msg, fv, master, TAG_RX[SENDER_OF[name]]).data
+        if key is None and slots is None:
+            return msg
         return tagged(msg, fv, master, slots or TAG_RX[SENDER_OF[name]], key)
 
     for ev in events:
@@ -459,8 +466,8 @@ def run_both(variant: str, events: list[tuple], fd: bool = False, tags: bool = T
             msg = senders[SENDER_OF[ev[1]]].sync(ev[1])
             if tagging and ev[1].endswith("_MC"):   # AUTH-34: FV = Boot:Count of the sync
                 d = int.from_bytes(msg.data[:8], "little")
-                msg = tagged(msg, contract.FRESHNESS.join(d >> 48, d >> 24 & 0xFFFFFF),
-                             master, TAG_RX[SENDER_OF[ev[1]]])
+                assert msg.data == tagged(msg, contract.FRESHNESS.join(
+                    d >> 48, d >> 24 & 0xFFFFFF), master, TAG_RX[SENDER_OF[ev[1]]]).data
             deliver(msg)
         elif kind == "restart":
             senders[ev[1]].restart()
