@@ -279,6 +279,14 @@ def test_a_forged_lambda_on_fd_is_auth_in_c_and_python(variant: str) -> None:
     assert c.state == py.state and c.lambda_q24 == py.lambda_q24
 
 
+@pytest.mark.parametrize("variant", ["base", "insecure"])
+def test_acceptance_filter_ids_on_fd_are_firmware_pys(variant: str) -> None:
+    """GEN-5 on CAN FD (AUTH-34): a key file with no neighbour's node key (its tag keys
+    instead) and derived keys both give firmware_py's acceptance IDs."""
+    py, c = _both(variant, fd=True)
+    assert c.accepted_ids() == sorted(py.io.accepted_ids())
+
+
 def test_c_lambda_tag_key_is_auth_34s_kdf() -> None:
     """AUTH-34: bd_derive_lambda_tag_key is AUTH-1's KDF (NIST SP 800-108, CMAC) with the
     label "bess-ded/secoc/lambda-tag-key/v1" and the pair's label as context, as
