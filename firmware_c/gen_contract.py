@@ -112,11 +112,8 @@ def fd_tags(fd: Database) -> list[tuple[str, int, str]]:
     mc = fd.get_message_by_name(mc_name(1))
     rx0 = mc.get_signal_by_name("TagRx0")
     codes = {str(v): int(k) for k, v in (rx0.choices or {}).items()}
-    if not {"PLANT", "ROUTER"} <= codes.keys():  # the DBC's comment before it had choices
-        got = re.search(r"the plant = (\d+), the router = (\d+)", rx0.comment or "")
-        if got is None:
-            sys.exit("gen_contract: the FD DBC's TagRx0 names no plant and router codes")
-        codes = {"PLANT": int(got.group(1)), "ROUTER": int(got.group(2))}
+    if not {"PLANT", "ROUTER"} <= codes.keys():
+        sys.exit("gen_contract: the FD DBC's TagRx0 has no PLANT and ROUTER choices")
     if min(codes["PLANT"], codes["ROUTER"]) <= contract.N_AGENTS_MAX:
         sys.exit("gen_contract: a TagRx code of the plant or router is an agent's")
     n = sum(1 for s in mc.signals if s.name.startswith("TagRx"))
