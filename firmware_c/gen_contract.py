@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 import cantools  # noqa: E402
 from cantools.database.can import Database  # noqa: E402
 
-from dbc import DBC_PATH  # noqa: E402
+from dbc import DBC_PATH, FD_DBC_PATH  # noqa: E402
 from firmware_py import contract, frames, pricesig  # noqa: E402
 from firmware_py.frames import FrameCodec, diag_name, mc_name, setpoint_name, status_name  # noqa: E402
 from firmware_py.runtime import AgentRuntime  # noqa: E402
@@ -60,8 +60,7 @@ PER_AGENT = {"MC": mc_name, "SETPOINT": setpoint_name, "STATUS": status_name,
 
 
 def _layout(m):
-    return [(s.name, s.start, s.length, s.byte_order, s.is_signed, s.scale, s.offset,
-             s.minimum, s.maximum, s.multiplexer_ids, s.is_multiplexer) for s in m.signals]
+    return _layout_of(m.signals)
 
 
 def check_templates(db: Database) -> None:
@@ -87,6 +86,49 @@ def check_price_sig(db: Database) -> None:
             or pricesig.SEGMENT_MOD != 1 << 11 or pricesig.PAGE_BYTES != 7):
         sys.exit(f"gen_contract: {pricesig.MESSAGE} is not the layout src/agent_sig.c "
                  "unpacks (PRICE_SIG_LAYOUT): update both")
+
+
+def fd_tags(fd: Database) -> list[tuple[str, int, str]]:
+    """AUTH-34 from the FD twin (dbc/bess_ded_fd.dbc): AGENT_<i>_MC and its sync are the
+    classic 8 bytes (the same layout: one packer serves both) then TagRx<k> (1 byte) and
+    Tag<k> (3) per slot, 4 bytes a slot from byte 8; every other message 8 bytes. The
+    sizes and receiver codes as src/agent.c and agent_rx.c use them."""
+    classic = cantools.database.load_file(str(DBC_PATH), strict=True)
+    tagged = {mc_name(i) + s for i in contract.agent_ids() for s in ("", "_Sync")}
+    for m in fd.messages:
+        if m.name not in tagged:
+            if m.length != 8:
+                sys.exit(f"gen_contract: the FD DBC's {m.name} is not 8 bytes")
+            continue
+        rx = sorted((s for s in m.signals if s.name.startswith("TagRx")), key=lambda s: s.start)
+        want = [s for s in m.signals if not re.fullmatch(r"Tag(Rx)?[0-9]+", s.name)]
+        slots = [(r.start, r.length, m.get_signal_by_name(f"Tag{k}").start,
+                  m.get_signal_by_name(f"Tag{k}").length) for k, r in enumerate(rx)]
+        if (_layout_of(want) != _layout(classic.get_message_by_name(m.name))
+                or slots != [(64 + 32 * k, 8, 72 + 32 * k, 24) for k in range(len(rx))]
+                or m.length != 8 + 4 * len(rx) or not rx):
+            sys.exit(f"gen_contract: the FD DBC's {m.name} is not the classic layout and its "
+                     "tag slots (TagRx<k> 8 bits, Tag<k> 24 bits, 32 bits a slot from bit 64)")
+    mc = fd.get_message_by_name(mc_name(1))
+    rx0 = mc.get_signal_by_name("TagRx0")
+    codes = {str(v): int(k) for k, v in (rx0.choices or {}).items()}
+    if not {"PLANT", "ROUTER"} <= codes.keys():
+        sys.exit("gen_contract: the FD DBC's TagRx0 has no PLANT and ROUTER choices")
+    if min(codes["PLANT"], codes["ROUTER"]) <= contract.N_AGENTS_MAX:
+        sys.exit("gen_contract: a TagRx code of the plant or router is an agent's")
+    n = sum(1 for s in mc.signals if s.name.startswith("TagRx"))
+    return [("BD_FD_MC_BYTES", mc.length, "AGENT_<i>_MC(_Sync) on CAN FD (AUTH-34)"),
+            ("BD_TAG_SLOTS", n, "its tag slots"),
+            ("BD_TAG_SLOT_BYTE", rx0.start // 8, "byte of slot 0's TagRx; its Tag follows"),
+            ("BD_TAG_SLOT_BYTES", 4, "bytes a slot"),
+            ("BD_TAG_RX_PLANT", codes["PLANT"], "TagRx of the plant"),
+            ("BD_TAG_RX_ROUTER", codes["ROUTER"], "TagRx of the router")]
+
+
+def _layout_of(signals):
+    return [(s.name, s.start, s.length, s.byte_order, s.is_signed, s.scale, s.offset,
+             s.minimum, s.maximum, s.multiplexer_ids, s.is_multiplexer)
+            for s in sorted(signals, key=lambda s: s.start)]
 
 
 def generate_codec(db: Database, out: Path) -> None:
@@ -132,6 +174,8 @@ def contract_header(db: Database) -> tuple[str, str]:
         define(f"BD_{key}_SYNC_BASE", _id_base(lambda j, m=make: m(j) + "_Sync"),
                f"{pattern}_Sync = base + i")
     define("BD_MAC_BITS", contract.MAC_BITS, "truncated CMAC on the wire")
+    for name, value, why in fd_tags(cantools.database.load_file(str(FD_DBC_PATH), strict=True)):
+        define(name, value, why)
     define("BD_FV_TX_BITS", contract.FV_TX_BITS, "freshness bits on the wire")
     define("BD_FV_COUNT_BITS", contract.FV_COUNT_BITS, "message counter of the FV")
     define("BD_FV_BOOT_BITS", contract.FV_BOOT_BITS, "boot counter of the FV")

@@ -33,6 +33,9 @@ from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import (
     INSECURE_MASTER,
     Keyring,
+    _kbkdf,
+    auth_data,
+    cmac_aes128,
     derive_command_key,
     derive_frame_key,
     derive_node_key,
@@ -148,20 +151,67 @@ PUBLIC = pricesig.public_key(SEED)
 FLEET = fleet_id(MASTER)
 
 
-def _both(variant: str, fd: bool = False) -> tuple[AgentRuntime, CAgent]:
+# AUTH-34 (CAN FD): the λ tag keys, the KDF of AUTH-1 with the pair's label (computed here
+# from the spec, not by firmware_py's derive_lambda_tag_key); the receivers each sender
+# tags: agents 1 and 3 agent 2 (a neighbour of theirs), agent 4 agent 2 beside agent 5
+# (a non-neighbour of agent 2 that lists it: its sync is a peer sync) and every sender
+# the plant and the router
+TAG_LABEL = b"bess-ded/secoc/lambda-tag-key/v1"
+TAG_RX = {"agent_1": ("agent_2", "plant", "router"), "agent_3": ("agent_2", "plant", "router"),
+          "agent_4": ("agent_2", "agent_5", "plant", "router")}
+
+
+def tag_key(master: bytes, sender: str, receiver: str) -> bytes:
+    return _kbkdf(master, TAG_LABEL, f"{sender}>{receiver}".encode(), 16)
+
+
+def tag_code(node: str) -> int:
+    return {"plant": 0xFE, "router": 0xFF}.get(node) or int(node.removeprefix("agent_"))
+
+
+# agent 2's: its tags to its neighbours, the plant and the router; its neighbours' to it
+TAGS = {f"{s}>{r}": tag_key(MASTER, s, r)
+        for s, r in (("agent_2", "agent_1"), ("agent_2", "agent_3"), ("agent_2", "plant"),
+                     ("agent_2", "router"), ("agent_1", "agent_2"), ("agent_3", "agent_2"))}
+
+
+def tagged(msg: can.Message, fv: int, master: bytes, slots: tuple[str, ...],
+           key: bytes | None = None) -> can.Message:
+    """AUTH-34: an FD AGENT_j_MC or its sync (32 bytes) as agent j sends it: Mac 0, a tag
+    for each of ``slots`` under the pair key of ``master`` (``key``: every tag under this
+    key instead, a forgery)."""
+    sender = f"agent_{(msg.arbitration_id & 0xFF)}"
+    data = bytearray(msg.data)
+    data[0:3] = bytes(3)
+    data[8:] = bytes(len(data) - 8)
+    payload = bytes((data[3] & 0xF0,)) + bytes(data[4:8])   # AUTH-7's
+    for k, r in enumerate(slots):
+        tk = key if key is not None else tag_key(master, sender, r)
+        data[8 + 4 * k] = tag_code(r)
+        data[9 + 4 * k:12 + 4 * k] = cmac_aes128(tk, auth_data(msg.arbitration_id, payload,
+                                                                fv))[:3]
+    return can.Message(arbitration_id=msg.arbitration_id, data=bytes(data),
+                       is_extended_id=False, is_fd=True, bitrate_switch=True)
+
+
+def _both(variant: str, fd: bool = False, tags: bool = True) -> tuple[AgentRuntime, CAgent]:
     fleet, p_min, p_max, insecure, extra = {**VARIANTS, **SIGNED}[variant]
     signed = variant in SIGNED
     cfg = parse_agent_config(tomllib.loads(CONFIG.format(fleet=fleet, p_min=p_min,
                                                          p_max=p_max) + extra), "random.toml")
-    peers = {n: derive_node_key(MASTER, n) for n in ("router", "plant", "agent_1", "agent_3")}
+    # AUTH-34: on CAN FD no other agent's node key, the λ tag keys instead
+    tags = fd and tags
+    peers = {n: derive_node_key(MASTER, n)
+             for n in ("router", "plant") + (() if tags else ("agent_1", "agent_3"))}
 
     def ring() -> Keyring:
         if insecure:
             return Keyring.insecure_for("agent_2")
         return Keyring("agent_2", derive_node_key(MASTER, "agent_2"), 6, lambda _b: None,
                        peers=peers, frames=FRAMES, commands=COMMANDS, fleet=FLEET,
-                       price_verify=PUBLIC if signed else None)
-    return AgentRuntime(cfg, FrameCodec(dbc_path(fd)), keys=ring()), CAgent(cfg, ring(), fd=fd)
+                       price_verify=PUBLIC if signed else None, tags=TAGS if tags else None)
+    return (AgentRuntime(cfg, FrameCodec(dbc_path(fd, tags)), keys=ring()),
+            CAgent(cfg, ring(), fd=fd, lambda_tags=tags))
 
 
 # the run starts synced and RUNNING: its first tick (its hello), every sender's sync, the
@@ -191,16 +241,85 @@ def test_c_and_python_agents_agree_on_random_traffic(variant: str, events: list[
     run_both(variant, PREAMBLE + events)
 
 
+# AUTH-34: agent 1's λ whose tag to agent 2 is under agent 3's pair key to agent 2, agent
+# 1's node key, agent 1's pair key to agent 3, or that has no slot for agent 2
+LFORGE = st.tuples(st.just("lforge"), st.sampled_from(("pair_3", "node_1", "pair_1_3",
+                                                       "no_slot")), LAMBDA)
+
+
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(variant=st.sampled_from(sorted(VARIANTS)),
-       events=st.lists(TRAFFIC, min_size=20, max_size=200))
-def test_c_and_python_agents_agree_on_an_fd_bus(variant: str, events: list[tuple]) -> None:
+@given(variant=st.sampled_from(sorted(VARIANTS)), tags=st.booleans(),
+       events=st.lists(st.one_of(TRAFFIC, LFORGE), min_size=20, max_size=200))
+def test_c_and_python_agents_agree_on_an_fd_bus(variant: str, tags: bool,
+                                                events: list[tuple]) -> None:
     """GEN-1, RX-2 on a CAN FD bus: every sender's frames FD with the bit-rate switch,
     both agents send FD frames with it, and count a classic frame (the junk without the
-    FD flag, the forged ones sent classic) as malformed alike."""
+    FD flag, the forged ones sent classic) as malformed alike. AUTH-34: the λ frames and
+    their syncs 32 bytes with a tag per receiver, both agents' own tagged alike (frame for
+    frame), forged λ tags among the traffic; without the tags (``--no-lambda-tags``) λ in
+    8 bytes under its sender's node key, as on classic CAN."""
     py, c = run_both(variant, PREAMBLE + events + [("forge", "ER_Price", bytes(8)),
-                                                   ("tick", 1)], fd=True)
+                                                   ("tick", 1)], fd=True, tags=tags)
     assert py.counters["malformed"] == c.counters["malformed"] >= 1
+
+
+@pytest.mark.parametrize("variant", ["base", "insecure"])
+def test_a_forged_lambda_on_fd_is_auth_in_c_and_python(variant: str) -> None:
+    """AUTH-34: on CAN FD agent 1's λ to agent 2 verifies only under the pair key
+    agent_1>agent_2: tagged under agent 3's key to agent 2 (agent 3's key file), under agent
+    1's node key, under agent 1's key to agent 3, or without a slot for agent 2, it is
+    `auth` in both runtimes and its λ is not used; the genuine frames after it are."""
+    forged = []
+    for how in ("pair_3", "node_1", "pair_1_3", "no_slot"):
+        forged += [("lforge", how, 30_000_000), ("tick", 1), ("mc", 1, 13_100_000, 1),
+                   ("tick", 1)]
+    py, c = run_both(variant, PREAMBLE + forged, fd=True)
+    assert c.counters["auth"] == py.counters["auth"] == 4
+    assert c.counters["lost_frames"] == py.counters["lost_frames"] == 4
+    assert c.state == py.state and c.lambda_q24 == py.lambda_q24
+
+
+@pytest.mark.parametrize("variant", ["base", "insecure"])
+def test_acceptance_filter_ids_on_fd_are_firmware_pys(variant: str) -> None:
+    """GEN-5 on CAN FD (AUTH-34): a key file with no neighbour's node key (its tag keys
+    instead) and derived keys both give firmware_py's acceptance IDs."""
+    py, c = _both(variant, fd=True)
+    assert c.accepted_ids() == sorted(py.io.accepted_ids())
+
+
+def test_c_lambda_tag_key_is_auth_34s_kdf() -> None:
+    """AUTH-34: bd_derive_lambda_tag_key is AUTH-1's KDF (NIST SP 800-108, CMAC) with the
+    label "bess-ded/secoc/lambda-tag-key/v1" and the pair's label as context, as
+    cryptography's KBKDFCMAC computes it; not a sender that is no agent."""
+    import ctypes
+
+    from sim.cbind.cagent import load
+
+    lib = load().lib
+    lib.bd_derive_lambda_tag_key.argtypes = [ctypes.c_char_p] * 4
+    for s_, r in (("agent_1", "agent_3"), ("agent_64", "router"), ("agent_12", "plant")):
+        out = ctypes.create_string_buffer(16)
+        assert lib.bd_derive_lambda_tag_key(MASTER, s_.encode(), r.encode(), out) == 0
+        assert out.raw == tag_key(MASTER, s_, r)
+    assert lib.bd_derive_lambda_tag_key(MASTER, b"plant", b"agent_1", out) != 0
+
+
+def test_more_than_four_neighbours_on_fd_are_refused_in_c_and_python() -> None:
+    """AUTH-34: an FD agent's λ has 6 tag slots, the plant's and the router's beside its
+    neighbours': 5 neighbours are a configuration error at start on CAN FD (bd_agent_init
+    refuses it; firmware_py raises ConfigError), and run on classic CAN."""
+    from firmware_py.errors import ConfigError
+
+    text = CONFIG.format(fleet="", p_min=-1.0, p_max=1.0) + "".join(
+        f"\n[[neighbour]]\nid = {j}\nweight = 1.0\n" for j in (4, 5, 6))
+    cfg = parse_agent_config(tomllib.loads(text), "five.toml")
+    assert len(cfg.neighbours) == 5
+    with pytest.raises(ValueError, match="refused agent 2"):
+        CAgent(cfg, fd=True)
+    with pytest.raises(ConfigError):
+        AgentRuntime(cfg, FrameCodec(dbc_path(True)))
+    CAgent(cfg)   # classic CAN: no tags, no limit
+    AgentRuntime(cfg, FrameCodec())
 
 
 # AUTH-32: an ER_PriceSig transfer: the segment number's step from the last one (1500:
@@ -270,29 +389,49 @@ def test_a_genuine_frame_out_of_order_is_stale_not_forged_in_both(variant: str) 
     assert py.counters["auth"] == c.counters["auth"] == 1 and py.counters["stale"] == 0
 
 
-def run_both(variant: str, events: list[tuple], fd: bool = False
+def run_both(variant: str, events: list[tuple], fd: bool = False, tags: bool = True
              ) -> tuple[AgentRuntime, CAgent]:
     """Both runtimes through the same events (EVENT's kinds; ("at", dt): the next frames
     arrive dt after the last tick, which may go back in time), frames (their format
     too), counters, state and λ compared at every tick. ``fd``: a CAN FD bus, every
-    sender's frames FD (the forged ones classic: malformed there)."""
-    py, c = _both(variant, fd)
-    codec = FrameCodec(dbc_path(fd))
+    sender's frames FD (the forged ones classic: malformed there); ``tags``: with λ tags
+    (AUTH-34) there, else λ in 8 bytes under its sender's node key."""
+    py, c = _both(variant, fd, tags)
+    codec = FrameCodec(dbc_path(fd, tags))
+    tagging = fd and tags
+    # AUTH-34: the senders tag their λ for TAG_RX's receivers (firmware_py's FleetSender,
+    # checked below against this module's tags computed from the spec)
+    receivers = {int(s.removeprefix("agent_")): rx for s, rx in TAG_RX.items()}
+    pairs = {f"{s}>{r}": tag_key(MASTER, s, r) for s, rx in TAG_RX.items() for r in rx}
     if {**VARIANTS, **SIGNED}[variant][3]:   # every insecure sender: boot 1, public keys
-        senders = {n: FleetSender(codec) for n in LABELS}
+        senders = {n: FleetSender(codec, tag_receivers=receivers) for n in LABELS}
     else:
-        senders = {n: FleetSender(codec, keys={n: derive_node_key(MASTER, n), **ALL_FRAMES},
-                                  boot=b)
+        senders = {n: FleetSender(codec, keys={n: derive_node_key(MASTER, n), **ALL_FRAMES,
+                                               **pairs}, boot=b, tag_receivers=receivers)
                    for n, b in zip(LABELS, (3, 5, 2, 4, 9), strict=True)}
     history: list[can.Message] = []
     n = 0
     t_rx = TS / 2
     signed: list[Any] = [None, 0]   # the segment the router last signed, its number
+    master = INSECURE_MASTER if {**VARIANTS, **SIGNED}[variant][3] else MASTER
 
     def deliver(msg: can.Message) -> None:
         history.append(msg)
         py.on_frame(msg, t_rx)
         c.on_frame(msg, t_rx)
+
+    def lam(name: str, raw: dict[str, int], key: bytes | None = None,
+            slots: tuple[str, ...] | None = None) -> can.Message:
+        """Agent j's MC (``name``), tagged on CAN FD (AUTH-34; ``key``, ``slots``: forged)."""
+        sender = senders[SENDER_OF[name]]
+        msg = sender.frame(name, raw)
+        if not tagging:
+            return msg
+        fv = contract.FRESHNESS.join(sender.boot, sender._count[msg.arbitration_id])
+        assert msg.data == tagged(msg, fv, master, TAG_RX[SENDER_OF[name]]).data
+        if key is None and slots is None:
+            return msg
+        return tagged(msg, fv, master, slots or TAG_RX[SENDER_OF[name]], key)
 
     for ev in events:
         kind = ev[0]
@@ -315,9 +454,14 @@ def run_both(variant: str, events: list[tuple], fd: bool = False
             deliver(senders["router"].frame("ER_Price", {"PriceValid": int(ev[2]),
                                                          "Segment": ev[3], "Rho": ev[1]}))
         elif kind == "mc":
-            name = f"AGENT_{ev[1]}_MC"
-            deliver(senders[SENDER_OF[name]].frame(name, {"State": ev[3], "Resets": 0,
-                                                          "Lambda": ev[2]}))
+            deliver(lam(f"AGENT_{ev[1]}_MC", {"State": ev[3], "Resets": 0, "Lambda": ev[2]}))
+        elif kind == "lforge":   # AUTH-34: agent 1's λ with agent 2's tag under another key
+            _, how, value = ev
+            key = {"pair_3": tag_key(master, "agent_3", "agent_2"),   # agent 3's file
+                   "node_1": derive_node_key(master, "agent_1"),      # its node key
+                   "pair_1_3": tag_key(master, "agent_1", "agent_3")}.get(how)  # another pair
+            slots = {"no_slot": ("agent_3", "plant", "router")}.get(how)
+            deliver(lam("AGENT_1_MC", {"State": 1, "Resets": 0, "Lambda": value}, key, slots))
         elif kind == "status":
             f = ev[1]
             deliver(senders["plant"].frame("PLANT_2_Status", {
@@ -327,13 +471,17 @@ def run_both(variant: str, events: list[tuple], fd: bool = False
             deliver(senders["router"].frame("ER_Command", {
                 "Command": ev[1], "Target": target_raw(ev[2]), "GainK": ev[3], "GainH": ev[4]}))
         elif kind == "sync":
-            deliver(senders[SENDER_OF[ev[1]]].sync(ev[1]))
+            msg = senders[SENDER_OF[ev[1]]].sync(ev[1])
+            if tagging and ev[1].endswith("_MC"):   # AUTH-34: FV = Boot:Count of the sync
+                d = int.from_bytes(msg.data[:8], "little")
+                assert msg.data == tagged(msg, contract.FRESHNESS.join(
+                    d >> 48, d >> 24 & 0xFFFFFF), master, TAG_RX[SENDER_OF[ev[1]]]).data
+            deliver(msg)
         elif kind == "restart":
             senders[ev[1]].restart()
         elif kind == "swap":   # the later frame arrives first, the earlier one late
             name = f"AGENT_{ev[1]}_MC"
-            early, late = (senders[SENDER_OF[name]].frame(name, {"State": 1, "Resets": 0,
-                                                                 "Lambda": ev[2]})
+            early, late = (lam(name, {"State": 1, "Resets": 0, "Lambda": ev[2]})
                            for _ in range(2))
             deliver(late)
             deliver(early)

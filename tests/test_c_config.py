@@ -334,6 +334,57 @@ def test_key_file_frame_keys_load_and_survive_every_boot_rewrite(tmp_path: Path)
         load_node_key(path)
 
 
+def test_key_file_lambda_tag_keys_load_and_survive_every_boot_rewrite(tmp_path: Path) -> None:
+    """AUTH-34: agent 2's key file of an FD fleet as `bess-ded keys` writes it (no other
+    agent's node key; [lambda_tag_keys]: its tags to its neighbours, the plant and the
+    router, its neighbours' to it, quoted TOML keys) loads in C with firmware_py's pairs
+    and keys; the C persist keeps them (and a neighbour's floor, AUTH-21); the C agent
+    starts on FD with it and tags its λ with them; a pair agent 2 is not one of, or a
+    malformed pair, is refused by both loaders."""
+    import tomli_w
+
+    from sim.cbind.cagent import CAgent, tag_code
+    from sim.run.keyset import node_document
+
+    sc = dataclasses.replace(load_case(1), fd=True)
+    path = tmp_path / "agent_2.key"
+    doc = node_document(sc, MASTER, "agent_2", 6)
+    doc["floors"] = {"router": 9, "plant": 5}
+    write_private(path, KEY_FILE_HEADER + tomli_w.dumps(doc))
+    ref = load_node_key(path)
+    assert set(ref.peers) == {"router"} and ref.tags
+    k = load_keyfile(path, "agent_2")
+    got = {(k.tag_pair[t][0], k.tag_pair[t][1]): bytes(k.tag_key[t]) for t in range(k.n_tags)}
+    assert got == {(tag_code(s), tag_code(r)): key
+                   for s, r, key in ((*p.split(">"), key) for p, key in ref.tags.items())}
+    assert k.persist_boot(k.persist_ctx, 7) == 0
+    again = load_node_key(path)
+    assert again.boot_counter == 7 and again.tags == ref.tags and again.peers == ref.peers
+    assert dict(again.floors) == {"router": 9, "plant": 5}
+    cfg = agent_configs_from_scenario(sc)[1]
+    agent = CAgent(cfg, load_keyfile(path, "agent_2"), fd=True)
+    mc = next(m for m in agent.tick(0.0) if m.arbitration_id == 0x102)
+    assert len(mc.data) == 32 and list(mc.data[8::4]) == [
+        *sorted(n.id for n in cfg.neighbours), 0xFE, 0xFF] + [0] * (4 - len(cfg.neighbours))
+    # a neighbour's floor (C: the sender of a pair to agent 2) survives the C rewrite
+    text = path.read_text().replace("[floors]\n", "[floors]\nagent_1 = 4\n")
+    write_private(path, text)
+    k = load_keyfile(path, "agent_2")
+    assert sorted(k.tag_floor[t] for t in range(k.n_tags))[-1] == 4
+    assert k.persist_boot(k.persist_ctx, 9) == 0
+    assert "agent_1 = 4" in path.read_text()
+    doc = tomllib.loads(path.read_text())
+    doc["floors"].pop("agent_1")
+    for pair, message in (("agent_1>agent_3", "expected the pairs agent_2 is one of only"),
+                          ("plant>agent_2", "expected 'agent_i>RECEIVER'")):
+        bad = {**doc, "lambda_tag_keys": {**doc["lambda_tag_keys"], pair: "00" * 16}}
+        write_private(path, KEY_FILE_HEADER + tomli_w.dumps(bad))
+        with pytest.raises(CConfigError, match=r"\[lambda_tag_keys\] " + message):
+            load_keyfile(path, "agent_2")
+        with pytest.raises(KeyFileError):
+            load_node_key(path)
+
+
 def test_key_file_refusals(tmp_path: Path) -> None:
     path = _key_file(tmp_path)
     with pytest.raises(CConfigError, match="expected the key file of agent_3"):
@@ -368,6 +419,9 @@ def test_node_program_refuses_bad_input_with_exit_2(tmp_path: Path) -> None:
     agent_1.write_text(BASE)
     signed = tmp_path / "signed.toml"
     signed.write_text(cfg.read_text() + "\n[security]\nsigned_price = true\n")
+    five = tmp_path / "five.toml"   # AUTH-34: 5 neighbours, one more than FD's tag slots
+    five.write_text(cfg.read_text().replace("fleet_size = 4", "fleet_size = 6") + "".join(
+        f"\n[[neighbour]]\nid = {j}\nweight = 1.0\n" for j in (4, 5, 6)))
     cases = [
         ((), "expected --config, --channel and exactly one of --key or --insecure"),
         (("--config", str(cfg), "--insecure", "--key", str(key), "--channel", "vcan0"),
@@ -397,6 +451,12 @@ def test_node_program_refuses_bad_input_with_exit_2(tmp_path: Path) -> None:
         # AUTH-31: a signed_price agent needs the router's public key: never run unsigned
         (("--config", str(signed), "--insecure", "--channel", "vcan0"),
          "[security.signed_price] expected a key file with the router's public price key"),
+        # AUTH-34: an FD agent's λ has a tag slot per neighbour beside the plant's and the
+        # router's: at most 4 neighbours (without the tags, any number)
+        (("--config", str(five), "--insecure", "--channel", "vcan0", "--fd"),
+         "[[neighbour]] expected at most 4 neighbours on a CAN FD bus"),
+        (("--config", str(cfg), "--insecure", "--channel", "vcan0", "--no-lambda-tags"),
+         "--no-lambda-tags: expected it only with --fd"),
     ]
     for argv, message in cases:
         res = _node(*argv)

@@ -351,7 +351,9 @@ def test_running_agent_on_an_fd_bus_sends_fd_frames(tmp_path: Path, udp_port: in
     """--fd on udp_multicast (GEN-1) on the IPv6 group: every frame the agent sends is an
     FD datagram with the bit-rate switch, python-can reads it as such, and a classic
     frame sent to it is counted malformed (RX-2). At any load: the frames heard within
-    the deadline are all FD, the classic ones sent are counted (at most as many)."""
+    the deadline are all FD, the classic ones sent are counted (at most as many). Its MC
+    and MC sync are 32 bytes (AUTH-34): Mac 0, a tag for each neighbour by index, the
+    plant and the router."""
     from can.interfaces.udp_multicast import UdpMulticastBus
 
     heard: list[can.Message] = []
@@ -367,7 +369,13 @@ def test_running_agent_on_an_fd_bus_sends_fd_frames(tmp_path: Path, udp_port: in
             time.sleep(0.05)
         time.sleep(0.3)
     assert agent.returncode == 0, agent.log[-2000:]
-    assert all(m.is_fd and m.bitrate_switch and m.dlc == 8 for m in heard), heard
+    assert all(m.is_fd and m.bitrate_switch for m in heard), heard
+    tagged = [m for m in heard if m.arbitration_id in (0x101, 0x501)]
+    assert tagged and all(m.dlc == 32 and m.data[:3] == bytes(3) for m in tagged), tagged
+    assert all(m.dlc == 8 for m in heard if m not in tagged), heard
+    cfg = next(c for c in agent_configs_from_scenario(load_case(1)) if c.id == 1)
+    want = sorted(n.id for n in cfg.neighbours) + [0xFE, 0xFF]
+    assert all(list(m.data[8::4]) == want + [0] * (6 - len(want)) for m in tagged), tagged
     assert 1 <= summary_counters(agent.log).get("malformed", 0) <= 3, agent.log[-2000:]
 
 
@@ -443,10 +451,13 @@ def test_up_case1_every_agent_in_c_on_udp_multicast(tmp_path: Path, udp_port: in
 
 
 @pytest.mark.realtime
-def test_up_case1_mixed_fleet_on_udp_multicast(tmp_path: Path, udp_port: int) -> None:
+@pytest.mark.parametrize("fd", [(), ("--fd",)], ids=["classic", "fd"])
+def test_up_case1_mixed_fleet_on_udp_multicast(tmp_path: Path, udp_port: int,
+                                               fd: tuple[str, ...]) -> None:
     """`--c-agents 2,4`: agents 2 and 4 in C, 1 and 3 on firmware_py, one bus: at any load
-    it converges and blames no node."""
-    run = _up(tmp_path, udp_port, "--c-agents", "2,4")
+    it converges and blames no node; on CAN FD too (``--fd``: λ tagged per receiver under
+    the key files' [lambda_tag_keys], AUTH-34)."""
+    run = _up(tmp_path, udp_port, "--c-agents", "2,4", *fd)
     assert "agents in C: 2, 4 (bessded-agent)" in run["stdout"]
     assert SUMMARY.search(run["logs"]["agent_2"]) and SUMMARY.search(run["logs"]["agent_4"])
     assert not SUMMARY.search(run["logs"]["agent_1"])

@@ -156,6 +156,77 @@ def test_case1_on_an_fd_virtual_bus_converges_with_fd_frames_only(tmp_path: Path
     assert rec.metrics["frames_undecodable"] == {} and rec.metrics["final_error"] < 1e-3
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("lambda_tags", [True, False])
+def test_case1_on_an_fd_bus_with_c_agents_converges(tmp_path: Path, lambda_tags: bool) -> None:
+    """AUTH-34 across both runtimes: case 1 on an FD virtual bus (simulated clock) with
+    agents 2 and 4 on firmware_c (sim.cbind CAgent) beside firmware_py's: every λ they
+    send is 32 bytes with a tag per receiver (none: 8 bytes with ``--no-lambda-tags``),
+    each side verifies the other's tags, nothing is rejected, case 1 converges."""
+    from firmware_py.config import agent_configs_from_scenario as configs
+
+    sc = replace(load_case(1), duration=8.0, fd=True, lambda_tags=lambda_tags)
+    m = busrun.run_in_process(sc, tmp_path, duration=8.0, channel=f"test-fd-c-{lambda_tags}",
+                              c_agents=(2, 4))
+    assert m["final_error"] < 1e-3 and m["frames_undecodable"] == {}
+    diag = m["node_diagnostics"]
+    assert all(a["RejectedAuth"] == 0 and a["RejectedDlc"] == 0 for a in diag.values()), diag
+    frames = list(can.LogReader(str(tmp_path / "run.log")))
+    for i in (2, 4):   # C agents' MC, then a Python agent's for the same form
+        mc = [f for f in frames if f.arbitration_id == 0x100 + i]
+        want = sorted(n.id for n in configs(sc)[i - 1].neighbours) + [0xFE, 0xFF]
+        assert mc and all(f.is_fd and f.bitrate_switch for f in mc)
+        if lambda_tags:
+            assert all(len(f.data) == 32 and f.data[:3] == bytes(3)
+                       and list(f.data[8::4]) == want + [0] * (6 - len(want)) for f in mc)
+        else:
+            assert all(len(f.data) == 8 for f in mc)
+
+
+@pytest.mark.slow
+def test_c_agents_refuse_an_insiders_forged_lambda_on_fd(tmp_path: Path) -> None:
+    """AUTH-34 at the C agent in a fleet: case 1 on FD with agents 2 and 4 in C; an insider
+    holding agent 3's keys forges agent 1's λ (the hub's) at 1.2 cu/kWh every tick from
+    t = 1 s, with a sync one boot ahead every second, each tag towards agents 2 and 4, the
+    plant and the router under the best key it holds (agent 1's pair key with agent 3).
+    Both C agents count every forged frame and sync `auth` and take none: case 1 still
+    converges."""
+    from firmware_py import fixedpoint
+    from firmware_py import secoc as sec
+
+    master = bytes(range(16))
+    sc = replace(load_case(1), duration=6.0, fd=True)
+    others = ["agent_2", "agent_4", "plant", "router"]
+    best = sec.derive_lambda_tag_key(master, "agent_1", "agent_3")
+    sender = FleetSender(FD, keys={sec.pair_label("agent_1", r): best for r in others},
+                         boot=2, tag_receivers={1: others})
+    sent: list[can.Message] = []
+    counters: dict[str, dict[str, int]] = {}
+
+    def inject(t: float) -> list[can.Message]:
+        k = round(t / sc.ts)
+        if t < 1.0:
+            return []
+        out = [sender.sync(mc_name(1))] if k % 100 == 0 else []
+        out.append(sender.frame(mc_name(1), {"State": 1, "Resets": 0,
+                                             "Lambda": fixedpoint.to_fixed(1.2)}))
+        sent.extend(out)
+        return out
+
+    def observe(_t: float, nodes: dict[str, object]) -> None:
+        for n in ("agent_2", "agent_4"):
+            if (node := nodes.get(n)) is not None:
+                counters[n] = dict(node.counters)  # type: ignore[attr-defined]
+
+    m = busrun.run_in_process(sc, tmp_path, duration=6.0, channel="test-fd-c-forged",
+                              inject=inject, observe=observe, c_agents=(2, 4),
+                              keyrings=sec.Keyring.fleet(master, sec.fleet_nodes(sc.n)))
+    assert len(sent) > 400
+    for n in ("agent_2", "agent_4"):  # (the last tick's frames come after the last look)
+        assert len(sent) - 1 <= counters[n].get("auth", 0) <= len(sent), (n, counters[n])
+    assert m["final_error"] < 1e-3
+
+
 @pytest.mark.realtime
 def test_udp_multicast_fd_case1_converges(tmp_path: Path, udp_port: int) -> None:
     """`bess-ded up --fd` on udp_multicast, every node a process: case 1 converges, every

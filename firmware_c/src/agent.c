@@ -57,6 +57,12 @@ uint32_t bd_id_sender(uint32_t id)
     return i != 0u ? i : LABEL_ROUTER;
 }
 
+uint8_t bd_frame_len(const bd_agent *a, uint32_t id)
+{
+    int mc = in_block(id, BD_MC_BASE) || in_block(id, BD_MC_SYNC_BASE);
+    return (uint8_t)(lambda_tagged(&a->p) && mc ? BD_FD_MC_BYTES : 8u);
+}
+
 /* ------------------------------------------------------------------ keys */
 
 static int starts_with(const char *s, const char *prefix)
@@ -90,7 +96,7 @@ static uint32_t label_code(const char *s)
     return n <= BD_N_AGENTS_MAX ? n : 0u;
 }
 
-static void label_text(uint32_t code, char out[BD_LABEL_MAX + 1])
+void bd_label_text(uint32_t code, char out[BD_LABEL_MAX + 1])
 {
     if (code == LABEL_PLANT) {
         memcpy(out, "plant", 6);
@@ -121,7 +127,7 @@ int bd_key_of(bd_agent *a, uint32_t label)
         return -1;
     }
     char text[BD_LABEL_MAX + 1];
-    label_text(label, text);
+    bd_label_text(label, text);
     if (bd_derive_node_key(a->master, text, a->key[a->n_keys]) != 0) {
         a->fatal = BD_ERR_CRYPTO;
         return -1;
@@ -143,6 +149,79 @@ static void frame_name(const char *prefix, uint32_t id, const char *suffix,
     memcpy(&out[n], suffix, strlen(suffix) + 1u);
 }
 
+/* AUTH-34: a TagRx code's node label ("agent_3", "plant", "router") */
+static void tag_label(uint32_t code, char out[BD_LABEL_MAX + 1])
+{
+    bd_label_text(code == BD_TAG_RX_PLANT ? LABEL_PLANT : code == BD_TAG_RX_ROUTER ? LABEL_ROUTER
+               : code, out);
+}
+
+/* AUTH-34: K_tag(sender -> receiver) (TagRx codes), derived or from the keyring; -1 if
+ * the keyring does not hold it (its index in keys->tag_* in *at, -1 if derived) */
+static int pair_key(const bd_agent *a, const bd_keyring *keys, uint32_t sender,
+                    uint32_t receiver, uint8_t out[BD_KEY_BYTES], int *at)
+{
+    *at = -1;
+    if (a->derive) {
+        char from[BD_LABEL_MAX + 1];
+        char to[BD_LABEL_MAX + 1];
+        tag_label(sender, from);
+        tag_label(receiver, to);
+        return bd_derive_lambda_tag_key(a->master, from, to, out) != 0 ? BD_ERR_CRYPTO : BD_OK;
+    }
+    for (uint32_t k = 0u; k < keys->n_tags && k < BD_TAG_KEYS_MAX; ++k) {
+        if (keys->tag_pair[k][0] == sender && keys->tag_pair[k][1] == receiver) {
+            memcpy(out, keys->tag_key[k], BD_KEY_BYTES);
+            *at = (int)k;
+            return BD_OK;
+        }
+    }
+    return BD_ERR_MISSING_KEY;
+}
+
+/* AUTH-34 (CAN FD): the receivers of its λ tags, its neighbours by ascending index, then
+ * the plant and the router, with their keys; the keys of its neighbours' tags to it */
+static int init_tags(bd_agent *a, const bd_keyring *keys)
+{
+    uint32_t n = 0u;
+    int at;
+    for (uint32_t id = 1u; id <= BD_N_AGENTS_MAX; ++id) {
+        for (uint32_t j = 0u; j < a->p.n_neighbours; ++j) {
+            if (a->p.neighbour_id[j] == id && n < BD_FD_NEIGHBOURS_MAX) {
+                a->tag_code[n++] = (uint8_t)id;
+                break;
+            }
+        }
+    }
+    a->tag_code[n++] = BD_TAG_RX_PLANT;
+    a->tag_code[n++] = BD_TAG_RX_ROUTER;
+    for (uint32_t k = 0u; k < n; ++k) {
+        int err = pair_key(a, keys, a->p.id, a->tag_code[k], a->tag_key[k], &at);
+        if (err != BD_OK) {
+            return err;
+        }
+    }
+    for (uint32_t j = 0u; j < a->p.n_neighbours; ++j) {
+        uint32_t nb = a->p.neighbour_id[j];
+        int err = pair_key(a, keys, nb, a->p.id, a->tag_rx_key[j], &at);
+        if (err != BD_OK) {
+            return err;
+        }
+        /* its frames need no node key of the neighbour: a key table entry that verifies
+         * nothing holds its boot floor (AUTH-21) */
+        if (!a->derive && bd_key_of(a, nb) < 0) {
+            if (a->n_keys >= BD_MAX_PEERS) {
+                return BD_ERR_PARAMS;
+            }
+            a->key_label[a->n_keys] = (uint8_t)nb;
+            a->key_floor[a->n_keys] = a->insecure || at < 0 ? 0u : keys->tag_floor[at];
+            memset(a->key[a->n_keys], 0, BD_KEY_BYTES);
+            a->n_keys++;
+        }
+    }
+    return BD_OK;
+}
+
 static int new_boot(bd_agent *a)
 {
     if (a->boot >= BOOT_MAX) {
@@ -157,10 +236,11 @@ static int new_boot(bd_agent *a)
 
 /* ------------------------------------------------------------------ init */
 
-static void init_echo(bd_echo *e, uint32_t id)
+static void init_echo(bd_agent *a, bd_echo *e, uint32_t id)
 {
     memset(e, 0, sizeof *e);
     e->id = (uint16_t)id;
+    e->len = bd_frame_len(a, id);
 }
 
 int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
@@ -169,7 +249,8 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     memset(a, 0, sizeof *a);
     if (p->id < 1u || p->id > BD_N_AGENTS_MAX || p->n_neighbours > BD_MAX_NEIGHBOURS
         || p->fleet_size > BD_N_AGENTS_MAX || p->period_ns <= 0
-        || bd_ctrl_config_check(&p->ctrl) != BD_OK || keys->n_peers > BD_MAX_PEERS) {
+        || bd_ctrl_config_check(&p->ctrl) != BD_OK || keys->n_peers > BD_MAX_PEERS
+        || (lambda_tagged(p) && p->n_neighbours > BD_FD_NEIGHBOURS_MAX)) {   /* AUTH-34 */
         return BD_ERR_PARAMS;
     }
     a->p = *p;
@@ -238,6 +319,12 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     if (status_floor > a->key_floor[plant]) {
         a->key_floor[plant] = status_floor;
     }
+    if (lambda_tagged(p)) {
+        int err = init_tags(a, keys);
+        if (err != BD_OK) {
+            return err;
+        }
+    }
     /* inputs (RX-1): price, command, own status, neighbours' MC; each with its sender's key */
     uint32_t ids[BD_RX_MC0 + BD_MAX_NEIGHBOURS];
     uint32_t sync_ids[BD_RX_MC0 + BD_MAX_NEIGHBOURS];   /* each input's <name>_Sync */
@@ -279,12 +366,12 @@ int bd_agent_init(bd_agent *a, const bd_agent_params *p, const bd_keyring *keys,
     }
     /* the peer syncs the acceptance filter passes: keys held beyond the inputs' senders */
     a->n_listed = a->derive ? 0u : a->n_keys;
-    init_echo(&a->echo[ECHO_MC], BD_MC_BASE + p->id);
-    init_echo(&a->echo[ECHO_SETPOINT], BD_SETPOINT_BASE + p->id);
-    init_echo(&a->echo[ECHO_DIAG], BD_DIAG_BASE + p->id);
-    init_echo(&a->echo[ECHO_MC_SYNC], BD_MC_SYNC_BASE + p->id);
-    init_echo(&a->echo[ECHO_SETPOINT_SYNC], BD_SETPOINT_SYNC_BASE + p->id);
-    init_echo(&a->echo[ECHO_DIAG_SYNC], BD_DIAG_SYNC_BASE + p->id);
+    init_echo(a, &a->echo[ECHO_MC], BD_MC_BASE + p->id);
+    init_echo(a, &a->echo[ECHO_SETPOINT], BD_SETPOINT_BASE + p->id);
+    init_echo(a, &a->echo[ECHO_DIAG], BD_DIAG_BASE + p->id);
+    init_echo(a, &a->echo[ECHO_MC_SYNC], BD_MC_SYNC_BASE + p->id);
+    init_echo(a, &a->echo[ECHO_SETPOINT_SYNC], BD_SETPOINT_SYNC_BASE + p->id);
+    init_echo(a, &a->echo[ECHO_DIAG_SYNC], BD_DIAG_SYNC_BASE + p->id);
     a->sync_pending = 1;
     a->hello_after = INT64_MIN;
     a->join_until = INT64_MAX;
@@ -382,17 +469,35 @@ static void step(bd_agent *a)
 
 /* ------------------------------------------------------------------ transmit */
 
-static void remember(bd_echo *e, const uint8_t d[8])
+static void remember(bd_echo *e, const bd_frame *f)
 {
-    memcpy(e->data[e->next], d, 8u);
+    memcpy(e->data[e->next], f->data, BD_FRAME_DATA);
     e->next = (uint8_t)((e->next + 1u) % BD_ECHO_DEPTH);
     if (e->n < BD_ECHO_DEPTH) {
         e->n++;
     }
 }
 
+/* AUTH-34: on CAN FD its MC and MC sync carry, instead of the Mac (0), a tag for each
+ * receiver under the pair's key */
+static void tag(bd_agent *a, bd_frame *f, uint64_t fv)
+{
+    f->len = BD_FD_MC_BYTES;
+    for (uint32_t k = 0u; k < BD_TAG_SLOTS && a->tag_code[k] != 0u; ++k) {
+        uint8_t *slot = &f->data[BD_TAG_SLOT_BYTE + k * BD_TAG_SLOT_BYTES];
+        slot[0] = a->tag_code[k];
+        if (bd_tag_frame(a->tag_key[k], f->id, f->data, fv, &slot[1]) != 0) {
+            a->fatal = BD_ERR_CRYPTO;
+        }
+    }
+}
+
 static void sign(bd_agent *a, bd_frame *f, uint64_t fv)
 {
+    if (bd_frame_len(a, f->id) != 8u) {
+        tag(a, f, fv);
+        return;
+    }
     /* AUTH-28, AUTH-29: the setpoint and the Diag (and their syncs) under their own keys */
     int link = f->id == BD_SETPOINT_BASE + a->p.id || f->id == BD_SETPOINT_SYNC_BASE + a->p.id;
     int diag = f->id == BD_DIAG_BASE + a->p.id || f->id == BD_DIAG_SYNC_BASE + a->p.id;
@@ -431,7 +536,7 @@ static size_t syncs(bd_agent *a, int64_t t, bd_frame *out)
         frame_init(&out[k], e->id);
         bd_encode_sync(a->tx_count[k], a->boot, out[k].data);
         sign(a, &out[k], fv_join(a->boot, a->tx_count[k]));
-        remember(e, out[k].data);
+        remember(e, &out[k]);
     }
     return (size_t)N_SECURED_TX;
 }
@@ -511,7 +616,7 @@ size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
         bd_encode_mc(count % FV_WINDOW, a->state,
                      a->cs.resets % (BD_AGENT_MC_RESETS_MAX + 1u), lam, buf[n].data);
         sign(a, &buf[n], fv_join(a->boot, count));
-        remember(&a->echo[ECHO_MC], buf[n].data);
+        remember(&a->echo[ECHO_MC], &buf[n]);
         n++;
     }
     if (a->ticks % BD_SETPOINT_EVERY == 0u) {   /* SP-1..3 */
@@ -531,7 +636,7 @@ size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
         frame_init(&buf[n], a->echo[ECHO_SETPOINT].id);
         bd_encode_setpoint(count % FV_WINDOW, enable, p, buf[n].data);
         sign(a, &buf[n], fv_join(a->boot, count));
-        remember(&a->echo[ECHO_SETPOINT], buf[n].data);
+        remember(&a->echo[ECHO_SETPOINT], &buf[n]);
         n++;
     }
     if (a->ticks % BD_DIAG_EVERY == 0u) {   /* DIAG-1..3 */
@@ -544,7 +649,7 @@ size_t bd_agent_tick(bd_agent *a, int64_t t, bd_frame *out, size_t max)
         frame_init(&buf[n], a->echo[ECHO_DIAG].id);
         bd_encode_diag(count % FV_WINDOW, page, v, buf[n].data);
         sign(a, &buf[n], fv_join(a->boot, count));
-        remember(&a->echo[ECHO_DIAG], buf[n].data);
+        remember(&a->echo[ECHO_DIAG], &buf[n]);
         n++;
     }
     a->ticks++;

@@ -30,6 +30,12 @@ static inline uint32_t fv_boot(uint64_t fv)
     return (uint32_t)(fv >> BD_FV_COUNT_BITS);
 }
 
+/* AUTH-34: λ and its sync carry a tag per receiver (a CAN FD bus with the tags) */
+static inline int lambda_tagged(const bd_agent_params *p)
+{
+    return p->fd != 0u && p->no_lambda_tags == 0u;
+}
+
 static inline int active(uint32_t state)
 {
     return state == BD_STATE_RUNNING;
@@ -46,6 +52,11 @@ void bd_set_state(bd_agent *a, uint32_t state);
 uint32_t bd_id_agent(uint32_t id);
 /* agent.c: the key label code of an ID's DBC sender: 1..32 an agent, plant, router */
 uint32_t bd_id_sender(uint32_t id);
+/* agent.c: the length of frame `id` on the agent's bus (AUTH-34: an MC or its sync on
+ * CAN FD carries the tag slots) */
+uint8_t bd_frame_len(const bd_agent *a, uint32_t id);
+/* agent.c: a key label code's node label ("agent_3", "plant", "router") */
+void bd_label_text(uint32_t code, char out[BD_LABEL_MAX + 1]);
 /* agent.c: the index of label's key in a->key (derived in insecure mode); -1 if none */
 int bd_key_of(bd_agent *a, uint32_t label);
 

@@ -108,11 +108,11 @@ static bd_echo *echo_of(bd_agent *a, uint32_t id)
 
 static int echo_holds(const bd_echo *e, const bd_frame *f)
 {
-    if (f->len != 8u) {
+    if (f->len != e->len) {
         return 0;
     }
     for (uint32_t k = 0u; k < e->n; ++k) {
-        if (memcmp(e->data[k], f->data, 8u) == 0) {
+        if (memcmp(e->data[k], f->data, e->len) == 0) {
             return 1;
         }
     }
@@ -139,23 +139,45 @@ static bd_rx_slot *slot_synced_by(bd_agent *a, uint32_t sync_id)
     return NULL;
 }
 
-/* 1 if the frame's MAC verifies under key; a failed primitive stops the agent. */
-static int verifies(bd_agent *a, const uint8_t *key, uint32_t id, const uint8_t d[8],
-                    uint64_t fv)
+/* AUTH-34: the tag of the first slot addressed to this agent in an FD MC or MC sync
+ * (f->len checked), NULL if none; a classic frame's is its Mac (bytes 0..2). */
+static const uint8_t *tag_of(const bd_agent *a, const bd_frame *f)
 {
-    int v = bd_frame_verifies(key, id, d, fv);
+    if (f->len == 8u) {
+        return f->data;
+    }
+    for (uint32_t k = 0u; k < BD_TAG_SLOTS; ++k) {
+        const uint8_t *slot = &f->data[BD_TAG_SLOT_BYTE + k * BD_TAG_SLOT_BYTES];
+        if (slot[0] == a->p.id) {
+            return &slot[1];
+        }
+    }
+    return NULL;
+}
+
+/* 1 if the frame's MAC (its tag to this agent, AUTH-34) verifies under key; none does
+ * not; a failed primitive stops the agent. */
+static int verifies(bd_agent *a, const uint8_t *key, const bd_frame *f, uint64_t fv)
+{
+    const uint8_t *tag = tag_of(a, f);
+    int v = tag != NULL ? bd_tag_verifies(key, f->id, f->data, fv, tag) : 0;
     if (v < 0) {
         a->fatal = BD_ERR_CRYPTO;
     }
     return v == 1;
 }
 
-/* The key a slot's frames verify with: AUTH-30, the command slot's is the agent's
- * command key (its sync keeps the router's node key, s->key_index); the others' their
- * sender's or link frame's. */
-static const uint8_t *frame_key(const bd_agent *a, const bd_rx_slot *s)
+/* The key a slot's frames (and its sync) verify with: AUTH-30, the command slot's is
+ * the agent's command key (its sync keeps the router's node key: sync = 1); AUTH-34, a
+ * neighbour's MC on CAN FD the key of its tags to this agent; the others' their sender's
+ * or link frame's. */
+static const uint8_t *frame_key(const bd_agent *a, const bd_rx_slot *s, int sync)
 {
-    return s == &a->rx[BD_RX_COMMAND] ? a->command_key : a->key[s->key_index];
+    uint32_t r = (uint32_t)(s - a->rx);
+    if (r >= BD_RX_MC0 && lambda_tagged(&a->p)) {
+        return a->tag_rx_key[r - BD_RX_MC0];
+    }
+    return s == &a->rx[BD_RX_COMMAND] && !sync ? a->command_key : a->key[s->key_index];
 }
 
 /* AUTH-25: whether the frame of FV v <= s->fv was accepted (older than 16: yes). */
@@ -184,7 +206,7 @@ static int stale(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t counter
         return 0;
     }
     for (uint32_t k = 0u; k < STALE_WINDOWS; ++k, fv -= FV_WINDOW) {
-        if (!seen(s, fv) && verifies(a, frame_key(a, s), f->id, f->data, fv)) {
+        if (!seen(s, fv) && verifies(a, frame_key(a, s, 0), f, fv)) {
             s->seen = (uint16_t)(s->seen | (1u << (s->fv - fv)));   /* again: a replay */
             return 1;
         }
@@ -211,7 +233,7 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
     int found = 0;
     if (bd_fv_candidate(s->fv, counter, BD_FV_TX_BITS, FV_MAX, &fv) == 0) {
         for (; tries > 0u; --tries, fv += FV_WINDOW) {
-            if (verifies(a, frame_key(a, s), f->id, f->data, fv)) {
+            if (verifies(a, frame_key(a, s, 0), f, fv)) {
                 found = 1;
                 break;
             }
@@ -275,7 +297,7 @@ static int revert(bd_agent *a, bd_rx_slot *s, uint64_t v, uint32_t boot, uint32_
 static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
 {
     bd_sync_msg m;
-    if (f->len != 8u) {
+    if (f->len != bd_frame_len(a, f->id)) {
         fail(a, NULL, f->id, BD_C_DLC, t);
         return;
     }
@@ -284,7 +306,7 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
         return;
     }
     uint64_t fv = fv_join(m.boot, m.count);
-    if (!verifies(a, a->key[s->key_index], f->id, f->data, fv)
+    if (!verifies(a, frame_key(a, s, 1), f, fv)
         || m.boot < a->key_floor[s->key_index]) {   /* AUTH-21: an earlier run or boot */
         fail(a, NULL, f->id, BD_C_AUTH, t);
         return;
@@ -389,21 +411,42 @@ static int peer_sync(bd_agent *a, const bd_frame *f, int64_t t, int k)
         return 0;   /* AUTH-28: another agent's link frame, under a key it does not hold */
     }
     uint32_t label = bd_id_sender(f->id);
-    int key = (label == a->p.id) ? -2 : bd_key_of(a, label);
+    /* AUTH-34: another agent's MC sync on CAN FD verifies under the key of its tags to
+     * this agent: its peer only if it has a slot for it and the key is held (derived in a
+     * simulated fleet; a key file holds its neighbours' only, whose syncs are inputs) */
+    int tagged = bd_frame_len(a, f->id) != 8u;
+    if (tagged && (!a->derive || f->len != BD_FD_MC_BYTES || tag_of(a, f) == NULL)) {
+        return 0;
+    }
+    int key = (label == a->p.id) ? -2 : bd_key_of(a, label);   /* and its floor */
     if (key == -1) {
         return 0;
     }
     bd_sync_msg m;
-    if (f->len != 8u || bd_decode_sync(f->data, &m) != 0) {
+    if (f->len != bd_frame_len(a, f->id) || bd_decode_sync(f->data, &m) != 0) {
         return 1;   /* not a usable sync; not this node's input either */
     }
     if (a->peer_boot[k] == m.boot) {
         return 1;
     }
     uint64_t fv = fv_join(m.boot, m.count);
-    const uint8_t *kk = (key == -2) ? a->own_key : a->key[key];
-    if (!verifies(a, kk, f->id, f->data, fv)
-        || (key != -2 && m.boot < a->key_floor[key])) {   /* AUTH-21 */
+    uint8_t tag_key[BD_KEY_BYTES];
+    const uint8_t *kk = a->own_key;
+    if (tagged) {
+        char from[BD_LABEL_MAX + 1];
+        char to[BD_LABEL_MAX + 1];
+        bd_label_text(label, from);
+        bd_label_text(a->p.id, to);
+        if (bd_derive_lambda_tag_key(a->master, from, to, tag_key) != 0) {
+            a->fatal = BD_ERR_CRYPTO;
+            return 1;
+        }
+        kk = tag_key;
+    } else if (key >= 0) {
+        kk = a->key[key];
+    }
+    if (!verifies(a, kk, f, fv)
+        || (key >= 0 && m.boot < a->key_floor[key])) {   /* AUTH-21 */
         fail(a, NULL, f->id, BD_C_AUTH, t);
         return 1;
     }
@@ -534,7 +577,7 @@ void bd_agent_rx(bd_agent *a, const bd_frame *f, int64_t t)
     if ((s->flags & BD_RX_UNTRUSTED) != 0u && t >= s->untrusted_until) {
         s->flags &= (uint8_t)~BD_RX_UNTRUSTED;   /* inputs are secured: frames prove themselves */
     }
-    if (f->len != 8u) {
+    if (f->len != bd_frame_len(a, id)) {   /* AUTH-34: an FD MC is 32 bytes */
         fail(a, s, id, BD_C_DLC, t);
         return;
     }

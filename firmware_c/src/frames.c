@@ -7,6 +7,10 @@
 
 #include "bd_contract.h"
 #include "bd_dbc.h"
+#include "bessded/frame.h"
+
+/* AUTH-34: a bd_frame holds the contract's longest frame (C99: no _Static_assert) */
+typedef char bd_frame_holds_fd_mc[(BD_FD_MC_BYTES <= BD_FRAME_DATA) ? 1 : -1];
 
 int bd_decode_price(const uint8_t d[8], bd_price_msg *m)
 {

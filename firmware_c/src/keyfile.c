@@ -130,6 +130,90 @@ static int node_label_ok(const char *s)
     return 1;
 }
 
+/* AUTH-34: a node label's TagRx code (agent_<i>: i, plant, router); 0 if none */
+static uint32_t tag_code(const char *s, size_t n)
+{
+    if (n == 5u && strncmp(s, "plant", 5) == 0) {
+        return BD_TAG_RX_PLANT;
+    }
+    if (n == 6u && strncmp(s, "router", 6) == 0) {
+        return BD_TAG_RX_ROUTER;
+    }
+    if (n < 7u || n > 8u || strncmp(s, "agent_", 6) != 0 || s[6] < '1' || s[6] > '9'
+        || (n == 8u && !isdigit((unsigned char)s[7]))) {
+        return 0u;
+    }
+    uint32_t i = (uint32_t)(s[6] - '0');
+    if (n == 8u) {
+        i = i * 10u + (uint32_t)(s[7] - '0');
+    }
+    return i <= BD_N_AGENTS_MAX ? i : 0u;
+}
+
+static void tag_label(uint32_t code, char out[BD_LABEL_MAX + 1])
+{
+    (void)snprintf(out, BD_LABEL_MAX + 1, code == BD_TAG_RX_PLANT ? "plant"
+                   : code == BD_TAG_RX_ROUTER ? "router" : "agent_%u", (unsigned)code);
+}
+
+/* AUTH-34: [lambda_tag_keys], "agent_i>receiver" = key for the pairs `node` is one of
+ * (firmware_py secoc's check), into k->tag_*. 0, or -1 with err written. */
+static int tag_keys(const toml_doc *d, const char *path, const char *node, bd_keyring *k,
+                    char *err, size_t errlen)
+{
+    uint32_t own = tag_code(node, strlen(node));
+    for (int q = 0; q < d->n; ++q) {
+        const toml_entry *pe = &d->e[q];
+        if (strcmp(pe->table, "lambda_tag_keys") != 0) {
+            continue;
+        }
+        const char *gt = strchr(pe->key, '>');
+        uint32_t from = gt != NULL ? tag_code(pe->key, (size_t)(gt - pe->key)) : 0u;
+        uint32_t to = gt != NULL ? tag_code(gt + 1, strlen(gt + 1)) : 0u;
+        if (from == 0u || from > BD_N_AGENTS_MAX || to == 0u || from == to) {
+            (void)snprintf(err, errlen, "%s: [lambda_tag_keys] expected 'agent_i>RECEIVER' (an "
+                           "agent other than agent_i, plant or router), but got '%s'", path,
+                           pe->key);
+            return -1;
+        }
+        if (own != from && own != to) {
+            (void)snprintf(err, errlen, "%s: [lambda_tag_keys] expected the pairs %s is one "
+                           "of only, but got %s (re-provision with bess-ded keys)", path, node,
+                           pe->key);
+            return -1;
+        }
+        if (k->n_tags >= BD_TAG_KEYS_MAX) {
+            (void)snprintf(err, errlen, "%s: [lambda_tag_keys] expected at most %d keys (an "
+                           "agent on CAN FD has at most %d neighbours)", path, BD_TAG_KEYS_MAX,
+                           BD_FD_NEIGHBOURS_MAX);
+            return -1;
+        }
+        if (pe->type != TOML_STRING || hex_key(pe->s, k->tag_key[k->n_tags]) != 0) {
+            (void)snprintf(err, errlen, "%s: [lambda_tag_keys.%s] expected %d hex digits", path,
+                           pe->key, 2 * BD_KEY_BYTES);
+            return -1;
+        }
+        k->tag_pair[k->n_tags][0] = (uint8_t)from;
+        k->tag_pair[k->n_tags][1] = (uint8_t)to;
+        k->n_tags++;
+    }
+    return 0;
+}
+
+/* AUTH-21, AUTH-34: the [lambda_tag_keys] entry of a floor's peer not in [peers]: a
+ * sender of a pair to this node; -1 if none */
+static int tag_sender(const bd_keyring *k, const char *peer)
+{
+    uint32_t code = tag_code(peer, strlen(peer));
+    uint32_t own = tag_code(k->node, strlen(k->node));
+    for (uint32_t t = 0u; t < k->n_tags && code != 0u; ++t) {
+        if (k->tag_pair[t][0] == code && k->tag_pair[t][1] == own) {
+            return (int)t;
+        }
+    }
+    return -1;
+}
+
 static void hex_of(const uint8_t *b, size_t n, char *out)
 {
     static const char digits[] = "0123456789abcdef";
@@ -185,6 +269,17 @@ static int persist_boot(void *ctx, uint32_t boot)
         hex_of(k->command_key, BD_KEY_BYTES, hex);   /* AUTH-30 */
         ok = ok && fprintf(f, "\n[command_keys]\n%s = \"%s\"\n", k->node, hex) > 0;
     }
+    if (k->n_tags > 0u && ok) {   /* AUTH-34, as tomli_w writes them: sorted, quoted */
+        ok = fprintf(f, "\n[lambda_tag_keys]\n") > 0;
+        for (uint32_t t = 0u; t < k->n_tags && ok; ++t) {
+            char from[BD_LABEL_MAX + 1];
+            char to[BD_LABEL_MAX + 1];
+            tag_label(k->tag_pair[t][0], from);
+            tag_label(k->tag_pair[t][1], to);
+            hex_of(k->tag_key[t], BD_KEY_BYTES, hex);
+            ok = fprintf(f, "\"%s>%s\" = \"%s\"\n", from, to, hex) > 0;
+        }
+    }
     int floors = 0;   /* AUTH-21: the peers' boot floors are kept */
     for (uint32_t p = 0u; p < k->n_peers && ok; ++p) {
         if (k->peer_floor[p] != 0u) {
@@ -199,6 +294,16 @@ static int persist_boot(void *ctx, uint32_t boot)
     if (k->status_floor != 0u && ok) {   /* the plant's, a sender of [frame_keys] only */
         ok = fprintf(f, "%splant = %u\n", floors == 0 ? "\n[floors]\n" : "",
                      (unsigned)k->status_floor) > 0;
+        floors = 1;
+    }
+    for (uint32_t t = 0u; t < k->n_tags && ok; ++t) {   /* AUTH-34: a tag sender's */
+        if (k->tag_floor[t] != 0u) {
+            char from[BD_LABEL_MAX + 1];
+            tag_label(k->tag_pair[t][0], from);
+            ok = fprintf(f, "%s%s = %u\n", floors == 0 ? "\n[floors]\n" : "", from,
+                         (unsigned)k->tag_floor[t]) > 0;
+            floors = 1;
+        }
     }
     if (kf->price_name[0] != '\0' && ok) {   /* AUTH-31: kept as the file had it */
         ok = fprintf(f, "\n[price_signature]\n%s = \"%s\"\n", kf->price_name,
@@ -399,6 +504,9 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
         return -1;
     }
     k->has_frame_keys = got == 15;
+    if (tag_keys(&d, path, node, k, err, errlen) != 0) {
+        return -1;
+    }
     for (int q = 0; q < d.n; ++q) {   /* AUTH-21: each peer's lowest boot accepted */
         const toml_entry *pe = &d.e[q];
         if (strcmp(pe->table, "floors") != 0) {
@@ -411,6 +519,11 @@ int bd_keyfile_load(const char *path, const char *node, bd_keyring *k, char *err
         if (p == k->n_peers && k->has_frame_keys && strcmp(pe->key, "plant") == 0
             && pe->type == TOML_INT && pe->i >= 0 && pe->i <= 65535) {
             k->status_floor = (uint16_t)pe->i;   /* the sender of PLANT_<id>_Status */
+            continue;
+        }
+        int t = p == k->n_peers ? tag_sender(k, pe->key) : -1;
+        if (t >= 0 && pe->type == TOML_INT && pe->i >= 0 && pe->i <= 65535) {
+            k->tag_floor[t] = (uint16_t)pe->i;   /* AUTH-34: a neighbour on CAN FD */
             continue;
         }
         if (p == k->n_peers && k->has_frame_keys && strcmp(pe->key, node) == 0

@@ -97,7 +97,7 @@ int bd_socketcan_recv(bd_platform *plat, bd_frame *f)
                             ? BD_FRAME_BRS : 0u));
     f->id = cf.can_id & ((cf.can_id & CAN_EFF_FLAG) != 0u ? CAN_EFF_MASK : CAN_SFF_MASK);
     f->len = cf.len;   /* up to 64 on FD: its DLC check (RX-7) sees the true length */
-    memcpy(f->data, cf.data, cf.len <= 8u ? cf.len : 8u);   /* bd_frame holds 8 */
+    memcpy(f->data, cf.data, cf.len <= BD_FRAME_DATA ? cf.len : BD_FRAME_DATA);
     plat->received++;
     return 1;
 }
@@ -106,7 +106,7 @@ int bd_socketcan_send(bd_platform *plat, const bd_frame *f)
 {
     struct canfd_frame cf;   /* a classic frame is its first CAN_MTU bytes */
     size_t size = (f->flags & BD_FRAME_FD) != 0u ? CANFD_MTU : CAN_MTU;
-    uint8_t len = f->len <= 8u ? f->len : 8u;
+    uint8_t len = f->len <= BD_FRAME_DATA ? f->len : BD_FRAME_DATA;
     memset(&cf, 0, sizeof cf);
     cf.can_id = f->id;
     cf.len = len;

@@ -2,10 +2,12 @@
  * bessded-agent: one BESS agent on Linux, the C twin of `bess-ded agent`.
  *
  *   bessded-agent --config agent_3.toml (--key agent_3.key | --insecure) --channel can0
- *                 [--fd] [--interface socketcan] [--duration S] [--rt-priority N]
+ *                 [--fd [--no-lambda-tags]] [--interface socketcan] [--duration S]
+ *                 [--rt-priority N]
  *                 [--no-acceptance-filter] [--counters-dir DIR]
  *   bessded-agent --config agent_3.toml (--key ... | --insecure) --interface udp_multicast
- *                 [--channel GROUP] [--port N] [--fd] [--duration S] [--rt-priority N]
+ *                 [--channel GROUP] [--port N] [--fd [--no-lambda-tags]] [--duration S]
+ *                 [--rt-priority N]
  *                 [--acceptance-filter] [--counters-dir DIR]
  *
  * SocketCAN (the default) on a CAN interface; or python-can's udp_multicast bus (the
@@ -41,10 +43,12 @@ static const char *const state_names[] = {"INIT", "RUNNING", "ISOLATED", "SAFE"}
 static int usage(const char *problem)
 {
     (void)fprintf(stderr, "usage: " PROG " --config FILE (--key FILE | --insecure) "
-                  "[--interface socketcan] --channel IFACE [--fd] [--duration S] "
+                  "[--interface socketcan] --channel IFACE [--fd [--no-lambda-tags]] "
+                  "[--duration S] "
                   "[--rt-priority N] [--no-acceptance-filter] [--counters-dir DIR]\n"
                   "       " PROG " --config FILE (--key FILE | --insecure) "
-                  "--interface udp_multicast [--channel GROUP] [--port N] [--fd] "
+                  "--interface udp_multicast [--channel GROUP] [--port N] "
+                  "[--fd [--no-lambda-tags]] "
                   "[--duration S] [--rt-priority N] [--acceptance-filter] "
                   "[--counters-dir DIR]\n" PROG ": error: %s\n", problem);
     return 2;
@@ -122,6 +126,7 @@ int main(int argc, char **argv)
     long port = -1;
     int filter = -1;   /* the bus's default: on for socketcan, off for udp_multicast */
     int fd = 0;
+    int no_tags = 0;
     long rt = 0;
     double duration = 0.0;
     char err[1024];
@@ -137,6 +142,8 @@ int main(int argc, char **argv)
             insecure = 1;
         } else if (strcmp(a, "--fd") == 0) {   /* GEN-1: a CAN FD bus */
             fd = 1;
+        } else if (strcmp(a, "--no-lambda-tags") == 0) {   /* AUTH-34: FD without λ tags */
+            no_tags = 1;
         } else if (strcmp(a, "--no-acceptance-filter") == 0) {
             filter = 0;
         } else if (strcmp(a, "--acceptance-filter") == 0) {
@@ -195,7 +202,7 @@ int main(int argc, char **argv)
             ++i;
         } else {
             (void)snprintf(err, sizeof err, "expected one of --config, --key, --insecure, "
-                           "--fd, --channel, --interface socketcan|udp_multicast, --port, "
+                           "--fd, --no-lambda-tags, --channel, --interface socketcan|udp_multicast, --port, "
                            "--duration, --rt-priority, --[no-]acceptance-filter, "
                            "--counters-dir, but got '%s'", a);
             return usage(err);
@@ -207,6 +214,10 @@ int main(int argc, char **argv)
     if (config == NULL || channel == NULL || (key == NULL) == (insecure == 0)) {
         return usage("expected --config, --channel and exactly one of --key or --insecure");
     }
+    if (no_tags && !fd) {
+        return usage("--no-lambda-tags: expected it only with --fd (classic CAN has no room "
+                     "for the tags)");
+    }
     if (!udp && port >= 0) {
         return usage("--port: expected only with --interface udp_multicast (a SocketCAN "
                      "interface has no port)");
@@ -216,6 +227,14 @@ int main(int argc, char **argv)
         return 2;
     }
     params.fd = (uint32_t)fd;
+    params.no_lambda_tags = (uint32_t)no_tags;
+    if (fd && !no_tags && params.n_neighbours > BD_FD_NEIGHBOURS_MAX) {
+        (void)fprintf(stderr, PROG ": error: %s: [[neighbour]] expected at most %d neighbours "
+                      "on a CAN FD bus (--fd: AUTH-34's λ tag slots, %d with the plant's and "
+                      "the router's), but got %u\n", config, BD_FD_NEIGHBOURS_MAX,
+                      BD_TAG_SLOTS, (unsigned)params.n_neighbours);
+        return 2;
+    }
     char node[BD_LABEL_MAX + 1];
     (void)snprintf(node, sizeof node, "agent_%u", params.id);
     if (insecure) {

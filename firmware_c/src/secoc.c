@@ -9,8 +9,9 @@
 #define NODE_KEY_LABEL "bess-ded/secoc/node-key/v1"
 #define FLEET_ID_LABEL "bess-ded/secoc/fleet-id/v1"
 #define FRAME_KEY_LABEL "bess-ded/secoc/frame-key/v1"   /* AUTH-28 */
-#define COMMAND_KEY_LABEL "bess-ded/secoc/command-key/v1"   /* AUTH-30: the longest label */
-#define KDF_MAX (4u + sizeof COMMAND_KEY_LABEL + BD_LABEL_MAX + 4u)
+#define COMMAND_KEY_LABEL "bess-ded/secoc/command-key/v1"   /* AUTH-30 */
+#define TAG_KEY_LABEL "bess-ded/secoc/lambda-tag-key/v1"   /* AUTH-34: the longest label */
+#define KDF_MAX (4u + sizeof TAG_KEY_LABEL + BD_LABEL_MAX + 4u)
 
 static void put_be32(uint8_t *p, uint32_t v)
 {
@@ -30,7 +31,7 @@ static int kdf(const uint8_t master[BD_KEY_BYTES], const char *label, const char
     size_t nl = strlen(label);
     size_t nc = strlen(context);
     size_t k = 0u;
-    if (nl + 1u > sizeof COMMAND_KEY_LABEL || nc > BD_LABEL_MAX || out_len > sizeof tag) {
+    if (nl + 1u > sizeof TAG_KEY_LABEL || nc > BD_LABEL_MAX || out_len > sizeof tag) {
         return -1;   /* the message would not fit m (a node label over BD_LABEL_MAX) */
     }
     put_be32(&m[k], 1u);
@@ -76,6 +77,22 @@ int bd_derive_command_key(const uint8_t master[BD_KEY_BYTES], const char *target
     return kdf(master, COMMAND_KEY_LABEL, target, 8u * BD_KEY_BYTES, out, BD_KEY_BYTES);
 }
 
+int bd_derive_lambda_tag_key(const uint8_t master[BD_KEY_BYTES], const char *sender,
+                             const char *receiver, uint8_t out[BD_KEY_BYTES])
+{
+    char pair[BD_LABEL_MAX + 1];
+    size_t ns = strlen(sender);
+    size_t nr = strlen(receiver);
+    if (strncmp(sender, "agent_", 6) != 0 || ns == 6u || nr == 0u
+        || ns + 1u + nr > BD_LABEL_MAX) {
+        return -1;
+    }
+    memcpy(pair, sender, ns);   /* the pair's label, "agent_1>agent_3" */
+    pair[ns] = '>';
+    memcpy(&pair[ns + 1u], receiver, nr + 1u);
+    return kdf(master, TAG_KEY_LABEL, pair, 8u * BD_KEY_BYTES, out, BD_KEY_BYTES);
+}
+
 int bd_fleet_id(const uint8_t master[BD_KEY_BYTES], uint8_t out[8])
 {
     return kdf(master, FLEET_ID_LABEL, "", 64u, out, 8u);
@@ -96,29 +113,41 @@ static int frame_tag(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id, const u
     return bd_cmac_aes128(key, m, sizeof m, tag);
 }
 
+int bd_tag_frame(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id, const uint8_t data[8],
+                 uint64_t fv, uint8_t tag[3])
+{
+    uint8_t full[16];
+    if (frame_tag(key, frame_id, data, fv, full) != 0) {
+        return -1;
+    }
+    memcpy(tag, full, 3u);   /* the leading 24 bits, MSB first (AUTH-7) */
+    return 0;
+}
+
+int bd_tag_verifies(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id, const uint8_t data[8],
+                    uint64_t fv, const uint8_t tag[3])
+{
+    uint8_t full[16];
+    if (frame_tag(key, frame_id, data, fv, full) != 0) {
+        return -1;
+    }
+    unsigned diff = 0u;   /* no early exit: the time does not tell where they differ */
+    for (unsigned k = 0u; k < 3u; ++k) {
+        diff |= (unsigned)(full[k] ^ tag[k]);
+    }
+    return diff == 0u;
+}
+
 int bd_sign_frame(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id, uint8_t data[8],
                   uint64_t fv)
 {
-    uint8_t tag[16];
-    if (frame_tag(key, frame_id, data, fv, tag) != 0) {
-        return -1;
-    }
-    memcpy(data, tag, 3u);   /* the leading 24 bits, MSB first (AUTH-7) */
-    return 0;
+    return bd_tag_frame(key, frame_id, data, fv, data);
 }
 
 int bd_frame_verifies(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id,
                       const uint8_t data[8], uint64_t fv)
 {
-    uint8_t tag[16];
-    if (frame_tag(key, frame_id, data, fv, tag) != 0) {
-        return -1;
-    }
-    unsigned diff = 0u;   /* no early exit: the time does not tell where they differ */
-    for (unsigned k = 0u; k < 3u; ++k) {
-        diff |= (unsigned)(tag[k] ^ data[k]);
-    }
-    return diff == 0u;
+    return bd_tag_verifies(key, frame_id, data, fv, data);
 }
 
 int bd_fv_candidate(uint64_t last, uint32_t truncated, unsigned tx_bits, uint64_t max_value,

@@ -58,6 +58,23 @@ static int bare_key(const char *s)
     return 1;
 }
 
+/* A quoted key ("agent_1>agent_3", AUTH-34's pairs as tomli_w writes them): its text,
+ * printable and without quotes or escapes; NULL if key is not one. */
+static char *quoted_key(char *key)
+{
+    size_t n = strlen(key);
+    if (n < 3u || n - 2u >= NAME_MAX_ || key[0] != '"' || key[n - 1u] != '"') {
+        return NULL;
+    }
+    key[n - 1u] = '\0';
+    for (const char *c = key + 1; *c != '\0'; ++c) {
+        if (!isprint((unsigned char)*c) || *c == '"' || *c == '\\') {
+            return NULL;
+        }
+    }
+    return key + 1;
+}
+
 static void strip_comment(char *s)
 {
     int in_string = 0;
@@ -206,8 +223,8 @@ int bd_toml_parse(toml_doc *d, char *text)
         *eq = '\0';
         char *key = trim(s);
         char *value = trim(eq + 1);
-        if (!bare_key(key)) {
-            return syntax(d, line, "a key that is not a bare key");
+        if (!bare_key(key) && (key = quoted_key(key)) == NULL) {
+            return syntax(d, line, "a key that is not a bare key or a plain quoted one");
         }
         if (d->n >= ENTRIES_MAX) {
             return syntax(d, line, "too many keys");

@@ -85,7 +85,7 @@ size_t bd_udp_encode(const bd_frame *f, double timestamp, uint8_t *out, size_t c
 {
     writer w = {out, cap, 0u};
     uint64_t bits;
-    uint8_t len = f->len <= 8u ? f->len : 8u;
+    uint8_t len = f->len <= BD_FRAME_DATA ? f->len : BD_FRAME_DATA;
     memcpy(&bits, &timestamp, sizeof bits);
     put(&w, (uint8_t)(0x80u | K_COUNT));
     put_key(&w, K_TIMESTAMP);
@@ -383,7 +383,7 @@ int bd_udp_decode(const uint8_t *buf, size_t n, bd_frame *f, uint8_t *data64)
                          | (v[K_FD].u != 0u ? BD_FRAME_FD : 0u)
                          | (v[K_BRS].u != 0u ? BD_FRAME_BRS : 0u));
     size_t have = (size_t)v[K_DATA].u;   /* == len, or 0 for a remote frame */
-    memcpy(f->data, v[K_DATA].p, have <= 8u ? have : 8u);
+    memcpy(f->data, v[K_DATA].p, have <= BD_FRAME_DATA ? have : BD_FRAME_DATA);
     if (data64 != NULL) {
         memcpy(data64, v[K_DATA].p, have);
     }

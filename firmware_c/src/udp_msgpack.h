@@ -31,14 +31,14 @@ extern "C" {
                                      than 8 bytes classic, an FD length that is none, flags
                                      no frame combines (remote FD, BRS on classic, ...) */
 
-/* python-can's map of *f (data: its first min(len, 8) bytes; flags BD_FRAME_*; channel
+/* python-can's map of *f (data: its first min(len, BD_FRAME_DATA) bytes; flags BD_FRAME_*; channel
  * None; error_state_indicator false) with `timestamp` (firmware_py's frames: 0.0) into
  * out[0..cap-1]. Returns the datagram's length, 0 if cap is too small. */
 size_t bd_udp_encode(const bd_frame *f, double timestamp, uint8_t *out, size_t cap);
 
 /* The frame in the datagram buf[0..n-1] (BD_UDP_*). Reads nothing beyond buf[n-1],
  * whatever the bytes. On BD_UDP_FRAME: *f as the SocketCAN platform fills it (len the
- * true length, up to 64 on FD; data its first 8 bytes) and, if data64 is not NULL, all
+ * true length, up to 64 on FD; data its first BD_FRAME_DATA bytes) and, if data64 is not NULL, all
  * len data bytes into data64[0..63]. */
 int bd_udp_decode(const uint8_t *buf, size_t n, bd_frame *f, uint8_t *data64);
 

@@ -235,7 +235,7 @@ int main(int argc, char **argv)
             size_t n = bd_agent_tick(&agent, t, out, BD_TICK_FRAMES_MAX);
             for (size_t k = 0u; k < n; ++k) {
                 printf("F %" PRId64 " %" PRIu32 " ", t, out[k].id);
-                for (size_t b = 0u; b < 8u; ++b) {
+                for (size_t b = 0u; b < out[k].len; ++b) {
                     printf("%02x", out[k].data[b]);
                 }
                 printf("\n");

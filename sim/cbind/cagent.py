@@ -41,6 +41,10 @@ MAX_NEIGHBOURS = N_AGENTS_MAX - 1
 MAX_PEERS = N_AGENTS_MAX + 2
 LABEL_MAX = 32
 TICK_FRAMES_MAX = 6
+FRAME_DATA = 32        # BD_FRAME_DATA (include/bessded/frame.h): the FD MC's 32 bytes
+TAG_SLOTS = 6          # BD_TAG_SLOTS (the FD DBC's AGENT_i_MC, AUTH-34)
+TAG_KEYS_MAX = TAG_SLOTS + TAG_SLOTS - 2   # BD_TAG_KEYS_MAX: its tags, 4 neighbours' to it
+TAG_RX_PLANT, TAG_RX_ROUTER = 0xFE, 0xFF   # BD_TAG_RX_* (the FD DBC's TagRx codes)
 PRICE_KEY_ERROR = 14   # BD_ERR_PRICE_KEY (include/bessded/agent.h)
 FRAME_EXT, FRAME_RTR, FRAME_FD, FRAME_ERR, FRAME_BRS = 0x01, 0x02, 0x04, 0x08, 0x10
 
@@ -69,6 +73,7 @@ class Params(ctypes.Structure):
         ("gain_h_raw_min", ctypes.c_uint32), ("gain_h_raw_max", ctypes.c_uint32),
         ("tx_event", ctypes.c_uint32), ("tx_threshold", ctypes.c_int32),
         ("tx_heartbeat", ctypes.c_uint32), ("fd", ctypes.c_uint32),
+        ("no_lambda_tags", ctypes.c_uint32),
         ("signed_price", ctypes.c_uint32),
     ]
 
@@ -92,6 +97,10 @@ class KeyringC(ctypes.Structure):
         ("has_frame_keys", ctypes.c_int32), ("setpoint_key", ctypes.c_uint8 * 16),
         ("status_key", ctypes.c_uint8 * 16), ("diag_key", ctypes.c_uint8 * 16),
         ("command_key", ctypes.c_uint8 * 16), ("status_floor", ctypes.c_uint16),
+        # AUTH-34 (CAN FD): the λ tag pair keys, each pair as TagRx codes
+        ("n_tags", ctypes.c_uint32), ("tag_pair", (ctypes.c_uint8 * 2) * TAG_KEYS_MAX),
+        ("tag_key", (ctypes.c_uint8 * 16) * TAG_KEYS_MAX),
+        ("tag_floor", ctypes.c_uint16 * TAG_KEYS_MAX),
         ("persist_boot", PERSIST_FN), ("persist_ctx", ctypes.c_void_p),
         # signed_price (AUTH-31): the router's Ed25519 public key and the fleet ID
         ("has_price_key", ctypes.c_int32), ("price_key", ctypes.c_uint8 * 32),
@@ -103,7 +112,7 @@ class Frame(ctypes.Structure):
     """bd_frame."""
 
     _fields_ = [("id", ctypes.c_uint32), ("len", ctypes.c_uint8), ("flags", ctypes.c_uint8),
-                ("data", ctypes.c_uint8 * 8)]
+                ("data", ctypes.c_uint8 * FRAME_DATA)]
 
 
 class Runtime:
@@ -182,14 +191,14 @@ UDP_DATAGRAM_MAX = 512
 def udp_datagram(msg: can.Message, timestamp: float = 0.0,
                  runtime: Runtime | None = None) -> bytes:
     """bd_udp_encode: the datagram the C node sends for ``msg`` on udp_multicast (its first
-    8 data bytes; the node's frames carry timestamp 0.0, as firmware_py's)."""
+    FRAME_DATA data bytes; the node's frames carry timestamp 0.0, as firmware_py's)."""
     rt = runtime or load()
-    f = Frame(msg.arbitration_id, min(len(msg.data), 8),
+    f = Frame(msg.arbitration_id, min(len(msg.data), FRAME_DATA),
               (FRAME_EXT if msg.is_extended_id else 0) | (FRAME_RTR if msg.is_remote_frame
                                                           else 0)
               | (FRAME_ERR if msg.is_error_frame else 0) | (FRAME_FD if msg.is_fd else 0)
               | (FRAME_BRS if msg.bitrate_switch else 0))
-    f.data[:len(msg.data[:8])] = list(msg.data[:8])
+    f.data[:len(msg.data[:FRAME_DATA])] = list(msg.data[:FRAME_DATA])
     buf = ctypes.create_string_buffer(UDP_DATAGRAM_MAX)
     n = rt.lib.bd_udp_encode(ctypes.byref(f), timestamp, buf, len(buf))
     return buf.raw[:n]
@@ -375,12 +384,14 @@ def params_of(cfg: AgentConfig) -> Params:
 def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | None = None,
                insecure: bool = False, floors: Mapping[str, int] | None = None,
                frames: Mapping[str, bytes] | None = None,
-               commands: Mapping[str, bytes] | None = None) -> KeyringC:
+               commands: Mapping[str, bytes] | None = None,
+               tags: Mapping[str, bytes] | None = None) -> KeyringC:
     """A bd_keyring for the C agent: ``node``'s key and boot, its peers' keys
     (at most MAX_PEERS) with their boot floors, its frame keys (``frames``:
     AGENT_<i>_Setpoint, PLANT_<i>_Status, AGENT_<i>_Diag, AUTH-28, AUTH-29; others
-    ignored) and its command key (``commands[node]``, AUTH-30); not persisted
-    (see keyring_from)."""
+    ignored), its command key (``commands[node]``, AUTH-30) and its λ tag pair keys
+    (``tags``: ``"agent_1>agent_3"`` → key, AUTH-34; a floor of a tag sender not in
+    ``peers`` goes with its pair to ``node``); not persisted (see keyring_from)."""
     k = KeyringC()
     k.node = node.encode()
     k.key[:] = list(key)
@@ -407,7 +418,23 @@ def keyring_of(node: str, key: bytes, boot: int, peers: Mapping[str, bytes] | No
         k.command_key[:] = list(cmd)
     if "plant" not in peers:
         k.status_floor = (floors or {}).get("plant", 0)
+    tags = dict(tags or {})
+    if len(tags) > TAG_KEYS_MAX:
+        raise ValueError(f"at most {TAG_KEYS_MAX} λ tag keys, got {len(tags)}")
+    k.n_tags = len(tags)
+    for i, (pair, tk) in enumerate(sorted(tags.items())):
+        sender, receiver = pair.split(">")
+        k.tag_pair[i][:] = [tag_code(sender), tag_code(receiver)]
+        k.tag_key[i][:] = list(tk)
+        if receiver == node and sender not in peers:
+            k.tag_floor[i] = (floors or {}).get(sender, 0)
     return k
+
+
+def tag_code(node: str) -> int:
+    """A node's TagRx code (AUTH-34): agent j → j, the plant, the router."""
+    return {"plant": TAG_RX_PLANT, "router": TAG_RX_ROUTER}.get(node) or int(
+        node.removeprefix("agent_"))
 
 
 def keyring_from(ring: Keyring) -> KeyringC:
@@ -422,8 +449,11 @@ def keyring_from(ring: Keyring) -> KeyringC:
     for name in (f"AGENT_{i}_Setpoint", f"PLANT_{i}_Status", f"AGENT_{i}_Diag",
                  "ER_Command"):
         ring.key_for(name)
+    # AUTH-34: a key file's λ tag keys (a fleet's master derives them in C)
+    tags = ring.listed_tag_keys() if ring.master is None else {}
     k = keyring_of(ring.node, ring.key, ring.boot, ring.listed_keys(), floors=ring.floors,
-                   frames=ring.listed_frame_keys(), commands=ring.listed_command_keys())
+                   frames=ring.listed_frame_keys(), commands=ring.listed_command_keys(),
+                   tags=tags)
     if ring.master is not None:   # a simulated fleet: any sender's key on demand
         k.has_master = 1
         k.master[:] = list(ring.master)
@@ -449,12 +479,13 @@ class CAgent:
 
     def __init__(self, cfg: AgentConfig, keys: Keyring | KeyringC | None = None,
                  runtime: Runtime | None = None, params: Params | None = None,
-                 fd: bool = False) -> None:
+                 fd: bool = False, lambda_tags: bool = True) -> None:
         self.rt = runtime or load()
         self.cfg = cfg
         self.period = cfg.controller.ts
         self.params = params if params is not None else params_of(cfg)
         self.params.fd = int(fd)  # GEN-1: a CAN FD bus (the DBC's FD twin)
+        self.params.no_lambda_tags = int(not lambda_tags)  # AUTH-34: FD without λ tags
         if keys is None:
             keys = Keyring.insecure_for(f"agent_{cfg.id}")
         self.keys = keys if isinstance(keys, KeyringC) else keyring_from(keys)
@@ -496,9 +527,11 @@ class CAgent:
                 ns(t))
 
     def rx(self, frame_id: int, data: bytes, flags: int, t_ns: int) -> None:
-        """Hand a raw frame to bd_agent_rx at ``t_ns`` (data beyond 8 bytes is cut)."""
+        """Hand a raw frame to bd_agent_rx at ``t_ns`` (data beyond FRAME_DATA bytes is
+        cut; its length is the whole frame's)."""
         f = Frame(frame_id, len(data), flags)
-        f.data[:len(data)] = list(data[:8])
+        n = min(len(data), FRAME_DATA)
+        f.data[:n] = list(data[:n])
         self.rt.lib.bd_agent_rx(self._buf, ctypes.byref(f), t_ns)
 
     def tick_raw(self, t_ns: int) -> list[tuple[int, bytes]]:

@@ -86,7 +86,7 @@ def sources(source_dir: Path = SOURCE_DIR) -> list[Path]:
     return [source_dir / "Makefile", *sorted((source_dir / "include").rglob("*.h")),
             *sorted((source_dir / "src").glob("*.[ch]")),
             *sorted((source_dir / "tools").glob("*.c")), source_dir / "gen_contract.py",
-            root / "dbc" / "bess_ded.dbc"]
+            root / "dbc" / "bess_ded.dbc", root / "dbc" / "bess_ded_fd.dbc"]
 
 
 def make_argv(source_dir: Path, build_dir: Path, target: str) -> list[str]:

@@ -52,7 +52,8 @@ def in_process_nodes(sc: Scenario, codec: FrameCodec, rings: Mapping[str, secoc.
         if c.id in c_agents:
             from sim.cbind.cagent import CAgent
 
-            factories[f"agent_{c.id}"] = functools.partial(CAgent, c, ring, fd=sc.fd)
+            factories[f"agent_{c.id}"] = functools.partial(CAgent, c, ring, fd=sc.fd,
+                                                           lambda_tags=sc.lambda_tags)
         else:
             factories[f"agent_{c.id}"] = functools.partial(AgentRuntime, c, codec, ring)
     factories["plant"] = lambda: PlantNode(sc, period=sc.ts, faults=plant_faults,

@@ -39,6 +39,10 @@ extern "C" {
 #define BD_MAX_PEERS (BD_N_AGENTS_MAX + 2)       /* every agent, the plant, the router */
 #define BD_TICK_FRAMES_MAX 6                      /* 3 syncs, MC, Setpoint, Diag */
 #define BD_ECHO_DEPTH 4                           /* own frames kept to tell their echo */
+#define BD_FD_NEIGHBOURS_MAX (BD_TAG_SLOTS - 2)   /* AUTH-34: a tag slot each, the plant's and
+                                                     the router's beside them */
+#define BD_TAG_KEYS_MAX (BD_TAG_SLOTS + BD_FD_NEIGHBOURS_MAX)   /* its tags' keys, its
+                                                     neighbours' tags' keys to it */
 
 /* Errors of bd_agent_init (and of the config loader, which adds its own). */
 #define BD_ERR_PARAMS 10        /* a parameter outside what the runtime can hold */
@@ -96,6 +100,10 @@ typedef struct {
     /* GEN-1, RX-2: 1 on a CAN FD bus (the DBC's FD twin): every frame sent as FD with the
      * bit-rate switch, classic frames received are malformed; 0: classic CAN */
     uint32_t fd;
+    /* AUTH-34: 0 on an FD bus is the default, AGENT_<i>_MC and its sync with a λ tag per
+     * receiver (32 bytes); 1: without them, 8 bytes under the node key as on classic CAN
+     * (--no-lambda-tags, [security] lambda_tags = false: dbc/bess_ded_fd_untagged.dbc) */
+    uint32_t no_lambda_tags;
     /* AUTH-31..33: 1 takes only the router's signed price ([security] signed_price) */
     uint32_t signed_price;
 } bd_agent_params;
@@ -122,6 +130,14 @@ typedef struct {
     uint8_t diag_key[BD_KEY_BYTES];
     uint8_t command_key[BD_KEY_BYTES];    /* AUTH-30: [command_keys], its own (it verifies) */
     uint16_t status_floor;                /* AUTH-21: the plant's, if not in peer_floor */
+    /* AUTH-34 (CAN FD): [lambda_tag_keys], the pair keys K_tag(sender -> receiver), each
+     * pair as its TagRx codes (an agent its id, BD_TAG_RX_PLANT, BD_TAG_RX_ROUTER); with
+     * the floor of the sender of a pair to this node if [peers] does not list it
+     * (AUTH-21); has_master: derived instead */
+    uint32_t n_tags;
+    uint8_t tag_pair[BD_TAG_KEYS_MAX][2];
+    uint8_t tag_key[BD_TAG_KEYS_MAX][BD_KEY_BYTES];
+    uint16_t tag_floor[BD_TAG_KEYS_MAX];
     /* Persist a new boot counter before it is used (write-ahead, AUTH-3); 0 on
      * success. NULL: nothing persisted (insecure mode, tests). */
     int (*persist_boot)(void *ctx, uint32_t boot);
@@ -179,8 +195,9 @@ typedef struct {
 } bd_neighbour;
 
 typedef struct {
-    uint8_t data[BD_ECHO_DEPTH][8];
+    uint8_t data[BD_ECHO_DEPTH][BD_FRAME_DATA];
     uint16_t id;
+    uint8_t len;                  /* its frames' length (AUTH-34: MC's on FD) */
     uint8_t n;                    /* frames remembered (<= BD_ECHO_DEPTH) */
     uint8_t next;
 } bd_echo;
@@ -256,6 +273,11 @@ typedef struct {
     uint8_t setpoint_key[BD_KEY_BYTES];   /* AUTH-28: the own setpoint's link frame key */
     uint8_t diag_key[BD_KEY_BYTES];       /* AUTH-29: the own Diag's frame key */
     uint8_t command_key[BD_KEY_BYTES];    /* AUTH-30: the key of the commands to it */
+    /* AUTH-34 (CAN FD): its λ tags' receivers (TagRx codes, 0: an empty slot) and keys,
+     * and the key of each neighbour's tags to it (by neighbour index) */
+    uint8_t tag_code[BD_TAG_SLOTS];
+    uint8_t tag_key[BD_TAG_SLOTS][BD_KEY_BYTES];
+    uint8_t tag_rx_key[BD_FD_NEIGHBOURS_MAX][BD_KEY_BYTES];
     int (*persist_boot)(void *ctx, uint32_t boot);
     void *persist_ctx;
     int64_t sync_next;

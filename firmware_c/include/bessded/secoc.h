@@ -57,6 +57,12 @@ int bd_derive_frame_key(const uint8_t master[BD_KEY_BYTES], const char *name,
 int bd_derive_command_key(const uint8_t master[BD_KEY_BYTES], const char *target,
                           uint8_t out[BD_KEY_BYTES]);
 
+/* AUTH-34: the key of the λ tags agent `sender` ("agent_<i>") sends `receiver` (a node
+ * label): CMAC(K_master, 00000001 || "bess-ded/secoc/lambda-tag-key/v1" || 00 || sender ||
+ * ">" || receiver || 00000080). 0 on success. */
+int bd_derive_lambda_tag_key(const uint8_t master[BD_KEY_BYTES], const char *sender,
+                             const char *receiver, uint8_t out[BD_KEY_BYTES]);
+
 /* The public fleet tag of a key set (the KDF with label "bess-ded/secoc/fleet-id/v1",
  * empty context, L = 64): 8 bytes. 0 on success. */
 int bd_fleet_id(const uint8_t master[BD_KEY_BYTES], uint8_t out[8]);
@@ -71,6 +77,15 @@ int bd_sign_frame(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id, uint8_t da
  * stops). The comparison does not stop at the first differing byte. */
 int bd_frame_verifies(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id,
                       const uint8_t data[8], uint64_t fv);
+
+/* AUTH-34: the same 24 bits over the same input (data[3..7], fv) into tag[0..2], and
+ * whether tag[0..2] is it (1, 0, or -1 if the primitive failed): a receiver's tag slot
+ * of an FD AGENT_<i>_MC or its sync. bd_sign_frame and bd_frame_verifies are these with
+ * tag = data. */
+int bd_tag_frame(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id, const uint8_t data[8],
+                 uint64_t fv, uint8_t tag[3]);
+int bd_tag_verifies(const uint8_t key[BD_KEY_BYTES], uint32_t frame_id, const uint8_t data[8],
+                    uint64_t fv, const uint8_t tag[3]);
 
 /* AUTH-9: the full freshness value a frame carrying the low tx_bits `truncated` is
  * verified with, from the last accepted value `last`: the high bits of last, plus one
