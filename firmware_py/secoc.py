@@ -692,14 +692,14 @@ def load_node_key(path: Path | str) -> NodeKey:
         raise KeyFileError(f"{path}: [lambda_tag_keys] expected the pairs {node} is one of "
                            f"only, but got {', '.join(not_ours)} (re-provision with "
                            "bess-ded keys)")
-    senders = set(peers) | _frame_senders(frames)
+    senders = set(peers) | _frame_senders(frames) | _tag_senders(node, tags)  # type: ignore[arg-type]
     floors = doc.get("floors", {})
     if not isinstance(floors, dict) or any(
             p not in senders or not isinstance(b, int) or isinstance(b, bool)
             or not 0 <= b <= DEFAULT_LAYOUT.max_boot for p, b in floors.items()):
         raise KeyFileError(f"{path}: [floors] expected a table of peer = lowest boot counter "
                            f"(0..{DEFAULT_LAYOUT.max_boot}), for peers listed in [peers] or "
-                           f"senders of [frame_keys]")
+                           f"senders of [frame_keys] or [lambda_tag_keys]")
     sign, verify = _price_keys(doc, path)
     return NodeKey(node=node, key=_hex_key(doc, "key", path),  # type: ignore[arg-type]
                    fleet_id=fleet, boot_counter=boot, path=path, peers=peers,
@@ -751,6 +751,11 @@ def _check_own_keys(node: str, frames: Mapping[str, bytes], commands: Mapping[st
                            "bess-ded keys)")
 
 
+def _tag_senders(node: str, tags: Mapping[str, bytes]) -> set[str]:
+    """AUTH-34: the agents whose tagged λ this node receives (their floors may be kept)."""
+    return {s for s, r in (t.split(">") for t in tags) if r == node}
+
+
 def _frame_senders(frames: Mapping[str, bytes]) -> set[str]:
     """The senders of link frames (their floors may be kept, AUTH-21)."""
     from . import contract  # contract imports this module
@@ -768,7 +773,7 @@ def save_boot_counter(path: Path | str, boot: int) -> None:
                          f"→ {boot})")
     doc = node_key_document(current.node, current.key, current.fleet_id, boot, current.peers,
                             current.floors, current.frames, current.commands,
-                            current.price_sign, current.price_verify)
+                            current.price_sign, current.price_verify, current.tags)
     write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 
@@ -779,13 +784,15 @@ def save_floors(path: Path | str, floors: Mapping[str, int]) -> None:
 
     current = load_node_key(path)
     merged = dict(current.floors)
-    senders = set(current.peers) | _frame_senders(current.frames)
+    senders = (set(current.peers) | _frame_senders(current.frames)
+               | _tag_senders(current.node, current.tags))
     for peer, boot in floors.items():
         if peer in senders:
             merged[peer] = max(merged.get(peer, 0), boot)
     doc = node_key_document(current.node, current.key, current.fleet_id,
                             current.boot_counter, current.peers, merged, current.frames,
-                            current.commands, current.price_sign, current.price_verify)
+                            current.commands, current.price_sign, current.price_verify,
+                            current.tags)
     write_private(Path(path), KEY_FILE_HEADER + tomli_w.dumps(doc))
 
 

@@ -110,6 +110,22 @@ def test_an_fd_fleets_key_files_hold_no_other_agents_node_key(tmp_path: Path) ->
         assert sorted(router.tags) == [f"agent_{i}>router" for i in range(1, 5)]
 
 
+def test_a_boot_rewrite_and_raised_floors_keep_the_tag_keys(tmp_path: Path) -> None:
+    """Every start rewrites a key file's boot counter (AUTH-3) and `up` raises its floors
+    (AUTH-21): both keep `[lambda_tag_keys]` (before, the first start dropped them and the
+    next one was refused), and a neighbour whose λ the agent verifies by its tag may have
+    a floor."""
+    write_key_set(CASE1_FD, tmp_path, MASTER)
+    path = tmp_path / "agent_3.key"
+    before = secoc.load_node_key(path).tags
+    ring = secoc.Keyring.from_file(path)
+    ring.new_boot()
+    secoc.save_floors(path, {"agent_1": 7, "agent_2": 9})
+    after = secoc.load_node_key(path)
+    assert after.tags == before and len(before) == 4 and after.boot_counter == 1
+    assert after.floors == {"agent_1": 7}  # agent 2 is no neighbour of agent 3
+
+
 def test_a_key_file_with_a_pair_of_others_is_refused(tmp_path: Path) -> None:
     """A file that lists a λ tag key of a pair its node is not one of would let it speak
     for another: refused at load, not trimmed."""

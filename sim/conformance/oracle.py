@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
+import re
 from collections import Counter, deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -630,13 +631,17 @@ def _compare_signals(codec: FrameCodec, e: can.Message, g: can.Message, kind: st
         sg = _signals(codec, g)
     except BessDedError as err:
         return [Mismatch(t, tick, step, kind, "frame", "a frame of the DBC", str(err))]
-    # not compared: what the MAC check covers (Mac, Counter), the host's DeadlineMisses,
-    # and a sync's Boot (the DUT's key file's, which _check_auth verifies it at)
+    # not compared: what the MAC check covers (Mac, Counter, a λ's tags: AUTH-34; their
+    # receivers are), the host's DeadlineMisses, and a sync's Boot (the DUT's key file's,
+    # which _check_auth verifies it at)
     return [Mismatch(t, tick, step, kind, name, _show(name, value), _show(name, sg.get(name)),
                      raw=(value, sg.get(name)))
             for name, value in se.items()
             if name not in ("Mac", "Counter", "CRC", "DeadlineMisses", "Boot")
-            and sg.get(name) != value]
+            and not _TAG.fullmatch(name) and sg.get(name) != value]
+
+
+_TAG = re.compile(r"Tag[0-9]+")  # a tag slot's tag (not its receiver, TagRx<k>)
 
 
 def _show(name: str, raw: Any) -> Any:
