@@ -1238,14 +1238,16 @@ class Score:
 
 def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
           seed: int = 0, make_dut: Callable[..., Any] | None = None,
-          dut_from_text: Callable[[str], Callable[..., Any]] | None = None) -> Score:
+          dut_from_text: Callable[[str], Callable[..., Any]] | None = None,
+          exact: bool = False) -> Score:
     """Play the schedule in process against the agent with ``fault`` (None: none) and
     judge it as `bess-ded conformance` does (check, explain, verdict). ``make_dut``: the
     device, as ``simulate`` takes it (tests/conformance_faults_c.py: the C agent on a
     library with the fault built in; then ``fault`` only names it, nothing is planted);
     ``dut_from_text``: the device given the configuration file the tester writes (the C
     agent reads it with its own loader). A fault with ``misread``: firmware_py's agent
-    configured from that file as the faulty parser reads it."""
+    configured from that file as the faulty parser reads it. ``exact``: the device's
+    clock trusted (``simulate`` and ``check`` with ``exact``: no timing tolerance)."""
     import time
 
     from sim import conformance as conf
@@ -1261,9 +1263,9 @@ def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
         make_dut = lambda _c, codec, k: AgentRuntime(dut_cfg, codec, keys=k)  # noqa: E731
     frames = conf.simulate(cfg, ring(), planned,
                            None if fault is None or make_dut is not None else fault.apply,
-                           jitter=jitter, seed=seed, make_dut=make_dut)
+                           jitter=jitter, seed=seed, make_dut=make_dut, exact=exact)
     key = SCHEDULE_KEYS[f"agent_{dut}"]
-    outcome = conf.check(cfg, ring(), key, frames)
+    outcome = conf.check(cfg, ring(), key, frames, exact=exact)
     conf.explain(cfg, ring(), key, frames, outcome, config_text=text)
     results = conf.verdict(outcome)
     first = conf.Outcome(mismatches=outcome.mismatches[:1],

@@ -82,6 +82,7 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "a neighbour λ square step": ("LIVE-1", "LAM-1"),
     "a neighbour's first frame after …": ("AUTH-13", "AUTH-15", "LIVE-2"),
     "a neighbour alive but INIT …": ("XI-1",),
+    "the price's last frame, exactly …": ("STATE-2", "TMO-1"),
     "a price step of exactly …": ("PRICE-3",),
     "a price step one LSB beyond …": ("PRICE-3", "PRICE-4"),
     "a price step back …": ("PRICE-3",),
@@ -192,6 +193,7 @@ _DERIVED = {"SafetySender", "SafetyCause", "NeighboursAlive", "State"}
 EDGES: dict[str, tuple[str, ...]] = {
     "ξ = 0 after ξprev ≠ 0": ("STEP-2",),
     "|ξ| = BAND": ("BAND-3",),
+    "λ beyond the λ limits": ("STEP-12",),
 }
 
 
@@ -297,12 +299,12 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
     """Name the requirement when a known deviation (``MUTANTS``) or a known misreading
     of the configuration (``misreads``: ``cfg`` is the reference parser's reading of
     the DUT's file, ``config_text``) explains the DUT better than the spec: with it
-    modelled, the oracle must match the DUT at every tick where the spec's diverged (a
-    deviation that only matches the first ticks for the fault explains nothing)."""
+    modelled, the oracle must match the DUT at every tick (a deviation that only
+    matches the first ticks for the fault explains nothing, nor one that meets every
+    divergence but differs from the DUT where the DUT kept to the spec)."""
     if not outcome.mismatches:
         return
     first = outcome.mismatches[0].tick
-    diverged = {m.tick for m in outcome.mismatches}
     candidates: list[tuple[str, str, AgentConfig, Callable[[AgentRuntime], None] | None]]
     candidates = [(must, what, cfg, deviation) for must, (what, deviation)
                   in MUTANTS.items()]
@@ -315,15 +317,17 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
                        if abs(t - t_first) <= MISREAD_TICKS * ts]
     for must, what, model, deviation in candidates:
         alt = check(model, keyring, dut_key, frames, codec, deviation, max_mismatches=1,
-                    filtered_first=outcome.filtered)
+                    filtered_first=outcome.filtered, exact=outcome.exact)
         if alt.mismatches and alt.mismatches[0].tick <= first:
             continue
         # check the rest of the schedule with that deviation modelled
         rest = check(model, keyring, dut_key, frames, codec, deviation,
-                     filtered_first=alt.filtered)
-        # the deviation explains every tick where the spec's oracle diverged
-        if ({m.tick for m in rest.mismatches} & diverged
-                or rest.differing_ticks >= outcome.differing_ticks):
+                     filtered_first=alt.filtered, exact=outcome.exact)
+        # the deviation explains every tick where the spec's oracle diverged, and
+        # differs from the device nowhere else (a model that meets the device's first
+        # difference but misses a tick where the device kept to the spec is another
+        # device: e.g. a default timeout one period short against one exactly at it)
+        if rest.mismatches or rest.differing_ticks:
             continue
         outcome.explained_by[must] = what
         outcome.steps_seen, outcome.ticks = rest.steps_seen, rest.ticks

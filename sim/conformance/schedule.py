@@ -97,6 +97,12 @@ STEPS = (
          "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh",
          ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
           "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4")),
+    Step("extremes", 1350, 1500, "every neighbour INIT at lambda_min, then RUNNING there "
+         "(no LAM-1 step after INIT): |Σ W_j (Λ − λ_j)| past int32 (ξ saturates, counted), "
+         "the own λ driven past lambda_min (not clamped), to a Diag page of Saturations",
+         ("NUM-3", "XI-2", "XI-3", "STEP-1", "STEP-12", "RX-9", "LAM-2", "DIAG-3", "CFG-7"),
+         (("every neighbour at lambda_min in ξ …", ("NUM-3", "XI-3")),
+          ("a neighbour INIT at lambda_min", ("LAM-2", "RX-9")))),
 )
 
 
@@ -208,7 +214,7 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     k = _rounds_up(1.1 * c.k, 30, ts)
     h = _rounds_up(0.9 * c.h, 30, ts)
     ctrl = replace(c, ts=ts, k=k, h=h, band=_rounds_up(1.5 * c.band, 24))
-    nbrs = tuple(Neighbour(n.id, _rounds_up(1.25 * n.weight, 24)) for n in cfg.neighbours)
+    nbrs = tuple(Neighbour(n.id, _tie_weight(1.25 * n.weight)) for n in cfg.neighbours)
     step_max = _rounds_up(0.9 * 10.0 * k * ts, 24)  # below the default 10·k·Ts
     # a price step of 0.45: the content step's persistent 0.6 stays above it; a price
     # persistence of 5, two above the default 3: a device counting one frame short or
@@ -217,14 +223,34 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     return replace(
         cfg, controller=ctrl, neighbours=nbrs, lambda0=_rounds_up(cfg.lambda0, 24),
         neighbour_timeout_periods=4.7,  # type: ignore[arg-type]  # CFG-6 truncates: 4
-        # 0.32 s and 0.29 s at Ts = 10 ms (the defaults: 0.25 s), stretched with Ts
-        price_timeout_s=round(1.28 * cfg.price_timeout_s, 9),
+        # 0.32 s and 0.29 s at Ts = 10 ms (the defaults: 0.25 s), stretched with Ts;
+        # price_s a multiple of 2^-16 s (0.3200073 s): a difference of two times of the
+        # run (a tick, a receive time) can equal it exactly (an exact-timing run's edge)
+        price_timeout_s=round(1.28 * cfg.price_timeout_s * (1 << 16)) / (1 << 16),
         status_timeout_s=round(1.16 * cfg.status_timeout_s, 9),
-        lambda_min=-9.5, lambda_max=9.5, rho_min=max(cfg.rho_min, -4.5),
+        # λ limits near the DBC's ±128 (RX-9): a neighbour at lambda_min drives |ξ| past
+        # int32 (NUM-3, XI-3) and the own λ past lambda_min (STEP-12); the edge step
+        # `extremes` does both
+        lambda_min=-LAMBDA_LIMIT, lambda_max=LAMBDA_LIMIT, rho_min=max(cfg.rho_min, -4.5),
         rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=5,
         lambda_step_max=step_max, k_min=_milli(0.6 * k), k_max=_milli(1.8 * k),
         h_min=_milli(0.6 * h), h_max=_milli(1.8 * h), untrusted_after=6,
         source=f"{cfg.source} (conformance)")
+
+
+LAMBDA_LIMIT = 120.0
+"""The conformance configuration's λ limits (±): a neighbour λ at ``-LAMBDA_LIMIT`` is
+more than 128/W from any own λ near 0 (W = 1.25: ξ saturates)."""
+
+
+def _tie_weight(x: float) -> float:
+    """A weight next to ``x`` whose Q24 word is a multiple of 2^22 but not of 2^23, and
+    whose value·2^24 has a fraction of 0.625 (it rounds up to that word, NUM-4): then
+    mulq(W, Λ − λ_j) is a tie (NUM-2) whenever Λ − λ_j ≡ 2 (mod 4) LSB, a quarter of all
+    differences, so that the control step meets ties of either sign."""
+    word = round(x * (1 << 24) / (1 << 22))
+    word = (word | 1) << 22
+    return (word - 0.375) / (1 << 24)
 
 
 def _milli(x: float) -> float:
@@ -257,6 +283,10 @@ class Planned:
     step: str
     msg: can.Message
     note: str = ""
+    # an exact-timing run (``simulate(..., exact=True)``: the device's clock trusted) puts
+    # this frame so that it is exactly ``age`` s old at a tick of the device (a timeout's
+    # boundary: ≤ against <); a bus run sends it at ``at`` as any other
+    age: float | None = None
 
 
 def _tick_of(name: str) -> Callable[[int], bool]:
@@ -295,8 +325,9 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     other = i % contract.N_AGENTS_MAX + 1
     at = {s.name: s.start for s in STEPS}
 
-    def add(k: float, step: str, msg: can.Message, note: str = "") -> None:
-        out.append(Planned(k * ts, step, msg, note))
+    def add(k: float, step: str, msg: can.Message, note: str = "",
+            age: float | None = None) -> None:
+        out.append(Planned(k * ts, step, msg, note, age))
 
     def step_at(k: int) -> str:
         return next(s.name for s in STEPS if s.start <= k < s.end)
@@ -354,7 +385,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     price_step = q(cfg.price_step_max)  # PRICE-3's bound
     # the price step's sign: the edges of the limits step stay inside [rho_min, rho_max]
     p_sign = 1 if q(price) + 2 * price_step < q(cfg.rho_max) else -1
-    top = q(cfg.lambda_max) - lam_step  # where the ramp of the limits step ends
+    # where the ramp of the limits step ends: the top of the scenario's λ range (±9.5)
+    top = q(min(cfg.lambda_max, 9.5)) - lam_step
 
     def lam_edge(j: int, k: int) -> tuple[int, str]:
         """Neighbour j's λ from the limits step on, and what its frame exercises: held
@@ -398,6 +430,22 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                     "a price step back by exactly price_step_max" if c == until else "")
         return 1, base, ""
 
+    def extreme(j: int, k: int, lam: int) -> tuple[int, str, State]:
+        """Neighbour j's λ, note and State in the extremes step: INIT at lambda_min (a
+        State change: the next RUNNING frame is no LAM-1 step, LAM-2), then RUNNING there:
+        with W = 1.25 and Λ near the top of the scenario's range, the sum is past int32
+        (ξ = sat32, counted: NUM-3, XI-3) and drives the own λ to, and past, lambda_min
+        (STEP-12: only sat54 limits it)."""
+        c = k - at["extremes"]
+        if c < 5:
+            return lam, "", State.RUNNING
+        first = j == nbrs[0]
+        if c < 7:
+            return (q(cfg.lambda_min), "a neighbour INIT at lambda_min" if first and c == 5
+                    else "", State.INIT)
+        return (q(cfg.lambda_min), "every neighbour at lambda_min in ξ (ξ saturates)"
+                if first and c == 7 else "", State.RUNNING)
+
     # the states step: (tick, command) and the price's and plant's conditions
     st = at["states"]
     gains_raw = _gain_raw_rounding_up(cfg)
@@ -418,9 +466,11 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             if silent_nbr and j == nbrs[0]:
                 continue
             lam, lam_note = lam_edge(j, k) if k >= at["limits"] else (lam_j(j, k), "")
+            nbr_state = State.RUNNING
+            if k >= at["extremes"]:
+                lam, lam_note, nbr_state = extreme(j, k, lam)
             if k == at["content"] + 30 and j == nbrs[0]:
                 lam += q(0.5)  # a jump above lambda_step_max per sample: implausible
-            nbr_state = State.RUNNING
             if 60 <= k - at["limits"] < 65 and j == nbrs[0]:
                 nbr_state = State.INIT  # alive, but not in ξ (XI-1)
             msg = tx.frame(mc_name(j), {"State": int(nbr_state), "Lambda": lam,
@@ -435,7 +485,13 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 lam_note = "a neighbour λ jump above lambda_step_max"
             elif at["control"] < k < at["authentication"] and (k - at["control"]) % 70 == 0:
                 lam_note = "a neighbour λ square step"  # 0.08: near LAM-1's bound
-            add(k + 0.5, step, msg, lam_note)
+            # the neighbour's last frame before it falls silent: in an exact-timing run
+            # exactly neighbour_periods·Ts old at a tick (still alive there, LIVE-2). No
+            # note: its ξ = 0 when it dies is a zero crossing (STEP-2) the tester did
+            # not cause; a reset at another tick names LIVE-2 by its signal and step
+            last = j == nbrs[0] and k - at["timeouts"] == 9
+            add(k + 0.5, step, msg, lam_note,
+                cfg.neighbour_timeout_periods * ts if last else None)
             genuine.append(msg)
         if price_every(k) and not silent_price:
             valid, r, note = 1, q(ramp(k, price)), ""
@@ -452,8 +508,13 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 for _ in range(15):
                     tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0, "Rho": r})
                 note = "a price frame 16 freshness values on"
+            # the price's last frame before it falls silent: in an exact-timing run
+            # exactly price_s old at a tick (still fresh there, STATE-2)
+            last = k - at["timeouts"] == 35
             add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0,
-                                                      "Rho": r}), note)
+                                                      "Rho": r}),
+                "the price's last frame, exactly price_s old at a tick" if last else note,
+                cfg.price_timeout_s if last else None)
         if k >= 60 and status_every(k):
             add(k + 0.75, step, tx.frame(status_name(i), {
                 **status, "FaultOverCurrent": int(fault), "FaultSoc": int(soc),
