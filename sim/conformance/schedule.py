@@ -11,10 +11,12 @@ import math
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import can
 
 from firmware_py import contract, secoc
+from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig, Neighbour, parse_agent_config
 from firmware_py.contract import Command, State
 from firmware_py.frames import PIN_OFF, PIN_ON, FrameCodec, mc_name, status_name, target_raw
@@ -97,7 +99,17 @@ STEPS = (
          "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh",
          ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
           "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4")),
-    Step("extremes", 1350, 1500, "every neighbour INIT at lambda_min, then RUNNING there "
+    Step("band", 1350, 1410, "a trajectory planned on the reference (firmware_py run on "
+         "the schedule up to here): the band armed, a reset, then ξ = −BAND exactly (not "
+         "re-armed: BAND-3 is strict) and a crossing inside the band (no reset); a plant "
+         "fault (SAFE) and back (RUNNING: armed kept, STATE-6), then a crossing inside the "
+         "band (no reset)",
+         ("BAND-2", "BAND-3", "STEP-2", "STEP-3", "STEP-5", "STATE-3", "STATE-4", "STATE-6",
+          "XI-2", "RX-11"),
+         (("ξ = −BAND exactly after a reset …", ("BAND-3",)),
+          ("|ξ| between the default band …", ("BAND-3", "CFG-3")),
+          ("a crossing inside the band after entering RUNNING …", ("STATE-6",)))),
+    Step("extremes", 1410, 1560, "every neighbour INIT at lambda_min, then RUNNING there "
          "(no LAM-1 step after INIT): |Σ W_j (Λ − λ_j)| past int32 (ξ saturates, counted), "
          "the own λ driven past lambda_min (not clamped), to a Diag page of Saturations",
          ("NUM-3", "XI-2", "XI-3", "STEP-1", "STEP-12", "RX-9", "LAM-2", "DIAG-3", "CFG-7"),
@@ -313,8 +325,110 @@ def played_steps(planned: Sequence[Planned]) -> tuple[Step, ...]:
     return tuple(s for s in STEPS if s.name in names)
 
 
+class _BandPlan:
+    """The band step's trajectory, planned on the reference: firmware_py's agent run on
+    the schedule's frames (insecure twins of them: the same contents and order, so the
+    same λ) up to the step, then driven tick by tick with the neighbour λ this plan
+    chooses from its own λ (a conformant device is bit-exact with it): ``lam[c]`` the
+    neighbours' λ (Q24) sent at tick ``start + c``, ``fault[c]`` the plant fault then,
+    ``note[c]`` what that frame exercises."""
+
+    def __init__(self, cfg: AgentConfig, price: float, codec: FrameCodec, start: int,
+                 length: int) -> None:
+        from firmware_py.runtime import AgentRuntime
+        from sim.conformance.oracle import quiet_firmware
+
+        ts = cfg.controller.ts
+        frames = sorted((p for p in _plan(cfg, None, price, codec, secoc.INSECURE_BOOT,
+                                          planned_band=False) if p.at < start * ts),
+                        key=lambda p: p.at)
+        rt = AgentRuntime(cfg, codec, keys=secoc.Keyring.insecure_for(f"agent_{cfg.id}"))
+        nxt = 0
+        self.lam: list[dict[int, int]] = []
+        self.fault: list[bool] = []
+        self.note: list[str] = []
+        with quiet_firmware():
+            for j in range(start + 1):
+                while nxt < len(frames) and frames[nxt].at < j * ts:
+                    rt.on_frame(frames[nxt].msg, frames[nxt].at)
+                    nxt += 1
+                rt.tick(j * ts)
+            self._drive(rt, cfg, start, length)
+
+    def _drive(self, rt: Any, cfg: AgentConfig, start: int, length: int) -> None:
+        ts = cfg.controller.ts
+        band = int(getattr(rt.ctrl, "band", 0))
+        # the default band's word (CFG-3): a device that takes it re-arms at |ξ| above it
+        from firmware_py.controllers import ControllerConfig
+        lower = fx.to_fixed(ControllerConfig(kind=cfg.controller.kind).band)
+        slots = list(rt.neighbours.values())
+        step_max = rt.lambda_step_max
+        last = {s.id: int(s.lam) for s in slots}
+        fault = False
+        entered: int | None = None  # the c at which the device is back in RUNNING
+
+        def toward(j: int, want: int) -> int:
+            return last[j] + max(-step_max, min(step_max, want - last[j]))
+
+        def solve(target: int, lam: int, w: int) -> int | None:
+            """λ_j with mulq(W, Λ − λ_j) = target exactly, if there is one."""
+            guess = round(target * (1 << 24) / w)
+            for d in range(guess - 3, guess + 4):
+                if rt.ctrl.ar.mul(w, d) == target:
+                    return lam - d
+            return None
+
+        for c in range(length):
+            lam = int(rt.ctrl.wire_lambda(rt.cstate))
+            want = dict.fromkeys(last, lam)
+            note = ""
+            first = slots[0]
+            w = int(first.weight)
+            if c < 8:  # |ξ| well above BAND: armed
+                want[first.id] = lam + 10 * band
+            elif c == 8:  # a crossing, armed: a reset (disarmed, BAND-2)
+                want[first.id] = lam - 2 * band
+                note = "a crossing after |ξ| > BAND (a reset)"
+            elif c == 9:  # ξ = −BAND exactly: a crossing, unarmed, and no re-arm
+                exact = solve(-band, lam, w)
+                if exact is not None:
+                    want[first.id] = exact
+                    note = "ξ = −BAND exactly after a reset (no re-arm)"
+            elif c in (10, 12):  # a crossing inside the band: no reset (still unarmed)
+                want[first.id] = lam - band // 2
+            elif c == 11 and lower < band:  # |ξ| between the default band and the file's:
+                want[first.id] = lam + (lower + band) // 2 * (1 << 24) // w  # no re-arm
+                note = "|ξ| between the default band and the file's (no re-arm)"
+            elif 20 <= c < 30:
+                fault = True
+            elif c >= 30:
+                fault = False
+                if entered is None and rt.state == State.RUNNING:
+                    entered = c
+                if entered is not None and c - entered in (0, 1):
+                    sign = -1 if c == entered else 1
+                    want[first.id] = lam - sign * band // 2
+                    note = ("a crossing inside the band after entering RUNNING "
+                            "(armed kept: no reset)" if c > entered else "")
+            chosen = {j: toward(j, v) for j, v in want.items()}
+            if note and chosen[first.id] != want[first.id]:
+                note = ""  # the step was too large for LAM-1: not at the edge
+            self.lam.append(chosen)
+            self.fault.append(fault)
+            self.note.append(note)
+            t_rx = (start + c + 0.5) * ts
+            for slot in slots:
+                slot.lam, slot.last_rx, slot.state = chosen[slot.id], t_rx, State.RUNNING
+            last = chosen
+            if rt.price_rx is not None:
+                rt.price_rx = t_rx
+            if _tick_of(status_name(cfg.id))(start + c):  # the status frame of this tick
+                rt.status_rx, rt.plant_fault = t_rx + 0.25 * ts, fault
+            rt.tick((start + c + 1) * ts)
+
+
 def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
-          codec: FrameCodec | None, boot: int) -> list[Planned]:
+          codec: FrameCodec | None, boot: int, planned_band: bool = True) -> list[Planned]:
     codec = codec or FrameCodec()
     tx = FleetSender(codec, keys, boot=boot if keys is not None else secoc.INSECURE_BOOT)
     ts, i = cfg.controller.ts, cfg.id
@@ -324,6 +438,9 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     k_gain, h_gain = cfg.controller.k, cfg.controller.h
     other = i % contract.N_AGENTS_MAX + 1
     at = {s.name: s.start for s in STEPS}
+    span = next(s.end - s.start for s in STEPS if s.name == "band")
+    band = (_BandPlan(cfg, price, codec, at["band"], span)
+            if planned_band and nbrs and not cfg.pinned else None)
 
     def add(k: float, step: str, msg: can.Message, note: str = "",
             age: float | None = None) -> None:
@@ -460,13 +577,18 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         lost_nbr = 30 <= k - fr < 55  # sent, but lost on the bus: the count moves on
         silent_price = 40 <= k - at["timeouts"] < 80 or 60 <= k - st < 110
         invalid_price = 10 <= k - st < 50  # PriceValid = 0 only: an outage all the same
-        fault = 120 <= k - at["timeouts"] < 140 or 65 <= k - st < 75
+        fault = (120 <= k - at["timeouts"] < 140 or 65 <= k - st < 75
+                 or band is not None and at["band"] <= k < at["extremes"]
+                 and band.fault[k - at["band"]])
         soc = 100 <= k - at["limits"] < 120
         for j in nbrs:
             if silent_nbr and j == nbrs[0]:
                 continue
             lam, lam_note = lam_edge(j, k) if k >= at["limits"] else (lam_j(j, k), "")
             nbr_state = State.RUNNING
+            if band is not None and at["band"] <= k < at["extremes"]:
+                lam = band.lam[k - at["band"]][j]
+                lam_note = band.note[k - at["band"]] if j == nbrs[0] else ""
             if k >= at["extremes"]:
                 lam, lam_note, nbr_state = extreme(j, k, lam)
             if k == at["content"] + 30 and j == nbrs[0]:
