@@ -118,7 +118,7 @@ STEPS = (
 )
 
 
-# `bess-ded conformance --quick`: the first steps only (7.1 of 13.5 s at Ts = 10 ms), for
+# `bess-ded conformance --quick`: the first steps only (7.1 of 15.6 s at Ts = 10 ms), for
 # development: start-up, a state change to RUNNING, the controller bit for bit, the
 # authentication, the content rules, every command: one step per requirement class (GEN,
 # NUM, CTRL, XI, STEP, BAND, STATE, LIVE, TMO, TICK, TX, SP, DIAG, RX, PRICE, LAM, CMD,
