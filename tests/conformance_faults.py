@@ -1174,7 +1174,8 @@ assert len(BY_NAME) == len(FAULTS), "fault names must be unique"
 SCHEDULE_KEYS = fleet_keys(MASTER, 12)
 
 
-def schedule_setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyring], list[Any]]:
+def schedule_setup(case: int, dut: int, flood: bool = False
+                   ) -> tuple[AgentConfig, Callable[[], Keyring], list[Any]]:
     """The conformance run of tests/test_conformance.py: scenario ``case`` with the device
     in agent ``dut``'s place, a fleet key set with every peer's floor at boot 2 (as `up`
     writes them), the tester at boot 2."""
@@ -1188,7 +1189,7 @@ def schedule_setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyri
         return Keyring(node, SCHEDULE_KEYS[node], 0, lambda _b: None, master=MASTER,
                        floors={n: 2 for n in fleet_nodes(12) if n != node})
 
-    return cfg, ring, conf.plan(cfg, SCHEDULE_KEYS, sc.prices[0].rho, boot=2)
+    return cfg, ring, conf.plan(cfg, SCHEDULE_KEYS, sc.prices[0].rho, boot=2, flood=flood)
 
 
 def schedule_text(case: int, dut: int) -> str:
@@ -1253,7 +1254,7 @@ def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
     from sim import conformance as conf
 
     start = time.perf_counter()
-    cfg, ring, planned = schedule_setup(case, dut)
+    cfg, ring, planned = schedule_setup(case, dut, flood=exact)  # in process: a flood
     text = schedule_text(case, dut)
     if dut_from_text is not None:
         make_dut = dut_from_text(text)

@@ -63,6 +63,7 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "a genuine frame delivered …": ("AUTH-25",),
     "extended ID": ("RX-1",),
     "unknown ID": ("RX-6",),
+    "a flood of unknown IDs …": ("DIAG-2", "RX-6"),
     "the DUT's own MC ID": ("RX-3",),
     "DLC 7": ("RX-7",),
     "SET_GAINS in bounds": ("CMD-5", "CMD-2"),
@@ -159,6 +160,9 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS,
         return ("NUM-8",)
     if key == "Setpoint.PowerSetpoint" and one_lsb:
         return ("SP-1",)
+    # a Diag counter expected at its maximum and below it: it wrapped (DIAG-2)
+    if mm.message == "Diag" and exp == DIAG_MAX and isinstance(got, int) and got < exp:
+        return _ordered(("DIAG-2",), sig)
     if key == "MC.State":
         sig = _ordered(STATE_RULES.get((str(mm.expected), str(mm.got)), ()), sig)
         # ISOLATED expected, and the idle λ the ISOLATE gives it (STATE-7) is on the
@@ -185,6 +189,8 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS,
         return meet
     return sig or step_musts or ("TICK-1",)
 
+
+DIAG_MAX = 0xFFFF  # a 16-bit Diag counter's saturation value (DIAG-2)
 
 # Diag values that show the consequence of a classification, not a cause of their own
 _DERIVED = {"SafetySender", "SafetyCause", "NeighboursAlive", "State"}

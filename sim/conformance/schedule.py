@@ -308,15 +308,32 @@ def _tick_of(name: str) -> Callable[[int], bool]:
 
 def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
          codec: FrameCodec | None = None, boot: int = secoc.INSECURE_BOOT,
-         quick: bool = False) -> list[Planned]:
+         quick: bool = False, flood: bool = False) -> list[Planned]:
     """The tester's frames for DUT ``cfg`` (times in s from the start), signed with
     ``keys`` (label → key of the router, the plant and the neighbours; None: the
     insecure keys). ``price``: the ρ to hold (the scenario's first). ``boot``: the boot
     every sender the tester plays runs at, at least the DUT's boot floors (AUTH-21);
     above 1, an earlier run's price sync (boot − 1) comes first. ``quick``: the steps
-    of ``QUICK`` only."""
+    of ``QUICK`` only. ``flood``: in process only (an exact-timing run), ``FLOOD``
+    frames of an unknown ID at once in the extremes step, so that RejectedUnknownId
+    passes 65535 and must stay there (DIAG-2); a bus run would take seconds of a full
+    bus for them, and the tolerant oracle one hypothesis per frame."""
     out = _plan(cfg, keys, price, codec, boot)
+    if flood:
+        codec = codec or FrameCodec()
+        at = next(s.start for s in STEPS if s.name == "extremes") + 1.6
+        junk = can.Message(arbitration_id=_unknown_id(codec), is_extended_id=False,
+                           data=bytes(8), **_format(codec))
+        out += [Planned(at * cfg.controller.ts, "extremes", junk,
+                        "a flood of unknown IDs past 65535" if n == 0 else "")
+                for n in range(FLOOD)]
+        out.sort(key=lambda p: p.at)
     return [p for p in out if p.step in QUICK] if quick else out
+
+
+FLOOD = 65536
+"""The unknown-ID frames of an exact-timing run's flood (``plan``'s ``flood``): with the
+two of the schedule, RejectedUnknownId's count is past 65535 (DIAG-2: it saturates)."""
 
 
 def played_steps(planned: Sequence[Planned]) -> tuple[Step, ...]:
