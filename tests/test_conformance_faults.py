@@ -95,9 +95,10 @@ def test_the_fault_score_of_the_schedule_does_not_regress(
         assert s[key] >= floor, (key, s)
 
 
-# measured with the device's clock trusted (`conformance_score.py --timing exact`): the
-# timeouts' boundaries are steps there (docs/conformance.md, "The last misses")
-FLOOR_EXACT = {"caught": 55, "named": 48, "named_first": 47, "named_by_first_diff": 46}
+# measured with the device's clock trusted (`conformance_score.py --timing exact`, 524304f:
+# the timeouts' boundaries and a flood of unknown IDs are steps there; docs/conformance.md,
+# "The last misses")
+FLOOR_EXACT = {"caught": 56, "named": 49, "named_first": 48, "named_by_first_diff": 47}
 
 
 @pytest.mark.long

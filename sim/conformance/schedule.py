@@ -145,7 +145,8 @@ NOT_ON_BUS: dict[str, str] = {
     "DWELL-2": "kind dwell (as DWELL-1)",
     "SP-2": "setpoint_limited is not on the Diag frame (DIAG-5): not visible on the bus",
     "DIAG-2": "a counter at 65535 needs 65536 counted events (about 8 s of a full "
-              "1 Mbit/s bus of unknown IDs): longer than the schedule; unit tests",
+              "1 Mbit/s bus of unknown IDs): longer than the schedule on a bus; an "
+              "exact-timing run in process floods them (plan's flood); unit tests",
     "DIAG-5": "these counters are not on any frame: not visible on the bus",
     "TX-6": "a raw value outside its DBC range arises only from a counter past its "
             "maximum (DIAG-2): as DIAG-2",
