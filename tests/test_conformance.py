@@ -412,7 +412,7 @@ def test_an_agent_whose_band_re_arms_at_the_reset_sample_fails_band_2(tmp_path: 
 def test_a_quick_run_plays_the_first_steps_and_lists_the_rest_not_run(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`bess-ded conformance --quick` in process: the steps of ``QUICK`` only (start to
-    commands, 7.1 of 15.6 s at Ts = 10 ms); firmware_py passes every requirement they
+    commands, 7.1 of 16.2 s at Ts = 10 ms); firmware_py passes every requirement they
     exercise; those only the later steps exercise are NOT RUN (never passed, JUnit
     skipped), the verdict says it was a quick run, and the exit code is 0."""
     from sim.cli.conformance import report
