@@ -1174,7 +1174,8 @@ assert len(BY_NAME) == len(FAULTS), "fault names must be unique"
 SCHEDULE_KEYS = fleet_keys(MASTER, 12)
 
 
-def schedule_setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyring], list[Any]]:
+def schedule_setup(case: int, dut: int, flood: bool = False
+                   ) -> tuple[AgentConfig, Callable[[], Keyring], list[Any]]:
     """The conformance run of tests/test_conformance.py: scenario ``case`` with the device
     in agent ``dut``'s place, a fleet key set with every peer's floor at boot 2 (as `up`
     writes them), the tester at boot 2."""
@@ -1188,7 +1189,7 @@ def schedule_setup(case: int, dut: int) -> tuple[AgentConfig, Callable[[], Keyri
         return Keyring(node, SCHEDULE_KEYS[node], 0, lambda _b: None, master=MASTER,
                        floors={n: 2 for n in fleet_nodes(12) if n != node})
 
-    return cfg, ring, conf.plan(cfg, SCHEDULE_KEYS, sc.prices[0].rho, boot=2)
+    return cfg, ring, conf.plan(cfg, SCHEDULE_KEYS, sc.prices[0].rho, boot=2, flood=flood)
 
 
 def schedule_text(case: int, dut: int) -> str:
@@ -1238,20 +1239,22 @@ class Score:
 
 def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
           seed: int = 0, make_dut: Callable[..., Any] | None = None,
-          dut_from_text: Callable[[str], Callable[..., Any]] | None = None) -> Score:
+          dut_from_text: Callable[[str], Callable[..., Any]] | None = None,
+          exact: bool = False) -> Score:
     """Play the schedule in process against the agent with ``fault`` (None: none) and
     judge it as `bess-ded conformance` does (check, explain, verdict). ``make_dut``: the
     device, as ``simulate`` takes it (tests/conformance_faults_c.py: the C agent on a
     library with the fault built in; then ``fault`` only names it, nothing is planted);
     ``dut_from_text``: the device given the configuration file the tester writes (the C
     agent reads it with its own loader). A fault with ``misread``: firmware_py's agent
-    configured from that file as the faulty parser reads it."""
+    configured from that file as the faulty parser reads it. ``exact``: the device's
+    clock trusted (``simulate`` and ``check`` with ``exact``: no timing tolerance)."""
     import time
 
     from sim import conformance as conf
 
     start = time.perf_counter()
-    cfg, ring, planned = schedule_setup(case, dut)
+    cfg, ring, planned = schedule_setup(case, dut, flood=exact)  # in process: a flood
     text = schedule_text(case, dut)
     if dut_from_text is not None:
         make_dut = dut_from_text(text)
@@ -1261,9 +1264,9 @@ def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
         make_dut = lambda _c, codec, k: AgentRuntime(dut_cfg, codec, keys=k)  # noqa: E731
     frames = conf.simulate(cfg, ring(), planned,
                            None if fault is None or make_dut is not None else fault.apply,
-                           jitter=jitter, seed=seed, make_dut=make_dut)
+                           jitter=jitter, seed=seed, make_dut=make_dut, exact=exact)
     key = SCHEDULE_KEYS[f"agent_{dut}"]
-    outcome = conf.check(cfg, ring(), key, frames)
+    outcome = conf.check(cfg, ring(), key, frames, exact=exact)
     conf.explain(cfg, ring(), key, frames, outcome, config_text=text)
     results = conf.verdict(outcome)
     first = conf.Outcome(mismatches=outcome.mismatches[:1],

@@ -804,7 +804,7 @@ def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once
                                                          (7, 5, 0.5, False, False)])
 def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter: float,
                                                      filtered: bool, fd: bool) -> None:
-    """`bess-ded conformance`'s whole schedule (sim.conformance: 1350 ticks, the
+    """`bess-ded conformance`'s whole schedule (sim.conformance: 1620 ticks, the
     requirements) played against the C agent on a simulated clock, with late ticks and
     frames, and behind its acceptance filter: every requirement passes; on a CAN FD bus
     too (``fd``: `bess-ded conformance --fd`, the C agent's --fd)."""

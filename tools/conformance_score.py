@@ -18,6 +18,7 @@ Usage::
     python tools/conformance_score.py --case 1:3 --case 7:5 --json score.json
     python tools/conformance_score.py --only wire_truncates lam_step_ge
     python tools/conformance_score.py --device c --jobs 2   # firmware_c's faults
+    python tools/conformance_score.py --timing exact        # the device's clock trusted
 
 Deterministic: the same code gives the same table on any machine (seed 0, jitter 0.3).
 The faultless agent is scored first and must pass, or the score means nothing.
@@ -59,11 +60,11 @@ def _case(text: str) -> tuple[int, int]:
                                          f"{text!r}") from None
 
 
-def _job(args: tuple[str, int, int, float, int, str]) -> cf.Score:
-    name, case, dut, jitter, seed, device = args
+def _job(args: tuple[str, int, int, float, int, str, bool]) -> cf.Score:
+    name, case, dut, jitter, seed, device, exact = args
     logging.disable(logging.CRITICAL)  # the faulty agents log what they do
     fs = _set(device)
-    return fs.score(fs.BY_NAME[name], case, dut, jitter, seed)
+    return fs.score(fs.BY_NAME[name], case, dut, jitter, seed, exact=exact)
 
 
 def table(scores: list[cf.Score]) -> str:
@@ -106,6 +107,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jitter", type=float, default=0.3,
                    help="ticks and tester frames up to this fraction of Ts late (0.3)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--timing", choices=("bus", "exact"), default="bus",
+                   help="bus: the oracle's timing tolerance of a bus run (default); "
+                        "exact: the device's clock trusted (it ticks every Ts on the dot, "
+                        "--jitter moves the tester's frames only): a frame exactly a "
+                        "timeout old at a tick is a step")
     p.add_argument("--only", nargs="+", metavar="FAULT", help="these faults only")
     p.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
     p.add_argument("--json", type=Path, metavar="OUT", help="write the scores here")
@@ -121,15 +127,16 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--only: unknown faults {', '.join(unknown)}")
     logging.disable(logging.CRITICAL)
     start = time.perf_counter()
+    exact = a.timing == "exact"
     doc: dict[str, object] = {"device": a.device, "jitter": a.jitter, "seed": a.seed,
-                              "cases": {}}
+                              "timing": a.timing, "cases": {}}
     for case, dut in cases:
-        base = fs.score(None, case, dut, a.jitter, a.seed)
+        base = fs.score(None, case, dut, a.jitter, a.seed, exact=exact)
         if base.caught:
             print(f"case {case} agent {dut}: the faultless agent fails ({base.failed}, "
                   f"{base.problems}): no score", file=sys.stderr)
             return 1
-        jobs = [(n, case, dut, a.jitter, a.seed, a.device) for n in names]
+        jobs = [(n, case, dut, a.jitter, a.seed, a.device, exact) for n in names]
         if a.jobs > 1:
             from multiprocessing import Pool
             with Pool(a.jobs) as pool:
@@ -137,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             scores = [_job(j) for j in jobs]
         print(f"case {case}, agent {dut}, device {a.device} (jitter {a.jitter}, "
-              f"seed {a.seed}):")
+              f"seed {a.seed}, timing {a.timing}):")
         print(table(scores))
         s = summary(scores)
         n = s["faults"]

@@ -5,7 +5,7 @@ agent I (written to OUT/agents/agent_I.toml) and its key file OUT/keys/agent_I.k
 (a fresh key set, unless --keys DIR or --insecure). Start the device with them on the
 same bus; this command waits for its Diag frame (--wait S), then plays the rest of the
 bus for it: the router's price and commands, its plant's status and its neighbours' MC
-frames, along a fixed schedule of 13.5 s at Ts = 10 ms (stretched by --time-scale):
+frames, along a fixed schedule of 16.2 s at Ts = 10 ms (stretched by --time-scale):
 start-up, control with moving neighbours, forged and replayed frames, malformed and
 implausible content, every command, and every timeout (sim/conformance/).
 
@@ -23,7 +23,7 @@ rounding up): a device that misreads its file fails, named CFG-3, CFG-4, CFG-6 o
 when a known misreading (a key's default taken, a value rounded otherwise) explains it.
 
 --quick plays the first steps only (start to commands: 7.1 s at Ts = 10 ms instead of
-13.5 s), for development: the requirements only the later steps exercise are listed
+16.2 s), for development: the requirements only the later steps exercise are listed
 NOT RUN (JUnit: skipped), never as passed, and the verdict says it was a quick run.
 Exit codes:
 

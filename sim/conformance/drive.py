@@ -22,15 +22,19 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
              codec: FrameCodec | None = None, lead_ticks: int = 12,
              phase: float = 0.37, latency: float = 2e-4, jitter: float = 0.0,
              seed: int = 0, filtered: bool = False,
-             make_dut: Callable[[AgentConfig, FrameCodec, Keyring], Any] | None = None
-             ) -> list[Frame]:
+             make_dut: Callable[[AgentConfig, FrameCodec, Keyring], Any] | None = None,
+             exact: bool = False) -> list[Frame]:
     """The schedule played against firmware_py's agent (with ``deviation``), or the
     agent ``make_dut`` builds (any object with the node seam: the C agent, sim.cbind.cagent),
     on a simulated clock: the record a bus run of a DUT would give, without the bus. The DUT
     ticks ``lead_ticks`` times before the schedule starts (as a device already running
     when the tester starts) at the phase ``phase`` of Ts; ``jitter``: each tick and each
     tester frame up to that fraction of Ts late (seeded), as on a loaded host;
-    ``filtered``: the DUT's CAN controller passes only its acceptance IDs (GEN-5)."""
+    ``filtered``: the DUT's CAN controller passes only its acceptance IDs (GEN-5).
+    ``exact``: the device's clock trusted (``check(..., exact=True)``): it ticks every Ts
+    on the dot (``jitter`` moves the tester's frames only), frames reach it when sent
+    (no ``latency``), and a frame planned with an ``age`` is put exactly that old (in
+    binary64, as the device subtracts) at a tick: a timeout's boundary."""
     import random
 
     rnd = random.Random(seed)
@@ -40,16 +44,23 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
     if deviation is not None:
         deviation(dut)
     t0 = (lead_ticks + 0.5) * ts  # the schedule's start, after the DUT's first Diag
-    inputs = sorted((Frame(t0 + p.at + rnd.uniform(0, jitter * ts), p.msg, True, p.step,
-                           p.note) for p in planned), key=lambda f: f.t)
     played = {p.step for p in planned}
     end = t0 + max((s.end for s in STEPS if s.name in played), default=0) * ts + 3 * ts
+    ticks: list[float] = []
+    if exact:
+        latency = 0.0
+        ticks = [(k + phase) * ts for k in range(int(end / ts) + 2)]
+        ticks = [t for t in ticks if t < end]
+    inputs = sorted((Frame(_exactly_old(t0 + p.at, p.age, ticks) if exact and p.age
+                           else t0 + p.at + rnd.uniform(0, jitter * ts), p.msg, True,
+                           p.step, p.note) for p in planned), key=lambda f: f.t)
     passed = set(getattr(dut, "io", dut).accepted_ids())
     record: list[Frame] = []
     nxt = 0
     k = 0
     with quiet_firmware():
-        while (tick := (k + phase + rnd.uniform(0, jitter)) * ts) < end:
+        while (tick := (ticks[k] if k < len(ticks) else end) if exact else
+               (k + phase + rnd.uniform(0, jitter)) * ts) < end:
             while nxt < len(inputs) and inputs[nxt].t + latency < tick:
                 msg = inputs[nxt].msg
                 if not filtered or (not msg.is_extended_id
@@ -61,6 +72,22 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
                 record.append(Frame(tick + latency, msg, False))
             k += 1
     return record
+
+
+def _exactly_old(at: float, age: float, ticks: Sequence[float]) -> float:
+    """A receive time near ``at`` that is exactly ``age`` old (``tick − t == age`` in
+    binary64) at the first of ``ticks`` at least ``age`` after ``at``."""
+    import math
+
+    tick = next((t for t in ticks if t >= at + age), None)
+    if tick is None:
+        return at
+    t = tick - age
+    for _ in range(64):
+        if tick - t == age:
+            break
+        t = math.nextafter(t, -math.inf if tick - t < age else math.inf)
+    return t
 
 
 def drive(bus: can.BusABC, planned: Sequence[Planned], dut_ids: set[int], diag_id: int,

@@ -104,15 +104,18 @@ class Outcome:
     format_errors: list[tuple[float, str]] = field(default_factory=list)
     stopped: str = ""  # why the check stopped before the end of the record, if it did
     differing_ticks: int = 0  # ticks with a difference (mismatches keeps the first ones)
+    exact: bool = False  # checked with the device's clock trusted (``check``'s ``exact``)
 
 
 # Which requirements a mismatch on a signal violates (besides the step's)
 SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
-    "MC.Lambda": ("XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1"),
+    "MC.Lambda": ("XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1", "STEP-12"),
     # and the inputs' rules that decide health (STATE-2): a valid price, a plant fault
     "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9",
                  "PRICE-1", "RX-11"),
-    "MC.Resets": ("STEP-3", "BAND-3", "TX-1", "STATE-7"),  # ISOLATE zeroes the count
+    # ISOLATE zeroes the count; a neighbour dying at another tick (LIVE-2) is a zero
+    # crossing of ξ at another tick
+    "MC.Resets": ("STEP-3", "BAND-3", "TX-1", "STATE-7", "LIVE-2"),
     "Setpoint.Enable": ("TX-2", "SP-3"),
     "Setpoint.PowerSetpoint": ("SP-1", "TX-2"),
     "Diag.RejectedAuth": ("AUTH-14", "AUTH-16", "AUTH-21", "RX-8", "AUTH-25"),
@@ -135,7 +138,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.Untrusted": ("RX-13",),
     "Diag.Resets": ("DIAG-1", "STEP-1", "STATE-7"),
     "Diag.NeighboursAlive": ("DIAG-1", "LIVE-2"),
-    "Diag.Saturations": ("DIAG-3", "STEP-9"),
+    "Diag.Saturations": ("DIAG-3", "XI-3", "STEP-9"),
     "Sync.frames": ("AUTH-9",),
     "Sync.Count": ("AUTH-9", "AUTH-4"),
 }
@@ -284,41 +287,50 @@ class _DutFrames:
 def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
           codec: FrameCodec | None = None,
           deviation: Callable[[AgentRuntime], None] | None = None,
-          max_mismatches: int | None = None, filtered_first: bool = False) -> Outcome:
+          max_mismatches: int | None = None, filtered_first: bool = False,
+          exact: bool = False) -> Outcome:
     """Compare the DUT's frames in ``frames`` (time order) with the oracle's. A DUT may
     filter in its CAN controller what it neither uses nor sends (GEN-5), and then never
     counts the frames of foreign IDs: when the oracle without (``filtered_first``: with)
     a filter does not explain the DUT, the other is tried, and the one that explains
     more is the verdict. After a difference the oracle takes what the DUT's frames show
     (λ, state, counters) and checks on to the end of the record; ``max_mismatches``:
-    stop after that many ticks with a difference (``Outcome.stopped`` says so)."""
+    stop after that many ticks with a difference (``Outcome.stopped`` says so).
+    ``exact``: the device's clock is trusted (``simulate(..., exact=True)``, or a host that
+    stamps the device's frames with its tick times and the inputs with its receive
+    times): it ticked when its MC frame is stamped and took every input at its stamp, so
+    no other order or tick time is a hypothesis (a timeout one period late, or a frame
+    exactly a timeout old taken as stale, is a difference, not the clock's noise)."""
     frames, wrong = _in_bus_format(codec or FrameCodec(), frames)
     codec = cast(FrameCodec, _DutFrames(codec or FrameCodec(), frames))
     outcome = _check_either(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
-                            filtered_first)
+                            filtered_first, exact)
     outcome.format_errors = wrong
+    outcome.exact = exact
     return outcome
 
 
 def _check_either(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
                   codec: FrameCodec, deviation: Callable[[AgentRuntime], None] | None,
-                  max_mismatches: int | None, filtered_first: bool) -> Outcome:
+                  max_mismatches: int | None, filtered_first: bool,
+                  exact: bool = False) -> Outcome:
     """``check`` with the DUT's frames in the bus's format: the model with the acceptance
     filter or without, whichever explains more."""
     first = _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
-                   filtered_first)
+                   filtered_first, exact)
     if not first.mismatches:
         return first
     # the other model, as far as its first difference: checked in full only if it
     # explains more
-    other = _check(cfg, keyring, dut_key, frames, codec, deviation, 1, not filtered_first)
+    other = _check(cfg, keyring, dut_key, frames, codec, deviation, 1, not filtered_first,
+                   exact)
     if not other.mismatches:
         return other
     if (other.mismatches[0].tick, other.ticks) > (first.mismatches[0].tick, first.ticks):
         if max_mismatches == 1:
             return other
         return _check(cfg, keyring, dut_key, frames, codec, deviation, max_mismatches,
-                      not filtered_first)
+                      not filtered_first, exact)
     return first
 
 
@@ -360,7 +372,7 @@ MAX_KEPT = 400
 
 def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
            codec: FrameCodec | None, deviation: Callable[[AgentRuntime], None] | None,
-           max_mismatches: int | None, filtered: bool) -> Outcome:
+           max_mismatches: int | None, filtered: bool, exact: bool = False) -> Outcome:
     codec = codec or FrameCodec()
     i = cfg.id
     mc_id, sp_id, diag_id = (codec.frame_id(n(i)) for n in (mc_name, setpoint_name, diag_name))
@@ -420,10 +432,13 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                 # inputs sent before the DUT's previous frames reached it before this tick;
                 # those sent since may or may not have (each order is a hypothesis)
                 sure = pending
-                while sure < len(inputs) and inputs[sure].done < prev_t - 0.001:
-                    oracle.rt.on_frame(inputs[sure].msg, inputs[sure].done)
+                while sure < len(inputs) and (inputs[sure].t < t_tick if exact else
+                                              inputs[sure].done < prev_t - 0.001):
+                    oracle.rt.on_frame(inputs[sure].msg, inputs[sure].t if exact
+                                       else inputs[sure].done)
                     sure += 1
-                maybe = sure + sum(1 for f in inputs[sure:] if f.t < t_tick)
+                maybe = sure if exact else sure + sum(1 for f in inputs[sure:]
+                                                      if f.t < t_tick)
                 # each input received when it was sent, or (a starved DUT reads its socket
                 # late and stamps the frames then) just before this tick
                 # late and stamped alike, a frame makes no other state: the late chain
@@ -438,7 +453,8 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                         if late is not None:
                             late.rt.on_frame(f.msg, max(f.done, t_tick - 1e-6))
                     for d, chain in enumerate((oracle,) if late is None else (oracle, late)):
-                        guesses = _tick_times(chain.rt, prev_t, t_tick)
+                        guesses = [t_tick] if exact else _tick_times(chain.rt, prev_t,
+                                                                     t_tick)
                         for g, t_guess in enumerate(guesses):
                             # a chain's last use ticks the chain itself, not a copy
                             last = cut == maybe and g == len(guesses) - 1
@@ -478,7 +494,9 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                 trans = tuple(w for t, w in reversed(transitions) if t >= since)
                 edges = tuple(e for e, hit in (
                     ("ξ = 0 after ξprev ≠ 0", rt.cstate.xi_prev == 0 and xi_prev != 0),
-                    ("|ξ| = BAND", abs(rt.cstate.xi_prev) == getattr(rt.ctrl, "band", None)))
+                    ("|ξ| = BAND", abs(rt.cstate.xi_prev) == getattr(rt.ctrl, "band", None)),
+                    ("λ beyond the λ limits", not fx.widen(rt.lam_min) <= rt.cstate.lam
+                     <= fx.widen(rt.lam_max)))
                     if hit and rt.state == State.RUNNING)
                 # the DUT gone SAFE where the oracle is not: an input it did not take
                 # a whole timeout ago (STATE-2)

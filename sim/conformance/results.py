@@ -64,6 +64,7 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "a genuine frame delivered …": ("AUTH-25",),
     "extended ID": ("RX-1",),
     "unknown ID": ("RX-6",),
+    "a flood of unknown IDs …": ("DIAG-2", "RX-6"),
     "the DUT's own MC ID": ("RX-3",),
     "DLC 7": ("RX-7",),
     "SET_GAINS in bounds": ("CMD-5", "CMD-2"),
@@ -83,6 +84,7 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "a neighbour λ square step": ("LIVE-1", "LAM-1"),
     "a neighbour's first frame after …": ("AUTH-13", "AUTH-15", "LIVE-2"),
     "a neighbour alive but INIT …": ("XI-1",),
+    "the price's last frame, exactly …": ("STATE-2", "TMO-1"),
     "a price step of exactly …": ("PRICE-3",),
     "a price step one LSB beyond …": ("PRICE-3", "PRICE-4"),
     "a price step back …": ("PRICE-3",),
@@ -159,6 +161,9 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS,
         return ("NUM-8",)
     if key == "Setpoint.PowerSetpoint" and one_lsb:
         return ("SP-1",)
+    # a Diag counter expected at its maximum and below it: it wrapped (DIAG-2)
+    if mm.message == "Diag" and exp == DIAG_MAX and isinstance(got, int) and got < exp:
+        return _ordered(("DIAG-2",), sig)
     if key == "MC.State":
         sig = _ordered(STATE_RULES.get((str(mm.expected), str(mm.got)), ()), sig)
         # ISOLATED expected, and the idle λ the ISOLATE gives it (STATE-7) is on the
@@ -186,6 +191,8 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS,
     return sig or step_musts or ("TICK-1",)
 
 
+DIAG_MAX = 0xFFFF  # a 16-bit Diag counter's saturation value (DIAG-2)
+
 # Diag values that show the consequence of a classification, not a cause of their own
 _DERIVED = {"SafetySender", "SafetyCause", "NeighboursAlive", "State"}
 
@@ -193,6 +200,7 @@ _DERIVED = {"SafetySender", "SafetyCause", "NeighboursAlive", "State"}
 EDGES: dict[str, tuple[str, ...]] = {
     "ξ = 0 after ξprev ≠ 0": ("STEP-2",),
     "|ξ| = BAND": ("BAND-3",),
+    "λ beyond the λ limits": ("STEP-12",),
 }
 
 
@@ -298,12 +306,12 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
     """Name the requirement when a known deviation (``MUTANTS``) or a known misreading
     of the configuration (``misreads``: ``cfg`` is the reference parser's reading of
     the DUT's file, ``config_text``) explains the DUT better than the spec: with it
-    modelled, the oracle must match the DUT at every tick where the spec's diverged (a
-    deviation that only matches the first ticks for the fault explains nothing)."""
+    modelled, the oracle must match the DUT at every tick (a deviation that only
+    matches the first ticks for the fault explains nothing, nor one that meets every
+    divergence but differs from the DUT where the DUT kept to the spec)."""
     if not outcome.mismatches:
         return
     first = outcome.mismatches[0].tick
-    diverged = {m.tick for m in outcome.mismatches}
     candidates: list[tuple[str, str, AgentConfig, Callable[[AgentRuntime], None] | None]]
     candidates = [(must, what, cfg, deviation) for must, (what, deviation)
                   in MUTANTS.items()]
@@ -316,15 +324,17 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
                        if abs(t - t_first) <= MISREAD_TICKS * ts]
     for must, what, model, deviation in candidates:
         alt = check(model, keyring, dut_key, frames, codec, deviation, max_mismatches=1,
-                    filtered_first=outcome.filtered)
+                    filtered_first=outcome.filtered, exact=outcome.exact)
         if alt.mismatches and alt.mismatches[0].tick <= first:
             continue
         # check the rest of the schedule with that deviation modelled
         rest = check(model, keyring, dut_key, frames, codec, deviation,
-                     filtered_first=alt.filtered)
-        # the deviation explains every tick where the spec's oracle diverged
-        if ({m.tick for m in rest.mismatches} & diverged
-                or rest.differing_ticks >= outcome.differing_ticks):
+                     filtered_first=alt.filtered, exact=outcome.exact)
+        # the deviation explains every tick where the spec's oracle diverged, and
+        # differs from the device nowhere else (a model that meets the device's first
+        # difference but misses a tick where the device kept to the spec is another
+        # device: e.g. a default timeout one period short against one exactly at it)
+        if rest.mismatches or rest.differing_ticks:
             continue
         outcome.explained_by[must] = what
         outcome.steps_seen, outcome.ticks = rest.steps_seen, rest.ticks

@@ -11,10 +11,12 @@ import math
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import can
 
 from firmware_py import contract, secoc
+from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig, Neighbour, parse_agent_config
 from firmware_py.contract import Command, State
 from firmware_py.frames import PIN_OFF, PIN_ON, FrameCodec, mc_name, status_name, target_raw
@@ -97,10 +99,26 @@ STEPS = (
          "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh",
          ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
           "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4")),
+    Step("band", 1350, 1470, "a trajectory planned on the reference (firmware_py run on "
+         "the schedule up to here): the band armed, a reset, then ξ = −BAND exactly (not "
+         "re-armed: BAND-3 is strict) and a crossing inside the band (no reset); a plant "
+         "fault (SAFE) and back (RUNNING: armed kept, STATE-6), then a crossing inside the "
+         "band (no reset)",
+         ("BAND-2", "BAND-3", "STEP-2", "STEP-3", "STEP-5", "STATE-3", "STATE-4", "STATE-6",
+          "XI-2", "RX-11"),
+         (("ξ = −BAND exactly after a reset …", ("BAND-3",)),
+          ("|ξ| between the default band …", ("BAND-3", "CFG-3")),
+          ("a crossing inside the band after entering RUNNING …", ("STATE-6",)))),
+    Step("extremes", 1470, 1620, "every neighbour INIT at lambda_min, then RUNNING there "
+         "(no LAM-1 step after INIT): |Σ W_j (Λ − λ_j)| past int32 (ξ saturates, counted), "
+         "the own λ driven past lambda_min (not clamped), to a Diag page of Saturations",
+         ("NUM-3", "XI-2", "XI-3", "STEP-1", "STEP-12", "RX-9", "LAM-2", "DIAG-3", "CFG-7"),
+         (("every neighbour at lambda_min in ξ …", ("NUM-3", "XI-3")),
+          ("a neighbour INIT at lambda_min", ("LAM-2", "RX-9")))),
 )
 
 
-# `bess-ded conformance --quick`: the first steps only (7.1 of 13.5 s at Ts = 10 ms), for
+# `bess-ded conformance --quick`: the first steps only (7.1 of 16.2 s at Ts = 10 ms), for
 # development: start-up, a state change to RUNNING, the controller bit for bit, the
 # authentication, the content rules, every command: one step per requirement class (GEN,
 # NUM, CTRL, XI, STEP, BAND, STATE, LIVE, TMO, TICK, TX, SP, DIAG, RX, PRICE, LAM, CMD,
@@ -127,7 +145,8 @@ NOT_ON_BUS: dict[str, str] = {
     "DWELL-2": "kind dwell (as DWELL-1)",
     "SP-2": "setpoint_limited is not on the Diag frame (DIAG-5): not visible on the bus",
     "DIAG-2": "a counter at 65535 needs 65536 counted events (about 8 s of a full "
-              "1 Mbit/s bus of unknown IDs): longer than the schedule; unit tests",
+              "1 Mbit/s bus of unknown IDs): longer than the schedule on a bus; an "
+              "exact-timing run in process floods them (plan's flood); unit tests",
     "DIAG-5": "these counters are not on any frame: not visible on the bus",
     "TX-6": "a raw value outside its DBC range arises only from a counter past its "
             "maximum (DIAG-2): as DIAG-2",
@@ -212,7 +231,7 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     k = _rounds_up(1.1 * c.k, 30, ts)
     h = _rounds_up(0.9 * c.h, 30, ts)
     ctrl = replace(c, ts=ts, k=k, h=h, band=_rounds_up(1.5 * c.band, 24))
-    nbrs = tuple(Neighbour(n.id, _rounds_up(1.25 * n.weight, 24)) for n in cfg.neighbours)
+    nbrs = tuple(Neighbour(n.id, _tie_weight(1.25 * n.weight)) for n in cfg.neighbours)
     step_max = _rounds_up(0.9 * 10.0 * k * ts, 24)  # below the default 10·k·Ts
     # a price step of 0.45: the content step's persistent 0.6 stays above it; a price
     # persistence of 5, two above the default 3: a device counting one frame short or
@@ -221,14 +240,34 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     return replace(
         cfg, controller=ctrl, neighbours=nbrs, lambda0=_rounds_up(cfg.lambda0, 24),
         neighbour_timeout_periods=4.7,  # type: ignore[arg-type]  # CFG-6 truncates: 4
-        # 0.32 s and 0.29 s at Ts = 10 ms (the defaults: 0.25 s), stretched with Ts
-        price_timeout_s=round(1.28 * cfg.price_timeout_s, 9),
+        # 0.32 s and 0.29 s at Ts = 10 ms (the defaults: 0.25 s), stretched with Ts;
+        # price_s a multiple of 2^-16 s (0.3200073 s): a difference of two times of the
+        # run (a tick, a receive time) can equal it exactly (an exact-timing run's edge)
+        price_timeout_s=round(1.28 * cfg.price_timeout_s * (1 << 16)) / (1 << 16),
         status_timeout_s=round(1.16 * cfg.status_timeout_s, 9),
-        lambda_min=-9.5, lambda_max=9.5, rho_min=max(cfg.rho_min, -4.5),
+        # λ limits near the DBC's ±128 (RX-9): a neighbour at lambda_min drives |ξ| past
+        # int32 (NUM-3, XI-3) and the own λ past lambda_min (STEP-12); the edge step
+        # `extremes` does both
+        lambda_min=-LAMBDA_LIMIT, lambda_max=LAMBDA_LIMIT, rho_min=max(cfg.rho_min, -4.5),
         rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=5,
         lambda_step_max=step_max, k_min=_milli(0.6 * k), k_max=_milli(1.8 * k),
         h_min=_milli(0.6 * h), h_max=_milli(1.8 * h), untrusted_after=6,
         source=f"{cfg.source} (conformance)")
+
+
+LAMBDA_LIMIT = 120.0
+"""The conformance configuration's λ limits (±): a neighbour λ at ``-LAMBDA_LIMIT`` is
+more than 128/W from any own λ near 0 (W = 1.25: ξ saturates)."""
+
+
+def _tie_weight(x: float) -> float:
+    """A weight next to ``x`` whose Q24 word is a multiple of 2^22 but not of 2^23, and
+    whose value·2^24 has a fraction of 0.625 (it rounds up to that word, NUM-4): then
+    mulq(W, Λ − λ_j) is a tie (NUM-2) whenever Λ − λ_j ≡ 2 (mod 4) LSB, a quarter of all
+    differences, so that the control step meets ties of either sign."""
+    word = round(x * (1 << 24) / (1 << 22))
+    word = (word | 1) << 22
+    return (word - 0.375) / (1 << 24)
 
 
 def _milli(x: float) -> float:
@@ -261,6 +300,10 @@ class Planned:
     step: str
     msg: can.Message
     note: str = ""
+    # an exact-timing run (``simulate(..., exact=True)``: the device's clock trusted) puts
+    # this frame so that it is exactly ``age`` s old at a tick of the device (a timeout's
+    # boundary: ≤ against <); a bus run sends it at ``at`` as any other
+    age: float | None = None
 
 
 def _tick_of(name: str) -> Callable[[int], bool]:
@@ -270,15 +313,32 @@ def _tick_of(name: str) -> Callable[[int], bool]:
 
 def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
          codec: FrameCodec | None = None, boot: int = secoc.INSECURE_BOOT,
-         quick: bool = False) -> list[Planned]:
+         quick: bool = False, flood: bool = False) -> list[Planned]:
     """The tester's frames for DUT ``cfg`` (times in s from the start), signed with
     ``keys`` (label → key of the router, the plant and the neighbours; None: the
     insecure keys). ``price``: the ρ to hold (the scenario's first). ``boot``: the boot
     every sender the tester plays runs at, at least the DUT's boot floors (AUTH-21);
     above 1, an earlier run's price sync (boot − 1) comes first. ``quick``: the steps
-    of ``QUICK`` only."""
+    of ``QUICK`` only. ``flood``: in process only (an exact-timing run), ``FLOOD``
+    frames of an unknown ID at once in the extremes step, so that RejectedUnknownId
+    passes 65535 and must stay there (DIAG-2); a bus run would take seconds of a full
+    bus for them, and the tolerant oracle one hypothesis per frame."""
     out = _plan(cfg, keys, price, codec, boot)
+    if flood:
+        codec = codec or FrameCodec()
+        at = next(s.start for s in STEPS if s.name == "extremes") + 1.6
+        junk = can.Message(arbitration_id=_unknown_id(codec), is_extended_id=False,
+                           data=bytes(8), **_format(codec))
+        out += [Planned(at * cfg.controller.ts, "extremes", junk,
+                        "a flood of unknown IDs past 65535" if n == 0 else "")
+                for n in range(FLOOD)]
+        out.sort(key=lambda p: p.at)
     return [p for p in out if p.step in QUICK] if quick else out
+
+
+FLOOD = 65536
+"""The unknown-ID frames of an exact-timing run's flood (``plan``'s ``flood``): with the
+two of the schedule, RejectedUnknownId's count is past 65535 (DIAG-2: it saturates)."""
 
 
 def played_steps(planned: Sequence[Planned]) -> tuple[Step, ...]:
@@ -287,8 +347,116 @@ def played_steps(planned: Sequence[Planned]) -> tuple[Step, ...]:
     return tuple(s for s in STEPS if s.name in names)
 
 
+class _BandPlan:
+    """The band step's trajectory, planned on the reference: firmware_py's agent run on
+    the schedule's frames (insecure twins of them: the same contents and order, so the
+    same λ) up to the step, then driven tick by tick with the neighbour λ this plan
+    chooses from its own λ (a conformant device is bit-exact with it): ``lam[c]`` the
+    neighbours' λ (Q24) sent at tick ``start + c``, ``fault[c]`` the plant fault then,
+    ``note[c]`` what that frame exercises."""
+
+    def __init__(self, cfg: AgentConfig, price: float, codec: FrameCodec, start: int,
+                 length: int) -> None:
+        from firmware_py.runtime import AgentRuntime
+        from sim.conformance.oracle import quiet_firmware
+
+        ts = cfg.controller.ts
+        frames = sorted((p for p in _plan(cfg, None, price, codec, secoc.INSECURE_BOOT,
+                                          planned_band=False) if p.at < start * ts),
+                        key=lambda p: p.at)
+        rt = AgentRuntime(cfg, codec, keys=secoc.Keyring.insecure_for(f"agent_{cfg.id}"))
+        nxt = 0
+        self.lam: list[dict[int, int]] = []
+        self.fault: list[bool] = []
+        self.note: list[str] = []
+        with quiet_firmware():
+            for j in range(start + 1):
+                while nxt < len(frames) and frames[nxt].at < j * ts:
+                    rt.on_frame(frames[nxt].msg, frames[nxt].at)
+                    nxt += 1
+                rt.tick(j * ts)
+            self._drive(rt, cfg, start, length)
+
+    def _drive(self, rt: Any, cfg: AgentConfig, start: int, length: int) -> None:
+        ts = cfg.controller.ts
+        band = int(getattr(rt.ctrl, "band", 0))
+        # the default band's word (CFG-3): a device that takes it re-arms at |ξ| above it
+        from firmware_py.controllers import ControllerConfig
+        lower = fx.to_fixed(ControllerConfig(kind=cfg.controller.kind).band)
+        slots = list(rt.neighbours.values())
+        step_max = rt.lambda_step_max
+        last = {s.id: int(s.lam) for s in slots}
+        fault = False
+        entered: int | None = None  # the c at which the device is back in RUNNING
+        placed = 0  # ticks in a row with every neighbour where the plan wanted it
+        c0: int | None = None  # the first tick of the edges (every neighbour in place)
+
+        def toward(j: int, want: int) -> int:
+            return last[j] + max(-step_max, min(step_max, want - last[j]))
+
+        def solve(target: int, lam: int, w: int) -> int | None:
+            """λ_j with mulq(W, Λ − λ_j) = target exactly, if there is one."""
+            guess = round(target * (1 << 24) / w)
+            for d in range(guess - 3, guess + 4):
+                if rt.ctrl.ar.mul(w, d) == target:
+                    return lam - d
+            return None
+
+        for c in range(length):
+            lam = int(rt.ctrl.wire_lambda(rt.cstate))
+            want = dict.fromkeys(last, lam)
+            note = ""
+            first = slots[0]
+            w = int(first.weight)
+            e = None if c0 is None else c - c0  # the edges' own tick count
+            if e is None:  # |ξ| well above BAND (armed), the neighbours closing in on Λ
+                want[first.id] = lam + 10 * band
+            elif e == 0:  # a crossing, armed: a reset (disarmed, BAND-2)
+                want[first.id] = lam - 2 * band
+                note = "a crossing after |ξ| > BAND (a reset)"
+            elif e == 1:  # ξ = −BAND exactly: a crossing, unarmed, and no re-arm
+                exact = solve(-band, lam, w)
+                if exact is not None:
+                    want[first.id] = exact
+                    note = "ξ = −BAND exactly after a reset (no re-arm)"
+            elif e in (2, 4):  # a crossing inside the band: no reset (still unarmed)
+                want[first.id] = lam - band // 2
+            elif e == 3 and lower < band:  # |ξ| between the default band and the file's:
+                want[first.id] = lam + (lower + band) // 2 * (1 << 24) // w  # no re-arm
+                note = "|ξ| between the default band and the file's (no re-arm)"
+            elif 12 <= e < 22:
+                fault = True
+            elif e >= 22:
+                fault = False
+                if entered is None and rt.state == State.RUNNING:
+                    entered = c
+                if entered is not None and c - entered in (0, 1):
+                    sign = -1 if c == entered else 1
+                    want[first.id] = lam - sign * band // 2
+                    note = ("a crossing inside the band after entering RUNNING "
+                            "(armed kept: no reset)" if c > entered else "")
+            chosen = {j: toward(j, v) for j, v in want.items()}
+            if note and chosen[first.id] != want[first.id]:
+                note = ""  # the step was too large for LAM-1: not at the edge
+            placed = placed + 1 if all(chosen[j] == v for j, v in want.items()) else 0
+            if c0 is None and c >= 8 and placed >= 3:
+                c0 = c + 1
+            self.lam.append(chosen)
+            self.fault.append(fault)
+            self.note.append(note)
+            t_rx = (start + c + 0.5) * ts
+            for slot in slots:
+                slot.lam, slot.last_rx, slot.state = chosen[slot.id], t_rx, State.RUNNING
+            last = chosen
+            if rt.price_rx is not None:
+                rt.price_rx = t_rx
+            if _tick_of(status_name(cfg.id))(start + c):  # the status frame of this tick
+                rt.status_rx, rt.plant_fault = t_rx + 0.25 * ts, fault
+            rt.tick((start + c + 1) * ts)
+
+
 def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
-          codec: FrameCodec | None, boot: int) -> list[Planned]:
+          codec: FrameCodec | None, boot: int, planned_band: bool = True) -> list[Planned]:
     codec = codec or FrameCodec()
     ts, i = cfg.controller.ts, cfg.id
     nbrs = [n.id for n in cfg.neighbours]
@@ -302,9 +470,13 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     k_gain, h_gain = cfg.controller.k, cfg.controller.h
     other = i % contract.N_AGENTS_MAX + 1
     at = {s.name: s.start for s in STEPS}
+    span = next(s.end - s.start for s in STEPS if s.name == "band")
+    band = (_BandPlan(cfg, price, codec, at["band"], span)
+            if planned_band and nbrs and not cfg.pinned else None)
 
-    def add(k: float, step: str, msg: can.Message, note: str = "") -> None:
-        out.append(Planned(k * ts, step, msg, note))
+    def add(k: float, step: str, msg: can.Message, note: str = "",
+            age: float | None = None) -> None:
+        out.append(Planned(k * ts, step, msg, note, age))
 
     def step_at(k: int) -> str:
         return next(s.name for s in STEPS if s.start <= k < s.end)
@@ -362,7 +534,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     price_step = q(cfg.price_step_max)  # PRICE-3's bound
     # the price step's sign: the edges of the limits step stay inside [rho_min, rho_max]
     p_sign = 1 if q(price) + 2 * price_step < q(cfg.rho_max) else -1
-    top = q(cfg.lambda_max) - lam_step  # where the ramp of the limits step ends
+    # where the ramp of the limits step ends: the top of the scenario's λ range (±9.5)
+    top = q(min(cfg.lambda_max, 9.5)) - lam_step
 
     def lam_edge(j: int, k: int) -> tuple[int, str]:
         """Neighbour j's λ from the limits step on, and what its frame exercises: held
@@ -406,6 +579,22 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                     "a price step back by exactly price_step_max" if c == until else "")
         return 1, base, ""
 
+    def extreme(j: int, k: int, lam: int) -> tuple[int, str, State]:
+        """Neighbour j's λ, note and State in the extremes step: INIT at lambda_min (a
+        State change: the next RUNNING frame is no LAM-1 step, LAM-2), then RUNNING there:
+        with W = 1.25 and Λ near the top of the scenario's range, the sum is past int32
+        (ξ = sat32, counted: NUM-3, XI-3) and drives the own λ to, and past, lambda_min
+        (STEP-12: only sat54 limits it)."""
+        c = k - at["extremes"]
+        if c < 5:
+            return lam, "", State.RUNNING
+        first = j == nbrs[0]
+        if c < 7:
+            return (q(cfg.lambda_min), "a neighbour INIT at lambda_min" if first and c == 5
+                    else "", State.INIT)
+        return (q(cfg.lambda_min), "every neighbour at lambda_min in ξ (ξ saturates)"
+                if first and c == 7 else "", State.RUNNING)
+
     # the states step: (tick, command) and the price's and plant's conditions
     st = at["states"]
     gains_raw = _gain_raw_rounding_up(cfg)
@@ -420,15 +609,22 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         lost_nbr = 30 <= k - fr < 55  # sent, but lost on the bus: the count moves on
         silent_price = 40 <= k - at["timeouts"] < 80 or 60 <= k - st < 110
         invalid_price = 10 <= k - st < 50  # PriceValid = 0 only: an outage all the same
-        fault = 120 <= k - at["timeouts"] < 140 or 65 <= k - st < 75
+        fault = (120 <= k - at["timeouts"] < 140 or 65 <= k - st < 75
+                 or band is not None and at["band"] <= k < at["extremes"]
+                 and band.fault[k - at["band"]])
         soc = 100 <= k - at["limits"] < 120
         for j in nbrs:
             if silent_nbr and j == nbrs[0]:
                 continue
             lam, lam_note = lam_edge(j, k) if k >= at["limits"] else (lam_j(j, k), "")
+            nbr_state = State.RUNNING
+            if band is not None and at["band"] <= k < at["extremes"]:
+                lam = band.lam[k - at["band"]][j]
+                lam_note = band.note[k - at["band"]] if j == nbrs[0] else ""
+            if k >= at["extremes"]:
+                lam, lam_note, nbr_state = extreme(j, k, lam)
             if k == at["content"] + 30 and j == nbrs[0]:
                 lam += q(0.5)  # a jump above lambda_step_max per sample: implausible
-            nbr_state = State.RUNNING
             if 60 <= k - at["limits"] < 65 and j == nbrs[0]:
                 nbr_state = State.INIT  # alive, but not in ξ (XI-1)
             msg = tx.frame(mc_name(j), {"State": int(nbr_state), "Lambda": lam,
@@ -443,7 +639,13 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 lam_note = "a neighbour λ jump above lambda_step_max"
             elif at["control"] < k < at["authentication"] and (k - at["control"]) % 70 == 0:
                 lam_note = "a neighbour λ square step"  # 0.08: near LAM-1's bound
-            add(k + 0.5, step, msg, lam_note)
+            # the neighbour's last frame before it falls silent: in an exact-timing run
+            # exactly neighbour_periods·Ts old at a tick (still alive there, LIVE-2). No
+            # note: its ξ = 0 when it dies is a zero crossing (STEP-2) the tester did
+            # not cause; a reset at another tick names LIVE-2 by its signal and step
+            last = j == nbrs[0] and k - at["timeouts"] == 9
+            add(k + 0.5, step, msg, lam_note,
+                cfg.neighbour_timeout_periods * ts if last else None)
             genuine.append(msg)
         if price_every(k) and not silent_price:
             valid, r, note = 1, q(ramp(k, price)), ""
@@ -460,8 +662,13 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 for _ in range(15):
                     tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0, "Rho": r})
                 note = "a price frame 16 freshness values on"
+            # the price's last frame before it falls silent: in an exact-timing run
+            # exactly price_s old at a tick (still fresh there, STATE-2)
+            last = k - at["timeouts"] == 35
             add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0,
-                                                      "Rho": r}), note)
+                                                      "Rho": r}),
+                "the price's last frame, exactly price_s old at a tick" if last else note,
+                cfg.price_timeout_s if last else None)
         if k >= 60 and status_every(k):
             add(k + 0.75, step, tx.frame(status_name(i), {
                 **status, "FaultOverCurrent": int(fault), "FaultSoc": int(soc),
