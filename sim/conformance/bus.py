@@ -192,7 +192,7 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
         own = secoc.load_node_key(key_dir / f"{node}.key")
         ring = secoc.Keyring(node, own.key, own.boot_counter, lambda _b: None,
                              peers=own.peers, fleet=own.fleet_id, floors=own.floors,
-                             frames=own.frames, commands=own.commands)
+                             frames=own.frames, commands=own.commands, tags=own.tags)
         dut_key = own.key
         key_argv = ["--key", str(key_dir / f"{node}.key")]
     bus, port = busrun.private_port(bus)
