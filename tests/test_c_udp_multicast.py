@@ -34,6 +34,7 @@ import msgpack
 import pytest
 from can.interfaces.udp_multicast.utils import pack_message, unpack_message
 
+from dbc import FD_DBC_PATH
 from firmware_py.config import agent_configs_from_scenario
 from firmware_py.node import frame_fault
 from sim.cbind.cagent import UDP_DATAGRAM_MAX, built, node_program, udp_datagram, udp_frame
@@ -430,8 +431,8 @@ def _up(tmp_path: Path, port: int, *c_flags: str) -> dict[str, Any]:
     assert m["final_error"] < FINAL_TOL, res.stdout[-3000:]
     blamed = {(a["kind"], a.get("node")) for a in m["anomalies"] if a["kind"] in BLAME}
     assert not blamed, blamed
-    return {"stdout": res.stdout, "logs": {p.stem: p.read_text(errors="replace")
-                                           for p in (out / "logs").glob("agent_*.log")}}
+    return {"stdout": res.stdout, "out": out, "logs": {
+        p.stem: p.read_text(errors="replace") for p in (out / "logs").glob("agent_*.log")}}
 
 
 @pytest.mark.realtime
@@ -456,8 +457,19 @@ def test_up_case1_mixed_fleet_on_udp_multicast(tmp_path: Path, udp_port: int,
                                                fd: tuple[str, ...]) -> None:
     """`--c-agents 2,4`: agents 2 and 4 in C, 1 and 3 on firmware_py, one bus: at any load
     it converges and blames no node; on CAN FD too (``--fd``: λ tagged per receiver under
-    the key files' [lambda_tag_keys], AUTH-34)."""
+    the key files' [lambda_tag_keys], AUTH-34), where every recorded frame is CAN FD with
+    the bit-rate switch and the cantools CLI decodes the whole log against the FD DBC."""
     run = _up(tmp_path, udp_port, "--c-agents", "2,4", *fd)
     assert "agents in C: 2, 4 (bessded-agent)" in run["stdout"]
     assert SUMMARY.search(run["logs"]["agent_2"]) and SUMMARY.search(run["logs"]["agent_4"])
     assert not SUMMARY.search(run["logs"]["agent_1"])
+    if not fd:
+        return
+    out = run["out"]
+    assert (out / "scenario.toml").read_text().count("[bus]\nfd = true") == 1
+    frames = list(can.LogReader(str(out / "run.log")))
+    assert frames and all(f.is_fd and f.bitrate_switch for f in frames)
+    with (out / "run.log").open() as log:
+        decoded = subprocess.run([sys.executable, "-m", "cantools", "decode", str(FD_DBC_PATH)],
+                                 stdin=log, capture_output=True, text=True, check=True).stdout
+    assert "Unknown frame" not in decoded and "AGENT_4_MC" in decoded

@@ -79,13 +79,13 @@ def case4(vcan_channel: str, tmp_path_factory: pytest.TempPathFactory) -> Run:
 
 @pytest.fixture(scope="module")
 def case7(vcan_channel: str, tmp_path_factory: pytest.TempPathFactory) -> Run:
-    """Case 7 (12 agents on a ring: 14 processes), 12 s instead of 30 s (lockstep settles
-    in 4.3 s and is at 2.7e-4 at 12 s), every agent on firmware_c's node program, at
+    """Case 7 (12 agents on a ring: 14 processes), 10 s instead of 30 s (lockstep settles
+    in 4.3 s and is at 2.2e-4 at 10 s), every agent on firmware_c's node program, at
     HEAVY_TIME_SCALE: the C agents would afford TIME_SCALE, but the Python plant that
     takes their 12 setpoints does not (at TIME_SCALE it missed 43 % of its deadlines in
     the guest, and vcan0 then handed it one agent's setpoints out of order: 30 late within
     a freshness window, and once in CI one beyond it, rejected as unauthentic)."""
-    sc = replace(load_case(7), duration=12.0)
+    sc = replace(load_case(7), duration=10.0)
     return run_on_vcan(sc, tmp_path_factory.mktemp("case7"), vcan_channel,
                        scale=HEAVY_TIME_SCALE, c_agents=frozenset(range(1, 13)),
                        c_node=node_program())
