@@ -603,11 +603,13 @@ class NodeIO:
         if self.fleet_size is not None and (agent or 0) > self.fleet_size:
             return False
         name = self.codec.name_of(sync_id)
+        sender = contract.sender_of(name.removesuffix("_Sync"))
+        if sender == self.keys.node:
+            return False  # a sync in its own name of a frame it does not send: not a peer's
         code = self._code_for(sync_id)
         # None: not held, or a link frame of others (AUTH-28), or a λ not tagged for it
         key = (self.keys.key_for(name) if code is None else
-               self.keys.tag_key(contract.sender_of(name.removesuffix("_Sync")),
-                                 self.keys.node))
+               self.keys.tag_key(sender, self.keys.node))
         if key is None or (code is not None and frame_tag(msg.data, code) is None):
             return False  # (AUTH-34: a λ sync with no tag for this node is not for it)
         try:
@@ -904,6 +906,13 @@ class FleetSender:
                 target = int(raw["Target"]) if phys else target_agent(raw["Target"])
             self._sign(name, fid, msg, contract.FRESHNESS.join(self.boot, count), target)
         return msg
+
+    def follow(self, name: str, boot: int, count: int) -> None:
+        """Continue ``name`` after the frame of freshness (``boot``, ``count``): the next
+        frame takes the value a sender heard at that count sends next (a listener's, e.g.
+        an insider's that verified the genuine frames, sim.nodes.insider)."""
+        self.boot = boot
+        self._count[self.codec.frame_id(name)] = count
 
     def sync(self, name: str) -> can.Message:
         """``<name>_Sync``: the freshness value of the next ``name`` frame."""

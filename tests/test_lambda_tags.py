@@ -227,3 +227,17 @@ def test_agent_3s_key_file_cannot_forge_agent_1s_lambda_on_fd(lambda_tags: bool,
     assert moved < 1.0, moved
     assert "impersonation" in kinds and "auth_failed" in kinds, m["anomalies"]
     assert m["verdict"]["exit_code"] == 3, m["verdict"]
+
+
+def test_a_sync_in_a_nodes_own_name_of_a_lambda_it_does_not_send_is_no_crash() -> None:
+    """A NodeIO of agent 3 that sends only its Diag (an insider's listener,
+    sim.nodes.insider) hears an AGENT_3_MC_Sync on FD: not a peer's sync (its own name),
+    not taken, no exception (before the fix: SecOCError on the pair 'agent_3>agent_3')."""
+    ring = secoc.Keyring.fleet(bytes(16), secoc.fleet_nodes(4))["agent_3"]
+    io = NodeIO(FD, "agent 3", ["AGENT_3_Diag"], [contract.ER_PRICE_ID], fleet_size=4,
+                keys=ring, join_s=0)
+    tx = FleetSender(FD, keys={f"agent_3>{r}": bytes(16) for r in ("agent_1", "plant",
+                                                                   "router")},
+                     tag_receivers={3: ["agent_1", "plant", "router"]})
+    assert io.receive(tx.sync(mc_name(3)), 0.0) is None
+    assert not io.counters.get("auth")

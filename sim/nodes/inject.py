@@ -30,6 +30,7 @@ KINDS = {
     "unknown": "frames on IDs the DBC does not define            → every agent: unknown_id",
     "impersonate": "AGENT_<target>_MC frames not sent by it        → the target: impersonation",
     "flood": "random IDs, DLCs and payloads                     → no crash, all counted",
+    "insider": "every other node's frames under --key-file's keys → auth, unsigned_price",
 }
 
 
