@@ -106,7 +106,7 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(tmp_path: Pat
                                                                   udp_port: int) -> None:
     """`bess-ded up` (case 1, CAN FD, λ tags, signed price) on udp_multicast and, once
     it runs, `bess-ded inject insider --key-file keys/agent_3.key --skip-residual` beside
-    it for 8 s: 16 messages, each at its cycle (not the residual, agent 3's own battery's
+    it for 8 s: 16 forgeries, each at its cycle (not the residual, agent 3's own battery's
     status towards agent 3 and the router, which puts agent 3 in SAFE: the test above
     and docs/security.md). At any load: the run converges (exit 3: with
     anomalies), agents 1, 2 and 4 never leave RUNNING and end within 1 kW of the KKT
@@ -140,7 +140,7 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(tmp_path: Pat
     finally:
         fleet.kill()
     assert attack.returncode == 0, attack.stdout + attack.stderr
-    assert "forges 16 messages" in attack.stdout and "sent" in attack.stdout
+    assert ": 16 forgeries" in attack.stdout and "sent" in attack.stdout
     m = json.loads((out / "metrics.json").read_text())
     assert fleet.returncode == 3, stdout[-3000:]
     assert m["final_error"] < 1e-3, m["final_error"]

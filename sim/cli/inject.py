@@ -108,7 +108,7 @@ def run_insider(args: argparse.Namespace) -> int:
         bus.shutdown()
     total = sum(v["sent"] for v in sent.values())
     held = [n for n, v in sent.items() if v["genuine"] and not v["sent"]]
-    print(f"bess-ded inject: insider ({key.node}) sent {total} forged frames of "
-          f"{len(sent)} messages" + (f"; never heard the genuine sender of {', '.join(held)}"
+    print(f"bess-ded inject: insider ({key.node}) sent {total} frames of "
+          f"{len(sent)} forgeries" + (f"; never heard the genuine sender of {', '.join(held)}"
                                      if held else ""))
     return 0

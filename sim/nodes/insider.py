@@ -63,6 +63,12 @@ class Forgery:
     cycle_ms: int
     tx: FleetSender
     signed: bool = False  # ER_Price on a signed-price fleet: refused unless the signed one
+    target: int | None = None  # ER_Command: the agent it commands
+
+    @property
+    def title(self) -> str:
+        """The message, and an ER_Command's target."""
+        return self.name if self.target is None else f"{self.name} to agent {self.target}"
 
     @property
     def residual(self) -> bool:
@@ -183,7 +189,8 @@ def plan(sc: Scenario, key: NodeKey, codec: FrameCodec,
         tx = FleetSender(codec, keys=keys, boot=key.boot_counter + 2,
                          tag_receivers=tag_receivers)
         forgeries.append(Forgery(name, raw, what, genuine_key is not None, cycle, tx,
-                                 signed=name == "ER_Price" and sc.signed_price))
+                                 signed=name == "ER_Price" and sc.signed_price,
+                                 target=target))
     listener = None
     if followed:
         listener = NodeIO(codec, ring.node, [_any_own(ring.node)],
@@ -208,12 +215,12 @@ def _ticks(ms: float) -> int:
 
 def describe(p: InsiderPlan) -> list[str]:
     """The plan, one line per message."""
-    lines = [f"insider with {p.node}'s key file forges {len(p.forgeries)} messages:"]
+    lines = [f"insider with {p.node}'s key file: {len(p.forgeries)} forgeries"]
     for f in p.forgeries:
         fate = ("FORGEABLE (the residual risk: receivers take it)" if f.residual else
                 "refused unless it is the signed price (unsigned_price)" if f.genuine
                 else "refused (auth)")
-        lines.append(f"  {f.name:<20} every {f.cycle_ms:>3} ms under {f.key_name}: {fate}")
+        lines.append(f"  {f.title:<24} every {f.cycle_ms:>3} ms under {f.key_name}: {fate}")
     return lines
 
 
@@ -272,10 +279,6 @@ def run(bus: can.BusABC, p: InsiderPlan, duration: float, start_s: float = 0.0,
             for m in step(p, k):
                 bus.send(m, timeout=0.1)
         k += 1
-    out: dict[str, Any] = {}
-    for f in p.forgeries:  # the commands to each agent: one ER_Command entry, summed
-        o = out.setdefault(f.name, {"sent": 0, "key": f.key_name, "genuine": f.genuine,
-                                    "residual": f.residual, "held_back": 0})
-        o["sent"] += f.sent
-        o["held_back"] += f.held_back
-    return out
+    return {f.title: {"sent": f.sent, "key": f.key_name, "genuine": f.genuine,
+                      "residual": f.residual, "held_back": f.held_back}
+            for f in p.forgeries}

@@ -58,7 +58,7 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(
     finally:
         _stop(attacker)
     said = (tmp_path / "attacker.txt").read_text()
-    assert "forges 16 messages" in said and "refused (auth)" in said, said
+    assert ": 16 forgeries" in said and "refused (auth)" in said, said
     assert run.m["final_error"] < FINAL_TOL, run.m["anomalies"]
     assert run.m["verdict"]["exit_code"] == 3, run.m["verdict"]  # converged, with anomalies
     assert run.log.t_first_price is not None
