@@ -182,7 +182,7 @@ class Scheme:
 
 SCHEMES = (
     Scheme("a", "shared key (today)", "shared", "shared"),
-    Scheme("a-fd", "shared key, CAN FD (reference)", "shared", "shared", fd=True),
+    Scheme("a-fd", "shared key, CAN FD (lambda_tags = false)", "shared", "shared", fd=True),
     Scheme("b", "pairwise tags, classic", "tags", "tags"),
     Scheme("c", "pairwise tags, CAN FD", "tags", "tags", fd=True),
     Scheme("d", "Ed25519 router + pairwise λ, classic", "tags", "sign", sig="ed25519"),
