@@ -87,6 +87,19 @@ def test_the_plan_names_the_residual_risk(sc: Scenario, genuine_keys: set[str],
     assert "FORGEABLE" not in text and "refused (auth)" in text
 
 
+@pytest.mark.parametrize("node, residual", [
+    ("plant", set()),
+    ("router", {f"{m}_{i}_{k}" for i in range(1, 5)
+                for m, k in (("AGENT", "Diag"), ("PLANT", "Status"))})])
+def test_the_hubs_key_files_on_the_hardened_fleet(node: str, residual: set[str],
+                                                  tmp_path: Path) -> None:
+    """The plant's file forges nothing a receiver takes (the setpoints' one receiver is
+    the plant: not forged at all); the router's, the statuses and Diag pages it reads."""
+    p = _plan(hardened(), tmp_path, node)
+    assert not any(f.name.endswith("_Setpoint") for f in p.forgeries) or node != "plant"
+    assert {f.name for f in p.forgeries if f.residual} == residual
+
+
 def test_inject_insider_without_its_key_file_is_a_usage_error(capsys: pytest.CaptureFixture[str]
                                                               ) -> None:
     from sim.cli import main

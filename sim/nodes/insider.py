@@ -160,6 +160,9 @@ def plan(sc: Scenario, key: NodeKey, codec: FrameCodec,
     forgeries: list[Forgery] = []
     followed: list[int] = []
     for name, raw, target in _payloads(sc, codec, ring.node):
+        fid = codec.frame_id(name)
+        if not contract.receivers_of(fid) - {ring.node} and fid not in contract.REPORT_IDS:
+            continue  # its one receiver is the insider's node (the plant's setpoints)
         tagged = bool(codec.tag_slots(name))
         genuine_key = None if tagged else ring.key_for(name, derive=False, target=target)
         if genuine_key is not None:
@@ -170,7 +173,7 @@ def plan(sc: Scenario, key: NodeKey, codec: FrameCodec,
             what = ("the genuine " + (f"{name} key" if name in contract.KEYED_FRAMES else
                                       f"command key of agent {target}" if target is not None
                                       else f"node key of {contract.sender_of(name)}"))
-            followed.append(codec.frame_id(name))
+            followed.append(fid)
         elif tagged:
             sender = contract.sender_of(name)
             j = int(sender.removeprefix("agent_"))
