@@ -143,10 +143,10 @@ def _stand_in(ring: Keyring, name: str, target: int | None) -> tuple[bytes, str]
     base = name.removesuffix("_Sync")
     if base in contract.KEYED_FRAMES and node.startswith("agent_"):
         i = int(node.removeprefix("agent_"))
-        kind = base.split("_", 2)[-1]           # Setpoint, Status, Diag
-        own_name = {"Setpoint": setpoint_name, "Status": status_name,
-                    "Diag": diag_name}[kind](i)
-        own = ring.key_for(own_name, derive=False)
+        same_kind = {"Setpoint": setpoint_name, "Status": status_name,
+                     "Diag": diag_name}.get(base.rsplit("_", 1)[-1])
+        own_name = same_kind(i) if same_kind is not None else None
+        own = ring.key_for(own_name, derive=False) if own_name is not None else None
         if own is not None:
             return own, f"{own_name}'s key"
     return ring.key, f"its own node key ({node})"
@@ -165,10 +165,11 @@ def plan(sc: Scenario, key: NodeKey, codec: FrameCodec,
             continue  # its one receiver is the insider's node (the plant's setpoints)
         tagged = bool(codec.tag_slots(name))
         genuine_key = None if tagged else ring.key_for(name, derive=False, target=target)
+        # FleetSender's name for the key (AUTH-28..30): a command's target, a link frame
+        # or report, a broadcast's sender
+        label = (contract.command_key_name(target) if target is not None
+                 else name if name in contract.KEYED_FRAMES else contract.sender_of(name))
         if genuine_key is not None:
-            label = name if name in contract.KEYED_FRAMES else (
-                contract.command_key_name(target) if target is not None
-                else contract.sender_of(name))
             keys = {label: genuine_key}
             what = ("the genuine " + (f"{name} key" if name in contract.KEYED_FRAMES else
                                       f"command key of agent {target}" if target is not None
@@ -183,8 +184,6 @@ def plan(sc: Scenario, key: NodeKey, codec: FrameCodec,
             what = "its own node key for every receiver's tag"
         else:
             stand_in, what = _stand_in(ring, name, target)
-            label = (contract.command_key_name(target) if target is not None
-                     else name if name in contract.KEYED_FRAMES else contract.sender_of(name))
             keys = {label: stand_in}
             if target is not None:  # ER_Command_Sync: the router's node key, if held
                 keys["router"] = ring.key_of("router", derive=False) or ring.key
