@@ -208,10 +208,11 @@ def test_the_schedule_does_what_its_steps_say() -> None:
                       "RUNNING", "SAFE", "ISOLATED", "INIT", "ISOLATED", "RUNNING", "SAFE",
                       "RUNNING"]
     c = dut.counters
-    # 5 in the authentication step, untrusted_after forged commands, one fewer forged prices
-    # (untrusted_after = 6 in the configuration the tester writes)
+    # 5 in the authentication step and the late frame again (seen: a replay, AUTH-25),
+    # untrusted_after forged commands, one fewer forged prices (untrusted_after = 6 in
+    # the configuration the tester writes)
     assert cfg.untrusted_after == 6 and cfg.price_persist == 5
-    assert c["auth"] == 5 + 6 + 5 and c["untrusted_sources"] == 1
+    assert c["auth"] == 5 + 1 + 6 + 5 and c["untrusted_sources"] == 1
     assert c["dlc"] == 1 and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
     assert c["unsynced"] == 1  # the command before its sync (AUTH-11)

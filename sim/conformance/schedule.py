@@ -59,8 +59,8 @@ STEPS = (
           "BAND-2", "BAND-3", "TX-1", "SP-1", "LAM-2", "DIAG-1", "NUM-1", "NUM-2",
           "NUM-3", "NUM-6", "NUM-7", "NUM-8", "CFG-3", "CFG-4")),
     Step("authentication", 450, 510, "forged MACs, a replayed frame, a replayed sync, a "
-         "frame from another boot, a genuine frame delivered late (stale, not auth): "
-         "rejected and counted, λ unmoved by them",
+         "frame from another boot, a genuine frame delivered late (stale, not auth) and "
+         "again (seen: auth): rejected and counted, λ unmoved by them",
          ("RX-8", "AUTH-10", "AUTH-11", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-16",
           "AUTH-17", "AUTH-25", "RX-12", "RX-13", "DIAG-4")),
     Step("content", 510, 580, "an extended ID, the DUT's own ID, a short "
@@ -711,6 +711,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                                                    "Rho": q(price)}))
         if k == at["authentication"] + 53:  # ... delivered 3 ticks late: stale, not auth
             add(k + 0.6, step, held[0], "a genuine frame delivered 3 ticks late")
+        if k == at["authentication"] + 56:  # ... and again: its FV was marked seen, a replay
+            add(k + 0.6, step, _copy(held[0]), "a genuine frame delivered late again (auth)")
         if k == at["content"] + 5:
             add(k + 0.6, step, can.Message(arbitration_id=0x100 + i, is_extended_id=True,
                                            data=bytes(8), **_format(codec)), "extended ID")
