@@ -212,8 +212,9 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     # untrusted_after forged commands, one fewer forged prices (untrusted_after = 6 in
     # the configuration the tester writes)
     assert cfg.untrusted_after == 6 and cfg.price_persist == 5
-    assert c["auth"] == 5 + 1 + 6 + 5 and c["untrusted_sources"] == 1
-    assert c["dlc"] == 1 and c["impersonation"] == 1
+    # untrusted: the forged commands, and untrusted_after DLC errors on one ID (RX-13)
+    assert c["auth"] == 5 + 1 + 6 + 5 and c["untrusted_sources"] == 2
+    assert c["dlc"] == cfg.untrusted_after and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
     assert c["unsynced"] == 1  # the command before its sync (AUTH-11)
     # SET_GAINS at the bounds pass; one LSB beyond each of the four bounds is refused

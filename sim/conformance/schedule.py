@@ -63,9 +63,10 @@ STEPS = (
          "again (seen: auth): rejected and counted, λ unmoved by them",
          ("RX-8", "AUTH-10", "AUTH-11", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-16",
           "AUTH-17", "AUTH-25", "RX-12", "RX-13", "DIAG-4")),
-    Step("content", 510, 580, "an extended ID, the DUT's own ID, a short "
-         "frame, a price out of bounds, a persistent price step, a neighbour λ jump",
-         ("RX-1", "RX-3", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
+    Step("content", 510, 580, "an extended ID, the DUT's own ID, untrusted_after short "
+         "frames in a row on one ID (untrusted), a price out of bounds, a persistent price "
+         "step, a neighbour λ jump",
+         ("RX-1", "RX-3", "RX-7", "RX-9", "RX-10", "RX-13", "PRICE-2", "PRICE-3", "PRICE-4",
           "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
          "agent (under its command key), ISOLATE, RECONNECT; PIN the other way, for "
@@ -730,10 +731,12 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k == at["content"] + 11 and nbrs:
             short = tx.frame(mc_name(nbrs[0]), {"State": int(State.RUNNING),
                                                  "Lambda": lam_j(nbrs[0], k), "Resets": 0})
-            add(k + 0.6, step, can.Message(arbitration_id=short.arbitration_id,
-                                           is_extended_id=False, data=short.data[:7],
-                                           **_format(codec)),
-                "DLC 7")
+            # untrusted_after of them in a row: DLC errors add to the ID's streak (RX-13)
+            for n in range(cfg.untrusted_after):
+                add(k + 0.6 + 0.01 * n, step, can.Message(
+                    arbitration_id=short.arbitration_id, is_extended_id=False,
+                    data=short.data[:7], **_format(codec)),
+                    "DLC 7" if n < cfg.untrusted_after - 1 else "DLC 7, untrusted_after in a row")
         for tick, cmd, target, kk, hh, note in (
                 (10, Command.SET_GAINS, i, 1.5 * k_gain, 1.5 * h_gain, "SET_GAINS in bounds"),
                 (20, Command.SET_GAINS, i, 3 * k_gain, h_gain, "SET_GAINS out of bounds"),
