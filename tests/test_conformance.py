@@ -213,7 +213,7 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     # the configuration the tester writes)
     assert cfg.untrusted_after == 6 and cfg.price_persist == 5
     # untrusted: the forged commands, and untrusted_after DLC errors on one ID (RX-13)
-    assert c["auth"] == 5 + 1 + 6 + 5 and c["untrusted_sources"] == 2
+    assert c["auth"] == 5 + 1 + 2 + 6 + 5 and c["untrusted_sources"] == 2
     assert c["dlc"] == cfg.untrusted_after and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
     assert c["unsynced"] == 1  # the command before its sync (AUTH-11)
@@ -231,8 +231,9 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     assert c["commands_isolate"] == 4 and c["commands_reconnect"] == 5
     # in-step syncs are no resyncs; lost: 3, 5 forged prices, a price 16 values on (15),
     # the neighbour's 25 frames lost on the bus (not the 6 forged commands' counts nor the
-    # PIN refused before authentication: no lost_frames on ER_Command, AUTH-30)
-    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 5 + 15 + 25
+    # PIN refused before authentication: no lost_frames on ER_Command, AUTH-30); the two
+    # forgeries of the timeouts step (a neighbour's, the price's) skip a value each
+    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 5 + 15 + 25 + 2
     assert c["range"] == 1  # the PIN whose GainK is neither way (CMD-7, RX-7)
     assert pins == {0, fx.ONE} and dut.pin == (fx.ONE if cfg.pinned else 0)  # and back
     assert dut.cstate.resets >= 1  # after ISOLATE's reset of the count: resets still happen

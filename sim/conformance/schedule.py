@@ -73,10 +73,11 @@ STEPS = (
          "another agent, with a GainK that is neither way, and back; an unknown ID",
          ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "CMD-7", "STATE-7", "STATE-8",
           "STATE-9", "STATE-10", "XI-2", "RX-6", "RX-7", "AUTH-30")),
-    Step("timeouts", 710, 910, "a neighbour silent, the price silent (SAFE), a plant "
-         "fault (SAFE), each followed by recovery",
+    Step("timeouts", 710, 910, "a neighbour silent (its ID lost; a sync in step, then a "
+         "forgery: auth), the price silent (SAFE), a plant fault (SAFE), each followed by "
+         "recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
-          "RX-11", "AUTH-13", "CFG-6")),
+          "RX-11", "AUTH-13", "AUTH-14", "AUTH-16", "CFG-6")),
     Step("limits", 910, 1060, "SET_GAINS exactly at k_max/h_max and k_min/h_min, a gain "
          "that rounds half up, then one LSB beyond each bound; a neighbour λ step of "
          "exactly the LAM-1 bound, one LSB more, and back by the bound; a price step of "
@@ -97,9 +98,11 @@ STEPS = (
           "CFG-7")),
     Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
          "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
-         "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh",
+         "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh and a "
+         "SET_GAINS before RUNNING (taken in any state)",
          ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
-          "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4")),
+          "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4",
+          "CMD-5")),
     Step("band", 1350, 1470, "a trajectory planned on the reference (firmware_py run on "
          "the schedule up to here): the band armed, a reset, then ξ = −BAND exactly (not "
          "re-armed: BAND-3 is strict) and a crossing inside the band (no reset); a plant "
@@ -690,6 +693,18 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             for n in range(cfg.untrusted_after - 1):
                 add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Price", {
                     "PriceValid": 1, "Segment": 0, "Rho": q(price)})), "forged price")
+        # the silent neighbour's ID is lost after its timeout; a sync in step with its
+        # last frame ends that (AUTH-16), so a forgery then is auth, not unsynced
+        if k == at["timeouts"] + 17 and nbrs:
+            add(k + 0.6, step, tx.sync(mc_name(nbrs[0])), "an in-step sync of a lost ID")
+        if k == at["timeouts"] + 18 and nbrs:
+            add(k + 0.6, step, _forged(tx.frame(mc_name(nbrs[0]), {
+                "State": int(State.RUNNING), "Lambda": lam_j(nbrs[0], k), "Resets": 0})),
+                "a forged frame after an in-step sync of a lost ID")
+        if k == at["timeouts"] + 19:  # an auth on the price (not lost either way): the
+            # last safety event is the same in both cases, the counters tell them apart
+            add(k + 0.6, step, _forged(tx.frame("ER_Price", {
+                "PriceValid": 1, "Segment": 0, "Rho": q(price)})))
         if k == at["authentication"] + 10:  # a forged MAC on a neighbour's frame with a wild λ
             forged = tx.frame(mc_name(nbrs[0]) if nbrs else "ER_Price", {
                 "State": int(State.RUNNING), "Lambda": q(3.0), "Resets": 0} if nbrs else {
@@ -790,6 +805,13 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             if k == st + tick:
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}), note)
+        if k == st + 120:  # SET_GAINS in any state (CMD-5): after the RECONNECT, before the
+            # tick that enters RUNNING (INIT, or ISOLATED if the bus swaps the two); its
+            # gains are the controller's from the first step in RUNNING
+            add(k + 0.65, step, tx.frame("ER_Command", {
+                "Command": int(Command.SET_GAINS), "Target": target_raw(i),
+                "GainK": round(1.5 * k_gain * 1000), "GainH": round(1.5 * h_gain * 1000)}),
+                "SET_GAINS outside RUNNING (INIT)")
     out.sort(key=lambda p: p.at)
     return out
 
