@@ -232,8 +232,10 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     # in-step syncs are no resyncs; lost: 3, 5 forged prices, a price 16 values on (15),
     # the neighbour's 25 frames lost on the bus (not the 6 forged commands' counts nor the
     # PIN refused before authentication: no lost_frames on ER_Command, AUTH-30); the two
-    # forgeries of the timeouts step (a neighbour's, the price's) skip a value each
-    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 5 + 15 + 25 + 2
+    # forgeries of the timeouts step (a neighbour's, the price's) skip a value each, and so
+    # does the content step's FD frame (malformed, RX-2)
+    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 5 + 15 + 25 + 2 + 1
+    assert c["malformed"] == 1
     assert c["range"] == 1  # the PIN whose GainK is neither way (CMD-7, RX-7)
     assert pins == {0, fx.ONE} and dut.pin == (fx.ONE if cfg.pinned else 0)  # and back
     assert dut.cstate.resets >= 1  # after ISOLATE's reset of the count: resets still happen

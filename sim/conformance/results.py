@@ -68,6 +68,7 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "a flood of unknown IDs …": ("DIAG-2", "RX-6"),
     "the DUT's own MC ID": ("RX-3",),
     "DLC 7": ("RX-7",),
+    "an FD frame on a classic bus": ("RX-2",),
     "DLC 7, untrusted_after in a row": ("RX-13", "RX-7"),
     "SET_GAINS in bounds": ("CMD-5", "CMD-2"),
     "SET_GAINS out of bounds": ("CMD-5", "DIAG-4"),

@@ -64,10 +64,10 @@ STEPS = (
          ("RX-8", "AUTH-10", "AUTH-11", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-16",
           "AUTH-17", "AUTH-25", "RX-12", "RX-13", "DIAG-4")),
     Step("content", 510, 580, "an extended ID, the DUT's own ID, untrusted_after short "
-         "frames in a row on one ID (untrusted), a price out of bounds, a persistent price "
-         "step, a neighbour λ jump",
-         ("RX-1", "RX-3", "RX-7", "RX-9", "RX-10", "RX-13", "PRICE-2", "PRICE-3", "PRICE-4",
-          "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
+         "frames in a row on one ID (untrusted), an FD frame on a classic bus, a price out "
+         "of bounds, a persistent price step, a neighbour λ jump",
+         ("RX-1", "RX-2", "RX-3", "RX-7", "RX-9", "RX-10", "RX-13", "PRICE-2", "PRICE-3",
+          "PRICE-4", "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
          "agent (under its command key), ISOLATE, RECONNECT; PIN the other way, for "
          "another agent, with a GainK that is neither way, and back; an unknown ID",
@@ -154,8 +154,6 @@ NOT_ON_BUS: dict[str, str] = {
     "DIAG-5": "these counters are not on any frame: not visible on the bus",
     "TX-6": "a raw value outside its DBC range arises only from a counter past its "
             "maximum (DIAG-2): as DIAG-2",
-    "RX-2": "remote, error and FD frames are counted as malformed, which is on no frame "
-            "(DIAG-5); python-can's virtual buses cannot carry error frames",
     "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
     "WMSR-1": "resilient_f = 0 (off) in the configuration the tester writes: the node "
               "vector resilient_trim and tests/test_resilient.py check it",
@@ -199,7 +197,8 @@ NOT_ON_BUS: dict[str, str] = {
             "pinned by the node vector event_transmit, in firmware_py and firmware_c",
     "LOOP-1": "the run loop's timing depends on the DUT's host, not on the bus",
     "LOOP-2": "deadline misses depend on the DUT's host (DeadlineMisses is not compared)",
-    "LOOP-3": "the DUT's clock is not visible on the bus", "LOOP-4": "as RX-2",
+    "LOOP-3": "the DUT's clock is not visible on the bus",
+    "LOOP-4": "error frames: python-can's virtual buses cannot carry them",
     "LOOP-5": "a configuration that never starts cannot be run on a bus",
     "LOOP-6": "inputs that are no CAN frame cannot be sent on a CAN bus",
     "SCALE-1": "the DUT gets the scaled configuration (--time-scale); that it does not "
@@ -317,7 +316,8 @@ def _tick_of(name: str) -> Callable[[int], bool]:
 
 def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
          codec: FrameCodec | None = None, boot: int = secoc.INSECURE_BOOT,
-         quick: bool = False, flood: bool = False) -> list[Planned]:
+         quick: bool = False, flood: bool = False,
+         other_format: bool = True) -> list[Planned]:
     """The tester's frames for DUT ``cfg`` (times in s from the start), signed with
     ``keys`` (label → key of the router, the plant and the neighbours; None: the
     insecure keys). ``price``: the ρ to hold (the scenario's first). ``boot``: the boot
@@ -326,8 +326,10 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     of ``QUICK`` only. ``flood``: in process only (an exact-timing run), ``FLOOD``
     frames of an unknown ID at once in the extremes step, so that RejectedUnknownId
     passes 65535 and must stay there (DIAG-2); a bus run would take seconds of a full
-    bus for them, and the tolerant oracle one hypothesis per frame."""
-    out = _plan(cfg, keys, price, codec, boot)
+    bus for them, and the tolerant oracle one hypothesis per frame. ``other_format``: the
+    bus carries an FD frame beside classic ones (in process and udp_multicast; not a
+    classic SocketCAN bus): the content step sends one (RX-2)."""
+    out = _plan(cfg, keys, price, codec, boot, other_format=other_format)
     if flood:
         codec = codec or FrameCodec()
         at = next(s.start for s in STEPS if s.name == "extremes") + 1.6
@@ -360,13 +362,14 @@ class _BandPlan:
     ``note[c]`` what that frame exercises."""
 
     def __init__(self, cfg: AgentConfig, price: float, codec: FrameCodec, start: int,
-                 length: int) -> None:
+                 length: int, other_format: bool = True) -> None:
         from firmware_py.runtime import AgentRuntime
         from sim.conformance.oracle import quiet_firmware
 
         ts = cfg.controller.ts
         frames = sorted((p for p in _plan(cfg, None, price, codec, secoc.INSECURE_BOOT,
-                                          planned_band=False) if p.at < start * ts),
+                                          planned_band=False, other_format=other_format)
+                         if p.at < start * ts),
                         key=lambda p: p.at)
         rt = AgentRuntime(cfg, codec, keys=secoc.Keyring.insecure_for(f"agent_{cfg.id}"))
         nxt = 0
@@ -460,7 +463,8 @@ class _BandPlan:
 
 
 def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
-          codec: FrameCodec | None, boot: int, planned_band: bool = True) -> list[Planned]:
+          codec: FrameCodec | None, boot: int, planned_band: bool = True,
+          other_format: bool = True) -> list[Planned]:
     codec = codec or FrameCodec()
     ts, i = cfg.controller.ts, cfg.id
     nbrs = [n.id for n in cfg.neighbours]
@@ -475,7 +479,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     other = i % contract.N_AGENTS_MAX + 1
     at = {s.name: s.start for s in STEPS}
     span = next(s.end - s.start for s in STEPS if s.name == "band")
-    band = (_BandPlan(cfg, price, codec, at["band"], span)
+    band = (_BandPlan(cfg, price, codec, at["band"], span, other_format)
             if planned_band and nbrs and not cfg.pinned else None)
 
     def add(k: float, step: str, msg: can.Message, note: str = "",
@@ -752,6 +756,15 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                     arbitration_id=short.arbitration_id, is_extended_id=False,
                     data=short.data[:7], **_format(codec)),
                     "DLC 7" if n < cfg.untrusted_after - 1 else "DLC 7, untrusted_after in a row")
+        if k == at["content"] + 15 and nbrs and other_format and not codec.fd:
+            # a genuine neighbour frame, the tick's last, as an FD frame on a classic bus:
+            # malformed (RX-2), its λ never used; a device that takes it moves
+            fd = tx.frame(mc_name(nbrs[0]), {"State": int(State.RUNNING),
+                                             "Lambda": lam_j(nbrs[0], k) + q(0.01),
+                                             "Resets": 0})
+            add(k + 0.8, step, can.Message(arbitration_id=fd.arbitration_id,
+                                           is_extended_id=False, data=bytes(fd.data),
+                                           is_fd=True), "an FD frame on a classic bus")
         for tick, cmd, target, kk, hh, note in (
                 (10, Command.SET_GAINS, i, 1.5 * k_gain, 1.5 * h_gain, "SET_GAINS in bounds"),
                 (20, Command.SET_GAINS, i, 3 * k_gain, h_gain, "SET_GAINS out of bounds"),
