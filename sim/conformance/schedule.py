@@ -91,8 +91,8 @@ STEPS = (
     Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
          "consecutive forged frames on one ID and one fewer on another; a price frame 16 "
          "freshness values on; a neighbour's frames lost on the bus past its timeout, its "
-         "count 25 on when it returns; a neighbour's Setpoint sync (a peer's boot: a hello), "
-         "then again (no hello)",
+         "count 120 on when it returns (window 8); a neighbour's Setpoint sync (a peer's "
+         "boot: a hello), then again (no hello)",
          ("AUTH-9", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-18",
           "AUTH-19", "RX-5", "RX-12", "RX-13", "LIVE-2", "LIVE-3", "TMO-4", "DIAG-4",
           "CFG-7")),
@@ -638,9 +638,14 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             msg = tx.frame(mc_name(j), {"State": int(nbr_state), "Lambda": lam,
                                         "Resets": 0})
             if lost_nbr and j == nbrs[0]:
+                if k - fr == 54:  # and more values spent unseen: the next is 120 on, in
+                    for _ in range(120 - 26):  # the 8th window of a lost ID (AUTH-13)
+                        tx.frame(mc_name(j), {"State": int(nbr_state), "Lambda": lam,
+                                              "Resets": 0})
                 continue
             if j == nbrs[0] and k - fr == 55:
-                lam_note = "a neighbour's first frame after 25 lost on the bus"
+                lam_note = ("a neighbour's first frame after 25 lost on the bus, 120 "
+                            "freshness values on")
             elif j == nbrs[0] and nbr_state == State.INIT:
                 lam_note = "a neighbour alive but INIT (not in ξ)"
             elif j == nbrs[0] and k == at["content"] + 30:
