@@ -342,6 +342,10 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     return [p for p in out if p.step in QUICK] if quick else out
 
 
+OTHER_FORMAT = "an FD frame on a classic bus"
+"""The note of the content step's frame of the other format (RX-2): the one frame of the
+schedule not in the bus's format."""
+
 FLOOD = 65536
 """The unknown-ID frames of an exact-timing run's flood (``plan``'s ``flood``): with the
 two of the schedule, RejectedUnknownId's count is past 65535 (DIAG-2: it saturates)."""
@@ -769,7 +773,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                                              "Resets": 0})
             add(k + 0.8, step, can.Message(arbitration_id=fd.arbitration_id,
                                            is_extended_id=False, data=bytes(fd.data),
-                                           is_fd=True), "an FD frame on a classic bus")
+                                           is_fd=True, bitrate_switch=True), OTHER_FORMAT)
         for tick, cmd, target, kk, hh, note in (
                 (10, Command.SET_GAINS, i, 1.5 * k_gain, 1.5 * h_gain, "SET_GAINS in bounds"),
                 (20, Command.SET_GAINS, i, 3 * k_gain, h_gain, "SET_GAINS out of bounds"),
