@@ -99,7 +99,7 @@ STEPS = (
     Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
          "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
          "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh and a "
-         "SET_GAINS before RUNNING (taken in any state)",
+         "SET_GAINS right after it",
          ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
           "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4",
           "CMD-5")),
@@ -827,9 +827,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             if k == st + tick:
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}), note)
-        if k == st + 120:  # SET_GAINS in any state (CMD-5): after the RECONNECT, before the
-            # tick that enters RUNNING (INIT, or ISOLATED if the bus swaps the two); its
-            # gains are the controller's from the first step in RUNNING
+        if k == st + 120:  # SET_GAINS right after the RECONNECT (ISOLATED if the bus swaps
+            # the two): its gains are the controller's from the first step in RUNNING (CMD-5)
             add(k + 0.65, step, tx.frame("ER_Command", {
                 "Command": int(Command.SET_GAINS), "Target": target_raw(i),
                 "GainK": round(1.5 * k_gain * 1000), "GainH": round(1.5 * h_gain * 1000)}),
