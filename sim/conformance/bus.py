@@ -199,8 +199,11 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     ts = cfg.controller.ts
     # the tester plays every sender at a boot the DUT's floors accept (AUTH-21)
     boot = max([secoc.INSECURE_BOOT, *ring.floors.values()])
+    # a classic SocketCAN bus (vcan0 at the classic MTU) carries no FD frame: RX-2's
+    # frame of the other format is left out there
     planned = conf.plan(cfg, tester_keys, sc.prices[0].rho, boot=boot, quick=quick,
-                        codec=FrameCodec(dbc_path(sc.fd, sc.lambda_tags)))
+                        codec=FrameCodec(dbc_path(sc.fd, sc.lambda_tags)),
+                        other_format=bus.resolved()["interface"] != "socketcan")
     played = conf.played_steps(planned)
     length = played[-1].end * ts
     say(f"bess-ded conformance: {sc.title or sc.name}{chosen}, device under test: {node} "

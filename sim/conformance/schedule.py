@@ -59,23 +59,25 @@ STEPS = (
           "BAND-2", "BAND-3", "TX-1", "SP-1", "LAM-2", "DIAG-1", "NUM-1", "NUM-2",
           "NUM-3", "NUM-6", "NUM-7", "NUM-8", "CFG-3", "CFG-4")),
     Step("authentication", 450, 510, "forged MACs, a replayed frame, a replayed sync, a "
-         "frame from another boot, a genuine frame delivered late (stale, not auth): "
-         "rejected and counted, λ unmoved by them",
+         "frame from another boot, a genuine frame delivered late (stale, not auth) and "
+         "again (seen: auth): rejected and counted, λ unmoved by them",
          ("RX-8", "AUTH-10", "AUTH-11", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-16",
           "AUTH-17", "AUTH-25", "RX-12", "RX-13", "DIAG-4")),
-    Step("content", 510, 580, "an extended ID, the DUT's own ID, a short "
-         "frame, a price out of bounds, a persistent price step, a neighbour λ jump",
-         ("RX-1", "RX-3", "RX-7", "RX-9", "RX-10", "PRICE-2", "PRICE-3", "PRICE-4",
-          "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
+    Step("content", 510, 580, "an extended ID, the DUT's own ID, untrusted_after short "
+         "frames in a row on one ID (untrusted), an FD frame on a classic bus, a price out "
+         "of bounds, a persistent price step, a neighbour λ jump",
+         ("RX-1", "RX-2", "RX-3", "RX-7", "RX-9", "RX-10", "RX-13", "PRICE-2", "PRICE-3",
+          "PRICE-4", "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
          "agent (under its command key), ISOLATE, RECONNECT; PIN the other way, for "
          "another agent, with a GainK that is neither way, and back; an unknown ID",
          ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "CMD-7", "STATE-7", "STATE-8",
           "STATE-9", "STATE-10", "XI-2", "RX-6", "RX-7", "AUTH-30")),
-    Step("timeouts", 710, 910, "a neighbour silent, the price silent (SAFE), a plant "
-         "fault (SAFE), each followed by recovery",
+    Step("timeouts", 710, 910, "a neighbour silent (its ID lost; a sync in step, then a "
+         "forgery: auth), the price silent (SAFE), a plant fault (SAFE), each followed by "
+         "recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
-          "RX-11", "AUTH-13", "CFG-6")),
+          "RX-11", "AUTH-13", "AUTH-14", "AUTH-16", "CFG-6")),
     Step("limits", 910, 1060, "SET_GAINS exactly at k_max/h_max and k_min/h_min, a gain "
          "that rounds half up, then one LSB beyond each bound; a neighbour λ step of "
          "exactly the LAM-1 bound, one LSB more, and back by the bound; a price step of "
@@ -89,16 +91,18 @@ STEPS = (
     Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
          "consecutive forged frames on one ID and one fewer on another; a price frame 16 "
          "freshness values on; a neighbour's frames lost on the bus past its timeout, its "
-         "count 25 on when it returns; a neighbour's Setpoint sync (a peer's boot: a hello), "
-         "then again (no hello)",
+         "count 120 on when it returns (window 8); a neighbour's Setpoint sync (a peer's "
+         "boot: a hello), then again (no hello)",
          ("AUTH-9", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-18",
           "AUTH-19", "RX-5", "RX-12", "RX-13", "LIVE-2", "LIVE-3", "TMO-4", "DIAG-4",
           "CFG-7")),
     Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
          "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
-         "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh",
+         "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh and a "
+         "SET_GAINS right after it",
          ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
-          "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4")),
+          "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4",
+          "CMD-5")),
     Step("band", 1350, 1470, "a trajectory planned on the reference (firmware_py run on "
          "the schedule up to here): the band armed, a reset, then ξ = −BAND exactly (not "
          "re-armed: BAND-3 is strict) and a crossing inside the band (no reset); a plant "
@@ -150,8 +154,6 @@ NOT_ON_BUS: dict[str, str] = {
     "DIAG-5": "these counters are not on any frame: not visible on the bus",
     "TX-6": "a raw value outside its DBC range arises only from a counter past its "
             "maximum (DIAG-2): as DIAG-2",
-    "RX-2": "remote, error and FD frames are counted as malformed, which is on no frame "
-            "(DIAG-5); python-can's virtual buses cannot carry error frames",
     "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
     "WMSR-1": "resilient_f = 0 (off) in the configuration the tester writes: the node "
               "vector resilient_trim and tests/test_resilient.py check it",
@@ -195,7 +197,8 @@ NOT_ON_BUS: dict[str, str] = {
             "pinned by the node vector event_transmit, in firmware_py and firmware_c",
     "LOOP-1": "the run loop's timing depends on the DUT's host, not on the bus",
     "LOOP-2": "deadline misses depend on the DUT's host (DeadlineMisses is not compared)",
-    "LOOP-3": "the DUT's clock is not visible on the bus", "LOOP-4": "as RX-2",
+    "LOOP-3": "the DUT's clock is not visible on the bus",
+    "LOOP-4": "error frames: python-can's virtual buses cannot carry them",
     "LOOP-5": "a configuration that never starts cannot be run on a bus",
     "LOOP-6": "inputs that are no CAN frame cannot be sent on a CAN bus",
     "SCALE-1": "the DUT gets the scaled configuration (--time-scale); that it does not "
@@ -313,7 +316,8 @@ def _tick_of(name: str) -> Callable[[int], bool]:
 
 def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
          codec: FrameCodec | None = None, boot: int = secoc.INSECURE_BOOT,
-         quick: bool = False, flood: bool = False) -> list[Planned]:
+         quick: bool = False, flood: bool = False,
+         other_format: bool = True) -> list[Planned]:
     """The tester's frames for DUT ``cfg`` (times in s from the start), signed with
     ``keys`` (label → key of the router, the plant and the neighbours; None: the
     insecure keys). ``price``: the ρ to hold (the scenario's first). ``boot``: the boot
@@ -322,8 +326,10 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     of ``QUICK`` only. ``flood``: in process only (an exact-timing run), ``FLOOD``
     frames of an unknown ID at once in the extremes step, so that RejectedUnknownId
     passes 65535 and must stay there (DIAG-2); a bus run would take seconds of a full
-    bus for them, and the tolerant oracle one hypothesis per frame."""
-    out = _plan(cfg, keys, price, codec, boot)
+    bus for them, and the tolerant oracle one hypothesis per frame. ``other_format``: the
+    bus carries an FD frame beside classic ones (in process and udp_multicast; not a
+    classic SocketCAN bus): the content step sends one (RX-2)."""
+    out = _plan(cfg, keys, price, codec, boot, other_format=other_format)
     if flood:
         codec = codec or FrameCodec()
         at = next(s.start for s in STEPS if s.name == "extremes") + 1.6
@@ -335,6 +341,10 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         out.sort(key=lambda p: p.at)
     return [p for p in out if p.step in QUICK] if quick else out
 
+
+OTHER_FORMAT = "an FD frame on a classic bus"
+"""The note of the content step's frame of the other format (RX-2): the one frame of the
+schedule not in the bus's format."""
 
 FLOOD = 65536
 """The unknown-ID frames of an exact-timing run's flood (``plan``'s ``flood``): with the
@@ -356,13 +366,14 @@ class _BandPlan:
     ``note[c]`` what that frame exercises."""
 
     def __init__(self, cfg: AgentConfig, price: float, codec: FrameCodec, start: int,
-                 length: int) -> None:
+                 length: int, other_format: bool = True) -> None:
         from firmware_py.runtime import AgentRuntime
         from sim.conformance.oracle import quiet_firmware
 
         ts = cfg.controller.ts
         frames = sorted((p for p in _plan(cfg, None, price, codec, secoc.INSECURE_BOOT,
-                                          planned_band=False) if p.at < start * ts),
+                                          planned_band=False, other_format=other_format)
+                         if p.at < start * ts),
                         key=lambda p: p.at)
         rt = AgentRuntime(cfg, codec, keys=secoc.Keyring.insecure_for(f"agent_{cfg.id}"))
         nxt = 0
@@ -456,7 +467,8 @@ class _BandPlan:
 
 
 def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
-          codec: FrameCodec | None, boot: int, planned_band: bool = True) -> list[Planned]:
+          codec: FrameCodec | None, boot: int, planned_band: bool = True,
+          other_format: bool = True) -> list[Planned]:
     codec = codec or FrameCodec()
     ts, i = cfg.controller.ts, cfg.id
     nbrs = [n.id for n in cfg.neighbours]
@@ -471,7 +483,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     other = i % contract.N_AGENTS_MAX + 1
     at = {s.name: s.start for s in STEPS}
     span = next(s.end - s.start for s in STEPS if s.name == "band")
-    band = (_BandPlan(cfg, price, codec, at["band"], span)
+    band = (_BandPlan(cfg, price, codec, at["band"], span, other_format)
             if planned_band and nbrs and not cfg.pinned else None)
 
     def add(k: float, step: str, msg: can.Message, note: str = "",
@@ -630,9 +642,14 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             msg = tx.frame(mc_name(j), {"State": int(nbr_state), "Lambda": lam,
                                         "Resets": 0})
             if lost_nbr and j == nbrs[0]:
+                if k - fr == 54:  # and more values spent unseen: the next is 120 on, in
+                    for _ in range(120 - 26):  # the 8th window of a lost ID (AUTH-13)
+                        tx.frame(mc_name(j), {"State": int(nbr_state), "Lambda": lam,
+                                              "Resets": 0})
                 continue
             if j == nbrs[0] and k - fr == 55:
-                lam_note = "a neighbour's first frame after 25 lost on the bus"
+                lam_note = ("a neighbour's first frame after 25 lost on the bus, 120 "
+                            "freshness values on")
             elif j == nbrs[0] and nbr_state == State.INIT:
                 lam_note = "a neighbour alive but INIT (not in ξ)"
             elif j == nbrs[0] and k == at["content"] + 30:
@@ -689,6 +706,18 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             for n in range(cfg.untrusted_after - 1):
                 add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Price", {
                     "PriceValid": 1, "Segment": 0, "Rho": q(price)})), "forged price")
+        # the silent neighbour's ID is lost after its timeout; a sync in step with its
+        # last frame ends that (AUTH-16), so a forgery then is auth, not unsynced
+        if k == at["timeouts"] + 17 and nbrs:
+            add(k + 0.6, step, tx.sync(mc_name(nbrs[0])), "an in-step sync of a lost ID")
+        if k == at["timeouts"] + 18 and nbrs:
+            add(k + 0.6, step, _forged(tx.frame(mc_name(nbrs[0]), {
+                "State": int(State.RUNNING), "Lambda": lam_j(nbrs[0], k), "Resets": 0})),
+                "a forged frame after an in-step sync of a lost ID")
+        if k == at["timeouts"] + 19:  # an auth on the price (not lost either way): the
+            # last safety event is the same in both cases, the counters tell them apart
+            add(k + 0.6, step, _forged(tx.frame("ER_Price", {
+                "PriceValid": 1, "Segment": 0, "Rho": q(price)})))
         if k == at["authentication"] + 10:  # a forged MAC on a neighbour's frame with a wild λ
             forged = tx.frame(mc_name(nbrs[0]) if nbrs else "ER_Price", {
                 "State": int(State.RUNNING), "Lambda": q(3.0), "Resets": 0} if nbrs else {
@@ -711,6 +740,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                                                    "Rho": q(price)}))
         if k == at["authentication"] + 53:  # ... delivered 3 ticks late: stale, not auth
             add(k + 0.6, step, held[0], "a genuine frame delivered 3 ticks late")
+        if k == at["authentication"] + 56:  # ... and again: its FV was marked seen, a replay
+            add(k + 0.6, step, _copy(held[0]), "a genuine frame delivered late again (auth)")
         if k == at["content"] + 5:
             add(k + 0.6, step, can.Message(arbitration_id=0x100 + i, is_extended_id=True,
                                            data=bytes(8), **_format(codec)), "extended ID")
@@ -728,10 +759,21 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k == at["content"] + 11 and nbrs:
             short = tx.frame(mc_name(nbrs[0]), {"State": int(State.RUNNING),
                                                  "Lambda": lam_j(nbrs[0], k), "Resets": 0})
-            add(k + 0.6, step, can.Message(arbitration_id=short.arbitration_id,
-                                           is_extended_id=False, data=short.data[:7],
-                                           **_format(codec)),
-                "DLC 7")
+            # untrusted_after of them in a row: DLC errors add to the ID's streak (RX-13)
+            for n in range(cfg.untrusted_after):
+                add(k + 0.6 + 0.01 * n, step, can.Message(
+                    arbitration_id=short.arbitration_id, is_extended_id=False,
+                    data=short.data[:7], **_format(codec)),
+                    "DLC 7" if n < cfg.untrusted_after - 1 else "DLC 7, untrusted_after in a row")
+        if k == at["content"] + 15 and nbrs and other_format and not codec.fd:
+            # a genuine neighbour frame, the tick's last, as an FD frame on a classic bus:
+            # malformed (RX-2), its λ never used; a device that takes it moves
+            fd = tx.frame(mc_name(nbrs[0]), {"State": int(State.RUNNING),
+                                             "Lambda": lam_j(nbrs[0], k) + q(0.01),
+                                             "Resets": 0})
+            add(k + 0.8, step, can.Message(arbitration_id=fd.arbitration_id,
+                                           is_extended_id=False, data=bytes(fd.data),
+                                           is_fd=True, bitrate_switch=True), OTHER_FORMAT)
         for tick, cmd, target, kk, hh, note in (
                 (10, Command.SET_GAINS, i, 1.5 * k_gain, 1.5 * h_gain, "SET_GAINS in bounds"),
                 (20, Command.SET_GAINS, i, 3 * k_gain, h_gain, "SET_GAINS out of bounds"),
@@ -785,6 +827,12 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             if k == st + tick:
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}), note)
+        if k == st + 120:  # SET_GAINS right after the RECONNECT (ISOLATED if the bus swaps
+            # the two): its gains are the controller's from the first step in RUNNING (CMD-5)
+            add(k + 0.65, step, tx.frame("ER_Command", {
+                "Command": int(Command.SET_GAINS), "Target": target_raw(i),
+                "GainK": round(1.5 * k_gain * 1000), "GainH": round(1.5 * h_gain * 1000)}),
+                "SET_GAINS outside RUNNING (INIT)")
     out.sort(key=lambda p: p.at)
     return out
 
