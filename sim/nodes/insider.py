@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import can
@@ -88,10 +88,6 @@ class InsiderPlan:
     listener: NodeIO | None
     codec: FrameCodec
     ts: float
-    started: float | None = None
-    ticks: int = 0
-    heard: int = 0
-    log: list[str] = field(default_factory=list)
 
 
 def _no_persist(_boot: int) -> None:
@@ -260,7 +256,6 @@ def step(p: InsiderPlan, k: int) -> list[can.Message]:
 def hear(p: InsiderPlan, msg: can.Message, t: float) -> None:
     """A frame off the bus: the genuine senders' freshness, for the listener."""
     if p.listener is not None:
-        p.heard += 1
         p.listener.receive(msg, t)
 
 
