@@ -141,7 +141,7 @@ class NodeIO:
                  untrusted_s: float = UNTRUSTED_S, keys: Keyring | None = None,
                  sync_s: float = SYNC_S, join_s: float | None = None,
                  echo_depth: int = ECHO_DEPTH, transfers: Iterable[int] = (),
-                 tag_receivers: Sequence[str] = ()) -> None:
+                 tag_receivers: Sequence[str] = (), timed: Iterable[int] = ()) -> None:
         """``own``: the messages this node sends (the last ``echo_depth`` of each ID are
         remembered: their echo is not an impersonation); ``wanted``: the frame IDs it uses
         (secured ones: ConfigError for any other);
@@ -154,7 +154,10 @@ class NodeIO:
         tests of a receiver alone); ``transfers``: the IDs of transfer frames (no MAC:
         ER_PriceSig, signed_price) it takes, decoded and handed over unverified (the
         caller verifies their signature); ``tag_receivers``: on CAN FD, the receivers of
-        its λ in slot order (AUTH-34: its neighbours by index, the plant, the router)."""
+        its λ in slot order (AUTH-34: its neighbours by index, the plant, the router);
+        ``timed``: the inputs whose sender a timeout of this node marks lost
+        (``sender_lost``): a sync moves them at most a frame's reach while in step
+        (AUTH-27)."""
         own = list(own)
         label = contract.sender_of(own[0])
         if keys is None:
@@ -234,6 +237,7 @@ class NodeIO:
                         if keys.node.startswith("agent_") else None)
         self._fv = FreshnessVerifier(tx_bits=contract.FV_TX_BITS)
         self._lost: set[int] = set()  # secured IDs whose sender timed out
+        self._timed = frozenset(timed) & self._inputs  # ... that a timeout can mark lost
         # AUTH-27: per secured input, the last value before its latest boot advance
         self._back: dict[int, int] = {}
         self._spoke: set[int] = set()  # secured IDs with a frame taken since their `back`
@@ -548,6 +552,8 @@ class NodeIO:
             expected = contract.FRESHNESS.split(last + 1)[0]
             if self._boot_jump(name, sync_id, expected, boot, t):
                 return
+            if boot == expected and self._count_jump(fid, name, sync_id, last, fv, t):
+                return
             if boot > expected:  # AUTH-27: where a forged advance is undone to; a second
                 if fid in self._spoke or fid not in self._back:  # with no frame between
                     self._back[fid] = last  # keeps the first's (forged syncs in a row)
@@ -592,6 +598,25 @@ class NodeIO:
         top = expected + SYNC_BOOT_JUMP_MAX
         self.fail(sync_id, "auth", f"{name}: expected boot {expected}..{top} of {sender}, but "
                   f"got boot {boot} (a forged sync: a key holder's, AUTH-27)", t)
+        return True
+
+    def _count_jump(self, fid: int, name: str, sync_id: int, last: int, fv: int,
+                    t: float) -> bool:
+        """AUTH-27: a verified sync of the boot it expects that moves an input in step (not
+        lost) further than a frame of it could (its freshness search: one window, the
+        wide search for ER_Command) is refused (``sync_jump`` and ``auth``): a receiver
+        that missed more of a live sender's frames than that has timed it out (lost), and
+        taken, a forged count near 2^24 would make every later genuine frame and sync of
+        the boot a replay until the sender restarts (one frame: the fleet in SAFE)."""
+        if fid in self._lost or fid not in self._timed:
+            return False
+        reach = LOST_SEARCH_COUNTS if fid == contract.ER_COMMAND_ID else _FV_WINDOW
+        if fv - 1 - last <= reach:
+            return False
+        self.counters["sync_jump"] += 1
+        self.fail(sync_id, "auth", f"{name}: expected a count at most {reach} ahead of the "
+                  f"last taken {last:#x} (its sender is in step), but got {fv - 1:#x} (a "
+                  "forged sync: a key holder's, AUTH-27)", t)
         return True
 
     def _peer_sync(self, msg: can.Message, sync_id: int, t: float) -> bool:

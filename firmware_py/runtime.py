@@ -167,7 +167,11 @@ class AgentRuntime:
                          untrusted_s=float(cfg.untrusted_s or 0.0), keys=keys,
                          sync_s=cycle_s("ER_Price_Sync", cfg.controller.ts),
                          transfers=() if self.sig_id is None else (self.sig_id,),
-                         tag_receivers=contract.lambda_receivers([n.id for n in cfg.neighbours]))
+                         tag_receivers=contract.lambda_receivers([n.id for n in cfg.neighbours]),
+                         # AUTH-13, AUTH-27: each input's timeout marks it lost (ER_Command:
+                         # the price's, the same sender's)
+                         timed=(self.price_id, self.command_id, self.status_id,
+                                *self.neighbours))
         self.price_sig: pricesig.PriceSigReceiver | None = None
         if cfg.signed_price:
             public = self.io.keys.price_verify
@@ -457,6 +461,8 @@ class AgentRuntime:
             if was and not ok:
                 self.counters[f"{name}_timeouts"] += 1
                 self.io.sender_lost(fid)  # an outage's counter gap aliases
+                if fid == self.price_id:  # the router's: its commands' count moved unseen too
+                    self.io.sender_lost(self.command_id)
                 log.warning("agent %d: %s timed out (none accepted for more than %.3f s)",
                             self.cfg.id, "valid ER_Price" if name == "price"
                             else status_name(self.cfg.id), timeout)

@@ -313,6 +313,21 @@ def _trim_smaller_weight_first(lam: Any, neighbours: Any, f: int) -> list[Any]:
     return above[f:] + below[f:] + [t for t in neighbours if t[1] == lam]
 
 
+def _command_never_lost(orig: Callable[..., Any]) -> Callable[..., Any]:
+    def update_inputs(self: Any) -> None:
+        lost = self.io.sender_lost
+
+        def only_the_price(fid: int) -> None:
+            if fid != self.command_id:  # AUTH-13 broken: ER_Command kept at a price timeout
+                lost(fid)
+        self.io.sender_lost = only_the_price
+        try:
+            orig(self)
+        finally:
+            del self.io.sender_lost
+    return update_inputs
+
+
 @contextlib.contextmanager
 def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
     if kind == "band_rearms_at_reset":
@@ -326,6 +341,11 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
         mp.setattr(nodeio, "beyond_boot_bound", lambda *_a: False)
     elif kind == "no_boot_undo":  # AUTH-27's undo left out
         mp.setattr(nodeio.NodeIO, "_revert", lambda *_a: False)
+    elif kind == "no_count_bound":        # AUTH-27's count bound lifted
+        mp.setattr(nodeio.NodeIO, "_count_jump", lambda *_a: False)
+    elif kind == "command_kept_at_price_timeout":   # ER_Command not lost with the price
+        mp.setattr(AgentRuntime, "_update_inputs",
+                   _command_never_lost(AgentRuntime._update_inputs))
     elif kind == "no_lambda_plausibility":
         mp.setattr(AgentRuntime, "_on_mc", _no_plausibility(AgentRuntime._on_mc))
     elif kind == "no_dwell":
@@ -357,12 +377,14 @@ MUTATIONS: dict[str, list[str]] = {
         "auth_forgery_replay", "boot_floors", "commands", "event_transmit", "init_wait_status",
         "malformed_foreign", "neighbour_timeout", "peer_restart", "pin", "price_timeout_safe",
         "resilient_trim", "signed_price", "start_steady", "status_fault_timeout",
-        "sync_boot_jump"],
+        "sync_boot_jump", "sync_count_jump"],
     # every vector: each sends Diag pages
     "diag_without_mac": [p.stem for p in VECTORS],
     "one_freshness_window_after_a_timeout": ["price_timeout_safe"],
     "no_boot_bound": ["sync_boot_jump"],
     "no_boot_undo": ["sync_boot_jump"],
+    "no_count_bound": ["sync_count_jump"],
+    "command_kept_at_price_timeout": ["sync_count_jump"],
     "no_lambda_plausibility": ["neighbour_timeout"],
     "no_dwell": ["insecure_scaled"],
     "state_entry_restarts_dwell_and_band": ["insecure_scaled"],

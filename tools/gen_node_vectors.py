@@ -700,8 +700,9 @@ def sc_auth() -> Scenario:
     set_bits(zero.data, 48, 16, 0)
     s.rx(zero, note="sync with Boot = 0: range")
     s.run(10, price=RHO, nbrs=nb)
-    s.plant.count[CODEC.frame_id(status_name(AGENT))] += 30
-    s.sync("plant", status_name(AGENT), note="plant sync 30 counts on: resync")
+    s.plant.count[CODEC.frame_id(status_name(AGENT))] += 16
+    s.sync("plant", status_name(AGENT), note="plant sync 16 counts on (as far as a frame "
+           "could reach, AUTH-27): resync")
     s.run(40, price=RHO, nbrs=nb)
     return s
 
@@ -992,6 +993,43 @@ def sc_boot_jump() -> Scenario:
     return s
 
 
+def sc_count_jump() -> Scenario:
+    s = Scenario(
+        "sync_count_jump",
+        "Bounded count advance (AUTH-27), syncs signed with the router's key as a key holder "
+        "forges them: a price sync of the router's boot 17 counts ahead of an input in step "
+        "(16 more than a frame could reach) is refused (sync_jump and auth, nothing set), "
+        "one 16 ahead taken; a command sync 129 ahead (its wide search reaches 128) "
+        "refused; after a price timeout (ER_Command lost with it) a command sync 200 ahead "
+        "is taken, and a command at that count too.",
+        ["AUTH-16", "AUTH-27", "AUTH-13", "DIAG-1"])
+    nb = start(s)
+    s.run(30, price=RHO, nbrs=nb)
+    price, command = CODEC.frame_id("ER_Price"), CODEC.frame_id("ER_Command")
+    count = s.router.count[price]
+    s.rx(s.router.sync("ER_Price", count=count + 17),
+         note="a price sync of the router's boot 17 counts ahead (16 more than a frame could "
+         "reach): sync_jump and auth, nothing set")
+    s.run(10, price=RHO, nbrs=nb)
+    s.router.count[price] += 16   # 16 prices this agent missed
+    s.sync("router", "ER_Price", note="16 ahead (a frame could have been): taken")
+    s.run(10, price=RHO, nbrs=nb)
+    count = s.router.count.get(command, 0)
+    s.sync("router", "ER_Command", note="the command sync in step: ER_Command no longer lost "
+           "(since the join)")
+    s.rx(s.router.sync("ER_Command", count=count + 129),
+         note="a command sync 129 counts ahead (its wide search reaches 128): sync_jump, auth")
+    s.run(10, price=RHO, nbrs=nb)
+    s.run(30, price=None, nbrs=nb)   # the price times out: ER_Command is lost too
+    s.router.count[command] = count + 200   # commands to others this agent missed
+    s.sync("router", "ER_Command", note="after the price timed out, a command sync 200 "
+           "ahead: taken (the router's input is lost)")
+    s.command("RECONNECT", note="a command at that count: taken (counted, no effect)")
+    s.sync("router", "ER_Price")
+    s.run(30, price=RHO, nbrs=nb)
+    return s
+
+
 def sc_resilient() -> Scenario:
     toml = BASE_TOML.format(extra="").replace(
         "fleet_size = 4\n", "fleet_size = 4\nresilient_f = 1\n") + (
@@ -1161,7 +1199,7 @@ def sc_signed_price() -> Scenario:
 SCENARIOS: tuple[Callable[[], Scenario], ...] = (
     sc_start_steady, sc_init_wait, sc_neighbour_timeout, sc_price_timeout, sc_status,
     sc_commands, sc_auth, sc_peer_restart, sc_malformed, sc_price_steps, sc_tx_wrap,
-    sc_insecure, sc_boot_floors, sc_boot_jump,
+    sc_insecure, sc_boot_floors, sc_boot_jump, sc_count_jump,
     sc_resilient, sc_event_transmit, sc_pin, sc_signed_price)
 
 

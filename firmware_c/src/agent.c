@@ -417,6 +417,7 @@ static void update_state(bd_agent *a)
     if (a->price_fresh && !price_ok) {
         bd_count_add(a, BD_C_PRICE_TIMEOUTS, 1u, BD_ER_PRICE_ID);
         sender_lost(&a->rx[BD_RX_PRICE]);
+        sender_lost(&a->rx[BD_RX_COMMAND]);   /* the router's: its command count moved unseen */
     }
     if (a->status_fresh && !status_ok) {
         bd_count_add(a, BD_C_STATUS_TIMEOUTS, 1u, a->rx[BD_RX_STATUS].id);

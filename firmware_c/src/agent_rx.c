@@ -351,6 +351,14 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
             fail(a, NULL, f->id, BD_C_AUTH, t);
             return;
         }
+        uint64_t reach = (s == &a->rx[BD_RX_COMMAND] ? LOST_WINDOWS : 1u) * FV_WINDOW;
+        if (m.boot == expected && (s->flags & BD_RX_LOST) == 0u && fv - 1u - s->fv > reach) {
+            /* AUTH-27: further than a frame of an input in step could move it: a receiver
+             * that missed more of a live sender has timed it out (lost) */
+            bd_count_add(a, BD_C_SYNC_JUMP, 1u, f->id);
+            fail(a, NULL, f->id, BD_C_AUTH, t);
+            return;
+        }
         if (m.boot > expected) {
             /* AUTH-27: where a forged advance is undone to; a second one with no frame
              * taken since the first keeps the first's (forged syncs in a row) */

@@ -373,7 +373,7 @@ class PlantNode(SimNodeClock):
                          wanted=[*self._setpoint_ids, *self._mc_ids],
                          fleet_size=scenario.n, untrusted_s=untrusted_s(scenario.ts),
                          keys=keys, sync_s=cycle_s("ER_Price_Sync", scenario.ts),
-                         echo_depth=HOST_ECHO_DEPTH)
+                         echo_depth=HOST_ECHO_DEPTH, timed=self._setpoint_ids)
         self.counters = self.io.counters
         self.last_error = self.io.last_error
         first = self._status_names[0]

@@ -222,7 +222,7 @@ class RouterNode(SimNodeClock):
                          wanted=[*self._status, *self._mc], fleet_size=scenario.n,
                          untrusted_s=untrusted_s(scenario.ts), keys=keys,
                          sync_s=cycle_s("ER_Price_Sync", scenario.ts),
-                         echo_depth=HOST_ECHO_DEPTH)
+                         echo_depth=HOST_ECHO_DEPTH, timed=[*self._status, *self._mc])
         # AUTH-30: an agent sees only the commands to it; the count is re-announced
         # halfway through the windows its search covers (a burst of commands to others)
         self.io.resync_after("ER_Command", LOST_SEARCH_COUNTS // 2)

@@ -116,6 +116,9 @@ class Monitor:
         known = self.boots.get(label, self.boot_floors.get(label))
         if verified and known is not None and beyond_boot_bound(boot, known):
             raise SyncJump  # a key holder's forged boot, refused as the nodes do (AUTH-27)
+        if (verified and last is not None and boot == split(last + 1)[0]
+                and fv - 1 - last > self._reach(fid, f.name.removesuffix("_Sync"), t)):
+            raise SyncJump  # a count no frame could reach: forged, as the nodes refuse it
         if verified:
             self.boots[label] = boot
             if last is not None and boot > split(last + 1)[0]:
@@ -133,7 +136,15 @@ class Monitor:
 
     def windows(self, f: DecodedFrame, t: float) -> int:
         """Freshness windows a frame at ``t`` may lie ahead (the class docstring)."""
-        t_last, cycle = self.t_last.get(f.frame_id), self.cycle_of(f.name)
+        return self._windows(f.frame_id, f.name, t)
+
+    def _reach(self, fid: int, name: str, t: float) -> int:
+        """The counts a sync of ID ``fid`` at ``t`` may move it ahead (AUTH-27): what its
+        frames could have advanced by since the last one heard."""
+        return self._windows(fid, name, t) << contract.FV_TX_BITS
+
+    def _windows(self, fid: int, name: str, t: float) -> int:
+        t_last, cycle = self.t_last.get(fid), self.cycle_of(name)
         if t_last is None or not math.isfinite(cycle):
             return LOST_WINDOWS   # an event frame (ER_Command): no rate to bound it by
         frames = self.RATE_MARGIN * max(t - t_last, 0.0) / cycle
