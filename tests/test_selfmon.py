@@ -138,19 +138,22 @@ def test_a_key_holder_speaking_as_the_router_is_named_impersonation(tmp_path: Pa
 # --------------------------------------------------------------------------- item 3
 
 
-def _forged_sync(key: bytes, boot: Callable[[], int], at: float
+def _forged_sync(key: bytes, boot: Callable[[], int], at: float, count: int = 0
                  ) -> Callable[[float], list[can.Message]]:
-    """One ER_Price_Sync of boot ``boot()`` (valid MAC, count 0) at ``at`` s."""
+    """One ER_Price_Sync of boot ``boot()`` (valid MAC, count ``count``) at ``at`` s."""
     def inject(t: float) -> list[can.Message]:
         if abs(t - at) > CASE.ts / 2:
             return []
-        return [FleetSender(CODEC, keys={"router": key}, boot=boot()).sync("ER_Price")]
+        forger = FleetSender(CODEC, keys={"router": key}, boot=boot())
+        forger.follow("ER_Price", boot(), count)
+        return [forger.sync("ER_Price")]
     return inject
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("what", ["65535, router alive", "within the bound, router alive",
-                                  "within the bound, router down"])
+                                  "within the bound, router down",
+                                  "count 2^24 - 256, router alive"])
 def test_a_forged_sync_cannot_lock_the_router_out(
         what: str, honest: np.ndarray, tmp_path: Path) -> None:
     """One ER_Price_Sync forged with the router's key (from agent 3's key file):
@@ -161,7 +164,10 @@ def test_a_forged_sync_cannot_lock_the_router_out(
     * boot + 8 (within the bound, taken) at 2 s: the router's next genuine sync, of the
       boot it is still in, undoes it within its sync period;
     * boot + 8 at 2.5 s while the router is down (2 s to 4 s): its restart (boot + 1)
-      undoes it.
+      undoes it;
+    * the router's own boot, count 2^24 − 256, at 2 s (before the count bound every
+      agent took it: each later genuine price a replay, the fleet in SAFE until the
+      router restarted): refused by every agent (`sync_jump`).
 
     Every time the fleet ends converged within 1 kW of the honest run, and the run
     reports `sync_jump`."""
@@ -172,6 +178,8 @@ def test_a_forged_sync_cannot_lock_the_router_out(
     if what.startswith("65535"):
         inject = _forged_sync(key, lambda: 65535, 2.0)
         restarts = [("router", 5.0, 5.2)]
+    elif what.startswith("count"):
+        inject = _forged_sync(key, lambda: router.boot, 2.0, (1 << 24) - 256)
     elif what.endswith("alive"):
         inject = _forged_sync(key, lambda: router.boot + secoc.SYNC_BOOT_JUMP_MAX, 2.0)
     else:
@@ -185,7 +193,7 @@ def test_a_forged_sync_cannot_lock_the_router_out(
     for i in range(1, CASE.n + 1):
         c = counters[f"agent_{i}"]
         assert c.get("sync_jump", 0) >= 1, (what, i, c)
-        if what.startswith("65535"):  # refused: the price never stopped
+        if what.startswith(("65535", "count")):  # refused: the price never stopped
             assert c.get("price_timeouts", 0) == 0, (what, i, c)
     assert ("sync_jump", "bus") in _named(m), m["anomalies"]
     assert not any(a["kind"] == "stale_boot" for a in m["anomalies"]), m["anomalies"]
@@ -204,6 +212,24 @@ def test_without_the_bound_the_forged_sync_locks_the_fleet_out(
     key = _stolen_router_key(tmp_path)
     m, _, counters = _run(tmp_path / "run", _forged_sync(key, lambda: 65535, 2.0),
                           restarts=[("router", 5.0, 5.2)])
+    assert not m["verdict"]["converged"]
+    assert all(counters[f"agent_{i}"].get("price_timeouts", 0) >= 1
+               for i in range(1, CASE.n + 1))
+
+
+@pytest.mark.slow
+def test_without_the_count_bound_one_forged_sync_puts_the_fleet_in_safe(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The control of the count case above: with AUTH-27's count bound lifted, the one
+    forged sync of the router's own boot (count 2^24 − 256) makes every genuine price a
+    replay: every agent's price times out and the run does not converge."""
+    from firmware_py.nodeio import NodeIO
+
+    monkeypatch.setattr(NodeIO, "_count_jump", lambda *_a: False)
+    rings = secoc.Keyring.fleet(MASTER, secoc.fleet_nodes(CASE.n))
+    key = _stolen_router_key(tmp_path)
+    m, _, counters = _run(tmp_path / "run", _forged_sync(key, lambda: rings["router"].boot,
+                                                         2.0, (1 << 24) - 256), rings)
     assert not m["verdict"]["converged"]
     assert all(counters[f"agent_{i}"].get("price_timeouts", 0) >= 1
                for i in range(1, CASE.n + 1))
