@@ -941,13 +941,20 @@ class FleetSender:
 
     def sync(self, name: str) -> can.Message:
         """``<name>_Sync``: the freshness value of the next ``name`` frame."""
+        return self.sync_ahead(name)
+
+    def sync_ahead(self, name: str, counts: int = 0, boots: int = 0) -> can.Message:
+        """``<name>_Sync`` ``counts`` values past the next frame's, ``boots`` boots on (0,
+        0: ``sync``; else a key holder's forgery, AUTH-27's bounds); nothing of the sender
+        moves."""
         fid = self.codec.frame_id(name)
-        count = self._count.get(fid, -1) + 1
+        count = self._count.get(fid, -1) + 1 + counts
+        boot = self.boot + boots
         sync_id = contract.SYNC_OF[fid]
         msg = self.codec.encode(self.codec.name_of(sync_id), {"Count": count,
-                                                              "Boot": self.boot}, 0)
+                                                              "Boot": boot}, 0)
         self._sign(self.codec.name_of(sync_id), sync_id, msg,
-                   contract.FRESHNESS.join(self.boot, count))
+                   contract.FRESHNESS.join(boot, count))
         return msg
 
     def restart(self) -> None:

@@ -214,8 +214,10 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     # untrusted_after forged commands, one fewer forged prices (untrusted_after = 6 in
     # the configuration the tester writes)
     assert cfg.untrusted_after == 6 and cfg.price_persist == 5
-    # untrusted: the forged commands, and untrusted_after DLC errors on one ID (RX-13)
-    assert c["auth"] == 5 + 1 + 2 + 6 + 5 and c["untrusted_sources"] == 2
+    # untrusted: the forged commands, and untrusted_after DLC errors on one ID (RX-13);
+    # AUTH-27: three key holders' syncs refused (a boot 9 on, counts 17 and 129 on)
+    assert c["auth"] == 5 + 1 + 2 + 6 + 5 + 3 and c["untrusted_sources"] == 2
+    assert c["sync_jump"] == 3
     assert c["dlc"] == cfg.untrusted_after and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
     assert c["unsynced"] == 1  # the command before its sync (AUTH-11)
@@ -237,7 +239,8 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     # forgeries of the timeouts step (a neighbour's, the price's) skip a value each, and so
     # does the content step's FD frame (malformed, RX-2)
     # (the neighbour's 25 lost frames and 94 values more: its next frame is 120 on)
-    assert c["resyncs"] == 4 and c["lost_frames"] == 3 + 5 + 15 + 25 + 94 + 2 + 1
+    # (resyncs: + the router's price sync 16 values on, AUTH-27's taken side)
+    assert c["resyncs"] == 5 and c["lost_frames"] == 3 + 5 + 15 + 25 + 94 + 2 + 1
     assert c["malformed"] == 1
     assert c["range"] == 1  # the PIN whose GainK is neither way (CMD-7, RX-7)
     assert pins == {0, fx.ONE} and dut.pin == (fx.ONE if cfg.pinned else 0)  # and back

@@ -38,6 +38,8 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
     import random
 
     rnd = random.Random(seed)
+    tick_rnd = random.Random(f"ticks {seed}")  # a stream of its own: the device's ticks
+    # keep their lateness when the schedule gains or loses a frame
     codec = codec or FrameCodec()
     ts = cfg.controller.ts
     dut: Any = (make_dut or AgentRuntime)(cfg, codec, keyring)
@@ -60,7 +62,7 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
     k = 0
     with quiet_firmware():
         while (tick := (ticks[k] if k < len(ticks) else end) if exact else
-               (k + phase + rnd.uniform(0, jitter)) * ts) < end:
+               (k + phase + tick_rnd.uniform(0, jitter)) * ts) < end:
             while nxt < len(inputs) and inputs[nxt].t + latency < tick:
                 msg = inputs[nxt].msg
                 if not filtered or (not msg.is_extended_id

@@ -20,7 +20,8 @@ from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig, Neighbour, parse_agent_config
 from firmware_py.contract import Command, State
 from firmware_py.frames import PIN_OFF, PIN_ON, FrameCodec, mc_name, status_name, target_raw
-from firmware_py.nodeio import FleetSender
+from firmware_py.nodeio import LOST_SEARCH_COUNTS, FleetSender
+from firmware_py.secoc import SYNC_BOOT_JUMP_MAX
 
 
 @dataclass(frozen=True)
@@ -91,10 +92,11 @@ STEPS = (
     Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
          "consecutive forged frames on one ID and one fewer on another; a price frame 16 "
          "freshness values on; a neighbour's frames lost on the bus past its timeout, its "
-         "count 120 on when it returns (window 8); a neighbour's Setpoint sync (a peer's "
-         "boot: a hello), then again (no hello)",
+         "count 120 on when it returns (window 8); price syncs 9 boots and 17 values on "
+         "(refused), then 16 on (taken), a command sync 129 on (refused); a neighbour's "
+         "Setpoint sync (a peer's boot: a hello), then again (no hello)",
          ("AUTH-9", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-18",
-          "AUTH-19", "RX-5", "RX-12", "RX-13", "LIVE-2", "LIVE-3", "TMO-4", "DIAG-4",
+          "AUTH-19", "AUTH-27", "RX-5", "RX-12", "RX-13", "LIVE-2", "LIVE-3", "TMO-4", "DIAG-4",
           "CFG-7")),
     Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
          "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
@@ -168,8 +170,6 @@ NOT_ON_BUS: dict[str, str] = {
               "tx_count_wrap checks it through the binding",
     "AUTH-20": "an --insecure run (no key file) exercises it: the schedule is the same, "
                "but the default run has a key file",
-    "AUTH-27": "a boot jump is not yet a step: tests/test_c_agent.py plays it against the "
-               "C agent and firmware_py bit for bit, tests/test_selfmon.py against a fleet",
     "AUTH-34": "the schedule's default bus is classic CAN (no tags); on --fd every "
                "neighbour λ the tester sends carries the DUT's tag and every λ the DUT "
                "sends is checked frame for frame, tags included, against the oracle's; "
@@ -699,6 +699,22 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Command", {
                     "Command": int(Command.ISOLATE), "Target": target_raw(i), "GainK": 0,
                     "GainH": 0})), "forged command")
+        # AUTH-27's bounds, both sides: key holders' price syncs 9 boots on and, in the
+        # router's boot, 17 values on (refused: sync_jump, auth), then the router's own 16
+        # on (frames the DUT missed: taken); a command sync 129 on (its search reaches 128)
+        window = 1 << contract.FV_TX_BITS
+        if k == fr + 30:
+            add(k + 0.6, step, tx.sync_ahead("ER_Price", boots=SYNC_BOOT_JUMP_MAX + 1),
+                "a price sync 9 boots on (a key holder's)")
+        if k == fr + 31:
+            add(k + 0.6, step, tx.sync_ahead("ER_Price", counts=window + 1),
+                "a price sync 17 values on in the router's boot (a key holder's)")
+        if k == fr + 32:
+            tx.skip("ER_Price", window)
+            add(k + 0.6, step, tx.sync("ER_Price"), "the router's price sync 16 values on")
+        if k == fr + 33:
+            add(k + 0.6, step, tx.sync_ahead("ER_Command", counts=LOST_SEARCH_COUNTS + 1),
+                "a command sync 129 values on (a key holder's)")
         if k in (fr + 40, fr + 60) and nbrs:  # a peer's sync: first of its boot, then again
             add(k + 0.6, step, tx.sync(f"AGENT_{nbrs[0]}_Setpoint"),
                 "a neighbour's Setpoint sync (a peer sync)")
