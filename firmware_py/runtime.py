@@ -159,19 +159,18 @@ class AgentRuntime:
         self.status_id = c.frame_id(status_name(cfg.id))
         # signed_price (AUTH-31..33): the router's price signatures, verified here
         self.sig_id = c.frame_id(pricesig.MESSAGE) if cfg.signed_price else None
+        # AUTH-13, AUTH-27: each input's timeout marks it lost (ER_Command: the price's,
+        # the same sender's), so every input is a timed one
+        inputs = (self.price_id, self.command_id, self.status_id, *self.neighbours)
         self.io = NodeIO(c, f"agent {cfg.id}",
                          own=(mc_name(cfg.id), setpoint_name(cfg.id), diag_name(cfg.id)),
-                         wanted=(self.price_id, self.command_id, self.status_id,
-                                 *self.neighbours), fleet_size=cfg.fleet_size,
+                         wanted=inputs, fleet_size=cfg.fleet_size,
                          untrusted_after=cfg.untrusted_after,
                          untrusted_s=float(cfg.untrusted_s or 0.0), keys=keys,
                          sync_s=cycle_s("ER_Price_Sync", cfg.controller.ts),
                          transfers=() if self.sig_id is None else (self.sig_id,),
                          tag_receivers=contract.lambda_receivers([n.id for n in cfg.neighbours]),
-                         # AUTH-13, AUTH-27: each input's timeout marks it lost (ER_Command:
-                         # the price's, the same sender's)
-                         timed=(self.price_id, self.command_id, self.status_id,
-                                *self.neighbours))
+                         timed=inputs)
         self.price_sig: pricesig.PriceSigReceiver | None = None
         if cfg.signed_price:
             public = self.io.keys.price_verify

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import re
 import shlex
+import shutil
 import subprocess
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 DEVICE_HINT = re.compile(r"start the device with its configuration and key, e\.g\.: (.*)$")
@@ -51,3 +53,16 @@ def run_conformance(tmp_path: Path, device: list[str], extra: Sequence[str] = ()
     return with_device(["conformance", "--case", "1", "--dut", "3", "--out",
                         str(tmp_path / "cf"), "--junit", str(tmp_path / "junit.xml"),
                         "--rt-priority", "20", *extra], DEVICE_HINT, device)
+
+
+@contextmanager
+def stress_hog() -> Iterator[None]:
+    """`stress-ng --cpu 2` running for the duration (tools/install-stress-deps)."""
+    exe = shutil.which("stress-ng")
+    assert exe is not None, "stress-ng is missing: run tools/install-stress-deps"
+    proc = subprocess.Popen([exe, "--cpu", "2", "--quiet"])
+    try:
+        yield
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)

@@ -9,13 +9,11 @@ tests/test_conformance_soak.py` (about 2 min); CI runs each device once a run
 
 from __future__ import annotations
 
-import shutil
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conformance_run import FIRMWARE_PY, run_conformance
+from conformance_run import FIRMWARE_PY, run_conformance, stress_hog
 
 pytestmark = [pytest.mark.soak, pytest.mark.long, pytest.mark.realtime]
 RUNS = 3
@@ -23,15 +21,9 @@ RUNS = 3
 
 @pytest.fixture(scope="module")
 def hog() -> Iterator[None]:
-    """`stress-ng --cpu 2` beside every run of the module (tools/install-stress-deps)."""
-    exe = shutil.which("stress-ng")
-    assert exe is not None, "stress-ng is missing: run tools/install-stress-deps"
-    proc = subprocess.Popen([exe, "--cpu", "2", "--quiet"])
-    try:
+    """`stress-ng --cpu 2` beside every run of the module."""
+    with stress_hog():
         yield
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
 
 
 @pytest.mark.parametrize("run", range(1, RUNS + 1))

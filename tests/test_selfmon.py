@@ -145,8 +145,7 @@ def _forged_sync(key: bytes, boot: Callable[[], int], at: float, count: int = 0
         if abs(t - at) > CASE.ts / 2:
             return []
         forger = FleetSender(CODEC, keys={"router": key}, boot=boot())
-        forger.follow("ER_Price", boot(), count)
-        return [forger.sync("ER_Price")]
+        return [forger.sync_ahead("ER_Price", counts=count)]
     return inject
 
 

@@ -615,6 +615,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     genuine: list[can.Message] = []
     held: list[can.Message] = []   # a genuine frame delivered late (AUTH-25)
     fr = at["freshness"]
+    window = 1 << contract.FV_TX_BITS   # a freshness window (AUTH-12)
     for k in range(30, STEPS[-1].end):
         step = step_at(k)
         silent_nbr = 10 <= k - at["timeouts"] < 20
@@ -702,7 +703,6 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         # AUTH-27's bounds, both sides: key holders' price syncs 9 boots on and, in the
         # router's boot, 17 values on (refused: sync_jump, auth), then the router's own 16
         # on (frames the DUT missed: taken); a command sync 129 on (its search reaches 128)
-        window = 1 << contract.FV_TX_BITS
         if k == fr + 30:
             add(k + 0.6, step, tx.sync_ahead("ER_Price", boots=SYNC_BOOT_JUMP_MAX + 1),
                 "a price sync 9 boots on (a key holder's)")

@@ -1,19 +1,17 @@
 """Issue 22, acceptance: a healthy device passes `bess-ded conformance` on a real
 SocketCAN vcan0 at any load — firmware_py's agent process and firmware_c's node program,
 each three times in a row with `stress-ng --cpu 2` running in the guest beside them.
-Marked `soak` and `long` (about 15 min of the guest): by hand,
+Marked `soak` and `long` (37 min of the guest on 2026-11-28): by hand,
 `tools/vcan-run python3 -m pytest -m soak tests/vcan/test_vcan_soak.py -q`.
 """
 
 from __future__ import annotations
 
-import shutil
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conformance_run import FIRMWARE_PY, run_conformance
+from conformance_run import FIRMWARE_PY, run_conformance, stress_hog
 
 from sim.cbind.cagent import node_program
 
@@ -24,14 +22,9 @@ BUS = ["--interface", "socketcan"]
 
 @pytest.fixture(scope="module")
 def hog() -> Iterator[None]:
-    exe = shutil.which("stress-ng")
-    assert exe is not None, "stress-ng is missing: run tools/install-stress-deps"
-    proc = subprocess.Popen([exe, "--cpu", "2", "--quiet"])
-    try:
+    """`stress-ng --cpu 2` beside every run of the module."""
+    with stress_hog():
         yield
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
 
 
 @pytest.mark.parametrize("run", range(1, RUNS + 1))
