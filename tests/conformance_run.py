@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 DEVICE_HINT = re.compile(r"start the device with its configuration and key, e\.g\.: (.*)$")
+C_DEVICE_HINT = re.compile(r"or firmware_c's node program \(.*?\): (.*)$")
 FIRMWARE_PY = [sys.executable, "-m", "firmware_py"]
 DEVIANT = [sys.executable, str(Path(__file__).parent / "deviant_agent.py"), "BAND-2"]
 
@@ -20,8 +21,8 @@ DEVIANT = [sys.executable, str(Path(__file__).parent / "deviant_agent.py"), "BAN
 def with_device(argv: Sequence[str], hint: re.Pattern[str], device: list[str],
                 timeout: float = 300) -> tuple[int, str]:
     """Run the bess-ded command ``argv``; when it prints the device's command line (group
-    1 of ``hint``, `bess-ded agent ...`), start ``device`` with those arguments instead of
-    `bess-ded agent`, as an operator would start theirs. The exit code and the output."""
+    1 of ``hint``, `bess-ded agent ...` or `bessded-agent ...`), start ``device`` with those
+    arguments instead, as an operator would start theirs. The exit code and the output."""
     proc = subprocess.Popen([sys.executable, "-m", "sim.cli", *argv], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     dut: subprocess.Popen[bytes] | None = None
@@ -33,8 +34,9 @@ def with_device(argv: Sequence[str], hint: re.Pattern[str], device: list[str],
             m = hint.search(line)
             if m and dut is None:
                 cmd = shlex.split(m.group(1))
-                assert cmd[:2] == ["bess-ded", "agent"], line
-                dut = subprocess.Popen([*device, *cmd[2:]], stderr=subprocess.DEVNULL)
+                program = 2 if cmd[:2] == ["bess-ded", "agent"] else 1
+                assert cmd[:program] in (["bess-ded", "agent"], ["bessded-agent"]), line
+                dut = subprocess.Popen([*device, *cmd[program:]], stderr=subprocess.DEVNULL)
         proc.wait(timeout=timeout)
     finally:
         for p in (proc, dut):
@@ -45,14 +47,15 @@ def with_device(argv: Sequence[str], hint: re.Pattern[str], device: list[str],
     return proc.returncode, "".join(text)
 
 
-def run_conformance(tmp_path: Path, device: list[str], extra: Sequence[str] = ()
-                    ) -> tuple[int, str]:
+def run_conformance(tmp_path: Path, device: list[str], extra: Sequence[str] = (),
+                    hint: re.Pattern[str] = DEVICE_HINT) -> tuple[int, str]:
     """`bess-ded conformance --case 1 --dut 3` against ``device`` (``FIRMWARE_PY``,
-    ``DEVIANT``), both real-time as on a HIL rig: a tester or device starved by other
-    work plays or sees a schedule of its own (the tool reports how late it was)."""
+    ``DEVIANT``; firmware_c's node program with ``C_DEVICE_HINT``), both real-time as on a
+    HIL rig: a tester or device starved by other work plays or sees a schedule of its own
+    (the tool reports how late it was)."""
     return with_device(["conformance", "--case", "1", "--dut", "3", "--out",
                         str(tmp_path / "cf"), "--junit", str(tmp_path / "junit.xml"),
-                        "--rt-priority", "20", *extra], DEVICE_HINT, device)
+                        "--rt-priority", "20", *extra], hint, device)
 
 
 @contextmanager

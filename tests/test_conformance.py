@@ -17,7 +17,7 @@ from typing import Any
 
 import can
 import pytest
-from conformance_run import DEVIANT, DEVICE_HINT, FIRMWARE_PY, run_conformance
+from conformance_run import C_DEVICE_HINT, DEVIANT, DEVICE_HINT, FIRMWARE_PY, run_conformance
 
 from dbc import FD_DBC_PATH
 from firmware_py import fixedpoint as fx
@@ -26,6 +26,7 @@ from firmware_py.frames import FrameCodec
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
 from sim import conformance as conf
+from sim.cbind.cagent import node_program
 from sim.cli import main
 from sim.conformance.schedule import OTHER_FORMAT
 from sim.model.scenario import load_case
@@ -368,6 +369,11 @@ def test_no_device_is_a_failure_naming_the_frame(udp_port: int, tmp_path: Path,
     # the device's command: real-time as `up` runs its nodes (busrun.RT_PRIORITY) ...
     (hint,) = [m.group(1) for m in map(DEVICE_HINT.search, out.splitlines()) if m]
     assert hint.startswith("bess-ded agent --config ") and hint.endswith("--rt-priority 10")
+    # ... and the same device as firmware_c's node program takes it (its own bus flags)
+    (c_hint,) = [m.group(1) for m in map(C_DEVICE_HINT.search, out.splitlines()) if m]
+    assert c_hint.startswith("bessded-agent --config ") and c_hint.endswith("--rt-priority 10")
+    assert "--interface udp_multicast --channel ff15:" in c_hint
+    assert f"--port {udp_port} " in c_hint and "--bus-config" not in c_hint
 
 
 def test_the_device_command_has_the_testers_rt_priority(udp_port: int, tmp_path: Path,
@@ -407,6 +413,15 @@ def test_firmware_py_agent_process_passes_on_udp_multicast(tmp_path: Path) -> No
     suite = ET.parse(tmp_path / "junit.xml").getroot().find("testsuite")
     assert suite is not None and suite.get("failures") == "0"
     assert int(suite.get("tests") or 0) == len({m for s in conf.STEPS for m in s.musts})
+
+
+@pytest.mark.realtime
+def test_firmware_c_node_program_passes_on_udp_multicast(tmp_path: Path) -> None:
+    """Expected (any load): firmware_c's node program, started from the command line the
+    tool prints for it, passes every requirement on the classic udp_multicast bus."""
+    code, log = run_conformance(tmp_path, [str(node_program())], hint=C_DEVICE_HINT)
+    assert code == 0, log
+    assert "bess-ded conformance: PASS" in log and "FAIL" not in log
 
 
 @pytest.mark.realtime

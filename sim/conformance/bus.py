@@ -150,6 +150,7 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     from sim.model.scenario import scaled
     from sim.model.scenario_select import pick_variant, resolve_scenario, with_fd
     from sim.run import busrun
+    from sim.run.busopts import c_node_bus_argv
     from sim.run.fleet_plan import GUEST_TIME_SCALE, IN_PROCESS_INTERFACES
     from sim.run.keyset import check_key_set, load_key_set
 
@@ -218,6 +219,12 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     cmd = ["bess-ded", "agent", "--config", str(cfg_path), *key_argv, *bus.argv(),
            *fd_argv(sc.fd, sc.lambda_tags), *rt]
     say(f"  start the device with its configuration and key, e.g.: {shlex.join(cmd)}")
+    c_bus = c_node_bus_argv(bus)
+    if c_bus is not None:  # the same device as firmware_c's node program takes it
+        c_cmd = ["bessded-agent", "--config", str(cfg_path), *key_argv, *c_bus,
+                 *fd_argv(sc.fd, sc.lambda_tags), *rt]
+        say(f"  or firmware_c's node program (firmware_c/build/bessded-agent): "
+            f"{shlex.join(c_cmd)}")
     say(f"  waiting up to {wait:g} s for its {diag_name(i)} frame ...")
     return ConformanceSetup(sc, i, cfg, ring, dut_key, bus, out, planned, quick, text)
 
