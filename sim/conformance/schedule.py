@@ -363,10 +363,18 @@ class _BandPlan:
     same λ) up to the step, then driven tick by tick with the neighbour λ this plan
     chooses from its own λ (a conformant device is bit-exact with it): ``lam[c]`` the
     neighbours' λ (Q24) sent at tick ``start + c``, ``fault[c]`` the plant fault then,
-    ``note[c]`` what that frame exercises."""
+    ``note[c]`` what that frame exercises, ``state[c]`` the neighbours' State.
+
+    The step starts with an ISOLATE and a RECONNECT of the device (``COMMANDS``): its
+    controller state is then the one ISOLATE sets, whatever a race of an earlier frame
+    with a tick (the ordering tolerance) made of it, so the reference's λ is the
+    device's from there on even when their trajectories parted before the step."""
+
+    ISOLATE_AT, RECONNECT_AT = 1, 3  # the step's ticks whose commands ISOLATE, RECONNECT
+    COMMAND_AT = 0.45  # of Ts after the tick: before the device's next tick at any load
 
     def __init__(self, cfg: AgentConfig, price: float, codec: FrameCodec, start: int,
-                 length: int, other_format: bool = True) -> None:
+                 length: int, other_format: bool = True, secure: bool = True) -> None:
         from firmware_py.runtime import AgentRuntime
         from sim.conformance.oracle import quiet_firmware
 
@@ -375,11 +383,18 @@ class _BandPlan:
                                           planned_band=False, other_format=other_format)
                          if p.at < start * ts),
                         key=lambda p: p.at)
-        rt = AgentRuntime(cfg, codec, keys=secoc.Keyring.insecure_for(f"agent_{cfg.id}"))
+        node = f"agent_{cfg.id}"
+        keys = secoc.Keyring.insecure_for(node)
+        if secure:  # the demo keys, judged as a keyed device judges: an insecure receiver
+            # takes any sync (no AUTH-27 bounds), a keyed one refuses the schedule's jumps
+            keys = secoc.Keyring(node, keys.key, keys.boot, lambda _b: None,
+                                 master=secoc.INSECURE_MASTER, fleet=keys.fleet_id)
+        rt = AgentRuntime(cfg, codec, keys=keys)
         nxt = 0
         self.lam: list[dict[int, int]] = []
         self.fault: list[bool] = []
         self.note: list[str] = []
+        self.state: list[State] = []
         with quiet_firmware():
             for j in range(start + 1):
                 while nxt < len(frames) and frames[nxt].at < j * ts:
@@ -413,14 +428,28 @@ class _BandPlan:
                     return lam - d
             return None
 
+        codec = rt.codec
+        sender = FleetSender(codec, None, boot=secoc.INSECURE_BOOT)
+        commands = {self.ISOLATE_AT: Command.ISOLATE, self.RECONNECT_AT: Command.RECONNECT}
         for c in range(length):
+            if c in commands:  # taken on receipt, before the next tick (as the device)
+                msg = sender.frame("ER_Command", {"Command": int(commands[c]),
+                                                  "Target": target_raw(cfg.id),
+                                                  "GainK": 0, "GainH": 0})
+                rt._on_command(codec.decode(msg), msg.arbitration_id)
             lam = int(rt.ctrl.wire_lambda(rt.cstate))
             want = dict.fromkeys(last, lam)
             note = ""
             first = slots[0]
             w = int(first.weight)
             e = None if c0 is None else c - c0  # the edges' own tick count
-            if e is None:  # |ξ| well above BAND (armed), the neighbours closing in on Λ
+            # the neighbours INIT while the device is isolated: their next RUNNING frame
+            # is no LAM-1 step, so they join its λ(0) at once
+            nbr_state = (State.INIT if self.ISOLATE_AT <= c <= self.RECONNECT_AT
+                         else State.RUNNING)
+            if nbr_state == State.INIT:
+                want = dict(last)
+            elif e is None:  # |ξ| well above BAND (armed), the neighbours closing in on Λ
                 want[first.id] = lam + 10 * band
             elif e == 0:  # a crossing, armed: a reset (disarmed, BAND-2)
                 want[first.id] = lam - 2 * band
@@ -446,7 +475,8 @@ class _BandPlan:
                     want[first.id] = lam - sign * band // 2
                     note = ("a crossing inside the band after entering RUNNING "
                             "(armed kept: no reset)" if c > entered else "")
-            chosen = {j: toward(j, v) for j, v in want.items()}
+            joined = c == self.RECONNECT_AT + 1  # the first RUNNING frame after INIT
+            chosen = want if joined else {j: toward(j, v) for j, v in want.items()}
             if note and chosen[first.id] != want[first.id]:
                 note = ""  # the step was too large for LAM-1: not at the edge
             placed = placed + 1 if all(chosen[j] == v for j, v in want.items()) else 0
@@ -455,9 +485,10 @@ class _BandPlan:
             self.lam.append(chosen)
             self.fault.append(fault)
             self.note.append(note)
+            self.state.append(nbr_state)
             t_rx = (start + c + 0.5) * ts
             for slot in slots:
-                slot.lam, slot.last_rx, slot.state = chosen[slot.id], t_rx, State.RUNNING
+                slot.lam, slot.last_rx, slot.state = chosen[slot.id], t_rx, nbr_state
             last = chosen
             if rt.price_rx is not None:
                 rt.price_rx = t_rx
@@ -483,7 +514,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     other = i % contract.N_AGENTS_MAX + 1
     at = {s.name: s.start for s in STEPS}
     span = next(s.end - s.start for s in STEPS if s.name == "band")
-    band = (_BandPlan(cfg, price, codec, at["band"], span, other_format)
+    band = (_BandPlan(cfg, price, codec, at["band"], span, other_format, keys is not None)
             if planned_band and nbrs and not cfg.pinned else None)
 
     def add(k: float, step: str, msg: can.Message, note: str = "",
@@ -598,8 +629,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         (ξ = sat32, counted: NUM-3, XI-3) and drives the own λ to, and past, lambda_min
         (STEP-12: only sat54 limits it)."""
         c = k - at["extremes"]
-        if c < 5:
-            return lam, "", State.RUNNING
+        if c < 5:  # where the band step left them (near the device's λ)
+            return (band.lam[-1][j] if band is not None else lam), "", State.RUNNING
         first = j == nbrs[0]
         if c < 7:
             return (q(cfg.lambda_min), "a neighbour INIT at lambda_min" if first and c == 5
@@ -632,7 +663,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             lam, lam_note = lam_edge(j, k) if k >= at["limits"] else (lam_j(j, k), "")
             nbr_state = State.RUNNING
             if band is not None and at["band"] <= k < at["extremes"]:
-                lam = band.lam[k - at["band"]][j]
+                lam, nbr_state = band.lam[k - at["band"]][j], band.state[k - at["band"]]
                 lam_note = band.note[k - at["band"]] if j == nbrs[0] else ""
             if k >= at["extremes"]:
                 lam, lam_note, nbr_state = extreme(j, k, lam)
@@ -651,7 +682,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             if j == nbrs[0] and k - fr == 55:
                 lam_note = ("a neighbour's first frame after 25 lost on the bus, 120 "
                             "freshness values on")
-            elif j == nbrs[0] and nbr_state == State.INIT:
+            elif j == nbrs[0] and nbr_state == State.INIT and step != "band":
                 lam_note = "a neighbour alive but INIT (not in ξ)"
             elif j == nbrs[0] and k == at["content"] + 30:
                 lam_note = "a neighbour λ jump above lambda_step_max"
@@ -843,6 +874,11 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             if k == st + tick:
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}), note)
+        if band is not None and k - at["band"] in (band.ISOLATE_AT, band.RECONNECT_AT):
+            cmd = (Command.ISOLATE if k - at["band"] == band.ISOLATE_AT
+                   else Command.RECONNECT)  # the band plan's known start
+            add(k + band.COMMAND_AT, step, tx.frame("ER_Command", {
+                "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}))
         if k == st + 120:  # SET_GAINS right after the RECONNECT (ISOLATED if the bus swaps
             # the two): its gains are the controller's from the first step in RUNNING (CMD-5)
             add(k + 0.65, step, tx.frame("ER_Command", {
