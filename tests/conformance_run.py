@@ -58,6 +58,12 @@ def run_conformance(tmp_path: Path, device: list[str], extra: Sequence[str] = ()
                         "--rt-priority", "20", *extra], hint, device)
 
 
+def assert_passed(code: int, log: str) -> None:
+    """The run passed: exit 0, the PASS verdict, no requirement failed."""
+    assert code == 0, log
+    assert "bess-ded conformance: PASS" in log and "  FAIL  " not in log, log
+
+
 @contextmanager
 def stress_hog() -> Iterator[None]:
     """`stress-ng --cpu 2` running for the duration (tools/install-stress-deps)."""

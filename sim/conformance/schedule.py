@@ -101,11 +101,13 @@ STEPS = (
     Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
          "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
          "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh and a "
-         "SET_GAINS right after it",
+         "SET_GAINS a tick before it (ISOLATED)",
          ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
           "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4",
           "CMD-5")),
-    Step("band", 1350, 1470, "a trajectory planned on the reference (firmware_py run on "
+    Step("band", 1350, 1470, "an ISOLATE and a RECONNECT (the neighbours INIT meanwhile), "
+         "so that the device's controller starts from ISOLATE's state whatever races "
+         "earlier; then a trajectory planned on the reference (firmware_py run on "
          "the schedule up to here): the band armed, a reset, then ξ = −BAND exactly (not "
          "re-armed: BAND-3 is strict) and a crossing inside the band (no reset); a plant "
          "fault (SAFE) and back (RUNNING: armed kept, STATE-6), then a crossing inside the "
@@ -879,12 +881,13 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                    else Command.RECONNECT)  # the band plan's known start
             add(k + band.COMMAND_AT, step, tx.frame("ER_Command", {
                 "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}))
-        if k == st + 120:  # SET_GAINS right after the RECONNECT (ISOLATED if the bus swaps
-            # the two): its gains are the controller's from the first step in RUNNING (CMD-5)
+        if k == st + 119:  # SET_GAINS a tick before the RECONNECT, so surely outside
+            # RUNNING (after it, a late device took it in RUNNING): its gains are the
+            # controller's from the first step in RUNNING (CMD-5)
             add(k + 0.65, step, tx.frame("ER_Command", {
                 "Command": int(Command.SET_GAINS), "Target": target_raw(i),
                 "GainK": round(1.5 * k_gain * 1000), "GainH": round(1.5 * h_gain * 1000)}),
-                "SET_GAINS outside RUNNING (INIT)")
+                "SET_GAINS outside RUNNING (ISOLATED)")
     out.sort(key=lambda p: p.at)
     return out
 
