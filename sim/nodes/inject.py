@@ -76,8 +76,8 @@ def frames(kind: str, count: int, target: int = 1, seed: int = 0,
                             data=bytes(rng.getrandbits(8) for _ in range(dlc)))
         else:
             raise ValueError(f"kind: expected one of {', '.join(KINDS)}, but got {kind!r}")
-        if codec.fd:  # the bus's format (GEN-1): else every frame would be only malformed
-            m.is_fd = m.bitrate_switch = True
+        if codec.fd and not m.is_fd:  # the flood's own frames in the bus's format (GEN-1):
+            m.is_fd = m.bitrate_switch = True  # else each would be only malformed
         yield m
 
 

@@ -245,11 +245,8 @@ def step(p: InsiderPlan, k: int) -> list[can.Message]:
         elif k % _ticks(1000 * SYNC_EVERY_S) == 0:
             out.append(f.tx.sync(f.name))
         if k % every == 0:
-            out.append(f.tx.frame(f.name, f.raw))
+            out.append(f.tx.frame(f.name, f.raw))  # the codec's format (FD on an FD bus)
             f.sent += 1
-    if p.codec.fd:
-        for m in out:
-            m.is_fd = m.bitrate_switch = True
     return out
 
 
