@@ -223,8 +223,9 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     # the configuration the tester writes)
     assert cfg.untrusted_after == 6 and cfg.price_persist == 5
     # untrusted: the forged commands, and untrusted_after DLC errors on one ID (RX-13);
-    # AUTH-27: three key holders' syncs refused (a boot 9 on, counts 17 and 129 on)
-    assert c["auth"] == 5 + 1 + 2 + 6 + 5 + 3 and c["untrusted_sources"] == 2
+    # AUTH-27: three key holders' syncs refused (a boot 9 on, counts 17 and 129 on);
+    # untrusted_after − 1 forged statuses, valid ones, one more (RX-10: no verdict)
+    assert c["auth"] == 5 + 1 + 2 + 6 + 5 + 3 + 1 and c["untrusted_sources"] == 2
     assert c["sync_jump"] == 3
     assert c["dlc"] == cfg.untrusted_after and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
@@ -241,14 +242,15 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     assert c["plant_faults"] == 3  # the second while ISOLATED, the third in the band step
     assert c["saturations"] >= 1  # ξ past int32 in the extremes step (XI-3)
     assert c["commands_isolate"] == 5 and c["commands_reconnect"] == 6
-    # in-step syncs are no resyncs; lost: 3, 5 forged prices, a price 16 values on (15),
+    # in-step syncs are no resyncs; lost: 3, 5 forged statuses (and 1: the one more,
+    # RX-10), a price 16 values on (15),
     # the neighbour's 25 frames lost on the bus (not the 6 forged commands' counts nor the
     # PIN refused before authentication: no lost_frames on ER_Command, AUTH-30); the two
     # forgeries of the timeouts step (a neighbour's, the price's) skip a value each, and so
     # does the content step's FD frame (malformed, RX-2)
     # (the neighbour's 25 lost frames and 94 values more: its next frame is 120 on)
     # (resyncs: + the router's price sync 16 values on, AUTH-27's taken side)
-    assert c["resyncs"] == 5 and c["lost_frames"] == 3 + 5 + 15 + 25 + 94 + 2 + 1
+    assert c["resyncs"] == 5 and c["lost_frames"] == 3 + 5 + 1 + 15 + 25 + 94 + 2 + 1
     assert c["malformed"] == 1
     assert c["range"] == 1  # the PIN whose GainK is neither way (CMD-7, RX-7)
     assert pins == {0, fx.ONE} and dut.pin == (fx.ONE if cfg.pinned else 0)  # and back

@@ -135,7 +135,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.PlantFaults": ("RX-11",),
     "Diag.SafetySender": ("DIAG-4",),
     "Diag.SafetyCause": ("DIAG-4",),
-    "Diag.Untrusted": ("RX-13",),
+    "Diag.Untrusted": ("RX-13", "RX-10"),  # RX-10: a valid frame ends the streak
     "Diag.Resets": ("DIAG-1", "STEP-1", "STATE-7"),
     "Diag.NeighboursAlive": ("DIAG-1", "LIVE-2"),
     "Diag.Saturations": ("DIAG-3", "XI-3", "STEP-9"),

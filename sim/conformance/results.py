@@ -70,6 +70,7 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "DLC 7": ("RX-7",),
     "an FD frame on a classic bus": ("RX-2",),
     "DLC 7, untrusted_after in a row": ("RX-13", "RX-7"),
+    "one more forged status after valid ones …": ("RX-10", "RX-13"),
     "SET_GAINS in bounds": ("CMD-5", "CMD-2"),
     "SET_GAINS out of bounds": ("CMD-5", "DIAG-4"),
     "SET_GAINS one LSB …": ("CMD-5", "DIAG-4"),

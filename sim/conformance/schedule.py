@@ -90,21 +90,24 @@ STEPS = (
           "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-6", "STEP-7", "STEP-8", "STEP-12",
           "NUM-3", "NUM-4", "RX-11", "DIAG-3", "CFG-7")),
     Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
-         "consecutive forged frames on one ID and one fewer on another; a price frame 16 "
+         "consecutive forged frames on one ID and one fewer on another (the plant's "
+         "status, whose one more after valid frames comes in the states step); a price "
+         "frame 16 "
          "freshness values on; a neighbour's frames lost on the bus past its timeout, its "
          "count 120 on when it returns (window 8); price syncs 9 boots and 17 values on "
          "(refused), then 16 on (taken), a command sync 129 on (refused); a neighbour's "
          "Setpoint sync (a peer's boot: a hello), then again (no hello)",
          ("AUTH-9", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-18",
-          "AUTH-19", "AUTH-27", "RX-5", "RX-12", "RX-13", "LIVE-2", "LIVE-3", "TMO-4", "DIAG-4",
-          "CFG-7")),
+          "AUTH-19", "AUTH-27", "RX-5", "RX-10", "RX-12", "RX-13", "LIVE-2", "LIVE-3",
+          "TMO-4", "DIAG-4", "CFG-7")),
     Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
          "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
          "RECONNECT with the price stale (INIT), ISOLATE in INIT, RECONNECT when fresh and a "
-         "SET_GAINS a tick before it (ISOLATED)",
+         "SET_GAINS a tick before it (ISOLATED); one more forged plant status after valid "
+         "ones (the streak ended: no verdict)",
          ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
-          "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-11", "CMD-3", "CMD-4",
-          "CMD-5")),
+          "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-10", "RX-11", "CMD-3",
+          "CMD-4", "CMD-5")),
     Step("band", 1350, 1470, "an ISOLATE and a RECONNECT (the neighbours INIT meanwhile), "
          "so that the device's controller starts from ISOLATE's state whatever races "
          "earlier; then a trajectory planned on the reference (firmware_py run on "
@@ -751,10 +754,14 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k in (fr + 40, fr + 60) and nbrs:  # a peer's sync: first of its boot, then again
             add(k + 0.6, step, tx.sync(f"AGENT_{nbrs[0]}_Setpoint"),
                 "a neighbour's Setpoint sync (a peer sync)")
-        if k == fr + 12:  # one fewer on another ID: no verdict
-            for n in range(cfg.untrusted_after - 1):
-                add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Price", {
-                    "PriceValid": 1, "Segment": 0, "Rho": q(price)})), "forged price")
+        # one fewer on another ID, with no failure before (the plant's status): no
+        # verdict; then, after valid frames and a Diag page of Untrusted, one more: no
+        # verdict either, the valid frames ended the streak (RX-10)
+        if k in (fr + 12, fr + 12 + STREAK_GAP):
+            for n in range(cfg.untrusted_after - 1 if k == fr + 12 else 1):
+                add(k + 0.3 + 0.01 * n, step, _forged(tx.frame(status_name(i), status)),
+                    "forged status" if k == fr + 12
+                    else "one more forged status after valid ones (the streak ended)")
         # the silent neighbour's ID is lost after its timeout; a sync in step with its
         # last frame ends that (AUTH-16), so a forgery then is auth, not unsynced
         if k == at["timeouts"] + 17 and nbrs:
@@ -902,6 +909,9 @@ def _copy(msg: can.Message) -> can.Message:
     return can.Message(arbitration_id=msg.arbitration_id, is_extended_id=False,
                        data=bytes(msg.data), is_fd=msg.is_fd,
                        bitrate_switch=msg.bitrate_switch)
+
+
+STREAK_GAP = 95  # ticks: a Diag page of each kind (every 90 ticks) between two failures
 
 
 def _forged(msg: can.Message) -> can.Message:
