@@ -823,11 +823,13 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                     "DLC 7" if n < cfg.untrusted_after - 1 else "DLC 7, untrusted_after in a row")
         if k == at["content"] + 15 and nbrs and other_format and not codec.fd:
             # a genuine neighbour frame, the tick's last, as an FD frame on a classic bus:
-            # malformed (RX-2), its λ never used; a device that takes it moves
+            # malformed (RX-2), its λ never used; a device that takes it moves. 0.55 Ts
+            # after the tick: before the next one at any lateness the schedule tolerates
+            # (at 0.8 a late device ticked first, and the λ it took was never used)
             fd = tx.frame(mc_name(nbrs[0]), {"State": int(State.RUNNING),
                                              "Lambda": lam_j(nbrs[0], k) + q(0.01),
                                              "Resets": 0})
-            add(k + 0.8, step, can.Message(arbitration_id=fd.arbitration_id,
+            add(k + 0.55, step, can.Message(arbitration_id=fd.arbitration_id,
                                            is_extended_id=False, data=bytes(fd.data),
                                            is_fd=True, bitrate_switch=True), OTHER_FORMAT)
         for tick, cmd, target, kk, hh, note in (
