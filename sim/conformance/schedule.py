@@ -364,16 +364,18 @@ def played_steps(planned: Sequence[Planned]) -> tuple[Step, ...]:
 
 class _BandPlan:
     """The band step's trajectory, planned on the reference: firmware_py's agent run on
-    the schedule's frames (insecure twins of them: the same contents and order, so the
-    same λ) up to the step, then driven tick by tick with the neighbour λ this plan
-    chooses from its own λ (a conformant device is bit-exact with it): ``lam[c]`` the
-    neighbours' λ (Q24) sent at tick ``start + c``, ``fault[c]`` the plant fault then,
-    ``note[c]`` what that frame exercises, ``state[c]`` the neighbours' State.
+    the schedule's frames (twins of them under the public demo keys: the same contents
+    and order, so the same λ) up to the step, then driven tick by tick with the
+    neighbour λ this plan chooses from its own λ (a conformant device is bit-exact with
+    it): ``lam[c]`` the neighbours' λ (Q24) sent at tick ``start + c``, ``fault[c]`` the
+    plant fault then, ``note[c]`` what that frame exercises, ``state[c]`` the
+    neighbours' State.
 
-    The step starts with an ISOLATE and a RECONNECT of the device (``COMMANDS``): its
-    controller state is then the one ISOLATE sets, whatever a race of an earlier frame
-    with a tick (the ordering tolerance) made of it, so the reference's λ is the
-    device's from there on even when their trajectories parted before the step."""
+    The step starts with an ISOLATE and a RECONNECT of the device (at ``ISOLATE_AT`` and
+    ``RECONNECT_AT``): its controller state is then the one ISOLATE sets, whatever a
+    race of an earlier frame with a tick (the ordering tolerance) made of it, so the
+    reference's λ is the device's from there on even when their trajectories parted
+    before the step."""
 
     ISOLATE_AT, RECONNECT_AT = 1, 3  # the step's ticks whose commands ISOLATE, RECONNECT
     COMMAND_AT = 0.45  # of Ts after the tick: before the device's next tick at any load
