@@ -386,10 +386,14 @@ class _BandPlan:
         from sim.conformance.oracle import quiet_firmware
 
         ts = cfg.controller.ts
-        frames = sorted((p for p in _plan(cfg, None, price, codec, secoc.INSECURE_BOOT,
-                                          planned_band=False, other_format=other_format)
-                         if p.at < start * ts),
-                        key=lambda p: p.at)
+        twin = sorted(_plan(cfg, None, price, codec, secoc.INSECURE_BOOT,
+                            planned_band=False, other_format=other_format),
+                      key=lambda p: p.at)
+        frames = [p for p in twin if p.at < start * ts]
+        # the step's ISOLATE and RECONNECT, from the twins' own sender (their counts)
+        command_id = codec.frame_id("ER_Command")
+        commands = {round(p.at / ts - self.COMMAND_AT) - start: p for p in twin
+                    if p.step == "band" and p.msg.arbitration_id == command_id}
         node = f"agent_{cfg.id}"
         keys = secoc.Keyring.insecure_for(node)
         if secure:  # the demo keys, judged as a keyed device judges: an insecure receiver
@@ -408,9 +412,10 @@ class _BandPlan:
                     rt.on_frame(frames[nxt].msg, frames[nxt].at)
                     nxt += 1
                 rt.tick(j * ts)
-            self._drive(rt, cfg, start, length)
+            self._drive(rt, cfg, start, length, commands)
 
-    def _drive(self, rt: Any, cfg: AgentConfig, start: int, length: int) -> None:
+    def _drive(self, rt: Any, cfg: AgentConfig, start: int, length: int,
+               commands: Mapping[int, Planned]) -> None:
         ts = cfg.controller.ts
         band = int(getattr(rt.ctrl, "band", 0))
         # the default band's word (CFG-3): a device that takes it re-arms at |ξ| above it
@@ -435,15 +440,9 @@ class _BandPlan:
                     return lam - d
             return None
 
-        codec = rt.codec
-        sender = FleetSender(codec, None, boot=secoc.INSECURE_BOOT)
-        commands = {self.ISOLATE_AT: Command.ISOLATE, self.RECONNECT_AT: Command.RECONNECT}
         for c in range(length):
             if c in commands:  # taken on receipt, before the next tick (as the device)
-                msg = sender.frame("ER_Command", {"Command": int(commands[c]),
-                                                  "Target": target_raw(cfg.id),
-                                                  "GainK": 0, "GainH": 0})
-                rt._on_command(codec.decode(msg), msg.arbitration_id)
+                rt.on_frame(commands[c].msg, commands[c].at)
             lam = int(rt.ctrl.wire_lambda(rt.cstate))
             want = dict.fromkeys(last, lam)
             note = ""
@@ -521,8 +520,9 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     other = i % contract.N_AGENTS_MAX + 1
     at = {s.name: s.start for s in STEPS}
     span = next(s.end - s.start for s in STEPS if s.name == "band")
+    band_start = bool(nbrs) and not cfg.pinned  # the band step is planned
     band = (_BandPlan(cfg, price, codec, at["band"], span, other_format, keys is not None)
-            if planned_band and nbrs and not cfg.pinned else None)
+            if planned_band and band_start else None)
 
     def add(k: float, step: str, msg: can.Message, note: str = "",
             age: float | None = None) -> None:
@@ -887,10 +887,10 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             if k == st + tick:
                 add(k + 0.6, step, tx.frame("ER_Command", {
                     "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}), note)
-        if band is not None and k - at["band"] in (band.ISOLATE_AT, band.RECONNECT_AT):
-            cmd = (Command.ISOLATE if k - at["band"] == band.ISOLATE_AT
-                   else Command.RECONNECT)  # the band plan's known start
-            add(k + band.COMMAND_AT, step, tx.frame("ER_Command", {
+        if band_start and k - at["band"] in (_BandPlan.ISOLATE_AT, _BandPlan.RECONNECT_AT):
+            cmd = (Command.ISOLATE if k - at["band"] == _BandPlan.ISOLATE_AT
+                   else Command.RECONNECT)  # the band plan's known start (its twins too)
+            add(k + _BandPlan.COMMAND_AT, step, tx.frame("ER_Command", {
                 "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}))
         if k == st + 119:  # SET_GAINS a tick before the RECONNECT, so surely outside
             # RUNNING (after it, a late device took it in RUNNING): its gains are the
