@@ -415,6 +415,7 @@ def test_firmware_py_agent_process_passes_on_udp_multicast(tmp_path: Path) -> No
     tools/wheel-check's conformance and in the next test."""
     code, log = run_conformance(tmp_path, FIRMWARE_PY, ["--fd"])
     assert_passed(code, log)
+    assert "FAIL" not in log  # nowhere in the output, as before the helper
     assert "CAN FD frames" in log and " --fd " in log
     frames = list(can.LogReader(str(tmp_path / "cf" / "conformance.log")))
     assert frames and all(f.is_fd and f.bitrate_switch for f in frames)
@@ -430,6 +431,7 @@ def test_firmware_c_node_program_passes_on_udp_multicast(tmp_path: Path) -> None
     tool prints for it, passes every requirement on the classic udp_multicast bus."""
     code, log = run_conformance(tmp_path, [str(node_program())], hint=C_DEVICE_HINT)
     assert_passed(code, log)
+    assert "FAIL" not in log  # nowhere in the output, as before the helper
 
 
 @pytest.mark.realtime
