@@ -216,15 +216,18 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
         + (", CAN FD frames" if sc.fd else ""))
     # the device at the tester's --rt-priority, else as `up` runs its nodes (SCHED_FIFO)
     rt = ["--rt-priority", str(rt_priority or busrun.RT_PRIORITY)]
-    cmd = ["bess-ded", "agent", "--config", str(cfg_path), *key_argv, *bus.argv(),
-           *fd_argv(sc.fd, sc.lambda_tags), *rt]
-    say(f"  start the device with its configuration and key, e.g.: {shlex.join(cmd)}")
+
+    def device(program: list[str], bus_argv: list[str]) -> str:
+        """The command line that starts ``program`` as the device on this run's bus."""
+        return shlex.join([*program, "--config", str(cfg_path), *key_argv, *bus_argv,
+                           *fd_argv(sc.fd, sc.lambda_tags), *rt])
+
+    say("  start the device with its configuration and key, e.g.: "
+        + device(["bess-ded", "agent"], bus.argv()))
     c_bus = c_node_bus_argv(bus)
     if c_bus is not None:  # the same device as firmware_c's node program takes it
-        c_cmd = ["bessded-agent", "--config", str(cfg_path), *key_argv, *c_bus,
-                 *fd_argv(sc.fd, sc.lambda_tags), *rt]
-        say(f"  or firmware_c's node program (firmware_c/build/bessded-agent): "
-            f"{shlex.join(c_cmd)}")
+        say("  or firmware_c's node program (firmware_c/build/bessded-agent): "
+            + device(["bessded-agent"], c_bus))
     say(f"  waiting up to {wait:g} s for its {diag_name(i)} frame ...")
     return ConformanceSetup(sc, i, cfg, ring, dut_key, bus, out, planned, quick, text)
 
