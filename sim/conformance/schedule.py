@@ -92,9 +92,9 @@ STEPS = (
     Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
          "consecutive forged frames on one ID and one fewer on another (the plant's "
          "status, whose one more after valid frames comes in the states step); a price "
-         "frame 16 "
-         "freshness values on; a neighbour's frames lost on the bus past its timeout, its "
-         "count 120 on when it returns (window 8); price syncs 9 boots and 17 values on "
+         "frame 16 freshness values on; a neighbour's frames lost on the bus past its "
+         "timeout, its count 120 on when it returns (window 8); price syncs 9 boots and "
+         "17 values on "
          "(refused), then 16 on (taken), a command sync 129 on (refused); a neighbour's "
          "Setpoint sync (a peer's boot: a hello), then again (no hello)",
          ("AUTH-9", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-18",
@@ -392,8 +392,9 @@ class _BandPlan:
         frames = [p for p in twin if p.at < start * ts]
         # the step's ISOLATE and RECONNECT, from the twins' own sender (their counts)
         command_id = codec.frame_id("ER_Command")
-        commands = {round(p.at / ts - self.COMMAND_AT) - start: p for p in twin
-                    if p.step == "band" and p.msg.arbitration_id == command_id}
+        isolate, reconnect = (p for p in twin
+                              if p.step == "band" and p.msg.arbitration_id == command_id)
+        commands = {self.ISOLATE_AT: isolate, self.RECONNECT_AT: reconnect}
         node = f"agent_{cfg.id}"
         keys = secoc.Keyring.insecure_for(node)
         if secure:  # the demo keys, judged as a keyed device judges: an insecure receiver
@@ -531,6 +532,12 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     def step_at(k: int) -> str:
         return next(s.name for s in STEPS if s.start <= k < s.end)
 
+    def command(cmd: Command, target: int = i, gain_k: int = 0, gain_h: int = 0
+                ) -> can.Message:
+        """The router's next ER_Command (to the DUT unless ``target`` says otherwise)."""
+        return tx.frame("ER_Command", {"Command": int(cmd), "Target": target_raw(target),
+                                       "GainK": gain_k, "GainH": gain_h})
+
     def q(x: float) -> int:
         return round(x * (1 << 24))
 
@@ -575,8 +582,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     for name in inputs:
         if name != "ER_Command":  # held back past the DUT's join window (AUTH-11)
             add(0, "start", tx.sync(name), f"sync of {name}")
-    add(22.6, "start", tx.frame("ER_Command", {   # to the DUT: another's is not its input
-        "Command": int(Command.ISOLATE), "Target": target_raw(i), "GainK": 0, "GainH": 0}),
+    add(22.6, "start", command(Command.ISOLATE),  # to the DUT: another's is not its input
         "a command before its sync, after the join window: unsynced")
     add(25, "start", tx.sync("ER_Command"), "sync of ER_Command")
     first_sync = next(p.msg for p in out if p.note == "sync of ER_Price")
@@ -735,9 +741,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 add(k + 0.9, step, tx.sync(name), f"periodic sync of {name}")
         if k == fr + 10:  # untrusted_after forged frames in a row on one ID (RX-13), to
             for n in range(cfg.untrusted_after):  # the DUT (AUTH-30: another's is not its input)
-                add(k + 0.6 + 0.01 * n, step, _forged(tx.frame("ER_Command", {
-                    "Command": int(Command.ISOLATE), "Target": target_raw(i), "GainK": 0,
-                    "GainH": 0})), "forged command")
+                add(k + 0.6 + 0.01 * n, step, _forged(command(Command.ISOLATE)),
+                    "forged command")
         # AUTH-27's bounds, both sides: key holders' price syncs 9 boots on and, in the
         # router's boot, 17 values on (refused: sync_jump, auth), then the router's own 16
         # on (frames the DUT missed: taken); a command sync 129 on (its search reaches 128)
@@ -757,7 +762,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             add(k + 0.6, step, tx.sync(f"AGENT_{nbrs[0]}_Setpoint"),
                 "a neighbour's Setpoint sync (a peer sync)")
         # one fewer on another ID, with no failure before (the plant's status): no
-        # verdict; then, after valid frames and a Diag page of Untrusted, one more: no
+        # verdict; then, after valid frames (STREAK_GAP ticks later), one more: no
         # verdict either, the valid frames ended the streak (RX-10)
         if k in (fr + 12, fr + 12 + STREAK_GAP):
             for n in range(cfg.untrusted_after - 1 if k == fr + 12 else 1):
@@ -842,9 +847,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 (50, Command.ISOLATE, i, 0, 0, "ISOLATE while ISOLATED"),
                 (70, Command.RECONNECT, i, 0, 0, "RECONNECT")):
             if k == at["commands"] + tick:
-                add(k + 0.6, step, tx.frame("ER_Command", {
-                    "Command": int(cmd), "Target": target_raw(target),
-                    "GainK": round(kk * 1000), "GainH": round(hh * 1000)}), note)
+                add(k + 0.6, step, command(cmd, target, round(kk * 1000),
+                                           round(hh * 1000)), note)
         # PIN (CMD-7) flips the DUT's price term, whichever way its configuration starts:
         # ξ gains or loses (ρ − λ) at the next sample; a PIN for another agent, or with a
         # GainK that is neither way (range, before authentication), changes nothing
@@ -854,9 +858,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 (90, i, 3, "PIN with GainK 3 (range)"),
                 (100, i, PIN_ON if cfg.pinned else PIN_OFF, "PIN back")):
             if k == at["commands"] + tick:  # the encoder checks only the DBC's range
-                add(k + 0.6, step, tx.frame("ER_Command", {
-                    "Command": int(Command.PIN), "Target": target_raw(target),
-                    "GainK": way, "GainH": 0}), note)
+                add(k + 0.6, step, command(Command.PIN, target, way), note)
         for tick, cmd, graw, hraw, note in (
                 (5, Command.SET_GAINS, _raw_bounds(_set(cfg.k_min), _set(cfg.k_max))[1],
                  _raw_bounds(_set(cfg.h_min), _set(cfg.h_max))[1], "SET_GAINS at k_max and h_max"),
@@ -875,9 +877,7 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 (20, Command.SET_GAINS, gains_raw, h_raw[0] - 1,
                  "SET_GAINS one LSB below h_min")):
             if k == at["limits"] + tick and 0 <= min(graw, hraw) and max(graw, hraw) < 16384:
-                add(k + 0.6, step, tx.frame("ER_Command", {
-                    "Command": int(cmd), "Target": target_raw(i), "GainK": graw,
-                    "GainH": hraw}), note)
+                add(k + 0.6, step, command(cmd, i, graw, hraw), note)
         for tick, cmd, note in ((5, Command.RECONNECT, "RECONNECT in RUNNING"),
                                 (40, Command.RECONNECT, "RECONNECT in SAFE"),
                                 (45, Command.ISOLATE, "ISOLATE in SAFE"),
@@ -885,19 +885,16 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                                 (100, Command.ISOLATE, "ISOLATE in INIT"),
                                 (120, Command.RECONNECT, "RECONNECT, all fresh")):
             if k == st + tick:
-                add(k + 0.6, step, tx.frame("ER_Command", {
-                    "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}), note)
+                add(k + 0.6, step, command(cmd), note)
         if band_start and k - at["band"] in (_BandPlan.ISOLATE_AT, _BandPlan.RECONNECT_AT):
             cmd = (Command.ISOLATE if k - at["band"] == _BandPlan.ISOLATE_AT
                    else Command.RECONNECT)  # the band plan's known start (its twins too)
-            add(k + _BandPlan.COMMAND_AT, step, tx.frame("ER_Command", {
-                "Command": int(cmd), "Target": target_raw(i), "GainK": 0, "GainH": 0}))
+            add(k + _BandPlan.COMMAND_AT, step, command(cmd))
         if k == st + 119:  # SET_GAINS a tick before the RECONNECT, so surely outside
             # RUNNING (after it, a late device took it in RUNNING): its gains are the
             # controller's from the first step in RUNNING (CMD-5)
-            add(k + 0.65, step, tx.frame("ER_Command", {
-                "Command": int(Command.SET_GAINS), "Target": target_raw(i),
-                "GainK": round(1.5 * k_gain * 1000), "GainH": round(1.5 * h_gain * 1000)}),
+            add(k + 0.65, step, command(Command.SET_GAINS, i, round(1.5 * k_gain * 1000),
+                                        round(1.5 * h_gain * 1000)),
                 "SET_GAINS outside RUNNING (ISOLATED)")
     out.sort(key=lambda p: p.at)
     return out
@@ -915,7 +912,9 @@ def _copy(msg: can.Message) -> can.Message:
                        bitrate_switch=msg.bitrate_switch)
 
 
-STREAK_GAP = 95  # ticks: a Diag page of each kind (every 90 ticks) between two failures
+# ticks from the freshness step's forged statuses to the one more (in the states step):
+# 19 valid statuses between end the streak (RX-10)
+STREAK_GAP = 95
 
 
 def _forged(msg: can.Message) -> can.Message:
