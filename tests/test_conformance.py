@@ -29,6 +29,7 @@ from conformance_run import (
 from dbc import FD_DBC_PATH
 from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig, agent_configs_from_scenario
+from firmware_py.contract import ER_COMMAND_ID, State
 from firmware_py.frames import FrameCodec
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
@@ -164,7 +165,8 @@ def test_an_unknown_deviation_fails_the_requirements_of_its_signal_and_step() ->
     assert set(failed) <= {"AUTH-10", "AUTH-11", "AUTH-12", "AUTH-14", "AUTH-16", "AUTH-17",
                            "AUTH-21", "AUTH-25", "RX-8"}, failed
     assert "first divergence at step" in results[0].detail
-    # page 8 goes out every 90 ticks: the first after the earlier run's sync at the start
+    # RejectedAuth's page (11 of 13) goes out every 130 ticks: the first after the
+    # earlier run's sync at the start
     assert outcome.mismatches[0].step in ("price-only", "running")
     assert outcome.mismatches[0].signal == "RejectedAuth"
     assert not outcome.explained_by
@@ -318,6 +320,59 @@ def test_a_difference_names_what_the_step_exercises_at_that_moment() -> None:
     step = conf.Step("x", 0, 10, "", ("NUM-1",), moments=(("my note", ("NUM-1",)),))
     assert a(_mm("MC", "Lambda", 1000, 5000, step="x", moment=("my note",)),
              [*conf.STEPS, step]) == ("NUM-1",)
+
+
+def test_a_difference_where_a_state_rule_decides_names_that_rule() -> None:
+    """Expected: a λ that differs where the oracle held it outside RUNNING (not entered at
+    that tick) names STATE-10 first, whatever frame the tester had just sent (a sync
+    moves no λ); a reset counted at the entry to RUNNING names STATE-6; a State that did
+    not follow the oracle's health (SAFE kept where the oracle went RUNNING, or the other
+    way) names the definition of health, STATE-2, then the transition's rule; a λ
+    difference at that entry still names the entry's rules, not STATE-2, and another
+    signal where λ is held its own rules, not STATE-10."""
+    a = conf.attribute
+    held = (conf.oracle.LAMBDA_HELD,)
+    assert a(_mm("MC", "Lambda", 1000, 1014, step="price-only", moment=("sync of ER_Command",),
+                 transition=held))[0] == "STATE-10"
+    # ... of a λ only: INIT gone SAFE is still its own rule's
+    assert a(_mm("MC", "State", "INIT", "SAFE", step="start", transition=held))[0] == "STATE-5"
+    assert a(_mm("MC", "Resets", 0, 1, step="running",
+                 transition=("INIT → RUNNING",)))[0] == "STATE-6"
+    assert a(_mm("MC", "State", "RUNNING", "SAFE", step="timeouts",
+                 transition=("SAFE → RUNNING",)))[:2] == ("STATE-2", "STATE-4")
+    assert a(_mm("MC", "State", "SAFE", "RUNNING", step="timeouts",
+                 transition=("RUNNING → SAFE",)))[:2] == ("STATE-2", "STATE-3")
+    assert a(_mm("MC", "Lambda", 1000, 5000, step="running",
+                 transition=("INIT → RUNNING",)))[0] == "STATE-4"
+    # a command's own rule still comes first where the tester just sent one
+    assert a(_mm("MC", "State", "INIT", "RUNNING", step="states",
+                 moment=("RECONNECT, the price stale",),
+                 transition=("ISOLATED → INIT",)))[0] == "STATE-8"
+
+
+def test_a_device_that_does_not_act_on_a_command_is_named_by_that_command() -> None:
+    """Expected: a device that takes SET_GAINS only in RUNNING (the states step sends one
+    while it is ISOLATED) is explained by not acting on that one command: CMD-5 alone,
+    the report saying which command it ignored."""
+    cfg, ring, planned = _setup(1, 3)
+
+    class GainsOnlyRunning(AgentRuntime):
+        def on_frame(self, msg: can.Message, t: float) -> None:
+            kept = self.ctrl, self.cstate
+            super().on_frame(msg, t)
+            if (msg.arbitration_id == ER_COMMAND_ID and self.state != State.RUNNING
+                    and self.ctrl is not kept[0]):  # a SET_GAINS taken: undone
+                self.ctrl, self.cstate = kept
+
+    def gains_only_running(rt: AgentRuntime) -> None:
+        rt.__class__ = GainsOnlyRunning
+
+    frames = conf.simulate(cfg, ring(), planned, gains_only_running)
+    outcome, results = _judge(cfg, ring, frames)
+    failed = [r.must for r in results if not r.passed]
+    assert failed == ["CMD-5"], failed
+    assert "does not act on the tester's command 'SET_GAINS outside RUNNING" in (
+        results[0].detail), results[0].detail
 
 
 def test_the_verdict_names_the_first_divergence_first_and_one_cause_per_episode() -> None:

@@ -96,21 +96,26 @@ def test_a_sampled_c_fault_fails_conformance_naming_its_requirement(name: str) -
     assert s.caught and s.named_first, (s.failed, s.first_mismatch)
 
 
-# measured on this commit (docs/conformance.md): a floor, not a target
-# c542fbe, case 1 (the band step's known start, the SET_GAINS in ISOLATED, RX-10 on the
-# status, RX-2's FD frame before the tick)
-FLOOR = {"caught": 25, "named": 20, "named_first": 19, "named_by_first_diff": 20}
+# measured (docs/conformance.md): floors, not targets. Case 1, agent 3: bus timing since
+# the command not obeyed and the state rules of the attribution (c542fbe had 25, 20,
+# 19, 20); exact timing (the device's ticks on the dot) measured first with them
+FLOOR = {"caught": 25, "named": 23, "named_first": 23, "named_by_first_diff": 23}
+FLOOR_EXACT = {"caught": 29, "named": 26, "named_first": 26, "named_by_first_diff": 26}
 
 
 @pytest.mark.long
 @pytest.mark.mutation
+@pytest.mark.parametrize("timing", ["bus", "exact"])
 def test_the_c_fault_score_of_the_schedule_does_not_regress(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Expected: every firmware_c fault played against the schedule (case 1, agent 3):
-    at least as many caught and named as docs/conformance.md reports."""
+        timing: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Expected: every firmware_c fault played against the schedule (case 1, agent 3),
+    at bus and at exact timing: at least as many caught and named as
+    docs/conformance.md reports."""
     import json
 
     out = tmp_path / "score.json"
-    assert score_tool().main(["--device", "c", "--case", "1:3", "--json", str(out)]) == 0
+    assert score_tool().main(["--device", "c", "--case", "1:3", "--timing", timing,
+                              "--json", str(out)]) == 0
     s = json.loads(out.read_text())["cases"]["1:3"]["summary"]
-    assert all(s[k] >= v for k, v in FLOOR.items()), (s, capsys.readouterr().out[-3000:])
+    floor = FLOOR if timing == "bus" else FLOOR_EXACT
+    assert all(s[k] >= v for k, v in floor.items()), (s, capsys.readouterr().out[-3000:])

@@ -10,6 +10,8 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
+import can
+
 from firmware_py import config as fc
 from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig, Neighbour
@@ -39,6 +41,32 @@ def _armed_false(rt: AgentRuntime) -> None:
 def _patch_controller(rt: AgentRuntime, name: str, mixin: type) -> None:
     cls = type(rt.ctrl)
     rt.ctrl.__class__ = type(name + cls.__name__, (mixin, cls), {})
+
+
+class _IgnoringRuntime(AgentRuntime):
+    """firmware_py's agent that does not act on one command frame: verified and counted
+    as any, its effect (state, controller, gains, PIN) undone at once."""
+
+    ignored: tuple[int, bytes] = (-1, b"")
+
+    def on_frame(self, msg: can.Message, t: float) -> None:
+        """As AgentRuntime's, but the ignored frame changes no state of the control."""
+        if (msg.arbitration_id, bytes(msg.data)) != self.ignored:
+            super().on_frame(msg, t)
+            return
+        kept = self.state, self.cstate, self.ctrl, self.pin
+        super().on_frame(msg, t)
+        self.state, self.cstate, self.ctrl, self.pin = kept
+
+
+def ignoring(msg: can.Message) -> Callable[[AgentRuntime], None]:
+    """A deviation: the device does not act on the command frame ``msg`` (the checker's
+    counterfactual for "a command it must obey was not obeyed": ``explain``)."""
+    def deviation(rt: AgentRuntime) -> None:
+        rt.__class__ = _IgnoringRuntime
+        assert isinstance(rt, _IgnoringRuntime)
+        rt.ignored = (msg.arbitration_id, bytes(msg.data))
+    return deviation
 
 
 MUTANTS: dict[str, tuple[str, Callable[[AgentRuntime], None]]] = {

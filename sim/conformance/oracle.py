@@ -109,13 +109,13 @@ class Outcome:
 
 # Which requirements a mismatch on a signal violates (besides the step's)
 SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
-    "MC.Lambda": ("XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1", "STEP-12"),
+    "MC.Lambda": ("XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1", "STEP-12", "STATE-10"),
     # and the inputs' rules that decide health (STATE-2): a valid price, a plant fault
     "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9",
                  "PRICE-1", "RX-11"),
     # ISOLATE zeroes the count; a neighbour dying at another tick (LIVE-2) is a zero
-    # crossing of ξ at another tick
-    "MC.Resets": ("STEP-3", "BAND-3", "TX-1", "STATE-7", "LIVE-2"),
+    # crossing of ξ at another tick; entering RUNNING or SAFE is no reset (STATE-6)
+    "MC.Resets": ("STEP-3", "BAND-3", "TX-1", "STATE-7", "LIVE-2", "STATE-6"),
     "Setpoint.Enable": ("TX-2", "SP-3"),
     "Setpoint.PowerSetpoint": ("SP-1", "TX-2"),
     "Diag.RejectedAuth": ("AUTH-14", "AUTH-16", "AUTH-21", "RX-8", "AUTH-25"),
@@ -136,7 +136,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.SafetySender": ("DIAG-4",),
     "Diag.SafetyCause": ("DIAG-4",),
     "Diag.Untrusted": ("RX-13", "RX-10"),  # RX-10: a valid frame ends the streak
-    "Diag.Resets": ("DIAG-1", "STEP-1", "STATE-7"),
+    "Diag.Resets": ("DIAG-1", "STEP-1", "STATE-7", "STATE-6"),
     "Diag.NeighboursAlive": ("DIAG-1", "LIVE-2"),
     "Diag.Saturations": ("DIAG-3", "XI-3", "STEP-9"),
     "Sync.frames": ("AUTH-9",),
@@ -362,6 +362,10 @@ MOMENT_TICKS = 10
 """How long (in ticks) a tester's noted frame (a command, a forged MAC, ...) is what the
 schedule exercises: a difference within that many ticks after it is attributed to it."""
 
+LAMBDA_HELD = "λ held outside RUNNING"
+"""The oracle's edge at a tick where it is neither in RUNNING nor entering a state: λ is
+held there (STATE-10), which names a λ that differs."""
+
 EPISODE_GAP = 2
 """A difference within this many ticks of the previous one continues its episode (the
 oracle re-synchronised in between, and the DUT diverged again: the same cause)."""
@@ -498,7 +502,10 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                     ("|ξ| = BAND", abs(rt.cstate.xi_prev) == getattr(rt.ctrl, "band", None)),
                     ("λ beyond the λ limits", not fx.widen(rt.lam_min) <= rt.cstate.lam
                      <= fx.widen(rt.lam_max)))
-                    if hit and rt.state == State.RUNNING)
+                    if hit and rt.state == State.RUNNING) + (
+                    # λ is held in every other state (STATE-10): not one the oracle
+                    # entered at this tick (its entry has a rule of its own)
+                    (LAMBDA_HELD,) if rt.state == state != State.RUNNING else ())
                 # the DUT gone SAFE where the oracle is not: an input it did not take
                 # a whole timeout ago (STATE-2)
                 since_safe = since - max(cfg.price_timeout_s, cfg.status_timeout_s)

@@ -17,8 +17,16 @@ from firmware_py.config import AgentConfig
 from firmware_py.frames import FrameCodec
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
-from sim.conformance.mutants import MUTANTS, misreads
-from sim.conformance.oracle import SIGNAL_MUSTS, Frame, Mismatch, Outcome, check
+from sim.conformance.mutants import MUTANTS, ignoring, misreads
+from sim.conformance.oracle import (
+    LAMBDA_HELD,
+    MOMENT_TICKS,
+    SIGNAL_MUSTS,
+    Frame,
+    Mismatch,
+    Outcome,
+    check,
+)
 from sim.conformance.schedule import STEPS, Step
 
 # docs/firmware-spec.md's requirement IDs in order, shipped as package data (docs/ is not
@@ -110,11 +118,16 @@ TRANSITIONS: dict[str, tuple[str, ...]] = {
     "ISOLATED → INIT": ("STATE-8",),
 }
 
+# The oracle's state changes that health decides (STATE-2): a device whose State differs
+# there judged the inputs otherwise, which the definition of health names first
+HEALTH_DECIDED = {"INIT → RUNNING", "SAFE → RUNNING", "RUNNING → SAFE"}
+
 # A state the DUT reports instead of the oracle's: the rule that decides between them
 STATE_RULES: dict[tuple[str, str], tuple[str, ...]] = {
     ("INIT", "SAFE"): ("STATE-5",), ("INIT", "RUNNING"): ("STATE-4", "STATE-2"),
-    ("RUNNING", "INIT"): ("STATE-4", "STATE-2"), ("SAFE", "RUNNING"): ("STATE-3", "TMO-2"),
-    ("RUNNING", "SAFE"): ("STATE-3", "TMO-2"), ("SAFE", "INIT"): ("STATE-4",),
+    ("RUNNING", "INIT"): ("STATE-4", "STATE-2"),
+    ("SAFE", "RUNNING"): ("STATE-3", "TMO-2", "STATE-2"),
+    ("RUNNING", "SAFE"): ("STATE-3", "TMO-2", "STATE-2"), ("SAFE", "INIT"): ("STATE-4",),
     ("ISOLATED", "SAFE"): ("STATE-9",), ("ISOLATED", "INIT"): ("STATE-9", "STATE-8"),
     ("ISOLATED", "RUNNING"): ("STATE-9", "STATE-8"),
 }
@@ -180,8 +193,9 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS,
     step_musts = step.musts if step else ()
     # what the tester just did first: an edge the controller met can be its consequence
     contexts = [c for c in ([_moment_musts(n, steps) for n in mm.moment]
-                            + [EDGES.get(e, ()) for e in mm.transition]
-                            + [TRANSITIONS.get(w, ()) for w in mm.transition]) if c]
+                            + [EDGES.get(e, ()) for e in mm.transition
+                               if e != LAMBDA_HELD or key == "MC.Lambda"]
+                            + [_transition_musts(w, key) for w in mm.transition]) if c]
     # those the signal can show, of every context, the latest (the most specific) first
     meet = _ordered([m for context in contexts for m in context if m in sig], ())
     if meet:
@@ -196,6 +210,12 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS,
     return sig or step_musts or ("TICK-1",)
 
 
+def _transition_musts(went: str, key: str) -> tuple[str, ...]:
+    """What the oracle's state change ``went`` exercises, for a difference in ``key``."""
+    musts = TRANSITIONS.get(went, ())
+    return ("STATE-2", *musts) if key == "MC.State" and went in HEALTH_DECIDED else musts
+
+
 DIAG_MAX = 0xFFFF  # a 16-bit Diag counter's saturation value (DIAG-2)
 
 # Diag values that show the consequence of a classification, not a cause of their own
@@ -206,6 +226,7 @@ EDGES: dict[str, tuple[str, ...]] = {
     "ξ = 0 after ξprev ≠ 0": ("STEP-2",),
     "|ξ| = BAND": ("BAND-3",),
     "λ beyond the λ limits": ("STEP-12",),
+    LAMBDA_HELD: ("STATE-10",),  # of a λ difference only: other signals have rules there
 }
 
 
@@ -327,6 +348,8 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
         candidates += [(must, what, alt_cfg, None) for (must, what, alt_cfg), t in
                        zip(alts, at, strict=True)
                        if abs(t - t_first) <= MISREAD_TICKS * ts]
+    candidates += [(must, what, cfg, ignoring(msg))
+                   for must, what, msg in _commands_before(cfg, frames, outcome, codec)]
     for must, what, model, deviation in candidates:
         alt = check(model, keyring, dut_key, frames, codec, deviation, max_mismatches=1,
                     filtered_first=outcome.filtered, exact=outcome.exact)
@@ -346,6 +369,28 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
         outcome.mismatches[1:] = [replace(m, follows=None) for m in rest.mismatches]
         outcome.stopped = rest.stopped
         return
+
+
+def _commands_before(cfg: AgentConfig, frames: Sequence[Frame], outcome: Outcome,
+                     codec: FrameCodec | None) -> list[tuple[str, str, can.Message]]:
+    """The tester's noted commands of the MOMENT_TICKS before the first divergence, the
+    latest first: (the requirement its note exercises first, "it does not act on …", the
+    frame). A device that ignored one of them is explained by ``ignoring`` it."""
+    codec = codec or FrameCodec()
+    command_id = codec.frame_id("ER_Command")
+    inputs = [f for f in frames if f.sent]
+    if not inputs:
+        return []
+    first = outcome.mismatches[0]
+    since = first.t - MOMENT_TICKS * cfg.controller.ts
+    out = []
+    for f in reversed(inputs):
+        musts = _moment_musts(f.note, STEPS) if f.note else ()
+        if (f.msg.arbitration_id == command_id and musts
+                and since <= f.t - inputs[0].t < first.t):
+            out.append((musts[0], f"it does not act on the tester's command {f.note!r} "
+                        f"({f.t - inputs[0].t:.3f} s)", f.msg))
+    return out
 
 
 MISREAD_TICKS = 12
