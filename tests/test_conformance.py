@@ -329,7 +329,7 @@ def test_a_difference_where_a_state_rule_decides_names_that_rule() -> None:
     not follow the oracle's health (SAFE kept where the oracle went RUNNING, or the other
     way) names the definition of health, STATE-2, then the transition's rule; a λ
     difference at that entry still names the entry's rules, not STATE-2, and another
-    signal where λ is held its own rules, not STATE-10."""
+    signal where λ is held its own rules, not STATE-10 (nor does its report mention it)."""
     a = conf.attribute
     held = (conf.oracle.LAMBDA_HELD,)
     assert a(_mm("MC", "Lambda", 1000, 1014, step="price-only", moment=("sync of ER_Command",),
@@ -344,6 +344,16 @@ def test_a_difference_where_a_state_rule_decides_names_that_rule() -> None:
                  transition=("RUNNING → SAFE",)))[:2] == ("STATE-2", "STATE-3")
     assert a(_mm("MC", "Lambda", 1000, 5000, step="running",
                  transition=("INIT → RUNNING",)))[0] == "STATE-4"
+    # the report says where the oracle was: a state change, or an edge (λ held for λ only)
+    why = [r.detail for r in conf.verdict(conf.Outcome(ticks=200, mismatches=[
+        _mm("Sync", "frames", "no sync", "a sync", step="start", transition=held)]))]
+    assert "the oracle" not in why[0], why[0]
+    why = [r.detail for r in conf.verdict(conf.Outcome(ticks=200, mismatches=[
+        _mm("MC", "Lambda", 1000, 1014, step="price-only", transition=held)]))]
+    assert "the oracle at λ held outside RUNNING" in why[0], why[0]
+    why = [r.detail for r in conf.verdict(conf.Outcome(ticks=200, mismatches=[
+        _mm("MC", "State", "RUNNING", "SAFE", transition=("SAFE → RUNNING",))]))]
+    assert "the oracle going SAFE → RUNNING" in why[0], why[0]
     # a command's own rule still comes first where the tester just sent one
     assert a(_mm("MC", "State", "INIT", "RUNNING", step="states",
                  moment=("RECONNECT, the price stale",),

@@ -309,10 +309,15 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
 def _first_divergence(mm: Mismatch, musts: Sequence[str], n: int, last: int) -> str:
     """The report of one divergence: where, what, the requirement under test there."""
     at = f"step {mm.step}, the device's tick {mm.tick} (t = {mm.t:.3f} s)"
+    # the oracle's state change ("A → B") or the edge its controller met; its λ held
+    # outside RUNNING only where λ differs
+    shown = [w for w in mm.transition
+             if w != LAMBDA_HELD or (mm.message, mm.signal) == ("MC", "Lambda")]
     if mm.moment:
         at += f", after the tester's {mm.moment[0]!r}"
-    elif mm.transition:
-        at += f", the oracle going {mm.transition[0]}"
+    elif shown:
+        at += (f", the oracle going {shown[0]}" if "→" in shown[0]
+               else f", the oracle at {shown[0]}")
     what = (f"{mm.message}.{mm.signal} = {mm.got!r}, expected {mm.expected!r}"
             if mm.signal else f"{mm.message}: {mm.got!r}, expected {mm.expected!r}")
     more = (f"; {n - 1} more difference{'s' if n > 2 else ''} to tick {last} (the oracle "
