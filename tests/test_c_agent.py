@@ -802,7 +802,8 @@ def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once
 
 @pytest.mark.parametrize("case,dut,jitter,filtered,fd", [(1, 3, 0.0, False, False),
                                                          (1, 1, 0.9, True, True),
-                                                         (7, 5, 0.5, False, False)])
+                                                         (7, 5, 0.5, False, False),
+                                                         (6, 3, 0.3, False, False)])
 def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter: float,
                                                      filtered: bool, fd: bool) -> None:
     """`bess-ded conformance`'s whole schedule (sim.conformance: 1620 ticks, the

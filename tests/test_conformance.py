@@ -97,7 +97,8 @@ def test_a_device_sending_the_other_frame_format_fails_gen_1_alone(fd: bool) -> 
 
 @pytest.mark.parametrize("case,dut,jitter,seed,fd", [(1, 3, 0.0, 0, False),
                                                      (1, 1, 0.95, 2, True),
-                                                     (7, 5, 0.5, 1, False)])
+                                                     (7, 5, 0.5, 1, False),
+                                                     (6, 3, 0.3, 3, False)])
 def test_firmware_py_passes_every_requirement_at_any_timing(
         case: int, dut: int, jitter: float, seed: int, fd: bool) -> None:
     """Expected: with the device's ticks and the tester's frames each up to 0.95 Ts late,
@@ -116,6 +117,35 @@ def test_firmware_py_passes_every_requirement_at_any_timing(
     assert outcome.steps_seen == {s.name for s in conf.STEPS}
     assert all(r.passed for r in results), [r for r in results if not r.passed]
     assert outcome.ticks >= conf.STEPS[-1].end - 5
+
+
+def test_a_dwell_device_meets_crossings_at_its_dwell_and_only_it_is_judged_on_them() -> None:
+    """Expected: on a device of kind dwell (case 6, D = ceil(7.2) = 8 samples in the
+    tester's file) the band step ends with a crossing after SAFE and crossings D − 1 and
+    D samples after a reset, and DWELL-1, DWELL-2 and CTRL-2 are in its verdict; a device
+    whose dwell lets a crossing reset only once since_reset > D (not ≥: the set's
+    ``dwell_strict``) fails DWELL-1 first. A reset device's verdict has none of them
+    (another kind's requirements), and its plan has no such crossing."""
+    import conformance_faults as cf
+
+    cfg, ring, planned = _setup(6, 3)
+    assert cfg.controller.kind == "dwell" and cfg.controller.dwell_samples == 8
+    notes = [p.note for p in planned if p.step == "band" and "samples after a reset" in p.note]
+    assert [n.split(" (")[0] for n in notes] == [
+        "a crossing D or more samples after a reset, SAFE between",
+        "a crossing D − 1 samples after a reset", "a crossing D samples after a reset"]
+    _, healthy = _judge(cfg, ring, conf.simulate(cfg, ring(), planned, jitter=0.3))
+    assert {"DWELL-1", "DWELL-2", "CTRL-2"} <= {r.must for r in healthy if r.passed}
+    strict = cf.BY_NAME["dwell_strict"].apply
+    _, faulty = _judge(cfg, ring, conf.simulate(cfg, ring(), planned, strict, jitter=0.3))
+    assert [r.must for r in faulty if r.failed][:1] == ["DWELL-1"], faulty[:3]
+    cfg1, ring1, planned1 = _setup(1, 3)
+    assert not any("samples after a reset" in p.note for p in planned1)
+    _, reset = _judge(cfg1, ring1, conf.simulate(cfg1, ring1(), planned1))
+    assert not {"DWELL-1", "DWELL-2", "CTRL-2"} & {r.must for r in reset}
+    # a pinned dwell device (case 6's hub): no band trajectory, so no dwell edges either
+    _, hub = conf.written_config(agent_configs_from_scenario(load_case(6))[0])
+    assert hub.controller.kind == "dwell" and conf.kind_exercised(hub) == ""
 
 
 @pytest.mark.parametrize("filtered_first", [False, True])
@@ -334,8 +364,9 @@ def test_a_difference_where_a_state_rule_decides_names_that_rule() -> None:
     held = (conf.oracle.LAMBDA_HELD,)
     assert a(_mm("MC", "Lambda", 1000, 1014, step="price-only", moment=("sync of ER_Command",),
                  transition=held))[0] == "STATE-10"
-    # ... of a λ only: INIT gone SAFE is still its own rule's
-    assert a(_mm("MC", "State", "INIT", "SAFE", step="start", transition=held))[0] == "STATE-5"
+    # ... of a λ only (the oracle gives the edge to a λ difference alone): INIT gone SAFE
+    # is still its own rule's
+    assert a(_mm("MC", "State", "INIT", "SAFE", step="start"))[0] == "STATE-5"
     assert a(_mm("MC", "Resets", 0, 1, step="running",
                  transition=("INIT → RUNNING",)))[0] == "STATE-6"
     assert a(_mm("MC", "State", "RUNNING", "SAFE", step="timeouts",
@@ -346,7 +377,7 @@ def test_a_difference_where_a_state_rule_decides_names_that_rule() -> None:
                  transition=("INIT → RUNNING",)))[0] == "STATE-4"
     # the report says where the oracle was: a state change, or an edge (λ held for λ only)
     why = [r.detail for r in conf.verdict(conf.Outcome(ticks=200, mismatches=[
-        _mm("Sync", "frames", "no sync", "a sync", step="start", transition=held)]))]
+        _mm("Sync", "frames", "no sync", "a sync", step="start")]))]
     assert "the oracle" not in why[0], why[0]
     why = [r.detail for r in conf.verdict(conf.Outcome(ticks=200, mismatches=[
         _mm("MC", "Lambda", 1000, 1014, step="price-only", transition=held)]))]
@@ -358,6 +389,18 @@ def test_a_difference_where_a_state_rule_decides_names_that_rule() -> None:
     assert a(_mm("MC", "State", "INIT", "RUNNING", step="states",
                  moment=("RECONNECT, the price stale",),
                  transition=("ISOLATED → INIT",)))[0] == "STATE-8"
+
+
+def test_the_oracle_gives_lambda_held_to_a_lambda_difference_only() -> None:
+    """Expected: a device that goes SAFE from INIT (the oracle holds λ there: the edge
+    LAMBDA_HELD) fails its own rule first, STATE-5, not STATE-10: the oracle marks only a
+    λ difference with the edge, so neither the attribution nor the report gives it to a
+    State."""
+    import conformance_faults as cf
+
+    s = cf.score(cf.BY_NAME["init_goes_safe"])
+    assert s.failed[:1] == ["STATE-5"], s.failed
+    assert "λ held" not in s.first_mismatch, s.first_mismatch
 
 
 def test_a_device_that_does_not_act_on_a_command_is_named_by_that_command() -> None:

@@ -67,10 +67,11 @@ def _job(args: tuple[str, int, int, float, int, str, bool]) -> cf.Score:
     return fs.score(fs.BY_NAME[name], case, dut, jitter, seed, exact=exact)
 
 
-def table(scores: list[cf.Score]) -> str:
+def table(scores: list[cf.Score], case: tuple[int, int] | None = None) -> str:
     """One line per fault: caught, the own requirement first / at all / among those of
     the first difference, then the requirements failed (those failed only as "not
-    exercised" counted, not listed)."""
+    exercised" counted, not listed); a fault played on another device than ``case``'s
+    (another controller kind's) says where."""
     lines = [f"{'fault':26s} {'requirement':11s} {'class':11s} {'caught':6s} {'1st':3s} "
              f"{'any':3s} {'dif':3s} failed (verdict order: by evidence; +N not exercised)"]
     for s in scores:
@@ -80,6 +81,8 @@ def table(scores: list[cf.Score]) -> str:
             failed += f" +{len(s.unexercised)}"
         if s.problems and not s.failed:
             failed = "problem: " + s.problems[0][:60]
+        if case is not None and (s.case, s.dut) != case:
+            failed += f" (played on case {s.case}, agent {s.dut})"
         lines.append(f"{s.fault:26s} {s.requirement:11s} {s.group:11s} "
                      f"{'yes' if s.caught else 'NO':6s} {'yes' if s.named_first else '-':3s} "
                      f"{'yes' if s.named else '-':3s} "
@@ -131,11 +134,14 @@ def main(argv: list[str] | None = None) -> int:
     doc: dict[str, object] = {"device": a.device, "jitter": a.jitter, "seed": a.seed,
                               "timing": a.timing, "cases": {}}
     for case, dut in cases:
-        base = fs.score(None, case, dut, a.jitter, a.seed, exact=exact)
-        if base.caught:
-            print(f"case {case} agent {dut}: the faultless agent fails ({base.failed}, "
-                  f"{base.problems}): no score", file=sys.stderr)
-            return 1
+        # the faultless agent on every device the faults are played on
+        for on in dict.fromkeys([(case, dut), *(cf.played_on(fs.BY_NAME[n], case, dut)
+                                               for n in names)]):
+            base = fs.score(None, *on, a.jitter, a.seed, exact=exact)
+            if base.caught:
+                print(f"case {on[0]} agent {on[1]}: the faultless agent fails "
+                      f"({base.failed}, {base.problems}): no score", file=sys.stderr)
+                return 1
         jobs = [(n, case, dut, a.jitter, a.seed, a.device, exact) for n in names]
         if a.jobs > 1:
             from multiprocessing import Pool
@@ -145,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
             scores = [_job(j) for j in jobs]
         print(f"case {case}, agent {dut}, device {a.device} (jitter {a.jitter}, "
               f"seed {a.seed}, timing {a.timing}):")
-        print(table(scores))
+        print(table(scores, (case, dut)))
         s = summary(scores)
         n = s["faults"]
         print(f"caught {s['caught']}/{n} ({s['caught_pct']} %); the own requirement named "

@@ -58,12 +58,14 @@ from sim.conformance.results import (
     verdict,
 )
 from sim.conformance.schedule import (
+    KIND_ONLY,
     PULSE,
     QUICK,
     STEPS,
     Planned,
     Step,
     conformance_config,
+    kind_exercised,
     plan,
     played_steps,
     read_config,
@@ -72,6 +74,7 @@ from sim.conformance.schedule import (
 
 __all__ = [
     "Frame",
+    "KIND_ONLY",
     "LATE_TICKS",
     "MAX_HYPOTHESES",
     "MOMENTS",
@@ -89,6 +92,7 @@ __all__ = [
     "attribute",
     "check",
     "conformance_config",
+    "kind_exercised",
     "drive",
     "explain",
     "junit",

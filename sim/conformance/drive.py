@@ -53,9 +53,21 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
         latency = 0.0
         ticks = [(k + phase) * ts for k in range(int(end / ts) + 2)]
         ticks = [t for t in ticks if t < end]
-    inputs = sorted((Frame(_exactly_old(t0 + p.at, p.age, ticks) if exact and p.age
-                           else t0 + p.at + rnd.uniform(0, jitter * ts), p.msg, True,
-                           p.step, p.note) for p in planned), key=lambda f: f.t)
+    inputs: list[Frame] = []
+    last: dict[int, int] = {}  # ID → index in inputs of the tester's latest frame of it
+    for p in planned:
+        fid = p.msg.arbitration_id
+        if exact and p.after is not None and fid in last:
+            before = inputs[last[fid]]
+            t_prev, t = _exactly_after(before.t, p.after, ts)
+            inputs[last[fid]] = Frame(t_prev, before.msg, True, before.step, before.note)
+        elif exact and p.age:
+            t = _exactly_old(t0 + p.at, p.age, ticks)
+        else:
+            t = t0 + p.at + rnd.uniform(0, jitter * ts)
+        last[fid] = len(inputs)
+        inputs.append(Frame(t, p.msg, True, p.step, p.note))
+    inputs.sort(key=lambda f: f.t)
     passed = set(getattr(dut, "io", dut).accepted_ids())
     record: list[Frame] = []
     nxt = 0
@@ -74,6 +86,20 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
                 record.append(Frame(tick + latency, msg, False))
             k += 1
     return record
+
+
+def _exactly_after(prev: float, gap: float, ts: float) -> tuple[float, float]:
+    """Two receive times near ``prev`` and ``prev + gap`` that are exactly ``gap`` apart
+    as either device subtracts them: in binary64 (firmware_py: (t − t_prev) / Ts ==
+    gap / Ts) and in whole ns (firmware_c: round(t·1e9), its period round(Ts·1e9)). The
+    first moves by at most 2 ns."""
+    want_ns = round(gap / ts * round(ts * 1e9))
+    for m in range(2000):
+        a = prev + m * 1e-12
+        b = a + gap
+        if b - a == gap and (b - a) / ts == gap / ts and round(b * 1e9) - round(a * 1e9) == want_ns:
+            return a, b
+    raise ValueError(f"no two times {gap!r} s apart near {prev!r} s in binary64 and ns")
 
 
 def _exactly_old(at: float, age: float, ticks: Sequence[float]) -> float:

@@ -87,7 +87,7 @@ def misreads(cfg: AgentConfig, text: str | None = None) -> list[tuple[str, str, 
     Used only to name the requirement when a DUT fails (``explain``), like
     ``MUTANTS``."""
     c = cfg.controller
-    dflt = ControllerConfig(kind=c.kind)
+    dflt = ControllerConfig()  # the defaults of ts, k, h, band (the same for every kind)
     out: list[tuple[str, str, AgentConfig]] = []
 
     def add(must: str, what: str, alt: AgentConfig) -> None:
@@ -107,6 +107,10 @@ def misreads(cfg: AgentConfig, text: str | None = None) -> list[tuple[str, str, 
             add("CFG-3", f"its TSQ (ν's Q30 period) is the period in whole ns, {ns_ts!r} "
                 f"s, not the file's ts {c.ts!r} (k·ts and h·ts from the file's)",
                 ctrl(ts=ns_ts, k=k2, h=h2))
+    if c.kind == "dwell" and round(c.dwell / c.ts) != c.dwell_samples:  # CTRL-2: ceil
+        add("CTRL-2", f"it rounds controller.dwell / ts = {c.dwell / c.ts:.3g} to "
+            f"{round(c.dwell / c.ts)} samples, not up to {c.dwell_samples}",
+            ctrl(dwell=round(c.dwell / c.ts) * c.ts))
     if dflt.ts != ns_ts:
         add("CFG-3", f"it takes controller.ts's default {dflt.ts!r}, not the file's "
             f"{c.ts!r}", ctrl(ts=dflt.ts))

@@ -38,6 +38,7 @@ from firmware_py.frames import (
 from firmware_py.nodeio import SyncSchedule
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
+from sim.conformance.schedule import kind_exercised
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,9 @@ class Outcome:
     stopped: str = ""  # why the check stopped before the end of the record, if it did
     differing_ticks: int = 0  # ticks with a difference (mismatches keeps the first ones)
     exact: bool = False  # checked with the device's clock trusted (``check``'s ``exact``)
+    # the controller kind whose own requirements (KIND_ONLY) the schedule exercised on
+    # the DUT ("": none; ``schedule.kind_exercised``)
+    kind: str = ""
 
 
 # Which requirements a mismatch on a signal violates (besides the step's)
@@ -115,7 +119,8 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
                  "PRICE-1", "RX-11"),
     # ISOLATE zeroes the count; a neighbour dying at another tick (LIVE-2) is a zero
     # crossing of ξ at another tick; entering RUNNING or SAFE is no reset (STATE-6)
-    "MC.Resets": ("STEP-3", "BAND-3", "TX-1", "STATE-7", "LIVE-2", "STATE-6"),
+    "MC.Resets": ("STEP-3", "BAND-3", "TX-1", "STATE-7", "LIVE-2", "STATE-6", "DWELL-1",
+                  "DWELL-2"),
     "Setpoint.Enable": ("TX-2", "SP-3"),
     "Setpoint.PowerSetpoint": ("SP-1", "TX-2"),
     "Diag.RejectedAuth": ("AUTH-14", "AUTH-16", "AUTH-21", "RX-8", "AUTH-25"),
@@ -307,6 +312,7 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
                             filtered_first, exact)
     outcome.format_errors = wrong
     outcome.exact = exact
+    outcome.kind = kind_exercised(cfg)
     return outcome
 
 
@@ -502,10 +508,10 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                     ("|ξ| = BAND", abs(rt.cstate.xi_prev) == getattr(rt.ctrl, "band", None)),
                     ("λ beyond the λ limits", not fx.widen(rt.lam_min) <= rt.cstate.lam
                      <= fx.widen(rt.lam_max)))
-                    if hit and rt.state == State.RUNNING) + (
-                    # λ is held in every other state (STATE-10): not one the oracle
-                    # entered at this tick (its entry has a rule of its own)
-                    (LAMBDA_HELD,) if rt.state == state != State.RUNNING else ())
+                    if hit and rt.state == State.RUNNING)
+                # λ is held in every other state (STATE-10): not one the oracle entered at
+                # this tick (its entry has a rule of its own); an edge of λ's only
+                held = (LAMBDA_HELD,) if rt.state == state != State.RUNNING else ()
                 # the DUT gone SAFE where the oracle is not: an input it did not take
                 # a whole timeout ago (STATE-2)
                 since_safe = since - max(cfg.price_timeout_s, cfg.status_timeout_s)
@@ -516,7 +522,9 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                                           since_safe if went_safe else since)
                                       <= f.t < t_tick)
                     mm.follows = follows
-                    mm.transition = edges + ((went,) if went else ()) + trans
+                    lam = (mm.message, mm.signal) == ("MC", "Lambda")
+                    mm.transition = (edges + (held if lam else ()) + ((went,) if went else ())
+                                     + trans)
                 outcome.differing_ticks += 1
                 if follows is None or len(outcome.mismatches) < MAX_KEPT:
                     outcome.mismatches.extend(failure[2])

@@ -27,7 +27,7 @@ from sim.conformance.oracle import (
     Outcome,
     check,
 )
-from sim.conformance.schedule import STEPS, Step
+from sim.conformance.schedule import KIND_ONLY, STEPS, Step
 
 # docs/firmware-spec.md's requirement IDs in order, shipped as package data (docs/ is not
 # installed); tools/gen_spec_ids.py writes it, a test checks it against the spec
@@ -93,6 +93,7 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "RECONNECT, …": ("STATE-8", "CMD-4", "STATE-4"),
     "ISOLATE in …": ("STATE-7", "CMD-3"),
     "a neighbour λ step …": ("LAM-1",),
+    "a neighbour frame exactly 2.5 periods …": ("LAM-1",),  # the tie of rne (samples)
     "a neighbour λ jump …": ("LIVE-1", "LAM-1"),
     "a neighbour λ square step": ("LIVE-1", "LAM-1"),
     "a neighbour's first frame after …": ("AUTH-13", "AUTH-15", "LIVE-2"),
@@ -193,8 +194,7 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS,
     step_musts = step.musts if step else ()
     # what the tester just did first: an edge the controller met can be its consequence
     contexts = [c for c in ([_moment_musts(n, steps) for n in mm.moment]
-                            + [EDGES.get(e, ()) for e in mm.transition
-                               if e != LAMBDA_HELD or key == "MC.Lambda"]
+                            + [EDGES.get(e, ()) for e in mm.transition]
                             + [_transition_musts(w, key) for w in mm.transition]) if c]
     # those the signal can show, of every context, the latest (the most specific) first
     meet = _ordered([m for context in contexts for m in context if m in sig], ())
@@ -226,7 +226,7 @@ EDGES: dict[str, tuple[str, ...]] = {
     "ξ = 0 after ξprev ≠ 0": ("STEP-2",),
     "|ξ| = BAND": ("BAND-3",),
     "λ beyond the λ limits": ("STEP-12",),
-    LAMBDA_HELD: ("STATE-10",),  # of a λ difference only: other signals have rules there
+    LAMBDA_HELD: ("STATE-10",),  # the oracle gives it to a λ difference only
 }
 
 
@@ -252,7 +252,8 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
     exercised: dict[str, list[str]] = {}
     for s in steps:
         for m in s.musts:
-            exercised.setdefault(m, []).append(s.name)
+            if KIND_ONLY.get(m, outcome.kind) == outcome.kind:  # not another kind's
+                exercised.setdefault(m, []).append(s.name)
     # (time, order, requirements, why)
     evidence: list[tuple[float, int, tuple[str, ...], str]] = []
     by_tick: dict[int, list[Mismatch]] = {}
@@ -309,15 +310,11 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
 def _first_divergence(mm: Mismatch, musts: Sequence[str], n: int, last: int) -> str:
     """The report of one divergence: where, what, the requirement under test there."""
     at = f"step {mm.step}, the device's tick {mm.tick} (t = {mm.t:.3f} s)"
-    # the oracle's state change ("A → B") or the edge its controller met; its λ held
-    # outside RUNNING only where λ differs
-    shown = [w for w in mm.transition
-             if w != LAMBDA_HELD or (mm.message, mm.signal) == ("MC", "Lambda")]
     if mm.moment:
         at += f", after the tester's {mm.moment[0]!r}"
-    elif shown:
-        at += (f", the oracle going {shown[0]}" if "→" in shown[0]
-               else f", the oracle at {shown[0]}")
+    elif mm.transition:  # the oracle's state change ("A → B") or the edge it met
+        went = mm.transition[0]
+        at += f", the oracle going {went}" if "→" in went else f", the oracle at {went}"
     what = (f"{mm.message}.{mm.signal} = {mm.got!r}, expected {mm.expected!r}"
             if mm.signal else f"{mm.message}: {mm.got!r}, expected {mm.expected!r}")
     more = (f"; {n - 1} more difference{'s' if n > 2 else ''} to tick {last} (the oracle "
@@ -343,18 +340,19 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
     if not outcome.mismatches:
         return
     first = outcome.mismatches[0].tick
+    inputs = [f for f in frames if f.sent]  # the tester's frames
     candidates: list[tuple[str, str, AgentConfig, Callable[[AgentRuntime], None] | None]]
     candidates = [(must, what, cfg, deviation) for must, (what, deviation)
                   in MUTANTS.items()]
     alts = misreads(cfg, config_text)
     if alts:  # only those whose own frames first differ where the DUT's did (a replay)
-        at = _first_differences(cfg, [a for _, _, a in alts], keyring, frames, codec)
+        at = _first_differences(cfg, [a for _, _, a in alts], keyring, frames, inputs, codec)
         t_first, ts = outcome.mismatches[0].t, cfg.controller.ts
         candidates += [(must, what, alt_cfg, None) for (must, what, alt_cfg), t in
                        zip(alts, at, strict=True)
                        if abs(t - t_first) <= MISREAD_TICKS * ts]
     candidates += [(must, what, cfg, ignoring(msg))
-                   for must, what, msg in _commands_before(cfg, frames, outcome, codec)]
+                   for must, what, msg in _commands_before(cfg, inputs, outcome, codec)]
     for must, what, model, deviation in candidates:
         alt = check(model, keyring, dut_key, frames, codec, deviation, max_mismatches=1,
                     filtered_first=outcome.filtered, exact=outcome.exact)
@@ -376,14 +374,14 @@ def explain(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence
         return
 
 
-def _commands_before(cfg: AgentConfig, frames: Sequence[Frame], outcome: Outcome,
+def _commands_before(cfg: AgentConfig, inputs: Sequence[Frame], outcome: Outcome,
                      codec: FrameCodec | None) -> list[tuple[str, str, can.Message]]:
-    """The tester's noted commands of the MOMENT_TICKS before the first divergence, the
-    latest first: (the requirement its note exercises first, "it does not act on …", the
-    frame). A device that ignored one of them is explained by ``ignoring`` it."""
+    """The tester's (``inputs``) noted commands of the MOMENT_TICKS before the first
+    divergence, the latest first: (the requirement its note exercises first, "it does
+    not act on …", the frame). A device that ignored one of them is explained by
+    ``ignoring`` it."""
     codec = codec or FrameCodec()
     command_id = codec.frame_id("ER_Command")
-    inputs = [f for f in frames if f.sent]
     if not inputs:
         return []
     first = outcome.mismatches[0]
@@ -404,10 +402,11 @@ plain replay of the record) lies this close (ticks) to the DUT's first divergenc
 
 
 def _first_differences(cfg: AgentConfig, alts: Sequence[AgentConfig], keyring: Keyring,
-                       frames: Sequence[Frame], codec: FrameCodec | None) -> list[float]:
+                       frames: Sequence[Frame], inputs: Sequence[Frame],
+                       codec: FrameCodec | None) -> list[float]:
     """For each configuration of ``alts``: the time of the first tick where firmware_py's
     agent configured so sends other frames than configured as ``cfg``, both fed the
-    tester's frames of the record when sent and ticked at the DUT's MC frames (one
+    tester's frames of the record (``inputs``) when sent and ticked at the DUT's MC frames (one
     order, no hypotheses: a screen for ``explain``, cheaper than a check), from the
     tester's first frame (as ``Mismatch.t``); inf if never."""
     from firmware_py.frames import diag_name, mc_name
@@ -415,7 +414,6 @@ def _first_differences(cfg: AgentConfig, alts: Sequence[AgentConfig], keyring: K
 
     codec = codec or FrameCodec()
     mc_id, diag_id = (codec.frame_id(n(cfg.id)) for n in (mc_name, diag_name))
-    inputs = [f for f in frames if f.sent]
     first_sent = inputs[0].t if inputs else math.inf
     ticks = [f.t for f in frames if not f.sent and f.msg.arbitration_id == mc_id]
     # the Diag pages aligned with the DUT's, as ``check`` does

@@ -94,9 +94,8 @@ STEPS = (
          "status, whose one more after valid frames comes in the states step); a price "
          "frame 16 freshness values on; a neighbour's frames lost on the bus past its "
          "timeout, its count 120 on when it returns (window 8); price syncs 9 boots and "
-         "17 values on "
-         "(refused), then 16 on (taken), a command sync 129 on (refused); a neighbour's "
-         "Setpoint sync (a peer's boot: a hello), then again (no hello)",
+         "17 values on (refused), then 16 on (taken), a command sync 129 on (refused); a "
+         "neighbour's Setpoint sync (a peer's boot: a hello), then again (no hello)",
          ("AUTH-9", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-18",
           "AUTH-19", "AUTH-27", "RX-5", "RX-10", "RX-12", "RX-13", "LIVE-2", "LIVE-3",
           "TMO-4", "DIAG-4", "CFG-7")),
@@ -114,12 +113,18 @@ STEPS = (
          "the schedule up to here): the band armed, a reset, then ξ = −BAND exactly (not "
          "re-armed: BAND-3 is strict) and a crossing inside the band (no reset); a plant "
          "fault (SAFE) and back (RUNNING: armed kept, STATE-6), then a crossing inside the "
-         "band (no reset)",
+         "band (no reset); on a dwell device (D = 8 samples) then a crossing armed after "
+         "SAFE (a reset: the dwell counted through SAFE), and crossings D − 1 (none) and D "
+         "(a reset) samples after it",
          ("BAND-2", "BAND-3", "STEP-2", "STEP-3", "STEP-5", "STATE-3", "STATE-4", "STATE-6",
-          "XI-2", "RX-11"),
+          "XI-2", "RX-11", "CTRL-2", "DWELL-1", "DWELL-2"),
          (("ξ = −BAND exactly after a reset …", ("BAND-3",)),
           ("|ξ| between the default band …", ("BAND-3", "CFG-3")),
-          ("a crossing inside the band after entering RUNNING …", ("STATE-6",)))),
+          ("a crossing inside the band after entering RUNNING …", ("STATE-6",)),
+          ("a crossing D or more samples after a reset, SAFE between …", ("DWELL-2",
+                                                                         "DWELL-1")),
+          ("a crossing D − 1 samples after a reset …", ("DWELL-1", "CTRL-2")),
+          ("a crossing D samples after a reset …", ("DWELL-1", "CTRL-2")))),
     Step("extremes", 1470, 1620, "every neighbour INIT at lambda_min, then RUNNING there "
          "(no LAM-1 step after INIT): |Σ W_j (Λ − λ_j)| past int32 (ξ saturates, counted), "
          "the own λ driven past lambda_min (not clamped), to a Diag page of Saturations",
@@ -140,20 +145,19 @@ STEPS = (
 QUICK = ("start", "price-only", "running", "control", "authentication", "content",
          "commands")
 
+# Requirements of one controller kind: a step exercises them on a device of that kind
+# only (the band step's dwell edges); for another kind they are not in its verdict
+KIND_ONLY: dict[str, str] = {"CTRL-2": "dwell", "DWELL-1": "dwell", "DWELL-2": "dwell"}
+
 # The requirements no step exercises, and why: what a bus run cannot show, or what this
 # schedule leaves to the unit tests and vectors (docs/conformance.md's coverage table
 # lists them; a test fails when a spec requirement is in neither STEPS nor here).
 NOT_ON_BUS: dict[str, str] = {
     "NUM-5": "isqrt is used by the ft controller only; the DUT runs its configuration's "
              "kind (reset in every case but 2 and 6): the controller vectors check it",
-    "CTRL-2": "the dwell of kind dwell: a DUT configured from case 6 runs it; the "
-              "controller vectors check it bit for bit",
     "CTRL-3": "fpow of kind ft: the controller vectors check it",
     "STEP-10": "kind pc: the controller vectors check it",
     "STEP-11": "kind ft: the controller vectors check it",
-    "DWELL-1": "kind dwell: the DUT runs its configuration's kind; a crossing exactly D "
-               "samples after a reset needs a dwell DUT and a trajectory planned on it",
-    "DWELL-2": "kind dwell (as DWELL-1)",
     "SP-2": "setpoint_limited is not on the Diag frame (DIAG-5): not visible on the bus",
     "DIAG-2": "a counter at 65535 needs 65536 counted events (about 8 s of a full "
               "1 Mbit/s bus of unknown IDs): longer than the schedule on a bus; an "
@@ -239,6 +243,8 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     k = _rounds_up(1.1 * c.k, 30, ts)
     h = _rounds_up(0.9 * c.h, 30, ts)
     ctrl = replace(c, ts=ts, k=k, h=h, band=_rounds_up(1.5 * c.band, 24))
+    if c.kind == "dwell":  # D = ceil(7.2) = 8 samples (CTRL-2): the band step's edges fit
+        ctrl = replace(ctrl, dwell=round(7.2 * ts, 12))  # one nearest-rounding makes 7
     nbrs = tuple(Neighbour(n.id, _tie_weight(1.25 * n.weight)) for n in cfg.neighbours)
     step_max = _rounds_up(0.9 * 10.0 * k * ts, 24)  # below the default 10·k·Ts
     # a price step of 0.45: the content step's persistent 0.6 stays above it; a price
@@ -312,6 +318,10 @@ class Planned:
     # this frame so that it is exactly ``age`` s old at a tick of the device (a timeout's
     # boundary: ≤ against <); a bus run sends it at ``at`` as any other
     age: float | None = None
+    # an exact-timing run puts this frame exactly ``after`` s after the tester's previous
+    # frame of its ID (as the device subtracts: in binary64 and in whole ns); a tie of
+    # LAM-1's rne. Only in an exact-timing run's plan (``plan``'s ``flood``)
+    after: float | None = None
 
 
 def _tick_of(name: str) -> Callable[[int], bool]:
@@ -331,10 +341,12 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     of ``QUICK`` only. ``flood``: in process only (an exact-timing run), ``FLOOD``
     frames of an unknown ID at once in the extremes step, so that RejectedUnknownId
     passes 65535 and must stay there (DIAG-2); a bus run would take seconds of a full
-    bus for them, and the tolerant oracle one hypothesis per frame. ``other_format``: the
+    bus for them, and the tolerant oracle one hypothesis per frame; and a neighbour
+    frame exactly 2.5 periods after its last (LAM-1's tie, ``Planned.after``), which a
+    bus cannot time. ``other_format``: the
     bus carries an FD frame beside classic ones (in process and udp_multicast; not a
     classic SocketCAN bus): the content step sends one (RX-2)."""
-    out = _plan(cfg, keys, price, codec, boot, other_format=other_format)
+    out = _plan(cfg, keys, price, codec, boot, other_format=other_format, tie_rne=flood)
     if flood:
         codec = codec or FrameCodec()
         at = next(s.start for s in STEPS if s.name == "extremes") + 1.6
@@ -420,11 +432,13 @@ class _BandPlan:
         ts = cfg.controller.ts
         band = int(getattr(rt.ctrl, "band", 0))
         # the default band's word (CFG-3): a device that takes it re-arms at |ξ| above it
-        from firmware_py.controllers import ControllerConfig
-        lower = fx.to_fixed(ControllerConfig(kind=cfg.controller.kind).band)
+        from firmware_py.controllers import DEFAULT_BAND
+        lower = fx.to_fixed(DEFAULT_BAND)
         slots = list(rt.neighbours.values())
         step_max = rt.lambda_step_max
         last = {s.id: int(s.lam) for s in slots}
+        # a dwell device (DWELL-1, DWELL-2): crossings at the dwell's edge after re-entry
+        dwell = _DwellEdges(rt.ctrl.dwell_samples) if cfg.controller.kind == "dwell" else None
         fault = False
         entered: int | None = None  # the c at which the device is back in RUNNING
         placed = 0  # ticks in a row with every neighbour where the plan wanted it
@@ -482,12 +496,17 @@ class _BandPlan:
                     want[first.id] = lam - sign * band // 2
                     note = ("a crossing inside the band after entering RUNNING "
                             "(armed kept: no reset)" if c > entered else "")
+                elif dwell is not None and entered is not None and c - entered >= 2:
+                    x, note = dwell.next(rt.cstate, band)
+                    if x is not None:
+                        want[first.id] = lam - x
             joined = c == self.RECONNECT_AT + 1  # the first RUNNING frame after INIT
             chosen = want if joined else {j: toward(j, v) for j, v in want.items()}
             if note and chosen[first.id] != want[first.id]:
                 note = ""  # the step was too large for LAM-1: not at the edge
             placed = placed + 1 if all(chosen[j] == v for j, v in want.items()) else 0
-            if c0 is None and c >= 8 and placed >= 3:
+            if c0 is None and c >= 8 and placed >= 3 and (  # a dwell device: its reset
+                    dwell is None or rt.cstate.since_reset >= dwell.samples):  # allowed
                 c0 = c + 1
             self.lam.append(chosen)
             self.fault.append(fault)
@@ -504,9 +523,55 @@ class _BandPlan:
             rt.tick((start + c + 1) * ts)
 
 
+def band_planned(cfg: AgentConfig) -> bool:
+    """Whether the band step plays a trajectory planned on the reference for ``cfg``'s
+    device (one with neighbours and no pin: a pinned device's ξ has the price term)."""
+    return bool(cfg.neighbours) and not cfg.pinned
+
+
+def kind_exercised(cfg: AgentConfig) -> str:
+    """The controller kind whose own requirements (``KIND_ONLY``) the schedule exercises
+    on ``cfg``'s device: its kind where the band step is planned, else none ("")."""
+    return cfg.controller.kind if band_planned(cfg) else ""
+
+
+class _DwellEdges:
+    """The band step's end on a dwell device (DWELL-1, DWELL-2), from the reference's
+    controller state before each tick: a crossing armed and at least D samples after the
+    last reset, a few samples after the device re-entered RUNNING from SAFE (a reset, if
+    since_reset kept counting through SAFE), then crossings exactly D − 1 (blocked) and D
+    (a reset) samples after it. ``next`` gives the neighbour's offset below Λ (ξ =
+    W·offset, mulq) and the note of the tick; None once done."""
+
+    def __init__(self, samples: int) -> None:
+        self.samples = samples
+        self.phase = "arm"   # arm, reset, hold, done
+
+    def next(self, s: Any, band: int) -> tuple[int | None, str]:
+        away = 2 * band  # |ξ| = 2.5 BAND at W = 1.25: outside the band (armed)
+        sign = 1 if s.xi_prev >= 0 else -1  # the side ξ is on
+        if self.phase == "arm":  # the same side, outside the band: armed
+            self.phase = "reset"
+            return sign * away, ""
+        if self.phase == "reset":  # a crossing D or more samples after the last reset
+            if not (s.armed and s.since_reset >= self.samples):
+                return sign * away, ""
+            self.phase = "hold"
+            return -sign * away, ("a crossing D or more samples after a reset, SAFE between "
+                                  "(dwell: a reset)")
+        if self.phase == "hold":
+            if s.since_reset == self.samples - 1:
+                return -sign * away, "a crossing D − 1 samples after a reset (dwell: none)"
+            if s.since_reset == self.samples:
+                self.phase = "done"
+                return -sign * away, "a crossing D samples after a reset (dwell: a reset)"
+            return sign * away, ""
+        return None, ""
+
+
 def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
           codec: FrameCodec | None, boot: int, planned_band: bool = True,
-          other_format: bool = True) -> list[Planned]:
+          other_format: bool = True, tie_rne: bool = False) -> list[Planned]:
     codec = codec or FrameCodec()
     ts, i = cfg.controller.ts, cfg.id
     nbrs = [n.id for n in cfg.neighbours]
@@ -521,13 +586,13 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
     other = i % contract.N_AGENTS_MAX + 1
     at = {s.name: s.start for s in STEPS}
     span = next(s.end - s.start for s in STEPS if s.name == "band")
-    band_start = bool(nbrs) and not cfg.pinned  # the band step is planned
+    band_start = band_planned(cfg)
     band = (_BandPlan(cfg, price, codec, at["band"], span, other_format, keys is not None)
             if planned_band and band_start else None)
 
     def add(k: float, step: str, msg: can.Message, note: str = "",
-            age: float | None = None) -> None:
-        out.append(Planned(k * ts, step, msg, note, age))
+            age: float | None = None, after: float | None = None) -> None:
+        out.append(Planned(k * ts, step, msg, note, age, after))
 
     def step_at(k: int) -> str:
         return next(s.name for s in STEPS if s.start <= k < s.end)
@@ -684,8 +749,21 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 lam += q(0.5)  # a jump above lambda_step_max per sample: implausible
             if 60 <= k - at["limits"] < 65 and j == nbrs[0]:
                 nbr_state = State.INIT  # alive, but not in ξ (XI-1)
+            # an exact-timing run: the first neighbour's frame at limits + 11 lost, the
+            # next exactly 2.5 periods after its last and 2.5 bounds away (LAM-1: rne's
+            # tie to even gives 2 samples: rejected; 3 would take it)
+            tie = tie_rne and j == nbrs[0] and k - at["limits"] in (11, 12)
+            if tie and k - at["limits"] == 12:
+                lam, lam_note = (lam + 2 * lam_step + lam_step // 2,
+                                 "a neighbour frame exactly 2.5 periods after its last, "
+                                 "2.5 LAM-1 bounds away")
             msg = tx.frame(mc_name(j), {"State": int(nbr_state), "Lambda": lam,
                                         "Resets": 0})
+            if tie:
+                if lam_note:
+                    add(k + 0.5, step, msg, lam_note, after=2.5 * ts)
+                    genuine.append(msg)
+                continue
             if lost_nbr and j == nbrs[0]:
                 if k - fr == 54:  # and more values spent unseen: the next is 120 on, in
                     for _ in range(120 - 26):  # the 8th window of a lost ID (AUTH-13)
