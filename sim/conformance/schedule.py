@@ -127,10 +127,15 @@ STEPS = (
           ("a crossing D samples after a reset …", ("DWELL-1", "CTRL-2")))),
     Step("extremes", 1470, 1620, "every neighbour INIT at lambda_min, then RUNNING there "
          "(no LAM-1 step after INIT): |Σ W_j (Λ − λ_j)| past int32 (ξ saturates, counted), "
-         "the own λ driven past lambda_min (not clamped), to a Diag page of Saturations",
-         ("NUM-3", "XI-2", "XI-3", "STEP-1", "STEP-12", "RX-9", "LAM-2", "DIAG-3", "CFG-7"),
+         "the own λ driven past lambda_min (not clamped), to a Diag page of Saturations; "
+         "on a band-planned device first, pinned meanwhile, one tick with the sum exactly "
+         "2^31 − 1 (not clamped, not counted)",
+         ("NUM-3", "XI-2", "XI-3", "STEP-1", "STEP-12", "RX-9", "LAM-2", "DIAG-3", "CFG-7",
+          "CMD-7"),
          (("every neighbour at lambda_min in ξ …", ("NUM-3", "XI-3")),
-          ("a neighbour INIT at lambda_min", ("LAM-2", "RX-9")))),
+          ("a neighbour INIT at lambda_min", ("LAM-2", "RX-9")),
+          ("a neighbour at the λ that makes the sum of ξ exactly …", ("XI-3", "NUM-3")),
+          ("PIN on, for ξ …", ("CMD-7",)), ("PIN off", ("CMD-7",)))),
 )
 
 
@@ -419,6 +424,14 @@ class _BandPlan:
         self.fault: list[bool] = []
         self.note: list[str] = []
         self.state: list[State] = []
+        # the extremes step's first ticks (``_drive_extremes``): the neighbours' λ and
+        # State, the first one's note; the ticks whose commands PIN on and off (None: no
+        # tick of ξ exactly 2^31 − 1 was found, nor PIN sent)
+        self.ext_lam: list[dict[int, int]] = []
+        self.ext_state: list[State] = []
+        self.ext_first: list[tuple[State, str]] = []
+        self.pin_on_at: int | None = None
+        self.pin_off_at: int | None = None
         with quiet_firmware():
             for j in range(start + 1):
                 while nxt < len(frames) and frames[nxt].at < j * ts:
@@ -426,6 +439,7 @@ class _BandPlan:
                     nxt += 1
                 rt.tick(j * ts)
             self._drive(rt, cfg, start, length, commands)
+            self._drive_extremes(rt, cfg, start + length)
 
     def _drive(self, rt: Any, cfg: AgentConfig, start: int, length: int,
                commands: Mapping[int, Planned]) -> None:
@@ -521,6 +535,74 @@ class _BandPlan:
             if _tick_of(status_name(cfg.id))(start + c):  # the status frame of this tick
                 rt.status_rx, rt.plant_fault = t_rx + 0.25 * ts, fault
             rt.tick((start + c + 1) * ts)
+
+
+    PIN_ON_AT = 1  # the extremes step's tick whose command pins the device (CMD-7)
+    EXACT_FROM, EXACT_UNTIL = 7, 13  # the ticks to find ξ = 2^31 − 1 exactly at
+
+    def _drive_extremes(self, rt: Any, cfg: AgentConfig, start: int) -> None:
+        """The extremes step's first ticks, on the reference: the neighbours held (0..4),
+        INIT at lambda_min (5, 6), the device pinned meanwhile (``PIN_ON_AT``: its ξ has
+        the price term); then, at the first tick where one exists, the first neighbour
+        RUNNING at the λ for which acc = (Λ − ρ) + mulq(W, Λ − λ_j) is exactly 2^31 − 1
+        (XI-3: no saturation, none counted; one neighbour's mulq alone cannot be: with
+        W = 1.25 it takes no value ≡ 2 mod 5); then INIT again, the pin off, and every
+        neighbour RUNNING at lambda_min (ξ saturates), where the step goes on as for
+        any device."""
+        from firmware_py.controllers import consensus_error
+
+        ts = cfg.controller.ts
+        slots = list(rt.neighbours.values())
+        first = slots[0]
+        bottom = round(cfg.lambda_min * (1 << 24))
+        held = {sl.id: int(sl.lam) for sl in slots}
+        exact_at: int | None = None  # the tick of the exact sum (or of giving up)
+        c = 0
+        while exact_at is None or c <= exact_at + 2:
+            lam_now = int(rt.ctrl.wire_lambda(rt.cstate))
+            state, lams, note = State.INIT, dict.fromkeys(held, bottom), ""
+            if c < 5:
+                state, lams = State.RUNNING, dict(held)
+            elif c == 5:
+                note = "a neighbour INIT at lambda_min"
+            elif exact_at is not None and c == exact_at + 2:
+                state, note = State.RUNNING, "every neighbour at lambda_min in ξ (ξ saturates)"
+            first_state = state
+            if c == self.PIN_ON_AT:
+                rt.pin = fx.ONE
+            if exact_at is not None and c == exact_at + 1:
+                rt.pin = 0
+                self.pin_off_at = c
+            if exact_at is None and c >= self.EXACT_FROM and rt.price is not None:
+                target = fx.INT32_MAX - (lam_now - rt.price)  # mulq(ONE, x) = x
+                w = int(first.weight)
+                guess = round(target * (1 << 24) / w)
+                d = next((d for d in range(guess - 3, guess + 4)
+                          if rt.ctrl.ar.mul(w, d) == target), None)
+                if d is not None and bottom <= lam_now - d:
+                    xi, sat = consensus_error(rt.ctrl.ar, lam_now, [(w, lam_now - d)],
+                                              rt.pin, rt.price, cfg.resilient_f)
+                    if xi == fx.INT32_MAX and not sat:
+                        exact_at, first_state = c, State.RUNNING
+                        lams[first.id] = lam_now - d
+                        note = ("a neighbour at the λ that makes the sum of ξ exactly "
+                                "2^31 − 1 (no saturation)")
+                if exact_at is None and c >= self.EXACT_UNTIL:
+                    exact_at = c  # none found: on as for any device
+            self.ext_lam.append(lams)
+            self.ext_state.append(state)
+            self.ext_first.append((first_state, note))
+            t_rx = (start + c + 0.5) * ts
+            for sl in slots:
+                sl.lam, sl.last_rx = lams[sl.id], t_rx
+                sl.state = first_state if sl is first else state
+            if rt.price_rx is not None:
+                rt.price_rx = t_rx
+            if _tick_of(status_name(cfg.id))(start + c):
+                rt.status_rx, rt.plant_fault = t_rx + 0.25 * ts, False
+            rt.tick((start + c + 1) * ts)
+            c += 1
+        self.pin_on_at = self.PIN_ON_AT if self.pin_off_at is not None else None
 
 
 def band_planned(cfg: AgentConfig) -> bool:
@@ -707,6 +789,12 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         (ξ = sat32, counted: NUM-3, XI-3) and drives the own λ to, and past, lambda_min
         (STEP-12: only sat54 limits it)."""
         c = k - at["extremes"]
+        if band is not None and band.ext_lam:  # planned on the reference (ξ's exact edge)
+            if c >= len(band.ext_lam):
+                return q(cfg.lambda_min), "", State.RUNNING
+            first_state, first_note = band.ext_first[c]
+            return (band.ext_lam[c][j], first_note if j == nbrs[0] else "",
+                    first_state if j == nbrs[0] else band.ext_state[c])
         if c < 5:  # where the band step left them (near the device's λ)
             return (band.lam[-1][j] if band is not None else lam), "", State.RUNNING
         first = j == nbrs[0]
@@ -927,6 +1015,12 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             if k == at["commands"] + tick:
                 add(k + 0.6, step, command(cmd, target, round(kk * 1000),
                                            round(hh * 1000)), note)
+        # the extremes step pins a band-planned device for ξ's exact edge (its plan)
+        for pin_at, way, note in ((band.pin_on_at if band else None, PIN_ON,
+                                   "PIN on, for ξ = 2^31 − 1 exactly"),
+                                  (band.pin_off_at if band else None, PIN_OFF, "PIN off")):
+            if pin_at is not None and k == at["extremes"] + pin_at:
+                add(k + 0.6, step, command(Command.PIN, i, way), note)
         # PIN (CMD-7) flips the DUT's price term, whichever way its configuration starts:
         # ξ gains or loses (ρ − λ) at the next sample; a PIN for another agent, or with a
         # GainK that is neither way (range, before authentication), changes nothing
