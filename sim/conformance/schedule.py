@@ -135,7 +135,8 @@ STEPS = (
          (("every neighbour at lambda_min in ξ …", ("NUM-3", "XI-3")),
           ("a neighbour INIT at lambda_min", ("LAM-2", "RX-9")),
           ("a neighbour at the λ that makes the sum of ξ exactly …", ("XI-3", "NUM-3")),
-          ("PIN on, for ξ …", ("CMD-7",)), ("PIN off", ("CMD-7",)))),
+          # not "PIN …" (ξ's price term, XI-2): λ is not what these two are for
+          ("a PIN on, for the sum of ξ …", ("CMD-7",)), ("a PIN off after it", ("CMD-7",)))),
 )
 
 
@@ -1017,8 +1018,9 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                                            round(hh * 1000)), note)
         # the extremes step pins a band-planned device for ξ's exact edge (its plan)
         for pin_at, way, note in ((band.pin_on_at if band else None, PIN_ON,
-                                   "PIN on, for ξ = 2^31 − 1 exactly"),
-                                  (band.pin_off_at if band else None, PIN_OFF, "PIN off")):
+                                   "a PIN on, for the sum of ξ exactly 2^31 − 1"),
+                                  (band.pin_off_at if band else None, PIN_OFF,
+                                   "a PIN off after it")):
             if pin_at is not None and k == at["extremes"] + pin_at:
                 add(k + 0.6, step, command(Command.PIN, i, way), note)
         # PIN (CMD-7) flips the DUT's price term, whichever way its configuration starts:
