@@ -148,6 +148,25 @@ def test_a_dwell_device_meets_crossings_at_its_dwell_and_only_it_is_judged_on_th
     assert hub.controller.kind == "dwell" and conf.kind_exercised(hub) == ""
 
 
+@pytest.mark.parametrize("prev", [0.37e-2, 9.2453, 14.000000000123, 15.9949])
+def test_exactly_after_puts_two_times_a_tie_apart_in_binary64_and_in_whole_ns(
+        prev: float) -> None:
+    """Expected: the exact-timing run's pair (``Planned.after``) is 2.5 periods apart as
+    firmware_py divides it (binary64: a tie of rne) and as firmware_c subtracts it (its
+    ns clock, round(t·1e9): a remainder of exactly half its period), the first time moved
+    by at most 2 ns."""
+    from sim.conformance.drive import _exactly_after
+
+    cfg, _, _ = _setup(1, 3)
+    ts = cfg.controller.ts
+    a, b = _exactly_after(prev, 2.5 * ts, ts)
+    assert abs(a - prev) <= 2e-9
+    assert (b - a) / ts == 2.5
+    period_ns = round(ts * 1e9)
+    dt = round(b * 1e9) - round(a * 1e9)
+    assert dt // period_ns == 2 and 2 * (dt % period_ns) == period_ns
+
+
 @pytest.mark.parametrize("filtered_first", [False, True])
 def test_a_device_filtering_foreign_ids_passes_judged_with_the_filter(
         filtered_first: bool) -> None:
