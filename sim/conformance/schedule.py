@@ -444,7 +444,6 @@ class _BandPlan:
 
     def _drive(self, rt: Any, cfg: AgentConfig, start: int, length: int,
                commands: Mapping[int, Planned]) -> None:
-        ts = cfg.controller.ts
         band = int(getattr(rt.ctrl, "band", 0))
         # the default band's word (CFG-3): a device that takes it re-arms at |ξ| above it
         from firmware_py.controllers import DEFAULT_BAND
@@ -527,15 +526,8 @@ class _BandPlan:
             self.fault.append(fault)
             self.note.append(note)
             self.state.append(nbr_state)
-            t_rx = (start + c + 0.5) * ts
-            for slot in slots:
-                slot.lam, slot.last_rx, slot.state = chosen[slot.id], t_rx, nbr_state
             last = chosen
-            if rt.price_rx is not None:
-                rt.price_rx = t_rx
-            if _tick_of(status_name(cfg.id))(start + c):  # the status frame of this tick
-                rt.status_rx, rt.plant_fault = t_rx + 0.25 * ts, fault
-            rt.tick((start + c + 1) * ts)
+            _feed(rt, cfg, start + c, chosen, dict.fromkeys(chosen, nbr_state), fault)
 
 
     PIN_ON_AT = 1  # the extremes step's tick whose command pins the device (CMD-7)
@@ -552,7 +544,6 @@ class _BandPlan:
         any device."""
         from firmware_py.controllers import consensus_error
 
-        ts = cfg.controller.ts
         slots = list(rt.neighbours.values())
         first = slots[0]
         bottom = round(cfg.lambda_min * (1 << 24))
@@ -593,17 +584,26 @@ class _BandPlan:
             self.ext_lam.append(lams)
             self.ext_state.append(state)
             self.ext_first.append((first_state, note))
-            t_rx = (start + c + 0.5) * ts
-            for sl in slots:
-                sl.lam, sl.last_rx = lams[sl.id], t_rx
-                sl.state = first_state if sl is first else state
-            if rt.price_rx is not None:
-                rt.price_rx = t_rx
-            if _tick_of(status_name(cfg.id))(start + c):
-                rt.status_rx, rt.plant_fault = t_rx + 0.25 * ts, False
-            rt.tick((start + c + 1) * ts)
+            states = dict.fromkeys(lams, state) | {first.id: first_state}
+            _feed(rt, cfg, start + c, lams, states, False)
             c += 1
-        self.pin_on_at = self.PIN_ON_AT if self.pin_off_at is not None else None
+        self.pin_on_at = self.PIN_ON_AT  # the loop ends after the pin goes off
+
+
+def _feed(rt: Any, cfg: AgentConfig, k: int, lams: Mapping[int, int],
+          states: Mapping[int, State], fault: bool) -> None:
+    """One planned tick ``k`` of the reference: the neighbours' frames (λ, State) taken
+    half a period after tick k, the price kept fresh, the plant's status (with ``fault``)
+    on its ticks, then the tick at k + 1."""
+    ts = cfg.controller.ts
+    t_rx = (k + 0.5) * ts
+    for slot in rt.neighbours.values():
+        slot.lam, slot.last_rx, slot.state = lams[slot.id], t_rx, states[slot.id]
+    if rt.price_rx is not None:
+        rt.price_rx = t_rx
+    if _tick_of(status_name(cfg.id))(k):  # the status frame of this tick
+        rt.status_rx, rt.plant_fault = t_rx + 0.25 * ts, fault
+    rt.tick((k + 1) * ts)
 
 
 def band_planned(cfg: AgentConfig) -> bool:
