@@ -548,7 +548,9 @@ def test_firmware_py_agent_process_passes_on_udp_multicast(tmp_path: Path) -> No
     assert frames and all(f.is_fd and f.bitrate_switch for f in frames)
     suite = ET.parse(tmp_path / "junit.xml").getroot().find("testsuite")
     assert suite is not None and suite.get("failures") == "0"
-    assert int(suite.get("tests") or 0) == len({m for s in conf.STEPS for m in s.musts})
+    # case 1's agent is no dwell device: the dwell's own requirements are not its verdict's
+    judged = {m for s in conf.STEPS for m in s.musts} - set(conf.KIND_ONLY)
+    assert int(suite.get("tests") or 0) == len(judged)
 
 
 @pytest.mark.realtime
