@@ -1177,12 +1177,12 @@ KIND_CASES = {"dwell": (6, 3)}  # (case, agent) of a device of that controller k
 
 def played_on(fault: Any, case: int, dut: int) -> tuple[int, int]:
     """Where ``score`` plays ``fault``: (``case``, ``dut``), or for a fault of a
-    requirement of one controller kind (``KIND_ONLY``: the dwell's) a device of that kind
+    requirement of one controller kind (``ONLY_ON``: the dwell's) a device of that kind
     (``KIND_CASES``) if agent ``dut`` of ``case`` runs another."""
     from sim import conformance as conf
 
-    kind = conf.KIND_ONLY.get(fault.requirement) if fault is not None else None
-    if kind is not None and agent_configs_from_scenario(
+    kind = conf.ONLY_ON.get(fault.requirement) if fault is not None else None
+    if kind in KIND_CASES and agent_configs_from_scenario(
             load_case(case))[dut - 1].controller.kind != kind:
         return KIND_CASES[kind]
     return case, dut
@@ -1287,7 +1287,7 @@ def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
     first = conf.Outcome(mismatches=outcome.mismatches[:1],
                          auth_errors=[] if outcome.mismatches else outcome.auth_errors[:1],
                          explained_by=dict(outcome.explained_by),
-                         steps_seen={s.name for s in conf.STEPS}, kind=outcome.kind)
+                         steps_seen={s.name for s in conf.STEPS}, exercised_on=outcome.exercised_on)
     return Score("none" if fault is None else fault.name,
                  "" if fault is None else fault.requirement,
                  "" if fault is None else fault.group, case, dut,

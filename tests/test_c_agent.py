@@ -14,6 +14,7 @@ import shutil
 import subprocess
 import sys
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -800,23 +801,26 @@ def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once
 # --------------------------------------------------------------------------- conformance
 
 
-@pytest.mark.parametrize("case,dut,jitter,filtered,fd", [(1, 3, 0.0, False, False),
-                                                         (1, 1, 0.9, True, True),
-                                                         (7, 5, 0.5, False, False),
-                                                         (6, 3, 0.3, False, False)])
+@pytest.mark.parametrize("case,dut,jitter,filtered,fd,trim", [(1, 3, 0.0, False, False, 0),
+                                                              (1, 1, 0.9, True, True, 0),
+                                                              (7, 5, 0.5, False, False, 1),
+                                                              (6, 3, 0.3, False, False, 0)])
 def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter: float,
-                                                     filtered: bool, fd: bool) -> None:
+                                                     filtered: bool, fd: bool,
+                                                     trim: int) -> None:
     """`bess-ded conformance`'s whole schedule (sim.conformance: 1620 ticks, the
     requirements) played against the C agent on a simulated clock, with late ticks and
     frames, and behind its acceptance filter: every requirement passes; on a CAN FD bus
-    too (``fd``: `bess-ded conformance --fd`, the C agent's --fd)."""
+    too (``fd``: `bess-ded conformance --fd`, the C agent's --fd), and with the
+    resilient update on (``trim``: `--resilient 1`, WMSR-1 and WMSR-2 judged)."""
     from sim import conformance as conf
     from sim.model.scenario import load_case
 
     sc = load_case(case)
     # the configuration the tester writes: the C loader reads it for the device, the
     # reference parser for the oracle (issue 22 item 4: the configuration path)
-    text, cfg = conf.written_config(agent_configs_from_scenario(sc)[dut - 1])
+    agent = replace(agent_configs_from_scenario(sc)[dut - 1], resilient_f=trim)
+    text, cfg = conf.written_config(agent)
     params = parse_config(text)
     keys = fleet_keys(MASTER, sc.n)   # node keys and link frame keys (AUTH-28)
     node = f"agent_{dut}"
@@ -837,6 +841,8 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     assert not outcome.auth_errors and not outcome.problems
     assert outcome.steps_seen == {s.name for s in conf.STEPS}
     assert all(r.passed for r in results), [r for r in results if not r.passed]
+    wmsr = {"WMSR-1", "WMSR-2"} & {r.must for r in results}
+    assert wmsr == ({"WMSR-1", "WMSR-2"} if trim else set()), wmsr
 
 
 # --------------------------------------------------------------------------- the vector runner

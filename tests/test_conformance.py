@@ -117,9 +117,11 @@ def test_firmware_py_passes_every_requirement_at_any_timing(
     assert outcome.steps_seen == {s.name for s in conf.STEPS}
     assert all(r.passed for r in results), [r for r in results if not r.passed]
     assert outcome.ticks >= conf.STEPS[-1].end - 5
-    # a dwell device's own requirements are in its verdict only (case 6: kind dwell)
-    own = {r.must for r in results} & set(conf.KIND_ONLY)
-    assert own == (set(conf.KIND_ONLY) if case == 6 else set()), own
+    # a dwell device's own requirements are in its verdict only (case 6: kind dwell),
+    # AUTH-34 in an FD run's (λ tags)
+    own = {r.must for r in results} & set(conf.ONLY_ON)
+    assert own == ({"AUTH-34"} if fd else set()) | (
+        {m for m, on in conf.ONLY_ON.items() if on == "dwell"} if case == 6 else set()), own
 
 
 def test_a_dwell_device_meets_crossings_at_its_dwell_and_only_it_is_judged_on_them() -> None:
@@ -548,8 +550,9 @@ def test_firmware_py_agent_process_passes_on_udp_multicast(tmp_path: Path) -> No
     assert frames and all(f.is_fd and f.bitrate_switch for f in frames)
     suite = ET.parse(tmp_path / "junit.xml").getroot().find("testsuite")
     assert suite is not None and suite.get("failures") == "0"
-    # case 1's agent is no dwell device: the dwell's own requirements are not its verdict's
-    judged = {m for s in conf.STEPS for m in s.musts} - set(conf.KIND_ONLY)
+    # case 1's agent is no dwell device and runs with a key file: of the requirements
+    # exercised on some runs only, λ tags' (AUTH-34) alone are in its verdict
+    judged = {m for s in conf.STEPS for m in s.musts} - set(conf.ONLY_ON) | {"AUTH-34"}
     assert int(suite.get("tests") or 0) == len(judged)
 
 

@@ -45,7 +45,8 @@ if TYPE_CHECKING:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from firmware_py.cliargs import duration_s, time_scale
+    from firmware_py.cliargs import duration_s, int_in, time_scale
+    from firmware_py.config import RESILIENT_F_MAX
     from firmware_py.nodeargs import add_bus_arguments, add_rt_argument
 
     from ._common import add_case_option, one_line_errors
@@ -74,6 +75,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --fd (or an FD scenario): λ under its sender's node key, 8 "
                         "bytes (the device runs with --no-lambda-tags), not a tag per "
                         "receiver (AUTH-34)")
+    p.add_argument("--resilient", type=int_in(1, RESILIENT_F_MAX), metavar="F",
+                   help="the device runs the resilient update (W-MSR, F trimmed each side: "
+                        "its configuration says resilient_f = F) and is judged on it "
+                        "(WMSR-1, and WMSR-2 with more than F neighbours); default: the "
+                        "scenario's resilient_f")
     p.add_argument("--quick", action="store_true",
                    help="play the first steps only (start to commands, about half the "
                         "schedule), for development: the later steps' requirements are "
@@ -97,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
         bus=busrun.BusOptions(args.interface, args.channel, args.bus_config),
         time_scale=args.time_scale, out=args.out, keys=args.keys, insecure=args.insecure,
         rt_priority=args.rt_priority, wait=args.wait, say=_say, quick=args.quick,
-        fd=args.fd, no_lambda_tags=args.no_lambda_tags)
+        fd=args.fd, no_lambda_tags=args.no_lambda_tags, resilient_f=args.resilient)
     try:
         frames, late = setup.drive(args.wait, args.rt_priority, progress=_progress)
     except TimeoutError as e:

@@ -58,13 +58,15 @@ from sim.conformance.results import (
     verdict,
 )
 from sim.conformance.schedule import (
-    KIND_ONLY,
+    ON_WHAT,
+    ONLY_ON,
     PULSE,
     QUICK,
     STEPS,
     Planned,
     Step,
     conformance_config,
+    exercised_on,
     kind_exercised,
     plan,
     played_steps,
@@ -74,7 +76,8 @@ from sim.conformance.schedule import (
 
 __all__ = [
     "Frame",
-    "KIND_ONLY",
+    "ONLY_ON",
+    "ON_WHAT",
     "LATE_TICKS",
     "MAX_HYPOTHESES",
     "MOMENTS",
@@ -92,6 +95,7 @@ __all__ = [
     "attribute",
     "check",
     "conformance_config",
+    "exercised_on",
     "kind_exercised",
     "drive",
     "explain",

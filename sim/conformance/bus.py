@@ -19,7 +19,7 @@ import json
 import os
 import shlex
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -132,7 +132,8 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
                         insecure: bool = False, rt_priority: int = 0,
                         wait: float = 60.0, say: Callable[[str], None] = print,
                         quick: bool = False, fd: bool = False,
-                        no_lambda_tags: bool = False) -> ConformanceSetup:
+                        no_lambda_tags: bool = False,
+                        resilient_f: int | None = None) -> ConformanceSetup:
     """Set up a conformance run of scenario ``case`` with the device in agent ``dut``'s
     place ("1".."N") on ``bus`` (one that connects processes): its configuration and
     key file (from ``keys``, a fresh set in ``out``/keys, or ``insecure``) in ``out``
@@ -141,7 +142,8 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     ``quick``: play the steps of ``QUICK`` only (the others' requirements "not run");
     ``fd``: on a CAN FD bus (as the scenario's ``[bus] fd``): every frame of the tester
     and of the device an FD frame with the bit-rate switch (GEN-1); ``no_lambda_tags``:
-    λ under its sender's node key there, not a tag per receiver (AUTH-34)."""
+    λ under its sender's node key there, not a tag per receiver (AUTH-34);
+    ``resilient_f``: the device's resilient_f (default: the scenario's), judged on WMSR-1/2."""
     from dbc import dbc_path
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
@@ -171,7 +173,10 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     # the scenario's agent with every key the schedule observes off its default
     # (conf.conformance_config): the DUT reads the file, the oracle reads it too, with
     # the reference parser (a device that misreads it fails a CFG-n requirement)
-    text, cfg = conf.written_config(agent_configs_from_scenario(sc)[i - 1])
+    agent = agent_configs_from_scenario(sc)[i - 1]
+    if resilient_f is not None:  # --resilient F: the device runs the resilient update
+        agent = replace(agent, resilient_f=resilient_f)
+    text, cfg = conf.written_config(agent)
     out = out or Path("runs") / f"conformance-{sc.name}-agent{i}"
     node = f"agent_{i}"
     (out / "agents").mkdir(parents=True, exist_ok=True)

@@ -134,6 +134,8 @@ def misreads(cfg: AgentConfig, text: str | None = None) -> list[tuple[str, str, 
         ("CFG-7", "h_min", fc.GAIN_LO * c.h), ("CFG-7", "h_max", fc.GAIN_HI * c.h),
         ("CFG-7", "untrusted_after", fc.UNTRUSTED_AFTER),
     ]
+    add("WMSR-1", f"it does not trim (agent.resilient_f's default 0 taken, or no resilient "
+        f"update), not F = {cfg.resilient_f}", replace(cfg, resilient_f=0))
     written = tomllib.loads(text).get("timeouts", {}).get("neighbour_periods") if text else None
     if isinstance(written, (int, float)) and int(written + 0.5) != int(written):
         add("CFG-6", f"it rounds timeouts.neighbour_periods = {written!r} to "

@@ -38,7 +38,7 @@ from firmware_py.frames import (
 from firmware_py.nodeio import SyncSchedule
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
-from sim.conformance.schedule import kind_exercised
+from sim.conformance.schedule import exercised_on
 
 
 @dataclass(frozen=True)
@@ -106,14 +106,15 @@ class Outcome:
     stopped: str = ""  # why the check stopped before the end of the record, if it did
     differing_ticks: int = 0  # ticks with a difference (mismatches keeps the first ones)
     exact: bool = False  # checked with the device's clock trusted (``check``'s ``exact``)
-    # the controller kind whose own requirements (KIND_ONLY) the schedule exercised on
-    # the DUT ("": none; ``schedule.kind_exercised``)
-    kind: str = ""
+    # the conditions of the run under which steps exercise more requirements (ONLY_ON:
+    # a dwell device, λ tags, --insecure; ``schedule.exercised_on``)
+    exercised_on: frozenset[str] = frozenset()
 
 
 # Which requirements a mismatch on a signal violates (besides the step's)
 SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
-    "MC.Lambda": ("XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1", "STEP-12", "STATE-10"),
+    "MC.Lambda": ("XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1", "STEP-12", "STATE-10",
+                  "WMSR-1", "WMSR-2"),
     # and the inputs' rules that decide health (STATE-2): a valid price, a plant fault
     "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9",
                  "PRICE-1", "RX-11"),
@@ -312,7 +313,8 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
                             filtered_first, exact)
     outcome.format_errors = wrong
     outcome.exact = exact
-    outcome.kind = kind_exercised(cfg)
+    outcome.exercised_on = exercised_on(cfg, bool(codec.tag_slots(mc_name(cfg.id))),
+                                        keyring.insecure)
     return outcome
 
 

@@ -27,7 +27,7 @@ from sim.conformance.oracle import (
     Outcome,
     check,
 )
-from sim.conformance.schedule import KIND_ONLY, STEPS, Step
+from sim.conformance.schedule import ONLY_ON, STEPS, Step
 
 # docs/firmware-spec.md's requirement IDs in order, shipped as package data (docs/ is not
 # installed); tools/gen_spec_ids.py writes it, a test checks it against the spec
@@ -252,7 +252,7 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
     exercised: dict[str, list[str]] = {}
     for s in steps:
         for m in s.musts:
-            if KIND_ONLY.get(m, outcome.kind) == outcome.kind:  # not another kind's
+            if m not in ONLY_ON or ONLY_ON[m] in outcome.exercised_on:  # not another run's
                 exercised.setdefault(m, []).append(s.name)
     # (time, order, requirements, why)
     evidence: list[tuple[float, int, tuple[str, ...], str]] = []
@@ -283,8 +283,9 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
     evidence.sort(key=lambda e: (e[0], e[1]))
     failed: dict[str, list[str]] = {}
     for _, _, musts, why in evidence:
-        for must in musts:
-            failed.setdefault(must, []).append(why)
+        for must in musts:  # a requirement this run does not exercise fails on no other's
+            if must not in ONLY_ON or ONLY_ON[must] in outcome.exercised_on:
+                failed.setdefault(must, []).append(why)
     if outcome.explained_by:  # a known deviation explains the DUT: name that one
         first = str(outcome.mismatches[0])
         failed = {must: [f"the DUT behaves as if {what} (first difference: {first})"]

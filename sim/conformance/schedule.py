@@ -47,23 +47,25 @@ STEPS = (
          "then the command's sync",
          ("GEN-2", "STATE-1", "STATE-10", "TICK-1", "TX-1", "TX-2", "TX-3", "TX-4", "TX-5",
           "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-11",
-          "AUTH-16", "AUTH-21", "AUTH-26", "AUTH-28", "AUTH-29", "RX-4", "GEN-1", "GEN-4")),
+          "AUTH-16", "AUTH-21", "AUTH-26", "AUTH-28", "AUTH-29", "RX-4", "GEN-1", "GEN-4",
+          "AUTH-1", "AUTH-20")),
     Step("price-only", 30, 60, "price and neighbours but no plant status: still INIT",
          ("STATE-2", "STATE-5", "TMO-3", "LIVE-1", "LIVE-2", "PRICE-6", "AUTH-12",
           "AUTH-15")),
     Step("running", 60, 100, "plant status too: INIT → RUNNING, the setpoint follows λ",
-         ("STATE-4", "STATE-6", "SP-1", "TX-2", "RX-11", "XI-1", "XI-2")),
+         ("STATE-4", "STATE-6", "SP-1", "TX-2", "RX-11", "XI-1", "XI-2", "WMSR-1",
+          "WMSR-2")),
     Step("control", 100, 450, "neighbours' λ moving (steps and a slow sine): every step "
          "of the reset-PI, bit for bit",
          ("CTRL-1", "CTRL-4", "CTRL-5", "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-2",
           "STEP-3", "STEP-4", "STEP-5", "STEP-6", "STEP-7", "STEP-8", "STEP-9", "BAND-1",
           "BAND-2", "BAND-3", "TX-1", "SP-1", "LAM-2", "DIAG-1", "NUM-1", "NUM-2",
-          "NUM-3", "NUM-6", "NUM-7", "NUM-8", "CFG-3", "CFG-4")),
+          "NUM-3", "NUM-6", "NUM-7", "NUM-8", "CFG-3", "CFG-4", "AUTH-34", "WMSR-1")),
     Step("authentication", 450, 510, "forged MACs, a replayed frame, a replayed sync, a "
          "frame from another boot, a genuine frame delivered late (stale, not auth) and "
          "again (seen: auth): rejected and counted, λ unmoved by them",
          ("RX-8", "AUTH-10", "AUTH-11", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-16",
-          "AUTH-17", "AUTH-25", "RX-12", "RX-13", "DIAG-4")),
+          "AUTH-17", "AUTH-25", "RX-12", "RX-13", "DIAG-4", "AUTH-20", "AUTH-34")),
     Step("content", 510, 580, "an extended ID, the DUT's own ID, untrusted_after short "
          "frames in a row on one ID (untrusted), an FD frame on a classic bus, a price out "
          "of bounds, a persistent price step, a neighbour λ jump",
@@ -88,7 +90,7 @@ STEPS = (
          "PowerLimited set",
          ("CMD-5", "CMD-6", "LAM-1", "LAM-2", "PRICE-1", "PRICE-3", "PRICE-4", "PRICE-6",
           "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-6", "STEP-7", "STEP-8", "STEP-12",
-          "NUM-3", "NUM-4", "RX-11", "DIAG-3", "CFG-7")),
+          "NUM-3", "NUM-4", "RX-11", "DIAG-3", "CFG-7", "WMSR-1")),
     Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
          "consecutive forged frames on one ID and one fewer on another (the plant's "
          "status, whose one more after valid frames comes in the states step); a price "
@@ -131,8 +133,8 @@ STEPS = (
          "on a band-planned device first, pinned meanwhile, one tick with the sum exactly "
          "2^31 − 1 (not clamped, not counted)",
          ("NUM-3", "XI-2", "XI-3", "STEP-1", "STEP-12", "RX-9", "LAM-2", "DIAG-3", "CFG-7",
-          "CMD-7"),
-         (("every neighbour at lambda_min in ξ …", ("NUM-3", "XI-3")),
+          "CMD-7", "WMSR-1", "WMSR-2"),
+         (("every neighbour at lambda_min in ξ …", ("NUM-3", "XI-3", "WMSR-2")),
           ("a neighbour INIT at lambda_min", ("LAM-2", "RX-9")),
           ("a neighbour at the λ that makes the sum of ξ exactly …", ("XI-3", "NUM-3")),
           # not "PIN …" (ξ's price term, XI-2): λ is not what these two are for
@@ -151,9 +153,18 @@ STEPS = (
 QUICK = ("start", "price-only", "running", "control", "authentication", "content",
          "commands")
 
-# Requirements of one controller kind: a step exercises them on a device of that kind
-# only (the band step's dwell edges); for another kind they are not in its verdict
-KIND_ONLY: dict[str, str] = {"CTRL-2": "dwell", "DWELL-1": "dwell", "DWELL-2": "dwell"}
+# Requirements a step exercises on some runs only: on a device of one controller kind
+# (the band step's dwell edges), on a CAN FD bus with λ tags (--fd: every neighbour λ
+# carries the DUT's tag, the forged ones a wrong one), with --insecure (every key derived
+# from the public master; a command before its sync and a replayed sync taken). Another
+# run's verdict leaves them out; ``exercised_on`` says which conditions a run meets.
+ONLY_ON: dict[str, str] = {"CTRL-2": "dwell", "DWELL-1": "dwell", "DWELL-2": "dwell",
+                           "AUTH-34": "lambda tags", "AUTH-1": "insecure",
+                           "AUTH-20": "insecure", "WMSR-1": "resilient",
+                           "WMSR-2": "resilient ties"}
+ON_WHAT = {"dwell": "on a dwell device", "lambda tags": "on --fd, with λ tags",
+           "insecure": "with --insecure", "resilient": "with --resilient F",
+           "resilient ties": "with --resilient F on a device of more than F neighbours"}
 
 # The requirements no step exercises, and why: what a bus run cannot show, or what this
 # schedule leaves to the unit tests and vectors (docs/conformance.md's coverage table
@@ -172,23 +183,12 @@ NOT_ON_BUS: dict[str, str] = {
     "TX-6": "a raw value outside its DBC range arises only from a counter past its "
             "maximum (DIAG-2): as DIAG-2",
     "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
-    "WMSR-1": "resilient_f = 0 (off) in the configuration the tester writes: the node "
-              "vector resilient_trim and tests/test_resilient.py check it",
-    "WMSR-2": "as WMSR-1",
-    "AUTH-1": "with a key file the DUT derives no key (the file holds them): exercised "
-              "only by an --insecure run (AUTH-20); the secoc vectors check it",
     "AUTH-2": "every MAC of the schedule is a CMAC, but a wrong CMAC fails everything "
               "(AUTH-4, AUTH-7): no step isolates it; the secoc vectors check it",
     "AUTH-3": "the boot the DUT sends is taken from its syncs, not compared with the key "
               "file's + 1, and persisting is not visible on the bus: node vectors",
     "AUTH-5": "2^24 frames on one ID take 46.6 h at Ts = 10 ms; the node vector "
               "tx_count_wrap checks it through the binding",
-    "AUTH-20": "an --insecure run (no key file) exercises it: the schedule is the same, "
-               "but the default run has a key file",
-    "AUTH-34": "the schedule's default bus is classic CAN (no tags); on --fd every "
-               "neighbour λ the tester sends carries the DUT's tag and every λ the DUT "
-               "sends is checked frame for frame, tags included, against the oracle's; "
-               "tests/test_lambda_tags.py (slots, keys, an insider's forged λ)",
     "AUTH-31": "signed_price is opt-in: the schedule runs the default (unsigned) protocol; "
                "tests/test_pricesig.py (keys), tests/test_c_config.py (the C loaders), "
                "node vector signed_price",
@@ -251,7 +251,11 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     ctrl = replace(c, ts=ts, k=k, h=h, band=_rounds_up(1.5 * c.band, 24))
     if c.kind == "dwell":  # D = ceil(7.2) = 8 samples (CTRL-2): the band step's edges fit
         ctrl = replace(ctrl, dwell=round(7.2 * ts, 12))  # one nearest-rounding makes 7
-    nbrs = tuple(Neighbour(n.id, _tie_weight(1.25 * n.weight)) for n in cfg.neighbours)
+    # with the resilient update each neighbour's weight its own (WMSR-2 trims the larger
+    # of two equal λ first: equal weights would hide the order)
+    spread = 0.25 if cfg.resilient_f else 0.0
+    nbrs = tuple(Neighbour(n.id, _tie_weight(1.25 * n.weight * (1 + spread * k)))
+                 for k, n in enumerate(cfg.neighbours))
     step_max = _rounds_up(0.9 * 10.0 * k * ts, 24)  # below the default 10·k·Ts
     # a price step of 0.45: the content step's persistent 0.6 stays above it; a price
     # persistence of 5, two above the default 3: a device counting one frame short or
@@ -612,8 +616,23 @@ def band_planned(cfg: AgentConfig) -> bool:
     return bool(cfg.neighbours) and not cfg.pinned
 
 
+def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool) -> frozenset[str]:
+    """The conditions of ``ONLY_ON`` a run of ``cfg``'s device meets: its controller kind
+    where the band step is planned for it (``kind_exercised``), "lambda tags" on a
+    tagged CAN FD bus, "insecure" with the public demo keys, "resilient" with the
+    resilient update on, and "resilient ties" where more than F neighbours (each of its
+    own weight, ``conformance_config``) meet at lambda_min in the extremes step: the
+    larger weight is trimmed first (WMSR-2)."""
+    trim = cfg.resilient_f if cfg.neighbours else 0
+    return frozenset({kind_exercised(cfg)} - {""}
+                     | ({"lambda tags"} if lambda_tags else set())
+                     | ({"insecure"} if insecure else set())
+                     | ({"resilient"} if trim else set())
+                     | ({"resilient ties"} if trim and len(cfg.neighbours) > trim else set()))
+
+
 def kind_exercised(cfg: AgentConfig) -> str:
-    """The controller kind whose own requirements (``KIND_ONLY``) the schedule exercises
+    """The controller kind whose own requirements (``ONLY_ON``) the schedule exercises
     on ``cfg``'s device: its kind where the band step is planned, else none ("")."""
     return cfg.controller.kind if band_planned(cfg) else ""
 
