@@ -54,7 +54,7 @@ from firmware_py.frames import (
 )
 from firmware_py.nodeio import STREAK_CAUSES, FleetSender
 from firmware_py.runtime import GAIN_DIV, AgentRuntime
-from firmware_py.secoc import Keyring, fleet_nodes
+from firmware_py.secoc import INSECURE_BOOT, Keyring, fleet_nodes
 from sim.model.scenario import load_case
 from sim.testkit.tester import fleet_keys
 
@@ -1092,6 +1092,61 @@ FAULTS: list[Fault] = [
           drive(lambda r: r.run(5, lam=1.0, state=State.SAFE))),
 ]
 
+# ------------------------------------ runs that exercise more (ONLY_ON): --resilient, --insecure
+
+Pair = tuple[int, int]  # (weight, λ_j) in Q24, as the runtime's ξ takes them
+
+
+def _light_first(lam: int, pairs: list[Pair], f: int) -> list[Pair]:
+    """W-MSR with WMSR-2's tie the wrong way: of equal λ_j the smaller weight trimmed."""
+    above = sorted((p for p in pairs if p[1] > lam), key=lambda p: (p[1], -p[0]), reverse=True)
+    below = sorted((p for p in pairs if p[1] < lam), key=lambda p: (-p[1], -p[0]),
+                   reverse=True)
+    return above[f:] + below[f:] + [p for p in pairs if p[1] == lam]
+
+
+def _ties_light_first(rt: AgentRuntime) -> None:
+    f, own = rt.cfg.resilient_f, rt._xi_neighbours
+    rt.cfg = replace(rt.cfg, resilient_f=0)  # the trimming done here, before ξ
+    rt._xi_neighbours = lambda: _light_first(  # type: ignore[method-assign]
+        rt.lambda_q24, own(), f)
+
+
+def _no_trimming(rt: AgentRuntime) -> None:
+    rt.cfg = replace(rt.cfg, resilient_f=0)
+
+
+def _insecure_keeps_replay_rule(rt: AgentRuntime) -> None:
+    rt.io.keys.insecure = False  # the public keys, a keyed node's sync rules
+
+
+def _two_neighbours_equal(r: Rig) -> None:
+    """Both neighbours at the same λ (a tie on one side of Λ: WMSR-2), into RUNNING."""
+    other = mc_name(r.cfg.neighbours[1].id)
+    for _ in range(20):
+        if r.k % 5 == 0:
+            r.price()
+        r.mc(1.5)
+        r.deliver(r.tx.frame(other, {"State": int(State.RUNNING), "Resets": 0,
+                                     "Lambda": q(1.5)}), 0.55)
+        if r.k % 5 == 0:
+            r.status()
+        r.tick()
+
+
+FAULTS += [
+    Fault("wmsr_not_applied", "WMSR-1", "the resilient update is not applied: ξ over every "
+          "alive neighbour although resilient_f = F > 0", _no_trimming, ARITH,
+          drive(lambda r: r.run(20, lam=1.5), resilient_f=1)),
+    Fault("wmsr_ties_light_first", "WMSR-2", "of neighbours at the same λ_j the one with the "
+          "smaller weight is trimmed first", _ties_light_first, ARITH,
+          drive(_two_neighbours_equal, resilient_f=1,
+                neighbours=(Neighbour(2, 1.0), Neighbour(4, 2.0)))),
+    Fault("insecure_refuses_replay", "AUTH-20", "with --insecure a sync that goes back is "
+          "refused as a replay, not taken as a restarted sender's", _insecure_keeps_replay_rule,
+          FRESH, drive(_replayed_sync)),
+]
+
 # ----------------------------------------------------------- the configuration path (item 4)
 
 CONFIG = "configuration"
@@ -1172,32 +1227,50 @@ assert len(BY_NAME) == len(FAULTS), "fault names must be unique"
 # --------------------------------------------------------------------------- scoring
 
 SCHEDULE_KEYS = fleet_keys(MASTER, 12)
-KIND_CASES = {"dwell": (6, 3)}  # (case, agent) of a device of that controller kind
+# a device that meets a condition of ``ONLY_ON`` (case, agent), where case 1's agent 3
+# does not: a dwell device, one of more than F = 1 neighbours
+ON_DEVICE = {"dwell": (6, 3), "resilient ties": (7, 5)}
 
 
-def played_on(fault: Any, case: int, dut: int) -> tuple[int, int]:
-    """Where ``score`` plays ``fault``: (``case``, ``dut``), or for a fault of a
-    requirement of one controller kind (``ONLY_ON``: the dwell's) a device of that kind
-    (``KIND_CASES``) if agent ``dut`` of ``case`` runs another."""
+def played_on(fault: Any, case: int, dut: int) -> tuple[int, int, str]:
+    """Where ``score`` plays ``fault``: (case, agent, run). ``run``: the condition of
+    ``ONLY_ON`` its requirement is exercised under ("" for most; "resilient…": the run
+    with --resilient 1, "insecure": with --insecure), on agent ``dut`` of ``case`` if
+    that device meets it, else on ``ON_DEVICE``'s."""
     from sim import conformance as conf
 
-    kind = conf.ONLY_ON.get(fault.requirement) if fault is not None else None
-    if kind in KIND_CASES and agent_configs_from_scenario(
-            load_case(case))[dut - 1].controller.kind != kind:
-        return KIND_CASES[kind]
-    return case, dut
+    run = conf.ONLY_ON.get(fault.requirement, "") if fault is not None else ""
+    if run and run not in conf.exercised_on(_run_config(case, dut, run)[1], False,
+                                            run == "insecure"):
+        case, dut = ON_DEVICE[run]
+    return case, dut, run
 
 
-def schedule_setup(case: int, dut: int, flood: bool = False
+def _run_config(case: int, dut: int, run: str = "") -> tuple[str, AgentConfig]:
+    """The configuration file the tester writes for agent ``dut`` of ``case`` on ``run``
+    (--resilient 1 for a "resilient…" run) and the reference parser's reading of it."""
+    from sim import conformance as conf
+
+    agent = agent_configs_from_scenario(load_case(case))[dut - 1]
+    if run.startswith("resilient"):
+        agent = replace(agent, resilient_f=1)
+    return conf.written_config(agent)
+
+
+def schedule_setup(case: int, dut: int, flood: bool = False, run: str = ""
                    ) -> tuple[AgentConfig, Callable[[], Keyring], list[Any]]:
     """The conformance run of tests/test_conformance.py: scenario ``case`` with the device
     in agent ``dut``'s place, a fleet key set with every peer's floor at boot 2 (as `up`
-    writes them), the tester at boot 2."""
+    writes them), the tester at boot 2; ``run`` "insecure": the public keys, every sender
+    at boot 1 (--insecure), "resilient…": with --resilient 1."""
     from sim import conformance as conf
 
     sc = load_case(case)
-    _, cfg = conf.written_config(agent_configs_from_scenario(sc)[dut - 1])
+    _, cfg = _run_config(case, dut, run)
     node = f"agent_{dut}"
+    if run == "insecure":
+        return cfg, lambda: Keyring.insecure_for(node), conf.plan(
+            cfg, None, sc.prices[0].rho, boot=INSECURE_BOOT, flood=flood)
 
     def ring() -> Keyring:
         return Keyring(node, SCHEDULE_KEYS[node], 0, lambda _b: None, master=MASTER,
@@ -1206,11 +1279,9 @@ def schedule_setup(case: int, dut: int, flood: bool = False
     return cfg, ring, conf.plan(cfg, SCHEDULE_KEYS, sc.prices[0].rho, boot=2, flood=flood)
 
 
-def schedule_text(case: int, dut: int) -> str:
+def schedule_text(case: int, dut: int, run: str = "") -> str:
     """The configuration file the tester writes for ``schedule_setup``'s device."""
-    from sim import conformance as conf
-
-    return conf.written_config(agent_configs_from_scenario(load_case(case))[dut - 1])[0]
+    return _run_config(case, dut, run)[0]
 
 
 @dataclass
@@ -1226,6 +1297,7 @@ class Score:
     group: str
     case: int
     dut: int
+    run: str  # the condition of ONLY_ON the run meets ("": the default run; played_on)
     failed: list[str]
     unexercised: list[str]
     first_diff: list[str]
@@ -1254,7 +1326,7 @@ class Score:
 def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
           seed: int = 0, make_dut: Callable[..., Any] | None = None,
           dut_from_text: Callable[[str], Callable[..., Any]] | None = None,
-          exact: bool = False) -> Score:
+          exact: bool = False, run: str = "") -> Score:
     """Play the schedule in process against the agent with ``fault`` (None: none) and
     judge it as `bess-ded conformance` does (check, explain, verdict). ``make_dut``: the
     device, as ``simulate`` takes it (tests/conformance_faults_c.py: the C agent on a
@@ -1262,15 +1334,17 @@ def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
     ``dut_from_text``: the device given the configuration file the tester writes (the C
     agent reads it with its own loader). A fault with ``misread``: firmware_py's agent
     configured from that file as the faulty parser reads it. ``exact``: the device's
-    clock trusted (``simulate`` and ``check`` with ``exact``: no timing tolerance)."""
+    clock trusted (``simulate`` and ``check`` with ``exact``: no timing tolerance);
+    ``run``: the faultless agent's run (``played_on``; a fault's is its own)."""
     import time
 
     from sim import conformance as conf
 
     start = time.perf_counter()
-    case, dut = played_on(fault, case, dut)
-    cfg, ring, planned = schedule_setup(case, dut, flood=exact)  # in process: a flood
-    text = schedule_text(case, dut)
+    if fault is not None:
+        case, dut, run = played_on(fault, case, dut)
+    cfg, ring, planned = schedule_setup(case, dut, exact, run)  # in process: a flood
+    text = schedule_text(case, dut, run)
     if dut_from_text is not None:
         make_dut = dut_from_text(text)
     misread = getattr(fault, "misread", None)
@@ -1280,7 +1354,7 @@ def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
     frames = conf.simulate(cfg, ring(), planned,
                            None if fault is None or make_dut is not None else fault.apply,
                            jitter=jitter, seed=seed, make_dut=make_dut, exact=exact)
-    key = SCHEDULE_KEYS[f"agent_{dut}"]
+    key = ring().key
     outcome = conf.check(cfg, ring(), key, frames, exact=exact)
     conf.explain(cfg, ring(), key, frames, outcome, config_text=text)
     results = conf.verdict(outcome)
@@ -1290,7 +1364,7 @@ def score(fault: Any, case: int = 1, dut: int = 3, jitter: float = 0.3,
                          steps_seen={s.name for s in conf.STEPS}, exercised_on=outcome.exercised_on)
     return Score("none" if fault is None else fault.name,
                  "" if fault is None else fault.requirement,
-                 "" if fault is None else fault.group, case, dut,
+                 "" if fault is None else fault.group, case, dut, run,
                  [r.must for r in results if not r.passed],
                  [r.must for r in results if not r.passed
                   and r.detail.startswith("not exercised")],

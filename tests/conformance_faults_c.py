@@ -149,12 +149,12 @@ def make_dut(fault: CFault | None, text: str | None = None
 
 
 def score(fault: CFault | None, case: int = 1, dut: int = 3, jitter: float = 0.3,
-          seed: int = 0, exact: bool = False) -> cf.Score:
+          seed: int = 0, exact: bool = False, run: str = "") -> cf.Score:
     """The schedule played in process against the C agent with ``fault`` (None: none),
     configured from the file the tester writes (the configuration path, item 4), judged
     as `bess-ded conformance` does (``exact``: with the device's clock trusted)."""
     return cf.score(fault, case, dut, jitter, seed,
-                    dut_from_text=lambda text: make_dut(fault, text), exact=exact)
+                    dut_from_text=lambda text: make_dut(fault, text), exact=exact, run=run)
 
 
 # --------------------------------------------------------------------------- witnesses

@@ -88,9 +88,9 @@ def test_a_resilient_device_is_judged_on_its_trimming(
     """Expected: with resilient_f = 1 in the configuration the tester writes (the
     neighbours' weights each its own, so that WMSR-2's order shows), firmware_py passes
     every requirement, WMSR-1 and WMSR-2 among them where more than F neighbours meet at
-    lambda_min; a device that trims equal λ the smaller weight first fails WMSR-2, and
-    one that does not trim fails, named WMSR-1 first (a known misreading: resilient_f's
-    default taken)."""
+    lambda_min; a device that trims equal λ the smaller weight first fails, named WMSR-2
+    first (the oracle's edge: a trim through a tie), and one that does not trim fails,
+    named WMSR-1 first (a known misreading: resilient_f's default taken)."""
     sc = load_case(case)
     agent = replace(agent_configs_from_scenario(sc)[dut - 1], resilient_f=1)
     text, cfg = conf.written_config(agent)
@@ -117,12 +117,11 @@ def test_a_resilient_device_is_judged_on_its_trimming(
         assert all(r.passed for r in results), [r for r in results if not r.passed]
         return
     bad = [r.must for r in results if r.failed]
-    assert bad and outcome.mismatches[0].signal == "Lambda", outcome.mismatches[:1]
+    assert bad and bad[0] == failed and outcome.mismatches[0].signal == "Lambda", bad
     if failed == "WMSR-1":  # the whole ξ differs from the first tick: explained
-        assert bad[0] == "WMSR-1" and "does not trim" in results[0].detail, results[0]
-    # the wrong tie order shows first where the two neighbours' λ are equal on entering
-    # RUNNING: named there as the entry's (STATE-4) and the update's (XI-2) requirements,
-    # not yet WMSR-2 (docs/conformance.md, what is left)
+        assert "does not trim" in results[0].detail, results[0]
+    else:  # the oracle met a trim through equal λ_j of unequal weights there
+        assert conf.WMSR_TIE in outcome.mismatches[0].transition, outcome.mismatches[0]
 
 
 def test_the_resilient_option_writes_f_and_checks_its_range(

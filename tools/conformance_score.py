@@ -67,6 +67,10 @@ def _job(args: tuple[str, int, int, float, int, str, bool]) -> cf.Score:
     return fs.score(fs.BY_NAME[name], case, dut, jitter, seed, exact=exact)
 
 
+RUN_FLAGS = {"resilient": ", --resilient 1", "resilient ties": ", --resilient 1",
+             "insecure": ", --insecure"}
+
+
 def table(scores: list[cf.Score], case: tuple[int, int] | None = None) -> str:
     """One line per fault: caught, the own requirement first / at all / among those of
     the first difference, then the requirements failed (those failed only as "not
@@ -81,8 +85,8 @@ def table(scores: list[cf.Score], case: tuple[int, int] | None = None) -> str:
             failed += f" +{len(s.unexercised)}"
         if s.problems and not s.failed:
             failed = "problem: " + s.problems[0][:60]
-        if case is not None and (s.case, s.dut) != case:
-            failed += f" (played on case {s.case}, agent {s.dut})"
+        if case is not None and ((s.case, s.dut) != case or s.run):
+            failed += f" (played on case {s.case}, agent {s.dut}{RUN_FLAGS.get(s.run, '')})"
         lines.append(f"{s.fault:26s} {s.requirement:11s} {s.group:11s} "
                      f"{'yes' if s.caught else 'NO':6s} {'yes' if s.named_first else '-':3s} "
                      f"{'yes' if s.named else '-':3s} "
@@ -135,11 +139,11 @@ def main(argv: list[str] | None = None) -> int:
                               "timing": a.timing, "cases": {}}
     for case, dut in cases:
         # the faultless agent on every device the faults are played on
-        for on in dict.fromkeys([(case, dut), *(cf.played_on(fs.BY_NAME[n], case, dut)
-                                               for n in names)]):
-            base = fs.score(None, *on, a.jitter, a.seed, exact=exact)
+        for on in dict.fromkeys([(case, dut, ""), *(cf.played_on(fs.BY_NAME[n], case, dut)
+                                                   for n in names)]):
+            base = fs.score(None, on[0], on[1], a.jitter, a.seed, exact=exact, run=on[2])
             if base.caught:
-                print(f"case {on[0]} agent {on[1]}: the faultless agent fails "
+                print(f"case {on[0]} agent {on[1]} {on[2]}: the faultless agent fails "
                       f"({base.failed}, {base.problems}): no score", file=sys.stderr)
                 return 1
         jobs = [(n, case, dut, a.jitter, a.seed, a.device, exact) for n in names]

@@ -290,6 +290,23 @@ class _DutFrames:
         return getattr(self.codec, name)  # frame_id, name_of, ...: the codec's own
 
 
+WMSR_TIE = "a W-MSR trim through equal λ_j of unequal weights"
+
+
+def _wmsr_tie(rt: AgentRuntime) -> bool:
+    """Whether the resilient update's trim falls inside a group of neighbours at the same
+    λ_j whose weights differ (WMSR-2 decides which go), on either side of the own λ."""
+    f = rt.cfg.resilient_f
+    if not f:
+        return False
+    lam, pairs = rt.lambda_q24, rt._xi_neighbours()
+    for side in ([p for p in pairs if p[1] > lam], [p for p in pairs if p[1] < lam]):
+        side.sort(key=lambda p: abs(p[1] - lam), reverse=True)
+        if len(side) > f and side[f - 1][1] == side[f][1] and side[f - 1][0] != side[f][0]:
+            return True
+    return False
+
+
 def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[Frame],
           codec: FrameCodec | None = None,
           deviation: Callable[[AgentRuntime], None] | None = None,
@@ -509,7 +526,8 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                     ("ξ = 0 after ξprev ≠ 0", rt.cstate.xi_prev == 0 and xi_prev != 0),
                     ("|ξ| = BAND", abs(rt.cstate.xi_prev) == getattr(rt.ctrl, "band", None)),
                     ("λ beyond the λ limits", not fx.widen(rt.lam_min) <= rt.cstate.lam
-                     <= fx.widen(rt.lam_max)))
+                     <= fx.widen(rt.lam_max)),
+                    (WMSR_TIE, _wmsr_tie(rt)))
                     if hit and rt.state == State.RUNNING)
                 # λ is held in every other state (STATE-10): not one the oracle entered at
                 # this tick (its entry has a rule of its own); an edge of λ's only

@@ -22,6 +22,7 @@ from sim.conformance.oracle import (
     LAMBDA_HELD,
     MOMENT_TICKS,
     SIGNAL_MUSTS,
+    WMSR_TIE,
     Frame,
     Mismatch,
     Outcome,
@@ -63,12 +64,13 @@ def spec_requirements() -> tuple[str, ...]:
 MOMENTS: dict[str, tuple[str, ...]] = {
     "an earlier run's price sync (AUTH-21)": ("AUTH-21",),
     "sync of …": ("AUTH-9", "AUTH-21", "AUTH-16"),  # at the DUT's boot floors
-    "a command before its sync …": ("AUTH-11", "AUTH-14"),
+    # (AUTH-20 first on an --insecure run: taken there; on another, not exercised)
+    "a command before its sync …": ("AUTH-20", "AUTH-11", "AUTH-14"),
     "a price frame 16 freshness …": ("AUTH-12", "AUTH-13", "AUTH-15"),
     "forged MAC": ("RX-8", "AUTH-14", "AUTH-10"),
     "a forged frame after an in-step sync …": ("AUTH-16", "AUTH-14"),
     "replay of a genuine frame": ("AUTH-12", "AUTH-14", "RX-8"),
-    "replay of the first price sync": ("AUTH-16", "AUTH-17"),
+    "replay of the first price sync": ("AUTH-20", "AUTH-16", "AUTH-17"),
     "frame from another boot": ("AUTH-11", "AUTH-14", "RX-8"),
     "a genuine frame delivered …": ("AUTH-25",),
     "extended ID": ("RX-1",),
@@ -227,6 +229,7 @@ EDGES: dict[str, tuple[str, ...]] = {
     "|ξ| = BAND": ("BAND-3",),
     "λ beyond the λ limits": ("STEP-12",),
     LAMBDA_HELD: ("STATE-10",),  # the oracle gives it to a λ difference only
+    WMSR_TIE: ("WMSR-2",),
 }
 
 
