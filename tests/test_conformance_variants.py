@@ -134,3 +134,19 @@ def test_the_resilient_option_writes_f_and_checks_its_range(
                  "0.2", "--out", str(tmp_path), "--bus-config",
                  f'{{"port": {udp_port}}}']) == 1
     assert "resilient_f = 2" in (tmp_path / "agents" / "agent_5.toml").read_text()
+
+
+def test_a_difference_named_only_by_another_runs_requirements_still_fails() -> None:
+    """Expected: on a run that does not exercise WMSR-2 (no --resilient), a λ difference at
+    the oracle's W-MSR tie edge, whose only name is WMSR-2, still fails the device (named
+    WMSR-2 rather than nothing); on a resilient-ties run the same difference fails WMSR-2
+    and a requirement of another run (AUTH-20) is never listed."""
+    mm = conf.Mismatch(1.0, 100, "running", "MC", "Lambda", 7549742, 7549740,
+                       transition=(conf.WMSR_TIE,), raw=(7549742, 7549740))
+    assert conf.attribute(mm) == ("WMSR-2",)
+    for on in (frozenset(), frozenset({"resilient", "resilient ties"})):
+        results = conf.verdict(conf.Outcome(mismatches=[mm], exercised_on=on,
+                                            steps_seen={s.name for s in conf.STEPS}))
+        failed = [r.must for r in results if r.failed]
+        assert failed == ["WMSR-2"], (on, failed)
+        assert "AUTH-20" not in {r.must for r in results}

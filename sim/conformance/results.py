@@ -255,7 +255,7 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
     exercised: dict[str, list[str]] = {}
     for s in steps:
         for m in s.musts:
-            if m not in ONLY_ON or ONLY_ON[m] in outcome.exercised_on:  # not another run's
+            if _judged(m, outcome):
                 exercised.setdefault(m, []).append(s.name)
     # (time, order, requirements, why)
     evidence: list[tuple[float, int, tuple[str, ...], str]] = []
@@ -286,9 +286,10 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
     evidence.sort(key=lambda e: (e[0], e[1]))
     failed: dict[str, list[str]] = {}
     for _, _, musts, why in evidence:
-        for must in musts:  # a requirement this run does not exercise fails on no other's
-            if must not in ONLY_ON or ONLY_ON[must] in outcome.exercised_on:
-                failed.setdefault(must, []).append(why)
+        # a requirement this run does not exercise fails on another's difference only if
+        # nothing else is named for it (a difference always fails something)
+        for must in [m for m in musts if _judged(m, outcome)] or musts:
+            failed.setdefault(must, []).append(why)
     if outcome.explained_by:  # a known deviation explains the DUT: name that one
         first = str(outcome.mismatches[0])
         failed = {must: [f"the DUT behaves as if {what} (first difference: {first})"]
@@ -309,6 +310,12 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
         else:
             results.append(Result(must, True, "steps " + ", ".join(exercised[must])))
     return results
+
+
+def _judged(must: str, outcome: Outcome) -> bool:
+    """Whether ``outcome``'s run exercises ``must``: always, or under a condition of
+    ``ONLY_ON`` the run meets (a dwell device, λ tags, --insecure, --resilient F)."""
+    return must not in ONLY_ON or ONLY_ON[must] in outcome.exercised_on
 
 
 def _first_divergence(mm: Mismatch, musts: Sequence[str], n: int, last: int) -> str:
