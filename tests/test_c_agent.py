@@ -32,6 +32,7 @@ from firmware_py.frames import FrameCodec, target_raw
 from firmware_py.nodeio import FleetSender
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import (
+    INSECURE_BOOT,
     INSECURE_MASTER,
     Keyring,
     _kbkdf,
@@ -801,18 +802,20 @@ def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once
 # --------------------------------------------------------------------------- conformance
 
 
-@pytest.mark.parametrize("case,dut,jitter,filtered,fd,trim", [(1, 3, 0.0, False, False, 0),
-                                                              (1, 1, 0.9, True, True, 0),
-                                                              (7, 5, 0.5, False, False, 1),
-                                                              (6, 3, 0.3, False, False, 0)])
+@pytest.mark.parametrize("case,dut,jitter,filtered,fd,trim,insecure", [
+    (1, 3, 0.0, False, False, 0, False),
+    (1, 1, 0.9, True, True, 0, False),
+    (7, 5, 0.5, False, False, 1, False),
+    (6, 3, 0.3, False, False, 0, True)])
 def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter: float,
                                                      filtered: bool, fd: bool,
-                                                     trim: int) -> None:
+                                                     trim: int, insecure: bool) -> None:
     """`bess-ded conformance`'s whole schedule (sim.conformance: 1620 ticks, the
     requirements) played against the C agent on a simulated clock, with late ticks and
     frames, and behind its acceptance filter: every requirement passes; on a CAN FD bus
-    too (``fd``: `bess-ded conformance --fd`, the C agent's --fd), and with the
-    resilient update on (``trim``: `--resilient 1`, WMSR-1 and WMSR-2 judged)."""
+    too (``fd``: `bess-ded conformance --fd`, the C agent's --fd), with the resilient
+    update on (``trim``: `--resilient 1`, WMSR-1 and WMSR-2 judged), and with the public
+    keys (``insecure``: `--insecure`, AUTH-1 and AUTH-20 judged)."""
     from sim import conformance as conf
     from sim.model.scenario import load_case
 
@@ -826,23 +829,27 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     node = f"agent_{dut}"
 
     def ring() -> Keyring:
+        if insecure:
+            return Keyring.insecure_for(node)
         return Keyring(node, keys[node], 0, lambda _b: None, master=MASTER)
 
     codec = FrameCodec(dbc_path(fd))
-    planned = conf.plan(cfg, keys, sc.prices[0].rho, codec=codec)
+    planned = (conf.plan(cfg, None, sc.prices[0].rho, boot=INSECURE_BOOT, codec=codec)
+               if insecure else conf.plan(cfg, keys, sc.prices[0].rho, codec=codec))
     frames = conf.simulate(cfg, ring(), planned, jitter=jitter, seed=dut, filtered=filtered,
                            codec=codec,
                            make_dut=lambda c, _codec, k: CAgent(c, k, params=params, fd=fd))
     assert all(f.msg.is_fd == f.msg.bitrate_switch == fd for f in frames
                if f.note != OTHER_FORMAT)  # but RX-2's frame
-    outcome = conf.check(cfg, ring(), keys[node], frames, codec)
+    outcome = conf.check(cfg, ring(), ring().key, frames, codec)
     results = conf.verdict(outcome)
     assert not outcome.mismatches, outcome.mismatches[:3]
     assert not outcome.auth_errors and not outcome.problems
     assert outcome.steps_seen == {s.name for s in conf.STEPS}
     assert all(r.passed for r in results), [r for r in results if not r.passed]
-    wmsr = {"WMSR-1", "WMSR-2"} & {r.must for r in results}
-    assert wmsr == ({"WMSR-1", "WMSR-2"} if trim else set()), wmsr
+    judged = {r.must for r in results}
+    assert judged & {"WMSR-1", "WMSR-2"} == ({"WMSR-1", "WMSR-2"} if trim else set())
+    assert judged & {"AUTH-1", "AUTH-20"} == ({"AUTH-1", "AUTH-20"} if insecure else set())
 
 
 # --------------------------------------------------------------------------- the vector runner
