@@ -1230,20 +1230,23 @@ SCHEDULE_KEYS = fleet_keys(MASTER, 12)
 # a device that meets a condition of ``ONLY_ON`` (case, agent), where case 1's agent 3
 # does not: a dwell device, one of more than F = 1 neighbours
 ON_DEVICE = {"dwell": (6, 3), "resilient ties": (7, 5)}
+# the conditions a run option sets up (``schedule_setup``'s ``run``)
+RUN_OPTIONS = ("resilient", "resilient ties", "insecure")
 
 
 def played_on(fault: Any, case: int, dut: int) -> tuple[int, int, str]:
     """Where ``score`` plays ``fault``: (case, agent, run). ``run``: the condition of
-    ``ONLY_ON`` its requirement is exercised under ("" for most; "resilient…": the run
-    with --resilient 1, "insecure": with --insecure), on agent ``dut`` of ``case`` if
-    that device meets it, else on ``ON_DEVICE``'s."""
+    ``ONLY_ON`` its requirement is exercised under, where a run option sets it up (""
+    for most; "resilient…": the run with --resilient 1, "insecure": with --insecure),
+    on agent ``dut`` of ``case`` if that device meets it, else on ``ON_DEVICE``'s."""
     from sim import conformance as conf
 
-    run = conf.ONLY_ON.get(fault.requirement, "") if fault is not None else ""
-    if run and run not in conf.exercised_on(_run_config(case, dut, run)[1], False,
-                                            run == "insecure"):
-        case, dut = ON_DEVICE[run]
-    return case, dut, run
+    on = conf.ONLY_ON.get(fault.requirement, "") if fault is not None else ""
+    if on in ON_DEVICE and on not in conf.exercised_on(_run_config(case, dut, on)[1], False,
+                                                       False):
+        case, dut = ON_DEVICE[on]
+    # (the flood is the exact timing's: ``score``'s ``exact``, a run of its own)
+    return case, dut, on if on in RUN_OPTIONS else ""
 
 
 def _run_config(case: int, dut: int, run: str = "") -> tuple[str, AgentConfig]:

@@ -38,7 +38,7 @@ from firmware_py.frames import (
 from firmware_py.nodeio import SyncSchedule
 from firmware_py.runtime import AgentRuntime
 from firmware_py.secoc import Keyring
-from sim.conformance.schedule import exercised_on
+from sim.conformance.schedule import FLOOD_NOTE, exercised_on
 
 
 @dataclass(frozen=True)
@@ -331,7 +331,8 @@ def check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[F
     outcome.format_errors = wrong
     outcome.exact = exact
     outcome.exercised_on = exercised_on(cfg, bool(codec.tag_slots(mc_name(cfg.id))),
-                                        keyring.insecure)
+                                        keyring.insecure,
+                                        any(f.note == FLOOD_NOTE for f in frames if f.sent))
     return outcome
 
 

@@ -246,7 +246,8 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
         results = verdict(outcome, played)
         run = {r.must for r in results}
         skipped = [s.name for s in steps if s not in played]
-        for must in sorted({m for s in steps for m in s.musts} - run, key=_must_order):
+        for must in sorted({m for s in steps for m in s.musts if _judged(m, outcome)} - run,
+                           key=_must_order):
             where = ", ".join(s.name for s in steps if must in s.musts)
             results.append(Result(must, False, f"not run: a quick run (--quick) does not "
                                   f"play step {where} (skipped: {', '.join(skipped)})",

@@ -133,7 +133,7 @@ STEPS = (
          "on a band-planned device first, pinned meanwhile, one tick with the sum exactly "
          "2^31 − 1 (not clamped, not counted)",
          ("NUM-3", "XI-2", "XI-3", "STEP-1", "STEP-12", "RX-9", "LAM-2", "DIAG-3", "CFG-7",
-          "CMD-7", "WMSR-1", "WMSR-2"),
+          "CMD-7", "WMSR-1", "WMSR-2", "DIAG-2", "TX-6"),
          (("every neighbour at lambda_min in ξ …", ("NUM-3", "XI-3", "WMSR-2")),
           ("a neighbour INIT at lambda_min", ("LAM-2", "RX-9")),
           ("a neighbour at the λ that makes the sum of ξ exactly …", ("XI-3", "NUM-3")),
@@ -156,15 +156,19 @@ QUICK = ("start", "price-only", "running", "control", "authentication", "content
 # Requirements a step exercises on some runs only: on a device of one controller kind
 # (the band step's dwell edges), on a CAN FD bus with λ tags (--fd: every neighbour λ
 # carries the DUT's tag, the forged ones a wrong one), with --insecure (every key derived
-# from the public master; a command before its sync and a replayed sync taken). Another
-# run's verdict leaves them out; ``exercised_on`` says which conditions a run meets.
+# from the public master; a command before its sync and a replayed sync taken), with
+# the resilient update (--resilient F), in an exact-timing run in process (a Diag counter
+# driven past 65535 by a flood of unknown IDs: seconds of a full bus, none on a real one).
+# Another run's verdict leaves them out; ``exercised_on`` says which conditions a run
+# meets.
 ONLY_ON: dict[str, str] = {"CTRL-2": "dwell", "DWELL-1": "dwell", "DWELL-2": "dwell",
                            "AUTH-34": "lambda tags", "AUTH-1": "insecure",
                            "AUTH-20": "insecure", "WMSR-1": "resilient",
-                           "WMSR-2": "resilient ties"}
+                           "WMSR-2": "resilient ties", "DIAG-2": "flood", "TX-6": "flood"}
 ON_WHAT = {"dwell": "on a dwell device", "lambda tags": "on --fd, with λ tags",
            "insecure": "with --insecure", "resilient": "with --resilient F",
-           "resilient ties": "with --resilient F on a device of more than F neighbours"}
+           "resilient ties": "with --resilient F on a device of more than F neighbours",
+           "flood": "in process, in an exact-timing run: its flood of unknown IDs"}
 
 # The requirements no step exercises, and why: what a bus run cannot show, or what this
 # schedule leaves to the unit tests and vectors (docs/conformance.md's coverage table
@@ -176,12 +180,7 @@ NOT_ON_BUS: dict[str, str] = {
     "STEP-10": "kind pc: the controller vectors check it",
     "STEP-11": "kind ft: the controller vectors check it",
     "SP-2": "setpoint_limited is not on the Diag frame (DIAG-5): not visible on the bus",
-    "DIAG-2": "a counter at 65535 needs 65536 counted events (about 8 s of a full "
-              "1 Mbit/s bus of unknown IDs): longer than the schedule on a bus; an "
-              "exact-timing run in process floods them (plan's flood); unit tests",
     "DIAG-5": "these counters are not on any frame: not visible on the bus",
-    "TX-6": "a raw value outside its DBC range arises only from a counter past its "
-            "maximum (DIAG-2): as DIAG-2",
     "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
     "AUTH-2": "every MAC of the schedule is a CMAC, but a wrong CMAC fails everything "
               "(AUTH-4, AUTH-7): no step isolates it; the secoc vectors check it",
@@ -363,7 +362,7 @@ def plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         junk = can.Message(arbitration_id=_unknown_id(codec), is_extended_id=False,
                            data=bytes(8), **_format(codec))
         out += [Planned(at * cfg.controller.ts, "extremes", junk,
-                        "a flood of unknown IDs past 65535" if n == 0 else "")
+                        FLOOD_NOTE if n == 0 else "")
                 for n in range(FLOOD)]
         out.sort(key=lambda p: p.at)
     return [p for p in out if p.step in QUICK] if quick else out
@@ -373,6 +372,7 @@ OTHER_FORMAT = "an FD frame on a classic bus"
 """The note of the content step's frame of the other format (RX-2): the one frame of the
 schedule not in the bus's format."""
 
+FLOOD_NOTE = "a flood of unknown IDs past 65535"
 FLOOD = 65536
 """The unknown-ID frames of an exact-timing run's flood (``plan``'s ``flood``): with the
 two of the schedule, RejectedUnknownId's count is past 65535 (DIAG-2: it saturates)."""
@@ -616,19 +616,22 @@ def band_planned(cfg: AgentConfig) -> bool:
     return bool(cfg.neighbours) and not cfg.pinned
 
 
-def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool) -> frozenset[str]:
+def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool,
+                 flood: bool = False) -> frozenset[str]:
     """The conditions of ``ONLY_ON`` a run of ``cfg``'s device meets: its controller kind
     where the band step is planned for it (``kind_exercised``), "lambda tags" on a
     tagged CAN FD bus, "insecure" with the public demo keys, "resilient" with the
     resilient update on, and "resilient ties" where more than F neighbours (each of its
     own weight, ``conformance_config``) meet at lambda_min in the extremes step: the
-    larger weight is trimmed first (WMSR-2)."""
+    larger weight is trimmed first (WMSR-2); "flood" where the tester sent ``plan``'s
+    flood."""
     trim = cfg.resilient_f if cfg.neighbours else 0
     return frozenset({kind_exercised(cfg)} - {""}
                      | ({"lambda tags"} if lambda_tags else set())
                      | ({"insecure"} if insecure else set())
                      | ({"resilient"} if trim else set())
-                     | ({"resilient ties"} if trim and len(cfg.neighbours) > trim else set()))
+                     | ({"resilient ties"} if trim and len(cfg.neighbours) > trim else set())
+                     | ({"flood"} if flood else set()))
 
 
 def kind_exercised(cfg: AgentConfig) -> str:
