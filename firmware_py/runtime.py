@@ -420,7 +420,7 @@ class AgentRuntime:
         self._update_neighbours(t)
         self._update_state()
         if is_active(self.state):
-            xi, sat = consensus_error(self.ctrl.ar, self.lambda_q24, self._xi_neighbours(),
+            xi, sat = consensus_error(self.ctrl.ar, self.lambda_q24, self.xi_terms(),
                                       self.pin if self.price is not None else 0,
                                       self.price or 0, self.cfg.resilient_f)
             self.cstate, _ = self.ctrl.step(self.cstate, xi)
@@ -435,7 +435,7 @@ class AgentRuntime:
         self.ticks += 1
         return frames
 
-    def _xi_neighbours(self) -> list[tuple[int, int]]:
+    def xi_terms(self) -> list[tuple[int, int]]:
         """XI-1: (weight, λ) in Q24 of every neighbour alive and RUNNING: the terms of ξ."""
         return [(s.weight, s.lam) for s in self.neighbours.values()
                 if s.alive and is_active(s.state) and s.lam is not None]

@@ -1088,7 +1088,7 @@ FAULTS: list[Fault] = [
           "still stored", lambda rt: _bind(rt, "_on_mc", _on_mc, keep_rejected=True), DIAG,
           drive(_seq(lambda r: r.run(3, lam=1.0), lambda r: r.run(3, lam=1.5)))),
     Fault("xi_any_state", "XI-1", "ξ takes every alive neighbour, whatever the State its "
-          "frames carry", lambda rt: _bind(rt, "_xi_neighbours", _xi_any_state), DIAG,
+          "frames carry", lambda rt: _bind(rt, "xi_terms", _xi_any_state), DIAG,
           drive(lambda r: r.run(5, lam=1.0, state=State.SAFE))),
 ]
 
@@ -1105,14 +1105,16 @@ def _light_first(lam: int, pairs: list[Pair], f: int) -> list[Pair]:
     return above[f:] + below[f:] + [p for p in pairs if p[1] == lam]
 
 
-def _ties_light_first(rt: AgentRuntime) -> None:
-    f, own = rt.cfg.resilient_f, rt._xi_neighbours
+def ties_light_first(rt: AgentRuntime) -> None:
+    """Plants WMSR-2's tie the wrong way (the trimming done before ξ, F kept)."""
+    f, own = rt.cfg.resilient_f, rt.xi_terms
     rt.cfg = replace(rt.cfg, resilient_f=0)  # the trimming done here, before ξ
-    rt._xi_neighbours = lambda: _light_first(  # type: ignore[method-assign]
+    rt.xi_terms = lambda: _light_first(  # type: ignore[method-assign]
         rt.lambda_q24, own(), f)
 
 
-def _no_trimming(rt: AgentRuntime) -> None:
+def no_trimming(rt: AgentRuntime) -> None:
+    """Plants a device that does not trim (resilient_f taken as 0)."""
     rt.cfg = replace(rt.cfg, resilient_f=0)
 
 
@@ -1136,10 +1138,10 @@ def _two_neighbours_equal(r: Rig) -> None:
 
 FAULTS += [
     Fault("wmsr_not_applied", "WMSR-1", "the resilient update is not applied: ξ over every "
-          "alive neighbour although resilient_f = F > 0", _no_trimming, ARITH,
+          "alive neighbour although resilient_f = F > 0", no_trimming, ARITH,
           drive(lambda r: r.run(20, lam=1.5), resilient_f=1)),
     Fault("wmsr_ties_light_first", "WMSR-2", "of neighbours at the same λ_j the one with the "
-          "smaller weight is trimmed first", _ties_light_first, ARITH,
+          "smaller weight is trimmed first", ties_light_first, ARITH,
           drive(_two_neighbours_equal, resilient_f=1,
                 neighbours=(Neighbour(2, 1.0), Neighbour(4, 2.0)))),
     Fault("insecure_refuses_replay", "AUTH-20", "with --insecure a sync that goes back is "

@@ -5,11 +5,12 @@ clock with late ticks and frames, as tests/test_conformance.py."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from conformance_faults import no_trimming, ties_light_first
 
 from firmware_py import controllers, secoc
 from firmware_py.config import agent_configs_from_scenario
@@ -55,32 +56,10 @@ def test_an_insecure_run_judges_the_public_keys_and_their_replay_rule() -> None:
     assert outcome.mismatches and "AUTH-16" in failed, failed
 
 
-Pair = tuple[int, int]  # (weight, λ_j) in Q24, as the runtime's ξ takes them
-
-
-def _small_weight_first(lam: int, pairs: Sequence[Pair], f: int) -> list[Pair]:
-    """W-MSR with WMSR-2's tie the wrong way: of equal λ_j, the smaller weight trimmed."""
-    above = sorted((p for p in pairs if p[1] > lam), key=lambda p: (p[1], -p[0]), reverse=True)
-    below = sorted((p for p in pairs if p[1] < lam), key=lambda p: (-p[1], -p[0]),
-                   reverse=True)
-    return above[f:] + below[f:] + [p for p in pairs if p[1] == lam]
-
-
-def _ties_the_wrong_way(rt: AgentRuntime) -> None:
-    f, own = rt.cfg.resilient_f, rt._xi_neighbours
-    rt.cfg = replace(rt.cfg, resilient_f=0)  # the trimming done here, before ξ
-    rt._xi_neighbours = lambda: _small_weight_first(  # type: ignore[method-assign]
-        rt.lambda_q24, own(), f)
-
-
-def _no_trimming(rt: AgentRuntime) -> None:
-    rt.cfg = replace(rt.cfg, resilient_f=0)
-
-
 @pytest.mark.parametrize("case,dut,deviation,failed", [
     (7, 5, None, None),               # two neighbours, F = 1: WMSR-1 and WMSR-2
-    (7, 5, _ties_the_wrong_way, "WMSR-2"),
-    (1, 3, _no_trimming, "WMSR-1"),   # one neighbour: WMSR-1 only
+    (7, 5, ties_light_first, "WMSR-2"),
+    (1, 3, no_trimming, "WMSR-1"),   # one neighbour: WMSR-1 only
 ])
 def test_a_resilient_device_is_judged_on_its_trimming(
         case: int, dut: int, deviation: Callable[[AgentRuntime], None] | None,

@@ -21,6 +21,7 @@ The configuration the tester writes is the scenario's agent with every key the s
 observes off its default (timeouts, limits, gains, band, weights; each fixed-point value
 rounding up): a device that misreads its file fails, named CFG-3, CFG-4, CFG-6 or CFG-7
 when a known misreading (a key's default taken, a value rounded otherwise) explains it.
+--resilient F, --insecure, --fd, a dwell device: more requirements (docs/conformance.md).
 
 --quick plays the first steps only (start to commands: 7.1 s at Ts = 10 ms instead of
 16.2 s), for development: the requirements only the later steps exercise are listed
@@ -46,7 +47,7 @@ if TYPE_CHECKING:
 
 def register(sub: argparse._SubParsersAction) -> None:
     from firmware_py.cliargs import duration_s, int_in, time_scale
-    from firmware_py.config import RESILIENT_F_MAX
+    from firmware_py.config import RESILIENT_F_MAX as F_MAX
     from firmware_py.nodeargs import add_bus_arguments, add_rt_argument
 
     from ._common import add_case_option, one_line_errors
@@ -68,29 +69,23 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="how long to wait for the device (default: 60 s)")
     p.add_argument("--junit", type=Path, metavar="FILE", help="write JUnit XML here")
     p.add_argument("--fd", action="store_true",
-                   help="a CAN FD bus: the tester's frames and the device's must be FD "
-                        "frames with the bit-rate switch (the device runs with --fd; "
-                        "default: the scenario's [bus] fd, else classic CAN)")
+                   help="a CAN FD bus: every frame FD with the bit-rate switch (the device "
+                        "runs with --fd; default: the scenario's [bus] fd, else classic)")
     p.add_argument("--no-lambda-tags", action="store_true",
-                   help="with --fd (or an FD scenario): λ under its sender's node key, 8 "
-                        "bytes (the device runs with --no-lambda-tags), not a tag per "
-                        "receiver (AUTH-34)")
-    p.add_argument("--resilient", type=int_in(1, RESILIENT_F_MAX), metavar="F",
-                   help="the device runs the resilient update (W-MSR, F trimmed each side: "
-                        "its configuration says resilient_f = F) and is judged on it "
-                        "(WMSR-1, and WMSR-2 with more than F neighbours); default: the "
-                        "scenario's resilient_f")
+                   help="with --fd: λ under its sender's node key, not a tag per receiver "
+                        "(AUTH-34; the device runs with --no-lambda-tags)")
+    p.add_argument("--resilient", type=int_in(1, F_MAX), metavar="F",
+                   help="the device runs the resilient update (its resilient_f = F), judged "
+                        "on WMSR-1/2 (default: the scenario's resilient_f)")
     p.add_argument("--quick", action="store_true",
-                   help="play the first steps only (start to commands, about half the "
-                        "schedule), for development: the later steps' requirements are "
-                        "NOT RUN, never passed")
+                   help="play the first steps only (start to commands), for development: "
+                        "the later steps' requirements are NOT RUN, never passed")
     add_rt_argument(p)
     k = p.add_mutually_exclusive_group()
-    k.add_argument("--keys", type=Path, metavar="DIR",
-                   help="the fleet's key set (bess-ded keys --fleet); default: a fresh one "
-                        "in OUT/keys")
-    k.add_argument("--insecure", action="store_true",
-                   help="the device runs --insecure (the public demo keys)")
+    k.add_argument("--keys", type=Path, metavar="DIR", help="the fleet's key set (bess-ded "
+                   "keys --fleet); default: a fresh one in OUT/keys")
+    k.add_argument("--insecure", action="store_true", help="the device runs --insecure (the "
+                   "public demo keys)")
     p.set_defaults(func=run)
 
 
@@ -121,11 +116,9 @@ def _say(line: str) -> None:
     print(line, flush=True)
 
 
-def _progress(line: str) -> None:
-    if sys.stdout.isatty():
-        print(f"\r  {line:<60}", end="", flush=True)
-    else:
-        print(f"  {line}", flush=True)
+def _progress(line: str) -> None:  # one line rewritten on a terminal, else a line each
+    tty = sys.stdout.isatty()
+    print(f"\r  {line:<60}" if tty else f"  {line}", end="" if tty else "\n", flush=True)
 
 
 def report(outcome: Outcome, results: list[Result], out: Path, junit_path: Path | None,

@@ -299,7 +299,7 @@ def _wmsr_tie(rt: AgentRuntime) -> bool:
     f = rt.cfg.resilient_f
     if not f:
         return False
-    lam, pairs = rt.lambda_q24, rt._xi_neighbours()
+    lam, pairs = rt.lambda_q24, rt.xi_terms()
     for side in ([p for p in pairs if p[1] > lam], [p for p in pairs if p[1] < lam]):
         side.sort(key=lambda p: abs(p[1] - lam), reverse=True)
         if len(side) > f and side[f - 1][1] == side[f][1] and side[f - 1][0] != side[f][0]:
