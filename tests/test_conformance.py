@@ -366,8 +366,9 @@ def test_a_difference_names_what_the_step_exercises_at_that_moment() -> None:
     assert a(_mm("Diag", "RejectedDlc", 1, 0, step="commands",
                  moment=("ISOLATE",))) == ("RX-7",)
     assert a(_mm("Diag", "PriceTimeouts", 0, 1, step="price-only")) == ("TMO-3",)
+    # (WMSR-1: the resilient update's, judged on a --resilient run only: ONLY_ON)
     assert a(_mm("MC", "Lambda", 1000, 5000)) == ("XI-2", "STEP-6", "STEP-7", "STEP-8",
-                                                  "TX-1")
+                                                  "TX-1", "WMSR-1")
     step = conf.Step("x", 0, 10, "", ("NUM-1",), moments=(("my note", ("NUM-1",)),))
     assert a(_mm("MC", "Lambda", 1000, 5000, step="x", moment=("my note",)),
              [*conf.STEPS, step]) == ("NUM-1",)
