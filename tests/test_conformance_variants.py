@@ -129,3 +129,19 @@ def test_a_difference_named_only_by_another_runs_requirements_still_fails() -> N
         failed = [r.must for r in results if r.failed]
         assert failed == ["WMSR-2"], (on, failed)
         assert "AUTH-20" not in {r.must for r in results}
+
+
+def test_a_moment_of_every_run_names_no_requirement_of_another_run_first() -> None:
+    """Expected: the moments of the schedule that every run plays name requirements that
+    every run exercises first (e.g. the extremes step's saturation: NUM-3, XI-3, not
+    WMSR-2, which a run without --resilient does not exercise: a ξ that wraps would be
+    named by it alone)."""
+    mm = conf.Mismatch(14.8, 1480, "extremes", "MC", "Lambda", -66990676, -1574933,
+                       moment=("every neighbour at lambda_min in ξ (ξ saturates)",),
+                       raw=(-66990676, -1574933))
+    assert conf.attribute(mm)[:2] == ("NUM-3", "XI-3")
+    # and no moment every run plays is named by another run's requirements alone (the
+    # band step's dwell moments are played on a dwell device only)
+    moments = [*conf.MOMENTS.items(), *((n, m) for s in conf.STEPS if s.name != "band"
+                                        for n, m in s.moments)]
+    assert all(set(musts) - set(conf.ONLY_ON) for _, musts in moments)

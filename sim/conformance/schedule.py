@@ -134,7 +134,7 @@ STEPS = (
          "2^31 − 1 (not clamped, not counted)",
          ("NUM-3", "XI-2", "XI-3", "STEP-1", "STEP-12", "RX-9", "LAM-2", "DIAG-3", "CFG-7",
           "CMD-7", "WMSR-1", "WMSR-2", "DIAG-2", "TX-6"),
-         (("every neighbour at lambda_min in ξ …", ("NUM-3", "XI-3", "WMSR-2")),
+         (("every neighbour at lambda_min in ξ …", ("NUM-3", "XI-3")),
           ("a neighbour INIT at lambda_min", ("LAM-2", "RX-9")),
           ("a neighbour at the λ that makes the sum of ξ exactly …", ("XI-3", "NUM-3")),
           # not "PIN …" (ξ's price term, XI-2): λ is not what these two are for
