@@ -71,7 +71,9 @@ def test_a_sample_of_faults_fails_conformance_naming_its_requirement(
 
 # measured (docs/conformance.md): a floor, not a target. 711be92, case 1 (the band and
 # extremes steps, the weights' ties; e83b508 had 45, 40, 39, 38)
-FLOOR = {"caught": 52, "named": 46, "named_first": 45, "named_by_first_diff": 44}
+FLOOR = {"caught": 55, "named": 49, "named_first": 48, "named_by_first_diff": 47}
+# (the three faults of the runs that exercise more, played on those runs, all caught and
+# named first: 52, 46, 45, 44 of 58 before them)
 
 
 @pytest.mark.long
@@ -105,7 +107,7 @@ def _score_is_at_least(floors: dict[str, int], capsys: pytest.CaptureFixture[str
 # measured with the device's clock trusted (`conformance_score.py --timing exact`, 524304f:
 # the timeouts' boundaries and a flood of unknown IDs are steps there; docs/conformance.md,
 # "The last misses")
-FLOOR_EXACT = {"caught": 57, "named": 50, "named_first": 47, "named_by_first_diff": 47}
+FLOOR_EXACT = {"caught": 60, "named": 53, "named_first": 50, "named_by_first_diff": 50}
 
 
 @pytest.mark.long
