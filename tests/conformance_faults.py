@@ -1232,8 +1232,9 @@ SCHEDULE_KEYS = fleet_keys(MASTER, 12)
 # a device that meets a condition of ``ONLY_ON`` (case, agent), where case 1's agent 3
 # does not: a dwell device, one of more than F = 1 neighbours
 ON_DEVICE = {"dwell": (6, 3), "resilient ties": (7, 5)}
-# the conditions a run option sets up (``schedule_setup``'s ``run``)
-RUN_OPTIONS = ("resilient", "resilient ties", "insecure")
+# the conditions a run option sets up (``schedule_setup``'s ``run``) → that option
+RUN_OPTIONS = {"resilient": "--resilient 1", "resilient ties": "--resilient 1",
+               "insecure": "--insecure"}
 
 
 def played_on(fault: Any, case: int, dut: int) -> tuple[int, int, str]:

@@ -6,23 +6,15 @@ clock with late ticks and frames, as tests/test_conformance.py."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from conformance_faults import no_trimming, ties_light_first
+from conformance_faults import no_trimming, schedule_setup, schedule_text, ties_light_first
 
-from firmware_py import controllers, secoc
-from firmware_py.config import agent_configs_from_scenario
+from firmware_py import controllers
 from firmware_py.runtime import AgentRuntime
-from firmware_py.secoc import Keyring
 from sim import conformance as conf
 from sim.cli import main
-from sim.model.scenario import load_case
-from sim.testkit.tester import fleet_keys
-
-MASTER = bytes(range(16))
-KEYS = fleet_keys(MASTER, 12)
 
 
 def test_an_insecure_run_judges_the_public_keys_and_their_replay_rule() -> None:
@@ -30,16 +22,12 @@ def test_an_insecure_run_judges_the_public_keys_and_their_replay_rule() -> None:
     sender at boot 1) firmware_py passes every requirement, AUTH-1 (the keys derived from
     the master) and AUTH-20 among them; a device that keeps a keyed node's replay rule in
     insecure mode (a replayed sync refused, not taken as a restarted sender's) fails."""
-    sc = load_case(1)
-    _, cfg = conf.written_config(agent_configs_from_scenario(sc)[2])
-    planned = conf.plan(cfg, None, sc.prices[0].rho, boot=secoc.INSECURE_BOOT)
+    cfg, ring, planned = schedule_setup(1, 3, run="insecure")
 
     def judged(deviation: Callable[[AgentRuntime], None] | None
                ) -> tuple[conf.Outcome, list[conf.Result]]:
-        ring = Keyring.insecure_for("agent_3")
-        frames = conf.simulate(cfg, Keyring.insecure_for("agent_3"), planned, deviation,
-                               jitter=0.3, seed=1)
-        outcome = conf.check(cfg, ring, ring.key, frames)
+        frames = conf.simulate(cfg, ring(), planned, deviation, jitter=0.3, seed=1)
+        outcome = conf.check(cfg, ring(), ring().key, frames)
         return outcome, conf.verdict(outcome)
 
     outcome, results = judged(None)
@@ -70,23 +58,16 @@ def test_a_resilient_device_is_judged_on_its_trimming(
     lambda_min; a device that trims equal λ the smaller weight first fails, named WMSR-2
     first (the oracle's edge: a trim through a tie), and one that does not trim fails,
     named WMSR-1 first (a known misreading: resilient_f's default taken)."""
-    sc = load_case(case)
-    agent = replace(agent_configs_from_scenario(sc)[dut - 1], resilient_f=1)
-    text, cfg = conf.written_config(agent)
+    cfg, ring, planned = schedule_setup(case, dut, run="resilient")  # resilient_f = 1
+    text = schedule_text(case, dut, run="resilient")
     weights = [n.weight for n in cfg.neighbours]
     assert len(set(weights)) == len(weights)
-    node = f"agent_{dut}"
-
-    def ring() -> Keyring:
-        return Keyring(node, KEYS[node], 0, lambda _b: None, master=MASTER,
-                       floors={n: 2 for n in KEYS if n != node})
-
-    planned = conf.plan(cfg, KEYS, sc.prices[0].rho, boot=2)
     original = controllers.resilient_trim
     frames = conf.simulate(cfg, ring(), planned, deviation, jitter=0.3, seed=dut)
     assert controllers.resilient_trim is original
-    outcome = conf.check(cfg, ring(), KEYS[node], frames)
-    conf.explain(cfg, ring(), KEYS[node], frames, outcome, config_text=text)
+    key = ring().key
+    outcome = conf.check(cfg, ring(), key, frames)
+    conf.explain(cfg, ring(), key, frames, outcome, config_text=text)
     results = conf.verdict(outcome)
     judged = {r.must for r in results}
     own = {"WMSR-1", "WMSR-2"} if len(weights) > 1 else {"WMSR-1"}

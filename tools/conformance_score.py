@@ -67,10 +67,6 @@ def _job(args: tuple[str, int, int, float, int, str, bool]) -> cf.Score:
     return fs.score(fs.BY_NAME[name], case, dut, jitter, seed, exact=exact)
 
 
-RUN_FLAGS = {"resilient": ", --resilient 1", "resilient ties": ", --resilient 1",
-             "insecure": ", --insecure"}
-
-
 def table(scores: list[cf.Score], case: tuple[int, int] | None = None) -> str:
     """One line per fault: caught, the own requirement first / at all / among those of
     the first difference, then the requirements failed (those failed only as "not
@@ -86,7 +82,8 @@ def table(scores: list[cf.Score], case: tuple[int, int] | None = None) -> str:
         if s.problems and not s.failed:
             failed = "problem: " + s.problems[0][:60]
         if case is not None and ((s.case, s.dut) != case or s.run):
-            failed += f" (played on case {s.case}, agent {s.dut}{RUN_FLAGS.get(s.run, '')})"
+            run = f", {cf.RUN_OPTIONS[s.run]}" if s.run else ""
+            failed += f" (played on case {s.case}, agent {s.dut}{run})"
         lines.append(f"{s.fault:26s} {s.requirement:11s} {s.group:11s} "
                      f"{'yes' if s.caught else 'NO':6s} {'yes' if s.named_first else '-':3s} "
                      f"{'yes' if s.named else '-':3s} "
