@@ -22,6 +22,7 @@ spec (equivalent mutants) are not in the set; docs/conformance.md lists the ones
 from __future__ import annotations
 
 import importlib.util
+import math
 import tomllib
 import types
 from collections.abc import Callable
@@ -40,7 +41,12 @@ from firmware_py.config import (
     parse_agent_config,
 )
 from firmware_py.contract import Command, State, is_active
-from firmware_py.controllers import DwellResetPIController, ResetPIController
+from firmware_py.controllers import (
+    DwellResetPIController,
+    FiniteTimeController,
+    ProportionalController,
+    ResetPIController,
+)
 from firmware_py.errors import ParameterError
 from firmware_py.frames import (
     PIN_ON,
@@ -194,6 +200,46 @@ def _own_lambda_clamped(rt: AgentRuntime) -> None:
             return replace(new, lam=min(max(new.lam, lo), hi)), out
         _wrap(c, "step", step)
     _on_ctrl(patch)(rt)
+
+
+class _RootNearest:
+    """fpow's integer square roots round to the nearest integer, not down (NUM-5: the
+    exact floor of the root)."""
+
+    def frac_pow(self, v: Any) -> int:
+        root = abs(int(v))
+        for _ in range(self.pow_sqrts):  # type: ignore[attr-defined]
+            x = root << fx.Q
+            floor = math.isqrt(x)
+            root = floor + (x - floor * floor > floor)
+        out = root
+        for _ in range(self.pow_num - 1):  # type: ignore[attr-defined]
+            out = fx.mul(out, root)
+        return out
+
+
+class _PowProductsFirst:
+    """fpow raises |v| to the power p first, then takes the n roots (CTRL-3: the roots
+    first, then p − 1 products): the same real value, other roundings."""
+
+    def frac_pow(self, v: Any) -> int:
+        out = root = abs(int(v))
+        for _ in range(self.pow_num - 1):  # type: ignore[attr-defined]
+            out = fx.mul(out, root)
+        for _ in range(self.pow_sqrts):  # type: ignore[attr-defined]
+            out = fx.sqrt_q(out)
+        return out
+
+
+class _DeltaOnWireGrid:
+    """pc's and ft's Δλ rounded to the wire's Q24 grid before it is added (STEP-10,
+    STEP-11: the product exact, Q54): the guard bits of the step lost."""
+
+    def step(self, s: Any, xi: Any) -> Any:
+        new, out = super().step(s, xi)  # type: ignore[misc]
+        dlam = fx.widen(fx.narrow(out.dlam))
+        lam, _ = fx.saturate_state(s.lam + dlam)
+        return replace(new, lam=lam), replace(out, dlam=dlam)
 
 
 class _SetpointFloor:
@@ -918,6 +964,18 @@ FAULTS: list[Fault] = [
     Fault("setpoint_truncates", "SP-1", "the setpoint map truncates λ·G >> 40 instead of "
           "rounding", lambda rt: _swap(rt.setpoint, _SetpointFloor), ARITH,
           drive(lambda r: r.run(30, lam=1.0))),
+    # pc's and ft's step (case 2's variants): their own rules of arithmetic
+    Fault("ft_root_nearest", "NUM-5", "fpow's integer square root rounds to nearest, not "
+          "down", _ar(_RootNearest), ARITH, steps([3, 50, -7], ctrl={"kind": "ft"})),
+    Fault("ft_products_first", "CTRL-3", "fpow takes |ξ|^p first, then the n roots (a = "
+          "3/4: |ξ|³ then two roots)", _ar(_PowProductsFirst), ARITH,
+          steps([3, 50, -7], ctrl={"kind": "ft", "ft_exponent": 0.75})),
+    Fault("ft_step_on_wire_grid", "STEP-11", "ft's Δλ rounded to Q24 before it is added "
+          "(the step's guard bits lost)", _ctrl(_DeltaOnWireGrid, FiniteTimeController),
+          ARITH, steps([3, 50, -7], ctrl={"kind": "ft"})),
+    Fault("pc_step_on_wire_grid", "STEP-10", "pc's Δλ rounded to Q24 before it is added "
+          "(the step's guard bits lost)", _ctrl(_DeltaOnWireGrid, ProportionalController),
+          ARITH, steps([3, 50, -7], ctrl={"kind": "pc"})),
     # comparisons at exact boundaries
     Fault("band_rearm_ge", "BAND-3", "the band re-arms at |ξ| ≥ BAND (not >)",
           _ctrl(_RearmGe), BOUND, steps([5000, -5000, 1678, -3000])),
@@ -1231,10 +1289,11 @@ assert len(BY_NAME) == len(FAULTS), "fault names must be unique"
 SCHEDULE_KEYS = fleet_keys(MASTER, 12)
 # a device that meets a condition of ``ONLY_ON`` (case, agent), where case 1's agent 3
 # does not: a dwell device, one of more than F = 1 neighbours
-ON_DEVICE = {"dwell": (6, 3), "resilient ties": (7, 5)}
+ON_DEVICE = {"dwell": (6, 3), "resilient ties": (7, 5), "pc": (2, 3), "ft": (2, 3)}
 # the conditions a run option sets up (``schedule_setup``'s ``run``) → that option
 RUN_OPTIONS = {"resilient": "--resilient 1", "resilient ties": "--resilient 1",
-               "insecure": "--insecure"}
+               "insecure": "--insecure", "pc": "--variant PC",
+               "ft": "--variant finite-time"}
 
 
 def played_on(fault: Any, case: int, dut: int) -> tuple[int, int, str]:
@@ -1254,10 +1313,15 @@ def played_on(fault: Any, case: int, dut: int) -> tuple[int, int, str]:
 
 def _run_config(case: int, dut: int, run: str = "") -> tuple[str, AgentConfig]:
     """The configuration file the tester writes for agent ``dut`` of ``case`` on ``run``
-    (--resilient 1 for a "resilient…" run) and the reference parser's reading of it."""
+    (--resilient 1 for a "resilient…" run, case 2's variant PC or finite-time for a "pc"
+    or "ft" run) and the reference parser's reading of it."""
     from sim import conformance as conf
 
-    agent = agent_configs_from_scenario(load_case(case))[dut - 1]
+    sc = load_case(case)
+    variant = RUN_OPTIONS.get(run, "").removeprefix("--variant ")
+    if variant in {v.label for v in sc.variants}:  # pc, ft: case 2's variant
+        sc = sc.variant(variant)
+    agent = agent_configs_from_scenario(sc)[dut - 1]
     if run.startswith("resilient"):
         agent = replace(agent, resilient_f=1)
     return conf.written_config(agent)

@@ -802,24 +802,29 @@ def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once
 # --------------------------------------------------------------------------- conformance
 
 
-@pytest.mark.parametrize("case,dut,jitter,filtered,fd,trim,insecure", [
-    (1, 3, 0.0, False, False, 0, False),
-    (1, 1, 0.9, True, True, 0, False),
-    (7, 5, 0.5, False, False, 1, False),
-    (6, 3, 0.3, False, False, 0, True)])
+@pytest.mark.parametrize("case,dut,jitter,filtered,fd,trim,insecure,variant", [
+    (1, 3, 0.0, False, False, 0, False, ""),
+    (1, 1, 0.9, True, True, 0, False, ""),
+    (7, 5, 0.5, False, False, 1, False, ""),
+    (6, 3, 0.3, False, False, 0, True, ""),
+    (2, 3, 0.3, False, False, 0, False, "PC"),
+    (2, 2, 0.3, False, False, 0, False, "finite-time")])
 def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter: float,
                                                      filtered: bool, fd: bool,
-                                                     trim: int, insecure: bool) -> None:
+                                                     trim: int, insecure: bool,
+                                                     variant: str) -> None:
     """`bess-ded conformance`'s whole schedule (sim.conformance: 1620 ticks, the
     requirements) played against the C agent on a simulated clock, with late ticks and
     frames, and behind its acceptance filter: every requirement passes; on a CAN FD bus
     too (``fd``: `bess-ded conformance --fd`, the C agent's --fd), with the resilient
     update on (``trim``: `--resilient 1`, WMSR-1 and WMSR-2 judged), and with the public
-    keys (``insecure``: `--insecure`, AUTH-1 and AUTH-20 judged)."""
+    keys (``insecure``: `--insecure`, AUTH-1 and AUTH-20 judged); a pc and an ft device
+    (case 2's ``variant``: STEP-10, resp. STEP-11, CTRL-3 and NUM-5 judged, not the PI
+    family's step)."""
     from sim import conformance as conf
     from sim.model.scenario import load_case
 
-    sc = load_case(case)
+    sc = load_case(case).variant(variant) if variant else load_case(case)
     # the configuration the tester writes: the C loader reads it for the device, the
     # reference parser for the oracle (issue 22 item 4: the configuration path)
     agent = replace(agent_configs_from_scenario(sc)[dut - 1], resilient_f=trim)
@@ -850,6 +855,9 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     judged = {r.must for r in results}
     assert judged & {"WMSR-1", "WMSR-2"} == ({"WMSR-1", "WMSR-2"} if trim else set())
     assert judged & {"AUTH-1", "AUTH-20"} == ({"AUTH-1", "AUTH-20"} if insecure else set())
+    kind_steps = {"PC": {"STEP-10"}, "finite-time": {"STEP-11", "CTRL-3", "NUM-5"},
+                  "": {f"STEP-{n}" for n in range(2, 10)} | {"BAND-1", "BAND-2", "BAND-3"}}
+    assert judged & set().union(*kind_steps.values()) == kind_steps[variant]
 
 
 # --------------------------------------------------------------------------- the vector runner

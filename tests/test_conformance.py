@@ -118,10 +118,12 @@ def test_firmware_py_passes_every_requirement_at_any_timing(
     assert all(r.passed for r in results), [r for r in results if not r.passed]
     assert outcome.ticks >= conf.STEPS[-1].end - 5
     # a dwell device's own requirements are in its verdict only (case 6: kind dwell),
-    # AUTH-34 in an FD run's (λ tags)
+    # AUTH-34 in an FD run's (λ tags); the PI family's step in every one of these (reset
+    # and dwell devices), pc's and ft's in none
     own = {r.must for r in results} & set(conf.ONLY_ON)
     assert own == ({"AUTH-34"} if fd else set()) | (
-        {m for m, on in conf.ONLY_ON.items() if on == "dwell"} if case == 6 else set()), own
+        {m for m, on in conf.ONLY_ON.items() if on == "dwell"} if case == 6 else set()) | {
+        m for m, on in conf.ONLY_ON.items() if on == "pi family"}, own
 
 
 def test_a_dwell_device_meets_crossings_at_its_dwell_and_only_it_is_judged_on_them() -> None:
@@ -349,7 +351,9 @@ def test_a_difference_names_what_the_step_exercises_at_that_moment() -> None:
     assert a(_mm("MC", "Lambda", 1000, 1001, moment=("SET_GAINS in bounds",))) == (
         "CMD-5", "NUM-8")
     assert a(_mm("MC", "Lambda", 1000, 1001, step="start")) == ("NUM-4", "NUM-8")
-    assert a(_mm("MC", "Lambda", 1000, 1001, moment=("ISOLATE",))) == ("NUM-8",)
+    # (pc's and ft's step first: the verdict judges them on those devices only)
+    assert a(_mm("MC", "Lambda", 1000, 1001, moment=("ISOLATE",))) == (
+        "STEP-10", "STEP-11", "NUM-8")
     assert a(_mm("MC", "Resets", 2, 1, transition=("ξ = 0 after ξprev ≠ 0",))) == ("STEP-2",)
     # what the tester just did comes before the edge it led the controller to
     assert a(_mm("MC", "Resets", 2, 1, moment=("a neighbour alive but INIT (not in ξ)",),
@@ -366,9 +370,11 @@ def test_a_difference_names_what_the_step_exercises_at_that_moment() -> None:
     assert a(_mm("Diag", "RejectedDlc", 1, 0, step="commands",
                  moment=("ISOLATE",))) == ("RX-7",)
     assert a(_mm("Diag", "PriceTimeouts", 0, 1, step="price-only")) == ("TMO-3",)
-    # (WMSR-1: the resilient update's, judged on a --resilient run only: ONLY_ON)
-    assert a(_mm("MC", "Lambda", 1000, 5000)) == ("XI-2", "STEP-6", "STEP-7", "STEP-8",
-                                                  "TX-1", "WMSR-1")
+    # (WMSR-1: the resilient update's, judged on a --resilient run only: ONLY_ON; the
+    # controller kinds' steps on a device of that kind only)
+    assert a(_mm("MC", "Lambda", 1000, 5000)) == (
+        "STEP-10", "STEP-11", "XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1", "WMSR-1",
+        "CTRL-3", "NUM-5")
     step = conf.Step("x", 0, 10, "", ("NUM-1",), moments=(("my note", ("NUM-1",)),))
     assert a(_mm("MC", "Lambda", 1000, 5000, step="x", moment=("my note",)),
              [*conf.STEPS, step]) == ("NUM-1",)
@@ -601,10 +607,14 @@ def test_a_quick_run_plays_the_first_steps_and_lists_the_rest_not_run(
     skipped = [r for r in results if r.not_run]
     assert run and all(r.passed for r in run), [r for r in run if not r.passed]
     assert not any(r.passed for r in skipped)
-    # (of the requirements some runs exercise only, none: a keyed classic-bus run)
+    # (of the requirements some runs exercise only, the PI family's: a reset device on a
+    # keyed classic-bus run)
+    assert outcome.exercised_on == {"reset", "pi family"}
+    judged = {m for m in conf.spec_requirements()
+              if conf.ONLY_ON.get(m, "pi family") == "pi family"}
     later = {m for s in conf.STEPS if s.name not in conf.QUICK for m in s.musts
-             if m not in conf.ONLY_ON}
-    early = {m for s in played for m in s.musts if m not in conf.ONLY_ON}
+             if m in judged}
+    early = {m for s in played for m in s.musts if m in judged}
     assert {r.must for r in skipped} == later - early  # e.g. the timeouts' and CFG-6
     assert {"TMO-1", "CFG-6", "AUTH-18"} <= {r.must for r in skipped}
     assert {r.must for r in results} == later | early

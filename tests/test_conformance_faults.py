@@ -23,7 +23,7 @@ CLASSES = {"arithmetic", "boundary", "commands", "state", "freshness", "diagnost
 
 def test_the_set_covers_every_class_and_names_requirements_of_the_spec() -> None:
     spec = set(conf.spec_requirements())
-    assert 30 <= len(FAULTS) <= 64
+    assert 30 <= len(FAULTS) <= 72
     assert {f.group for f in FAULTS} == CLASSES
     assert all(f.requirement in spec for f in FAULTS), [f.name for f in FAULTS
                                                          if f.requirement not in spec]
@@ -71,9 +71,10 @@ def test_a_sample_of_faults_fails_conformance_naming_its_requirement(
 
 # measured (docs/conformance.md): a floor, not a target. 711be92, case 1 (the band and
 # extremes steps, the weights' ties; e83b508 had 45, 40, 39, 38)
-FLOOR = {"caught": 55, "named": 49, "named_first": 48, "named_by_first_diff": 47}
+FLOOR = {"caught": 59, "named": 52, "named_first": 50, "named_by_first_diff": 49}
 # (the three faults of the runs that exercise more, played on those runs, all caught and
-# named first: 52, 46, 45, 44 of 58 before them)
+# named first: 52, 46, 45, 44 of 58 before them; pc's and ft's four, on case 2's
+# variants, all caught, two named first: 55, 49, 48, 47 of 61 before them)
 
 
 @pytest.mark.long
@@ -107,7 +108,7 @@ def _score_is_at_least(floors: dict[str, int], capsys: pytest.CaptureFixture[str
 # measured with the device's clock trusted (`conformance_score.py --timing exact`, 524304f:
 # the timeouts' boundaries and a flood of unknown IDs are steps there; docs/conformance.md,
 # "The last misses")
-FLOOR_EXACT = {"caught": 60, "named": 53, "named_first": 50, "named_by_first_diff": 50}
+FLOOR_EXACT = {"caught": 64, "named": 56, "named_first": 52, "named_by_first_diff": 52}
 
 
 @pytest.mark.long

@@ -1,6 +1,7 @@
 """`bess-ded conformance` on the runs that exercise more requirements (``ONLY_ON``):
-with --insecure (AUTH-1, AUTH-20) and with the resilient update on (--resilient F:
-WMSR-1, and WMSR-2 on a device of more than F neighbours). In process, on a simulated
+with --insecure (AUTH-1, AUTH-20), with the resilient update on (--resilient F:
+WMSR-1, and WMSR-2 on a device of more than F neighbours), on a pc or an ft device
+(case 2's variants: STEP-10; STEP-11, CTRL-3, NUM-5). In process, on a simulated
 clock with late ticks and frames, as tests/test_conformance.py."""
 
 from __future__ import annotations
@@ -9,7 +10,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from conformance_faults import no_trimming, schedule_setup, schedule_text, ties_light_first
+from conformance_faults import (
+    BY_NAME,
+    no_trimming,
+    schedule_setup,
+    schedule_text,
+    ties_light_first,
+)
 
 from firmware_py import controllers
 from firmware_py.runtime import AgentRuntime
@@ -31,7 +38,8 @@ def test_an_insecure_run_judges_the_public_keys_and_their_replay_rule() -> None:
         return outcome, conf.verdict(outcome)
 
     outcome, results = judged(None)
-    assert outcome.exercised_on == {"insecure", "reset"}  # the conditions this run meets
+    # the conditions this run meets
+    assert outcome.exercised_on == {"insecure", "reset", "pi family"}
     assert not outcome.mismatches and not outcome.auth_errors
     assert all(r.passed for r in results), [r for r in results if not r.passed]
     assert {"AUTH-1", "AUTH-20"} <= {r.must for r in results}
@@ -126,3 +134,36 @@ def test_a_moment_of_every_run_names_no_requirement_of_another_run_first() -> No
     moments = [*conf.MOMENTS.items(), *((n, m) for s in conf.STEPS if s.name != "band"
                                         for n, m in s.moments)]
     assert all(set(musts) - set(conf.ONLY_ON) for _, musts in moments)
+
+
+PI_FAMILY = {f"STEP-{n}" for n in range(2, 10)} | {"BAND-1", "BAND-2", "BAND-3"}
+
+
+@pytest.mark.parametrize("run,fault,own", [
+    ("pc", None, {"STEP-10"}),
+    ("pc", "pc_step_on_wire_grid", {"STEP-10"}),
+    ("ft", None, {"STEP-11", "CTRL-3", "NUM-5"}),
+    ("ft", "ft_step_on_wire_grid", {"STEP-11", "CTRL-3", "NUM-5"}),
+])
+def test_a_pc_or_ft_device_is_judged_on_its_own_step(run: str, fault: str | None,
+                                                      own: set[str]) -> None:
+    """Expected: on case 2's variants PC and finite-time (`bess-ded conformance --case 2
+    --variant PC`), firmware_py passes every requirement, its kind's step among them
+    (STEP-10; STEP-11 with fpow's CTRL-3 and NUM-5, a = 3/4 in the file the tester
+    writes: two roots and two products), and none of the PI family's step and band is
+    judged; a device whose Δλ loses its guard bits fails, named by its kind's step."""
+    cfg, ring, planned = schedule_setup(2, 3, run=run)
+    assert cfg.controller.kind == run
+    assert ("ft_exponent = 0.75" in schedule_text(2, 3, run)) == (run == "ft")
+    apply = BY_NAME[fault].apply if fault else None
+    frames = conf.simulate(cfg, ring(), planned, apply, jitter=0.3, seed=2)
+    outcome = conf.check(cfg, ring(), ring().key, frames)
+    results = conf.verdict(outcome)
+    judged = {r.must for r in results}
+    assert judged & (PI_FAMILY | {"STEP-10", "STEP-11", "CTRL-3", "NUM-5"}) == own
+    if fault is None:
+        assert not outcome.mismatches and not outcome.auth_errors
+        assert all(r.passed for r in results), [r for r in results if not r.passed]
+        return
+    bad = [r.must for r in results if r.failed]
+    assert bad[0] == BY_NAME[fault].requirement, bad

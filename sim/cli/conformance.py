@@ -21,7 +21,8 @@ The configuration the tester writes is the scenario's agent with every key the s
 observes off its default (timeouts, limits, gains, band, weights; each fixed-point value
 rounding up): a device that misreads its file fails, named CFG-3, CFG-4, CFG-6 or CFG-7
 when a known misreading (a key's default taken, a value rounded otherwise) explains it.
---resilient F, --insecure, --fd, a dwell device: more requirements (docs/conformance.md).
+--resilient F, --insecure, --fd, a dwell device, case 2's variants PC and finite-time
+(their controller's step): more requirements (docs/conformance.md).
 
 --quick plays the first steps only (start to commands: 7.1 s at Ts = 10 ms instead of
 16.2 s), for development: the requirements only the later steps exercise are listed

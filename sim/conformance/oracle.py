@@ -113,8 +113,10 @@ class Outcome:
 
 # Which requirements a mismatch on a signal violates (besides the step's)
 SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
-    "MC.Lambda": ("XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1", "STEP-12", "STATE-10",
-                  "WMSR-1", "WMSR-2"),
+    # pc's and ft's step first: judged only on those devices (ONLY_ON), where it is the
+    # one controller rule of λ besides ξ's
+    "MC.Lambda": ("STEP-10", "STEP-11", "XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1",
+                  "STEP-12", "STATE-10", "WMSR-1", "WMSR-2", "CTRL-3", "NUM-5"),
     # and the inputs' rules that decide health (STATE-2): a valid price, a plant fault
     "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9",
                  "PRICE-1", "RX-11"),

@@ -179,7 +179,7 @@ def attribute(mm: Mismatch, steps: Sequence[Step] = STEPS,
         if mm.step == "limits" or any("CMD-5" in _moment_musts(n, steps)
                                       for n in mm.moment):
             return ("CMD-5", "NUM-8")
-        return ("NUM-8",)
+        return ("STEP-10", "STEP-11", "NUM-8")  # the first two on pc, ft devices only
     if key == "Setpoint.PowerSetpoint" and one_lsb:
         return ("SP-1",)
     # a Diag counter expected at its maximum and below it: it wrapped (DIAG-2)

@@ -56,11 +56,13 @@ STEPS = (
          ("STATE-4", "STATE-6", "SP-1", "TX-2", "RX-11", "XI-1", "XI-2", "WMSR-1",
           "WMSR-2")),
     Step("control", 100, 450, "neighbours' λ moving (steps and a slow sine): every step "
-         "of the reset-PI, bit for bit",
+         "of the device's controller (the reset-PI; pc, ft on case 2's variants), bit for "
+         "bit",
          ("CTRL-1", "CTRL-4", "CTRL-5", "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-2",
           "STEP-3", "STEP-4", "STEP-5", "STEP-6", "STEP-7", "STEP-8", "STEP-9", "BAND-1",
-          "BAND-2", "BAND-3", "TX-1", "SP-1", "LAM-2", "DIAG-1", "NUM-1", "NUM-2",
-          "NUM-3", "NUM-6", "NUM-7", "NUM-8", "CFG-3", "CFG-4", "AUTH-34", "WMSR-1")),
+          "BAND-2", "BAND-3", "STEP-10", "STEP-11", "CTRL-3", "NUM-5", "TX-1", "SP-1",
+          "LAM-2", "DIAG-1", "NUM-1", "NUM-2", "NUM-3", "NUM-6", "NUM-7", "NUM-8", "CFG-3",
+          "CFG-4", "AUTH-34", "WMSR-1")),
     Step("authentication", 450, 510, "forged MACs, a replayed frame, a replayed sync, a "
          "frame from another boot, a genuine frame delivered late (stale, not auth) and "
          "again (seen: auth): rejected and counted, λ unmoved by them",
@@ -89,7 +91,8 @@ STEPS = (
          "the λ range (large |ξ|), alive but INIT for 5 ticks; a status with FaultSoc and "
          "PowerLimited set",
          ("CMD-5", "CMD-6", "LAM-1", "LAM-2", "PRICE-1", "PRICE-3", "PRICE-4", "PRICE-6",
-          "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-6", "STEP-7", "STEP-8", "STEP-12",
+          "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-6", "STEP-7", "STEP-8", "STEP-10",
+          "STEP-11", "CTRL-3", "NUM-5", "STEP-12",
           "NUM-3", "NUM-4", "RX-11", "DIAG-3", "CFG-7", "WMSR-1")),
     Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
          "consecutive forged frames on one ID and one fewer on another (the plant's "
@@ -154,7 +157,8 @@ QUICK = ("start", "price-only", "running", "control", "authentication", "content
          "commands")
 
 # Requirements a step exercises on some runs only: on a device of one controller kind
-# (the band step's dwell edges), on a CAN FD bus with λ tags (--fd: every neighbour λ
+# (the PI family's step and band, pc's and ft's step: the scenario's kind, e.g. case 2's
+# variants; the band step's dwell edges), on a CAN FD bus with λ tags (--fd: every neighbour λ
 # carries the DUT's tag, the forged ones a wrong one), with --insecure (every key derived
 # from the public master; a command before its sync and a replayed sync taken), with
 # the resilient update (--resilient F), in an exact-timing run in process (a Diag counter
@@ -164,8 +168,15 @@ QUICK = ("start", "price-only", "running", "control", "authentication", "content
 ONLY_ON: dict[str, str] = {"CTRL-2": "dwell", "DWELL-1": "dwell", "DWELL-2": "dwell",
                            "AUTH-34": "lambda tags", "AUTH-1": "insecure",
                            "AUTH-20": "insecure", "WMSR-1": "resilient",
-                           "WMSR-2": "resilient ties", "DIAG-2": "flood", "TX-6": "flood"}
-ON_WHAT = {"dwell": "on a dwell device", "lambda tags": "on --fd, with λ tags",
+                           "WMSR-2": "resilient ties", "DIAG-2": "flood", "TX-6": "flood",
+                           # the controller kind's own step (section 6)
+                           **{f"STEP-{n}": "pi family" for n in range(2, 10)},
+                           **{f"BAND-{n}": "pi family" for n in range(1, 4)},
+                           "STEP-10": "pc", "STEP-11": "ft", "CTRL-3": "ft", "NUM-5": "ft"}
+ON_WHAT = {"dwell": "on a dwell device", "pi family": "on a pi, reset or dwell device",
+           "pc": "on a pc device: --case 2 --variant PC",
+           "ft": "on an ft device: --case 2 --variant finite-time",
+           "lambda tags": "on --fd, with λ tags",
            "insecure": "with --insecure", "resilient": "with --resilient F",
            "resilient ties": "with --resilient F on a device of more than F neighbours",
            "flood": "in process, in an exact-timing run: its flood of unknown IDs"}
@@ -174,11 +185,6 @@ ON_WHAT = {"dwell": "on a dwell device", "lambda tags": "on --fd, with λ tags",
 # schedule leaves to the unit tests and vectors (docs/conformance.md's coverage table
 # lists them; a test fails when a spec requirement is in neither STEPS nor here).
 NOT_ON_BUS: dict[str, str] = {
-    "NUM-5": "isqrt is used by the ft controller only; the DUT runs its configuration's "
-             "kind (reset in every case but 2 and 6): the controller vectors check it",
-    "CTRL-3": "fpow of kind ft: the controller vectors check it",
-    "STEP-10": "kind pc: the controller vectors check it",
-    "STEP-11": "kind ft: the controller vectors check it",
     "SP-2": "setpoint_limited is not on the Diag frame (DIAG-5): not visible on the bus",
     "DIAG-5": "these counters are not on any frame: not visible on the bus",
     "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
@@ -250,6 +256,8 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     ctrl = replace(c, ts=ts, k=k, h=h, band=_rounds_up(1.5 * c.band, 24))
     if c.kind == "dwell":  # D = ceil(7.2) = 8 samples (CTRL-2): the band step's edges fit
         ctrl = replace(ctrl, dwell=round(7.2 * ts, 12))  # one nearest-rounding makes 7
+    if c.kind == "ft" and c.ft_exponent == 0.5:  # off the default: a = 3/4, two roots and
+        ctrl = replace(ctrl, ft_exponent=0.75)  # two products in fpow (CTRL-3)
     # with the resilient update each neighbour's weight its own (WMSR-2 trims the larger
     # of two equal λ first: equal weights would hide the order)
     spread = 0.25 if cfg.resilient_f else 0.0
@@ -618,15 +626,18 @@ def band_planned(cfg: AgentConfig) -> bool:
 
 def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool,
                  flood: bool = False) -> frozenset[str]:
-    """The conditions of ``ONLY_ON`` a run of ``cfg``'s device meets: its controller kind
-    where the band step is planned for it (``kind_exercised``), "lambda tags" on a
+    """The conditions of ``ONLY_ON`` a run of ``cfg``'s device meets: its controller's
+    step ("pi family", "pc" or "ft"), its controller kind where the band step is planned
+    for it (``kind_exercised``: "dwell" for the dwell edges), "lambda tags" on a
     tagged CAN FD bus, "insecure" with the public demo keys, "resilient" with the
     resilient update on, and "resilient ties" where more than F neighbours (each of its
     own weight, ``conformance_config``) meet at lambda_min in the extremes step: the
     larger weight is trimmed first (WMSR-2); "flood" where the tester sent ``plan``'s
     flood."""
     trim = cfg.resilient_f if cfg.neighbours else 0
-    return frozenset({kind_exercised(cfg)} - {""}
+    kind = cfg.controller.kind
+    return frozenset({kind_exercised(cfg), kind if kind in ("pc", "ft") else "pi family"}
+                     - {""}
                      | ({"lambda tags"} if lambda_tags else set())
                      | ({"insecure"} if insecure else set())
                      | ({"resilient"} if trim else set())
