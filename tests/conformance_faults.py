@@ -368,9 +368,11 @@ def _on_mc(self: Any, slot: Any, f: Any, t: float, ge: bool = False,
 
 
 def _on_price(self: Any, f: Any, t: float, ge: bool = False, persist_less: int = 0,
-              valid0_fresh: bool = False) -> None:
+              valid0_fresh: bool = False, candidate_first: bool = False) -> None:
     """AgentRuntime._on_price with PRICE-3's comparison ``ge`` (≥), PRICE-4's count
-    accepting ``persist_less`` frames early, or PRICE-1's PriceValid = 0 refreshing."""
+    accepting ``persist_less`` frames early, PRICE-1's PriceValid = 0 refreshing, or
+    ``candidate_first``: a step always a candidate first (PRICE-5: with price_persist = 1
+    taken at its second frame, not at once)."""
     if not f.raw["PriceValid"]:
         if valid0_fresh:
             self.price_rx = t
@@ -384,7 +386,8 @@ def _on_price(self: Any, f: Any, t: float, ge: bool = False, persist_less: int =
         step = abs(rho - self.price)
         if step >= self.price_step_max if ge else step > self.price_step_max:
             n = self._candidate(rho)
-            if n < self.cfg.price_persist - persist_less:
+            persist = max(self.cfg.price_persist, 2 if candidate_first else 1)
+            if n < persist - persist_less:
                 self.io.safety_reject("implausible_price", f.frame_id, "price step")
                 return
             self.counters["price_steps_accepted"] += 1
@@ -1011,6 +1014,11 @@ FAULTS: list[Fault] = [
           "early (at price_persist − 1 frames)",
           lambda rt: _bind(rt, "_on_price", _on_price, persist_less=1), BOUND,
           drive(_seq(lambda r: r.run(5), lambda r: r.run(10, rho=1.5)), pinned=True)),
+    Fault("persist_one_candidate_first", "PRICE-5", "with price_persist = 1 a price step is "
+          "a candidate first, taken at its second frame",
+          lambda rt: _bind(rt, "_on_price", _on_price, candidate_first=True), BOUND,
+          drive(_seq(lambda r: r.run(5), lambda r: r.run(10, rho=1.5)), pinned=True,
+                price_persist=1)),
     Fault("untrusted_after_gt", "RX-13", "the untrusted verdict at the (untrusted_after "
           "+ 1)-th failure", _untrusted_after_gt, BOUND,
           drive(_seq(lambda r: r.run(2),
@@ -1292,7 +1300,8 @@ SCHEDULE_KEYS = fleet_keys(MASTER, 12)
 ON_DEVICE = {"dwell": (6, 3), "resilient ties": (7, 5), "pc": (2, 3), "ft": (2, 3)}
 # the conditions a run option sets up (``schedule_setup``'s ``run``) → that option
 RUN_OPTIONS = {"resilient": "--resilient 1", "resilient ties": "--resilient 1",
-               "insecure": "--insecure", "pc": "--variant PC",
+               "insecure": "--insecure", "persist 1": "--price-persist 1",
+               "pc": "--variant PC",
                "ft": "--variant finite-time"}
 
 
@@ -1313,8 +1322,9 @@ def played_on(fault: Any, case: int, dut: int) -> tuple[int, int, str]:
 
 def _run_config(case: int, dut: int, run: str = "") -> tuple[str, AgentConfig]:
     """The configuration file the tester writes for agent ``dut`` of ``case`` on ``run``
-    (--resilient 1 for a "resilient…" run, case 2's variant PC or finite-time for a "pc"
-    or "ft" run) and the reference parser's reading of it."""
+    (``RUN_OPTIONS``: --resilient 1 for a "resilient…" run, --price-persist 1, case 2's
+    variant PC or finite-time for a "pc" or "ft" run) and the reference parser's reading
+    of it."""
     from sim import conformance as conf
 
     sc = load_case(case)
@@ -1324,7 +1334,7 @@ def _run_config(case: int, dut: int, run: str = "") -> tuple[str, AgentConfig]:
     agent = agent_configs_from_scenario(sc)[dut - 1]
     if run.startswith("resilient"):
         agent = replace(agent, resilient_f=1)
-    return conf.written_config(agent)
+    return conf.written_config(agent, 1 if run == "persist 1" else conf.PRICE_PERSIST)
 
 
 def schedule_setup(case: int, dut: int, flood: bool = False, run: str = ""

@@ -805,7 +805,7 @@ def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once
 @pytest.mark.parametrize("case,dut,jitter,filtered,fd,trim,insecure,variant", [
     (1, 3, 0.0, False, False, 0, False, ""),
     (1, 1, 0.9, True, True, 0, False, ""),
-    (7, 5, 0.5, False, False, 1, False, ""),
+    (7, 5, 0.5, False, False, 1, False, "persist 1"),
     (6, 3, 0.3, False, False, 0, True, ""),
     (2, 3, 0.3, False, False, 0, False, "PC"),
     (2, 2, 0.3, False, False, 0, False, "finite-time")])
@@ -820,15 +820,17 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     update on (``trim``: `--resilient 1`, WMSR-1 and WMSR-2 judged), and with the public
     keys (``insecure``: `--insecure`, AUTH-1 and AUTH-20 judged); a pc and an ft device
     (case 2's ``variant``: STEP-10, resp. STEP-11, CTRL-3 and NUM-5 judged, not the PI
-    family's step)."""
+    family's step); with `--price-persist 1` (``variant`` "persist 1": PRICE-5 judged)."""
     from sim import conformance as conf
     from sim.model.scenario import load_case
 
-    sc = load_case(case).variant(variant) if variant else load_case(case)
+    persist = 1 if variant == "persist 1" else conf.PRICE_PERSIST
+    sc = load_case(case).variant(variant) if variant in ("PC", "finite-time") else load_case(
+        case)
     # the configuration the tester writes: the C loader reads it for the device, the
     # reference parser for the oracle (issue 22 item 4: the configuration path)
     agent = replace(agent_configs_from_scenario(sc)[dut - 1], resilient_f=trim)
-    text, cfg = conf.written_config(agent)
+    text, cfg = conf.written_config(agent, persist)
     params = parse_config(text)
     keys = fleet_keys(MASTER, sc.n)   # node keys and link frame keys (AUTH-28)
     node = f"agent_{dut}"
@@ -857,7 +859,9 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     assert judged & {"AUTH-1", "AUTH-20"} == ({"AUTH-1", "AUTH-20"} if insecure else set())
     kind_steps = {"PC": {"STEP-10"}, "finite-time": {"STEP-11", "CTRL-3", "NUM-5"},
                   "": {f"STEP-{n}" for n in range(2, 10)} | {"BAND-1", "BAND-2", "BAND-3"}}
-    assert judged & set().union(*kind_steps.values()) == kind_steps[variant]
+    assert judged & set().union(*kind_steps.values()) == kind_steps.get(variant,
+                                                                         kind_steps[""])
+    assert ("PRICE-5" in judged) == (persist == 1)
 
 
 # --------------------------------------------------------------------------- the vector runner

@@ -1,8 +1,9 @@
 """`bess-ded conformance` on the runs that exercise more requirements (``ONLY_ON``):
 with --insecure (AUTH-1, AUTH-20), with the resilient update on (--resilient F:
 WMSR-1, and WMSR-2 on a device of more than F neighbours), on a pc or an ft device
-(case 2's variants: STEP-10; STEP-11, CTRL-3, NUM-5). In process, on a simulated
-clock with late ticks and frames, as tests/test_conformance.py."""
+(case 2's variants: STEP-10; STEP-11, CTRL-3, NUM-5), with --price-persist 1 (PRICE-5).
+In process, on a simulated clock with late ticks and frames, as
+tests/test_conformance.py."""
 
 from __future__ import annotations
 
@@ -167,3 +168,45 @@ def test_a_pc_or_ft_device_is_judged_on_its_own_step(run: str, fault: str | None
         return
     bad = [r.must for r in results if r.failed]
     assert bad[0] == BY_NAME[fault].requirement, bad
+
+
+@pytest.mark.parametrize("fault", [None, "persist_one_candidate_first"])
+def test_price_persist_one_is_judged_on_a_step_taken_at_once(fault: str | None) -> None:
+    """Expected: with --price-persist 1 in the file the tester writes, firmware_py passes
+    every requirement, PRICE-5 among them (the content step's persistent price step and
+    the limits step's step one LSB beyond the bound taken at their first frame); a
+    device that makes a step a candidate first fails, named PRICE-5 first."""
+    cfg, ring, planned = schedule_setup(1, 3, run="persist 1")
+    assert cfg.price_persist == 1 and "price_persist = 1" in schedule_text(1, 3, "persist 1")
+    frames = conf.simulate(cfg, ring(), planned, BY_NAME[fault].apply if fault else None,
+                           jitter=0.3, seed=4)
+    outcome = conf.check(cfg, ring(), ring().key, frames)
+    results = conf.verdict(outcome)
+    assert "persist 1" in outcome.exercised_on and "PRICE-5" in {r.must for r in results}
+    if fault is None:
+        assert not outcome.mismatches and not outcome.auth_errors
+        assert all(r.passed for r in results), [r for r in results if not r.passed]
+        return
+    assert [r.must for r in results if r.failed][0] == "PRICE-5"
+
+
+@pytest.mark.parametrize("given", ["0", "6", "x"])
+def test_price_persist_out_of_range_is_bad_input(given: str,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """Expected: `--price-persist` takes 1..5 (the schedule's price steps fit 5 frames);
+    anything else is exit 2 with one line naming the option, what it expects and what
+    it got."""
+    assert main(["conformance", "--case", "1", "--dut", "3", "--price-persist", given]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("bess-ded: error: --price-persist") and given in err, err
+    assert "1..5" in err, err
+
+
+def test_price_persist_one_is_written_into_the_devices_file(tmp_path: Path,
+                                                             udp_port: int) -> None:
+    """Expected: `--price-persist 1` writes price_persist = 1 into the device's file (the
+    default run 5); with no device on the bus the run fails honestly (exit 1)."""
+    assert main(["conformance", "--case", "1", "--dut", "3", "--price-persist", "1",
+                 "--wait", "0.2", "--out", str(tmp_path), "--bus-config",
+                 f'{{"port": {udp_port}}}']) == 1
+    assert "price_persist = 1" in (tmp_path / "agents" / "agent_3.toml").read_text()

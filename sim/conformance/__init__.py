@@ -61,6 +61,7 @@ from sim.conformance.results import (
 from sim.conformance.schedule import (
     ON_WHAT,
     ONLY_ON,
+    PRICE_PERSIST,
     PULSE,
     QUICK,
     STEPS,
@@ -85,6 +86,7 @@ __all__ = [
     "MUTANTS",
     "Mismatch",
     "Outcome",
+    "PRICE_PERSIST",
     "PULSE",
     "QUICK",
     "Planned",

@@ -133,7 +133,8 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
                         wait: float = 60.0, say: Callable[[str], None] = print,
                         quick: bool = False, fd: bool = False,
                         no_lambda_tags: bool = False,
-                        resilient_f: int | None = None) -> ConformanceSetup:
+                        resilient_f: int | None = None,
+                        price_persist: int | None = None) -> ConformanceSetup:
     """Set up a conformance run of scenario ``case`` with the device in agent ``dut``'s
     place ("1".."N") on ``bus`` (one that connects processes): its configuration and
     key file (from ``keys``, a fresh set in ``out``/keys, or ``insecure``) in ``out``
@@ -143,7 +144,8 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     ``fd``: on a CAN FD bus (as the scenario's ``[bus] fd``): every frame of the tester
     and of the device an FD frame with the bit-rate switch (GEN-1); ``no_lambda_tags``:
     λ under its sender's node key there, not a tag per receiver (AUTH-34);
-    ``resilient_f``: the device's resilient_f (default: the scenario's), judged on WMSR-1/2."""
+    ``resilient_f``: the device's resilient_f (default: the scenario's), judged on WMSR-1/2;
+    ``price_persist``: the device's (default ``PRICE_PERSIST``; 1: judged on PRICE-5)."""
     from dbc import dbc_path
     from firmware_py import secoc
     from firmware_py.config import agent_configs_from_scenario
@@ -176,7 +178,7 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     agent = agent_configs_from_scenario(sc)[i - 1]
     if resilient_f is not None:  # --resilient F: the device runs the resilient update
         agent = replace(agent, resilient_f=resilient_f)
-    text, cfg = conf.written_config(agent)
+    text, cfg = conf.written_config(agent, price_persist or conf.PRICE_PERSIST)
     out = out or Path("runs") / f"conformance-{sc.name}-agent{i}"
     node = f"agent_{i}"
     (out / "agents").mkdir(parents=True, exist_ok=True)

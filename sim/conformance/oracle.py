@@ -134,7 +134,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.RejectedRange": ("RX-7", "RX-9"),
     "Diag.RejectedUnknownId": ("RX-1", "RX-6"),
     "Diag.RejectedImpersonation": ("RX-3",),
-    "Diag.ImplausiblePrice": ("PRICE-2", "PRICE-3", "PRICE-4"),
+    "Diag.ImplausiblePrice": ("PRICE-2", "PRICE-3", "PRICE-4", "PRICE-5"),
     "Diag.ImplausibleLambda": ("LAM-1",),
     "Diag.ImplausibleGains": ("CMD-5",),
     "Diag.NeighbourTimeouts": ("LIVE-3",),

@@ -102,9 +102,10 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "a neighbour alive but INIT …": ("XI-1",),
     "the price's last frame, exactly …": ("STATE-2", "TMO-1"),
     "a price step of exactly …": ("PRICE-3",),
-    "a price step one LSB beyond …": ("PRICE-3", "PRICE-4"),
+    # PRICE-5 first: judged with --price-persist 1 only, where such a step is taken at once
+    "a price step one LSB beyond …": ("PRICE-5", "PRICE-3", "PRICE-4"),
     "a price step back …": ("PRICE-3",),
-    "a price step above …": ("PRICE-4", "PRICE-3"),
+    "a price step above …": ("PRICE-5", "PRICE-4", "PRICE-3"),
     "a PriceValid = 0 frame …": ("PRICE-1", "PRICE-4"),
     "a status with FaultSoc …": ("RX-11",),
     "PIN with GainK …": ("RX-7", "CMD-7"),

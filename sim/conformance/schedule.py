@@ -72,7 +72,7 @@ STEPS = (
          "frames in a row on one ID (untrusted), an FD frame on a classic bus, a price out "
          "of bounds, a persistent price step, a neighbour λ jump",
          ("RX-1", "RX-2", "RX-3", "RX-7", "RX-9", "RX-10", "RX-13", "PRICE-2", "PRICE-3",
-          "PRICE-4", "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
+          "PRICE-4", "PRICE-5", "LAM-1", "DIAG-1", "DIAG-4", "GEN-3", "GEN-5", "CFG-7")),
     Step("commands", 580, 710, "SET_GAINS in and out of bounds, a command for another "
          "agent (under its command key), ISOLATE, RECONNECT; PIN the other way, for "
          "another agent, with a GainK that is neither way, and back; an unknown ID",
@@ -90,7 +90,8 @@ STEPS = (
          "(a candidate kept across a PriceValid = 0 frame); a neighbour ramp to the top of "
          "the λ range (large |ξ|), alive but INIT for 5 ticks; a status with FaultSoc and "
          "PowerLimited set",
-         ("CMD-5", "CMD-6", "LAM-1", "LAM-2", "PRICE-1", "PRICE-3", "PRICE-4", "PRICE-6",
+         ("CMD-5", "CMD-6", "LAM-1", "LAM-2", "PRICE-1", "PRICE-3", "PRICE-4", "PRICE-5",
+          "PRICE-6",
           "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-6", "STEP-7", "STEP-8", "STEP-10",
           "STEP-11", "CTRL-3", "NUM-5", "STEP-12",
           "NUM-3", "NUM-4", "RX-11", "DIAG-3", "CFG-7", "WMSR-1")),
@@ -161,7 +162,8 @@ QUICK = ("start", "price-only", "running", "control", "authentication", "content
 # variants; the band step's dwell edges), on a CAN FD bus with λ tags (--fd: every neighbour λ
 # carries the DUT's tag, the forged ones a wrong one), with --insecure (every key derived
 # from the public master; a command before its sync and a replayed sync taken), with
-# the resilient update (--resilient F), in an exact-timing run in process (a Diag counter
+# the resilient update (--resilient F), with --price-persist 1 (every in-bounds price step
+# taken at once), in an exact-timing run in process (a Diag counter
 # driven past 65535 by a flood of unknown IDs: seconds of a full bus, none on a real one).
 # Another run's verdict leaves them out; ``exercised_on`` says which conditions a run
 # meets.
@@ -172,11 +174,12 @@ ONLY_ON: dict[str, str] = {"CTRL-2": "dwell", "DWELL-1": "dwell", "DWELL-2": "dw
                            # the controller kind's own step (section 6)
                            **{f"STEP-{n}": "pi family" for n in range(2, 10)},
                            **{f"BAND-{n}": "pi family" for n in range(1, 4)},
-                           "STEP-10": "pc", "STEP-11": "ft", "CTRL-3": "ft", "NUM-5": "ft"}
+                           "STEP-10": "pc", "STEP-11": "ft", "CTRL-3": "ft", "NUM-5": "ft",
+                           "PRICE-5": "persist 1"}
 ON_WHAT = {"dwell": "on a dwell device", "pi family": "on a pi, reset or dwell device",
            "pc": "on a pc device: --case 2 --variant PC",
            "ft": "on an ft device: --case 2 --variant finite-time",
-           "lambda tags": "on --fd, with λ tags",
+           "lambda tags": "on --fd, with λ tags", "persist 1": "with --price-persist 1",
            "insecure": "with --insecure", "resilient": "with --resilient F",
            "resilient ties": "with --resilient F on a device of more than F neighbours",
            "flood": "in process, in an exact-timing run: its flood of unknown IDs"}
@@ -187,7 +190,6 @@ ON_WHAT = {"dwell": "on a dwell device", "pi family": "on a pi, reset or dwell d
 NOT_ON_BUS: dict[str, str] = {
     "SP-2": "setpoint_limited is not on the Diag frame (DIAG-5): not visible on the bus",
     "DIAG-5": "these counters are not on any frame: not visible on the bus",
-    "PRICE-5": "price_persist = 1 is a configuration the scenarios do not use (3)",
     "AUTH-2": "every MAC of the schedule is a CMAC, but a wrong CMAC fails everything "
               "(AUTH-4, AUTH-7): no step isolates it; the secoc vectors check it",
     "AUTH-3": "the boot the DUT sends is taken from its syncs, not compared with the key "
@@ -237,7 +239,13 @@ def _rounds_up(x: float, bits: int, scale: float = 1.0) -> float:
     return (word + 0.625) / (1 << bits) / scale
 
 
-def conformance_config(cfg: AgentConfig) -> AgentConfig:
+PRICE_PERSIST = 5
+"""The price persistence the tester writes: two above the default 3, so that a device
+counting one frame short or long, and one taking the default, each accept a step at
+another frame (PRICE-4); ``--price-persist 1`` writes 1 instead (PRICE-5)."""
+
+
+def conformance_config(cfg: AgentConfig, price_persist: int = PRICE_PERSIST) -> AgentConfig:
     """The configuration the tester writes for the DUT (its TOML file, CFG-1..9): the
     scenario's agent ``cfg`` with every key whose effect the schedule observes set off
     its default (CFG-3: ts, k, h, band; CFG-4: the weights; CFG-6: neighbour_periods,
@@ -264,9 +272,7 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
     nbrs = tuple(Neighbour(n.id, _tie_weight(1.25 * n.weight * (1 + spread * k)))
                  for k, n in enumerate(cfg.neighbours))
     step_max = _rounds_up(0.9 * 10.0 * k * ts, 24)  # below the default 10·k·Ts
-    # a price step of 0.45: the content step's persistent 0.6 stays above it; a price
-    # persistence of 5, two above the default 3: a device counting one frame short or
-    # long, and one taking the default, each accept a step at another frame
+    # a price step of 0.45: the content step's persistent 0.6 stays above it
     price_step = _rounds_up(min(cfg.price_step_max, 0.45), 24)
     return replace(
         cfg, controller=ctrl, neighbours=nbrs, lambda0=_rounds_up(cfg.lambda0, 24),
@@ -280,7 +286,7 @@ def conformance_config(cfg: AgentConfig) -> AgentConfig:
         # int32 (NUM-3, XI-3) and the own λ past lambda_min (STEP-12); the edge step
         # `extremes` does both
         lambda_min=-LAMBDA_LIMIT, lambda_max=LAMBDA_LIMIT, rho_min=max(cfg.rho_min, -4.5),
-        rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=5,
+        rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=price_persist,
         lambda_step_max=step_max, k_min=_milli(0.6 * k), k_max=_milli(1.8 * k),
         h_min=_milli(0.6 * h), h_max=_milli(1.8 * h), untrusted_after=6,
         source=f"{cfg.source} (conformance)")
@@ -307,11 +313,12 @@ def _milli(x: float) -> float:
     return round(x * 1000) * 0.001
 
 
-def written_config(cfg: AgentConfig) -> tuple[str, AgentConfig]:
+def written_config(cfg: AgentConfig, price_persist: int = PRICE_PERSIST
+                   ) -> tuple[str, AgentConfig]:
     """The DUT's configuration file (``conformance_config`` of the scenario's agent
     ``cfg``) and the oracle's configuration: that text read by the reference parser
     (firmware_py.config), as the DUT reads it with its own."""
-    text = conformance_config(cfg).to_toml()
+    text = conformance_config(cfg, price_persist).to_toml()
     return text, read_config(text, cfg.source)
 
 
@@ -642,7 +649,8 @@ def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool,
                      | ({"insecure"} if insecure else set())
                      | ({"resilient"} if trim else set())
                      | ({"resilient ties"} if trim and len(cfg.neighbours) > trim else set())
-                     | ({"flood"} if flood else set()))
+                     | ({"flood"} if flood else set())
+                     | ({"persist 1"} if cfg.price_persist == 1 else set()))
 
 
 def kind_exercised(cfg: AgentConfig) -> str:
