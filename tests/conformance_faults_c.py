@@ -340,6 +340,30 @@ FAULTS: list[CFault] = [
            "2^39: floored, not rounded",
            (("agent.c", "+ (INT64_C(1) << 39);  /* < 2^40 */", ";  /* < 2^40 */"),), ARITH,
            drive(_seq(lambda r: r.run(10, lam=1.0), lambda r: r.run(10, lam=1.37)))),
+    # pc's and ft's step, price_persist = 1: played on the runs that exercise them
+    CFault("c_isqrt_32bit", "NUM-5", "bd_isqrt_u64 starts at the digit 2^30 (a 32-bit "
+           "isqrt's): the root of x ≥ 2^32 is wrong",
+           (("controller.c", "uint64_t bit = (uint64_t)1 << 62;",
+             "uint64_t bit = (uint64_t)1 << 30;"),), ARITH,
+           steps([3000, 50000, -7000], ctrl={"kind": "ft"})),
+    CFault("c_pc_step_on_wire_grid", "STEP-10", "pc's Δλ rounded to Q24 before it is added "
+           "(the step's guard bits lost)",
+           (("controller.c", "dlam = bd_sat54(-((int64_t)cfg->kts * xi), &sats);",
+             "dlam = bd_sat54(bd_shr_floor(-((int64_t)cfg->kts * xi) + ((int64_t)1 << "
+             "(GUARD - 1u)), GUARD) * ((int64_t)1 << GUARD), &sats);"),), ARITH,
+           steps([3, 50, -7], ctrl={"kind": "pc"})),
+    CFault("c_persist_one_candidate_first", "PRICE-5", "price_persist = 1 special-cased: a "
+           "step's first frame only makes it a candidate (taken at its second)",
+           (("agent_rules.c", "if (a->has_price && abs64((int64_t)m->rho - a->price) > "
+             "a->p.price_step_max) {",
+             "if (a->has_price && abs64((int64_t)m->rho - a->price) > a->p.price_step_max) {\n"
+             "        if (a->p.price_persist == 1u && candidate(a, 1, m->rho) == 1u) {\n"
+             "            safety_reject(a, BD_C_IMPLAUSIBLE_PRICE, "
+             "BD_SAFETY_CAUSE_IMPLAUSIBLE_PRICE, id);\n"
+             "            return 0;\n"
+             "        }"),), BOUND,
+           drive(_seq(lambda r: r.run(5), lambda r: _prices_every_tick(r, 8, 1.5)),
+                 pinned=True, price_persist=1)),
     # comparisons at exact boundaries
     CFault("c_rearm_ge", "BAND-3", "|ξ| = BAND re-arms (≥ instead of >)",
            (("controller.c", "(abs_xi > (int64_t)cfg->band)", "(abs_xi >= (int64_t)cfg->band)"),),
