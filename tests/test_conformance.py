@@ -9,6 +9,7 @@ separately started agent process, as a vendor would drive their device.
 
 from __future__ import annotations
 
+import json
 import re
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
@@ -624,6 +625,13 @@ def test_a_quick_run_plays_the_first_steps_and_lists_the_rest_not_run(
     assert code == 0
     assert f"bess-ded conformance: PASS (a quick run): {len(run)} of {len(run)}" in out
     assert f"{len(skipped)} not run (--quick)" in out and "  NOT RUN  TMO-1" in out
+    # what only another run judges (ONLY_ON), with what that run is: never "passed" here
+    assert "  not judged on this run: PRICE-5 (with --price-persist 1)" in out
+    assert "  not judged on this run: CTRL-2, DWELL-1, DWELL-2 (on a dwell device)" in out
+    other = json.loads((tmp_path / "conformance.json").read_text())["judged_on_other_runs"]
+    assert other == conf.other_runs(outcome) and other["with --insecure"] == [
+        "AUTH-1", "AUTH-20"]
+    assert not {m for musts in other.values() for m in musts} & {r.must for r in results}
     suite = ET.parse(tmp_path / "j.xml").getroot().find("testsuite")
     assert suite is not None and suite.get("failures") == "0"
     assert suite.get("skipped") == str(len(skipped))

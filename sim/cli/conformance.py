@@ -12,14 +12,13 @@ implausible content, every command, and every timeout (sim/conformance/).
 firmware_py's agent runtime, fed the same frames at the times they were sent, is the
 oracle: every frame of the device must carry the same signals (MC, Setpoint, Diag) and
 a MAC that verifies at consecutive freshness values. It prints PASS or FAIL for each
-requirement of docs/firmware-spec.md the schedule exercises, the first one a difference
-breaks first, and writes OUT/conformance.log (candump), OUT/conformance.json and, with
---junit FILE, JUnit XML for CI.
+requirement of docs/firmware-spec.md the schedule exercises (the one the first
+difference breaks first), and writes OUT/conformance.log (candump), OUT/conformance.json
+and, with --junit FILE, JUnit XML for CI.
 
-The configuration the tester writes is the scenario's agent with every key the schedule
-observes off its default (timeouts, limits, gains, band, weights; each fixed-point value
-rounding up): a device that misreads its file fails, named CFG-3, CFG-4, CFG-6 or CFG-7
-when a known misreading (a key's default taken, a value rounded otherwise) explains it.
+The tester writes the scenario's agent with every key the schedule observes off its
+default (timeouts, limits, gains, band, weights; fixed-point values rounding up): a device
+that misreads its file fails, named CFG-3, 4, 6 or 7 by a known misreading explaining it.
 --resilient F, --price-persist 1, --insecure, --fd, a dwell device, case 2's variants
 PC and finite-time (their controller's step): more requirements (docs/conformance.md).
 
@@ -69,9 +68,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fd", action="store_true",
                    help="a CAN FD bus: every frame FD with the bit-rate switch (the device "
                         "runs with --fd; default: the scenario's [bus] fd, else classic)")
-    p.add_argument("--no-lambda-tags", action="store_true",
-                   help="with --fd: λ under its sender's node key, not a tag per receiver "
-                        "(AUTH-34; the device runs with --no-lambda-tags)")
+    p.add_argument("--no-lambda-tags", action="store_true", help="with --fd: λ under its "
+                   "sender's node key, not a tag per receiver (AUTH-34; the device's too)")
     p.add_argument("--resilient", type=int_in(1, F_MAX), metavar="F",
                    help="the device runs the resilient update (its resilient_f = F), judged "
                         "on WMSR-1/2 (default: the scenario's resilient_f)")
@@ -125,16 +123,18 @@ def _progress(line: str) -> None:  # one line rewritten on a terminal, else a li
 def report(outcome: Outcome, results: list[Result], out: Path, junit_path: Path | None,
            name: str) -> int:
     """Print the verdict per requirement, write OUT/conformance.json (and --junit)."""
+    from sim.conformance import other_runs
     from sim.conformance.bus import write_report
 
     for problem in outcome.problems:
         print(f"  problem with the run: {problem}")
     if outcome.filtered:
-        print("  the device filters foreign IDs in its CAN controller (GEN-5): it was judged "
-              "as receiving only its own and its input IDs")
+        print("  the device filters foreign IDs (GEN-5): judged as receiving its inputs only")
     for r in results:
         mark = "NOT RUN" if r.not_run else "PASS" if r.passed else "FAIL"
         print(f"  {mark}  {r.must:<9} {r.detail}")
+    for what, musts in other_runs(outcome).items():  # ONLY_ON: judged by another run
+        print(f"  not judged on this run: {', '.join(musts)} ({what})")
     failed = [r.must for r in results if r.failed]
     not_run = [r.must for r in results if r.not_run]
     ok = not failed and not outcome.problems

@@ -55,6 +55,7 @@ from sim.conformance.results import (
     attribute,
     explain,
     junit,
+    other_runs,
     spec_requirements,
     verdict,
 )
@@ -104,6 +105,7 @@ __all__ = [
     "drive",
     "explain",
     "junit",
+    "other_runs",
     "plan",
     "played_steps",
     "read_config",

@@ -253,6 +253,8 @@ def write_report(outcome: Outcome, results: Sequence[Result], out: Path,
         "ticks": outcome.ticks, "problems": outcome.problems,
         "filtered": outcome.filtered,
         "explained_by": outcome.explained_by,
+        # the requirements only another run judges (ONLY_ON), by what that run is
+        "judged_on_other_runs": conf.other_runs(outcome),
         "results": [{"requirement": r.must, "passed": r.passed, "not_run": r.not_run,
                      "detail": r.detail}
                     for r in results],

@@ -28,7 +28,7 @@ from sim.conformance.oracle import (
     Outcome,
     check,
 )
-from sim.conformance.schedule import ONLY_ON, STEPS, Step
+from sim.conformance.schedule import ON_WHAT, ONLY_ON, STEPS, Step
 
 # docs/firmware-spec.md's requirement IDs in order, shipped as package data (docs/ is not
 # installed); tools/gen_spec_ids.py writes it, a test checks it against the spec
@@ -312,6 +312,17 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
         else:
             results.append(Result(must, True, "steps " + ", ".join(exercised[must])))
     return results
+
+
+def other_runs(outcome: Outcome) -> dict[str, list[str]]:
+    """The requirements of ``ONLY_ON`` that ``outcome``'s run does not exercise, by what a
+    run must be to judge them (``ON_WHAT``): what else to run to accept a device on them
+    (or which device it is not: a reset device is judged on no pc step)."""
+    other: dict[str, list[str]] = {}
+    for must in sorted(ONLY_ON, key=_must_order):
+        if not _judged(must, outcome):
+            other.setdefault(ON_WHAT[ONLY_ON[must]], []).append(must)
+    return other
 
 
 def _judged(must: str, outcome: Outcome) -> bool:
