@@ -558,9 +558,13 @@ def test_firmware_py_agent_process_passes_on_udp_multicast(tmp_path: Path) -> No
     assert frames and all(f.is_fd and f.bitrate_switch for f in frames)
     suite = ET.parse(tmp_path / "junit.xml").getroot().find("testsuite")
     assert suite is not None and suite.get("failures") == "0"
-    # case 1's agent is no dwell device and runs with a key file: of the requirements
-    # exercised on some runs only, λ tags' (AUTH-34) alone are in its verdict
-    judged = {m for s in conf.STEPS for m in s.musts} - set(conf.ONLY_ON) | {"AUTH-34"}
+    # case 1's agent is a reset device (no dwell) and runs with a key file: of the
+    # requirements exercised on some runs only, the PI family's and λ tags' (AUTH-34)
+    # are in its verdict
+    _, cfg = conf.written_config(agent_configs_from_scenario(load_case(1))[2])
+    on = conf.exercised_on(cfg, lambda_tags=True, insecure=False)
+    assert on == {"reset", "pi family", "lambda tags"}
+    judged = {m for s in conf.STEPS for m in s.musts if conf.ONLY_ON.get(m, "") in on | {""}}
     assert int(suite.get("tests") or 0) == len(judged)
 
 

@@ -316,8 +316,7 @@ def verdict(outcome: Outcome, steps: Sequence[Step] = STEPS,
 
 def other_runs(outcome: Outcome) -> dict[str, list[str]]:
     """The requirements of ``ONLY_ON`` that ``outcome``'s run does not exercise, by what a
-    run must be to judge them (``ON_WHAT``): what else to run to accept a device on them
-    (or which device it is not: a reset device is judged on no pc step)."""
+    run must be to judge them (``ON_WHAT``): what else a device has to be run on."""
     other: dict[str, list[str]] = {}
     for must in sorted(ONLY_ON, key=_must_order):
         if not _judged(must, outcome):
