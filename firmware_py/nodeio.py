@@ -967,6 +967,10 @@ class FleetSender:
         fresh start)."""
         self._count.clear()
 
+    def next_count(self, name: str) -> int:
+        """The count (of the sender's boot) the next ``name`` frame carries."""
+        return self._count.get(self.codec.frame_id(name), -1) + 1
+
     def skip(self, name: str, frames: int) -> None:
         """Let ``frames`` of ``name``'s counts go by unsent: frames its receivers never
         heard (they count them lost)."""

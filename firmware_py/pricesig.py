@@ -54,6 +54,8 @@ CAUSES = contract.SIGNED_PRICE_COUNTERS
 # a monitor's key table (label -> bytes): the router's public price key and the fleet ID
 MONITOR_PUBLIC = "@price_verify"
 MONITOR_FLEET = "@fleet_id"
+# a tester's key table (one that plays the router: bess-ded conformance): its signing seed
+TESTER_SIGN = "@price_sign"
 
 
 def monitor_entries(public: bytes | None, fleet: str) -> dict[str, bytes]:

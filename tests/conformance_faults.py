@@ -32,7 +32,7 @@ from typing import Any
 
 import can
 
-from firmware_py import contract
+from firmware_py import contract, pricesig, secoc
 from firmware_py import fixedpoint as fx
 from firmware_py.config import (
     AgentConfig,
@@ -1295,6 +1295,7 @@ assert len(BY_NAME) == len(FAULTS), "fault names must be unique"
 # --------------------------------------------------------------------------- scoring
 
 SCHEDULE_KEYS = fleet_keys(MASTER, 12)
+PRICE_SEED = secoc.derive_price_sign_key(MASTER)  # the router's (signed_price, AUTH-31)
 # a device that meets a condition of ``ONLY_ON`` (case, agent), where case 1's agent 3
 # does not: a dwell device, one of more than F = 1 neighbours
 ON_DEVICE = {"dwell": (6, 3), "resilient ties": (7, 5), "pc": (2, 3), "ft": (2, 3)}
@@ -1302,7 +1303,7 @@ ON_DEVICE = {"dwell": (6, 3), "resilient ties": (7, 5), "pc": (2, 3), "ft": (2, 
 RUN_OPTIONS = {"resilient": "--resilient 1", "resilient ties": "--resilient 1",
                "insecure": "--insecure", "persist 1": "--price-persist 1",
                "pc": "--variant PC",
-               "ft": "--variant finite-time"}
+               "ft": "--variant finite-time", "signed price": "--signed-price"}
 
 
 def played_on(fault: Any, case: int, dut: int) -> tuple[int, int, str]:
@@ -1334,6 +1335,8 @@ def _run_config(case: int, dut: int, run: str = "") -> tuple[str, AgentConfig]:
     agent = agent_configs_from_scenario(sc)[dut - 1]
     if run.startswith("resilient"):
         agent = replace(agent, resilient_f=1)
+    if run == "signed price":
+        agent = replace(agent, signed_price=True)
     return conf.written_config(agent, 1 if run == "persist 1" else conf.PRICE_PERSIST)
 
 
@@ -1352,11 +1355,16 @@ def schedule_setup(case: int, dut: int, flood: bool = False, run: str = ""
         return cfg, lambda: Keyring.insecure_for(node), conf.plan(
             cfg, None, sc.prices[0].rho, boot=INSECURE_BOOT, flood=flood)
 
+    # with --signed-price the tester signs as the router (the master's price key)
+    sign = {pricesig.TESTER_SIGN: PRICE_SEED} if cfg.signed_price else {}
+
     def ring() -> Keyring:
         return Keyring(node, SCHEDULE_KEYS[node], 0, lambda _b: None, master=MASTER,
-                       floors={n: 2 for n in fleet_nodes(12) if n != node})
+                       floors={n: 2 for n in fleet_nodes(12) if n != node},
+                       price_verify=pricesig.public_key(PRICE_SEED) if sign else None)
 
-    return cfg, ring, conf.plan(cfg, SCHEDULE_KEYS, sc.prices[0].rho, boot=2, flood=flood)
+    return cfg, ring, conf.plan(cfg, {**SCHEDULE_KEYS, **sign}, sc.prices[0].rho, boot=2,
+                                flood=flood)
 
 
 def schedule_text(case: int, dut: int, run: str = "") -> str:

@@ -55,6 +55,7 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
         ticks = [t for t in ticks if t < end]
     inputs: list[Frame] = []
     last: dict[int, int] = {}  # ID → index in inputs of the tester's latest frame of it
+    planned_at = -1.0
     for p in planned:
         fid = p.msg.arbitration_id
         if exact and p.after is not None and fid in last:
@@ -65,6 +66,9 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
             t = _exactly_old(t0 + p.at, p.age, ticks)
         else:
             t = t0 + p.at + rnd.uniform(0, jitter * ts)
+            if inputs and p.at == planned_at:  # a burst (the pages of a transfer) is sent
+                t = inputs[-1].t              # back to back: none overtakes another
+        planned_at = p.at
         last[fid] = len(inputs)
         inputs.append(Frame(t, p.msg, True, p.step, p.note))
     inputs.sort(key=lambda f: f.t)

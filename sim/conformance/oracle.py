@@ -118,8 +118,9 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "MC.Lambda": ("STEP-10", "STEP-11", "XI-2", "STEP-6", "STEP-7", "STEP-8", "TX-1",
                   "STEP-12", "STATE-10", "WMSR-1", "WMSR-2", "CTRL-3", "NUM-5"),
     # and the inputs' rules that decide health (STATE-2): a valid price, a plant fault
+    # (signed_price: a price refused or taken against AUTH-32/33 is a health change)
     "MC.State": ("STATE-3", "STATE-4", "STATE-5", "STATE-7", "STATE-8", "STATE-9",
-                 "PRICE-1", "RX-11"),
+                 "PRICE-1", "RX-11", "AUTH-33", "AUTH-32"),
     # ISOLATE zeroes the count; a neighbour dying at another tick (LIVE-2) is a zero
     # crossing of ξ at another tick; entering RUNNING or SAFE is no reset (STATE-6)
     "MC.Resets": ("STEP-3", "BAND-3", "TX-1", "STATE-7", "LIVE-2", "STATE-6", "DWELL-1",

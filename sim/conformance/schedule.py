@@ -15,7 +15,7 @@ from typing import Any
 
 import can
 
-from firmware_py import contract, secoc
+from firmware_py import contract, pricesig, secoc
 from firmware_py import fixedpoint as fx
 from firmware_py.config import AgentConfig, Neighbour, parse_agent_config
 from firmware_py.contract import Command, State
@@ -51,10 +51,10 @@ STEPS = (
           "AUTH-1", "AUTH-20")),
     Step("price-only", 30, 60, "price and neighbours but no plant status: still INIT",
          ("STATE-2", "STATE-5", "TMO-3", "LIVE-1", "LIVE-2", "PRICE-6", "AUTH-12",
-          "AUTH-15")),
+          "AUTH-15", "AUTH-31", "AUTH-33")),
     Step("running", 60, 100, "plant status too: INIT → RUNNING, the setpoint follows λ",
          ("STATE-4", "STATE-6", "SP-1", "TX-2", "RX-11", "XI-1", "XI-2", "WMSR-1",
-          "WMSR-2")),
+          "WMSR-2", "AUTH-31", "AUTH-33")),
     Step("control", 100, 450, "neighbours' λ moving (steps and a slow sine): every step "
          "of the device's controller (the reset-PI; pc, ft on case 2's variants), bit for "
          "bit",
@@ -79,10 +79,13 @@ STEPS = (
          ("CMD-1", "CMD-2", "CMD-3", "CMD-4", "CMD-5", "CMD-7", "STATE-7", "STATE-8",
           "STATE-9", "STATE-10", "XI-2", "RX-6", "RX-7", "AUTH-30")),
     Step("timeouts", 710, 910, "a neighbour silent (its ID lost; a sync in step, then a "
-         "forgery: auth), the price silent (SAFE), a plant fault (SAFE), each followed by "
-         "recovery",
+         "forgery: auth), the price silent (SAFE; with --signed-price then a key holder's "
+         "prices, unsigned, under a bad, an older or a malformed signature: refused), a "
+         "plant fault (SAFE), each followed by recovery",
          ("LIVE-2", "LIVE-3", "TMO-1", "TMO-2", "TMO-4", "STATE-3", "STATE-4", "STATE-6",
-          "RX-11", "AUTH-13", "AUTH-14", "AUTH-16", "CFG-6")),
+          "RX-11", "AUTH-13", "AUTH-14", "AUTH-16", "CFG-6", "AUTH-32", "AUTH-33"),
+         (("an unsigned price: …", ("AUTH-33",)), ("a price under a…", ("AUTH-32",)),
+          ("the router's price after a key holder's refused …", ("AUTH-33", "AUTH-12")))),
     Step("limits", 910, 1060, "SET_GAINS exactly at k_max/h_max and k_min/h_min, a gain "
          "that rounds half up, then one LSB beyond each bound; a neighbour λ step of "
          "exactly the LAM-1 bound, one LSB more, and back by the bound; a price step of "
@@ -175,11 +178,13 @@ ONLY_ON: dict[str, str] = {"CTRL-2": "dwell", "DWELL-1": "dwell", "DWELL-2": "dw
                            **{f"STEP-{n}": "pi family" for n in range(2, 10)},
                            **{f"BAND-{n}": "pi family" for n in range(1, 4)},
                            "STEP-10": "pc", "STEP-11": "ft", "CTRL-3": "ft", "NUM-5": "ft",
-                           "PRICE-5": "persist 1"}
+                           "PRICE-5": "persist 1",
+                           **{f"AUTH-{n}": "signed price" for n in (31, 32, 33)}}
 ON_WHAT = {"dwell": "on a dwell device", "pi family": "on a pi, reset or dwell device",
            "pc": "on a pc device: --case 2 --variant PC",
            "ft": "on an ft device: --case 2 --variant finite-time",
            "lambda tags": "on --fd, with λ tags", "persist 1": "with --price-persist 1",
+           "signed price": "with --signed-price",
            "insecure": "with --insecure", "resilient": "with --resilient F",
            "resilient ties": "with --resilient F on a device of more than F neighbours",
            "flood": "in process, in an exact-timing run: its flood of unknown IDs"}
@@ -196,15 +201,6 @@ NOT_ON_BUS: dict[str, str] = {
               "file's + 1, and persisting is not visible on the bus: node vectors",
     "AUTH-5": "2^24 frames on one ID take 46.6 h at Ts = 10 ms; the node vector "
               "tx_count_wrap checks it through the binding",
-    "AUTH-31": "signed_price is opt-in: the schedule runs the default (unsigned) protocol; "
-               "tests/test_pricesig.py (keys), tests/test_c_config.py (the C loaders), "
-               "node vector signed_price",
-    "AUTH-32": "signed_price is opt-in and not in the schedule: tests/test_pricesig.py "
-               "plays the signature pages, bad and malformed ones, against firmware_py, "
-               "tests/test_c_agent.py against the C agent and firmware_py bit for bit",
-    "AUTH-33": "signed_price is opt-in and not in the schedule: tests/test_pricesig.py "
-               "plays a key holder's price ramp against a fleet of firmware_py agents and "
-               "of C agents, bit for bit; node vector signed_price",
     "CFG-1": "the DUT reads the configuration the tester writes, whose tables are all "
              "allowed: a refused file never starts (LOOP-5); unit tests (test_config.py)",
     "CFG-2": "id, lambda0 and pinned are the scenario's (no default to take instead; "
@@ -327,6 +323,11 @@ def read_config(text: str, src: str = "<conformance>") -> AgentConfig:
     return parse_agent_config(tomllib.loads(text), src)
 
 
+REFUSED_AT = 69
+"""The timeouts step's tick (the price stale since tick 68: SAFE) from which a key holder
+plays the prices a signed_price device refuses (``_PriceSigner.refused``), each 2 ticks
+apart: a device that takes one leaves SAFE at once; the router's price returns at 80."""
+
 PULSE = 0.05  # cu/kWh: well above the reset band, below lambda_step_max (10·k·Ts)
 
 
@@ -438,6 +439,9 @@ class _BandPlan:
             # takes any sync (no AUTH-27 bounds), a keyed one refuses the schedule's jumps
             keys = secoc.Keyring(node, keys.key, keys.boot, lambda _b: None,
                                  master=secoc.INSECURE_MASTER, fleet=keys.fleet_id)
+        if cfg.signed_price:  # the twins' prices are signed with the demo master's key
+            keys.price_verify = pricesig.public_key(secoc.derive_price_sign_key(
+                secoc.INSECURE_MASTER))
         rt = AgentRuntime(cfg, codec, keys=keys)
         nxt = 0
         self.lam: list[dict[int, int]] = []
@@ -637,7 +641,7 @@ def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool,
     step ("pi family", "pc" or "ft"), its controller kind where the band step is planned
     for it (``kind_exercised``: "dwell" for the dwell edges), "lambda tags" on a
     tagged CAN FD bus, "insecure" with the public demo keys, "resilient" with the
-    resilient update on, and "resilient ties" where more than F neighbours (each of its
+    resilient update on, "signed price" with signed_price, and "resilient ties" where more than F neighbours (each of its
     own weight, ``conformance_config``) meet at lambda_min in the extremes step: the
     larger weight is trimmed first (WMSR-2); "flood" where the tester sent ``plan``'s
     flood."""
@@ -650,7 +654,8 @@ def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool,
                      | ({"resilient"} if trim else set())
                      | ({"resilient ties"} if trim and len(cfg.neighbours) > trim else set())
                      | ({"flood"} if flood else set())
-                     | ({"persist 1"} if cfg.price_persist == 1 else set()))
+                     | ({"persist 1"} if cfg.price_persist == 1 else set())
+                     | ({"signed price"} if cfg.signed_price else set()))
 
 
 def kind_exercised(cfg: AgentConfig) -> str:
@@ -693,6 +698,83 @@ class _DwellEdges:
         return None, ""
 
 
+class _PriceSigner:
+    """The router's price signatures on a signed_price run (AUTH-32): a transfer before
+    each price whose (PriceValid, ρ) is not the signed segment's, its segment number 8 on
+    (ER_Price.Segment stays 0), and the held one again every second. The key: ``keys``'
+    ``pricesig.TESTER_SIGN`` seed (a key set's router file), else the public demo
+    master's (an insecure twin, ``_BandPlan``)."""
+
+    def __init__(self, codec: FrameCodec, keys: Mapping[str, bytes] | None, boot: int
+                 ) -> None:
+        self.codec = codec
+        self.seed = (keys or {}).get(pricesig.TESTER_SIGN) or secoc.derive_price_sign_key(
+            secoc.INSECURE_MASTER)
+        self.fleet = (secoc.fleet_id(secoc.INSECURE_MASTER) if not keys
+                      else keys.get(pricesig.MONITOR_FLEET, b"").hex())
+        self.boot = boot
+        self.current: pricesig.SignedSegment | None = None
+
+    def transfer(self, seg: pricesig.SignedSegment, seed: bytes | None = None
+                 ) -> list[can.Message]:
+        """The 11 ER_PriceSig pages of ``seg`` signed with ``seed`` (default the router's)."""
+        signature = pricesig.sign(seed or self.seed, self.fleet, seg)
+        return [self.codec.encode(pricesig.MESSAGE, raw, 0)
+                for raw in pricesig.pages(seg, signature)]
+
+    def before(self, valid: int, rho: int) -> list[can.Message]:
+        """The transfer a price (``valid``, ``rho``) needs first: none if it is signed."""
+        cur = self.current
+        if cur is not None and (cur.valid, cur.rho) == (valid, rho):
+            return []
+        number = 0 if cur is None else (cur.number + pricesig.SEGMENT_LOW_MOD) % \
+            pricesig.SEGMENT_MOD
+        self.current = pricesig.SignedSegment(self.boot, number, valid, rho)
+        return self.transfer(self.current)
+
+    def refused(self, insider: FleetSender) -> list[tuple[int, list[can.Message], str]]:
+        """What a key holder of the router's node key (``insider``: its MACs verify, its
+        counts run 8 ahead of the router's) plays while the price is stale: (tick offset,
+        frames, the last one's note), each a price no conformant device takes (AUTH-32,
+        AUTH-33); the last note's frame is the router's own next price."""
+        cur = self.current
+        assert cur is not None
+        nxt = (cur.number + pricesig.SEGMENT_LOW_MOD) % pricesig.SEGMENT_MOD
+
+        def price(seg: pricesig.SignedSegment | None, **raw: int) -> can.Message:
+            fields = ({"PriceValid": seg.valid, "Segment": seg.number % pricesig.SEGMENT_LOW_MOD,
+                       "Rho": seg.rho} if seg is not None else {})
+            return insider.frame("ER_Price", {**fields, **raw})
+
+        bad = pricesig.SignedSegment(cur.boot, nxt, 1, cur.rho + 2)
+        older = pricesig.SignedSegment(cur.boot, (cur.number - pricesig.SEGMENT_LOW_MOD)
+                                       % pricesig.SEGMENT_MOD, 1, cur.rho + 3)
+        repeat = pricesig.SignedSegment(cur.boot, nxt, 1, cur.rho + 4)
+        extra = pricesig.SignedSegment(cur.boot, nxt, 1, cur.rho + 5)
+        pages = self.transfer(repeat)
+        def altered(msg: can.Message, flip: int) -> can.Message:
+            raw = self.codec.decode(msg).raw
+            return self.codec.encode(pricesig.MESSAGE, {**raw, "Signature":
+                                                        raw["Signature"] ^ flip}, 0)
+
+        other = altered(pages[3], 0x5A)     # page 3 again, with other bytes
+        long_last = self.transfer(extra)     # its last page: a byte past the signature
+        long_last[-1] = altered(long_last[-1], 1 << 8)
+        return [
+            (0, [price(cur, Segment=cur.number % pricesig.SEGMENT_LOW_MOD + 1)],
+             "an unsigned price: the signed ρ under another Segment"),
+            (2, [price(cur, Rho=cur.rho + 1)], "an unsigned price: ρ one LSB off the signed one"),
+            (4, [*self.transfer(bad, bytes(pricesig.SEED_BYTES)), price(bad)],
+             "a price under a bad signature (another key's)"),
+            (6, [*self.transfer(older), price(older)],
+             "a price under an older segment's genuine signature (a replay)"),
+            (8, [*pages[:3], other, *pages[3:], price(repeat)],
+             "a price under a signature with a page repeated with other bytes"),
+            (10, [*long_last, price(extra)],
+             "a price under a signature whose last page has bytes beyond it"),
+        ]
+
+
 def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
           codec: FrameCodec | None, boot: int, planned_band: bool = True,
           other_format: bool = True, tie_rne: bool = False) -> list[Planned]:
@@ -706,6 +788,11 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                      tag_receivers=tags)
     out: list[Planned] = []
     price_every, status_every = _tick_of("ER_Price"), _tick_of(status_name(i))
+    # signed_price (AUTH-31..33): the router signs every price it plays, and again every
+    # sync period; while the price is stale a key holder of its node key plays prices no
+    # conformant device takes, 8 counts ahead of the router's (``_PriceSigner.refused``)
+    signer = _PriceSigner(codec, keys, tx.boot) if cfg.signed_price else None
+    sig_every = _tick_of("ER_Price_Sync")
     k_gain, h_gain = cfg.controller.k, cfg.controller.h
     other = i % contract.N_AGENTS_MAX + 1
     at = {s.name: s.start for s in STEPS}
@@ -928,6 +1015,8 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
                 valid, r, note = price_edge(k)
             elif invalid_price:
                 valid, note = 0, "a PriceValid = 0 frame in an outage"
+            elif signer is not None and k - at["timeouts"] == REFUSED_AT + 11:
+                note = "the router's price after a key holder's refused ones, 8 counts ahead"
             if k == fr + 20:  # 15 frames lost on the bus: this one is 16 values on
                 for _ in range(15):
                     tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0, "Rho": r})
@@ -935,10 +1024,22 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
             # the price's last frame before it falls silent: in an exact-timing run
             # exactly price_s old at a tick (still fresh there, STATE-2)
             last = k - at["timeouts"] == 35
+            for m in signer.before(valid, r) if signer is not None else ():
+                add(k + 0.25, step, m)  # the pages, then the price: one burst
             add(k + 0.25, step, tx.frame("ER_Price", {"PriceValid": valid, "Segment": 0,
                                                       "Rho": r}),
                 "the price's last frame, exactly price_s old at a tick" if last else note,
                 cfg.price_timeout_s if last else None)
+        if signer is not None and signer.current is not None and sig_every(k) \
+                and not silent_price:
+            for m in signer.transfer(signer.current):  # the sync period's repeat
+                add(k + 0.1, step, m)
+        if signer is not None and k - at["timeouts"] == REFUSED_AT:
+            insider = FleetSender(codec, keys, boot=tx.boot)
+            insider.follow("ER_Price", tx.boot, tx.next_count("ER_Price") + 7)
+            for off, frames, note in signer.refused(insider):
+                for n, m in enumerate(frames):
+                    add(k + off + 0.25, step, m, note if n == len(frames) - 1 else "")
         if k >= 60 and status_every(k):
             add(k + 0.75, step, tx.frame(status_name(i), {
                 **status, "FaultOverCurrent": int(fault), "FaultSoc": int(soc),
