@@ -1215,6 +1215,120 @@ FAULTS += [
           FRESH, drive(_replayed_sync)),
 ]
 
+# ---------------------------------------------------- the signed price (--signed-price)
+
+
+class _SegmentIgnored(pricesig.PriceSigReceiver):
+    """AUTH-33's comparison without the Segment."""
+
+    def check(self, raw: dict[str, int]) -> str | None:
+        cur = self.current
+        return (None if cur is not None and (raw["PriceValid"], raw["Rho"]) == (cur.valid,
+                                                                               cur.rho)
+                else "unsigned")
+
+
+class _OlderTaken(pricesig.PriceSigReceiver):
+    """AUTH-32 without the replay rule: a verified signature is held, older or not."""
+
+    def take(self, raw: dict[str, Any], min_boot: int = 0) -> tuple[str, str] | None:
+        held, self.current = self.current, None
+        refused = super().take(raw, 0)
+        if self.current is None:
+            self.current = held
+        return refused
+
+
+class _PageOverwritten(pricesig.PriceSigReceiver):
+    """A page repeated with other bytes overwrites the first (an array per page)."""
+
+    def take(self, raw: dict[str, Any], min_boot: int = 0) -> tuple[str, str] | None:
+        if raw["Page"] and self._header is not None:
+            self._parts.pop(raw["Page"], None)
+        return super().take(raw, min_boot)
+
+
+class _LastPageTruncated(pricesig.PriceSigReceiver):
+    """The last page's bytes past the signature ignored, not refused."""
+
+    def take(self, raw: dict[str, Any], min_boot: int = 0) -> tuple[str, str] | None:
+        if raw["Page"] == pricesig.SIG_PAGES:
+            raw = {**raw, "Signature": raw["Signature"] & 0xFF}
+        return super().take(raw, min_boot)
+
+
+def _receiver(kind: type) -> Apply:
+    def apply(rt: AgentRuntime) -> None:
+        rt.price_sig = kind(rt.price_sig.public, rt.price_sig.fleet)
+    return apply
+
+
+def _price_checked_after_freshness(rt: AgentRuntime) -> None:
+    """AUTH-33's check after the MAC and freshness: a refused price moves the count."""
+    rt.io._prechecks.clear()
+    on_price = rt._on_price
+
+    def checked(f: Any, t: float) -> None:
+        refused = rt._signed_price(f)
+        if refused is not None:
+            rt.io.reject(*refused)
+            return
+        on_price(f, t)
+    rt._on_price = checked  # type: ignore[method-assign]
+
+
+def signed_setup() -> tuple[AgentConfig, Keyring]:
+    """Case 1 agent 3 with signed_price, on the demo keys with the demo master's price key."""
+    cfg = config(signed_price=True)
+    ring = Keyring.insecure_for(f"agent_{cfg.id}")
+    ring.price_verify = pricesig.public_key(secoc.derive_price_sign_key(secoc.INSECURE_MASTER))
+    return cfg, ring
+
+
+def signed_feed(agent: Any) -> dict[str, int]:
+    """``agent`` (``signed_setup``'s; firmware_py's runtime or the C agent) fed the router's
+    signed price, a key holder's refused prices (the schedule's, 8 counts ahead) and the
+    router's next price: its rejection counters."""
+    from sim.conformance.schedule import _PriceSigner
+
+    tx, signer = FleetSender(CODEC, None), _PriceSigner(CODEC, None, INSECURE_BOOT)
+    insider = FleetSender(CODEC, None)
+    frames = [*signer.before(1, q(0.8)), tx.frame("ER_Price", {"PriceValid": 1, "Segment": 0,
+                                                               "Rho": q(0.8)})]
+    insider.follow("ER_Price", INSECURE_BOOT, tx.next_count("ER_Price") + 7)
+    frames += [m for _, burst, _ in signer.refused(insider) for m in burst]
+    frames.append(tx.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": q(0.8)}))
+    for n, msg in enumerate(frames):
+        agent.on_frame(msg, n * 1e-3)
+    counters = agent.io.counters if isinstance(agent, AgentRuntime) else agent.counters
+    return {k: v for k, v in counters.items() if v}
+
+
+def _signed_witness(apply: Apply | None) -> dict[str, int]:
+    cfg, ring = signed_setup()
+    rt = AgentRuntime(cfg, CODEC, keys=ring)
+    if apply is not None:
+        apply(rt)
+    return signed_feed(rt)
+
+
+FAULTS += [
+    Fault("signed_segment_ignored", "AUTH-33", "an ER_Price is taken when its PriceValid "
+          "and ρ are the signed segment's, whatever its Segment", _receiver(_SegmentIgnored),
+          FRESH, _signed_witness),
+    Fault("signed_checked_after_freshness", "AUTH-33", "the signed-price check comes after "
+          "the MAC and freshness: a key holder's refused price moves the router's count",
+          _price_checked_after_freshness, FRESH, _signed_witness),
+    Fault("signature_older_taken", "AUTH-32", "a genuine signature of an older segment is "
+          "held (no replay rule)", _receiver(_OlderTaken), FRESH, _signed_witness),
+    Fault("signature_page_overwritten", "AUTH-32", "a signature page repeated with other "
+          "bytes overwrites the first (not sig_malformed)", _receiver(_PageOverwritten),
+          FRESH, _signed_witness),
+    Fault("signature_last_page_truncated", "AUTH-32", "bytes past the signature in its last "
+          "page are ignored (not sig_malformed)", _receiver(_LastPageTruncated), FRESH,
+          _signed_witness),
+]
+
 # ----------------------------------------------------------- the configuration path (item 4)
 
 CONFIG = "configuration"
@@ -1356,12 +1470,14 @@ def schedule_setup(case: int, dut: int, flood: bool = False, run: str = ""
             cfg, None, sc.prices[0].rho, boot=INSECURE_BOOT, flood=flood)
 
     # with --signed-price the tester signs as the router (the master's price key)
-    sign = {pricesig.TESTER_SIGN: PRICE_SEED} if cfg.signed_price else {}
+    sign = {pricesig.TESTER_SIGN: PRICE_SEED, pricesig.MONITOR_FLEET: bytes.fromhex(
+        secoc.fleet_id(MASTER))} if cfg.signed_price else {}
 
     def ring() -> Keyring:
         return Keyring(node, SCHEDULE_KEYS[node], 0, lambda _b: None, master=MASTER,
                        floors={n: 2 for n in fleet_nodes(12) if n != node},
-                       price_verify=pricesig.public_key(PRICE_SEED) if sign else None)
+                       price_verify=pricesig.public_key(PRICE_SEED) if sign else None,
+                       fleet=secoc.fleet_id(MASTER) if sign else "")
 
     return cfg, ring, conf.plan(cfg, {**SCHEDULE_KEYS, **sign}, sc.prices[0].rho, boot=2,
                                 flood=flood)

@@ -206,6 +206,12 @@ def steps(xis: Callable[[Any], list[int]] | list[int], **changes: Any
     return witness
 
 
+def _signed(rt: Runtime | None) -> Any:
+    """The C agent with signed_price fed the schedule's signed and refused prices."""
+    cfg, ring = cf.signed_setup()
+    return cf.signed_feed(CAgent(cfg, ring, runtime=rt or load_runtime()))
+
+
 def _xi_at_int32_max(rt: Runtime | None) -> Any:
     core = cimpl.CCore((rt or load_runtime()).path)
     return core.xi((1 << 31) - 1, 1 << 24, 0, []), core.xi(-(1 << 31), 1 << 24, 0, [])
@@ -489,6 +495,20 @@ def _loaded(rt: Runtime | None) -> Any:
     text, _ = conf.written_config(cf.BASE)
     return params_dict(parse_config(text, runtime=rt or load_runtime()))
 
+
+FAULTS += [
+    # the signed price (--signed-price)
+    CFault("c_signed_segment_ignored", "AUTH-33", "an ER_Price is taken when its PriceValid "
+           "and ρ are the signed segment's, whatever its Segment",
+           (("agent_sig.c", "m->rho == g->current.rho\n           && m->segment == "
+             "((uint32_t)g->current.number & ((1u << BD_SIG_SEGMENT_LOW_BITS) - 1u));",
+             "m->rho == g->current.rho;"),), FRESH, _signed),
+    CFault("c_signature_page_overwritten", "AUTH-32", "a signature page repeated with other "
+           "bytes overwrites the first (not sig_malformed)",
+           (("agent_sig.c", "if ((g->have & bit) != 0u && g->part[page - 1u] != value) {",
+             "if ((g->have & bit) != 0u && g->part[page - 1u] != value && page > 99u) {"),),
+           FRESH, _signed),
+]
 
 CONFIG = cf.CONFIG
 FAULTS += [

@@ -25,7 +25,7 @@ from hypothesis import strategies as st
 from test_node_vectors import VECTORS, keyring, load, replay
 
 from dbc import dbc_path
-from firmware_py import contract, pricesig
+from firmware_py import contract, pricesig, secoc
 from firmware_py.config import agent_configs_from_scenario, parse_agent_config
 from firmware_py.contract import SYNCED_BY
 from firmware_py.frames import FrameCodec, target_raw
@@ -808,7 +808,8 @@ def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once
     (7, 5, 0.5, False, False, 1, False, "persist 1"),
     (6, 3, 0.3, False, False, 0, True, ""),
     (2, 3, 0.3, False, False, 0, False, "PC"),
-    (2, 2, 0.3, False, False, 0, False, "finite-time")])
+    (2, 2, 0.3, False, False, 0, False, "finite-time"),
+    (1, 1, 0.3, False, False, 0, False, "signed price")])
 def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter: float,
                                                      filtered: bool, fd: bool,
                                                      trim: int, insecure: bool,
@@ -820,7 +821,9 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     update on (``trim``: `--resilient 1`, WMSR-1 and WMSR-2 judged), and with the public
     keys (``insecure``: `--insecure`, AUTH-1 and AUTH-20 judged); a pc and an ft device
     (case 2's ``variant``: STEP-10, resp. STEP-11, CTRL-3 and NUM-5 judged, not the PI
-    family's step); with `--price-persist 1` (``variant`` "persist 1": PRICE-5 judged)."""
+    family's step); with `--price-persist 1` (``variant`` "persist 1": PRICE-5 judged);
+    with `--signed-price` (``variant`` "signed price": the tester signs every price as the
+    router, plays refused ones; AUTH-31..33 judged)."""
     from sim import conformance as conf
     from sim.model.scenario import load_case
 
@@ -829,16 +832,23 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
         case)
     # the configuration the tester writes: the C loader reads it for the device, the
     # reference parser for the oracle (issue 22 item 4: the configuration path)
-    agent = replace(agent_configs_from_scenario(sc)[dut - 1], resilient_f=trim)
+    agent = replace(agent_configs_from_scenario(sc)[dut - 1], resilient_f=trim,
+                    signed_price=variant == "signed price")
     text, cfg = conf.written_config(agent, persist)
     params = parse_config(text)
     keys = fleet_keys(MASTER, sc.n)   # node keys and link frame keys (AUTH-28)
     node = f"agent_{dut}"
+    seed = secoc.derive_price_sign_key(MASTER)  # signed_price: the router's (AUTH-31)
+    if cfg.signed_price:  # the tester signs as the router, for the master's fleet
+        keys.update({pricesig.TESTER_SIGN: seed,
+                     pricesig.MONITOR_FLEET: bytes.fromhex(secoc.fleet_id(MASTER))})
 
     def ring() -> Keyring:
         if insecure:
             return Keyring.insecure_for(node)
-        return Keyring(node, keys[node], 0, lambda _b: None, master=MASTER)
+        return Keyring(node, keys[node], 0, lambda _b: None, master=MASTER,
+                       price_verify=pricesig.public_key(seed) if cfg.signed_price else None,
+                       fleet=secoc.fleet_id(MASTER))
 
     codec = FrameCodec(dbc_path(fd))
     planned = (conf.plan(cfg, None, sc.prices[0].rho, boot=INSECURE_BOOT, codec=codec)
@@ -862,6 +872,7 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     assert judged & set().union(*kind_steps.values()) == kind_steps.get(variant,
                                                                          kind_steps[""])
     assert ("PRICE-5" in judged) == (persist == 1)
+    assert (judged >= {"AUTH-31", "AUTH-32", "AUTH-33"}) == cfg.signed_price
 
 
 # --------------------------------------------------------------------------- the vector runner

@@ -437,11 +437,21 @@ def tag_code(node: str) -> int:
         node.removeprefix("agent_"))
 
 
+def _with_price_key(k: KeyringC, ring: Keyring) -> KeyringC:
+    """``k`` with ``ring``'s public price key and fleet ID (signed_price, AUTH-31)."""
+    if ring.price_verify is not None:
+        k.has_price_key = 1
+        k.price_key[:] = list(ring.price_verify)
+        k.fleet_id[:] = list(bytes.fromhex(ring.fleet_id))
+    return k
+
+
 def keyring_from(ring: Keyring) -> KeyringC:
     """A firmware_py Keyring as bd_keyring (insecure: the public keys, boot 0 → 1). The
     C agent persists its new boots through the Keyring (``new_boot``'s write-ahead)."""
     if ring.insecure:
-        return keyring_of(ring.node, ring.key, ring.boot, insecure=True)
+        return _with_price_key(keyring_of(ring.node, ring.key, ring.boot, insecure=True),
+                               ring)
     for peer in ring.floors:   # a floor needs its peer listed (derived, for a fleet's)
         if peer != "plant":    # the agent takes only its link frame from the plant
             ring.key_of(peer)
@@ -457,10 +467,7 @@ def keyring_from(ring: Keyring) -> KeyringC:
     if ring.master is not None:   # a simulated fleet: any sender's key on demand
         k.has_master = 1
         k.master[:] = list(ring.master)
-    if ring.price_verify is not None:   # signed_price (AUTH-31)
-        k.has_price_key = 1
-        k.price_key[:] = list(ring.price_verify)
-        k.fleet_id[:] = list(bytes.fromhex(ring.fleet_id))
+    _with_price_key(k, ring)
 
     def persist(_ctx: int | None, boot: int) -> int:
         try:

@@ -12,15 +12,14 @@ implausible content, every command, and every timeout (sim/conformance/).
 firmware_py's agent runtime, fed the same frames at the times they were sent, is the
 oracle: every frame of the device must carry the same signals (MC, Setpoint, Diag) and
 a MAC that verifies at consecutive freshness values. It prints PASS or FAIL for each
-requirement of docs/firmware-spec.md the schedule exercises (the one the first
-difference breaks first), and writes OUT/conformance.log (candump), OUT/conformance.json
-and, with --junit FILE, JUnit XML for CI.
+requirement of docs/firmware-spec.md the schedule exercises (the first difference's
+first) and writes OUT/conformance.log, OUT/conformance.json and JUnit XML (--junit FILE).
 
 The tester writes the scenario's agent with every key the schedule observes off its
 default (timeouts, limits, gains, band, weights; fixed-point values rounding up): a device
 that misreads its file fails, named CFG-3, 4, 6 or 7 by a known misreading explaining it.
---resilient F, --price-persist 1, --insecure, --fd, a dwell device, case 2's variants
-PC and finite-time (their controller's step): more requirements (docs/conformance.md).
+--resilient F, --price-persist 1, --signed-price, --insecure, --fd, a dwell device,
+case 2's variants PC and finite-time: more requirements (docs/conformance.md).
 
 --quick plays the first steps only (start to commands: 7.1 of 16.2 s at Ts = 10 ms),
 for development: the later steps' requirements are NOT RUN (JUnit: skipped), never
@@ -75,6 +74,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "on WMSR-1/2 (default: the scenario's resilient_f)")
     p.add_argument("--price-persist", type=int_in(1, PERSIST), metavar="N", help="the "
                    f"device's price_persist (default {PERSIST}; 1: judged on PRICE-5)")
+    p.add_argument("--signed-price", action="store_true", help="the price signed: AUTH-31..33")
     p.add_argument("--quick", action="store_true",
                    help="play the first steps only (start to commands), for development: "
                         "the later steps' requirements are NOT RUN, never passed")
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         time_scale=args.time_scale, out=args.out, keys=args.keys, insecure=args.insecure,
         rt_priority=args.rt_priority, wait=args.wait, say=_say, quick=args.quick,
         fd=args.fd, no_lambda_tags=args.no_lambda_tags, resilient_f=args.resilient,
-        price_persist=args.price_persist)
+        price_persist=args.price_persist, signed_price=args.signed_price)
     try:
         frames, late = setup.drive(args.wait, args.rt_priority, progress=_progress)
     except TimeoutError as e:

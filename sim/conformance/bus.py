@@ -134,7 +134,8 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
                         quick: bool = False, fd: bool = False,
                         no_lambda_tags: bool = False,
                         resilient_f: int | None = None,
-                        price_persist: int | None = None) -> ConformanceSetup:
+                        price_persist: int | None = None,
+                        signed_price: bool = False) -> ConformanceSetup:
     """Set up a conformance run of scenario ``case`` with the device in agent ``dut``'s
     place ("1".."N") on ``bus`` (one that connects processes): its configuration and
     key file (from ``keys``, a fresh set in ``out``/keys, or ``insecure``) in ``out``
@@ -145,9 +146,12 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     and of the device an FD frame with the bit-rate switch (GEN-1); ``no_lambda_tags``:
     λ under its sender's node key there, not a tag per receiver (AUTH-34);
     ``resilient_f``: the device's resilient_f (default: the scenario's), judged on WMSR-1/2;
-    ``price_persist``: the device's (default ``PRICE_PERSIST``; 1: judged on PRICE-5)."""
+    ``price_persist``: the device's (default ``PRICE_PERSIST``; 1: judged on PRICE-5);
+    ``signed_price``: the router's price signed (as the scenario's ``[security]
+    signed_price``): the tester signs every price it plays, the device's key file holds
+    the router's public key; judged on AUTH-31..33."""
     from dbc import dbc_path
-    from firmware_py import secoc
+    from firmware_py import pricesig, secoc
     from firmware_py.config import agent_configs_from_scenario
     from firmware_py.frames import FrameCodec, diag_name
     from sim import conformance as conf
@@ -172,6 +176,12 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     if scale is None:
         scale = GUEST_TIME_SCALE if os.environ.get("VCAN_RUN_GUEST") == "1" else 1.0
     sc = scaled(with_fd(sc, fd, no_lambda_tags), scale)
+    if signed_price:
+        sc = replace(sc, signed_price=True)
+    if sc.signed_price and insecure:  # the public keys have no signing key of the router
+        raise ParameterError("--insecure", "a key set with the router's price key for a "
+                             "signed price (--signed-price, [security] signed_price)",
+                             "--insecure")
     # the scenario's agent with every key the schedule observes off its default
     # (conf.conformance_config): the DUT reads the file, the oracle reads it too, with
     # the reference parser (a device that misreads it fails a CFG-n requirement)
@@ -197,10 +207,14 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
         else:
             check_key_set(key_dir, sc.n, sc)
         tester_keys = load_key_set(key_dir)
+        if sc.signed_price:  # the tester signs the price as the router does (AUTH-32)
+            sign = secoc.load_node_key(key_dir / "router.key").price_sign
+            tester_keys[pricesig.TESTER_SIGN] = sign or b""
         own = secoc.load_node_key(key_dir / f"{node}.key")
         ring = secoc.Keyring(node, own.key, own.boot_counter, lambda _b: None,
                              peers=own.peers, fleet=own.fleet_id, floors=own.floors,
-                             frames=own.frames, commands=own.commands, tags=own.tags)
+                             frames=own.frames, commands=own.commands, tags=own.tags,
+                             price_verify=own.price_verify)
         dut_key = own.key
         key_argv = ["--key", str(key_dir / f"{node}.key")]
     bus, port = busrun.private_port(bus)
