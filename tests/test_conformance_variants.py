@@ -1,7 +1,8 @@
 """`bess-ded conformance` on the runs that exercise more requirements (``ONLY_ON``):
 with --insecure (AUTH-1, AUTH-20), with the resilient update on (--resilient F:
 WMSR-1, and WMSR-2 on a device of more than F neighbours), on a pc or an ft device
-(case 2's variants: STEP-10; STEP-11, CTRL-3, NUM-5), with --price-persist 1 (PRICE-5).
+(case 2's variants: STEP-10; STEP-11, CTRL-3, NUM-5), with --price-persist 1 (PRICE-5),
+with --signed-price (AUTH-31..33).
 In process, on a simulated clock with late ticks and frames, as
 tests/test_conformance.py."""
 
@@ -19,7 +20,8 @@ from conformance_faults import (
     ties_light_first,
 )
 
-from firmware_py import controllers
+from firmware_py import controllers, pricesig
+from firmware_py.frames import FrameCodec
 from firmware_py.runtime import AgentRuntime
 from sim import conformance as conf
 from sim.cli import main
@@ -134,7 +136,10 @@ def test_a_moment_of_every_run_names_no_requirement_of_another_run_first() -> No
     # band step's dwell moments are played on a dwell device only)
     moments = [*conf.MOMENTS.items(), *((n, m) for s in conf.STEPS if s.name != "band"
                                         for n, m in s.moments)]
-    assert all(set(musts) - set(conf.ONLY_ON) for _, musts in moments)
+    # (and the timeouts step's key holder's prices, played with --signed-price only)
+    signed_only = {m for m, on in conf.ONLY_ON.items() if on == "signed price"}
+    assert all(set(musts) - set(conf.ONLY_ON) for _, musts in moments
+               if not set(musts) <= signed_only)
 
 
 PI_FAMILY = {f"STEP-{n}" for n in range(2, 10)} | {"BAND-1", "BAND-2", "BAND-3"}
@@ -210,3 +215,68 @@ def test_price_persist_one_is_written_into_the_devices_file(tmp_path: Path,
                  "--wait", "0.2", "--out", str(tmp_path), "--bus-config",
                  f'{{"port": {udp_port}}}']) == 1
     assert "price_persist = 1" in (tmp_path / "agents" / "agent_3.toml").read_text()
+
+
+SIGNED = ("AUTH-31", "AUTH-32", "AUTH-33")
+
+
+@pytest.mark.parametrize("fault", [None, "signed_checked_after_freshness",
+                                   "signature_page_overwritten"])
+def test_a_signed_price_run_judges_the_signatures(fault: str | None) -> None:
+    """Expected: with --signed-price (signed_price in the device's file, the router's
+    public key in its key file) the tester signs every price it plays and, while the
+    price is stale, plays a key holder's prices under the router's node key that no
+    conformant device takes (unsigned: another Segment, ρ one LSB off; under a bad, an
+    older and two malformed signatures; 8 counts ahead of the router's): firmware_py
+    refuses each, stays SAFE, and passes every requirement, AUTH-31..33 among them; a
+    device that checks the signed price after the MAC and freshness (the router's own
+    next price is then stale), or that lets a repeated page overwrite the first, fails,
+    named by the broken requirement first."""
+    cfg, ring, planned = schedule_setup(1, 3, run="signed price")
+    assert cfg.signed_price and "signed_price = true" in schedule_text(1, 3, "signed price")
+    notes = {p.note for p in planned}
+    assert {"an unsigned price: the signed ρ under another Segment",
+            "a price under a bad signature (another key's)"} <= notes
+    frames = conf.simulate(cfg, ring(), planned, BY_NAME[fault].apply if fault else None,
+                           jitter=0.3, seed=5)
+    outcome = conf.check(cfg, ring(), ring().key, frames)
+    results = conf.verdict(outcome)
+    assert "signed price" in outcome.exercised_on
+    assert set(SIGNED) <= {r.must for r in results}
+    if fault is None:
+        assert not outcome.mismatches and not outcome.auth_errors
+        assert all(r.passed for r in results), [r for r in results if not r.passed]
+        return
+    assert [r.must for r in results if r.failed][0] == BY_NAME[fault].requirement
+
+
+def test_an_unsigned_run_does_not_judge_the_signed_price() -> None:
+    """Expected: the default run plays no signature and names AUTH-31..33 as judged on
+    another run (`--signed-price`), never passed."""
+    cfg, _, planned = schedule_setup(1, 3)
+    assert not cfg.signed_price
+    assert FrameCodec().frame_id(pricesig.MESSAGE) not in {p.msg.arbitration_id
+                                                           for p in planned}
+    outcome = conf.Outcome(exercised_on=conf.exercised_on(cfg, False, False),
+                           steps_seen={s.name for s in conf.STEPS})
+    assert not set(SIGNED) & {r.must for r in conf.verdict(outcome)}
+    assert tuple(conf.other_runs(outcome)["with --signed-price"]) == SIGNED
+
+
+def test_the_signed_price_option_writes_the_keys_and_refuses_insecure(
+        tmp_path: Path, udp_port: int, capsys: pytest.CaptureFixture[str]) -> None:
+    """Expected: `--signed-price` writes signed_price into the device's file and the
+    router's public key (only) into its key file; with no device on the bus the run fails
+    honestly (exit 1). With --insecure (no router key to sign with) it is bad input."""
+    assert main(["conformance", "--case", "1", "--dut", "3", "--signed-price",
+                 "--wait", "0.2", "--out", str(tmp_path), "--bus-config",
+                 f'{{"port": {udp_port}}}']) == 1
+    assert "signed_price = true" in (tmp_path / "agents" / "agent_3.toml").read_text()
+    key_file = (tmp_path / "keys" / "agent_3.key").read_text()
+    assert "verify_key" in key_file and "sign_key" not in key_file
+    capsys.readouterr()
+    assert main(["conformance", "--case", "1", "--dut", "3", "--signed-price",
+                 "--insecure"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("bess-ded: error: --insecure: expected a key set with the "
+                          "router's price key"), err

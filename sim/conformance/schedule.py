@@ -641,10 +641,10 @@ def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool,
     step ("pi family", "pc" or "ft"), its controller kind where the band step is planned
     for it (``kind_exercised``: "dwell" for the dwell edges), "lambda tags" on a
     tagged CAN FD bus, "insecure" with the public demo keys, "resilient" with the
-    resilient update on, "signed price" with signed_price, and "resilient ties" where more than F neighbours (each of its
-    own weight, ``conformance_config``) meet at lambda_min in the extremes step: the
-    larger weight is trimmed first (WMSR-2); "flood" where the tester sent ``plan``'s
-    flood."""
+    resilient update on, "signed price" with signed_price, and "resilient ties" where
+    more than F neighbours (each of its own weight, ``conformance_config``) meet at
+    lambda_min in the extremes step: the larger weight is trimmed first (WMSR-2);
+    "flood" where the tester sent ``plan``'s flood."""
     trim = cfg.resilient_f if cfg.neighbours else 0
     kind = cfg.controller.kind
     return frozenset({kind_exercised(cfg), kind if kind in ("pc", "ft") else "pi family"}
