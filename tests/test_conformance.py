@@ -579,6 +579,21 @@ def test_firmware_c_node_program_passes_on_udp_multicast(tmp_path: Path) -> None
 
 
 @pytest.mark.realtime
+@pytest.mark.long  # CI's real-time step only (beside stress-ng), not the README suite too
+def test_firmware_c_node_program_passes_a_signed_price_run_on_udp_multicast(
+        tmp_path: Path) -> None:
+    """Expected (any load): with --signed-price (the device's key file holds the router's
+    public key, the tester signs every price with the router's and plays a key holder's
+    refused ones) firmware_c's node program passes every requirement, AUTH-31..33 among
+    them."""
+    code, log = run_conformance(tmp_path, [str(node_program())], ["--signed-price"],
+                                hint=C_DEVICE_HINT)
+    assert_passed(code, log)
+    assert all(re.search(rf"^  PASS  {m} ", log, re.M) for m in ("AUTH-31", "AUTH-32",
+                                                                  "AUTH-33")), log
+
+
+@pytest.mark.realtime
 def test_an_agent_whose_band_re_arms_at_the_reset_sample_fails_band_2(tmp_path: Path) -> None:
     """Expected (any load): exit 1, BAND-2 the one failed requirement, named with what
     the device does."""
