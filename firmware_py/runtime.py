@@ -571,6 +571,15 @@ class AgentRuntime:
         return (self._price_fresh, self._status_fresh, self._price_candidate,
                 self._price_candidate_n)
 
+    def transmit_memory(self) -> tuple[tuple[int, State] | None, int]:
+        """What TX-7 remembers between ticks: the (λ, State) of the MC frame last sent
+        (None before the first) and the ticks since it."""
+        return self._mc_last, self._mc_age
+
+    def adopt_transmit(self, sent: tuple[int, State] | None, age: int) -> None:
+        """TX-7's memory set from outside (a checker following a device's MC frames)."""
+        self._mc_last, self._mc_age = sent, age
+
     def constant_tables(self) -> tuple[object, ...]:
         """What neither a frame nor a tick changes (copies of an agent may share it)."""
         return (self.codec, self.cfg, self.setpoint, self._diag_max, self._mc_max,

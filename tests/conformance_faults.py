@@ -37,6 +37,7 @@ from firmware_py import fixedpoint as fx
 from firmware_py.config import (
     AgentConfig,
     Neighbour,
+    Transmit,
     agent_configs_from_scenario,
     parse_agent_config,
 )
@@ -1417,7 +1418,8 @@ ON_DEVICE = {"dwell": (6, 3), "resilient ties": (7, 5), "pc": (2, 3), "ft": (2, 
 RUN_OPTIONS = {"resilient": "--resilient 1", "resilient ties": "--resilient 1",
                "insecure": "--insecure", "persist 1": "--price-persist 1",
                "pc": "--variant PC",
-               "ft": "--variant finite-time", "signed price": "--signed-price"}
+               "ft": "--variant finite-time", "signed price": "--signed-price",
+               "event": "--event-transmit"}
 
 
 def played_on(fault: Any, case: int, dut: int) -> tuple[int, int, str]:
@@ -1451,6 +1453,8 @@ def _run_config(case: int, dut: int, run: str = "") -> tuple[str, AgentConfig]:
         agent = replace(agent, resilient_f=1)
     if run == "signed price":
         agent = replace(agent, signed_price=True)
+    if run == "event":
+        agent = replace(agent, transmit=Transmit("event"))
     return conf.written_config(agent, 1 if run == "persist 1" else conf.PRICE_PERSIST)
 
 

@@ -26,7 +26,7 @@ from test_node_vectors import VECTORS, keyring, load, replay
 
 from dbc import dbc_path
 from firmware_py import contract, pricesig, secoc
-from firmware_py.config import agent_configs_from_scenario, parse_agent_config
+from firmware_py.config import Transmit, agent_configs_from_scenario, parse_agent_config
 from firmware_py.contract import SYNCED_BY
 from firmware_py.frames import FrameCodec, target_raw
 from firmware_py.nodeio import FleetSender
@@ -809,7 +809,8 @@ def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once
     (6, 3, 0.3, False, False, 0, True, ""),
     (2, 3, 0.3, False, False, 0, False, "PC"),
     (2, 2, 0.3, False, False, 0, False, "finite-time"),
-    (1, 1, 0.3, False, False, 0, False, "signed price")])
+    (1, 1, 0.3, False, False, 0, False, "signed price"),
+    (7, 2, 0.3, False, False, 0, False, "event")])
 def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter: float,
                                                      filtered: bool, fd: bool,
                                                      trim: int, insecure: bool,
@@ -823,7 +824,8 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     (case 2's ``variant``: STEP-10, resp. STEP-11, CTRL-3 and NUM-5 judged, not the PI
     family's step); with `--price-persist 1` (``variant`` "persist 1": PRICE-5 judged);
     with `--signed-price` (``variant`` "signed price": the tester signs every price as the
-    router, plays refused ones; AUTH-31..33 judged)."""
+    router, plays refused ones; AUTH-31..33 judged); with `--event-transmit` (``variant``
+    "event": the MC frame sent event-triggered; TX-7 and CFG-9 judged)."""
     from sim import conformance as conf
     from sim.model.scenario import load_case
 
@@ -833,7 +835,8 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
     # the configuration the tester writes: the C loader reads it for the device, the
     # reference parser for the oracle (issue 22 item 4: the configuration path)
     agent = replace(agent_configs_from_scenario(sc)[dut - 1], resilient_f=trim,
-                    signed_price=variant == "signed price")
+                    signed_price=variant == "signed price",
+                    transmit=Transmit("event" if variant == "event" else "periodic"))
     text, cfg = conf.written_config(agent, persist)
     params = parse_config(text)
     keys = fleet_keys(MASTER, sc.n)   # node keys and link frame keys (AUTH-28)
@@ -873,6 +876,7 @@ def test_the_c_agent_passes_the_conformance_schedule(case: int, dut: int, jitter
                                                                          kind_steps[""])
     assert ("PRICE-5" in judged) == (persist == 1)
     assert (judged >= {"AUTH-31", "AUTH-32", "AUTH-33"}) == cfg.signed_price
+    assert (judged >= {"TX-7", "CFG-9"}) == cfg.transmit.event
 
 
 # --------------------------------------------------------------------------- the vector runner

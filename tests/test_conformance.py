@@ -610,7 +610,7 @@ def test_a_quick_run_plays_the_first_steps_and_lists_the_rest_not_run(
     commands, 7.1 of 16.2 s at Ts = 10 ms); firmware_py passes every requirement they
     exercise; those only the later steps exercise are NOT RUN (never passed, JUnit
     skipped), the verdict says it was a quick run, and the exit code is 0."""
-    from sim.cli.conformance import report
+    from sim.conformance.bus import report
 
     sc = load_case(1)
     _, cfg = conf.written_config(agent_configs_from_scenario(sc)[2])

@@ -18,8 +18,9 @@ first) and writes OUT/conformance.log, OUT/conformance.json and JUnit XML (--jun
 The tester writes the scenario's agent with every key the schedule observes off its
 default (timeouts, limits, gains, band, weights; fixed-point values rounding up): a device
 that misreads its file fails, named CFG-3, 4, 6 or 7 by a known misreading explaining it.
---resilient F, --price-persist 1, --signed-price, --insecure, --fd, a dwell device,
-case 2's variants PC and finite-time: more requirements (docs/conformance.md).
+--resilient F, --price-persist 1, --signed-price, --event-transmit, --insecure, --fd, a
+dwell device, case 2's variants PC and finite-time: more requirements
+(docs/conformance.md).
 
 --quick plays the first steps only (start to commands: 7.1 of 16.2 s at Ts = 10 ms),
 for development: the later steps' requirements are NOT RUN (JUnit: skipped), never
@@ -35,10 +36,6 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from sim.conformance import Outcome, Result
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -75,6 +72,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--price-persist", type=int_in(1, PERSIST), metavar="N", help="the "
                    f"device's price_persist (default {PERSIST}; 1: judged on PRICE-5)")
     p.add_argument("--signed-price", action="store_true", help="the price signed: AUTH-31..33")
+    p.add_argument("--event-transmit", action="store_true", help="the device's MC frame "
+                   "event-triggered ([transmit] mode = \"event\"): TX-7, CFG-9")
     p.add_argument("--quick", action="store_true",
                    help="play the first steps only (start to commands), for development: "
                         "the later steps' requirements are NOT RUN, never passed")
@@ -88,7 +87,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sim.conformance.bus import prepare_conformance
+    from sim.conformance.bus import prepare_conformance, report
     from sim.run import busrun
 
     setup = prepare_conformance(
@@ -97,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
         time_scale=args.time_scale, out=args.out, keys=args.keys, insecure=args.insecure,
         rt_priority=args.rt_priority, wait=args.wait, say=_say, quick=args.quick,
         fd=args.fd, no_lambda_tags=args.no_lambda_tags, resilient_f=args.resilient,
-        price_persist=args.price_persist, signed_price=args.signed_price)
+        price_persist=args.price_persist, signed_price=args.signed_price,
+        event_transmit=args.event_transmit)
     try:
         frames, late = setup.drive(args.wait, args.rt_priority, progress=_progress)
     except TimeoutError as e:
@@ -118,33 +118,3 @@ def _say(line: str) -> None:
 def _progress(line: str) -> None:  # one line rewritten on a terminal, else a line each
     tty = sys.stdout.isatty()
     print(f"\r  {line:<60}" if tty else f"  {line}", end="" if tty else "\n", flush=True)
-
-
-def report(outcome: Outcome, results: list[Result], out: Path, junit_path: Path | None,
-           name: str) -> int:
-    """Print the verdict per requirement, write OUT/conformance.json (and --junit)."""
-    from sim.conformance import other_runs
-    from sim.conformance.bus import write_report
-
-    for problem in outcome.problems:
-        print(f"  problem with the run: {problem}")
-    if outcome.filtered:
-        print("  the device filters foreign IDs (GEN-5): judged as receiving its inputs only")
-    for r in results:
-        mark = "NOT RUN" if r.not_run else "PASS" if r.passed else "FAIL"
-        print(f"  {mark}  {r.must:<9} {r.detail}")
-    for what, musts in other_runs(outcome).items():  # ONLY_ON: judged by another run
-        print(f"  not judged on this run: {', '.join(musts)} ({what})")
-    failed = [r.must for r in results if r.failed]
-    not_run = [r.must for r in results if r.not_run]
-    ok = not failed and not outcome.problems
-    run = len(results) - len(not_run)
-    print(f"bess-ded conformance: {'PASS' if ok else 'FAIL'}"
-          + (" (a quick run)" if not_run else "")
-          + f": {run - len(failed)} of {run} requirements passed over {outcome.ticks} "
-          f"ticks of the device" + (f"; failed: {', '.join(failed)}" if failed else "")
-          + (f"; {len(not_run)} not run (--quick): run without --quick to accept a device"
-             if not_run else ""))
-    ok, written = write_report(outcome, results, out, junit_path, name)
-    print(f"  wrote {', '.join(map(str, written))}")
-    return 0 if ok else 1

@@ -135,7 +135,8 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
                         no_lambda_tags: bool = False,
                         resilient_f: int | None = None,
                         price_persist: int | None = None,
-                        signed_price: bool = False) -> ConformanceSetup:
+                        signed_price: bool = False,
+                        event_transmit: bool = False) -> ConformanceSetup:
     """Set up a conformance run of scenario ``case`` with the device in agent ``dut``'s
     place ("1".."N") on ``bus`` (one that connects processes): its configuration and
     key file (from ``keys``, a fresh set in ``out``/keys, or ``insecure``) in ``out``
@@ -149,7 +150,8 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     ``price_persist``: the device's (default ``PRICE_PERSIST``; 1: judged on PRICE-5);
     ``signed_price``: the router's price signed (as the scenario's ``[security]
     signed_price``): the tester signs every price it plays, the device's key file holds
-    the router's public key; judged on AUTH-31..33."""
+    the router's public key; judged on AUTH-31..33; ``event_transmit``: the device sends
+    its MC frame event-triggered (``[transmit] mode = "event"``), judged on TX-7, CFG-9."""
     from dbc import dbc_path
     from firmware_py import pricesig, secoc
     from firmware_py.config import agent_configs_from_scenario
@@ -188,6 +190,8 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
     agent = agent_configs_from_scenario(sc)[i - 1]
     if resilient_f is not None:  # --resilient F: the device runs the resilient update
         agent = replace(agent, resilient_f=resilient_f)
+    if event_transmit:  # its threshold and heartbeat: conformance_config's
+        agent = replace(agent, transmit=replace(agent.transmit, mode="event"))
     text, cfg = conf.written_config(agent, price_persist or conf.PRICE_PERSIST)
     out = out or Path("runs") / f"conformance-{sc.name}-agent{i}"
     node = f"agent_{i}"
@@ -281,3 +285,32 @@ def write_report(outcome: Outcome, results: Sequence[Result], out: Path,
         conf.junit(results, junit_path, name)
         written.append(junit_path)
     return ok, written
+
+
+def report(outcome: Outcome, results: list[Result], out: Path, junit_path: Path | None,
+           name: str) -> int:
+    """Print the verdict per requirement, write OUT/conformance.json (and --junit)."""
+    from sim.conformance import other_runs
+
+    for problem in outcome.problems:
+        print(f"  problem with the run: {problem}")
+    if outcome.filtered:
+        print("  the device filters foreign IDs (GEN-5): judged as receiving its inputs only")
+    for r in results:
+        mark = "NOT RUN" if r.not_run else "PASS" if r.passed else "FAIL"
+        print(f"  {mark}  {r.must:<9} {r.detail}")
+    for what, musts in other_runs(outcome).items():  # ONLY_ON: judged by another run
+        print(f"  not judged on this run: {', '.join(musts)} ({what})")
+    failed = [r.must for r in results if r.failed]
+    not_run = [r.must for r in results if r.not_run]
+    ok = not failed and not outcome.problems
+    run = len(results) - len(not_run)
+    print(f"bess-ded conformance: {'PASS' if ok else 'FAIL'}"
+          + (" (a quick run)" if not_run else "")
+          + f": {run - len(failed)} of {run} requirements passed over {outcome.ticks} "
+          f"ticks of the device" + (f"; failed: {', '.join(failed)}" if failed else "")
+          + (f"; {len(not_run)} not run (--quick): run without --quick to accept a device"
+             if not_run else ""))
+    ok, written = write_report(outcome, results, out, junit_path, name)
+    print(f"  wrote {', '.join(map(str, written))}")
+    return 0 if ok else 1

@@ -14,7 +14,7 @@ import can
 
 from firmware_py import config as fc
 from firmware_py import fixedpoint as fx
-from firmware_py.config import AgentConfig, Neighbour
+from firmware_py.config import AgentConfig, Neighbour, Transmit
 from firmware_py.contract import status_name, timeout_s
 from firmware_py.controllers import ControllerConfig, PIController
 from firmware_py.runtime import AgentRuntime
@@ -144,6 +144,11 @@ def misreads(cfg: AgentConfig, text: str | None = None) -> list[tuple[str, str, 
     for must, field, value in defaults:
         add(must, f"it takes {_KEYS.get(field, 'limits.' + field)}'s default {value!r}, "
             f"not the file's {getattr(cfg, field)!r}", replace(cfg, **{field: value}))
+    if cfg.transmit.event:  # CFG-9: [transmit]'s keys, one at a time
+        for key in ("threshold", "heartbeat"):
+            add("CFG-9", f"it takes transmit.{key}'s default "
+                f"{getattr(Transmit(), key)!r}, not the file's {getattr(cfg.transmit, key)!r}",
+                replace(cfg, transmit=replace(cfg.transmit, **{key: getattr(Transmit(), key)})))
     return out
 
 

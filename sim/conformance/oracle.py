@@ -149,6 +149,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.NeighboursAlive": ("DIAG-1", "LIVE-2"),
     "Diag.Saturations": ("DIAG-3", "XI-3", "STEP-9"),
     "Sync.frames": ("AUTH-9",),
+    "MC.sent": ("TX-7", "CFG-9"),  # event-triggered sending: whether the MC frame was due
     "Sync.Count": ("AUTH-9", "AUTH-4"),
 }
 
@@ -412,7 +413,9 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     own = {mc_id, sp_id, diag_id}
     syncs = {contract.SYNC_OF[fid]: fid for fid in (mc_id, sp_id, diag_id)}
     outcome = Outcome()
-    dut_groups = _tick_groups(frames, mc_id, own | set(syncs))
+    dut_groups = (_event_ticks(frames, mc_id, own | set(syncs), cfg.controller.ts)
+                  if cfg.transmit.event else
+                  [(g[0].t, g) for g in _tick_groups(frames, mc_id, own | set(syncs))])
     if not dut_groups:
         outcome.problems.append("no MC frame of the DUT was recorded")
         return outcome
@@ -431,7 +434,7 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
         inputs = [f for f in inputs
                   if not f.msg.is_extended_id and f.msg.arbitration_id in passed]
     # align the oracle's tick count with the DUT's: the first Diag page before any input
-    align = next(((g, f) for g in dut_groups for f in g if f.msg.arbitration_id == diag_id
+    align = next(((g, f) for g in dut_groups for f in g[1] if f.msg.arbitration_id == diag_id
                   and f.t < first_sent), None)
     if align is None:
         outcome.problems.append("the DUT sent no Diag frame before the tester's first frame "
@@ -443,7 +446,9 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     # the hypotheses: (oracle, index of the first input it has not received yet)
     hyps: list[tuple[_Oracle, int]] = [(first, 0)]
     start = dut_groups.index(align[0])
-    prev_t = align[0][0].t
+    prev_t = align[0][0]
+    if cfg.transmit.event:  # TX-7: the MC frame the DUT sent last before the record
+        _adopt_last_mc(first.rt, codec, dut_groups[:start], mc_id)
     noted = [f for f in inputs if f.note]
     transitions: list[tuple[float, str]] = []  # the oracle's state changes (t, "A → B")
     state, xi_prev = first.rt.state, first.rt.cstate.xi_prev
@@ -451,11 +456,10 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     episode: tuple[int, int] | None = None  # (its first tick, its last tick)
     # a DUT started before the record: its sync schedule and counts are known from its
     # first sync in the record on (the oracle's first syncs are its own start's)
-    syncs_known = any(f.msg.arbitration_id in contract.SYNCED_BY for f in align[0])
+    syncs_known = any(f.msg.arbitration_id in contract.SYNCED_BY for f in align[0][1])
     with quiet_firmware():
         # the last group may be cut short by the end of the recording
-        for group in dut_groups[start:-1]:
-            t_tick = group[0].t
+        for t_tick, group in dut_groups[start:-1]:
             step = _step_name(inputs, t_tick)
             if step:
                 outcome.steps_seen.add(step)
@@ -496,7 +500,8 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                             before = io.sync_schedule
                             sent = twin.rt.tick(t_guess)
                             diffs = _compare(codec, sent, group, outcome.ticks, step,
-                                             t_tick - first_sent, syncs_known)
+                                             t_tick - first_sent, syncs_known,
+                                             cfg.transmit.event)
                             if diffs and syncs_known:
                                 diffs = _sync_slack(twin.rt, codec, before, sent, group,
                                                     diffs, t_guess)
@@ -601,7 +606,8 @@ def _fingerprint(rt: AgentRuntime) -> tuple:
     hypotheses that differ only in when frames arrived are one (the likeliest kept);
     whether an input was late matters at the tick it is late for, and each tick tries
     that again."""
-    return (rt.state, rt.cstate, rt.price, *rt.input_memory(), rt.plant_fault, rt.ctrl.kts,
+    return (rt.state, rt.cstate, rt.price, *rt.input_memory(), *rt.transmit_memory(),
+            rt.plant_fault, rt.ctrl.kts,
             rt.ctrl.hts, tuple((s.lam, s.state, s.alive) for s in rt.neighbours.values()),
             tuple(sorted(rt.counters.items())))
 
@@ -655,8 +661,47 @@ def _tick_groups(frames: Sequence[Frame], mc_id: int, dut_ids: set[int]) -> list
             if any(f.msg.arbitration_id == mc_id for f in g)]
 
 
+def _adopt_last_mc(rt: AgentRuntime, codec: FrameCodec,
+                   before: Sequence[tuple[float, list[Frame]]], mc_id: int) -> None:
+    """Event mode (TX-7): the oracle starts with the DUT's memory of its last MC frame
+    (the newest in ``before``, the ticks preceding the oracle's first)."""
+    for ago, (_, group) in enumerate(reversed(before)):
+        mc = next((f for f in group if f.msg.arbitration_id == mc_id), None)
+        if mc is not None:
+            s = _signals(codec, mc.msg)
+            rt.adopt_transmit((s["Lambda"], State(s["State"])), ago)
+            return
+
+
+def _event_ticks(frames: Sequence[Frame], mc_id: int, dut_ids: set[int], ts: float
+                 ) -> list[tuple[float, list[Frame]]]:
+    """Event-triggered sending (TX-7): the DUT's ticks, (time, frames), a tick's frames
+    being those it sends together (a frame of an ID the tick already has, or one more
+    than half a period after its first, starts the next), MC first; and between two
+    ticks n periods apart the n − 1 that sent nothing (MC not due, no Setpoint, Diag or
+    sync either), at their times by the period."""
+    groups: list[list[Frame]] = []
+    for f in frames:
+        fid = f.msg.arbitration_id
+        if f.sent or fid not in dut_ids:
+            continue
+        if (not groups or f.t - groups[-1][0].t > 0.5 * ts
+                or any(g.msg.arbitration_id == fid for g in groups[-1])):
+            groups.append([])
+        groups[-1].append(f)
+    ticks: list[tuple[float, list[Frame]]] = []
+    for g in groups:
+        if ticks:
+            t_prev = ticks[-1][0]
+            n = max(1, round((g[0].t - t_prev) / ts))
+            ticks += [(t_prev + k * (g[0].t - t_prev) / n, []) for k in range(1, n)]
+        ticks.append((g[0].t, sorted(g, key=lambda f: f.msg.arbitration_id != mc_id)))
+    return ticks
+
+
 def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence[Frame],
-             tick: int, step: str, t: float, syncs: bool = True) -> list[Mismatch]:
+             tick: int, step: str, t: float, syncs: bool = True,
+             event: bool = False) -> list[Mismatch]:
     """The DUT's frames of one tick against the oracle's (``t``: from the schedule's
     start, for the report): its sync frames first (AUTH-9: which are due, and their
     Count), then MC, Setpoint and Diag."""
@@ -676,6 +721,13 @@ def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence
             diffs += _compare_signals(codec, e, g, "Sync", tick, step, t)
     got = [f.msg for f in group if f.msg.arbitration_id not in contract.SYNCED_BY]
     exp = [m for m in expected if m.arbitration_id not in contract.SYNCED_BY]
+    if event:  # TX-7: whether the MC frame was due is a signal of its own
+        mc = [[m for m in ms if codec.name_of(m.arbitration_id).endswith("_MC")]
+              for ms in (exp, got)]
+        if bool(mc[0]) != bool(mc[1]):
+            want, sent = ("sent" if m else "not sent" for m in mc)
+            diffs.append(Mismatch(t, tick, step, "MC", "sent", want, sent, raw=(want, sent)))
+            exp, got = ([m for m in ms if m not in mc[0] + mc[1]] for ms in (exp, got))
     names_got = [codec.name_of(m.arbitration_id) for m in got]
     names_exp = [codec.name_of(m.arbitration_id) for m in exp]
     if names_got != names_exp:
@@ -732,8 +784,9 @@ _DIAG_COUNTERS = {
 def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: int,
            diag_id: int) -> None:
     """After a difference, re-synchronise the oracle to what the DUT's frames show (λ,
-    state, the reset count, the Diag counters of the page) and check the rest from
-    there: one fault then fails where it shows, not every frame after it."""
+    state, the reset count, the Diag counters of the page; in event mode whether it sent
+    its MC frame) and check the rest from there: one fault then fails where it shows,
+    not every frame after it."""
     _adopt_syncs(rt, codec, group)
     for f in group:
         fid = f.msg.arbitration_id
@@ -743,6 +796,7 @@ def _adopt(rt: AgentRuntime, codec: FrameCodec, group: Sequence[Frame], mc_id: i
             continue
         if fid == mc_id:
             rt.state = State(s["State"])
+            rt.adopt_transmit((s["Lambda"], rt.state), 0)  # TX-7: sent at this tick
             if rt.lambda_q24 != s["Lambda"]:  # its guard bits are unknown: the wire value's
                 rt.cstate = replace(rt.cstate, lam=fx.widen(s["Lambda"]))
             mod = rt.resets_modulo

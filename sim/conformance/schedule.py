@@ -17,7 +17,7 @@ import can
 
 from firmware_py import contract, pricesig, secoc
 from firmware_py import fixedpoint as fx
-from firmware_py.config import AgentConfig, Neighbour, parse_agent_config
+from firmware_py.config import EVENT_THRESHOLD, AgentConfig, Neighbour, parse_agent_config
 from firmware_py.contract import Command, State
 from firmware_py.frames import PIN_OFF, PIN_ON, FrameCodec, mc_name, status_name, target_raw
 from firmware_py.nodeio import LOST_SEARCH_COUNTS, FleetSender
@@ -48,13 +48,13 @@ STEPS = (
          ("GEN-2", "STATE-1", "STATE-10", "TICK-1", "TX-1", "TX-2", "TX-3", "TX-4", "TX-5",
           "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-11",
           "AUTH-16", "AUTH-21", "AUTH-26", "AUTH-28", "AUTH-29", "RX-4", "GEN-1", "GEN-4",
-          "AUTH-1", "AUTH-20")),
+          "AUTH-1", "AUTH-20", "TX-7", "CFG-9")),
     Step("price-only", 30, 60, "price and neighbours but no plant status: still INIT",
          ("STATE-2", "STATE-5", "TMO-3", "LIVE-1", "LIVE-2", "PRICE-6", "AUTH-12",
           "AUTH-15", "AUTH-31", "AUTH-33")),
     Step("running", 60, 100, "plant status too: INIT → RUNNING, the setpoint follows λ",
          ("STATE-4", "STATE-6", "SP-1", "TX-2", "RX-11", "XI-1", "XI-2", "WMSR-1",
-          "WMSR-2", "AUTH-31", "AUTH-33")),
+          "WMSR-2", "AUTH-31", "AUTH-33", "TX-7")),
     Step("control", 100, 450, "neighbours' λ moving (steps and a slow sine): every step "
          "of the device's controller (the reset-PI; pc, ft on case 2's variants), bit for "
          "bit",
@@ -62,7 +62,7 @@ STEPS = (
           "STEP-3", "STEP-4", "STEP-5", "STEP-6", "STEP-7", "STEP-8", "STEP-9", "BAND-1",
           "BAND-2", "BAND-3", "STEP-10", "STEP-11", "CTRL-3", "NUM-5", "TX-1", "SP-1",
           "LAM-2", "DIAG-1", "NUM-1", "NUM-2", "NUM-3", "NUM-6", "NUM-7", "NUM-8", "CFG-3",
-          "CFG-4", "AUTH-34", "WMSR-1")),
+          "CFG-4", "AUTH-34", "WMSR-1", "TX-7", "CFG-9")),
     Step("authentication", 450, 510, "forged MACs, a replayed frame, a replayed sync, a "
          "frame from another boot, a genuine frame delivered late (stale, not auth) and "
          "again (seen: auth): rejected and counted, λ unmoved by them",
@@ -115,7 +115,7 @@ STEPS = (
          "ones (the streak ended: no verdict)",
          ("STATE-2", "STATE-3", "STATE-4", "STATE-5", "STATE-6", "STATE-7", "STATE-8",
           "STATE-9", "STATE-10", "PRICE-1", "TMO-1", "TMO-2", "RX-10", "RX-11", "CMD-3",
-          "CMD-4", "CMD-5")),
+          "CMD-4", "CMD-5", "TX-7", "CFG-9")),
     Step("band", 1350, 1470, "an ISOLATE and a RECONNECT (the neighbours INIT meanwhile), "
          "so that the device's controller starts from ISOLATE's state whatever races "
          "earlier; then a trajectory planned on the reference (firmware_py run on "
@@ -179,12 +179,13 @@ ONLY_ON: dict[str, str] = {"CTRL-2": "dwell", "DWELL-1": "dwell", "DWELL-2": "dw
                            **{f"BAND-{n}": "pi family" for n in range(1, 4)},
                            "STEP-10": "pc", "STEP-11": "ft", "CTRL-3": "ft", "NUM-5": "ft",
                            "PRICE-5": "persist 1",
-                           **{f"AUTH-{n}": "signed price" for n in (31, 32, 33)}}
+                           **{f"AUTH-{n}": "signed price" for n in (31, 32, 33)},
+                           "TX-7": "event", "CFG-9": "event"}
 ON_WHAT = {"dwell": "on a dwell device", "pi family": "on a pi, reset or dwell device",
            "pc": "on a pc device: --case 2 --variant PC",
            "ft": "on an ft device: --case 2 --variant finite-time",
            "lambda tags": "on --fd, with λ tags", "persist 1": "with --price-persist 1",
-           "signed price": "with --signed-price",
+           "signed price": "with --signed-price", "event": "with --event-transmit",
            "insecure": "with --insecure", "resilient": "with --resilient F",
            "resilient ties": "with --resilient F on a device of more than F neighbours",
            "flood": "in process, in an exact-timing run: its flood of unknown IDs"}
@@ -210,9 +211,6 @@ NOT_ON_BUS: dict[str, str] = {
              "one fails SP-1 (the setpoint) or CMD-3 (the idle λ): unit tests",
     "CFG-8": "the key file: a misread key fails every MAC (AUTH-4..8); the refusals "
              "(a sender's key missing, a symbolic link) stop the start: unit tests",
-    "CFG-9": "the schedule runs periodic DUTs (no [transmit] table): as TX-7",
-    "TX-7": "the schedule runs periodic DUTs (the default); event-triggered sending is "
-            "pinned by the node vector event_transmit, in firmware_py and firmware_c",
     "LOOP-1": "the run loop's timing depends on the DUT's host, not on the bus",
     "LOOP-2": "deadline misses depend on the DUT's host (DeadlineMisses is not compared)",
     "LOOP-3": "the DUT's clock is not visible on the bus",
@@ -234,6 +232,10 @@ def _rounds_up(x: float, bits: int, scale: float = 1.0) -> float:
     word = math.floor(x * scale * (1 << bits))
     return (word + 0.625) / (1 << bits) / scale
 
+
+EVENT_HEARTBEAT = 3
+"""The heartbeat the tester writes for an event-triggered device (CFG-9: the default 13
+must exceed the neighbour timeout, 4 periods here): at least every 3rd tick an MC frame."""
 
 PRICE_PERSIST = 5
 """The price persistence the tester writes: two above the default 3, so that a device
@@ -260,6 +262,10 @@ def conformance_config(cfg: AgentConfig, price_persist: int = PRICE_PERSIST) -> 
     ctrl = replace(c, ts=ts, k=k, h=h, band=_rounds_up(1.5 * c.band, 24))
     if c.kind == "dwell":  # D = ceil(7.2) = 8 samples (CTRL-2): the band step's edges fit
         ctrl = replace(ctrl, dwell=round(7.2 * ts, 12))  # one nearest-rounding makes 7
+    # event-triggered sending (TX-7): the threshold and the heartbeat off their defaults
+    # (CFG-9), the heartbeat below the neighbour timeout the file gives (4 periods)
+    transmit = (replace(cfg.transmit, threshold=_rounds_up(2 * EVENT_THRESHOLD, 24),
+                        heartbeat=EVENT_HEARTBEAT) if cfg.transmit.event else cfg.transmit)
     if c.kind == "ft" and c.ft_exponent == 0.5:  # off the default: a = 3/4, two roots and
         ctrl = replace(ctrl, ft_exponent=0.75)  # two products in fpow (CTRL-3)
     # with the resilient update each neighbour's weight its own (WMSR-2 trims the larger
@@ -284,7 +290,7 @@ def conformance_config(cfg: AgentConfig, price_persist: int = PRICE_PERSIST) -> 
         lambda_min=-LAMBDA_LIMIT, lambda_max=LAMBDA_LIMIT, rho_min=max(cfg.rho_min, -4.5),
         rho_max=min(cfg.rho_max, 4.5), price_step_max=price_step, price_persist=price_persist,
         lambda_step_max=step_max, k_min=_milli(0.6 * k), k_max=_milli(1.8 * k),
-        h_min=_milli(0.6 * h), h_max=_milli(1.8 * h), untrusted_after=6,
+        h_min=_milli(0.6 * h), h_max=_milli(1.8 * h), untrusted_after=6, transmit=transmit,
         source=f"{cfg.source} (conformance)")
 
 
@@ -641,7 +647,8 @@ def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool,
     step ("pi family", "pc" or "ft"), its controller kind where the band step is planned
     for it (``kind_exercised``: "dwell" for the dwell edges), "lambda tags" on a
     tagged CAN FD bus, "insecure" with the public demo keys, "resilient" with the
-    resilient update on, "signed price" with signed_price, and "resilient ties" where
+    resilient update on, "signed price" with signed_price, "event" with event-triggered
+    sending (TX-7), and "resilient ties" where
     more than F neighbours (each of its own weight, ``conformance_config``) meet at
     lambda_min in the extremes step: the larger weight is trimmed first (WMSR-2);
     "flood" where the tester sent ``plan``'s flood."""
@@ -655,7 +662,8 @@ def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool,
                      | ({"resilient ties"} if trim and len(cfg.neighbours) > trim else set())
                      | ({"flood"} if flood else set())
                      | ({"persist 1"} if cfg.price_persist == 1 else set())
-                     | ({"signed price"} if cfg.signed_price else set()))
+                     | ({"signed price"} if cfg.signed_price else set())
+                     | ({"event"} if cfg.transmit.event else set()))
 
 
 def kind_exercised(cfg: AgentConfig) -> str:
