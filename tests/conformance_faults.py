@@ -1330,6 +1330,55 @@ FAULTS += [
           _signed_witness),
 ]
 
+# --------------------------------------------- event-triggered sending (--event-transmit)
+
+
+def _mc_due(rt: AgentRuntime, late: int = 0, state: bool = True, keep_age: bool = False,
+            last_tick: bool = False) -> bool:
+    """TX-7's decision with a slip: the heartbeat ``late`` ticks late, a State change not
+    sent (not ``state``), the age kept on a threshold send (``keep_age``), or λ compared
+    with the last tick's instead of the last sent (``last_tick``)."""
+    tx, lam = rt.cfg.transmit, rt.lambda_q24
+    last, age = rt.transmit_memory()
+    age += 1
+    quiet = (last is not None and age < tx.heartbeat + late
+             and (last[1] == rt.state or not state)
+             and abs(lam - last[0]) <= tx.threshold_q24)
+    if quiet:
+        rt.adopt_transmit((lam, rt.state) if last_tick else last, age)
+        return False
+    rt.adopt_transmit((lam, rt.state), age if keep_age and age < tx.heartbeat else 0)
+    return True
+
+
+def _event_witness(r: Rig) -> None:
+    """An event-triggered agent: settled at λ(0) (heartbeats only), then drifting at a
+    third of the threshold a tick (a frame every few ticks), then the price gone (SAFE:
+    a State change)."""
+    r.run(40, lam=1.2)
+    r.run(20, lam=1.206)
+    r.run(40, lam=1.206, price=False)
+
+
+EVENT = {"transmit": Transmit("event"), "neighbour_timeout_periods": 15}
+
+FAULTS += [
+    Fault("event_heartbeat_late", "TX-7", "in event mode the heartbeat goes one tick late "
+          "(age ≤ heartbeat still quiet)", lambda rt: _bind(rt, "_mc_due", _mc_due, late=1),
+          STATES, drive(_event_witness, **EVENT)),
+    Fault("event_state_change_unsent", "TX-7", "in event mode a State change is not sent at "
+          "once (only λ's threshold and the heartbeat)",
+          lambda rt: _bind(rt, "_mc_due", _mc_due, state=False), STATES,
+          drive(_event_witness, **EVENT)),
+    Fault("event_age_kept", "TX-7", "in event mode a frame sent for λ's threshold leaves the "
+          "heartbeat's count running", lambda rt: _bind(rt, "_mc_due", _mc_due, keep_age=True),
+          STATES, drive(_event_witness, **EVENT)),
+    Fault("event_threshold_per_tick", "TX-7", "in event mode λ is compared with the last "
+          "tick's λ, not with the λ last sent (a slow drift never sent)",
+          lambda rt: _bind(rt, "_mc_due", _mc_due, last_tick=True), STATES,
+          drive(_event_witness, **EVENT)),
+]
+
 # ----------------------------------------------------------- the configuration path (item 4)
 
 CONFIG = "configuration"
@@ -1368,25 +1417,43 @@ def _ts_whole_ns(text: str) -> AgentConfig:
     return parse_agent_config(data, "<misread>")
 
 
-def _reading(parse: Callable[[str], AgentConfig]) -> Callable[[Apply | None], Any]:
-    """A witness of a configuration fault: the tester's file for case 1, agent 3 as the
-    faulty parser reads it (the fault's ``apply``) or as the reference does (None)."""
+def _reading(parse: Callable[[str], AgentConfig], base: AgentConfig | None = None
+             ) -> Callable[[Apply | None], Any]:
+    """A witness of a configuration fault: the tester's file for case 1, agent 3 (or
+    ``base``) as the faulty parser reads it (the fault's ``apply``) or as the reference
+    does (None)."""
     def witness(apply: Apply | None) -> Any:
         from sim import conformance as conf
 
-        text, ref = conf.written_config(BASE)
+        text, ref = conf.written_config(base or BASE)
         got = ref if apply is None else parse(text)
         return replace(got, source="")
     return witness
 
 
 def _config_fault(name: str, requirement: str, description: str,
-                  parse: Callable[[str], AgentConfig]) -> Fault:
-    return Fault(name, requirement, description, lambda rt: None, CONFIG, _reading(parse),
-                 misread=parse)
+                  parse: Callable[[str], AgentConfig], base: AgentConfig | None = None
+                  ) -> Fault:
+    return Fault(name, requirement, description, lambda rt: None, CONFIG,
+                 _reading(parse, base), misread=parse)
+
+
+EVENT_BASE = replace(BASE, transmit=Transmit("event"))  # as --event-transmit writes it
+
+
+def _heartbeat_default(text: str) -> AgentConfig:
+    """transmit.heartbeat never read: the default 13 (the device's loader does not check
+    it against neighbour_periods, as the reference does)."""
+    cfg = parse_agent_config(tomllib.loads(text), "<misread>")
+    return replace(cfg, transmit=replace(cfg.transmit, heartbeat=Transmit().heartbeat))
 
 
 FAULTS += [
+    _config_fault("cfg_heartbeat_default", "CFG-9", "transmit.heartbeat is never read: the "
+                  "default 13, not the file's value", _heartbeat_default, EVENT_BASE),
+    _config_fault("cfg_threshold_default", "CFG-9", "transmit.threshold is never read: the "
+                  "default 3e-4, not the file's value", _dropping("transmit", "threshold"),
+                  EVENT_BASE),
     _config_fault("cfg_untrusted_after_default", "CFG-7", "limits.untrusted_after is never "
                   "read (a misspelt key): the default 5, not the file's value",
                   _dropping("limits", "untrusted_after")),

@@ -487,6 +487,14 @@ FAULTS: list[CFault] = [
 
 
 
+def _loaded_event(rt: Runtime | None) -> Any:
+    """``_loaded`` for the file --event-transmit writes ([transmit] mode = "event")."""
+    from sim import conformance as conf
+
+    text, _ = conf.written_config(cf.EVENT_BASE)
+    return params_dict(parse_config(text, runtime=rt or load_runtime()))
+
+
 def _loaded(rt: Runtime | None) -> Any:
     """A witness of a configuration fault: the tester's file for case 1, agent 3 as the
     library's loader reads it (bd_config_parse: every field of bd_agent_params)."""
@@ -495,6 +503,19 @@ def _loaded(rt: Runtime | None) -> Any:
     text, _ = conf.written_config(cf.BASE)
     return params_dict(parse_config(text, runtime=rt or load_runtime()))
 
+
+FAULTS += [
+    # event-triggered sending (--event-transmit)
+    CFault("c_event_heartbeat_le", "TX-7", "in event mode the heartbeat goes one tick late "
+           "(age ≤ heartbeat still quiet)",
+           (("agent.c", "a->mc_age < a->p.tx_heartbeat", "a->mc_age <= a->p.tx_heartbeat"),),
+           STATES, drive(cf._event_witness, **cf.EVENT)),
+    CFault("c_cfg_threshold_misspelt", "CFG-9", "transmit.threshold looked up under a "
+           "misspelt name: the default 3e-4, not the file's value",
+           (("config.c", 'e = bd_toml_find(&d, "transmit", -1, "threshold");',
+             'e = bd_toml_find(&d, "transmit", -1, "threshol");'),), cf.CONFIG,
+           _loaded_event),
+]
 
 FAULTS += [
     # the signed price (--signed-price)

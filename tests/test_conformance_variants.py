@@ -2,7 +2,7 @@
 with --insecure (AUTH-1, AUTH-20), with the resilient update on (--resilient F:
 WMSR-1, and WMSR-2 on a device of more than F neighbours), on a pc or an ft device
 (case 2's variants: STEP-10; STEP-11, CTRL-3, NUM-5), with --price-persist 1 (PRICE-5),
-with --signed-price (AUTH-31..33).
+with --signed-price (AUTH-31..33), with --event-transmit (TX-7, CFG-9).
 In process, on a simulated clock with late ticks and frames, as
 tests/test_conformance.py."""
 
@@ -17,10 +17,12 @@ from conformance_faults import (
     no_trimming,
     schedule_setup,
     schedule_text,
+    score,
     ties_light_first,
 )
 
 from firmware_py import controllers, pricesig
+from firmware_py.config import Transmit
 from firmware_py.frames import FrameCodec
 from firmware_py.runtime import AgentRuntime
 from sim import conformance as conf
@@ -280,3 +282,41 @@ def test_the_signed_price_option_writes_the_keys_and_refuses_insecure(
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("bess-ded: error: --insecure: expected a key set with the "
                           "router's price key"), err
+
+
+@pytest.mark.parametrize("fault", [None, "event_state_change_unsent", "cfg_threshold_default"])
+def test_an_event_triggered_device_is_judged_on_when_it_sends(fault: str | None) -> None:
+    """Expected: with --event-transmit (`[transmit] mode = "event"`, the threshold and the
+    heartbeat off their defaults) the DUT's ticks are told from the frames it sends
+    together and the silent ticks between by the period; firmware_py, which sends only
+    on a State change, λ beyond the threshold or the heartbeat, passes every
+    requirement, TX-7 and CFG-9 among them; a device that keeps a State change back
+    until the heartbeat fails, named TX-7 first, and one that takes the threshold's
+    default (3e-4) fails, named CFG-9 (a known misreading explains it)."""
+    if fault is not None:
+        s = score(BY_NAME[fault])
+        assert s.run == "event" and s.named_first, (s.failed, s.first_mismatch)
+        return
+    cfg, ring, planned = schedule_setup(1, 3, run="event")
+    text = schedule_text(1, 3, "event")
+    assert cfg.transmit.event and cfg.transmit.heartbeat == conf.schedule.EVENT_HEARTBEAT
+    assert cfg.transmit.threshold != Transmit().threshold and 'mode = "event"' in text
+    frames = conf.simulate(cfg, ring(), planned, jitter=0.3, seed=6)
+    mc = FrameCodec().frame_id("AGENT_3_MC")
+    ticks = round((frames[-1].t - frames[0].t) / cfg.controller.ts)
+    assert sum(not x.sent and x.msg.arbitration_id == mc for x in frames) < 0.9 * ticks
+    outcome = conf.check(cfg, ring(), ring().key, frames)
+    results = conf.verdict(outcome)
+    assert "event" in outcome.exercised_on and {"TX-7", "CFG-9"} <= {r.must for r in results}
+    assert not outcome.mismatches and not outcome.auth_errors
+    assert all(r.passed for r in results), [r for r in results if not r.passed]
+
+
+def test_the_event_option_writes_the_transmit_table(tmp_path: Path, udp_port: int) -> None:
+    """Expected: `--event-transmit` writes `[transmit]` (mode event, the heartbeat below
+    the neighbour timeout) into the device's file; with no device the run fails (exit 1)."""
+    assert main(["conformance", "--case", "1", "--dut", "3", "--event-transmit",
+                 "--wait", "0.2", "--out", str(tmp_path), "--bus-config",
+                 f'{{"port": {udp_port}}}']) == 1
+    text = (tmp_path / "agents" / "agent_3.toml").read_text()
+    assert 'mode = "event"' in text and "heartbeat = 3" in text

@@ -459,7 +459,8 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     syncs_known = any(f.msg.arbitration_id in contract.SYNCED_BY for f in align[0][1])
     with quiet_firmware():
         # the last group may be cut short by the end of the recording
-        for t_tick, group in dut_groups[start:-1]:
+        for idx in range(start, len(dut_groups) - 1):
+            t_tick, group = dut_groups[idx]
             step = _step_name(inputs, t_tick)
             if step:
                 outcome.steps_seen.add(step)
@@ -501,7 +502,8 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                             sent = twin.rt.tick(t_guess)
                             diffs = _compare(codec, sent, group, outcome.ticks, step,
                                              t_tick - first_sent, syncs_known,
-                                             cfg.transmit.event)
+                                             (twin.rt.state, twin.rt.lambda_q24)
+                                             if cfg.transmit.event else None)
                             if diffs and syncs_known:
                                 diffs = _sync_slack(twin.rt, codec, before, sent, group,
                                                     diffs, t_guess)
@@ -554,6 +556,11 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
                     lam = (mm.message, mm.signal) == ("MC", "Lambda")
                     mm.transition = (edges + (held if lam else ()) + ((went,) if went else ())
                                      + trans)
+                    if (mm.message, mm.signal, mm.expected) == ("MC", "sent", "sent") and \
+                            _next_state(codec, dut_groups[idx + 1:], mc_id) == rt.state:
+                        # the DUT's next frame shows the state the oracle sent: it kept
+                        # its MC frame back (TX-7), whatever the moment was
+                        mm.moment, mm.transition = (), ()
                 outcome.differing_ticks += 1
                 if follows is None or len(outcome.mismatches) < MAX_KEPT:
                     outcome.mismatches.extend(failure[2])
@@ -661,6 +668,19 @@ def _tick_groups(frames: Sequence[Frame], mc_id: int, dut_ids: set[int]) -> list
             if any(f.msg.arbitration_id == mc_id for f in g)]
 
 
+def _next_state(codec: FrameCodec, after: Sequence[tuple[float, list[Frame]]],
+                mc_id: int) -> State | None:
+    """The State of the DUT's next MC frame in ``after`` (None: none)."""
+    for _, group in after:
+        for f in group:
+            if f.msg.arbitration_id == mc_id:
+                try:
+                    return State(_signals(codec, f.msg)["State"])
+                except (BessDedError, ValueError):
+                    return None
+    return None
+
+
 def _adopt_last_mc(rt: AgentRuntime, codec: FrameCodec,
                    before: Sequence[tuple[float, list[Frame]]], mc_id: int) -> None:
     """Event mode (TX-7): the oracle starts with the DUT's memory of its last MC frame
@@ -701,10 +721,11 @@ def _event_ticks(frames: Sequence[Frame], mc_id: int, dut_ids: set[int], ts: flo
 
 def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence[Frame],
              tick: int, step: str, t: float, syncs: bool = True,
-             event: bool = False) -> list[Mismatch]:
+             event: tuple[State, int] | None = None) -> list[Mismatch]:
     """The DUT's frames of one tick against the oracle's (``t``: from the schedule's
     start, for the report): its sync frames first (AUTH-9: which are due, and their
-    Count), then MC, Setpoint and Diag."""
+    Count), then MC, Setpoint and Diag. ``event``: the oracle's (State, λ) on an
+    event-triggered device (TX-7), to judge an MC frame it sent and the oracle did not."""
     diffs: list[Mismatch] = []
     if not syncs:  # ``syncs``: compare the sync frames too
         group = [f for f in group if f.msg.arbitration_id not in contract.SYNCED_BY]
@@ -721,10 +742,16 @@ def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence
             diffs += _compare_signals(codec, e, g, "Sync", tick, step, t)
     got = [f.msg for f in group if f.msg.arbitration_id not in contract.SYNCED_BY]
     exp = [m for m in expected if m.arbitration_id not in contract.SYNCED_BY]
-    if event:  # TX-7: whether the MC frame was due is a signal of its own
+    if event is not None:  # TX-7: whether the MC frame was due is a signal of its own
         mc = [[m for m in ms if codec.name_of(m.arbitration_id).endswith("_MC")]
               for ms in (exp, got)]
         if bool(mc[0]) != bool(mc[1]):
+            if mc[1]:  # sent, not due: first what its State and λ show against the oracle's
+                state, lam = event
+                diffs += [d for d in _compare_signals(codec, mc[1][0], mc[1][0], "MC", tick,
+                                                      step, t, {"State": int(state),
+                                                                "Lambda": lam})
+                          if d.signal in ("State", "Lambda")]
             want, sent = ("sent" if m else "not sent" for m in mc)
             diffs.append(Mismatch(t, tick, step, "MC", "sent", want, sent, raw=(want, sent)))
             exp, got = ([m for m in ms if m not in mc[0] + mc[1]] for ms in (exp, got))
@@ -740,8 +767,10 @@ def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence
 
 
 def _compare_signals(codec: FrameCodec, e: can.Message, g: can.Message, kind: str,
-                     tick: int, step: str, t: float) -> list[Mismatch]:
-    se = _signals(codec, e)
+                     tick: int, step: str, t: float,
+                     want: dict[str, int] | None = None) -> list[Mismatch]:
+    """``g``'s signals against ``e``'s (or ``want``'s, where given)."""
+    se = {**_signals(codec, e), **(want or {})}
     try:
         sg = _signals(codec, g)
     except BessDedError as err:
