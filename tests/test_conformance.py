@@ -594,6 +594,19 @@ def test_firmware_c_node_program_passes_a_signed_price_run_on_udp_multicast(
 
 
 @pytest.mark.realtime
+@pytest.mark.long  # CI's real-time step only (beside stress-ng), not the README suite too
+def test_firmware_py_agent_passes_an_event_triggered_run_on_udp_multicast(
+        tmp_path: Path) -> None:
+    """Expected (any load): with --event-transmit (the device sends its MC frame on a
+    State change, λ beyond the threshold or the heartbeat; the checker tells its ticks
+    from the frames it sends together) firmware_py's agent passes every requirement,
+    TX-7 and CFG-9 among them."""
+    code, log = run_conformance(tmp_path, FIRMWARE_PY, ["--event-transmit"])
+    assert_passed(code, log)
+    assert all(re.search(rf"^  PASS  {m} ", log, re.M) for m in ("TX-7", "CFG-9")), log
+
+
+@pytest.mark.realtime
 def test_an_agent_whose_band_re_arms_at_the_reset_sample_fails_band_2(tmp_path: Path) -> None:
     """Expected (any load): exit 1, BAND-2 the one failed requirement, named with what
     the device does."""
