@@ -668,6 +668,17 @@ def _tick_groups(frames: Sequence[Frame], mc_id: int, dut_ids: set[int]) -> list
             if any(f.msg.arbitration_id == mc_id for f in g)]
 
 
+def dut_ticks(cfg: AgentConfig, codec: FrameCodec, frames: Sequence[Frame]) -> list[float]:
+    """When the DUT of a record ticked: at its MC frames, or in event mode (TX-7) at
+    ``_event_ticks``' ticks."""
+    mc_id = codec.frame_id(mc_name(cfg.id))
+    if not cfg.transmit.event:
+        return [f.t for f in frames if not f.sent and f.msg.arbitration_id == mc_id]
+    own = {codec.frame_id(n(cfg.id)) for n in (mc_name, setpoint_name, diag_name)}
+    return [t for t, _ in _event_ticks(frames, mc_id, own | {contract.SYNC_OF[f] for f in own},
+                                       cfg.controller.ts)]
+
+
 def _next_state(codec: FrameCodec, after: Sequence[tuple[float, list[Frame]]],
                 mc_id: int) -> State | None:
     """The State of the DUT's next MC frame in ``after`` (None: none)."""

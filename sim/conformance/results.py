@@ -429,16 +429,16 @@ def _first_differences(cfg: AgentConfig, alts: Sequence[AgentConfig], keyring: K
                        codec: FrameCodec | None) -> list[float]:
     """For each configuration of ``alts``: the time of the first tick where firmware_py's
     agent configured so sends other frames than configured as ``cfg``, both fed the
-    tester's frames of the record (``inputs``) when sent and ticked at the DUT's MC frames (one
+    tester's frames of the record (``inputs``) when sent and ticked at the DUT's ticks (one
     order, no hypotheses: a screen for ``explain``, cheaper than a check), from the
     tester's first frame (as ``Mismatch.t``); inf if never."""
     from firmware_py.frames import diag_name, mc_name
-    from sim.conformance.oracle import quiet_firmware
+    from sim.conformance.oracle import dut_ticks, quiet_firmware
 
     codec = codec or FrameCodec()
     mc_id, diag_id = (codec.frame_id(n(cfg.id)) for n in (mc_name, diag_name))
     first_sent = inputs[0].t if inputs else math.inf
-    ticks = [f.t for f in frames if not f.sent and f.msg.arbitration_id == mc_id]
+    ticks = dut_ticks(cfg, codec, frames)
     # the Diag pages aligned with the DUT's, as ``check`` does
     align = next((f for f in frames if not f.sent and f.msg.arbitration_id == diag_id
                   and f.t < first_sent), None)
