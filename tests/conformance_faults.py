@@ -938,6 +938,21 @@ def _crossing_then_isolate(r: Rig) -> None:
     r.tick()
 
 
+def _boot_not_incremented(rt: AgentRuntime) -> None:
+    """The boot the start took given back: frames under the key file's counter."""
+    rt.io.boot = rt.io.keys.boot = rt.io.keys.boot - 1
+
+
+def _boot_of_first_sync(apply: Apply | None) -> Any:
+    """An agent whose key file says boot 6: the Boot of its syncs at its start."""
+    ring = Keyring("agent_3", KEYS["agent_3"], 6, lambda _b: None, master=MASTER)
+    rt = AgentRuntime(BASE, CODEC, keys=ring)
+    if apply is not None:
+        apply(rt)
+    return [CODEC.decode(m).raw.get("Boot") for m in rt.tick(0.0)
+            if m.arbitration_id in contract.SYNCED_BY]
+
+
 # --------------------------------------------------------------------------- the set
 
 ARITH, BOUND, CMDS, STATES, FRESH, DIAG = ("arithmetic", "boundary", "commands", "state",
@@ -1123,6 +1138,9 @@ FAULTS: list[Fault] = [
     Fault("diag_shares_mc_count", "AUTH-4", "the Diag frame is signed with the MC "
           "frame's message count, not its own", _diag_shares_mc_count, FRESH,
           drive(lambda r: r.run(11))),
+    Fault("boot_not_incremented", "AUTH-3", "the key file's boot counter used as it is at "
+          "the start (B, not B + 1: the last run's freshness values again)",
+          _boot_not_incremented, FRESH, _boot_of_first_sync),
     Fault("count_wraps_in_boot", "AUTH-5", "a message count wraps to 0 in the same boot "
           "(no new boot)", _count_wraps_in_boot, FRESH, drive(_count_wrap)),
     # the diagnostics
@@ -1544,8 +1562,9 @@ def schedule_setup(case: int, dut: int, flood: bool = False, run: str = ""
     sign = {pricesig.TESTER_SIGN: PRICE_SEED, pricesig.MONITOR_FLEET: bytes.fromhex(
         secoc.fleet_id(MASTER))} if cfg.signed_price else {}
 
-    def ring() -> Keyring:
-        return Keyring(node, SCHEDULE_KEYS[node], 0, lambda _b: None, master=MASTER,
+    def ring() -> Keyring:  # the key file's counter as the tester writes it (AUTH-3)
+        return Keyring(node, SCHEDULE_KEYS[node], conf.FILED_BOOT, lambda _b: None,
+                       master=MASTER,
                        floors={n: 2 for n in fleet_nodes(12) if n != node},
                        price_verify=pricesig.public_key(PRICE_SEED) if sign else None,
                        fleet=secoc.fleet_id(MASTER) if sign else "")

@@ -34,6 +34,7 @@ from typing import Any
 import can
 import conformance_faults as cf
 
+from firmware_py import contract
 from firmware_py.config import AgentConfig, Neighbour
 from firmware_py.contract import Command
 from firmware_py.controllers import make_controller
@@ -204,6 +205,14 @@ def steps(xis: Callable[[Any], list[int]] | list[int], **changes: Any
             out.append((s, o.reset))
         return out
     return witness
+
+
+def _start_boots(rt: Runtime | None) -> Any:
+    """A C agent whose key file says boot 6: the Boot of its syncs at its start."""
+    ring = Keyring("agent_3", cf.KEYS["agent_3"], 6, lambda _b: None, master=cf.MASTER)
+    agent = CAgent(cf.BASE, ring, runtime=rt or load_runtime())
+    return [cf.CODEC.decode(m).raw.get("Boot") for m in agent.tick(0.0)
+            if m.arbitration_id in contract.SYNCED_BY]
 
 
 def _signed(rt: Runtime | None) -> Any:
@@ -503,6 +512,14 @@ def _loaded(rt: Runtime | None) -> Any:
     text, _ = conf.written_config(cf.BASE)
     return params_dict(parse_config(text, runtime=rt or load_runtime()))
 
+
+FAULTS += [
+    # the boot counter (AUTH-3)
+    CFault("c_boot_not_incremented", "AUTH-3", "the key file's boot counter used as it is "
+           "at the start (B + 1 persisted, B used: the last run's freshness values again)",
+           (("agent.c", "    a->boot += 1u;\n    return BD_OK;", "    return BD_OK;"),),
+           FRESH, _start_boots),
+]
 
 FAULTS += [
     # event-triggered sending (--event-transmit)

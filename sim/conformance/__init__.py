@@ -60,6 +60,7 @@ from sim.conformance.results import (
     verdict,
 )
 from sim.conformance.schedule import (
+    FILED_BOOT,
     ON_WHAT,
     ONLY_ON,
     PRICE_PERSIST,
@@ -78,6 +79,7 @@ from sim.conformance.schedule import (
 )
 
 __all__ = [
+    "FILED_BOOT",
     "Frame",
     "ONLY_ON",
     "ON_WHAT",

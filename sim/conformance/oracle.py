@@ -149,6 +149,7 @@ SIGNAL_MUSTS: dict[str, tuple[str, ...]] = {
     "Diag.NeighboursAlive": ("DIAG-1", "LIVE-2"),
     "Diag.Saturations": ("DIAG-3", "XI-3", "STEP-9"),
     "Sync.frames": ("AUTH-9",),
+    "Sync.Boot": ("AUTH-3",),
     "MC.sent": ("TX-7", "CFG-9"),  # event-triggered sending: whether the MC frame was due
     "Sync.Count": ("AUTH-9", "AUTH-4"),
 }
@@ -428,6 +429,8 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     verifiers = {fid: _verifier(codec, keyring, keys[fid], fid) for fid in own}
     _check_auth(codec, verifiers, frames, syncs, outcome,
                 0.0 if math.isinf(first_sent) else first_sent)
+    # AUTH-3: a boot of its own start, above the key file's (--insecure: above 0)
+    _check_new_boot(codec, frames, set(syncs), keyring.boot, inputs, outcome)
     outcome.filtered = filtered
     if filtered:
         passed = set(AgentRuntime(cfg, codec, keys=keyring).io.accepted_ids())
@@ -677,6 +680,23 @@ def dut_ticks(cfg: AgentConfig, codec: FrameCodec, frames: Sequence[Frame]) -> l
     own = {codec.frame_id(n(cfg.id)) for n in (mc_name, setpoint_name, diag_name)}
     return [t for t, _ in _event_ticks(frames, mc_id, own | {contract.SYNC_OF[f] for f in own},
                                        cfg.controller.ts)]
+
+
+def _check_new_boot(codec: FrameCodec, frames: Sequence[Frame], sync_ids: set[int],
+                    filed: int, inputs: Sequence[Frame], outcome: Outcome) -> None:
+    """AUTH-3: the boot of the DUT's first sync in the record is above ``filed``, the
+    key file's boot counter as the tester wrote it (B + 1 at the device's start)."""
+    sync = next((f for f in frames if not f.sent and f.msg.arbitration_id in sync_ids), None)
+    try:
+        boot = _signals(codec, sync.msg)["Boot"] if sync is not None else None
+    except BessDedError:
+        return  # a malformed sync: its own difference
+    if boot is not None and sync is not None and boot <= filed:
+        t0 = inputs[0].t if inputs else sync.t
+        want = f"above {filed} (the key file's boot counter, + 1 at the start)"
+        outcome.mismatches.append(Mismatch(sync.t - t0, 0, _step_name(inputs, sync.t) or
+                                           "start", "Sync", "Boot", want, boot,
+                                           raw=(filed + 1, boot)))
 
 
 def _next_state(codec: FrameCodec, after: Sequence[tuple[float, list[Frame]]],

@@ -48,7 +48,7 @@ STEPS = (
          ("GEN-2", "STATE-1", "STATE-10", "TICK-1", "TX-1", "TX-2", "TX-3", "TX-4", "TX-5",
           "SP-3", "DIAG-1", "AUTH-4", "AUTH-6", "AUTH-7", "AUTH-8", "AUTH-9", "AUTH-11",
           "AUTH-16", "AUTH-21", "AUTH-26", "AUTH-28", "AUTH-29", "RX-4", "GEN-1", "GEN-4",
-          "AUTH-1", "AUTH-20", "TX-7", "CFG-9")),
+          "AUTH-1", "AUTH-20", "TX-7", "CFG-9", "AUTH-3")),
     Step("price-only", 30, 60, "price and neighbours but no plant status: still INIT",
          ("STATE-2", "STATE-5", "TMO-3", "LIVE-1", "LIVE-2", "PRICE-6", "AUTH-12",
           "AUTH-15", "AUTH-31", "AUTH-33")),
@@ -198,8 +198,6 @@ NOT_ON_BUS: dict[str, str] = {
     "DIAG-5": "these counters are not on any frame: not visible on the bus",
     "AUTH-2": "every MAC of the schedule is a CMAC, but a wrong CMAC fails everything "
               "(AUTH-4, AUTH-7): no step isolates it; the secoc vectors check it",
-    "AUTH-3": "the boot the DUT sends is taken from its syncs, not compared with the key "
-              "file's + 1, and persisting is not visible on the bus: node vectors",
     "AUTH-5": "2^24 frames on one ID take 46.6 h at Ts = 10 ms; the node vector "
               "tx_count_wrap checks it through the binding",
     "CFG-1": "the DUT reads the configuration the tester writes, whose tables are all "
@@ -232,6 +230,10 @@ def _rounds_up(x: float, bits: int, scale: float = 1.0) -> float:
     word = math.floor(x * scale * (1 << bits))
     return (word + 0.625) / (1 << bits) / scale
 
+
+FILED_BOOT = 6
+"""The boot counter the tester writes into the device's fresh key file (AUTH-3: the
+device's syncs then carry boot 7; one that keeps the file's counter sends 6)."""
 
 EVENT_HEARTBEAT = 3
 """The heartbeat the tester writes for an event-triggered device (CFG-9: the default 13
