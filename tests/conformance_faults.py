@@ -1500,11 +1500,12 @@ PRICE_SEED = secoc.derive_price_sign_key(MASTER)  # the router's (signed_price, 
 # does not: a dwell device, one of more than F = 1 neighbours
 ON_DEVICE = {"dwell": (6, 3), "resilient ties": (7, 5), "pc": (2, 3), "ft": (2, 3)}
 # the conditions a run option sets up (``schedule_setup``'s ``run``) → that option
+# the runs on one of case 2's variants (a pc or an ft device) → the variant's label
+VARIANT_OF = {"pc": "PC", "ft": "finite-time"}
 RUN_OPTIONS = {"resilient": "--resilient 1", "resilient ties": "--resilient 1",
                "insecure": "--insecure", "persist 1": "--price-persist 1",
-               "pc": "--variant PC",
-               "ft": "--variant finite-time", "signed price": "--signed-price",
-               "event": "--event-transmit"}
+               "signed price": "--signed-price", "event": "--event-transmit",
+               **{run: f"--variant {label}" for run, label in VARIANT_OF.items()}}
 
 
 def played_on(fault: Any, case: int, dut: int) -> tuple[int, int, str]:
@@ -1524,15 +1525,14 @@ def played_on(fault: Any, case: int, dut: int) -> tuple[int, int, str]:
 
 def _run_config(case: int, dut: int, run: str = "") -> tuple[str, AgentConfig]:
     """The configuration file the tester writes for agent ``dut`` of ``case`` on ``run``
-    (``RUN_OPTIONS``: --resilient 1 for a "resilient…" run, --price-persist 1, case 2's
-    variant PC or finite-time for a "pc" or "ft" run) and the reference parser's reading
-    of it."""
+    (``RUN_OPTIONS``: --resilient 1 for a "resilient…" run, --price-persist 1,
+    --signed-price, --event-transmit, case 2's variant PC or finite-time for a "pc" or
+    "ft" run) and the reference parser's reading of it."""
     from sim import conformance as conf
 
     sc = load_case(case)
-    variant = RUN_OPTIONS.get(run, "").removeprefix("--variant ")
-    if variant in {v.label for v in sc.variants}:  # pc, ft: case 2's variant
-        sc = sc.variant(variant)
+    if run in VARIANT_OF:  # pc, ft: case 2's variant
+        sc = sc.variant(VARIANT_OF[run])
     agent = agent_configs_from_scenario(sc)[dut - 1]
     if run.startswith("resilient"):
         agent = replace(agent, resilient_f=1)

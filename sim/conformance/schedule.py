@@ -94,10 +94,9 @@ STEPS = (
          "the λ range (large |ξ|), alive but INIT for 5 ticks; a status with FaultSoc and "
          "PowerLimited set",
          ("CMD-5", "CMD-6", "LAM-1", "LAM-2", "PRICE-1", "PRICE-3", "PRICE-4", "PRICE-5",
-          "PRICE-6",
-          "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-6", "STEP-7", "STEP-8", "STEP-10",
-          "STEP-11", "CTRL-3", "NUM-5", "STEP-12",
-          "NUM-3", "NUM-4", "RX-11", "DIAG-3", "CFG-7", "WMSR-1")),
+          "PRICE-6", "XI-1", "XI-2", "XI-3", "STEP-1", "STEP-6", "STEP-7", "STEP-8",
+          "STEP-10", "STEP-11", "CTRL-3", "NUM-5", "STEP-12", "NUM-3", "NUM-4", "RX-11",
+          "DIAG-3", "CFG-7", "WMSR-1")),
     Step("freshness", 1060, 1130, "every input's periodic sync in step; untrusted_after "
          "consecutive forged frames on one ID and one fewer on another (the plant's "
          "status, whose one more after valid frames comes in the states step); a price "
