@@ -409,6 +409,8 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
            codec: FrameCodec | None, deviation: Callable[[AgentRuntime], None] | None,
            max_mismatches: int | None, filtered: bool, exact: bool = False) -> Outcome:
     codec = codec or FrameCodec()
+    filed = keyring.boot  # the key file's counter (AUTH-3): the oracle's start takes a boot
+    keyring = copy.copy(keyring)  # of a copy, so that the caller's stays as filed
     i = cfg.id
     mc_id, sp_id, diag_id = (codec.frame_id(n(i)) for n in (mc_name, setpoint_name, diag_name))
     own = {mc_id, sp_id, diag_id}
@@ -430,7 +432,7 @@ def _check(cfg: AgentConfig, keyring: Keyring, dut_key: bytes, frames: Sequence[
     _check_auth(codec, verifiers, frames, syncs, outcome,
                 0.0 if math.isinf(first_sent) else first_sent)
     # AUTH-3: a boot of its own start, above the key file's (--insecure: above 0)
-    _check_new_boot(codec, frames, set(syncs), keyring.boot, inputs, outcome)
+    _check_new_boot(codec, frames, set(syncs), filed, inputs, outcome)
     outcome.filtered = filtered
     if filtered:
         passed = set(AgentRuntime(cfg, codec, keys=keyring).io.accepted_ids())

@@ -8,6 +8,7 @@ import math
 import re
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Sequence
+from copy import copy
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -73,8 +74,7 @@ MOMENTS: dict[str, tuple[str, ...]] = {
     "replay of the first price sync": ("AUTH-20", "AUTH-16", "AUTH-17"),
     "frame from another boot": ("AUTH-11", "AUTH-14", "RX-8"),
     "a genuine frame delivered …": ("AUTH-25",),
-    "extended ID": ("RX-1",),
-    "unknown ID": ("RX-6",),
+    "extended ID": ("RX-1",), "unknown ID": ("RX-6",),
     "a flood of unknown IDs …": ("DIAG-2", "RX-6"),
     "the DUT's own MC ID": ("RX-3",),
     "DLC 7": ("RX-7",),
@@ -427,16 +427,16 @@ plain replay of the record) lies this close (ticks) to the DUT's first divergenc
 def _first_differences(cfg: AgentConfig, alts: Sequence[AgentConfig], keyring: Keyring,
                        frames: Sequence[Frame], inputs: Sequence[Frame],
                        codec: FrameCodec | None) -> list[float]:
-    """For each configuration of ``alts``: the time of the first tick where firmware_py's
-    agent configured so sends other frames than configured as ``cfg``, both fed the
-    tester's frames of the record (``inputs``) when sent and ticked at the DUT's ticks (one
-    order, no hypotheses: a screen for ``explain``, cheaper than a check), from the
-    tester's first frame (as ``Mismatch.t``); inf if never."""
-    from firmware_py.frames import diag_name, mc_name
+    """For each configuration of ``alts``: the time (from the tester's first frame, as
+    ``Mismatch.t``; inf if never) of the first tick where firmware_py's agent configured
+    so sends other frames than configured as ``cfg``, both fed the tester's frames of the
+    record (``inputs``) when sent and ticked at the DUT's ticks (one order, no hypotheses:
+    a screen for ``explain``; each on a copy of ``keyring``: its start takes a boot)."""
+    from firmware_py.frames import diag_name
     from sim.conformance.oracle import dut_ticks, quiet_firmware
 
     codec = codec or FrameCodec()
-    mc_id, diag_id = (codec.frame_id(n(cfg.id)) for n in (mc_name, diag_name))
+    diag_id = codec.frame_id(diag_name(cfg.id))
     first_sent = inputs[0].t if inputs else math.inf
     ticks = dut_ticks(cfg, codec, frames)
     # the Diag pages aligned with the DUT's, as ``check`` does
@@ -449,7 +449,7 @@ def _first_differences(cfg: AgentConfig, alts: Sequence[AgentConfig], keyring: K
                                                default=-math.inf)]
 
     def replay(model: AgentConfig) -> list[tuple[object, ...]]:
-        rt = AgentRuntime(model, codec, keys=keyring)
+        rt = AgentRuntime(model, codec, keys=copy(keyring))
         rt.ticks = 10 * page
         out, nxt = [], 0
         with quiet_firmware():
