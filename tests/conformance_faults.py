@@ -1531,7 +1531,7 @@ def _run_config(case: int, dut: int, run: str = "") -> tuple[str, AgentConfig]:
     from sim import conformance as conf
 
     sc = load_case(case)
-    if run in VARIANT_OF:  # pc, ft: case 2's variant
+    if VARIANT_OF.get(run) in {v.label for v in sc.variants}:  # pc, ft: case 2's variant
         sc = sc.variant(VARIANT_OF[run])
     agent = agent_configs_from_scenario(sc)[dut - 1]
     if run.startswith("resilient"):
