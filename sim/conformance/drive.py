@@ -3,6 +3,7 @@ against a device on a bus (``drive``)."""
 
 from __future__ import annotations
 
+import copy
 import logging
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -42,7 +43,9 @@ def simulate(cfg: AgentConfig, keyring: Keyring, planned: Sequence[Planned],
     # keep their lateness when the schedule gains or loses a frame
     codec = codec or FrameCodec()
     ts = cfg.controller.ts
-    dut: Any = (make_dut or AgentRuntime)(cfg, codec, keyring)
+    # the device starts a boot of a copy: the caller's keyring stays the key file as filed
+    # (AUTH-3: the check compares the device's boot with it)
+    dut: Any = (make_dut or AgentRuntime)(cfg, codec, copy.copy(keyring))
     if deviation is not None:
         deviation(dut)
     t0 = (lead_ticks + 0.5) * ts  # the schedule's start, after the DUT's first Diag
