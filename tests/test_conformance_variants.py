@@ -9,8 +9,10 @@ tests/test_conformance.py."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
+import can
 import pytest
 from conformance_faults import (
     BY_NAME,
@@ -320,3 +322,30 @@ def test_the_event_option_writes_the_transmit_table(tmp_path: Path, udp_port: in
                  f'{{"port": {udp_port}}}']) == 1
     text = (tmp_path / "agents" / "agent_3.toml").read_text()
     assert 'mode = "event"' in text and "heartbeat = 3" in text
+
+
+def test_a_malformed_frame_of_an_event_triggered_device_is_reported_not_raised() -> None:
+    """Expected: MC frames of an event-triggered device cut to 7 bytes (those before the
+    schedule, whose last the oracle adopts as the device's memory, and one more at a
+    tick where it sent none) are differences of the device, never an exception of the
+    checker."""
+    cfg, ring, planned = schedule_setup(1, 3, run="event")
+    frames = conf.simulate(cfg, ring(), planned, jitter=0.3, seed=7)
+    mc, ts = FrameCodec().frame_id("AGENT_3_MC"), cfg.controller.ts
+    first_sent = next(f.t for f in frames if f.sent)
+
+    def cut(f: conf.Frame, t: float) -> conf.Frame:
+        return replace(f, t=t, msg=can.Message(arbitration_id=mc, is_extended_id=False,
+                                               data=bytes(f.msg.data[:7])))
+    dut = [n for n, f in enumerate(frames) if not f.sent and f.msg.arbitration_id == mc]
+    for n in dut:
+        if frames[n].t < first_sent:
+            frames[n] = cut(frames[n], frames[n].t)
+    # a silent tick in the control step: an MC frame there that the oracle did not send
+    gap = next(n for a, n in zip(dut, dut[1:], strict=False)
+               if frames[n].t - frames[a].t > 1.5 * ts and frames[a].t > first_sent + 2)
+    a = dut[dut.index(gap) - 1]
+    frames.insert(a + 1, cut(frames[a], frames[a].t + ts))
+    frames.sort(key=lambda f: f.t)
+    outcome = conf.check(cfg, ring(), ring().key, frames)
+    assert outcome.mismatches and any(r.failed for r in conf.verdict(outcome))
