@@ -649,10 +649,9 @@ def exercised_on(cfg: AgentConfig, lambda_tags: bool, insecure: bool,
     for it (``kind_exercised``: "dwell" for the dwell edges), "lambda tags" on a
     tagged CAN FD bus, "insecure" with the public demo keys, "resilient" with the
     resilient update on, "signed price" with signed_price, "event" with event-triggered
-    sending (TX-7), and "resilient ties" where
-    more than F neighbours (each of its own weight, ``conformance_config``) meet at
-    lambda_min in the extremes step: the larger weight is trimmed first (WMSR-2);
-    "flood" where the tester sent ``plan``'s flood."""
+    sending (TX-7), and "resilient ties" where more than F neighbours (each of its own
+    weight, ``conformance_config``) meet at lambda_min in the extremes step: the larger
+    weight is trimmed first (WMSR-2); "flood" where the tester sent ``plan``'s flood."""
     trim = cfg.resilient_f if cfg.neighbours else 0
     kind = cfg.controller.kind
     return frozenset({kind_exercised(cfg), kind if kind in ("pc", "ft") else "pi family"}
@@ -744,16 +743,16 @@ class _PriceSigner:
     def refused(self, insider: FleetSender) -> list[tuple[int, list[can.Message], str]]:
         """What a key holder of the router's node key (``insider``: its MACs verify, its
         counts run 8 ahead of the router's) plays while the price is stale: (tick offset,
-        frames, the last one's note), each a price no conformant device takes (AUTH-32,
-        AUTH-33); the last note's frame is the router's own next price."""
+        frames, the note of the last frame, a price), each a price no conformant device
+        takes (AUTH-32, AUTH-33)."""
         cur = self.current
         assert cur is not None
         nxt = (cur.number + pricesig.SEGMENT_LOW_MOD) % pricesig.SEGMENT_MOD
 
-        def price(seg: pricesig.SignedSegment | None, **raw: int) -> can.Message:
-            fields = ({"PriceValid": seg.valid, "Segment": seg.number % pricesig.SEGMENT_LOW_MOD,
-                       "Rho": seg.rho} if seg is not None else {})
-            return insider.frame("ER_Price", {**fields, **raw})
+        def price(seg: pricesig.SignedSegment, **raw: int) -> can.Message:
+            return insider.frame("ER_Price", {"PriceValid": seg.valid, "Rho": seg.rho,
+                                              "Segment": seg.number % pricesig.SEGMENT_LOW_MOD,
+                                              **raw})
 
         bad = pricesig.SignedSegment(cur.boot, nxt, 1, cur.rho + 2)
         older = pricesig.SignedSegment(cur.boot, (cur.number - pricesig.SEGMENT_LOW_MOD)
@@ -761,6 +760,7 @@ class _PriceSigner:
         repeat = pricesig.SignedSegment(cur.boot, nxt, 1, cur.rho + 4)
         extra = pricesig.SignedSegment(cur.boot, nxt, 1, cur.rho + 5)
         pages = self.transfer(repeat)
+
         def altered(msg: can.Message, flip: int) -> can.Message:
             raw = self.codec.decode(msg).raw
             return self.codec.encode(pricesig.MESSAGE, {**raw, "Signature":
