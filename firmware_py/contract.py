@@ -229,8 +229,9 @@ SYNCED_BY = {sync: fid for fid, sync in SYNC_OF.items()}
 REPORT_IDS = frozenset(fid for fid in SECURED_IDS
                        if {r for s in _DB.get_message_by_frame_id(fid).signals
                            for r in s.receivers} <= {"ER"})
-"""Secured frames that report or account (AGENT_<i>_Diag, ER_Balance): no agent or plant
-receives them (DBC receivers: the router at most), only the router and the recorder."""
+"""Secured frames that report or account (AGENT_<i>_Diag, PLANT_Totals, ER_Balance): no
+agent or plant receives them (DBC receivers: the router at most), only the router and the
+recorder."""
 PEER_SYNCED_BY = {sync: fid for sync, fid in SYNCED_BY.items() if fid not in REPORT_IDS}
 """The syncs a node may take as a peer's (NodeIO._peer_sync): those of the frames that
 drive the dispatch. A peer's restart shows on them; a report frame's sync adds nothing
@@ -248,8 +249,8 @@ LINK_FRAMES = frozenset(
     if fid not in REPORT_IDS and sum(r.startswith("agent_") for r in receivers_of(fid))
     + ("plant" in receivers_of(fid)) == 1)
 """AUTH-28: the secured messages with a single receiving peer, an agent or the plant
-(AGENT_<i>_Setpoint: the plant; PLANT_<i>_Status: agent i, and the router that accounts
-for it): each is signed with a key of its own, held by its sender and its DBC
+(AGENT_<i>_Setpoint: the plant; PLANT_<i>_Status: agent i; the router's ledger takes the
+report PLANT_Totals): each is signed with a key of its own, held by its sender and its DBC
 receivers only (``secoc.derive_frame_key``), so no third node can forge it. The other
 secured messages are broadcasts (ER_Price, ER_Command, AGENT_<i>_MC) or reports, signed
 with their sender's node key."""
@@ -257,7 +258,8 @@ REPORT_FRAMES = frozenset(_CODEC.name_of(fid) for fid in REPORT_IDS)
 KEYED_FRAMES = LINK_FRAMES | REPORT_FRAMES
 """The secured messages signed with a key of their own (``secoc.derive_frame_key``), held
 by their sender and their DBC receivers only: the link frames (AUTH-28) and the reports
-(AUTH-29: AGENT_<i>_Diag, read by the router; ER_Balance, read by no node). The recorder
+(AUTH-29: AGENT_<i>_Diag and PLANT_Totals, read by the router; ER_Balance, read by no
+node). The recorder
 derives every key from the master key. The broadcasts (ER_Price, AGENT_<i>_MC) keep
 their sender's node key; ER_Command its target's command key (AUTH-30)."""
 _PARTIES = {_CODEC.name_of(fid): receivers_of(fid)

@@ -25,7 +25,7 @@ import importlib.util
 import math
 import tomllib
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -943,14 +943,26 @@ def _boot_not_incremented(rt: AgentRuntime) -> None:
     rt.io.boot = rt.io.keys.boot = rt.io.keys.boot - 1
 
 
+def filed_ring() -> Keyring:
+    """Agent 3's keyring as read from a key file that says boot FILED_BOOT (what the
+    tester writes, AUTH-3)."""
+    from sim.conformance import FILED_BOOT
+
+    return Keyring("agent_3", KEYS["agent_3"], FILED_BOOT, lambda _b: None, master=MASTER)
+
+
+def sync_boots(frames: Iterable[can.Message]) -> list[Any]:
+    """The Boot of each sync among ``frames``."""
+    return [CODEC.decode(m).raw.get("Boot") for m in frames
+            if m.arbitration_id in contract.SYNCED_BY]
+
+
 def _boot_of_first_sync(apply: Apply | None) -> Any:
     """An agent whose key file says boot 6: the Boot of its syncs at its start."""
-    ring = Keyring("agent_3", KEYS["agent_3"], 6, lambda _b: None, master=MASTER)
-    rt = AgentRuntime(BASE, CODEC, keys=ring)
+    rt = AgentRuntime(BASE, CODEC, keys=filed_ring())
     if apply is not None:
         apply(rt)
-    return [CODEC.decode(m).raw.get("Boot") for m in rt.tick(0.0)
-            if m.arbitration_id in contract.SYNCED_BY]
+    return sync_boots(rt.tick(0.0))
 
 
 # --------------------------------------------------------------------------- the set

@@ -34,7 +34,6 @@ from typing import Any
 import can
 import conformance_faults as cf
 
-from firmware_py import contract
 from firmware_py.config import AgentConfig, Neighbour
 from firmware_py.contract import Command
 from firmware_py.controllers import make_controller
@@ -209,10 +208,8 @@ def steps(xis: Callable[[Any], list[int]] | list[int], **changes: Any
 
 def _start_boots(rt: Runtime | None) -> Any:
     """A C agent whose key file says boot 6: the Boot of its syncs at its start."""
-    ring = Keyring("agent_3", cf.KEYS["agent_3"], 6, lambda _b: None, master=cf.MASTER)
-    agent = CAgent(cf.BASE, ring, runtime=rt or load_runtime())
-    return [cf.CODEC.decode(m).raw.get("Boot") for m in agent.tick(0.0)
-            if m.arbitration_id in contract.SYNCED_BY]
+    return cf.sync_boots(CAgent(cf.BASE, cf.filed_ring(), runtime=rt or load_runtime())
+                         .tick(0.0))
 
 
 def _signed(rt: Runtime | None) -> Any:
@@ -496,21 +493,19 @@ FAULTS: list[CFault] = [
 
 
 
+def _loaded(rt: Runtime | None, base: Any = None) -> Any:
+    """A witness of a configuration fault: the tester's file for case 1, agent 3 (or
+    ``base``) as the library's loader reads it (bd_config_parse: every field of
+    bd_agent_params)."""
+    from sim import conformance as conf
+
+    text, _ = conf.written_config(cf.BASE if base is None else base)
+    return params_dict(parse_config(text, runtime=rt or load_runtime()))
+
+
 def _loaded_event(rt: Runtime | None) -> Any:
     """``_loaded`` for the file --event-transmit writes ([transmit] mode = "event")."""
-    from sim import conformance as conf
-
-    text, _ = conf.written_config(cf.EVENT_BASE)
-    return params_dict(parse_config(text, runtime=rt or load_runtime()))
-
-
-def _loaded(rt: Runtime | None) -> Any:
-    """A witness of a configuration fault: the tester's file for case 1, agent 3 as the
-    library's loader reads it (bd_config_parse: every field of bd_agent_params)."""
-    from sim import conformance as conf
-
-    text, _ = conf.written_config(cf.BASE)
-    return params_dict(parse_config(text, runtime=rt or load_runtime()))
+    return _loaded(rt, cf.EVENT_BASE)
 
 
 FAULTS += [
@@ -519,9 +514,6 @@ FAULTS += [
            "at the start (B + 1 persisted, B used: the last run's freshness values again)",
            (("agent.c", "    a->boot += 1u;\n    return BD_OK;", "    return BD_OK;"),),
            FRESH, _start_boots),
-]
-
-FAULTS += [
     # event-triggered sending (--event-transmit)
     CFault("c_event_heartbeat_le", "TX-7", "in event mode the heartbeat goes one tick late "
            "(age ≤ heartbeat still quiet)",
@@ -532,9 +524,6 @@ FAULTS += [
            (("config.c", 'e = bd_toml_find(&d, "transmit", -1, "threshold");',
              'e = bd_toml_find(&d, "transmit", -1, "threshol");'),), cf.CONFIG,
            _loaded_event),
-]
-
-FAULTS += [
     # the signed price (--signed-price)
     CFault("c_signed_segment_ignored", "AUTH-33", "an ER_Price is taken when its PriceValid "
            "and ρ are the signed segment's, whatever its Segment",

@@ -177,7 +177,8 @@ def assert_every_tick_accounted(out: Path, m: dict[str, Any], ts: float) -> dict
     assert -FRAME_SLACK <= price_sent - price <= FRAME_SLACK + unrecorded, (
         price, price_sent, unrecorded)
     status = sum(_sent(v) for k, v in by_name.items() if k.startswith("PLANT_"))
-    status_sent = counters["plant"]["counters"].get("status_frames", 0)
+    plant = counters["plant"]["counters"]  # its statuses and PLANT_Totals
+    status_sent = plant.get("status_frames", 0) + plant.get("totals_frames", 0)
     n_plant = len([k for k in by_name if k.startswith("PLANT_")])
     assert (-FRAME_SLACK * n_plant <= status_sent - status
             <= FRAME_SLACK * n_plant + unrecorded), (status, status_sent, unrecorded)

@@ -301,6 +301,47 @@ def test_agent_3s_key_file_cannot_forge_agent_1s_status_or_setpoint(
     assert m["verdict"]["exit_code"] == 3  # converged, with anomalies
 
 
+@pytest.mark.parametrize("key_from", ["agent 3's key file", "the genuine totals key"])
+def test_agent_3s_key_file_cannot_misreport_its_battery_to_the_router(
+        key_from: str, tmp_path: Path) -> None:
+    """AUTH-29, issue 25: the router's ledger takes the plant's PLANT_Totals, under a key
+    only the plant and the router hold. Agent 3 holds PLANT_3_Status's link key (its own
+    battery's status, of which it is the one receiver) and forges, from 1 s, totals with
+    no battery power and no cost (the whole load from the grid) with a sync one boot
+    ahead, under that key (what signed the status the router read before): every totals
+    frame and sync is ``auth`` at the router, and the ledger stays the plant's measured
+    sum. The control, the genuine totals key, moves the ledger."""
+    keys = tmp_path / "keys"
+    keys.mkdir(mode=0o700)
+    write_key_set(CASE, keys, INSIDER_MASTER)
+    held = secoc.load_node_key(keys / "agent_3.key")
+    assert "PLANT_Totals" not in held.frames and status_name(3) in held.frames
+    genuine = key_from.startswith("the genuine")
+    key = (secoc.derive_frame_key(INSIDER_MASTER, "PLANT_Totals") if genuine
+           else held.frames[status_name(3)])
+    sent: list[can.Message] = []
+    totals = insider("PLANT_Totals", {"BatteryPower": 0, "BatteryCostRate": 0}, key, sent)
+    ledger: list[tuple[float, float]] = []   # (t, the router's ΣP_i) after the attack began
+    counters: dict[str, Any] = {}
+
+    def observe(t: float, nodes: dict[str, Any]) -> None:
+        if (router := nodes.get("router")) is not None:
+            counters.update(router.io.counters)
+            if t > ATTACK_FROM_S + 0.1:
+                ledger.append((t, router.totals.power))
+    rings = secoc.Keyring.fleet(INSIDER_MASTER, secoc.fleet_nodes(CASE.n))
+    m, tr = _run(tmp_path / "run", totals, keyrings=rings, observe=observe)
+    _, p = _final(tr)
+    assert ledger and p.sum() > 50.0   # the batteries carry a real share of the load
+    forged_taken = [t for t, power in ledger if abs(power) < 1.0]
+    if genuine:   # the control: the ledger took the forged totals
+        assert forged_taken and counters["sync_jump"] > 0
+        return
+    assert counters["auth"] == len(sent) > 100, (counters["auth"], len(sent))
+    assert not forged_taken and abs(ledger[-1][1] - p.sum()) < 1.0, (ledger[-1], p)
+    assert "impersonation" in _kinds(m) and "auth_failed" in _kinds(m)
+
+
 def _forged_at_recorder(m: dict[str, Any], name: str) -> int:
     """Frames of ``name`` (and its sync) the recorder's analysis found forged."""
     got = 0

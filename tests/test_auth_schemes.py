@@ -61,9 +61,10 @@ def test_case_1_bus_load_today_equals_the_dbc_by_hand() -> None:
     n, per_s = 4, lambda name: 1000 / contract.cycle_ms(name)
     agent = sum(per_s(f(1)) for f in (mc_name, setpoint_name, status_name, diag_name))
     router = per_s("ER_Price") + 2 * per_s("ER_Balance")       # ER_Balance: 2 pages
-    syncs = 4 * n + 3        # one <name>_Sync a second per secured ID: 4 per agent + 3
-    fps = n * agent + router + syncs
-    assert fps == 4 * (100 + 20 + 20 + 10) + 20 + 2 * 10 + 19 == 659
+    plant = per_s("PLANT_Totals")                               # the router's ledger input
+    syncs = 4 * n + 4        # one <name>_Sync a second per secured ID: 4 per agent + 4
+    fps = n * agent + router + plant + syncs
+    assert fps == 4 * (100 + 20 + 20 + 10) + 20 + 2 * 10 + 20 + 20 == 680
     got = auth.bus_load(auth.SCHEMES[0], load_case(1))
     assert auth.dbc_bitrate() == 500_000
     assert got["frames_per_s"] == pytest.approx(fps)
@@ -99,23 +100,23 @@ def test_ring_scenario_is_a_ring() -> None:
 
 def test_what_agent_3s_insider_forges_per_scheme() -> None:
     """Case 1: agent 3 holds the router's and agent 1's node keys, and PLANT_3_Status's
-    link key (the router verifies it too); no report key but its own Diag's (AUTH-29), no
-    command key but its own (AUTH-30): ER_Command_Sync is all it can forge of commands."""
+    link key (agent 3 its one receiver: the router's ledger takes PLANT_Totals); no
+    report key but its own Diag's (AUTH-29), no command key but its own (AUTH-30):
+    ER_Command_Sync is all it can forge of commands."""
     sc = load_case(1)
     s = {x.key: x for x in auth.SCHEMES}
     today = auth.insider_forges(s["a"], sc)
     assert today == {n: "forge" for n in (
-        "ER_Price", "ER_Price_Sync", "ER_Command_Sync", mc_name(1), mc_name(1) + "_Sync",
-        status_name(3), status_name(3) + "_Sync")}
-    assert not {diag_name(1), "ER_Balance", "ER_Command"} & set(today)
-    assert not any(n.startswith(("AGENT_2", "AGENT_4", "PLANT_1", "AGENT_3")) for n in today)
+        "ER_Price", "ER_Price_Sync", "ER_Command_Sync", mc_name(1), mc_name(1) + "_Sync")}
+    assert not {diag_name(1), "ER_Balance", "ER_Command", "PLANT_Totals"} & set(today)
+    assert not any(n.startswith(("AGENT_2", "AGENT_4", "PLANT_", "AGENT_3")) for n in today)
     for key in ("b", "c", "e"):
         assert auth.insider_forges(s[key], sc) == {}
     signed = auth.insider_forges(s["d"], sc)
     assert signed == {"ER_Price": "bound", "ER_Price_Sync": "forge",
                       "ER_Command_Sync": "forge"}
     # the classic-CAN step: λ stays under agent 1's node key, the links and reports go
-    # pairwise (PLANT_3_Status to the router, AGENT_1_Diag out of reach)
+    # pairwise (AGENT_1_Diag out of reach)
     assert auth.insider_forges(s["d-min"], sc) == {
         **signed, mc_name(1): "forge", mc_name(1) + "_Sync": "forge"}
     assert auth.forged_summary({}) == "nothing (own frames only)"

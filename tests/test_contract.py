@@ -72,7 +72,8 @@ def test_secoc_constants_are_read_from_the_dbc() -> None:
     secured = {m.frame_id for m in DB.messages
                if any(s.name == "Mac" for s in m.signals) and not m.name.endswith("_Sync")}
     assert contract.SECURED_IDS == secured
-    assert len(secured) == 3 + 4 * contract.N_AGENTS_MAX  # every frame but the syncs
+    # every frame but the syncs: ER_Price, ER_Command, ER_Balance, PLANT_Totals, 4 per agent
+    assert len(secured) == 4 + 4 * contract.N_AGENTS_MAX
     for fid in secured:
         m, sync = DB.get_message_by_frame_id(fid), DB.get_message_by_frame_id(
             contract.SYNC_OF[fid])

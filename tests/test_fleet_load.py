@@ -50,9 +50,10 @@ def test_fd_periodic_64_agents_equals_the_dbc_by_hand() -> None:
     tagged_s = 34 / 500_000 + 358 / 2_000_000
     agent = sum(per_s(f(1)) for f in (mc_name, setpoint_name, status_name, diag_name))
     router = per_s("ER_Price") + 2 * per_s("ER_Balance")       # ER_Balance: 2 pages
-    syncs = 4 * n + 3        # one <name>_Sync a second per secured ID: 4 per agent + 3
-    fps = n * agent + router + syncs
-    assert fps == 64 * (100 + 20 + 20 + 10) + 20 + 2 * 10 + 259 == 9899
+    plant = per_s("PLANT_Totals")                               # the router's ledger input
+    syncs = 4 * n + 4        # one <name>_Sync a second per secured ID: 4 per agent + 4
+    fps = n * agent + router + plant + syncs
+    assert fps == 64 * (100 + 20 + 20 + 10) + 20 + 2 * 10 + 20 + 260 == 9920
 
     fleet = fleetload.Fleet("ring-64", n, ring_scenario(n))
     frames = fleetload.fleet_frames(fleet)
@@ -146,9 +147,9 @@ def test_cli_fleet_load_writes_its_json(tmp_path: Path,
     # ratio over its 20 s; case 1: periodic)
     torus, case1 = tables[1]["data"]["scenarios"]
     assert (torus["scenario"], torus["fd"], torus["transmit"]) == ("torus64", True, "event")
-    assert torus["load"] == torus["load_fd"] == pytest.approx(0.538, abs=2e-3)
-    assert torus["fits"] and torus["load_classic"] == pytest.approx(1.166, abs=2e-3)
-    assert (case1["mc_ratio"], case1["load"]) == (1.0, pytest.approx(0.178, abs=1e-3))
+    assert torus["load"] == torus["load_fd"] == pytest.approx(0.540, abs=2e-3)
+    assert torus["fits"] and torus["load_classic"] == pytest.approx(1.171, abs=2e-3)
+    assert (case1["mc_ratio"], case1["load"]) == (1.0, pytest.approx(0.184, abs=1e-3))
     assert "torus64       64     event" in stdout
     data = tables[0]["data"]
     assert set(data["largest_n"]) == {c.key for c in fleetload.CONFIGS}
@@ -193,7 +194,7 @@ def test_bus_runs_refuse_the_64_agent_example_before_writing(
     assert err.startswith("bess-ded: ") and "bess-ded: error: " in err
     # its λ every tick: 267 % of a classic bus (every frame of the DBC, computed)
     assert ("[graph.agents] expected a fleet whose computed bus load on classic CAN at Ts = "
-            "10 ms is at most 100 %, but got 267.3 % for 64 agents (every frame periodic") in err
+            "10 ms is at most 100 %, but got 267.8 % for 64 agents (every frame periodic") in err
     assert not out.exists()
 
 
@@ -206,8 +207,8 @@ def test_the_bus_load_check_follows_the_time_scale_and_the_dbc_limit() -> None:
     from sim.model.scenario import load_scenario, scaled
 
     sc = load_scenario(EXAMPLE)
-    assert fleetload.check_bus_load(scaled(sc, 3.0)) == pytest.approx(2.673 / 3, abs=1e-3)
-    with pytest.raises(ConfigError, match="at most 100 %, but got 133.6 %"):
+    assert fleetload.check_bus_load(scaled(sc, 3.0)) == pytest.approx(2.678 / 3, abs=1e-3)
+    with pytest.raises(ConfigError, match="at most 100 %, but got 133.9 %"):
         fleetload.check_bus_load(scaled(sc, 2.0))
     with pytest.raises(ConfigError, match=r"expected at most 64 agents on a bus \(the DBC's "
                                           r"AGENT_1..AGENT_64 frames\), but got 65"):
@@ -224,17 +225,17 @@ def test_the_64_agent_event_example_fits_fd_only() -> None:
 
     sc = load_scenario(EXAMPLE.with_name("ring64.toml"))
     assert sc.n == 64 and sc.transmit.mode == "event" and sc.fd
-    with pytest.raises(ConfigError, match=r"on classic CAN .* but got 110\.3 % for 64 agents "
+    with pytest.raises(ConfigError, match=r"on classic CAN .* but got 110\.8 % for 64 agents "
                                           r"\(MC frames event-triggered, 9\.1 % of periodic"):
         fleetload.check_bus_load(replace(sc, fd=False))
-    assert fleetload.check_bus_load(sc) == pytest.approx(0.508, abs=1e-3)
+    assert fleetload.check_bus_load(sc) == pytest.approx(0.511, abs=1e-3)
 
 
 def test_the_64_agent_torus_converges_in_the_lockstep_on_60_percent_of_an_fd_bus() -> None:
     """examples/torus64.toml, issue 23's acceptance in the lockstep: 64 agents on an 8 × 8
     torus (4-regular, 16 pinned), event-triggered λ on CAN FD at Ts = 10 ms, reach
     max|λ−ρ| ≤ 1e-3 well within 15 s (6.4 s) with the reset-PI regular and stable at Ts,
-    and its computed FD bus load over the run is ≤ 60 % (53.8 %; 116.6 % classic,
+    and its computed FD bus load over the run is ≤ 60 % (54.0 %; 117.1 % classic,
     refused). Deterministic: the vectorised lockstep, the DBC's frames."""
     from dataclasses import replace
 
@@ -258,8 +259,8 @@ def test_the_64_agent_torus_converges_in_the_lockstep_on_60_percent_of_an_fd_bus
     converged_at = (late[-1] + 1) * sc.ts if len(late) else 0.0
     assert err[-1] <= 1e-3 and converged_at <= 10.0, (err[-1], converged_at)
     load = fleetload.check_bus_load(sc)
-    assert load <= fleetload.LOAD_LIMIT and load == pytest.approx(0.538, abs=2e-3)
-    with pytest.raises(ConfigError, match=r"on classic CAN .* but got 116\.6 % for 64 agents"):
+    assert load <= fleetload.LOAD_LIMIT and load == pytest.approx(0.540, abs=2e-3)
+    with pytest.raises(ConfigError, match=r"on classic CAN .* but got 117\.1 % for 64 agents"):
         fleetload.check_bus_load(replace(sc, fd=False))
 
 

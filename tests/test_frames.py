@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import pickle
+import re
 import runpy
 import shutil
 import subprocess
@@ -71,7 +72,7 @@ GEN_DBC = ROOT / "tools" / "gen_dbc.py"
 
 SYNC_OFFSET = 0x400
 SECURED_TYPES = frozenset({"ER_Price", "ER_Command", "MC", "Setpoint", "Status", "Diag",
-                           "ER_Balance"})
+                           "ER_Balance", "Totals"})
 KINDS = ("secured", "sync")
 # the transfer messages (no MAC; signed_price, AUTH-32): their golden frames are in
 # tests/test_pricesig.py
@@ -83,8 +84,10 @@ def frame(frame_id: int, data: bytes, **kw: Any) -> can.Message:
 
 
 def msg_type(name: str) -> str:
-    """AGENT_7_MC -> MC, PLANT_1_Status_Sync -> Status_Sync, ER_Price -> ER_Price."""
-    return name.split("_", 2)[-1] if name.startswith(("AGENT_", "PLANT_")) else name
+    """AGENT_7_MC -> MC, PLANT_1_Status_Sync -> Status_Sync, PLANT_Totals -> Totals,
+    ER_Price -> ER_Price."""
+    per_agent = re.fullmatch(r"(?:AGENT|PLANT)_[0-9]+_(.+)", name)
+    return per_agent.group(1) if per_agent else name.removeprefix("PLANT_")
 
 
 def expected_kind(name: str) -> str:
@@ -203,6 +206,15 @@ GOLDEN = [
      "00 00 00 17 FF FF 00 00", {"OptimalCostRate": -0.1}),
     ("ER_Balance_Sync", 0, {"Count": 7, "Boot": 1},
      "00 00 00 07 00 00 01 00", {"Count": 7}),
+    # plant totals (18-bit signals): byte3 = 0x25 (counter 5, BatteryPower's low nibble);
+    # BatteryPower 123.4 kW → 1234 at bit 28, BatteryCostRate -0.3 cu/h → 0x3FFFD at bit 46
+    ("PLANT_Totals", 5, {"BatteryPower": 1234, "BatteryCostRate": -3},
+     "00 00 00 25 4D 40 FF FF", {"BatteryPower": 123.4, "BatteryCostRate": -0.3}),
+    # the extremes: BatteryPower -0.1 kW (all ones), BatteryCostRate 13107.1 cu/h (0x1FFFF)
+    ("PLANT_Totals", 7, {"BatteryPower": -1, "BatteryCostRate": 131071},
+     "00 00 00 F7 FF FF FF 7F", {"BatteryPower": -0.1, "BatteryCostRate": 13107.1}),
+    ("PLANT_Totals_Sync", 0, {"Count": 3, "Boot": 2},
+     "00 00 00 03 00 00 02 00", {"Count": 3}),
 ]
 
 
@@ -336,13 +348,13 @@ def test_names_ids_and_agent_of(codec: FrameCodec) -> None:
         assert codec.frame_id(diag_name(i) + "_Sync") == 0x700 + i
         for base in (0x100, 0x200, 0x280, 0x300, 0x500, 0x600, 0x680, 0x700):
             assert agent_of(base + i) == i
-    for fid in (0x010, 0x020, 0x3E0, 0x410, 0x420, 0x100, 0x141, 0x2C1, 0x341, 0x500, 0x541,
+    for fid in (0x010, 0x020, 0x3E0, 0x3E1, 0x410, 0x420, 0x100, 0x141, 0x2C1, 0x341, 0x500, 0x541,
                 0x600, 0x641, 0x680, 0x6C1, 0x700, 0x741, 0x7E0, 0x7FF):
         assert agent_of(fid) is None
-    # 3 ER frames + 4 per agent, and a sync of each (every frame is secured); and the one
-    # transfer message, ER_PriceSig (signed_price, no MAC, no sync)
-    assert len(codec.frame_ids()) == 2 * (3 + 4 * 64) + 1 == 519
-    assert len(codec.database.messages) == 519
+    # 3 ER frames, PLANT_Totals, 4 per agent, and a sync of each (every frame is secured);
+    # and the one transfer message, ER_PriceSig (signed_price, no MAC, no sync)
+    assert len(codec.frame_ids()) == 2 * (4 + 4 * 64) + 1 == 521
+    assert len(codec.database.messages) == 521
     assert codec.name_of(0x120) == "AGENT_32_MC"
     assert codec.name_of(0x520) == "AGENT_32_MC_Sync"
     assert codec.name_of(0x6A0) == "PLANT_32_Status_Sync"
@@ -364,7 +376,7 @@ def test_frame_kinds(codec: FrameCodec) -> None:
         assert codec.kind(fid) == expected_kind(codec.name_of(fid))
         by_kind[codec.kind(fid)].add(fid)
     agents = range(1, N_AGENTS_MAX + 1)
-    secured = {0x010, 0x020, 0x3E0} | {b + i for b in (0x100, 0x200, 0x280, 0x300)
+    secured = {0x010, 0x020, 0x3E0, 0x3E1} | {b + i for b in (0x100, 0x200, 0x280, 0x300)
                                        for i in agents}
     assert by_kind["secured"] == secured == contract.SECURED_IDS
     assert by_kind["sync"] == {fid + SYNC_OFFSET for fid in secured}
@@ -819,7 +831,7 @@ def test_dbc_loads_strict_with_the_contract() -> None:
     assert {n.name for n in db.nodes} == {"ER", "PLANT", *(f"AGENT_{i}" for i in range(1, 65))}
     assert db.buses[0].baudrate == 500_000
     assert db.dbc is not None and db.dbc.attributes["BusType"].value == "CAN"
-    assert len(db.messages) == 519
+    assert len(db.messages) == 521
     cycles = {"ER_Price": 50, "ER_Command": None, "AGENT_7_MC": 10, "AGENT_7_Setpoint": 50,
               "PLANT_7_Status": 50, "AGENT_7_Diag": 100, "ER_Balance": 100,
               "ER_Price_Sync": 1000, "ER_Command_Sync": 1000, "AGENT_7_MC_Sync": 1000,
@@ -910,9 +922,9 @@ def test_codec_refuses_a_dbc_with_another_lambda_factor(tmp_path: Path) -> None:
     # ER_Price's Counter (the first secured frame in the file)
     ("SG_ Counter : 24|4@1+ (1,0) [0|15]", "SG_ Counter : 24|3@1+ (1,0) [0|7]",
      r"\[ER_Price\] expected the secured frame signal Counter 24\|4, but got 24\|3"),
-    # the first diag frame's Counter (AGENT_1_Diag: receiver ER)
+    # the first report frame's Counter (PLANT_Totals: receiver ER)
     ('SG_ Counter : 24|4@1+ (1,0) [0|15] ""  ER', 'SG_ Counter : 24|3@1+ (1,0) [0|7] ""  ER',
-     r"_Diag\] expected the secured frame signal Counter 24\|4, but got 24\|3"),
+     r"\[PLANT_Totals\] expected the secured frame signal Counter 24\|4, but got 24\|3"),
     # the first sync frame's Mac (sync receivers are listed sorted: AGENT_1,AGENT_10,...)
     ('SG_ Mac : 0|24@1+ (1,0) [0|16777215] ""  AGENT_1,AGENT_10,',
      'SG_ Mac : 0|16@1+ (1,0) [0|65535] ""  AGENT_1,AGENT_10,',

@@ -59,9 +59,8 @@ def _plan(sc: Scenario, tmp: Path, node: str = "agent_3") -> insider.InsiderPlan
 
 
 @pytest.mark.parametrize("sc, genuine_keys, residual", [
-    (load_case(1), {"ER_Price", "AGENT_1_MC", "PLANT_3_Status"},
-     {"ER_Price", "AGENT_1_MC", "PLANT_3_Status"}),
-    (hardened(), {"ER_Price", "PLANT_3_Status"}, {"PLANT_3_Status"})],
+    (load_case(1), {"ER_Price", "AGENT_1_MC"}, {"ER_Price", "AGENT_1_MC"}),
+    (hardened(), {"ER_Price"}, set())],
     ids=["classic", "fd-tagged-signed"])
 def test_the_plan_names_the_residual_risk(sc: Scenario, genuine_keys: set[str],
                                           residual: set[str], tmp_path: Path) -> None:
@@ -69,12 +68,14 @@ def test_the_plan_names_the_residual_risk(sc: Scenario, genuine_keys: set[str],
     under the genuine key where the file holds it, else a stand-in. On classic CAN the
     genuine ones are exactly what `bench --auth` computes for today's scheme (`a`: its
     frames, not their syncs) and all are taken; on the hardened fleet the price is under
-    the genuine key but must be the signed one, and only agent 3's own battery's status
-    (towards agent 3 and the router: its link key) remains forgeable."""
+    the genuine key but must be the signed one, and nothing remains forgeable: agent 3's
+    own battery's status has one receiver, agent 3 (the router's ledger takes the
+    plant's PLANT_Totals), so it is not in the plan at all."""
     p = _plan(sc, tmp_path)
     names = {f.name for f in p.forgeries}
     assert {"ER_Price", "ER_Command", "AGENT_1_MC", "AGENT_1_Setpoint", "AGENT_1_Diag",
-            "PLANT_1_Status", "PLANT_3_Status"} <= names
+            "PLANT_1_Status", "PLANT_Totals"} <= names
+    assert "PLANT_3_Status" not in names  # its one receiver is agent 3 itself
     assert not any(f.name.startswith("AGENT_3_") for f in p.forgeries)  # not its own
     assert sum(f.name == "ER_Command" for f in p.forgeries) == 3         # agents 1, 2, 4
     assert {f.name for f in p.forgeries if f.genuine} == genuine_keys
@@ -89,12 +90,12 @@ def test_the_plan_names_the_residual_risk(sc: Scenario, genuine_keys: set[str],
 
 @pytest.mark.parametrize("node, residual", [
     ("plant", set()),
-    ("router", {f"{m}_{i}_{k}" for i in range(1, 5)
-                for m, k in (("AGENT", "Diag"), ("PLANT", "Status"))})])
+    ("router", {f"AGENT_{i}_Diag" for i in range(1, 5)})])
 def test_the_hubs_key_files_on_the_hardened_fleet(node: str, residual: set[str],
                                                   tmp_path: Path) -> None:
     """The plant's file forges nothing a receiver takes (the setpoints' one receiver is
-    the plant: not forged at all); the router's, the statuses and Diag pages it reads."""
+    the plant: not forged at all); the router's, the Diag pages it reads (no status: it
+    holds none of their keys, its ledger takes PLANT_Totals, which it receives itself)."""
     p = _plan(hardened(), tmp_path, node)
     assert not any(f.name.endswith("_Setpoint") for f in p.forgeries) or node != "plant"
     assert {f.name for f in p.forgeries if f.residual} == residual

@@ -48,8 +48,9 @@ def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path)
     broadcasts it takes and the keys of its own link frames and reports only; agent 3's
     file yields no key that tags agent 1's setpoint, status or Diag, nor the router's
     ledger (nor any frame whose parties exclude it); no file but the plant's, agent 1's
-    and the router's holds PLANT_1_Status's key, none but agent 1's and the router's
-    AGENT_1_Diag's, none but the router's ER_Balance's."""
+    holds PLANT_1_Status's key (the router's ledger takes PLANT_Totals, the plant's and
+    the router's only), none but agent 1's and the router's AGENT_1_Diag's, none but the
+    router's ER_Balance's."""
     from firmware_py import contract
     from firmware_py.frames import FrameCodec
 
@@ -61,7 +62,7 @@ def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path)
     assert contract.link_frames(4) == [*(f"AGENT_{i}_Setpoint" for i in range(1, 5)),
                                        *(f"PLANT_{i}_Status" for i in range(1, 5))]
     links = contract.keyed_frames(4)
-    assert sorted(links) == sorted([*contract.link_frames(4), "ER_Balance",
+    assert sorted(links) == sorted([*contract.link_frames(4), "ER_Balance", "PLANT_Totals",
                                     *(f"AGENT_{i}_Diag" for i in range(1, 5))])
     for node, nk in files.items():
         want = [f for f in links if node in contract.parties_of(f)]
@@ -75,7 +76,8 @@ def test_key_files_hold_only_the_link_frame_keys_each_node_needs(tmp_path: Path)
     assert [n for n, nk in files.items() if "ER_Balance" in nk.frames] == ["router"]
     assert "router" in files["agent_3"].peers and "plant" not in files["agent_3"].peers
     assert [n for n, nk in files.items() if "PLANT_1_Status" in nk.frames] == [
-        "agent_1", "plant", "router"]
+        "agent_1", "plant"]
+    assert [n for n, nk in files.items() if "PLANT_Totals" in nk.frames] == ["plant", "router"]
     # every key agent 3's file holds fails to tag agent 1's status, setpoint and Diag,
     # the ledger, and every frame whose parties exclude agent 3
     codec = FrameCodec()
@@ -162,7 +164,7 @@ def test_rotating_one_node_rewrites_only_the_files_sharing_its_keys(
     assert plant.peers["agent_3"] == new.key and plant.floors["agent_3"] == 2
     assert plant.frames["AGENT_3_Setpoint"] == new.frames["AGENT_3_Setpoint"]
     router = secoc.load_node_key(out / "router.key")
-    assert router.frames["PLANT_3_Status"] == new.frames["PLANT_3_Status"]
+    assert "PLANT_3_Status" not in router.frames  # its ledger takes PLANT_Totals
     assert router.frames["AGENT_3_Diag"] == new.frames["AGENT_3_Diag"]  # AUTH-29
     # AUTH-30: the key of the commands to agent 3, in its file and the router's
     assert router.commands["agent_3"] == new.commands["agent_3"] != old.commands["agent_3"]

@@ -112,6 +112,16 @@ def status(agent: int, p_kw: float, counter: int | None = None,
     return sender.frame(status_name(agent), raw, counter)
 
 
+def totals(powers: dict[int, float], counter: int | None = None,
+           sender: FleetSender = SENDER, sc: Scenario | None = None) -> can.Message:
+    """PLANT_Totals as the plant signs it: the sum of ``powers`` (agent: kW) and the
+    batteries' cost rate at them (case 1's batteries unless ``sc``)."""
+    batteries = (sc or load_case(1)).batteries
+    cost = sum(batteries[i - 1].cost_rate(p) for i, p in powers.items())
+    raw = {"BatteryPower": round(sum(powers.values()) * 10), "BatteryCostRate": round(cost * 10)}
+    return sender.frame("PLANT_Totals", raw, counter)
+
+
 def flipped(msg: can.Message, byte: int, mask: int = 1) -> can.Message:
     """``msg`` with bits of one byte flipped (a corrupted or tampered frame)."""
     data = bytearray(msg.data)
@@ -129,6 +139,7 @@ class PlantDriver:
         self.k = 0
         self.status: list[tuple[float, dict[str, float]]] = []  # (t, decoded) per frame
         self.syncs: list[tuple[float, str]] = []                # (t, name) per sync frame
+        self.totals: list[tuple[float, dict[str, float]]] = []  # (t, PLANT_Totals)
 
     def send(self, agent: int, p_kw: float, enable: int = 1) -> None:
         self.plant.on_frame(setpoint(agent, p_kw, enable=enable), T(self.k))
@@ -142,6 +153,9 @@ class PlantDriver:
                 f = CODEC.decode(msg)
                 if is_sync(msg):
                     self.syncs.append((T(self.k), f.name))
+                    continue
+                if f.name == "PLANT_Totals":
+                    self.totals.append((T(self.k), {s: f.phys(s) for s in f.raw}))
                     continue
                 d = {s: f.phys(s) for s in ("Power", "Soc")}
                 d.update({s: f.raw[s] for s in ("FaultOverCurrent", "FaultVoltage", "FaultSoc",
@@ -200,6 +214,20 @@ def test_steady_state_power_equals_setpoint_with_internal_resistance() -> None:
     assert drv.last(1)["Power"] == pytest.approx(u.power, abs=0.005)
     assert drv.last(1)["Soc"] == pytest.approx(100 * u.soc, abs=0.25)
     assert drv.last(1)["PowerLimited"] == 0 and drv.last(3)["Power"] == 0.0  # no setpoint: 0 kW
+
+
+def test_plant_totals_are_the_sum_of_the_statuses_sent_with_them() -> None:
+    """PLANT_Totals, sent with each cycle's statuses, carries their powers' sum and the
+    batteries' cost rate at those powers (the router's ledger: AUTH-29)."""
+    sc = load_case(1)
+    drv = PlantDriver(PlantNode(sc))
+    drv.run(1.0, {1: 66.0, 2: -40.0, 4: 25.0})
+    t, tot = drv.totals[-1]
+    powers = [d["Power"] for ts, d in drv.status if ts == t]
+    assert len(powers) == sc.n and len(drv.totals) == 20
+    assert tot["BatteryPower"] == pytest.approx(sum(powers), abs=0.051)
+    cost = expenditure(sc.batteries, powers, 0.0, 0.0)  # ρ = 0, D = 0: the batteries alone
+    assert tot["BatteryCostRate"] == pytest.approx(cost, abs=0.051) and cost > 1.0
 
 
 def test_power_clipped_at_limits_sets_power_limited() -> None:
@@ -311,7 +339,7 @@ def test_bad_setpoints_are_rejected_by_cause_and_counters_checked() -> None:
     fid = CODEC.frame_id(setpoint_name(1))
     own = plant.tick(0.0)        # the first tick: the plant's syncs (and statuses)
     assert [CODEC.name_of(m.arbitration_id) for m in own if is_sync(m)] == [
-        f"{status_name(i)}_Sync" for i in range(1, 5)]
+        *(f"{status_name(i)}_Sync" for i in range(1, 5)), "PLANT_Totals_Sync"]
     good = setpoint(1, 40.0)     # count 0
     short = can.Message(arbitration_id=fid, is_extended_id=False, data=bytes(good.data[:6]))
     plant.on_frame(short, 0.002)
@@ -392,13 +420,12 @@ def test_fault_specs_are_checked() -> None:
 
 def run_router(router: RouterNode, seconds: float, start: int = 0,
                feed: dict[int, float] | None = None) -> list[tuple[float, can.Message]]:
-    """Tick ``router`` every 10 ms, feeding it the plant's (signed) status of every agent
+    """Tick ``router`` every 10 ms, feeding it the plant's (signed) totals of the powers
     of ``feed`` every 20 ms; its output, syncs included, with the tick times."""
     out = []
     for k in range(start, start + round(seconds / DT)):
         if feed and k % 2 == 0:
-            for agent, p in feed.items():
-                router.on_frame(status(agent, p), T(k))
+            router.on_frame(totals(feed), T(k))
         out += [(T(k), m) for m in router.tick(T(k))]
     return out
 
@@ -491,52 +518,53 @@ def test_router_balance_matches_the_cost_model() -> None:
     assert page1.phys("OptimalCostRate") == pytest.approx(fc_opt, abs=0.05)
     assert fc > fc_opt
     assert router.grid_power == pytest.approx(95.0)
-    assert router.cost_rate == pytest.approx(fc)
-    assert router.cost == pytest.approx(fc * 0.99 / 3600)  # 99 intervals of 10 ms
+    assert router.cost_rate == pytest.approx(fc, abs=0.05)  # the totals' 0.1 cu/h
+    assert router.cost == pytest.approx(fc * 0.99 / 3600, abs=0.05 * 0.99 / 3600)  # 99 ticks
     assert router.optimal_cost == pytest.approx(fc_opt * 0.99 / 3600)
-    assert router.counters["status_frames"] == 200 and router.counters["lost_frames"] == 0
+    assert router.counters["totals_frames"] == 50 and router.counters["lost_frames"] == 0
     assert "cost=" in router.summary() and "P_e=95.00 kW" in router.summary()
 
 
-def test_router_rejects_bad_status_frames_and_times_statuses_out() -> None:
-    """A bad PLANT_<i>_Status is rejected and its power not used; a status older than 5
-    status cycles times out (counted once) and its last power is held. Statuses are
-    secured now: a corrupted frame (old: ``crc``), a replay (old: ``repeated_counter``)
-    and another payload from a sender without the plant's key (old: ``counter_clash``,
-    foreign) fail the MAC, under ``auth``; five in a row raise the untrusted-source
-    alarm, and the plant's next authentic status is still used (a secured ID proves
-    itself frame by frame). Before the first authentic frame an insecure
-    router takes a failing one for a frame of a plant already running, not a forgery:
-    ``unsynced`` (it waits for the plant's sync)."""
+def test_router_rejects_bad_totals_and_times_them_out() -> None:
+    """A bad PLANT_Totals is rejected and its sums not used; totals older than 5 status
+    cycles time out (counted once) and the last ones are held. A corrupted frame, a
+    replay and another payload from a sender without the key fail the MAC, under
+    ``auth``; five in a row raise the untrusted-source alarm, and the plant's next
+    authentic frame is still used (a secured ID proves itself frame by frame). Before
+    the first authentic frame an insecure router takes a failing one for a frame of a
+    plant already running, not a forgery: ``unsynced`` (it waits for the plant's sync).
+    A status frame is not the router's input any more (AUTH-29: agent i holds its key)."""
     router = RouterNode(load_case(1))
-    fid = CODEC.frame_id(status_name(1))
+    fid = CODEC.frame_id("PLANT_Totals")
     router.tick(0.0)
-    good = status(1, 10.0)                      # count 0
-    router.on_frame(flipped(good, 4), 0.0)      # a bit of Power
+    good = totals({1: 10.0})                    # count 0
+    router.on_frame(flipped(good, 4), 0.0)      # a bit of BatteryPower
     assert router.counters["unsynced"] == 1 and router.counters["auth"] == 0
-    assert router.measured_powers[0] == 0.0
+    assert router.totals.power == 0.0
     router.on_frame(good, 0.0)
-    assert router.measured_powers[0] == 10.0 and router.counters["status_frames"] == 1
+    assert router.totals.power == 10.0 and router.counters["totals_frames"] == 1
     router.on_frame(good, 0.0)                  # a replay
-    nxt = status(1, 20.0)                       # count 1
+    nxt = totals({1: 20.0})                     # count 1
     router.on_frame(flipped(nxt, 2, 0x80), 0.0)  # a bit of the MAC
-    router.on_frame(flipped(nxt, 6), 0.0)       # a bit of Soc
+    router.on_frame(flipped(nxt, 6), 0.0)       # a bit of BatteryCostRate
     assert router.counters["auth"] == 3 and router.io.last_safety == ("auth", fid)
-    forger = FleetSender(CODEC, keys={"PLANT_1_Status": WRONG_KEY})
-    router.on_frame(status(1, 20.0, 1, sender=forger), 0.0)  # same count, new payload
+    forger = FleetSender(CODEC, keys={"PLANT_Totals": WRONG_KEY})
+    router.on_frame(totals({1: 20.0}, 1, sender=forger), 0.0)  # same count, new payload
     assert router.counters["auth"] == 4
-    assert router.counters["foreign"] == 0 and router.measured_powers[0] == 10.0
-    assert router.counters["status_frames"] == 1
-    router.on_frame(status(1, 99.0, 2, sender=forger), 0.0)  # 5 failures in a row: alarm
+    assert router.counters["foreign"] == 0 and router.totals.power == 10.0
+    assert router.counters["totals_frames"] == 1
+    router.on_frame(totals({1: 99.0}, 2, sender=forger), 0.0)  # 5 failures in a row: alarm
     assert router.counters["untrusted_sources"] == 1 and router.io.untrusted(fid, 0.0)
-    router.on_frame(status(1, 15.0), 0.0)       # authentic (count 2): still used
-    assert router.measured_powers[0] == 15.0
+    router.on_frame(totals({1: 15.0}), 0.0)     # authentic (count 2): still used
+    assert router.totals.power == 15.0
     assert router.counters["auth"] == 5
     assert router.counters["lost_frames"] == 1  # count 1 only ever arrived corrupted
+    router.on_frame(status(1, 60.0), 0.0)       # agent 1's status: not the ledger's
+    assert router.totals.power == 15.0 and router.counters["totals_frames"] == 2
     for k in range(1, 27):     # 5 status cycles of 50 ms: timed out after 250 ms
         router.tick(T(k))
-    assert router.counters["status_timeouts"] == 1
-    assert router.measured_powers[0] == 15.0  # held
+    assert router.counters["totals_timeouts"] == 1
+    assert router.totals.power == 15.0  # held
 
 
 def test_router_silent_window_sends_nothing() -> None:
@@ -585,15 +613,16 @@ def test_plant_and_router_on_a_virtual_bus() -> None:
                                 daemon=True)
                for node, bus in ((plant, plant_bus), (router, router_bus))]
     want = {**{f"PLANT_{i}_Status": 20 for i in range(1, 5)}, "ER_Price": 10,
-            "ER_Balance": 10, **{f"PLANT_{i}_Status_Sync": 1 for i in range(1, 5)},
+            "ER_Balance": 10, "PLANT_Totals": 20, "PLANT_Totals_Sync": 1,
+            **{f"PLANT_{i}_Status_Sync": 1 for i in range(1, 5)},
             "ER_Price_Sync": 1, "ER_Command_Sync": 1, "ER_Balance_Sync": 1}
     seen: dict[str, list] = {}
     price_msgs: list[can.Message] = []
 
     def enough() -> bool:
         return (all(len(seen.get(k, [])) >= n for k, n in want.items())
-                and plant.counters["setpoints"] > 20 and router.counters["status_frames"] > 50
-                and abs(router.measured_powers[0] - 30.0) <= 0.5)
+                and plant.counters["setpoints"] > 20 and router.counters["totals_frames"] > 12
+                and abs(router.totals.power - 30.0) <= 0.5)
 
     try:
         for th in threads:
@@ -700,11 +729,12 @@ def test_plant_status_cadence_is_the_dbc_cycle_stretched_by_the_time_scale(facto
     sent = {k: data_frames(frames) for k, frames in out.items()}  # the syncs apart
     with_status = [k for k, frames in sent.items() if frames]
     assert with_status == list(range(0, 100, every))
-    assert all(len(sent[k]) == sc.n for k in with_status)   # every BESS's status each time
+    assert all(len(sent[k]) == sc.n + 1 for k in with_status)  # every status, the totals
     assert plant.counters["status_frames"] == sc.n * 100 // every
+    assert plant.counters["totals_frames"] == 100 // every
     syncs = {k: [m for m in frames if is_sync(m)] for k, frames in out.items()}
-    assert len(syncs[0]) == sc.n  # every status's sync at the first tick, ...
-    assert all(len(v) in (0, sc.n) for v in syncs.values())  # ... and all of them each time
+    assert len(syncs[0]) == sc.n + 1  # every status's sync and the totals' at the first
+    assert all(len(v) in (0, sc.n + 1) for v in syncs.values())  # tick, and all each time
 
 
 def test_router_cadences_stretch_with_the_time_scale() -> None:
@@ -712,7 +742,7 @@ def test_router_cadences_stretch_with_the_time_scale() -> None:
     router = RouterNode(sc, period=sc.ts)
     assert router.price_cycle == pytest.approx(cycle_s("ER_Price", sc.ts)) == \
         pytest.approx(0.2)
-    assert router.status_timeout == pytest.approx(timeout_s(status_name(1), sc.ts))
+    assert router.totals_timeout == pytest.approx(timeout_s("PLANT_Totals", sc.ts))
 
 
 def test_plant_and_router_count_foreign_traffic() -> None:
@@ -741,10 +771,11 @@ def test_plant_and_router_count_foreign_traffic() -> None:
 
 
 def test_plant_signs_its_status_frames_and_sends_their_syncs_every_second() -> None:
-    """Every PLANT_<i>_Status is signed with the plant's key, freshness Boot 1 ‖ its own
-    count per ID (the Counter signal: its low 4 bits); each PLANT_<i>_Status_Sync goes
-    out at the first tick and every second, carrying the freshness of that ID's next
-    frame under the plant's MAC. A router hears them all (no sync needed at boot 1)."""
+    """Every PLANT_<i>_Status and PLANT_Totals is signed with its own frame key (AUTH-28,
+    AUTH-29), freshness Boot 1 ‖ its own count per ID (the Counter signal: its low 4
+    bits); each sync goes out at the first tick and every second, carrying the
+    freshness of that ID's next frame under the same key. A router hears the totals
+    (no sync needed at boot 1) and none of the statuses (agent i's and the plant's)."""
     plant, router = PlantNode(load_case(1)), RouterNode(load_case(1))
     sent: Counter[int] = Counter()
     syncs = []
@@ -761,10 +792,10 @@ def test_plant_signs_its_status_frames_and_sends_their_syncs_every_second() -> N
                 assert f.counter == sent[fid] % 16
                 sent[fid] += 1
             router.on_frame(m, T(k))
-    assert syncs == [(t, f"{status_name(i)}_Sync") for t in (0.0, 1.0, 2.0)
-                     for i in range(1, 5)]
+    assert syncs == [(t, f"{name}_Sync") for t in (0.0, 1.0, 2.0)
+                     for name in [*map(status_name, range(1, 5)), "PLANT_Totals"]]
     assert set(sent.values()) == {42}  # every 50 ms from t = 0 to 2.05 s
-    assert router.counters["status_frames"] == 4 * 42
+    assert router.counters["totals_frames"] == 42
     assert not any(router.counters[c] for c in ("auth", "unsynced", "lost_frames", "foreign"))
 
 
@@ -778,7 +809,7 @@ def test_plant_hears_an_agent_after_its_sync_and_answers_its_restart_with_its_ow
     plant = PlantNode(load_case(1), keys=Keyring.fleet(master, ["plant"])["plant"])
     agent = FleetSender(CODEC, boot=3,   # AUTH-28: agent 1's setpoint under its own key
                         keys={"AGENT_1_Setpoint": derive_frame_key(master, "AGENT_1_Setpoint")})
-    assert plant.io.boot == 1 and len([m for m in plant.tick(0.0) if is_sync(m)]) == 4
+    assert plant.io.boot == 1 and len([m for m in plant.tick(0.0) if is_sync(m)]) == 5
     plant.on_frame(setpoint(1, 10.0, sender=agent), 0.0)
     assert plant.counters["joining"] == 1 and plant.unit(1).setpoint_rx is None
     plant.on_frame(agent.sync(setpoint_name(1)), 0.005)
@@ -794,7 +825,7 @@ def test_plant_hears_an_agent_after_its_sync_and_answers_its_restart_with_its_ow
     plant.on_frame(agent.sync(setpoint_name(1)), 0.295)
     plant.on_frame(setpoint(1, 20.0, sender=agent), 0.295)
     assert plant.unit(1).p_set == 20.0 and plant.counters["resyncs"] == 2
-    assert [CODEC.decode(m).raw["Boot"] for m in plant.tick(0.3) if is_sync(m)] == [1] * 4
+    assert [CODEC.decode(m).raw["Boot"] for m in plant.tick(0.3) if is_sync(m)] == [1] * 5
     assert not any(plant.counters[c] for c in ("auth", "foreign"))
     assert plant.counters["joining"] == 2 and plant.counters["unsynced"] == 0
     assert plant.counters["lost_frames"] == 1
@@ -821,14 +852,14 @@ def test_a_restarted_plant_is_heard_by_the_router_after_its_sync() -> None:
     lost or rejected."""
     router = _restart_plant_under_a_running_router(
         Keyring.fleet(bytes(range(16)), ["router", "plant"]))
-    # the router's join window (AUTH-26: its first 0.2 s) takes the first 4 status frames
-    # of each unit as unsynced, then lost; after the plant's restart not one
-    in_window = 4 * 4
-    assert router.counters["status_frames"] == 4 * 40 - in_window
+    # the router's join window (AUTH-26: its first 0.2 s) takes the first 4 totals as
+    # unsynced, then lost; after the plant's restart not one
+    in_window = 4
+    assert router.counters["totals_frames"] == 40 - in_window
     assert router.counters["joining"] == router.counters["lost_frames"] == in_window
     assert router.counters["unsynced"] == 0
-    assert router.counters["resyncs"] == 8  # first contact, then the restart, per status
-    assert not any(router.counters[c] for c in ("auth", "status_timeouts",
+    assert router.counters["resyncs"] == 2  # first contact, then the restart
+    assert not any(router.counters[c] for c in ("auth", "totals_timeouts",
                                                  "untrusted_sources"))
 
 
@@ -836,8 +867,8 @@ def test_a_restarted_insecure_plant_is_heard_by_the_router_after_its_sync() -> N
     """The same restart with --insecure keys (nothing persisted: boot 1 again). The
     documented behaviour: its receivers accept a sync that goes back."""
     router = _restart_plant_under_a_running_router({})
-    assert router.counters["status_frames"] == 4 * 40
-    assert not any(router.counters[c] for c in ("auth", "unsynced", "status_timeouts"))
+    assert router.counters["totals_frames"] == 40
+    assert not any(router.counters[c] for c in ("auth", "unsynced", "totals_timeouts"))
 
 
 def test_node_cli_time_scale_stretches_the_scenario_and_the_period() -> None:

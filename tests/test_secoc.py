@@ -185,7 +185,10 @@ def test_frame_key_kdf_as_documented_and_separated() -> None:
     assert len(set(keys.values())) == len(names) and not nodes & set(keys.values())
     assert secoc.derive_frame_key(bytes(16), names[0]) != keys[names[0]]
     assert contract.parties_of("AGENT_1_Setpoint") == {"agent_1", "plant"}
-    assert contract.parties_of("PLANT_1_Status") == {"plant", "agent_1", "router"}
+    # the router's ledger takes PLANT_Totals (a report: the plant's and the router's key)
+    assert contract.parties_of("PLANT_1_Status") == {"plant", "agent_1"}
+    assert contract.parties_of("PLANT_Totals") == {"plant", "router"}
+    assert "PLANT_Totals" in contract.REPORT_FRAMES
     assert "ER_Price" not in contract.LINK_FRAMES and "AGENT_1_MC" not in contract.LINK_FRAMES
     assert "ER_Command" not in contract.LINK_FRAMES and "AGENT_1_Diag" not in contract.LINK_FRAMES
     for bad in ("", "plant_1_status", "A" * 33, "PLANT 1"):

@@ -77,6 +77,7 @@ STATUS_BASE = 0x280
 DIAG_BASE = 0x300
 ER_BALANCE_ID = 0x3E0  # its sync (+ SYNC_OFFSET) must fit 11 bits and stay out of
                       # 0x7F0..0x7FF, the tests' noise IDs (tests/vcan: cangen -I 7F0)
+PLANT_TOTALS_ID = 0x3E1  # a report beside ER_Balance: no per-agent block loses room
 
 MC_CYCLE_MS = 10
 SETPOINT_CYCLE_MS = 50
@@ -373,7 +374,9 @@ def _agent_setpoint(i: int) -> Message:
 
 
 def _plant_status(i: int) -> Message:
-    rx = [f"AGENT_{i}", "ER"]
+    # agent i alone: the router's ledger takes PLANT_Totals, so the status's key is the
+    # plant's and agent i's only (AUTH-28) and agent i cannot misreport to the router
+    rx = [f"AGENT_{i}"]
     return _msg(STATUS_BASE + i, f"PLANT_{i}_Status", "PLANT", [
         *_secoc(rx),
         _sig("FaultOverCurrent", 28, 1, receivers=rx, comment="1 = over-current trip."),
@@ -387,6 +390,21 @@ def _plant_status(i: int) -> Message:
              comment="State of charge, 0..100 % (raw 0..200)."),
     ], f"Plant (battery + chopper) {i} status: power, state of charge, fault flags.",
         STATUS_CYCLE_MS)
+
+
+def _plant_totals() -> Message:
+    rx = ["ER"]
+    return _msg(PLANT_TOTALS_ID, "PLANT_Totals", "PLANT", [
+        *_secoc(rx),
+        _sig("BatteryPower", 28, 18, signed=True, scale=0.1, unit="kW", receivers=rx,
+             comment="Sum of the measured powers of every BESS, as their PLANT_i_Status "
+                     "frames of the same cycle report them; positive = discharge."),
+        _sig("BatteryCostRate", 46, 18, signed=True, scale=0.1, unit="cu/h", receivers=rx,
+             comment="Sum of the batteries' cost rates (1+m_i)(alpha_i P_i^2 + beta_i P_i) "
+                     "at those powers."),
+    ], "Plant totals for the router's ledger (ER_Balance), sent with the status frames of "
+       "each status cycle: under a key only the plant and the router hold (AUTH-29), so no "
+       "agent can misreport its battery to the router.", STATUS_CYCLE_MS)
 
 
 # AGENT_<i>_Diag: two 16-bit slots per page (DIAG_SLOT_STARTS), filled in this order; a
@@ -534,6 +552,7 @@ def build_database(fd: bool = False, tags: bool = True) -> Database:
     messages += [_agent_mc(i) for i in range(1, N_AGENTS + 1)]
     messages += [_agent_setpoint(i) for i in range(1, N_AGENTS + 1)]
     messages += [_plant_status(i) for i in range(1, N_AGENTS + 1)]
+    messages.append(_plant_totals())
     messages += [_agent_diag(i) for i in range(1, N_AGENTS + 1)]
     messages.append(_er_balance())
     messages.append(_er_price_sig())

@@ -217,7 +217,9 @@ def prepare_conformance(case: str, dut: str, *, variant: str | None = None,
         tester_keys = load_key_set(key_dir)
         if sc.signed_price:  # the tester signs the price as the router does (AUTH-32)
             sign = secoc.load_node_key(key_dir / "router.key").price_sign
-            tester_keys[pricesig.TESTER_SIGN] = sign or b""
+            # check_key_set and provision_keys refuse a signed set without it
+            assert sign is not None, "a signed_price key set without the router's seed"
+            tester_keys[pricesig.TESTER_SIGN] = sign
         own = secoc.load_node_key(key_dir / f"{node}.key")
         ring = secoc.Keyring(node, own.key, own.boot_counter, lambda _b: None,
                              peers=own.peers, fleet=own.fleet_id, floors=own.floors,

@@ -126,6 +126,8 @@ def _payloads(sc: Scenario, codec: FrameCodec, node: str) -> list[tuple[str, dic
             out.append((status_name(j), {"Soc": 100, "Power": 0, "PowerLimited": 0,
                                          "FaultSoc": 0, "FaultVoltage": 0,
                                          "FaultOverCurrent": 1}, None))
+    if node not in ("plant", "router"):  # the ledger's input: no battery power, no cost
+        out.append(("PLANT_Totals", {"BatteryPower": 0, "BatteryCostRate": 0}, None))
     return out
 
 

@@ -4,7 +4,9 @@ One node simulates the whole fleet, because on the bus the plant is one DBC node
 (``PLANT_<i>_Status`` for every i). It takes ``AGENT_<i>_Setpoint`` frames and
 publishes every ``PLANT_<i>_Status`` once per status cycle: the DBC's 50 ms at Ts =
 10 ms, stretched like every cadence in a time-scaled run (``contract.cycle_s``: every
-5 ticks of the scenario's Ts); nothing else couples it to the agents,
+5 ticks of the scenario's Ts), then ``PLANT_Totals`` for the router's ledger (the sum
+of those powers and the batteries' cost rate at them, under a key the agents do not
+hold); nothing else couples it to the agents,
 so real choppers speaking the same frames can replace it (docs/deployment.md).
 
 Physical model, per BESS (units: kW, V, A, s; P > 0 = discharge into the grid)
@@ -123,6 +125,8 @@ FAULT_KINDS = ("overcurrent", "voltage", "soc", "power_limit")
 
 # status signal → (scale, raw lo, raw hi) is taken from the codec; values are saturated
 _STATUS_SIGNALS = ("Power", "Soc")
+TOTALS = "PLANT_Totals"
+_TOTALS_SIGNALS = ("BatteryPower", "BatteryCostRate")
 
 
 # --------------------------------------------------------------------------- physics
@@ -325,7 +329,7 @@ class PlantNode(SimNodeClock):
     ``lost_frames``, ``foreign`` (with ``foreign_id``), ``untrusted_sources``
     (firmware_py.nodeio),
     ``setpoint_ramp_limited`` (ramp episodes), ``setpoints`` (accepted),
-    ``setpoint_timeouts``, ``status_frames``,
+    ``setpoint_timeouts``, ``status_frames``, ``totals_frames`` (PLANT_Totals),
     ``soc_faults`` / ``voltage_faults`` / ``overcurrent_faults`` (rising edges of the
     flags), ``injected_faults`` (fault windows entered), ``encode_saturations``
     (a measurement outside its signal's range, sent saturated), and the loop's
@@ -369,7 +373,7 @@ class PlantNode(SimNodeClock):
         self._checks = {cfg.id: SetpointCheck(cfg.battery, period=scenario.ts,
                                               lag=mc_lag(cfg))
                         for cfg in agent_configs_from_scenario(scenario)}
-        self.io = NodeIO(c, "the plant", own=self._status_names,
+        self.io = NodeIO(c, "the plant", own=[*self._status_names, TOTALS],
                          wanted=[*self._setpoint_ids, *self._mc_ids],
                          fleet_size=scenario.n, untrusted_s=untrusted_s(scenario.ts),
                          keys=keys, sync_s=cycle_s("ER_Price_Sync", scenario.ts),
@@ -379,6 +383,8 @@ class PlantNode(SimNodeClock):
         first = self._status_names[0]
         self._ranges = {s: c.raw_range(first, s) for s in _STATUS_SIGNALS}
         self._scales = {s: c.scale(first, s) for s in _STATUS_SIGNALS}
+        self._totals_ranges = {s: c.raw_range(TOTALS, s) for s in _TOTALS_SIGNALS}
+        self._totals_scales = {s: c.scale(TOTALS, s) for s in _TOTALS_SIGNALS}
         self._active_faults: set[int] = set()
         self._sp_scale = c.scale(setpoint_name(1), "PowerSetpoint")
         self._init_clock()
@@ -450,6 +456,7 @@ class PlantNode(SimNodeClock):
         if self._status.due(t):
             out += [self._status_frame(u, name)
                     for u, name in zip(self.units, self._status_names, strict=True)]
+            out.append(self._totals_frame())
         return out
 
     def _forced(self, t_rel: float) -> dict[int, set[str]]:
@@ -477,9 +484,9 @@ class PlantNode(SimNodeClock):
             log.info("plant: BESS %d setpoint timed out (%.0f ms old): ramping to 0", u.agent,
                      1e3 * (t - u.setpoint_rx))
 
-    def _raw(self, signal: str, value: float) -> int:
-        lo, hi = self._ranges[signal]
-        r = round(value / self._scales[signal])
+    def _raw(self, signal: str, value: float, totals: bool = False) -> int:
+        lo, hi = (self._totals_ranges if totals else self._ranges)[signal]
+        r = round(value / (self._totals_scales if totals else self._scales)[signal])
         if r < lo or r > hi:
             self.counters["encode_saturations"] += 1
             r = min(hi, max(lo, r))
@@ -493,6 +500,17 @@ class PlantNode(SimNodeClock):
             "Soc": self._raw("Soc", 100.0 * u.soc),
         })
         self.counters["status_frames"] += 1
+        return msg
+
+    def _totals_frame(self) -> can.Message:
+        """PLANT_Totals: the sum of the powers the status frames just sent report, and
+        the batteries' cost rate at them (the router's ledger, AUTH-29)."""
+        scale = self._scales["Power"]
+        powers = [self._raw("Power", u.power) * scale for u in self.units]
+        cost = float(sum(u.battery.cost_rate(p) for u, p in zip(self.units, powers, strict=True)))
+        msg = self.io.send(TOTALS, {"BatteryPower": self._raw("BatteryPower", sum(powers), True),
+                                    "BatteryCostRate": self._raw("BatteryCostRate", cost, True)})
+        self.counters["totals_frames"] += 1
         return msg
 
     # ------------------------------------------------------------------ reporting

@@ -11,9 +11,11 @@
   second and third as idempotent). An event fires at the first tick at or after
   its time. ``send_command`` queues the same for tools and tests.
 * ``ER_Balance`` every balance cycle (100 ms), both its pages (0: P_e and F_c, 1: F_c*) in
-  the same tick, signed like every frame, from the ``PLANT_<i>_Status`` frames it receives:
-  P_e = D − ΣP_i (measured powers, each held from its last accepted frame, 0 before
-  the first), F_c = Σ(1+m_i)(α_i P_i² + β_i P_i) + ρ P_e (``sim.model.cost.expenditure``)
+  the same tick, signed like every frame, from the ``PLANT_Totals`` frames it receives
+  (the plant's ΣP_i and Σ(1+m_i)(α_i P_i² + β_i P_i), under a key that only the plant and
+  the router hold: no agent can misreport its battery to the ledger): P_e = D − ΣP_i,
+  F_c = Σ(1+m_i)(α_i P_i² + β_i P_i) + ρ P_e (both held from the last accepted frame, 0
+  before the first)
   and the KKT optimum's F_c* (``sim.model.cost.kkt_optimum`` for the current ρ and D).
   Both rates (cu/h) are integrated over the router's own tick intervals into
   ``cost`` and ``optimal_cost`` (cu), rectangle rule with the values at each tick.
@@ -39,10 +41,10 @@ happens while no pinned agent is lost (a fleet starting up, an unpinned agent is
 so a run without a lost pinned agent sends exactly what it sent before.
 ``failover=False`` turns it off (the MC frames are then not taken at all).
 
-Status reception uses the receive checks of the agent runtime: rejections by cause,
-``lost_frames``, foreign traffic (firmware_py.nodeio); a BESS
-whose status is older than 5 status cycles (``contract.timeout_s``: 250 ms at Ts =
-10 ms) counts one ``status_timeouts`` (its last power is still used).
+Totals reception uses the receive checks of the agent runtime: rejections by cause,
+``lost_frames``, foreign traffic (firmware_py.nodeio); totals older than 5 status
+cycles (``contract.timeout_s``: 250 ms at Ts = 10 ms) count one ``totals_timeouts`` (the
+last ones are still used).
 """
 
 from __future__ import annotations
@@ -51,19 +53,19 @@ import logging
 import math
 import threading
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import can
 
 from dbc import dbc_path
 from firmware_py.config import agent_configs_from_scenario, untrusted_s
-from firmware_py.contract import Command, State, cycle_s, mc_name, status_name, timeout_s
+from firmware_py.contract import Command, State, cycle_s, mc_name, timeout_s
 from firmware_py.errors import ConfigError, ParameterError
 from firmware_py.frames import LAMBDA_Q, PIN_OFF, PIN_ON, FrameCodec, target_raw
 from firmware_py.nodeio import HOST_ECHO_DEPTH, LOST_SEARCH_COUNTS, NodeIO
 from firmware_py.pricesig import SEGMENT_MOD, SignedSegment, pages, sign
 from firmware_py.secoc import Keyring
-from sim.model.cost import expenditure, kkt_optimum
+from sim.model.cost import kkt_optimum
 from sim.model.graph import failover_choice
 from sim.model.scenario import Scenario
 from sim.nodes.nodeclock import SimNodeClock, TimeWindow
@@ -79,7 +81,7 @@ COMMANDS = {"isolate": Command.ISOLATE, "reconnect": Command.RECONNECT,
             "set_gains": Command.SET_GAINS, "pin": Command.PIN, "unpin": Command.PIN}
 PIN_GAIN_K = {"pin": PIN_ON, "unpin": PIN_OFF}   # a PIN's GainK says which way (CMD-7)
 EVENT_COMMANDS = {"isolate": "isolate", "reconnect": "reconnect"}
-_STATUS_FLAGS = ("FaultOverCurrent", "FaultVoltage", "FaultSoc", "PowerLimited")
+TOTALS = "PLANT_Totals"  # the plant's input to the ledger (AUTH-29: its key, the router's)
 
 
 @dataclass(frozen=True)
@@ -154,20 +156,21 @@ class Failover:
 
 
 @dataclass
-class _StatusSlot:
+class _Totals:
+    """The plant's last accepted PLANT_Totals: ΣP_i (kW), Σ battery cost rate (cu/h)."""
     power: float = 0.0
+    cost_rate: float = 0.0
     rx: float | None = None
     fresh: bool = False
-    flags: dict[str, int] = field(default_factory=dict)
 
 
 class RouterNode(SimNodeClock):
     """Node (firmware_py.node) of the energy router for one scenario.
 
-    ``counters``: rejected status frames by cause (``dlc``, ``range``, ``unknown_id``,
+    ``counters``: rejected input frames by cause (``dlc``, ``range``, ``unknown_id``,
     ``malformed``, ``impersonation``, ``auth``, ``unsynced``, ...), ``lost_frames``,
-    ``foreign`` (with ``impersonation``, ``foreign_id``), ``status_frames`` (accepted),
-    ``status_timeouts``,
+    ``foreign`` (with ``impersonation``, ``foreign_id``), ``totals_frames`` (accepted
+    PLANT_Totals), ``totals_timeouts``,
     ``price_frames``, ``command_frames``, ``balance_frames`` (pages), ``silenced_frames``,
     ``events`` (scenario events fired), ``failovers`` (agents pinned by the failover),
     ``encode_saturations``, and the loop's
@@ -191,16 +194,15 @@ class RouterNode(SimNodeClock):
         # the DBC's cycles are for Ts = 10 ms; a time-scaled scenario stretches them
         self.price_cycle = cycle_s("ER_Price", scenario.ts)
         self.balance_cycle = cycle_s("ER_Balance", scenario.ts)
-        self.status_timeout = timeout_s(status_name(1), scenario.ts)
+        self.totals_timeout = timeout_s(TOTALS, scenario.ts)
         self._price = Cyclic(self.price_cycle, tol)
         self._balance = Cyclic(self.balance_cycle, tol)
         self._events = sorted(scenario.events, key=lambda e: e.t)
         self._next_event = 0
         self._pending: list[_PendingCommand] = []
         self._lock = threading.Lock()
-        self._status = {c.frame_id(status_name(i)): _StatusSlot()
-                        for i in range(1, scenario.n + 1)}
-        self._slots = list(self._status.values())
+        self._totals_id = c.frame_id(TOTALS)
+        self.totals = _Totals()
         # the failover's view of the agents: their MC frames, the graph, who is pinned
         self.failover = failover
         self._mc = ({c.frame_id(mc_name(i)): i for i in range(1, scenario.n + 1)}
@@ -219,10 +221,10 @@ class RouterNode(SimNodeClock):
                               "the key file has none: re-provision with bess-ded keys")
         self.io = NodeIO(c, "the router", own=("ER_Price", "ER_Command", "ER_Balance",
                                                *(("ER_PriceSig",) if self.signed_price else ())),
-                         wanted=[*self._status, *self._mc], fleet_size=scenario.n,
+                         wanted=[self._totals_id, *self._mc], fleet_size=scenario.n,
                          untrusted_s=untrusted_s(scenario.ts), keys=keys,
                          sync_s=cycle_s("ER_Price_Sync", scenario.ts),
-                         echo_depth=HOST_ECHO_DEPTH, timed=[*self._status, *self._mc])
+                         echo_depth=HOST_ECHO_DEPTH, timed=[self._totals_id, *self._mc])
         # AUTH-30: an agent sees only the commands to it; the count is re-announced
         # halfway through the windows its search covers (a burst of commands to others)
         self.io.resync_after("ER_Command", LOST_SEARCH_COUNTS // 2)
@@ -282,8 +284,8 @@ class RouterNode(SimNodeClock):
     # ------------------------------------------------------------------ receive
 
     def on_frame(self, msg: can.Message, t: float) -> None:
-        """Take one received frame at time ``t``: a plant status, for the grid
-        balance and the cost ledger."""
+        """Take one received frame at time ``t``: the plant's totals, for the grid
+        balance and the cost ledger, or an agent's MC frame, for the failover."""
         f = self.io.receive(msg, t)
         if f is None:
             return
@@ -297,12 +299,8 @@ class RouterNode(SimNodeClock):
                 self.send_command("pin", agent)
             a.rx, a.state, a.up, a.lost = t, f.raw["State"], True, False
             return
-        slot = self._status[f.frame_id]
-        self.counters["status_frames"] += 1
-        slot.power = f.phys("Power")
-        slot.flags = {k: f.raw[k] for k in _STATUS_FLAGS}
-        slot.rx = t
-        slot.fresh = True
+        self.counters["totals_frames"] += 1
+        self.totals = _Totals(f.phys("BatteryPower"), f.phys("BatteryCostRate"), t, True)
 
     # ------------------------------------------------------------------ periodic
 
@@ -384,15 +382,14 @@ class RouterNode(SimNodeClock):
 
     def _update_ledger(self, t: float, dt: float) -> None:
         sc = self.scenario
-        for i, (fid, slot) in enumerate(self._status.items(), start=1):
-            if slot.fresh and slot.rx is not None and t - slot.rx > self.status_timeout + 1e-9:
-                slot.fresh = False
-                self.io.sender_lost(fid)  # an outage's counter gap aliases
-                self.counters["status_timeouts"] += 1
-                log.info("router: PLANT_%d_Status timed out; holding P = %.2f kW", i, slot.power)
-        powers = [s.power for s in self._slots]
-        self.grid_power = sc.load_kw - sum(powers)
-        self.cost_rate = expenditure(sc.batteries, powers, self.rho, sc.load_kw)
+        tot = self.totals
+        if tot.fresh and tot.rx is not None and t - tot.rx > self.totals_timeout + 1e-9:
+            tot.fresh = False
+            self.io.sender_lost(self._totals_id)  # an outage's counter gap aliases
+            self.counters["totals_timeouts"] += 1
+            log.info("router: %s timed out; holding ΣP = %.2f kW", TOTALS, tot.power)
+        self.grid_power = sc.load_kw - tot.power
+        self.cost_rate = tot.cost_rate + self.rho * self.grid_power
         opt = self._kkt_cache.get(self.rho)
         if opt is None:
             opt = self._kkt_cache[self.rho] = kkt_optimum(sc.batteries, self.rho, sc.load_kw)[1]
@@ -457,11 +454,6 @@ class RouterNode(SimNodeClock):
         return msg
 
     # ------------------------------------------------------------------ reporting
-
-    @property
-    def measured_powers(self) -> list[float]:
-        """Last accepted P_i per BESS (kW), 0 before its first status frame."""
-        return [s.power for s in self._slots]
 
     def summary(self) -> str:
         """The router's summary at exit: ρ, grid power, cost against the optimum

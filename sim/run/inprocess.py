@@ -73,12 +73,15 @@ def recorder_keys(rings: Mapping[str, secoc.Keyring]) -> dict[str, bytes]:
                        and (k := r.key_of(n)) is not None)
         out[n] = held.most_common(1)[0][0] if held else ring.key
     n_agents = sum(label.startswith("agent_") for label in rings)
-    for name in contract.keyed_frames(n_agents):  # AUTH-28: the key its receivers hold,
-        sender = contract.sender_of(name)        # the sender's breaking a tie
+    # a ring whose node key is the one the others hold for it is the fleet's: its frame
+    # keys outweigh those of a node given another key set (a link frame has two parties)
+    of_fleet = {n for n, ring in rings.items() if out[n] == ring.key}
+    for name in contract.keyed_frames(n_agents):  # AUTH-28: the key its fleet's parties
+        sender = contract.sender_of(name)        # hold, the sender's breaking a tie
         got: Counter[bytes] = Counter()
         for m, r in rings.items():
             if (k := r.key_for(name)) is not None:
-                got[k] += 1 if m == sender else 2
+                got[k] += 2 * (m in of_fleet) + (m == sender)
         if got:
             out[name] = got.most_common(1)[0][0]
     for i in contract.agent_ids(n_agents):  # AUTH-30: the router's, the target's breaking a tie

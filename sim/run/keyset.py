@@ -90,9 +90,10 @@ def tags_of(sc: Any) -> dict[str, list[str]]:
 
 
 def frames_of(sc: Any) -> dict[str, list[str]]:
-    """AUTH-28: the link frames whose keys each node's key file holds, those it sends or
-    receives (agent i: AGENT_<i>_Setpoint and PLANT_<i>_Status; the plant: every agent's
-    two; the router: every PLANT_<i>_Status)."""
+    """AUTH-28, AUTH-29: the link frames and reports whose keys each node's key file
+    holds, those it sends or receives (agent i: AGENT_<i>_Setpoint, PLANT_<i>_Status and
+    AGENT_<i>_Diag; the plant: every agent's setpoint and status, and PLANT_Totals; the
+    router: every AGENT_<i>_Diag, PLANT_Totals and ER_Balance)."""
     from firmware_py import contract, secoc
 
     return {node: [f for f in contract.keyed_frames(sc.n) if node in contract.parties_of(f)]

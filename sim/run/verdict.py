@@ -94,6 +94,8 @@ _SYNC_JUMP = ("syncs with a valid MAC that would move their sender's boot counte
 _SIM_FAULT_COUNTERS = (
     ("setpoint_timeouts", "setpoint_timeout", "setpoint timeouts"),
     ("status_timeouts", "status_timeout", "status timeouts"),
+    ("totals_timeouts", "status_timeout", "plant totals timeouts (the router's ledger held "
+     "the last PLANT_Totals)"),
     ("impersonation", "impersonation", _IMPERSONATION),
     ("foreign", "foreign_traffic", _FOREIGN),
     ("dlc", "rejected_frames", "frames with a bad length"),
