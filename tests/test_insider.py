@@ -120,14 +120,15 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(tmp_path: Pat
                                                                   udp_port: int) -> None:
     """`bess-ded up` (case 1, CAN FD, λ tags, signed price) on udp_multicast and, once
     it runs, `bess-ded inject insider --key-file keys/agent_3.key --skip-residual` beside
-    it for 8 s: 16 forgeries, each at its cycle (not the residual, agent 3's own battery's
-    status towards agent 3 and the router, which puts agent 3 in SAFE: the test above
-    and docs/security.md). At any load: the run converges (exit 3: with
+    it for 8 s: 17 forgeries, each at its cycle (the plan has no residual left:
+    PLANT_3_Status's one receiver is agent 3, and the router's ledger takes the plant's
+    PLANT_Totals, forged here too). At any load: the run converges (exit 3: with
     anomalies), agents 1, 2 and 4 never leave RUNNING and end within 1 kW of the KKT
     optimum at ρ; every forgery is reported where it lands: `unsigned_price` at every
     agent (the price, under the router's genuine node key and freshness, is not the
     signed one), `auth_failed` at agents 1, 2 and 4, the plant and the router (commands,
-    λ tags, setpoints, statuses, Diag), `impersonation` at every node it spoke for."""
+    λ tags, setpoints, statuses, totals, Diag), `impersonation` at every node it spoke
+    for."""
     sc = hardened()
     (tmp_path / "hard.toml").write_text(to_toml(sc))
     keys = tmp_path / "keys"
@@ -154,7 +155,8 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(tmp_path: Pat
     finally:
         fleet.kill()
     assert attack.returncode == 0, attack.stdout + attack.stderr
-    assert ": 16 forgeries" in attack.stdout and "sent" in attack.stdout
+    assert ": 17 forgeries" in attack.stdout and "sent" in attack.stdout
+    assert "FORGEABLE" not in attack.stdout  # nothing left for --skip-residual to skip
     m = json.loads((out / "metrics.json").read_text())
     assert fleet.returncode == 3, stdout[-3000:]
     assert m["final_error"] < 1e-3, m["final_error"]

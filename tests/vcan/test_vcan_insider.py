@@ -4,8 +4,8 @@ Case 1 on CAN FD (vcan1, mtu 72) with λ tags and the signed price, every node i
 process, agent 2 on firmware_c's node program (its tags and its signature check in C),
 and, once every node is heard, `bess-ded inject insider --key-file keys/agent_3.key
 --skip-residual` as one more process: the router's price under its genuine node key and
-freshness, ISOLATE commands, the λ, setpoints, statuses and Diag pages of agents 1, 2, 4
-and the plant, each under the best key agent 3's file holds. The run must hold the
+freshness, ISOLATE commands, the λ, setpoints, statuses and Diag pages of agents 1, 2, 4,
+the plant's totals, each under the best key agent 3's file holds. The run must hold the
 honest dispatch and report every forgery where it lands (the udp_multicast twin and the
 plan: tests/test_insider.py).
 
@@ -58,7 +58,7 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(
     finally:
         _stop(attacker)
     said = (tmp_path / "attacker.txt").read_text()
-    assert ": 16 forgeries" in said and "refused (auth)" in said, said
+    assert ": 17 forgeries" in said and "refused (auth)" in said, said
     assert run.m["final_error"] < FINAL_TOL, run.m["anomalies"]
     assert run.m["verdict"]["exit_code"] == 3, run.m["verdict"]  # converged, with anomalies
     assert run.log.t_first_price is not None
