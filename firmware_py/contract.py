@@ -62,6 +62,7 @@ __all__ = [
     "FRESHNESS",
     "FV_TX_BITS",
     "COMMAND",
+    "TOTALS",
     "KEYED_FRAMES",
     "LINK_FRAMES",
     "MAC_BITS",
@@ -294,6 +295,9 @@ COMMAND = "ER_Command"
 """AUTH-30: the message addressed to one agent (its Target) and signed with that agent's
 command key (``secoc.derive_command_key``), held by the router and the target only; its
 sync (no Target) keeps the router's node key."""
+TOTALS = "PLANT_Totals"
+"""AUTH-29: the plant's input to the router's ledger (ΣP_i and the batteries' cost rate,
+with each status cycle), a report under a key only the plant and the router hold."""
 
 
 def lambda_receivers(neighbours: list[int]) -> list[str]:

@@ -808,6 +808,8 @@ def _compare(codec: FrameCodec, expected: Sequence[can.Message], group: Sequence
 
 def _compare_signals(codec: FrameCodec, e: can.Message, g: can.Message, kind: str,
                      tick: int, step: str, t: float) -> list[Mismatch]:
+    """``g``'s signals against ``e``'s: a Mismatch per signal that differs (one for the
+    frame when ``g`` cannot be decoded)."""
     se = _signals(codec, e)
     try:
         sg = _signals(codec, g)

@@ -127,7 +127,7 @@ def _payloads(sc: Scenario, codec: FrameCodec, node: str) -> list[tuple[str, dic
                                          "FaultSoc": 0, "FaultVoltage": 0,
                                          "FaultOverCurrent": 1}, None))
     if node not in ("plant", "router"):  # the ledger's input: no battery power, no cost
-        out.append(("PLANT_Totals", {"BatteryPower": 0, "BatteryCostRate": 0}, None))
+        out.append((contract.TOTALS, {"BatteryPower": 0, "BatteryCostRate": 0}, None))
     return out
 
 

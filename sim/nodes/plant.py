@@ -101,7 +101,15 @@ import can
 
 from dbc import dbc_path
 from firmware_py.config import agent_configs_from_scenario, untrusted_s
-from firmware_py.contract import MC_CYCLE_S, cycle_s, mc_name, setpoint_name, status_name, timeout_s
+from firmware_py.contract import (
+    MC_CYCLE_S,
+    TOTALS,
+    cycle_s,
+    mc_name,
+    setpoint_name,
+    status_name,
+    timeout_s,
+)
 from firmware_py.errors import ParameterError
 from firmware_py.frames import FrameCodec
 from firmware_py.nodeio import HOST_ECHO_DEPTH, NodeIO
@@ -125,7 +133,6 @@ FAULT_KINDS = ("overcurrent", "voltage", "soc", "power_limit")
 
 # status signal → (scale, raw lo, raw hi) is taken from the codec; values are saturated
 _STATUS_SIGNALS = ("Power", "Soc")
-TOTALS = "PLANT_Totals"
 _TOTALS_SIGNALS = ("BatteryPower", "BatteryCostRate")
 
 
@@ -380,11 +387,11 @@ class PlantNode(SimNodeClock):
                          echo_depth=HOST_ECHO_DEPTH, timed=self._setpoint_ids)
         self.counters = self.io.counters
         self.last_error = self.io.last_error
-        first = self._status_names[0]
-        self._ranges = {s: c.raw_range(first, s) for s in _STATUS_SIGNALS}
-        self._scales = {s: c.scale(first, s) for s in _STATUS_SIGNALS}
-        self._totals_ranges = {s: c.raw_range(TOTALS, s) for s in _TOTALS_SIGNALS}
-        self._totals_scales = {s: c.scale(TOTALS, s) for s in _TOTALS_SIGNALS}
+        # every signal the plant sends, by name (the status's and the totals' differ)
+        sent = [(self._status_names[0], s) for s in _STATUS_SIGNALS] + [
+            (TOTALS, s) for s in _TOTALS_SIGNALS]
+        self._ranges = {s: c.raw_range(name, s) for name, s in sent}
+        self._scales = {s: c.scale(name, s) for name, s in sent}
         self._active_faults: set[int] = set()
         self._sp_scale = c.scale(setpoint_name(1), "PowerSetpoint")
         self._init_clock()
@@ -454,9 +461,10 @@ class PlantNode(SimNodeClock):
                 self.counters[name] += now and not was
         out = self.io.syncs(t)
         if self._status.due(t):
-            out += [self._status_frame(u, name)
-                    for u, name in zip(self.units, self._status_names, strict=True)]
-            out.append(self._totals_frame())
+            powers = [self._raw("Power", u.power) for u in self.units]  # as reported
+            out += [self._status_frame(u, name, p)
+                    for u, name, p in zip(self.units, self._status_names, powers, strict=True)]
+            out.append(self._totals_frame(powers))
         return out
 
     def _forced(self, t_rel: float) -> dict[int, set[str]]:
@@ -484,32 +492,33 @@ class PlantNode(SimNodeClock):
             log.info("plant: BESS %d setpoint timed out (%.0f ms old): ramping to 0", u.agent,
                      1e3 * (t - u.setpoint_rx))
 
-    def _raw(self, signal: str, value: float, totals: bool = False) -> int:
-        lo, hi = (self._totals_ranges if totals else self._ranges)[signal]
-        r = round(value / (self._totals_scales if totals else self._scales)[signal])
+    def _raw(self, signal: str, value: float) -> int:
+        lo, hi = self._ranges[signal]
+        r = round(value / self._scales[signal])
         if r < lo or r > hi:
             self.counters["encode_saturations"] += 1
             r = min(hi, max(lo, r))
         return r
 
-    def _status_frame(self, u: BessUnit, name: str) -> can.Message:
+    def _status_frame(self, u: BessUnit, name: str, power: int) -> can.Message:
+        """``name`` for unit ``u``, its Power the raw ``power`` (``_raw``'d once a cycle:
+        the totals sum the same values)."""
         msg = self.io.send(name, {
             "FaultOverCurrent": int(u.fault_overcurrent), "FaultVoltage": int(u.fault_voltage),
             "FaultSoc": int(u.fault_soc), "PowerLimited": int(u.power_limited),
-            "Power": self._raw("Power", u.power),
+            "Power": power,
             "Soc": self._raw("Soc", 100.0 * u.soc),
         })
         self.counters["status_frames"] += 1
         return msg
 
-    def _totals_frame(self) -> can.Message:
-        """PLANT_Totals: the sum of the powers the status frames just sent report, and
-        the batteries' cost rate at them (the router's ledger, AUTH-29)."""
-        scale = self._scales["Power"]
-        powers = [self._raw("Power", u.power) * scale for u in self.units]
+    def _totals_frame(self, raw_powers: list[int]) -> can.Message:
+        """PLANT_Totals: the sum of the powers the status frames just sent report (raw),
+        and the batteries' cost rate at them (the router's ledger, AUTH-29)."""
+        powers = [r * self._scales["Power"] for r in raw_powers]
         cost = float(sum(u.battery.cost_rate(p) for u, p in zip(self.units, powers, strict=True)))
-        msg = self.io.send(TOTALS, {"BatteryPower": self._raw("BatteryPower", sum(powers), True),
-                                    "BatteryCostRate": self._raw("BatteryCostRate", cost, True)})
+        msg = self.io.send(TOTALS, {"BatteryPower": self._raw("BatteryPower", sum(powers)),
+                                    "BatteryCostRate": self._raw("BatteryCostRate", cost)})
         self.counters["totals_frames"] += 1
         return msg
 

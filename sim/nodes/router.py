@@ -59,7 +59,7 @@ import can
 
 from dbc import dbc_path
 from firmware_py.config import agent_configs_from_scenario, untrusted_s
-from firmware_py.contract import Command, State, cycle_s, mc_name, timeout_s
+from firmware_py.contract import TOTALS, Command, State, cycle_s, mc_name, timeout_s
 from firmware_py.errors import ConfigError, ParameterError
 from firmware_py.frames import LAMBDA_Q, PIN_OFF, PIN_ON, FrameCodec, target_raw
 from firmware_py.nodeio import HOST_ECHO_DEPTH, LOST_SEARCH_COUNTS, NodeIO
@@ -81,7 +81,6 @@ COMMANDS = {"isolate": Command.ISOLATE, "reconnect": Command.RECONNECT,
             "set_gains": Command.SET_GAINS, "pin": Command.PIN, "unpin": Command.PIN}
 PIN_GAIN_K = {"pin": PIN_ON, "unpin": PIN_OFF}   # a PIN's GainK says which way (CMD-7)
 EVENT_COMMANDS = {"isolate": "isolate", "reconnect": "reconnect"}
-TOTALS = "PLANT_Totals"  # the plant's input to the ledger (AUTH-29: its key, the router's)
 
 
 @dataclass(frozen=True)
