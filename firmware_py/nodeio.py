@@ -56,6 +56,13 @@ could otherwise lock a sender out for good with one sync of boot 65535. One with
 bound is taken, the value before it kept; a later sync of the sender in the boot it had
 left (newer than anything taken of it) undoes the advance (``sync_jump``).
 
+Pending boot advance (AUTH-35). A verified sync that advances the boot of an input in
+step (not lost) is held, not taken: a frame that then fails its window is tried once on
+the held track, and if it verifies there its sender did restart and the advance is taken.
+The sender's next sync of the boot the input is in drops it (``sync_jump``): a forged
+sync, even under the sender's own key, moves no receiver. A timeout drops it too (the
+lost sender's next sync is taken as it comes).
+
 Late is not forged. A frame that fails the window is tried once more, with the most
 recent freshness value at or below the last accepted one that has its low bits
 (``STALE_WINDOWS`` = 1 window: the 16 values up to the last accepted, one CMAC, spent
@@ -241,6 +248,9 @@ class NodeIO:
         # AUTH-27: per secured input, the last value before its latest boot advance
         self._back: dict[int, int] = {}
         self._spoke: set[int] = set()  # secured IDs with a frame taken since their `back`
+        # AUTH-35: per secured input in step, the value a verified boot advance announced,
+        # held until a frame verifies on it (the sender did restart)
+        self._pending: dict[int, int] = {}
         self._peer_boot: dict[int, int] = {}  # sync ID of a frame not used -> its boot
         if keys.insecure:  # every insecure sender starts at boot 1, count 0: no sync needed
             self._joining = None  # and no replay protection to join for
@@ -443,7 +453,13 @@ class NodeIO:
         # AUTH-30: the router's commands to other agents move its count unseen: the wide
         # search (AUTH-13's) for every command
         wide = fid in self._lost or fid == contract.ER_COMMAND_ID
-        fv = self._fv.search(fid, frame.counter, LOST_WINDOWS if wide else 1, verifies)
+        windows = LOST_WINDOWS if wide else 1
+        fv = self._fv.search(fid, frame.counter, windows, verifies)
+        if fv is None and fid in self._pending:
+            pending = self._pending[fid]
+            fv = self._on_pending(fid, frame.name, frame.counter, windows, verifies)
+            if fv is not None:
+                last = pending  # the frame's gap counts from the advance it completed
         if fv is None:
             if self._fv.search_late(fid, frame.counter, STALE_WINDOWS, verifies):
                 self.reject("stale", f"{frame.name}: its MAC verifies with a freshness value "
@@ -467,6 +483,56 @@ class NodeIO:
         if not defer_trust:
             self._streak[fid] = 0
         return frame
+
+    def _on_pending(self, fid: int, name: str, counter: int, windows: int,
+                    verifies: Callable[[int], bool]) -> int | None:
+        """AUTH-35: a frame that failed its window, tried on the track of the input's
+        pending boot advance; if it verifies there, its sender did restart: the advance is
+        taken as a sync would have been (AUTH-27's ``back`` set, a resync, a hello) and the
+        frame's freshness value returned; else None, nothing changed."""
+        pending = self._pending[fid]
+        fv = FreshnessVerifier(contract.FV_TX_BITS, initial={fid: pending}).search(
+            fid, counter, windows, verifies)
+        if fv is None:
+            return None
+        del self._pending[fid]
+        self._advance(fid, pending)
+        log.info("%s: %s verifies at boot %d: its sender restarted, its sync's advance "
+                 "taken (AUTH-35)", self.who, name, contract.FRESHNESS.split(fv)[0])
+        return fv
+
+    def _advance(self, fid: int, value: int) -> None:
+        """Take a boot advance to ``value`` (a sync's FV − 1): AUTH-27's undo point first.
+        A second advance with no frame since the first keeps the first's (forged syncs in
+        a row are undone together)."""
+        if fid in self._spoke or fid not in self._back:
+            last = self._fv.last(fid)
+            assert last is not None
+            self._back[fid] = last
+        self._spoke.discard(fid)
+        self._fv.accept(fid, value, frame=False)
+        self._lost.discard(fid)
+        self.counters["resyncs"] += 1
+        self._hello_due = True  # a peer restarted: tell it our freshness now
+
+    def _holds_advance(self, fid: int) -> bool:
+        """AUTH-35: a boot advance of input ``fid`` is held (not lost: its sender is
+        live, and a restart of it shows in its next frame)."""
+        return fid not in self._lost
+
+    def _drop_pending(self, fid: int, name: str, boot: int) -> None:
+        """AUTH-35: a verified sync of ``boot``, below the boot of the advance input
+        ``fid`` holds (the boot the input is in, or a later one the sender restarted
+        to): a sender never goes back, so that advance was forged (a key holder's):
+        dropped, ``sync_jump``. Nothing if none is held of a later boot."""
+        held = self._pending.get(fid)
+        if held is None or contract.FRESHNESS.split(held + 1)[0] <= boot:
+            return
+        del self._pending[fid]
+        self.counters["sync_jump"] += 1
+        log.warning("%s: %s of boot %d: its sender is in that boot, so the sync that "
+                    "announced boot %d was forged (AUTH-35: never taken)", self.who, name,
+                    boot, contract.FRESHNESS.split(held + 1)[0])
 
     def _on_sync(self, msg: can.Message, sync_id: int, t: float) -> None:
         fid = self._synced_by[sync_id]
@@ -539,6 +605,7 @@ class NodeIO:
         if last is not None and fv - 1 <= last:
             if fv - 1 == last:
                 self._lost.discard(fid)  # in step with the sender: the normal window
+                self._drop_pending(fid, name, boot)
                 return  # nothing new: the sender sent no frame since its last sync
             if not self.keys.insecure:  # a genuine sync never goes back
                 if not self._revert(fid, name, fv, last):
@@ -554,10 +621,14 @@ class NodeIO:
                 return
             if boot == expected and self._count_jump(fid, name, sync_id, last, fv, t):
                 return
-            if boot > expected:  # AUTH-27: where a forged advance is undone to; a second
-                if fid in self._spoke or fid not in self._back:  # with no frame between
-                    self._back[fid] = last  # keeps the first's (forged syncs in a row)
-                self._spoke.discard(fid)
+            if boot > expected:
+                if self._holds_advance(fid):  # AUTH-35: held until a frame verifies on it
+                    self._drop_pending(fid, name, boot)  # one of a later boot: forged
+                    self._pending[fid] = fv - 1
+                    return
+                self._advance(fid, fv - 1)
+                return
+            self._drop_pending(fid, name, boot)
         self._fv.accept(fid, fv - 1, frame=False)  # its next frame uses fv
         self._lost.discard(fid)
         self.counters["resyncs"] += 1
@@ -574,6 +645,7 @@ class NodeIO:
             return False
         del self._back[fid]
         boot = contract.FRESHNESS.split(fv)[0]
+        self._drop_pending(fid, name, boot)
         self._fv.forget(fid)
         self._fv.accept(fid, fv - 1, frame=False)
         self._lost.discard(fid)
@@ -703,6 +775,7 @@ class NodeIO:
         if fid not in self._inputs:
             raise KeyError(fid)
         self._lost.add(fid)
+        self._pending.pop(fid, None)  # its next sync is taken as it comes (AUTH-35)
 
     @property
     def sync_schedule(self) -> SyncSchedule:

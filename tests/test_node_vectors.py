@@ -341,6 +341,10 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
         mp.setattr(nodeio, "beyond_boot_bound", lambda *_a: False)
     elif kind == "no_boot_undo":  # AUTH-27's undo left out
         mp.setattr(nodeio.NodeIO, "_revert", lambda *_a: False)
+    elif kind == "no_pending_advance":    # AUTH-35 left out: an advance taken at once
+        mp.setattr(nodeio.NodeIO, "_holds_advance", lambda *_a: False)
+    elif kind == "pending_never_dropped":  # AUTH-35's drop left out
+        mp.setattr(nodeio.NodeIO, "_drop_pending", lambda *_a: None)
     elif kind == "no_count_bound":        # AUTH-27's count bound lifted
         mp.setattr(nodeio.NodeIO, "_count_jump", lambda *_a: False)
     elif kind == "command_kept_at_price_timeout":   # ER_Command not lost with the price
@@ -383,6 +387,8 @@ MUTATIONS: dict[str, list[str]] = {
     "one_freshness_window_after_a_timeout": ["price_timeout_safe"],
     "no_boot_bound": ["sync_boot_jump"],
     "no_boot_undo": ["sync_boot_jump"],
+    "no_pending_advance": ["boot_floors", "peer_restart", "sync_boot_jump"],
+    "pending_never_dropped": ["sync_boot_jump"],
     "no_count_bound": ["sync_count_jump"],
     "command_kept_at_price_timeout": ["sync_count_jump"],
     "no_lambda_plausibility": ["neighbour_timeout"],

@@ -201,13 +201,14 @@ def test_a_forged_sync_cannot_lock_the_router_out(
 @pytest.mark.slow
 def test_without_the_bound_the_forged_sync_locks_the_fleet_out(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The control (the test above can fail): with the bound lifted and no undo (the
-    rules before AUTH-27), the one forged sync of boot 65535 puts the fleet out of the
+    """The control (the test above can fail): with the bound lifted, no undo and no held
+    advance (the rules before AUTH-27 and AUTH-35), the one forged sync of boot 65535 puts the fleet out of the
     price for good, the router's restart included, as issue 25 found."""
     from firmware_py.nodeio import NodeIO
 
     monkeypatch.setattr("firmware_py.nodeio.beyond_boot_bound", lambda *_a: False)
     monkeypatch.setattr(NodeIO, "_revert", lambda *_a: False)
+    monkeypatch.setattr(NodeIO, "_holds_advance", lambda *_a: False)
     key = _stolen_router_key(tmp_path)
     m, _, counters = _run(tmp_path / "run", _forged_sync(key, lambda: 65535, 2.0),
                           restarts=[("router", 5.0, 5.2)])
@@ -235,9 +236,11 @@ def test_without_the_count_bound_one_forged_sync_puts_the_fleet_in_safe(
 
 
 def test_the_bound_and_the_undo_at_one_receiver() -> None:
-    """AUTH-27 at one NodeIO (the plant's receive path is the same code): a sync more
-    than SYNC_BOOT_JUMP_MAX boots ahead is `sync_jump` + `auth` and moves nothing; one
-    within is taken; the sender's next sync of the boot it had left undoes it."""
+    """AUTH-27 and AUTH-35 at one NodeIO (the plant's receive path is the same code): a
+    sync more than SYNC_BOOT_JUMP_MAX boots ahead is `sync_jump` + `auth` and moves
+    nothing; one within is held, and the sender's next sync of its boot drops it; taken
+    when a forged frame verifies on it, it is undone by that sync; a genuine restart is
+    taken at the sender's first frame."""
     from sim.nodes.plant import PlantNode
 
     rings = secoc.Keyring.fleet(MASTER, secoc.fleet_nodes(CASE.n))
@@ -260,11 +263,27 @@ def test_the_bound_and_the_undo_at_one_receiver() -> None:
     assert io.last_freshness(fid) == contract.FRESHNESS.join(3, 0)
     near = FleetSender(CODEC, keys=keys, boot=3 + secoc.SYNC_BOOT_JUMP_MAX)
     io.receive(near.sync("AGENT_1_Setpoint"), t)
-    assert contract.FRESHNESS.split(io.last_freshness(fid) + 1)[0] == 3 + 8  # taken
+    assert io.last_freshness(fid) == contract.FRESHNESS.join(3, 0)  # held (AUTH-35)
+    genuine.frame("AGENT_1_Setpoint", {"Enable": 0, "PowerSetpoint": 0})  # not heard
+    io.receive(genuine.sync("AGENT_1_Setpoint"), t)  # its boot: the held advance dropped
+    assert io.counters["sync_jump"] == 2 and io.counters["resyncs"] == 2
+    assert io.last_freshness(fid) == contract.FRESHNESS.join(3, 2) - 1
+    # a key holder that forges a frame on its track too has the advance taken (AUTH-35);
+    # the sender's next sync of the boot it is in undoes it (AUTH-27)
+    io.receive(near.sync("AGENT_1_Setpoint"), t)
+    io.receive(near.frame("AGENT_1_Setpoint", {"Enable": 0, "PowerSetpoint": 0}), t)
+    assert contract.FRESHNESS.split(io.last_freshness(fid))[0] == 3 + 8  # taken
     genuine.frame("AGENT_1_Setpoint", {"Enable": 0, "PowerSetpoint": 0})  # not heard
     io.receive(genuine.sync("AGENT_1_Setpoint"), t)
-    assert io.counters["sync_jump"] == 2
-    assert io.last_freshness(fid) == contract.FRESHNESS.join(3, 2) - 1  # back in boot 3
+    assert io.counters["sync_jump"] == 3
+    assert io.last_freshness(fid) == contract.FRESHNESS.join(3, 3) - 1  # back in boot 3
     # that sync again moves nothing; an older one of boot 3 is a replay
     io.receive(genuine.sync("AGENT_1_Setpoint"), t)
-    assert io.counters["sync_jump"] == 2 and io.counters["auth"] == 1
+    assert io.counters["sync_jump"] == 3 and io.counters["auth"] == 1
+    # a genuine restart: its sync is held, its first frame verifies on the held track
+    genuine.restart()
+    io.receive(genuine.sync("AGENT_1_Setpoint"), t)
+    assert contract.FRESHNESS.split(io.last_freshness(fid) + 1)[0] == 3
+    io.receive(genuine.frame("AGENT_1_Setpoint", {"Enable": 0, "PowerSetpoint": 0}), t)
+    assert io.last_freshness(fid) == contract.FRESHNESS.join(4, 0)
+    assert io.counters["sync_jump"] == 3 and io.counters["auth"] == 1

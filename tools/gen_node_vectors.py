@@ -966,13 +966,16 @@ def sc_boot_floors() -> Scenario:
 def sc_boot_jump() -> Scenario:
     s = Scenario(
         "sync_boot_jump",
-        "Bounded boot advance (AUTH-27), syncs signed with the router's key as a key holder "
-        "forges them: a price sync 9 boots ahead of the router's is refused (sync_jump and "
-        "auth on the sync ID, nothing set): the genuine price goes on; one 8 boots ahead is "
-        "taken, so the genuine prices after it fail (auth); the router's next sync, of the "
-        "boot it is still in, undoes the advance (sync_jump, resync, hello) and its prices "
-        "are taken again; the router then restarts (boot + 1) and is heard.",
-        ["AUTH-16", "AUTH-27", "DIAG-1"])
+        "Bounded and pending boot advance (AUTH-27, AUTH-35), syncs signed with the router's "
+        "key as a key holder forges them: a price sync 9 boots ahead of the router's is "
+        "refused (sync_jump and auth on the sync ID, nothing set); one 8 boots ahead is "
+        "held, not taken: the genuine prices go on, and the router's next sync, of the boot "
+        "it is in, drops it (sync_jump): a price forged on its track is then auth. Held "
+        "again and completed by a price forged on its track, it is taken (resync, hello) "
+        "and the genuine prices fail (auth) until the router's next sync undoes it "
+        "(sync_jump, resync, hello). The router then restarts (boot + 1): its sync is held "
+        "and taken at its first price.",
+        ["AUTH-16", "AUTH-27", "AUTH-35", "DIAG-1"])
     nb = start(s)
     s.run(40, price=RHO, nbrs=nb)
     boot = s.router.boot
@@ -980,14 +983,25 @@ def sc_boot_jump() -> Scenario:
          note="a price sync 9 boots ahead: sync_jump and auth, nothing set")
     s.run(20, price=RHO, nbrs=nb)
     s.rx(s.router.sync("ER_Price", count=0, boot=boot + 8),
-         note="8 boots ahead: taken (the value before it kept)")
+         note="8 boots ahead: held (AUTH-35), nothing set")
+    s.run(12, price=RHO, nbrs=nb)
+    s.sync("router", "ER_Price", note="the router's own sync, of the boot it is in: drops "
+           "the held advance (sync_jump)")
+    forger = Sender("router", s.router.key, boot + 8)
+    s.rx(forger.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": RHO}),
+         note="a price forged on the dropped track: auth")
+    s.run(20, price=RHO, nbrs=nb)
+    s.rx(s.router.sync("ER_Price", count=1, boot=boot + 8),
+         note="8 boots ahead again: held")
+    s.rx(forger.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": RHO}),
+         note="a price forged on the held track: the advance taken (resync, hello)")
     s.run(12, price=RHO, nbrs=nb)
     s.sync("router", "ER_Price", note="the router's own sync, of the boot it is in: undoes "
            "the advance (sync_jump, resync, hello)")
     s.run(30, price=RHO, nbrs=nb)
     s.router.restart()
     s.run(4, price=None, nbrs=nb)
-    s.sync("router", "ER_Price", note="the router restarted (boot + 1): its price sync")
+    s.sync("router", "ER_Price", note="the router restarted (boot + 1): its price sync, held")
     s.sync("router", "ER_Command")
     s.run(30, price=RHO, nbrs=nb)
     return s

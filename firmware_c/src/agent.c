@@ -394,6 +394,7 @@ void bd_set_state(bd_agent *a, uint32_t state)
 static void sender_lost(bd_rx_slot *s)
 {
     s->flags |= BD_RX_LOST;
+    s->flags &= (uint8_t)~BD_RX_PENDING;   /* its next sync is taken as it comes (AUTH-35) */
 }
 
 static void update_neighbours(bd_agent *a, int64_t t)

@@ -217,6 +217,53 @@ static int stale(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t counter
     return 0;
 }
 
+/* AUTH-27: take a boot advance to v (a sync's FV - 1); the undo point first, unless a
+ * second advance has had no frame since the first (forged syncs in a row are undone
+ * together). */
+static void take_advance(bd_agent *a, bd_rx_slot *s, uint64_t v, uint32_t id)
+{
+    if ((s->flags & BD_RX_SPOKE) != 0u || (s->flags & BD_RX_BACK) == 0u) {
+        s->back_boot = (uint16_t)fv_boot(s->fv);
+        s->back_count = (uint32_t)(s->fv & FV_COUNT_MASK);
+        s->flags |= BD_RX_BACK;
+    }
+    s->flags &= (uint8_t)~(BD_RX_SPOKE | BD_RX_LOST);
+    s->seen = seen_after(s, 1, v, 0u);
+    s->fv = v;
+    bd_count_add(a, BD_C_RESYNCS, 1u, id);
+    a->hello_due = 1;   /* a peer restarted: tell it our freshness now */
+}
+
+/* AUTH-35: 1 if a frame that failed its window verifies on the input's held boot
+ * advance: its sender did restart, so the advance is taken; fv is then its value. */
+static int on_pending(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t counter,
+                      uint32_t windows, uint64_t *fv)
+{
+    if ((s->flags & BD_RX_PENDING) == 0u
+        || bd_fv_candidate(s->pending, counter, BD_FV_TX_BITS, FV_MAX, fv) != 0) {
+        return 0;
+    }
+    for (; windows > 0u; --windows, *fv += FV_WINDOW) {
+        if (verifies(a, frame_key(a, s, 0), f, *fv)) {
+            s->flags &= (uint8_t)~BD_RX_PENDING;
+            take_advance(a, s, s->pending, s->sync_id);
+            return 1;
+        }
+    }
+    return 0;
+}
+
+/* AUTH-35: a verified sync of `boot`, below the boot of the advance the input holds (the
+ * boot it is in, or a later one its sender restarted to): a sender never goes back, so
+ * the held advance was forged: dropped, `sync_jump`. */
+static void drop_pending(bd_agent *a, bd_rx_slot *s, uint32_t boot, uint32_t id)
+{
+    if ((s->flags & BD_RX_PENDING) != 0u && fv_boot(s->pending + 1u) > boot) {
+        s->flags &= (uint8_t)~BD_RX_PENDING;
+        bd_count_add(a, BD_C_SYNC_JUMP, 1u, id);
+    }
+}
+
 /* AUTH-9..12: 1 if a decoded secured frame is authentic and fresh (and accepted). */
 static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t counter,
                      int64_t t)
@@ -228,16 +275,19 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
     /* AUTH-30: commands to other agents move the router's count unseen: the wide search
      * for every command */
     int command = s == &a->rx[BD_RX_COMMAND];
-    uint32_t tries = ((s->flags & BD_RX_LOST) != 0u || command) ? LOST_WINDOWS : 1u;
+    uint32_t windows = ((s->flags & BD_RX_LOST) != 0u || command) ? LOST_WINDOWS : 1u;
     uint64_t fv;
     int found = 0;
     if (bd_fv_candidate(s->fv, counter, BD_FV_TX_BITS, FV_MAX, &fv) == 0) {
-        for (; tries > 0u; --tries, fv += FV_WINDOW) {
+        for (uint32_t k = windows; k > 0u; --k, fv += FV_WINDOW) {
             if (verifies(a, frame_key(a, s, 0), f, fv)) {
                 found = 1;
                 break;
             }
         }
+    }
+    if (!found) {
+        found = on_pending(a, s, f, counter, windows, &fv);
     }
     if (!found) {
         if (stale(a, s, f, counter)) {
@@ -284,6 +334,7 @@ static int revert(bd_agent *a, bd_rx_slot *s, uint64_t v, uint32_t boot, uint32_
         || boot >= fv_boot(s->fv + 1u) || boot < fv_boot(back + 1u)) {
         return 0;
     }
+    drop_pending(a, s, boot, id);
     s->flags &= (uint8_t)~(BD_RX_BACK | BD_RX_LOST);
     s->seen = seen_after(s, 0, v - 1u, 0u);
     s->fv = v - 1u;
@@ -332,6 +383,7 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
     if (has_fv && fv - 1u <= s->fv) {
         if (fv - 1u == s->fv) {
             s->flags &= (uint8_t)~BD_RX_LOST;   /* in step with the sender */
+            drop_pending(a, s, m.boot, f->id);
             return;
         }
         if (!a->insecure) {   /* a genuine sync never goes back */
@@ -360,15 +412,17 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
             return;
         }
         if (m.boot > expected) {
-            /* AUTH-27: where a forged advance is undone to; a second one with no frame
-             * taken since the first keeps the first's (forged syncs in a row) */
-            if ((s->flags & BD_RX_SPOKE) != 0u || (s->flags & BD_RX_BACK) == 0u) {
-                s->back_boot = (uint16_t)fv_boot(s->fv);
-                s->back_count = (uint32_t)(s->fv & FV_COUNT_MASK);
-                s->flags |= BD_RX_BACK;
+            if ((s->flags & BD_RX_LOST) == 0u) {
+                /* AUTH-35: an input in step holds it until a frame verifies on it */
+                drop_pending(a, s, m.boot, f->id);   /* one of a later boot: forged */
+                s->pending = fv - 1u;
+                s->flags |= BD_RX_PENDING;
+                return;
             }
-            s->flags &= (uint8_t)~BD_RX_SPOKE;
+            take_advance(a, s, fv - 1u, f->id);
+            return;
         }
+        drop_pending(a, s, m.boot, f->id);
     }
     if (fv - 1u <= FV_MAX) {
         s->seen = seen_after(s, (s->flags & BD_RX_HAS_FV) != 0u, fv - 1u, 0u);

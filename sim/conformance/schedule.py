@@ -103,9 +103,10 @@ STEPS = (
          "frame 16 freshness values on; a neighbour's frames lost on the bus past its "
          "timeout, its count 120 on when it returns (window 8); price syncs 9 boots and "
          "17 values on (refused), then 16 on (taken), a command sync 129 on (refused); a "
+         "price sync 8 boots on (held: the prices go on), dropped by the router's next; a "
          "neighbour's Setpoint sync (a peer's boot: a hello), then again (no hello)",
          ("AUTH-9", "AUTH-12", "AUTH-13", "AUTH-14", "AUTH-15", "AUTH-16", "AUTH-18",
-          "AUTH-19", "AUTH-27", "RX-5", "RX-10", "RX-12", "RX-13", "LIVE-2", "LIVE-3",
+          "AUTH-19", "AUTH-27", "AUTH-35", "RX-5", "RX-10", "RX-12", "RX-13", "LIVE-2", "LIVE-3",
           "TMO-4", "DIAG-4", "CFG-7")),
     Step("states", 1130, 1350, "RECONNECT in RUNNING; PriceValid = 0 frames only (SAFE); "
          "RECONNECT and ISOLATE in SAFE; the price silent and a plant fault while ISOLATED; "
@@ -1076,6 +1077,14 @@ def _plan(cfg: AgentConfig, keys: Mapping[str, bytes] | None, price: float,
         if k == fr + 33:
             add(k + 0.6, step, tx.sync_ahead("ER_Command", counts=LOST_SEARCH_COUNTS + 1),
                 "a command sync 129 values on (a key holder's)")
+        # AUTH-35: a key holder's price sync 8 boots on is held, not taken (the router's
+        # prices go on being taken); the router's next sync of its boot drops it
+        if k == fr + 34:
+            add(k + 0.6, step, tx.sync_ahead("ER_Price", boots=SYNC_BOOT_JUMP_MAX),
+                "a price sync 8 boots on (a key holder's: held)")
+        if k == fr + 37:
+            add(k + 0.6, step, tx.sync("ER_Price"), "the router's price sync of its boot "
+                "(drops the held advance)")
         if k in (fr + 40, fr + 60) and nbrs:  # a peer's sync: first of its boot, then again
             add(k + 0.6, step, tx.sync(f"AGENT_{nbrs[0]}_Setpoint"),
                 "a neighbour's Setpoint sync (a peer sync)")

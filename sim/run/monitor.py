@@ -64,6 +64,8 @@ class Monitor:
         self.boots: dict[str, int] = {}  # label -> the boot of its latest verified sync
         self.spoke: set[int] = set()  # secured IDs with a frame since their `back`
         self.back: dict[int, int] = {}  # per secured ID: its value before its last boot advance
+        # per secured ID: the value of a boot advance held until a frame verifies on it
+        self.pending: dict[int, int] = {}
         # syncs that undid a boot advance: their sender carried on in the boot it had left
         self.undone: Counter[str] = Counter()
 
@@ -88,8 +90,9 @@ class Monitor:
     def sync(self, f: DecodedFrame, data: bytes | bytearray, t: float = 0.0) -> None:
         """Take a sync frame: its freshness becomes the sender's (raises ``StaleBoot``,
         ``SyncJump``, ``Stale`` or ``Forged`` when it does not verify as the newest). A
-        sync that undoes a forged boot advance (AUTH-27) is taken and counted in
-        ``undone``."""
+        sync that advances its ID's boot is held until a frame verifies on it (AUTH-35);
+        one of the boot its ID is in drops a held advance, and one that undoes a boot
+        advance taken (AUTH-27) is taken: either counts in ``undone``."""
         verifies = self._verifier(f, data)
         fv = contract.FRESHNESS.join(f.raw["Boot"], f.raw["Count"])
         fid = contract.SYNCED_BY[f.frame_id]
@@ -103,6 +106,7 @@ class Monitor:
             # AUTH-27, as the nodes do: the sender is alive in the boot a forged sync
             # advanced it from; back to its genuine freshness
             del self.back[fid]
+            self._drop(fid, f.name, boot)
             self.fv.forget(fid)
             self.fv.accept(fid, fv - 1, frame=False)
             self.boots[label] = boot
@@ -120,11 +124,13 @@ class Monitor:
                 and fv - 1 - last > self._reach(fid, f.name.removesuffix("_Sync"), t)):
             raise SyncJump  # a count no frame could reach: forged, as the nodes refuse it
         if verified:
-            self.boots[label] = boot
             if last is not None and boot > split(last + 1)[0]:
-                if fid in self.spoke or fid not in self.back:  # as the nodes (AUTH-27)
-                    self.back[fid] = last
-                self.spoke.discard(fid)
+                self._drop(fid, f.name, boot)  # one held of a later boot was forged
+                self.pending[fid] = fv - 1  # AUTH-35: held until a frame verifies on it
+                return
+            if last is not None and fv - 1 >= last:
+                self._drop(fid, f.name, boot)  # its sender is in the boot its ID is in
+            self.boots[label] = boot
             if last is None or fv - 1 > last:
                 self.fv.accept(fid, fv - 1, frame=False)
             if last is None or fv - 1 >= last:
@@ -133,6 +139,37 @@ class Monitor:
             if self.fv.late_sync(last - (fv - 1)):
                 raise Stale  # its tick's frame overtook it (AUTH-16, AUTH-25)
         raise Forged  # forged, or a replayed sync (a genuine one never goes back)
+
+    def _drop(self, fid: int, name: str, boot: int) -> None:
+        """AUTH-35: a held boot advance of ``fid`` later than ``boot``, the boot of a
+        verified sync of its sender (which never goes back): forged, dropped and counted
+        in ``undone``, as the nodes do."""
+        held = self.pending.get(fid)
+        if held is not None and contract.FRESHNESS.split(held + 1)[0] > boot:
+            del self.pending[fid]
+            self.undone[name] += 1
+
+    def _take_pending(self, f: DecodedFrame, verifies: Callable[[int], bool],
+                      t: float) -> int | None:
+        """AUTH-35: a frame that failed its window, tried on its ID's held boot advance;
+        if it verifies there, the advance is taken as the nodes take it (AUTH-27's
+        ``back`` set) and the frame's value returned."""
+        fid, pending = f.frame_id, self.pending.get(f.frame_id)
+        if pending is None:
+            return None
+        track = FreshnessVerifier(tx_bits=contract.FV_TX_BITS, initial={fid: pending})
+        fv = track.search(fid, f.counter, self.windows(f, t), verifies)
+        if fv is None:
+            return None
+        del self.pending[fid]
+        last = self.fv.last(fid)
+        if fid in self.spoke or fid not in self.back:  # as the nodes (AUTH-27)
+            assert last is not None
+            self.back[fid] = last
+        self.spoke.discard(fid)
+        self.fv.accept(fid, pending, frame=False)
+        self.boots[contract.sender_of(f.name)] = contract.FRESHNESS.split(fv)[0]
+        return fv
 
     def windows(self, f: DecodedFrame, t: float) -> int:
         """Freshness windows a frame at ``t`` may lie ahead (the class docstring)."""
@@ -157,6 +194,8 @@ class Monitor:
         if verifies is None or self.fv.last(f.frame_id) is None:
             return False
         fv = self.fv.search(f.frame_id, f.counter, self.windows(f, t), verifies)
+        if fv is None:
+            fv = self._take_pending(f, verifies, t)
         if fv is not None:
             self.fv.accept(f.frame_id, fv)
             self.spoke.add(f.frame_id)  # a frame since the latest boot advance

@@ -586,8 +586,9 @@ def _recording(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
                            "refused them"))
     for name, k in sorted(log.sync_undone.items()):
         out.append(Anomaly("sync_jump", "bus", f"{name}: {k} genuine syncs of its sender's "
-                           "current boot after a sync had advanced that boot (AUTH-27: that "
-                           "advance was forged by a key holder; undone by the nodes and the "
+                           "current boot after a sync had advanced that boot (that advance "
+                           "was forged by a key holder: held and dropped, AUTH-35, or taken "
+                           "with a forged frame and undone, AUTH-27, by the nodes and the "
                            "analysis)"))
     stale = sum(log.stale.values())
     if stale > STALE_FRACTION * max(log.frames, 1):

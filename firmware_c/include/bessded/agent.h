@@ -171,9 +171,11 @@ typedef void (*bd_event_fn)(void *ctx, int event, uint32_t frame_id, uint32_t de
 #define BD_RX_JOIN 0x08u          /* joining: fv is the newest sync's FV (AUTH-26) */
 #define BD_RX_BACK 0x10u          /* back is set (AUTH-27) */
 #define BD_RX_SPOKE 0x20u         /* a frame was taken since the latest boot advance (AUTH-27) */
+#define BD_RX_PENDING 0x40u       /* pending is set: a boot advance held (AUTH-35) */
 typedef struct {
     int64_t untrusted_until;
     uint64_t fv;                  /* the last accepted freshness value */
+    uint64_t pending;             /* a held boot advance's FV - 1 (AUTH-35) */
     uint16_t id;                  /* the input's frame ID */
     uint16_t sync_id;             /* its <name>_Sync */
     uint16_t streak;              /* consecutive receive failures (RX-13) */
