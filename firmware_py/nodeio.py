@@ -137,6 +137,13 @@ class SyncSchedule(NamedTuple):
     hello_after: float
 
 
+def _reached(t: float, when: float) -> bool:
+    """``t`` at or after ``when``, both in whole ns as firmware_c keeps time: a sum of
+    floats (a send time plus a period) can land one ulp past the tick it names, where
+    the C node's sum of ns lands on it."""
+    return round(t * 1e9) >= round(when * 1e9)
+
+
 class NodeIO:
     """A node's secured receive and transmit path: decode and range-check every frame,
     verify its MAC and freshness, recognise its own echo, count every rejection by
@@ -789,10 +796,12 @@ class NodeIO:
 
     def syncs_sent_at(self, t: float) -> None:
         """This node's syncs went out at ``t``: the next are due ``sync_s`` later, and a
-        re-announce not before HELLO_FRACTION·sync_s."""
+        re-announce not before HELLO_FRACTION·sync_s (summed in whole ns, as firmware_c
+        keeps its clock and periods)."""
+        sent = round(t * 1e9)
         self._hello_due = False
-        self._hello_after = t + HELLO_FRACTION * self.sync_s
-        self._sync_next = t + self.sync_s
+        self._hello_after = (sent + round(HELLO_FRACTION * self.sync_s * 1e9)) / 1e9
+        self._sync_next = (sent + round(self.sync_s * 1e9)) / 1e9
 
     def constant_tables(self) -> tuple[object, ...]:
         """The tables that neither a frame nor a tick changes (copies of a node may share
@@ -811,11 +820,11 @@ class NodeIO:
         """The ``<name>_Sync`` frames due at ``t``: all of them at the first call, every
         ``sync_s``, when a peer (re)started (at most every HELLO_FRACTION·sync_s), and
         when an own message sent ``resync_after`` times since the last sync."""
-        due = self._sync_next is None or t >= self._sync_next
+        due = self._sync_next is None or _reached(t, self._sync_next)
         if any(self._tx_count[f] - self._count_at_sync[f] >= n
                for f, n in self._resync_after.items()):
             due = True
-        if self._hello_due and t >= self._hello_after:
+        if self._hello_due and _reached(t, self._hello_after):
             due = True
         if self._join_until is None:
             self._join_until = t + self.join_s  # this first call is the node's hello

@@ -752,12 +752,14 @@ def _agent_2_alike() -> tuple[AgentRuntime, CAgent, dict[str, bytes]]:
             peers | ALL_FRAMES)
 
 
-def test_a_forged_boot_jump_is_refused_or_undone_alike_in_c_and_python() -> None:
-    """AUTH-27, bit for bit (issue 25): with the router's key (which agent 3's key file
-    holds), a price sync of boot 5 + 9 is refused (`sync_jump`, `auth`) and the genuine
-    price goes on; one of boot 5 + 8 (within the bound) is taken, the genuine price
-    then fails (`auth`), and the router's next genuine sync of boot 5 undoes it; the
-    router restarted (boot 6) is heard."""
+def test_a_forged_boot_jump_is_refused_held_or_undone_alike_in_c_and_python() -> None:
+    """AUTH-27 and AUTH-35, bit for bit (issue 25): with the router's key (which agent 3's
+    key file holds), a price sync of boot 5 + 9 is refused (`sync_jump`, `auth`) and the
+    genuine price goes on; one of boot 5 + 8 (within the bound) is held: the genuine
+    price goes on, and the router's next sync of boot 5 drops it (`sync_jump`), so a
+    price forged on its track is `auth`. Held again and completed by a forged price, it
+    is taken; the genuine price then fails (`auth`) and the router's next sync undoes it;
+    the router restarted (boot 6) is held and taken at its first price."""
     py, c, keys = _agent_2_alike()
     router = FleetSender(FrameCodec(), keys=keys, boot=5)
     far = FleetSender(FrameCodec(), keys=keys, boot=5 + 9)
@@ -765,36 +767,42 @@ def test_a_forged_boot_jump_is_refused_or_undone_alike_in_c_and_python() -> None
     price = {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0}
     script = [router.sync("ER_Price"), router.frame("ER_Price", price),
               far.sync("ER_Price"), router.frame("ER_Price", price),  # refused; price goes on
-              near.sync("ER_Price"), router.frame("ER_Price", price),  # taken; price fails
+              near.sync("ER_Price"), router.frame("ER_Price", price),  # held; price goes on
+              router.sync("ER_Price"), near.frame("ER_Price", price),  # dropped; forged: auth
+              near.sync("ER_Price"), near.frame("ER_Price", price),  # held, completed: taken
+              router.frame("ER_Price", price),  # the genuine price fails
               router.sync("ER_Price"), router.frame("ER_Price", price)]  # undone; price
     router.restart()
-    script += [router.sync("ER_Price"), router.frame("ER_Price", price)]
+    script += [router.sync("ER_Price"), router.frame("ER_Price", price)]  # held, taken
     _replay_alike(py, c, script)
-    assert py.counters["sync_jump"] == 2 and py.counters["auth"] == 2
-    assert py.counters["resyncs"] == 4  # the first, the near jump, the undo, the restart
+    assert py.counters["sync_jump"] == 3  # refused, dropped, undone
+    assert py.counters["auth"] == 3  # the far sync, the forged price, the genuine one
+    assert py.counters["resyncs"] == 4  # the first, the completed advance, the undo, the restart
     assert py.io.last_freshness(FrameCodec().frame_id("ER_Price")) == \
         (6 << 24)  # the restarted router's first price frame
 
 
-def test_two_forged_advances_are_undone_together_and_the_undo_point_is_used_once() -> None:
-    """AUTH-27, bit for bit: two forged price syncs in a row (boot 5 → 9 → 17, each within
-    the bound) while the router is down are both undone by the restarted router's first
-    sync (boot 6): a second advance with no frame taken since the first keeps the
-    first's undo point. The undo point is used once: a genuine boot-5 sync replayed
+def test_a_held_advance_is_replaced_and_the_undo_point_is_used_once() -> None:
+    """AUTH-27 and AUTH-35, bit for bit: two forged price syncs in a row (boot 5 → 9 → 13,
+    each within the bound) are held, the second replacing the first; completed by a price
+    forged on its track, the advance is taken, and the restarted router's first sync
+    (boot 6) undoes it. The undo point is used once: a genuine boot-5 sync replayed
     after it (newer than any boot-5 frame taken) is a replay (`auth`), not an undo."""
     py, c, keys = _agent_2_alike()
     router = FleetSender(FrameCodec(), keys=keys, boot=5)
     price = {"PriceValid": 1, "Rho": 1 << 23, "Segment": 0}
-    script = [router.sync("ER_Price"), router.frame("ER_Price", price)]
-    script += [FleetSender(FrameCodec(), keys=keys, boot=b).sync("ER_Price") for b in (9, 17)]
+    forger = FleetSender(FrameCodec(), keys=keys, boot=13)
+    script = [router.sync("ER_Price"), router.frame("ER_Price", price),
+              FleetSender(FrameCodec(), keys=keys, boot=9).sync("ER_Price"),
+              forger.sync("ER_Price"), forger.frame("ER_Price", price)]
     router.frame("ER_Price", price)  # not heard: the router's last boot-5 frame
     replay = router.sync("ER_Price")  # a genuine boot-5 sync, newer than any frame taken
     router.restart()
     script += [router.sync("ER_Price"), router.frame("ER_Price", price), replay,
                router.frame("ER_Price", price)]
     _replay_alike(py, c, script)
-    assert py.counters["sync_jump"] == 1  # the one undo, of both advances
-    assert py.counters["resyncs"] == 4  # the first sync, boots 9 and 17, the undo
+    assert py.counters["sync_jump"] == 1  # the one undo
+    assert py.counters["resyncs"] == 3  # the first sync, the completed advance, the undo
     assert py.counters["auth"] == 1  # the replayed boot-5 sync
     assert py.io.last_freshness(FrameCodec().frame_id("ER_Price")) == (6 << 24) + 1
 
