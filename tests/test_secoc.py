@@ -476,9 +476,10 @@ def test_restarted_sender_needs_its_sync_and_an_old_sync_cannot_rewind() -> None
     assert rx.receive(_price(sender, 0), 0.0) is None and rx.counters["auth"] == 1
     rx.receive(first_sync, 0.0)  # a replayed old sync: refused, the state stays
     assert rx.counters["resyncs"] == 1
-    rx.receive(sender.sync("ER_Price"), 0.0)
-    assert rx.counters["resyncs"] == 2
-    assert _rho(rx, _price(sender, 1), 0.0) == 1
+    rx.receive(sender.sync("ER_Price"), 0.0)  # in step: held (AUTH-35)
+    assert rx.counters["resyncs"] == 1
+    assert _rho(rx, _price(sender, 1), 0.0) == 1  # verifies on it: taken
+    assert rx.counters["resyncs"] == 2 and rx.counters["sync_jump"] == 0
 
 
 def test_wrong_key_and_other_sender_rejected() -> None:

@@ -228,25 +228,22 @@ static void take_advance(bd_agent *a, bd_rx_slot *s, uint64_t v, uint32_t id)
         s->flags |= BD_RX_BACK;
     }
     s->flags &= (uint8_t)~(BD_RX_SPOKE | BD_RX_LOST);
-    s->seen = seen_after(s, 1, v, 0u);
+    s->seen = 0u;   /* a later boot: no value of it accepted yet */
     s->fv = v;
     bd_count_add(a, BD_C_RESYNCS, 1u, id);
     a->hello_due = 1;   /* a peer restarted: tell it our freshness now */
 }
 
-/* AUTH-35: 1 if a frame that failed its window verifies on the input's held boot
- * advance: its sender did restart, so the advance is taken; fv is then its value. */
-static int on_pending(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t counter,
-                      uint32_t windows, uint64_t *fv)
+/* AUTH-11..13: 1 if the frame verifies at a FV from the candidate after `base` on, one
+ * per window, `windows` windows forward (*fv: that FV). */
+static int search(bd_agent *a, const bd_rx_slot *s, const bd_frame *f, uint64_t base,
+                  uint32_t counter, uint32_t windows, uint64_t *fv)
 {
-    if ((s->flags & BD_RX_PENDING) == 0u
-        || bd_fv_candidate(s->pending, counter, BD_FV_TX_BITS, FV_MAX, fv) != 0) {
+    if (bd_fv_candidate(base, counter, BD_FV_TX_BITS, FV_MAX, fv) != 0) {
         return 0;
     }
     for (; windows > 0u; --windows, *fv += FV_WINDOW) {
         if (verifies(a, frame_key(a, s, 0), f, *fv)) {
-            s->flags &= (uint8_t)~BD_RX_PENDING;
-            take_advance(a, s, s->pending, s->sync_id);
             return 1;
         }
     }
@@ -277,17 +274,13 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
     int command = s == &a->rx[BD_RX_COMMAND];
     uint32_t windows = ((s->flags & BD_RX_LOST) != 0u || command) ? LOST_WINDOWS : 1u;
     uint64_t fv;
-    int found = 0;
-    if (bd_fv_candidate(s->fv, counter, BD_FV_TX_BITS, FV_MAX, &fv) == 0) {
-        for (uint32_t k = windows; k > 0u; --k, fv += FV_WINDOW) {
-            if (verifies(a, frame_key(a, s, 0), f, fv)) {
-                found = 1;
-                break;
-            }
-        }
-    }
-    if (!found) {
-        found = on_pending(a, s, f, counter, windows, &fv);
+    int found = search(a, s, f, s->fv, counter, windows, &fv);
+    if (!found && (s->flags & BD_RX_PENDING) != 0u
+        && search(a, s, f, s->pending, counter, windows, &fv)) {
+        /* AUTH-35: it verifies on the held boot advance: its sender did restart */
+        s->flags &= (uint8_t)~BD_RX_PENDING;
+        take_advance(a, s, s->pending, s->sync_id);
+        found = 1;
     }
     if (!found) {
         if (stale(a, s, f, counter)) {
@@ -396,17 +389,13 @@ static void on_sync(bd_agent *a, bd_rx_slot *s, const bd_frame *f, int64_t t)
         restarted = 1;
     } else if (has_fv && !a->insecure) {
         uint32_t expected = fv_boot(s->fv + 1u);
-        if (m.boot > expected + SYNC_BOOT_JUMP_MAX) {
-            /* AUTH-27: a genuine sender never jumps that far; a forged sync must not lock
-             * it out for good */
-            bd_count_add(a, BD_C_SYNC_JUMP, 1u, f->id);
-            fail(a, NULL, f->id, BD_C_AUTH, t);
-            return;
-        }
         uint64_t reach = (s == &a->rx[BD_RX_COMMAND] ? LOST_WINDOWS : 1u) * FV_WINDOW;
-        if (m.boot == expected && (s->flags & BD_RX_LOST) == 0u && fv - 1u - s->fv > reach) {
-            /* AUTH-27: further than a frame of an input in step could move it: a receiver
-             * that missed more of a live sender has timed it out (lost) */
+        /* AUTH-27: a genuine sender never jumps that far (a forged sync must not lock it
+         * out for good), nor further in its boot than a frame of an input in step could
+         * move it (a receiver that missed more of a live sender has timed it out) */
+        if (m.boot > expected + SYNC_BOOT_JUMP_MAX
+            || (m.boot == expected && (s->flags & BD_RX_LOST) == 0u
+                && fv - 1u - s->fv > reach)) {
             bd_count_add(a, BD_C_SYNC_JUMP, 1u, f->id);
             fail(a, NULL, f->id, BD_C_AUTH, t);
             return;
