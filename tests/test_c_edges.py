@@ -204,9 +204,13 @@ def test_a_sync_id_with_a_streak_of_bad_frames_is_an_untrusted_source() -> None:
     sync_id = FrameCodec().frame_id("ER_Price_Sync")
     bad = [("junk", sync_id, bytes(7), 0)]
     _py, c = run_both("base", PREAMBLE + bad * 4 + [("tick", 1), ("restart", "router"),
-                                                    ("sync", "ER_Price"), ("tick", 1)])
+                                                    ("sync", "ER_Price"), ("tick", 1),
+                                                    ("price", 13_421_773, True, 0),
+                                                    ("tick", 1)])
     assert c.counters["untrusted_sources"] == 1 and c.counters["dlc"] == 4
-    assert c.counters["resyncs"] == 5 + 1   # the five inputs' in PREAMBLE, the router's again
+    # the five inputs' in PREAMBLE, the router's again (held in step, AUTH-35: taken at
+    # its first price)
+    assert c.counters["resyncs"] == 5 + 1
 
 
 def test_an_untrusted_input_is_trusted_again_when_its_time_is_up() -> None:

@@ -282,7 +282,7 @@ def test_the_schedule_does_what_its_steps_say() -> None:
     # AUTH-27: three key holders' syncs refused (a boot 9 on, counts 17 and 129 on);
     # untrusted_after − 1 forged statuses, valid ones, one more (RX-10: no verdict)
     assert c["auth"] == 5 + 1 + 2 + 6 + 5 + 3 + 1 and c["untrusted_sources"] == 2
-    assert c["sync_jump"] == 3
+    assert c["sync_jump"] == 3 + 1  # AUTH-35: the held price sync 8 boots on, dropped
     assert c["dlc"] == cfg.untrusted_after and c["impersonation"] == 1
     assert c["stale"] == 1   # the genuine frame delivered late (AUTH-25), not auth
     assert c["unsynced"] == 1  # the command before its sync (AUTH-11)

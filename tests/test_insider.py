@@ -70,7 +70,8 @@ def test_the_plan_names_the_residual_risk(sc: Scenario, genuine_keys: set[str],
     frames, not their syncs) and all are taken; on the hardened fleet the price is under
     the genuine key but must be the signed one, and nothing remains forgeable: agent 3's
     own battery's status has one receiver, agent 3 (the router's ledger takes the
-    plant's PLANT_Totals), so it is not in the plan at all."""
+    plant's PLANT_Totals), so it is not in the plan at all. Both add the router's syncs
+    under its genuine node key, which receivers hold and drop (AUTH-35): not residual."""
     p = _plan(sc, tmp_path)
     names = {f.name for f in p.forgeries}
     assert {"ER_Price", "ER_Command", "AGENT_1_MC", "AGENT_1_Setpoint", "AGENT_1_Diag",
@@ -78,8 +79,11 @@ def test_the_plan_names_the_residual_risk(sc: Scenario, genuine_keys: set[str],
     assert "PLANT_3_Status" not in names  # its one receiver is agent 3 itself
     assert not any(f.name.startswith("AGENT_3_") for f in p.forgeries)  # not its own
     assert sum(f.name == "ER_Command" for f in p.forgeries) == 3         # agents 1, 2, 4
-    assert {f.name for f in p.forgeries if f.genuine} == genuine_keys
+    assert {f.name for f in p.forgeries if f.genuine and not f.held} == genuine_keys
     assert {f.name for f in p.forgeries if f.residual} == residual
+    # the router's syncs of its next boot, under its genuine node key: held (AUTH-35)
+    assert {f.name for f in p.forgeries if f.held} == {"ER_Price_Sync", "ER_Command_Sync"}
+    assert all(f.genuine and not f.residual for f in p.forgeries if f.held)
     if not sc.fd:
         today = next(s for s in auth.SCHEMES if s.key == "a")
         assert genuine_keys == {n for n in auth.insider_forges(today, sc)
@@ -120,15 +124,17 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(tmp_path: Pat
                                                                   udp_port: int) -> None:
     """`bess-ded up` (case 1, CAN FD, λ tags, signed price) on udp_multicast and, once
     it runs, `bess-ded inject insider --key-file keys/agent_3.key --skip-residual` beside
-    it for 8 s: 17 forgeries, each at its cycle (the plan has no residual left:
+    it for 8 s: 19 forgeries, each at its cycle (the plan has no residual left:
     PLANT_3_Status's one receiver is agent 3, and the router's ledger takes the plant's
-    PLANT_Totals, forged here too). At any load: the run converges (exit 3: with
+    PLANT_Totals, forged here too; the router's syncs of its next boot, under its genuine
+    node key, every second: held and dropped, AUTH-35). At any load: the run converges (exit 3: with
     anomalies), agents 1, 2 and 4 never leave RUNNING and end within 1 kW of the KKT
     optimum at ρ; every forgery is reported where it lands: `unsigned_price` at every
     agent (the price, under the router's genuine node key and freshness, is not the
     signed one), `auth_failed` at agents 1, 2 and 4, the plant and the router (commands,
     λ tags, setpoints, statuses, totals, Diag), `impersonation` at every node it spoke
-    for."""
+    for, `sync_jump` on the bus (the recorder drops the held syncs as the agents do) and
+    no price timeout at any honest agent (a taken sync would have stopped its price)."""
     sc = hardened()
     (tmp_path / "hard.toml").write_text(to_toml(sc))
     keys = tmp_path / "keys"
@@ -155,7 +161,8 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(tmp_path: Pat
     finally:
         fleet.kill()
     assert attack.returncode == 0, attack.stdout + attack.stderr
-    assert ": 17 forgeries" in attack.stdout and "sent" in attack.stdout
+    assert ": 19 forgeries" in attack.stdout and "sent" in attack.stdout
+    assert "held, dropped at the router's next sync" in attack.stdout
     assert "FORGEABLE" not in attack.stdout  # nothing left for --skip-residual to skip
     m = json.loads((out / "metrics.json").read_text())
     assert fleet.returncode == 3, stdout[-3000:]
@@ -168,7 +175,8 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(tmp_path: Pat
     victims = [f"agent_{i}" for i in HONEST] + ["plant", "router"]
     assert {("auth_failed", v) for v in victims} <= named, named
     assert {("impersonation", v) for v in victims} <= named, named
+    assert ("sync_jump", "bus") in named, named
     honest_trouble = {(k, n) for k, n in named
-                      if k in ("agent_safe", "agent_isolated", "plant_fault")
+                      if k in ("agent_safe", "agent_isolated", "plant_fault", "price_timeout")
                       and n in {f"agent_{i}" for i in HONEST}}
     assert not honest_trouble, honest_trouble

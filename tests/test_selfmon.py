@@ -202,8 +202,9 @@ def test_a_forged_sync_cannot_lock_the_router_out(
 def test_without_the_bound_the_forged_sync_locks_the_fleet_out(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The control (the test above can fail): with the bound lifted, no undo and no held
-    advance (the rules before AUTH-27 and AUTH-35), the one forged sync of boot 65535 puts the fleet out of the
-    price for good, the router's restart included, as issue 25 found."""
+    advance (the rules before AUTH-27 and AUTH-35), the one forged sync of boot 65535
+    puts the fleet out of the price for good, the router's restart included, as issue 25
+    found."""
     from firmware_py.nodeio import NodeIO
 
     monkeypatch.setattr("firmware_py.nodeio.beyond_boot_bound", lambda *_a: False)

@@ -303,7 +303,9 @@ def insider_forges(scheme: Scheme, sc: Any, insider: str = INSIDER) -> dict[str,
     """The messages (and syncs) of others an insider holding ``insider``'s key file can
     still make some other node accept under ``scheme``: name -> "forge" (any content),
     or "bound" (a cyclic frame bound to a signature: only the signed content). A
-    router's sync under ``sign`` keeps its MAC: "forge" (AUTH-27 bounds its boot)."""
+    router's sync under ``sign`` keeps its MAC: "forge" (alone it is held, AUTH-35, but a
+    frame bound to the signature, replayed on its track, completes it; AUTH-27 bounds
+    its boot and undoes it)."""
     out = {}
     for m in fleet_messages(sc):
         if m.sender == insider or insider not in m.holders:

@@ -14,6 +14,12 @@ the price, a Diag page full of timeouts) and signs it with the best key the file
   report), its own command key, its own node key; and a sync one boot ahead every sync
   period (within AUTH-27's bound), as a right key would need.
 
+Besides, with the router's node key (every agent's file holds it to verify the price),
+the router's own syncs: every sync period an `ER_Price_Sync` and an `ER_Command_Sync` of
+the router's next boot, count 0, exactly what the router sends when it restarts.
+Receivers in step hold such a sync and drop it at the router's next one (AUTH-35:
+``sync_jump``); it is not residual unless a frame verifies on it.
+
 The plan says which is which. A node that rejects a frame forged under a stand-in key
 counts ``auth``; a signed-price agent refuses any price but the signed one
 (``unsigned_price``); the genuine sender of each forged frame sees its own ID
@@ -64,6 +70,7 @@ class Forgery:
     tx: FleetSender
     signed: bool = False  # ER_Price on a signed-price fleet: refused unless the signed one
     target: int | None = None  # ER_Command: the agent it commands
+    held: bool = False  # a router's sync of its next boot: held and dropped (AUTH-35)
 
     @property
     def title(self) -> str:
@@ -73,7 +80,7 @@ class Forgery:
     @property
     def residual(self) -> bool:
         """Forgeable: the genuine key, and nothing else the receivers check."""
-        return self.genuine and not self.signed
+        return self.genuine and not self.signed and not self.held
     sent: int = 0
     held_back: int = 0   # genuine-key frames not sent yet: the sender not heard yet
 
@@ -191,6 +198,14 @@ def plan(sc: Scenario, key: NodeKey, codec: FrameCodec,
         forgeries.append(Forgery(name, raw, what, genuine_key is not None, cycle, tx,
                                  signed=name == "ER_Price" and sc.signed_price,
                                  target=target))
+    router_key = ring.key_of("router", derive=False) if ring.node != "router" else None
+    if router_key is not None:  # the router's syncs of its next boot (AUTH-35: held)
+        followed.append(codec.frame_id("ER_Price"))  # whose boot the listener follows
+        for base in ("ER_Price", contract.COMMAND):
+            forgeries.append(Forgery(
+                f"{base}_Sync", {}, "the genuine node key of router", True,
+                round(1000 * SYNC_EVERY_S), FleetSender(codec, keys={"router": router_key}),
+                held=True))
     listener = None
     if followed:
         listener = NodeIO(codec, ring.node, [_any_own(ring.node)],
@@ -218,6 +233,7 @@ def describe(p: InsiderPlan) -> list[str]:
     lines = [f"insider with {p.node}'s key file: {len(p.forgeries)} forgeries"]
     for f in p.forgeries:
         fate = ("FORGEABLE (the residual risk: receivers take it)" if f.residual else
+                "held, dropped at the router's next sync (sync_jump)" if f.held else
                 "refused unless it is the signed price (unsigned_price)" if f.genuine
                 else "refused (auth)")
         lines.append(f"  {f.title:<24} every {f.cycle_ms:>3} ms under {f.key_name}: {fate}")
@@ -236,6 +252,11 @@ def step(p: InsiderPlan, k: int) -> list[can.Message]:
     out: list[can.Message] = []
     for f in p.forgeries:
         every = _ticks(f.cycle_ms)
+        if f.held:
+            if k % every == 0 and (sync := _next_boot_sync(p, f)) is not None:
+                out.append(sync)
+                f.sent += 1
+            continue
         if f.genuine:
             fid = p.codec.frame_id(f.name)
             fv = p.listener.last_freshness(fid) if p.listener is not None else None
@@ -250,6 +271,19 @@ def step(p: InsiderPlan, k: int) -> list[can.Message]:
             out.append(f.tx.frame(f.name, f.raw))  # the codec's format (FD on an FD bus)
             f.sent += 1
     return out
+
+
+def _next_boot_sync(p: InsiderPlan, f: Forgery) -> can.Message | None:
+    """The router's sync ``f`` of its next boot, count 0 (what it sends at a restart);
+    None (counted ``held_back``) until the listener has heard its price."""
+    fv = (p.listener.last_freshness(p.codec.frame_id("ER_Price"))
+          if p.listener is not None else None)
+    if fv is None:
+        f.held_back += 1
+        return None
+    base = f.name.removesuffix("_Sync")
+    f.tx.follow(base, contract.FRESHNESS.split(fv + 1)[0] + 1, -1)
+    return f.tx.sync(base)
 
 
 def hear(p: InsiderPlan, msg: can.Message, t: float) -> None:

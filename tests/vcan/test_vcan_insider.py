@@ -5,7 +5,8 @@ process, agent 2 on firmware_c's node program (its tags and its signature check 
 and, once every node is heard, `bess-ded inject insider --key-file keys/agent_3.key
 --skip-residual` as one more process: the router's price under its genuine node key and
 freshness, ISOLATE commands, the λ, setpoints, statuses and Diag pages of agents 1, 2, 4,
-the plant's totals, each under the best key agent 3's file holds. The run must hold the
+the plant's totals, each under the best key agent 3's file holds, and the router's syncs
+of its next boot under its genuine node key (held and dropped, AUTH-35). The run must hold the
 honest dispatch and report every forgery where it lands (the udp_multicast twin and the
 plan: tests/test_insider.py).
 
@@ -58,7 +59,8 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(
     finally:
         _stop(attacker)
     said = (tmp_path / "attacker.txt").read_text()
-    assert ": 17 forgeries" in said and "refused (auth)" in said, said
+    assert ": 19 forgeries" in said and "refused (auth)" in said, said
+    assert "held, dropped at the router's next sync" in said, said  # its syncs (AUTH-35)
     assert run.m["final_error"] < FINAL_TOL, run.m["anomalies"]
     assert run.m["verdict"]["exit_code"] == 3, run.m["verdict"]  # converged, with anomalies
     assert run.log.t_first_price is not None
@@ -75,4 +77,6 @@ def test_agent_3s_key_file_forges_nothing_the_hardened_fleet_takes(
     victims = [f"agent_{i}" for i in HONEST] + ["plant", "router"]
     assert {("auth_failed", v) for v in victims} <= named, named
     assert {("impersonation", v) for v in victims} <= named, named
+    assert ("sync_jump", "bus") in named, named  # the router's syncs held and dropped
+    assert not {k for k, n in named if k == "price_timeout"}, named  # none was taken
     assert_clean_exit(run)
