@@ -342,6 +342,52 @@ def test_agent_3s_key_file_cannot_misreport_its_battery_to_the_router(
     assert "impersonation" in _kinds(m) and "auth_failed" in _kinds(m)
 
 
+def test_a_plant_that_misreports_the_ledger_is_named(tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A compromised (or faulty) plant holds PLANT_Totals' key by design (AUTH-29): one that
+    tells the router half the batteries' power (and the cost at it) while its statuses
+    tell the agents the truth is named by the recorder, which has both:
+    `ledger_mismatch` on the plant. The dispatch itself is untouched (the agents read
+    their statuses), so the run converges with the anomaly (exit 3)."""
+    from sim.nodes.plant import PlantNode
+
+    honest = PlantNode._totals_frame
+    monkeypatch.setattr(PlantNode, "_totals_frame",
+                        lambda self, raw: honest(self, [r // 2 for r in raw]))
+    m, tr = _run(tmp_path / "run")
+    err, p = _final(tr)
+    assert err < 1e-3 and p.sum() > 50.0
+    lie = [a for a in m["anomalies"] if a["kind"] == "ledger_mismatch"]
+    assert [a["node"] for a in lie] == ["plant"], m["anomalies"]
+    assert "PLANT_Totals said" in lie[0]["detail"] and lie[0]["t"] < 2.0, lie
+    assert m["verdict"]["converged"] and m["verdict"]["exit_code"] == 3, m["verdict"]
+
+
+def test_the_ledger_check_compares_only_fully_recorded_cycles() -> None:
+    """The recorder's ledger check (sim.run.verdict._ledger) on made-up cycles: a cycle
+    with a status missing is not compared (frames lost on the bus are not a lie); totals
+    off by the plant's rounding (half a step) pass; off by more on every full cycle for a
+    second: named once."""
+    from sim.run.buslog import LogContents
+    from sim.run.verdict import _ledger
+
+    n, cycle = CASE.n, 0.05
+    powers = {i: 10.0 * i for i in range(1, n + 1)}
+    cost = float(sum(b.cost_rate(powers[i]) for i, b in enumerate(CASE.batteries, start=1)))
+    log = LogContents(t_first_price=0.0)
+    for k in range(60):   # 3 s: a status lost every other cycle, the rest rounded
+        statuses = dict(powers) if k % 2 else {i: powers[i] for i in range(2, n + 1)}
+        log.totals.append((k * cycle, sum(powers.values()) + 0.05, cost - 0.05, statuses))
+    out: list[Any] = []
+    _ledger(CASE, log, out)
+    assert out == []
+    for k in range(60, 90):   # 1.5 s of every full cycle 5 kW short
+        log.totals.append((k * cycle, sum(powers.values()) - 5.0, cost, dict(powers)))
+    _ledger(CASE, log, out)
+    assert [a.kind for a in out] == ["ledger_mismatch"]
+    assert out[0].t == pytest.approx(3.0)
+
+
 def _forged_at_recorder(m: dict[str, Any], name: str) -> int:
     """Frames of ``name`` (and its sync) the recorder's analysis found forged."""
     got = 0

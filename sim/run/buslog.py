@@ -122,6 +122,10 @@ class LogContents:
         default_factory=lambda: defaultdict(list))
     # every ER_Command recorded: (t, Command, Target, GainK) raw (router_events)
     commands: list[tuple[float, int, int, int]] = field(default_factory=list)
+    # every PLANT_Totals recorded: (t, BatteryPower kW, BatteryCostRate cu/h, the status
+    # Power of each agent heard since the previous one: the cycle it sums), for the
+    # ledger check (verdict)
+    totals: list[tuple[float, float, float, dict[int, float]]] = field(default_factory=list)
     # log lines that hold no frame, by cause (LINE_CAUSES): skipped, never silently
     skipped_lines: Counter[str] = field(default_factory=Counter)
     # timestamps of frames far outside the recording's time span (a clock jump or a
@@ -318,6 +322,7 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
                                               keys[pricesig.MONITOR_FLEET].hex())
     segment_raw: int | None = None
     segment = 0
+    status_power: dict[int, float] = {}  # agent -> its status Power since the last totals
     segment_mod = codec.raw_range("ER_Price", "Segment")[1] + 1
     silence = silence_ts * ts if ts else None
     cycles: dict[str, float] = {}
@@ -402,6 +407,11 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
         elif f.name.endswith("_Status"):
             for sig in ("Power", "PowerLimited"):
                 out.series[(f.name, sig)].append((t, f.phys(sig)))
+            status_power[f.agent or 0] = f.phys("Power")
+        elif f.name == contract.TOTALS:
+            out.totals.append((t, f.phys("BatteryPower"), f.phys("BatteryCostRate"),
+                               status_power))
+            status_power = {}
         elif f.name.endswith("_Diag"):
             out.diag[f.agent or 0].update({k: v for k, v in f.raw.items()
                                            if k not in ("Mac", "Counter", "Page")})

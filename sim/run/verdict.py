@@ -48,6 +48,8 @@ DEADLINE_MISS_FRACTION = 0.01
 # recording's frames; a plant's or router's ticks) is a load anomaly, never auth_failed
 STALE_FRACTION = 0.01
 POWER_LIMIT_HOLD_S = 1.0  # (scenario s) a battery limited over the run's last second
+LEDGER_MISMATCH_S = 1.0   # (scenario s) PLANT_Totals off the statuses for this long
+LEDGER_TOLERANCE = 0.1    # kW and cu/h: one step of BatteryPower and BatteryCostRate
 TOLERANCE = 1e-3          # cu/kWh: the final λ of every dispatching agent within this of ρ
 OUTLIER_WINDOW_S = 1.0    # (scenario s) the λ outlier test looks at the run's last second
 HOST_OVERLOAD_SHARE = 0.75  # this share of the nodes (≥ 2) all late: the host, not the nodes
@@ -236,6 +238,7 @@ def judge(sc: Scenario, log: LogContents, tr: Trajectory | None, m: dict[str, An
     _recording(sc, log, out)
     _counters(sc, log, facts, out)
     _power_limits(sc, log, tr, out)
+    _ledger(sc, log, out)
     _setpoints(sc, log, facts, out)
     _lambda_outliers(sc, tr, tolerance, out)
     _key_mismatch(log, facts, out, reasons)
@@ -718,6 +721,37 @@ def _power_limits(sc: Scenario, log: LogContents, tr: Trajectory, out: list[Anom
             out.append(Anomaly("power_limit", f"plant (BESS {i})", "held at a power or current "
                                f"limit over the run's last {POWER_LIMIT_HOLD_S:g} s",
                                float(tr.t[-1])))
+
+
+def _ledger(sc: Scenario, log: LogContents, out: list[Anomaly]) -> None:
+    """PLANT_Totals (the router's ledger, AUTH-29: a key only the plant and the router
+    hold) against the statuses the plant sent with it, the cycles whose every status was
+    recorded: a plant that tells the router other powers or costs than it tells the
+    agents (compromised or faulty), on every such cycle for LEDGER_MISMATCH_S."""
+    hold = LEDGER_MISMATCH_S * sc.ts / MC_CYCLE_S
+    agents = range(1, sc.n + 1)
+    since: tuple[float, float, float, float, float] | None = None
+    for t, power, cost, statuses in log.totals:
+        if any(i not in statuses for i in agents):
+            continue  # a status of this cycle not recorded: nothing to compare
+        p = [statuses[i] for i in agents]
+        want_p = sum(p)
+        want_c = float(sum(b.cost_rate(x) for b, x in zip(sc.batteries, p, strict=True)))
+        if abs(power - want_p) <= LEDGER_TOLERANCE and abs(cost - want_c) <= LEDGER_TOLERANCE:
+            since = None
+            continue
+        if since is None:
+            since = (t, power, want_p, cost, want_c)
+        if t - since[0] >= hold:
+            t0, power0, want_p0, cost0, want_c0 = since
+            out.append(Anomaly(
+                "ledger_mismatch", "plant",
+                f"PLANT_Totals said {power0:.1f} kW and {cost0:.1f} cu/h where the statuses "
+                f"sent with it sum to {want_p0:.2f} kW and {want_c0:.2f} cu/h, and disagreed "
+                f"on every fully recorded cycle for {LEDGER_MISMATCH_S:g} s: the router's "
+                "ledger is not the batteries' (a compromised or faulty plant)",
+                t0 - (log.t_first_price or 0.0)))
+            return
 
 
 def anomalies_json(v: Verdict) -> list[dict[str, Any]]:
