@@ -260,9 +260,9 @@ KEYED_FRAMES = LINK_FRAMES | REPORT_FRAMES
 """The secured messages signed with a key of their own (``secoc.derive_frame_key``), held
 by their sender and their DBC receivers only: the link frames (AUTH-28) and the reports
 (AUTH-29: AGENT_<i>_Diag and PLANT_Totals, read by the router; ER_Balance, read by no
-node). The recorder
-derives every key from the master key. The broadcasts (ER_Price, AGENT_<i>_MC) keep
-their sender's node key; ER_Command its target's command key (AUTH-30)."""
+node). The recorder derives every key from the master key. The broadcasts (ER_Price,
+AGENT_<i>_MC) keep their sender's node key; ER_Command its target's command key
+(AUTH-30)."""
 _PARTIES = {_CODEC.name_of(fid): receivers_of(fid)
             for fid in SECURED_IDS if _CODEC.name_of(fid) in KEYED_FRAMES}
 
