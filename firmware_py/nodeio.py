@@ -201,6 +201,9 @@ class NodeIO:
         # per input ID, a check of the decoded frame before its MAC and freshness
         # (signed_price, AUTH-33): a frame it refuses never moves its sender's freshness
         self._prechecks: dict[int, Callable[[DecodedFrame], tuple[str, str] | None]] = {}
+        # AUTH-33, AUTH-35: per input, whether something beyond its MAC vouches for a boot
+        # (the router's price signature of that boot, with signed_price)
+        self._vouches: dict[int, Callable[[int], bool]] = {}
         self._inputs = frozenset(wanted)
         unsecured = sorted(self._inputs - contract.SECURED_IDS)
         if unsecured:
@@ -436,6 +439,16 @@ class NodeIO:
             raise KeyError(fid)
         self._prechecks[fid] = check
 
+    def vouch(self, fid: int, check: Callable[[int], bool]) -> None:
+        """Take a held boot advance of input ``fid`` (AUTH-35) only when ``check(boot)``
+        holds besides its frame's MAC: a frame verifying on a held track ``check`` does not
+        vouch for is ``unsynced``, the advance still held (AUTH-33: with signed_price, the
+        router's signature of that boot; a key holder forges the MAC, not the
+        signature)."""
+        if fid not in self._inputs:
+            raise KeyError(fid)
+        self._vouches[fid] = check
+
     # ------------------------------------------------------------ SecOC
 
     def _authentic(self, frame: DecodedFrame, msg: can.Message, key: bytes, t: float,
@@ -464,7 +477,10 @@ class NodeIO:
         fv = self._fv.search(fid, frame.counter, windows, verifies)
         if fv is None and fid in self._pending:
             pending = self._pending[fid]
-            fv = self._on_pending(fid, frame.name, frame.counter, windows, verifies)
+            fv = FreshnessVerifier(contract.FV_TX_BITS, initial={fid: pending}).search(
+                fid, frame.counter, windows, verifies)
+            if fv is not None and not self._take_pending(fid, frame.name, fv):
+                return None
             if fv is not None:
                 last = pending  # the frame's gap counts from the advance it completed
         if fv is None:
@@ -491,22 +507,23 @@ class NodeIO:
             self._streak[fid] = 0
         return frame
 
-    def _on_pending(self, fid: int, name: str, counter: int, windows: int,
-                    verifies: Callable[[int], bool]) -> int | None:
-        """AUTH-35: a frame that failed its window, tried on the track of the input's
-        pending boot advance; if it verifies there, its sender did restart: the advance is
-        taken as a sync would have been (AUTH-27's ``back`` set, a resync, a hello) and the
-        frame's freshness value returned; else None, nothing changed."""
-        pending = self._pending[fid]
-        fv = FreshnessVerifier(contract.FV_TX_BITS, initial={fid: pending}).search(
-            fid, counter, windows, verifies)
-        if fv is None:
-            return None
-        del self._pending[fid]
-        self._advance(fid, pending)
+    def _take_pending(self, fid: int, name: str, fv: int) -> bool:
+        """AUTH-35: a frame that failed its window verifies at ``fv`` on the input's held
+        boot advance: its sender did restart, so the advance is taken as a sync would have
+        been (AUTH-27's ``back`` set, a resync, a hello), unless what vouches for the
+        input's boots (``vouch``) does not vouch for this one: then the frame is
+        ``unsynced`` and the advance stays held (False)."""
+        boot = contract.FRESHNESS.split(fv)[0]
+        check = self._vouches.get(fid)
+        if check is not None and not check(boot):
+            self.reject("unsynced", f"{name}: verifies on a held advance to boot {boot} of "
+                        f"{contract.sender_of(name)} that nothing vouches for yet (AUTH-33: "
+                        "no price signature of that boot): not taken")
+            return False
+        self._advance(fid, self._pending.pop(fid))
         log.info("%s: %s verifies at boot %d: its sender restarted, its sync's advance "
-                 "taken (AUTH-35)", self.who, name, contract.FRESHNESS.split(fv)[0])
-        return fv
+                 "taken (AUTH-35)", self.who, name, boot)
+        return True
 
     def _advance(self, fid: int, value: int) -> None:
         """Take a boot advance to ``value`` (a sync's FV − 1): AUTH-27's undo point first.

@@ -181,6 +181,7 @@ class AgentRuntime:
                                   "keys for a signed_price scenario")
             self.price_sig = pricesig.PriceSigReceiver(public, self.io.keys.fleet_id)
             self.io.precheck(self.price_id, self._signed_price)
+            self.io.vouch(self.price_id, self._signed_boot)
         # safety limits in Q24 (docs/safety-model.md)
         self.rho_min = fx.to_fixed(cfg.rho_min, "rho_min")
         self.rho_max = fx.to_fixed(cfg.rho_max, "rho_max")
@@ -263,6 +264,13 @@ class AgentRuntime:
         assert self.price_sig is not None
         why = self.price_sig.check(f.raw)
         return None if why is None else ("unsigned_price", why)
+
+    def _signed_boot(self, boot: int) -> bool:
+        """AUTH-33, AUTH-35: a held advance of the router's price to ``boot`` is taken only
+        under a price signature of that boot or later (the router signs its boot; a key
+        holder of its node key signs nothing)."""
+        assert self.price_sig is not None
+        return self.price_sig.current is not None and self.price_sig.current.boot >= boot
 
     def _on_price(self, f: DecodedFrame, t: float) -> None:
         if not f.raw["PriceValid"]:

@@ -365,6 +365,8 @@ def mutated(kind: str, mp: pytest.MonkeyPatch) -> Iterator[None]:
         mp.setattr(controllers, "resilient_trim", _trim_smaller_weight_first)
     elif kind == "unsigned_price_taken":  # AUTH-33 broken: any ER_Price with a valid MAC
         mp.setattr(AgentRuntime, "_signed_price", lambda self, f: None)
+    elif kind == "unsigned_boot_taken":   # AUTH-33 broken: a held price advance taken
+        mp.setattr(AgentRuntime, "_signed_boot", lambda self, boot: True)  # unsigned
     elif kind == "pin_ignored":           # CMD-7 broken: a PIN counted, nothing else
         mp.setattr(AgentRuntime, "_on_command", _ignore_pin(AgentRuntime._on_command))
     else:
@@ -387,7 +389,7 @@ MUTATIONS: dict[str, list[str]] = {
     "one_freshness_window_after_a_timeout": ["price_timeout_safe"],
     "no_boot_bound": ["sync_boot_jump"],
     "no_boot_undo": ["sync_boot_jump"],
-    "no_pending_advance": ["boot_floors", "peer_restart", "sync_boot_jump"],
+    "no_pending_advance": ["boot_floors", "peer_restart", "signed_price", "sync_boot_jump"],
     "pending_never_dropped": ["sync_boot_jump"],
     "no_count_bound": ["sync_count_jump"],
     "command_kept_at_price_timeout": ["sync_count_jump"],
@@ -399,6 +401,7 @@ MUTATIONS: dict[str, list[str]] = {
     "mc_every_tick": ["event_transmit"],
     "pin_ignored": ["pin"],
     "unsigned_price_taken": ["signed_price"],
+    "unsigned_boot_taken": ["signed_price"],
 }
 
 

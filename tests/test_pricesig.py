@@ -290,6 +290,81 @@ def test_c_agents_refuse_the_forgery_bit_for_bit_as_the_python_agents(tmp_path: 
         assert "(C)" in line and "bad_signature=8" in line and "unsigned_price=" in line, line
 
 
+ROUTER_NOW: list[tuple[int, dict[str, int]]] = []  # (boot, the price it sends), observe
+
+
+def _lock_out(stolen: secoc.NodeKey) -> Callable[[float], list[can.Message]]:
+    """Two hops of agent 3's key file against the router's price, from 2 s: a price sync
+    8 boots ahead (under the router's node key, which the file holds) with the router's
+    genuine signed price replayed on its track twice, then one 16 boots ahead with the
+    same, all within 50 ms (well inside the router's sync period)."""
+    key = stolen.peers["router"]
+
+    def inject(t: float) -> list[can.Message]:
+        k = round((t - 2.0) / CASE.ts)
+        if not 0 <= k <= 4 or not ROUTER_NOW:
+            return []
+        boot, price = ROUTER_NOW[-1]
+        hop = FleetSender(CODEC, keys={"router": key}, boot=boot + (8 if k < 2 else 16))
+        if k in (0, 2):
+            return [hop.sync("ER_Price"), hop.frame("ER_Price", price)]
+        hop.follow("ER_Price", hop.boot, 0)
+        return [hop.frame("ER_Price", price)]
+    return inject
+
+
+@pytest.mark.parametrize("vouch", ["signature of the boot", "signature of the boot, in C",
+                                   "control: MAC alone"])
+def test_a_held_price_advance_needs_a_signature_of_its_boot(
+        vouch: str, tmp_path: Path, honest: np.ndarray,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """AUTH-33 with AUTH-35: a genuine price frame's ρ passes AUTH-33, so agent 3's key file
+    could complete a held advance of the router's price with it. Taken twice within the
+    router's sync period (the control, the vouch lifted), the second hop moves AUTH-27's
+    undo point past the router's boot: every agent loses the price for good (its
+    restarts would have to pass 9 boots). With the vouch, no signature of those boots
+    exists: the replayed frames are `unsynced`, no advance is taken (the second hop is
+    beyond the bound from the boot the agents are in), the router's next sync drops the
+    held one, and the dispatch is the honest run's; the same with every agent on
+    firmware_c's runtime."""
+    from firmware_py.runtime import AgentRuntime
+
+    stolen = _stolen(tmp_path)
+    ROUTER_NOW.clear()
+
+    def observe(t: float, nodes: dict[str, Any]) -> None:
+        router = nodes["router"]
+        ROUTER_NOW.append((router.io.boot, router._price_raw()))
+
+    if vouch.startswith("control"):
+        monkeypatch.setattr(AgentRuntime, "_signed_boot", lambda self, boot: True)
+    rings = secoc.Keyring.fleet(MASTER, secoc.fleet_nodes(CASE.n), signed_price=True)
+    counters: dict[str, dict[str, int]] = {}
+
+    def watch(t: float, nodes: dict[str, Any]) -> None:
+        observe(t, nodes)
+        for name, node in nodes.items():
+            counters[name] = dict(node.counters)
+
+    c_agents = tuple(range(1, CASE.n + 1)) if vouch.endswith("in C") else ()
+    m = run_in_process(CASE, tmp_path / "run", DURATION_S, channel=f"lockout-{tmp_path.name}",
+                       inject=_lock_out(stolen), observe=watch, keyrings=rings,
+                       c_agents=c_agents)
+    err, p = _final(np.genfromtxt(tmp_path / "run" / "trajectory.csv", delimiter=",",
+                                  names=True))
+    timeouts = [counters[f"agent_{i}"].get("price_timeouts", 0) for i in range(1, CASE.n + 1)]
+    if vouch.startswith("control"):
+        assert all(timeouts) and not m["verdict"]["converged"], (timeouts, m["verdict"])
+        return
+    assert not any(timeouts), timeouts
+    for i in range(1, CASE.n + 1):
+        c = counters[f"agent_{i}"]
+        assert c["unsynced"] >= 2 and c["sync_jump"] >= 2, c  # the held one dropped
+    assert err < 1e-3 and np.max(np.abs(p - honest)) < 1.0, (p, honest)
+    assert m["verdict"]["converged"], m["verdict"]
+    assert ("impersonation", "router") in {(a["kind"], a["node"]) for a in m["anomalies"]}
+
+
 def test_price_sign_key_kdf_as_documented() -> None:
     """AUTH-31: the seed is AUTH-1's KDF for 256 bits (two CMAC blocks, counters 1 and 2)
     under its own label, and its public key is what every other file holds."""

@@ -1140,8 +1140,12 @@ def sc_signed_price() -> Scenario:
         "5 bytes (sig_malformed); a new segment (its Segment bits) and its price; the old "
         "segment's price (unsigned_price) and its transfer replayed (bad_signature: older), "
         "a genuine signature of the router's previous boot (bad_signature: replay); the "
-        "segment number stepping 1 → 1000 → 2000 → 0 (each newer: mod 2048).",
-        ["AUTH-31", "AUTH-32", "AUTH-33", "PRICE-6"], extra_toml="\n[security]\n"
+        "segment number stepping 1 → 1000 → 2000 → 0 (each newer: mod 2048); a key "
+        "holder's price sync 8 boots ahead, held, and the signed price replayed on its "
+        "track: no signature of that boot vouches for it (unsynced, AUTH-33), the router's "
+        "next sync drops it; the router restarted: its price held (unsynced) until its "
+        "signature of the new boot, then taken.",
+        ["AUTH-31", "AUTH-32", "AUTH-33", "AUTH-35", "PRICE-6"], extra_toml="\n[security]\n"
         "signed_price = true\n", signed=True)
     price_id = CODEC.frame_id("ER_Price")
     nb = neighbours()
@@ -1206,6 +1210,23 @@ def sc_signed_price() -> Scenario:
         s.run(10, price=None, nbrs=nb,
               hook=lambda n, k=number: s.price(rho1, segment=k % 8) if n % 5 == 0 else None)
     s.price_sig(0, RHO, note="segment 2048 = 0 (mod 2048): newer, verified")
+    s.run(20, price=RHO, nbrs=nb)
+    boot = s.router.boot   # AUTH-33 and AUTH-35: a held price advance needs its signature
+    s.rx(s.router.sync("ER_Price", count=0, boot=boot + 8),
+         note="a key holder's price sync 8 boots ahead: held (AUTH-35)")
+    forger = Sender("router", s.router.key, boot + 8)
+    s.rx(forger.frame("ER_Price", {"PriceValid": 1, "Segment": 0, "Rho": RHO}),
+         note="the signed price replayed on the held track: no signature of that boot "
+         "(unsynced, not taken)")
+    s.run(10, price=RHO, nbrs=nb)
+    s.sync("router", "ER_Price", note="the router's sync of its boot: drops the held "
+           "advance (sync_jump)")
+    s.run(10, price=RHO, nbrs=nb)
+    s.router.restart()
+    s.sync("router", "ER_Price", note="the router restarted (boot + 1): its sync, held")
+    s.sync("router", "ER_Command")
+    s.price(RHO, note="its price before its signature of the new boot: unsynced, held")
+    s.price_sig(0, RHO, note="its signature of the new boot: verified")
     s.run(20, price=RHO, nbrs=nb)
     return s
 

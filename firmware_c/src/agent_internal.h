@@ -72,6 +72,9 @@ void bd_on_status(bd_agent *a, const bd_status_msg *m, uint32_t id, int64_t t);
  * (AUTH-33) */
 void bd_sig_page(bd_agent *a, const bd_frame *f);
 int bd_sig_price_ok(const bd_agent *a, const bd_price_msg *m);
+/* AUTH-33, AUTH-35: 1 if the signed segment held is of `boot` or later (a held advance
+ * of the router's price to that boot may be taken) */
+int bd_sig_vouches(const bd_agent *a, uint32_t boot);
 #endif
 
 #endif /* BESSDED_AGENT_INTERNAL_H */

@@ -278,6 +278,14 @@ static int authentic(bd_agent *a, bd_rx_slot *s, const bd_frame *f, uint32_t cou
     if (!found && (s->flags & BD_RX_PENDING) != 0u
         && search(a, s, f, s->pending, counter, windows, &fv)) {
         /* AUTH-35: it verifies on the held boot advance: its sender did restart */
+#if BD_SIGNED_PRICE
+        if (s == &a->rx[BD_RX_PRICE] && a->p.signed_price != 0u
+            && !bd_sig_vouches(a, fv_boot(fv))) {
+            /* AUTH-33: no price signature of that boot yet: held, not taken */
+            reject(a, BD_C_UNSYNCED, f->id);
+            return 0;
+        }
+#endif
         s->flags &= (uint8_t)~BD_RX_PENDING;
         take_advance(a, s, s->pending, s->sync_id);
         found = 1;

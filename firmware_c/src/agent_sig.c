@@ -153,6 +153,12 @@ void bd_sig_page(bd_agent *a, const bd_frame *f)
     memcpy(g->signature, sig, sizeof sig);
 }
 
+int bd_sig_vouches(const bd_agent *a, uint32_t boot)
+{
+    const bd_price_sig *g = &a->sig;
+    return g->has_current && g->current.boot >= boot;
+}
+
 int bd_sig_price_ok(const bd_agent *a, const bd_price_msg *m)
 {
     const bd_price_sig *g = &a->sig;

@@ -320,6 +320,10 @@ def read_log(path: Path, codec: FrameCodec | None = None, n: int | None = None,
     if keys and pricesig.MONITOR_PUBLIC in keys:  # signed_price: the price as agents take it
         price_sig = pricesig.PriceSigReceiver(keys[pricesig.MONITOR_PUBLIC],
                                               keys[pricesig.MONITOR_FLEET].hex())
+    if monitor is not None and price_sig is not None:  # AUTH-33: a held price advance
+        receiver = price_sig                               # is taken only when signed
+        monitor.vouches[contract.ER_PRICE_ID] = (
+            lambda boot: receiver.current is not None and receiver.current.boot >= boot)
     segment_raw: int | None = None
     segment = 0
     status_power: dict[int, float] = {}  # agent -> its status Power since the last totals

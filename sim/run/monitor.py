@@ -26,6 +26,9 @@ def cycle_or_inf(name: str, ts: float) -> float:
     return contract.cycle_s(name, ts) if contract.is_cyclic(name) else math.inf
 
 
+UNVOUCHED = -1  # Monitor._on_held: verifies on a held track nothing vouches for yet
+
+
 class Monitor:
     """Checks the MAC and freshness of every secured frame with the run's keys, as a
     receiver would (syncs included), but with a wider window: a recorder misses frames.
@@ -66,6 +69,9 @@ class Monitor:
         self.back: dict[int, int] = {}  # per secured ID: its value before its last boot advance
         # per secured ID: the value of a boot advance held until a frame verifies on it
         self.pending: dict[int, int] = {}
+        # per secured ID: whether something beyond the MAC vouches for a boot (AUTH-33:
+        # with signed_price, the router's price signature of that boot), as at the nodes
+        self.vouches: dict[int, Callable[[int], bool]] = {}
         # syncs that undid a boot advance: their sender carried on in the boot it had left
         self.undone: Counter[str] = Counter()
 
@@ -149,11 +155,12 @@ class Monitor:
             del self.pending[fid]
             self.undone[name] += 1
 
-    def _take_pending(self, f: DecodedFrame, verifies: Callable[[int], bool],
-                      t: float) -> int | None:
-        """AUTH-35: a frame that failed its window, tried on its ID's held boot advance;
-        if it verifies there, the advance is taken as the nodes take it (AUTH-27's
-        ``back`` set) and the frame's value returned."""
+    def _on_held(self, f: DecodedFrame, verifies: Callable[[int], bool],
+                 t: float) -> int | None:
+        """AUTH-35: a frame that failed its window, tried on its ID's held boot advance:
+        its value if it verifies there and the advance is taken as the nodes take it
+        (AUTH-27's ``back`` set); UNVOUCHED if it verifies there but ``vouches`` does not
+        vouch for that boot (the nodes' ``unsynced``: held still); None if neither."""
         fid, pending = f.frame_id, self.pending.get(f.frame_id)
         if pending is None:
             return None
@@ -161,6 +168,9 @@ class Monitor:
         fv = track.search(fid, f.counter, self.windows(f, t), verifies)
         if fv is None:
             return None
+        boot = contract.FRESHNESS.split(fv)[0]
+        if (check := self.vouches.get(fid)) is not None and not check(boot):
+            return UNVOUCHED
         del self.pending[fid]
         last = self.fv.last(fid)
         if fid in self.spoke or fid not in self.back:  # as the nodes (AUTH-27)
@@ -168,7 +178,7 @@ class Monitor:
             self.back[fid] = last
         self.spoke.discard(fid)
         self.fv.accept(fid, pending, frame=False)
-        self.boots[contract.sender_of(f.name)] = contract.FRESHNESS.split(fv)[0]
+        self.boots[contract.sender_of(f.name)] = boot
         return fv
 
     def windows(self, f: DecodedFrame, t: float) -> int:
@@ -195,7 +205,9 @@ class Monitor:
             return False
         fv = self.fv.search(f.frame_id, f.counter, self.windows(f, t), verifies)
         if fv is None:
-            fv = self._take_pending(f, verifies, t)
+            fv = self._on_held(f, verifies, t)
+            if fv == UNVOUCHED:
+                return False  # on a held track nothing vouches for yet: not checkable
         if fv is not None:
             self.fv.accept(f.frame_id, fv)
             self.spoke.add(f.frame_id)  # a frame since the latest boot advance
