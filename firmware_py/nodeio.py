@@ -479,9 +479,9 @@ class NodeIO:
             pending = self._pending[fid]
             fv = FreshnessVerifier(contract.FV_TX_BITS, initial={fid: pending}).search(
                 fid, frame.counter, windows, verifies)
-            if fv is not None and not self._take_pending(fid, frame.name, fv):
-                return None
             if fv is not None:
+                if not self._take_pending(fid, frame.name, fv):
+                    return None
                 last = pending  # the frame's gap counts from the advance it completed
         if fv is None:
             if self._fv.search_late(fid, frame.counter, STALE_WINDOWS, verifies):
